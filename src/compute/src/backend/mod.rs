@@ -1,0 +1,1 @@
+//! Device selection and the wgpu context (filled in by the backend work).

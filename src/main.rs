@@ -1,0 +1,4 @@
+//! The `pipeline` command-line tool.
+fn main() -> anyhow::Result<()> {
+    Ok(())
+}
