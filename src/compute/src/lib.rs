@@ -14,4 +14,5 @@
 
 pub mod backend;
 pub mod nn;
+pub mod scalar;
 pub mod splat;

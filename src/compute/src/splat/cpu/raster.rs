@@ -1,0 +1,507 @@
+//! Tile binning, front-to-back compositing and its backward pass, on the CPU.
+//!
+//! Work is split by rows of 16x16 tiles (a tile row is contiguous in the row-major image and
+//! in the sorted intersection list, so every rayon task owns disjoint slices). Inside a tile
+//! the loop runs over the tile's Gaussians, front to back, and for each over the pixels of
+//! its screen box: per pixel this is exactly the contract's per-pixel loop, in the same order.
+
+// Index loops mirror the matrix and per-channel formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
+use rayon::prelude::*;
+
+use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, SplatError, TILE_SIZE};
+use super::project::{Splat2d, TileRect};
+use crate::scalar::Scalar;
+
+const TILE_PIXELS: usize = (TILE_SIZE * TILE_SIZE) as usize;
+const TS: usize = TILE_SIZE as usize;
+
+/// Gaussian-tile intersections sorted by tile, then depth, then Gaussian index.
+#[derive(Clone, Debug, Default)]
+pub(super) struct Binning {
+    /// `tiles + 1` offsets into `tile_gaussians`.
+    pub tile_offsets: Vec<u32>,
+    /// Gaussian index of each intersection.
+    pub tile_gaussians: Vec<u32>,
+    /// `N + 1` offsets into `intersection_positions` (a Gaussian's intersections).
+    pub gaussian_offsets: Vec<u32>,
+    /// Position in `tile_gaussians` of each of a Gaussian's intersections.
+    pub intersection_positions: Vec<u32>,
+}
+
+/// Sorts the visible Gaussians' tile intersections.
+///
+/// A global sort by `(f32 depth bits, index)` followed by a stable counting scatter into the
+/// tiles gives each tile's list in the contract's order without sorting per tile. Depths are
+/// at least the near plane (positive), so their `f32` bit patterns order like the values.
+pub(super) fn bin<S: Scalar>(
+    splats: &[Splat2d<S>],
+    rects: &[TileRect],
+    tiles: usize,
+    tiles_x: u32,
+) -> Result<Binning, SplatError> {
+    let n = rects.len();
+    let mut gaussian_offsets = Vec::with_capacity(n + 1);
+    let mut total: u64 = 0;
+    gaussian_offsets.push(0);
+    for rect in rects {
+        total += rect.area();
+        if total > u64::from(u32::MAX) {
+            return Err(SplatError::TooManyIntersections {
+                count: total as usize,
+            });
+        }
+        gaussian_offsets.push(total as u32);
+    }
+    let mut order: Vec<u64> = rects
+        .par_iter()
+        .zip(splats.par_iter())
+        .enumerate()
+        .filter(|(_, (rect, _))| rect.area() > 0)
+        .map(|(index, (_, splat))| (u64::from(splat.depth.to_f32().to_bits()) << 32) | index as u64)
+        .collect();
+    order.par_sort_unstable();
+
+    let mut counts = vec![0_u32; tiles + 1];
+    for rect in rects {
+        for ty in rect.y0..rect.y1 {
+            let row = (ty * tiles_x) as usize;
+            for tx in rect.x0..rect.x1 {
+                counts[row + tx as usize + 1] += 1;
+            }
+        }
+    }
+    for t in 0..tiles {
+        counts[t + 1] += counts[t];
+    }
+    let tile_offsets = counts;
+    let mut cursor = tile_offsets[..tiles].to_vec();
+    let mut tile_gaussians = vec![0_u32; total as usize];
+    let mut intersection_positions = vec![0_u32; total as usize];
+    for key in &order {
+        let g = (*key & 0xffff_ffff) as usize;
+        let rect = rects[g];
+        let mut slot = gaussian_offsets[g] as usize;
+        for ty in rect.y0..rect.y1 {
+            let row = (ty * tiles_x) as usize;
+            for tx in rect.x0..rect.x1 {
+                let tile = row + tx as usize;
+                let position = cursor[tile];
+                cursor[tile] += 1;
+                tile_gaussians[position as usize] = g as u32;
+                intersection_positions[slot] = position;
+                slot += 1;
+            }
+        }
+    }
+    Ok(Binning {
+        tile_offsets,
+        tile_gaussians,
+        gaussian_offsets,
+        intersection_positions,
+    })
+}
+
+/// Alpha of a splat at a pixel centre offset `d = mean - q`, or `None` when skipped.
+/// Returns `(alpha, raw, gaussian)` with `raw = opacity * exp(power)` before the clamp.
+#[inline(always)]
+fn splat_alpha<S: Scalar>(splat: &Splat2d<S>, dx: S, dy: S, smooth: bool) -> Option<(S, S, S)> {
+    let [a, b, c] = splat.conic;
+    let half = S::from_f64(0.5);
+    let power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy;
+    if power > S::ZERO {
+        return None;
+    }
+    let gaussian = power.exp();
+    let raw = splat.opacity * gaussian;
+    let clamped = raw.min(S::from_f64(MAX_ALPHA));
+    let threshold = S::from_f64(ALPHA_THRESHOLD);
+    if clamped < threshold {
+        return None;
+    }
+    let alpha = if smooth {
+        clamped * smooth_step(clamped).0
+    } else {
+        clamped
+    };
+    Some((alpha, raw, gaussian))
+}
+
+/// The tests-only C1 cutoff: `s(u) = 3u^2 - 2u^3`, `u = clamp((alpha - t) / t, 0, 1)`,
+/// `t = 1/255`. Returns `(s, ds/dalpha)`.
+#[inline(always)]
+fn smooth_step<S: Scalar>(alpha: S) -> (S, S) {
+    let threshold = S::from_f64(ALPHA_THRESHOLD);
+    let u = ((alpha - threshold) / threshold).clamp(S::ZERO, S::ONE);
+    let (two, three, six) = (S::from_f64(2.0), S::from_f64(3.0), S::from_f64(6.0));
+    (
+        u * u * (three - two * u),
+        six * u * (S::ONE - u) / threshold,
+    )
+}
+
+/// Pixel range `[lo, hi)` of a tile row or column covered by a splat's box (one pixel of
+/// margin so rounding at the box edge cannot drop a pixel the contract would composite).
+#[inline(always)]
+fn box_range<S: Scalar>(mean: S, radius: S, tile_start: u32, tile_end: u32) -> (u32, u32) {
+    let (m, r) = (mean.to_f64(), radius.to_f64());
+    let lo = (m - r - 1.0)
+        .floor()
+        .clamp(f64::from(tile_start), f64::from(tile_end)) as u32;
+    let hi = (m + r + 1.0)
+        .ceil()
+        .clamp(f64::from(tile_start), f64::from(tile_end)) as u32;
+    (lo, hi)
+}
+
+/// Per-camera outputs of the forward compositing (all `H x W`, colour `H x W x 3`).
+pub(super) struct ForwardBuffers<S> {
+    pub colour: Vec<S>,
+    pub alpha: Vec<S>,
+    pub depth: Vec<S>,
+    pub pixels: PixelState<S>,
+}
+
+/// What the backward pass needs per pixel (`H x W` each).
+pub(super) struct PixelState<S> {
+    pub final_transmittance: Vec<S>,
+    /// Number of entries of the pixel's tile list up to and including its last contributor.
+    pub contributors: Vec<u32>,
+}
+
+/// Composites every tile front to back.
+pub(super) fn forward<S: Scalar>(
+    splats: &[Splat2d<S>],
+    binning: &Binning,
+    width: u32,
+    height: u32,
+    background: [S; 3],
+    smooth: bool,
+) -> ForwardBuffers<S> {
+    let (w, h) = (width as usize, height as usize);
+    let tiles_x = width.div_ceil(TILE_SIZE);
+    let mut out = ForwardBuffers {
+        colour: vec![S::ZERO; w * h * 3],
+        alpha: vec![S::ZERO; w * h],
+        depth: vec![S::ZERO; w * h],
+        pixels: PixelState {
+            final_transmittance: vec![S::ZERO; w * h],
+            contributors: vec![0; w * h],
+        },
+    };
+    let rows = TS * w;
+    out.colour
+        .par_chunks_mut(rows * 3)
+        .zip(out.alpha.par_chunks_mut(rows))
+        .zip(out.depth.par_chunks_mut(rows))
+        .zip(out.pixels.final_transmittance.par_chunks_mut(rows))
+        .zip(out.pixels.contributors.par_chunks_mut(rows))
+        .enumerate()
+        .for_each(
+            |(ty, ((((colour, alpha), depth), transmittance), contributors))| {
+                let mut state = TileState::<S>::new();
+                let y_start = ty as u32 * TILE_SIZE;
+                let y_end = (y_start + TILE_SIZE).min(height);
+                for tx in 0..tiles_x {
+                    let tile = (ty as u32 * tiles_x + tx) as usize;
+                    let list = &binning.tile_gaussians[binning.tile_offsets[tile] as usize
+                        ..binning.tile_offsets[tile + 1] as usize];
+                    let x_start = tx * TILE_SIZE;
+                    let x_end = (x_start + TILE_SIZE).min(width);
+                    state.composite(splats, list, [x_start, x_end, y_start, y_end], smooth);
+                    for py in y_start..y_end {
+                        for px in x_start..x_end {
+                            let local = ((py - y_start) as usize) * TS + (px - x_start) as usize;
+                            let out_index = (py - y_start) as usize * w + px as usize;
+                            let t = state.transmittance[local];
+                            for ch in 0..3 {
+                                colour[3 * out_index + ch] =
+                                    state.colour[local][ch] + t * background[ch];
+                            }
+                            alpha[out_index] = S::ONE - t;
+                            depth[out_index] = state.depth[local];
+                            transmittance[out_index] = t;
+                            contributors[out_index] = state.contributors[local];
+                        }
+                    }
+                }
+            },
+        );
+    out
+}
+
+/// Per-pixel compositing state of one tile.
+struct TileState<S> {
+    transmittance: [S; TILE_PIXELS],
+    colour: [[S; 3]; TILE_PIXELS],
+    depth: [S; TILE_PIXELS],
+    contributors: [u32; TILE_PIXELS],
+    done: [bool; TILE_PIXELS],
+}
+
+impl<S: Scalar> TileState<S> {
+    fn new() -> Box<Self> {
+        Box::new(Self {
+            transmittance: [S::ONE; TILE_PIXELS],
+            colour: [[S::ZERO; 3]; TILE_PIXELS],
+            depth: [S::ZERO; TILE_PIXELS],
+            contributors: [0; TILE_PIXELS],
+            done: [false; TILE_PIXELS],
+        })
+    }
+
+    /// `bounds = [x_start, x_end, y_start, y_end]` in pixels.
+    fn composite(&mut self, splats: &[Splat2d<S>], list: &[u32], bounds: [u32; 4], smooth: bool) {
+        let [x_start, x_end, y_start, y_end] = bounds;
+        self.transmittance.fill(S::ONE);
+        self.colour.fill([S::ZERO; 3]);
+        self.depth.fill(S::ZERO);
+        self.contributors.fill(0);
+        self.done.fill(false);
+        let mut active = ((x_end - x_start) * (y_end - y_start)) as usize;
+        let t_min = S::from_f64(MIN_TRANSMITTANCE);
+        let half = S::from_f64(0.5);
+        for (j, &g) in list.iter().enumerate() {
+            if active == 0 {
+                break;
+            }
+            let splat = &splats[g as usize];
+            let (x0, x1) = box_range(splat.mean[0], splat.radius[0], x_start, x_end);
+            let (y0, y1) = box_range(splat.mean[1], splat.radius[1], y_start, y_end);
+            for py in y0..y1 {
+                let dy = splat.mean[1] - (S::from_u32(py) + half);
+                let row = (py - y_start) as usize * TS;
+                for px in x0..x1 {
+                    let local = row + (px - x_start) as usize;
+                    if self.done[local] {
+                        continue;
+                    }
+                    let dx = splat.mean[0] - (S::from_u32(px) + half);
+                    let Some((alpha, _, _)) = splat_alpha(splat, dx, dy, smooth) else {
+                        continue;
+                    };
+                    let t = self.transmittance[local];
+                    let t_next = t * (S::ONE - alpha);
+                    if t_next <= t_min {
+                        self.done[local] = true;
+                        active -= 1;
+                        continue;
+                    }
+                    let weight = alpha * t;
+                    let c = &mut self.colour[local];
+                    for ch in 0..3 {
+                        c[ch] += weight * splat.colour[ch];
+                    }
+                    self.depth[local] += weight * splat.depth;
+                    self.transmittance[local] = t_next;
+                    self.contributors[local] = j as u32 + 1;
+                }
+            }
+        }
+    }
+}
+
+/// Upstream gradients of one camera, already validated.
+pub(super) struct Upstream<'a, S> {
+    pub colour: &'a [S],
+    pub alpha: Option<&'a [S]>,
+    pub depth: Option<&'a [S]>,
+}
+
+/// Gradient of one intersection: `mean (2), conic (3), opacity, colour (3), depth`.
+pub(super) type Slot<S> = [S; 10];
+
+/// Walks every tile back to front and writes each intersection's gradient into its slot.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn backward<S: Scalar>(
+    splats: &[Splat2d<S>],
+    binning: &Binning,
+    buffers: &PixelState<S>,
+    upstream: &Upstream<'_, S>,
+    width: u32,
+    height: u32,
+    background: [S; 3],
+    smooth: bool,
+) -> Vec<Slot<S>> {
+    let w = width as usize;
+    let tiles_x = width.div_ceil(TILE_SIZE);
+    let tiles_y = height.div_ceil(TILE_SIZE);
+    let mut slots = vec![[S::ZERO; 10]; binning.tile_gaussians.len()];
+    // Split the slots by tile row so each task owns its rows' intersections.
+    let mut row_slots: Vec<(usize, &mut [Slot<S>])> = Vec::with_capacity(tiles_y as usize);
+    let mut rest: &mut [Slot<S>] = &mut slots;
+    for ty in 0..tiles_y {
+        let start = binning.tile_offsets[(ty * tiles_x) as usize] as usize;
+        let end = binning.tile_offsets[((ty + 1) * tiles_x) as usize] as usize;
+        let (head, tail) = rest.split_at_mut(end - start);
+        row_slots.push((ty as usize, head));
+        rest = tail;
+    }
+    row_slots.into_par_iter().for_each(|(ty, row_slots)| {
+        let mut state = BackwardState::<S>::new();
+        let row_base = binning.tile_offsets[ty * tiles_x as usize] as usize;
+        let y_start = ty as u32 * TILE_SIZE;
+        let y_end = (y_start + TILE_SIZE).min(height);
+        for tx in 0..tiles_x {
+            let tile = ty * tiles_x as usize + tx as usize;
+            let (begin, end) = (
+                binning.tile_offsets[tile] as usize,
+                binning.tile_offsets[tile + 1] as usize,
+            );
+            let x_start = tx * TILE_SIZE;
+            let x_end = (x_start + TILE_SIZE).min(width);
+            state.load(
+                buffers,
+                upstream,
+                [x_start, x_end, y_start, y_end],
+                w,
+                background,
+            );
+            state.walk(
+                splats,
+                &binning.tile_gaussians[begin..end],
+                &mut row_slots[begin - row_base..end - row_base],
+                [x_start, x_end, y_start, y_end],
+                smooth,
+            );
+        }
+    });
+    slots
+}
+
+/// Per-pixel state of the backward walk over one tile.
+struct BackwardState<S> {
+    /// Transmittance after the Gaussian being visited (divided back one step at a time).
+    transmittance: [S; TILE_PIXELS],
+    final_transmittance: [S; TILE_PIXELS],
+    /// `sum_{j > i} c_j alpha_j T_j + T_final background`, per channel.
+    colour_behind: [[S; 3]; TILE_PIXELS],
+    /// `sum_{j > i} z_j alpha_j T_j`.
+    depth_behind: [S; TILE_PIXELS],
+    contributors: [u32; TILE_PIXELS],
+    d_colour: [[S; 3]; TILE_PIXELS],
+    d_alpha: [S; TILE_PIXELS],
+    d_depth: [S; TILE_PIXELS],
+    max_contributors: u32,
+}
+
+impl<S: Scalar> BackwardState<S> {
+    fn new() -> Box<Self> {
+        Box::new(Self {
+            transmittance: [S::ONE; TILE_PIXELS],
+            final_transmittance: [S::ONE; TILE_PIXELS],
+            colour_behind: [[S::ZERO; 3]; TILE_PIXELS],
+            depth_behind: [S::ZERO; TILE_PIXELS],
+            contributors: [0; TILE_PIXELS],
+            d_colour: [[S::ZERO; 3]; TILE_PIXELS],
+            d_alpha: [S::ZERO; TILE_PIXELS],
+            d_depth: [S::ZERO; TILE_PIXELS],
+            max_contributors: 0,
+        })
+    }
+
+    fn load(
+        &mut self,
+        buffers: &PixelState<S>,
+        upstream: &Upstream<'_, S>,
+        bounds: [u32; 4],
+        width: usize,
+        background: [S; 3],
+    ) {
+        let [x_start, x_end, y_start, y_end] = bounds;
+        self.max_contributors = 0;
+        for py in y_start..y_end {
+            for px in x_start..x_end {
+                let local = (py - y_start) as usize * TS + (px - x_start) as usize;
+                let index = py as usize * width + px as usize;
+                let t = buffers.final_transmittance[index];
+                self.transmittance[local] = t;
+                self.final_transmittance[local] = t;
+                self.colour_behind[local] = background.map(|b| t * b);
+                self.depth_behind[local] = S::ZERO;
+                self.contributors[local] = buffers.contributors[index];
+                self.max_contributors = self.max_contributors.max(buffers.contributors[index]);
+                self.d_colour[local] = std::array::from_fn(|ch| upstream.colour[3 * index + ch]);
+                self.d_alpha[local] = upstream.alpha.map_or(S::ZERO, |a| a[index]);
+                self.d_depth[local] = upstream.depth.map_or(S::ZERO, |d| d[index]);
+            }
+        }
+    }
+
+    fn walk(
+        &mut self,
+        splats: &[Splat2d<S>],
+        list: &[u32],
+        slots: &mut [Slot<S>],
+        bounds: [u32; 4],
+        smooth: bool,
+    ) {
+        let [x_start, x_end, y_start, y_end] = bounds;
+        let half = S::from_f64(0.5);
+        let max_alpha = S::from_f64(MAX_ALPHA);
+        let zero = S::ZERO;
+        for j in (0..self.max_contributors as usize).rev() {
+            let splat = &splats[list[j] as usize];
+            let (x0, x1) = box_range(splat.mean[0], splat.radius[0], x_start, x_end);
+            let (y0, y1) = box_range(splat.mean[1], splat.radius[1], y_start, y_end);
+            let [ca, cb, cc] = splat.conic;
+            let mut grad = [zero; 10];
+            for py in y0..y1 {
+                let dy = splat.mean[1] - (S::from_u32(py) + half);
+                let row = (py - y_start) as usize * TS;
+                for px in x0..x1 {
+                    let local = row + (px - x_start) as usize;
+                    if j as u32 >= self.contributors[local] {
+                        continue;
+                    }
+                    let dx = splat.mean[0] - (S::from_u32(px) + half);
+                    let Some((alpha, raw, gaussian)) = splat_alpha(splat, dx, dy, smooth) else {
+                        continue;
+                    };
+                    let one_minus = S::ONE - alpha;
+                    let inv_one_minus = S::ONE / one_minus;
+                    let t = self.transmittance[local] * inv_one_minus;
+                    let weight = alpha * t;
+                    let dc = self.d_colour[local];
+                    let behind = self.colour_behind[local];
+                    let mut d_alpha = zero;
+                    for ch in 0..3 {
+                        grad[6 + ch] += weight * dc[ch];
+                        d_alpha += dc[ch] * (splat.colour[ch] * t - behind[ch] * inv_one_minus);
+                    }
+                    d_alpha +=
+                        self.d_alpha[local] * self.final_transmittance[local] * inv_one_minus;
+                    let dd = self.d_depth[local];
+                    d_alpha += dd * (splat.depth * t - self.depth_behind[local] * inv_one_minus);
+                    grad[9] += weight * dd;
+                    for ch in 0..3 {
+                        self.colour_behind[local][ch] += weight * splat.colour[ch];
+                    }
+                    self.depth_behind[local] += weight * splat.depth;
+                    self.transmittance[local] = t;
+
+                    // Through the smooth cutoff (tests only) and the 0.99 clamp.
+                    let d_raw = if smooth {
+                        let clamped = raw.min(max_alpha);
+                        let (s, ds) = smooth_step(clamped);
+                        d_alpha * (s + clamped * ds)
+                    } else {
+                        d_alpha
+                    };
+                    if raw >= max_alpha {
+                        continue;
+                    }
+                    grad[5] += d_raw * gaussian;
+                    let d_power = d_raw * raw;
+                    grad[2] -= half * dx * dx * d_power;
+                    grad[3] -= dx * dy * d_power;
+                    grad[4] -= half * dy * dy * d_power;
+                    grad[0] -= (ca * dx + cb * dy) * d_power;
+                    grad[1] -= (cb * dx + cc * dy) * d_power;
+                }
+            }
+            slots[j] = grad;
+        }
+    }
+}
