@@ -1,0 +1,1182 @@
+//! The `gpu` twins of the dense-layer, positional-encoding and Adam operations (f32, WGSL).
+//!
+//! [`NnGpu`] compiles the kernels of `shaders/nn_*.wgsl` once for a device and records work
+//! into a caller's `wgpu::CommandEncoder`, so a training step is one submission. Buffers are
+//! the caller's: storage buffers of f32 in the layouts of the [`nn`](crate::nn) module. Every
+//! operation here has a `cpu` twin with the same name and the same conventions, and a parity
+//! test. One difference: [`NnGpu::linear_backward`] leaves `d_output` untouched (the ReLU mask
+//! is applied while loading), where the `cpu` version masks it in place.
+//!
+//! The matrix product is one tiled kernel (`nn_matmul.wgsl`, 64 x 64 output tiles, shared
+//! memory, fused bias and ReLU); backward reads `W` or `X` transposed through strides. The
+//! weight gradient sums over all rows, which leaves few output tiles for a large reduction,
+//! so it is split along the rows into partial products in a scratch buffer, then summed in
+//! order by `nn_reduce.wgsl` (no float atomics, deterministic).
+
+use std::sync::Mutex;
+
+use wgpu::util::DeviceExt;
+
+use super::NnError;
+use super::adam::{AdamConfig, AdamStepFactors};
+use super::encoding::PositionalEncoding;
+use super::linear::{Activation, LinearShape};
+
+const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
+const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
+const ADAM_WGSL: &str = include_str!("../../../../shaders/nn_adam.wgsl");
+const POSENC_WGSL: &str = include_str!("../../../../shaders/nn_posenc.wgsl");
+
+/// Output tile edge of the matrix kernel (rows and columns), as in `nn_matmul.wgsl`.
+const TILE: usize = 64;
+/// Reduction step of the matrix kernel; k slices are multiples of it.
+const TILE_K: usize = 16;
+/// Enough workgroups to fill a large GPU; the weight-gradient split aims for this many.
+const TARGET_WORKGROUPS: usize = 512;
+/// Rows summed by one workgroup of `column_sums`.
+const COLUMN_SUM_ROWS: usize = 256;
+
+// Bits of the matrix kernel's flags, as in `nn_matmul.wgsl`.
+const ACCUMULATE: u32 = 1;
+const ADD_BIAS: u32 = 2;
+const RELU: u32 = 4;
+const MASK_A: u32 = 8;
+const MASK_B: u32 = 16;
+
+/// One input block of a layer on the gpu: a `rows x cols` f32 storage buffer.
+#[derive(Clone, Copy, Debug)]
+pub struct GpuInputPart<'a> {
+    /// The matrix, row-major, starting at offset 0.
+    pub buffer: &'a wgpu::Buffer,
+    /// Its number of columns.
+    pub cols: usize,
+}
+
+/// Where the gradient with respect to one input part goes.
+#[derive(Clone, Copy, Debug)]
+pub enum GpuInputGrad<'a> {
+    /// Not needed.
+    Skip,
+    /// Overwrite this `rows x cols` buffer.
+    Write(&'a wgpu::Buffer),
+    /// Add into this `rows x cols` buffer.
+    Accumulate(&'a wgpu::Buffer),
+}
+
+/// A layer's parameter-gradient buffers (accumulated into).
+#[derive(Clone, Copy, Debug)]
+pub struct GpuLinearGrads<'a> {
+    /// `in x out`.
+    pub weight: &'a wgpu::Buffer,
+    /// `out`.
+    pub bias: &'a wgpu::Buffer,
+}
+
+/// A compiled kernel and its bind-group layout (derived from the shader).
+#[derive(Debug)]
+struct Kernel {
+    name: &'static str,
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+/// A strided operand of the matrix kernel: element `(i, j)` at
+/// `offset + i * row_stride + j * col_stride`.
+#[derive(Clone, Copy)]
+struct Operand<'a> {
+    buffer: &'a wgpu::Buffer,
+    offset: usize,
+    row_stride: usize,
+    col_stride: usize,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct MatmulParams {
+    m: u32,
+    n: u32,
+    k: u32,
+    flags: u32,
+    a_offset: u32,
+    a_row_stride: u32,
+    a_col_stride: u32,
+    b_offset: u32,
+    b_row_stride: u32,
+    b_col_stride: u32,
+    c_offset: u32,
+    c_row_stride: u32,
+    k_per_split: u32,
+    m_tiles: u32,
+    split_stride: u32,
+    pad: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct AdamParams {
+    len: u32,
+    groups_x: u32,
+    beta1: f32,
+    beta2: f32,
+    one_minus_beta1: f32,
+    one_minus_beta2: f32,
+    eps: f32,
+    step_size: f32,
+    correction: f32,
+    pad: [u32; 3],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PosencParams {
+    rows: u32,
+    in_features: u32,
+    frequencies: u32,
+    include_input: u32,
+    groups_x: u32,
+    pad: [u32; 3],
+}
+
+/// The dense-network kernels compiled for one device.
+#[derive(Debug)]
+pub struct NnGpu {
+    device: wgpu::Device,
+    matmul: Kernel,
+    column_sums: Kernel,
+    accumulate_partials: Kernel,
+    adam: Kernel,
+    posenc_forward: Kernel,
+    posenc_backward: Kernel,
+    /// Bound to read-only slots a dispatch does not use.
+    placeholder: wgpu::Buffer,
+    /// Partial sums of the split reductions; grown on demand, reused across calls (commands
+    /// run in order, so one region serves every reduction of a step).
+    scratch: Mutex<Option<wgpu::Buffer>>,
+    max_binding_bytes: u64,
+    max_groups_per_dimension: u32,
+}
+
+fn to_u32(what: &str, value: usize) -> Result<u32, NnError> {
+    u32::try_from(value).map_err(|_| {
+        NnError::Gpu(format!(
+            "{what} = {value} does not fit the kernels' 32-bit indices"
+        ))
+    })
+}
+
+impl NnGpu {
+    /// Compiles every kernel for `device`.
+    pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
+        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
+            let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(name),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                cache: None,
+            });
+            if let Some(error) = pollster::block_on(scope.pop()) {
+                return Err(NnError::Gpu(format!("kernel {name}: {error}")));
+            }
+            let layout = pipeline.get_bind_group_layout(0);
+            Ok(Kernel {
+                name,
+                pipeline,
+                layout,
+            })
+        };
+        let limits = device.limits();
+        Ok(NnGpu {
+            device: device.clone(),
+            matmul: compile("nn_matmul", MATMUL_WGSL, "main")?,
+            column_sums: compile("nn_column_sums", REDUCE_WGSL, "column_sums")?,
+            accumulate_partials: compile(
+                "nn_accumulate_partials",
+                REDUCE_WGSL,
+                "accumulate_partials",
+            )?,
+            adam: compile("nn_adam", ADAM_WGSL, "main")?,
+            posenc_forward: compile("nn_posenc_forward", POSENC_WGSL, "forward")?,
+            posenc_backward: compile("nn_posenc_backward", POSENC_WGSL, "backward")?,
+            placeholder: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("nn placeholder"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            }),
+            scratch: Mutex::new(None),
+            max_binding_bytes: limits
+                .max_storage_buffer_binding_size
+                .min(limits.max_buffer_size),
+            max_groups_per_dimension: limits.max_compute_workgroups_per_dimension,
+        })
+    }
+
+    /// Checks that `buffer` holds at least `elements` f32 values and can be bound whole.
+    fn check_buffer(
+        &self,
+        operand: &str,
+        buffer: &wgpu::Buffer,
+        elements: usize,
+    ) -> Result<(), NnError> {
+        let available = (buffer.size() / 4) as usize;
+        if available < elements {
+            return Err(NnError::Length {
+                operand: operand.to_owned(),
+                expected: elements,
+                actual: available,
+            });
+        }
+        if buffer.size() > self.max_binding_bytes {
+            return Err(NnError::Gpu(format!(
+                "{operand}: buffer of {} bytes exceeds the device's binding limit of {} bytes",
+                buffer.size(),
+                self.max_binding_bytes
+            )));
+        }
+        Ok(())
+    }
+
+    /// A scratch buffer of at least `elements` f32 values.
+    fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
+        let bytes = (elements.max(4) * 4) as u64;
+        if bytes > self.max_binding_bytes {
+            return Err(NnError::Gpu(format!(
+                "reduction scratch of {bytes} bytes exceeds the device's binding limit of {} bytes",
+                self.max_binding_bytes
+            )));
+        }
+        let mut slot = self
+            .scratch
+            .lock()
+            .map_err(|_| NnError::Gpu("scratch lock poisoned".into()))?;
+        match &*slot {
+            Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
+            _ => {
+                let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("nn reduction scratch"),
+                    size: bytes
+                        .next_power_of_two()
+                        .min(self.max_binding_bytes.max(bytes)),
+                    usage: wgpu::BufferUsages::STORAGE,
+                    mapped_at_creation: false,
+                });
+                *slot = Some(buffer.clone());
+                Ok(buffer)
+            }
+        }
+    }
+
+    /// Records one dispatch of an `x` by `y` grid with a fresh uniform block.
+    fn dispatch(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        params: &[u8],
+        bindings: &[(u32, &wgpu::Buffer)],
+        x: u32,
+        y: u32,
+    ) {
+        if x == 0 || y == 0 {
+            return;
+        }
+        let uniform = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(kernel.name),
+                contents: params,
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+        let mut entries = vec![wgpu::BindGroupEntry {
+            binding: 0,
+            resource: uniform.as_entire_binding(),
+        }];
+        entries.extend(
+            bindings
+                .iter()
+                .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                    binding: *binding,
+                    resource: buffer.as_entire_binding(),
+                }),
+        );
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(kernel.name),
+            layout: &kernel.layout,
+            entries: &entries,
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(kernel.name),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&kernel.pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
+    fn grid(&self, workgroups: usize) -> Result<(u32, u32), NnError> {
+        let max = self.max_groups_per_dimension.max(1) as usize;
+        let y = workgroups.div_ceil(max).max(1);
+        let x = workgroups.div_ceil(y);
+        if y > max {
+            return Err(NnError::Gpu(format!(
+                "{workgroups} workgroups exceed the device's grid"
+            )));
+        }
+        Ok((to_u32("workgroups", x)?, to_u32("workgroups", y)?))
+    }
+
+    /// `C (+)= A (m x k) * B (k x n)` with the given flags; C row-major at `c_offset`.
+    #[allow(clippy::too_many_arguments)]
+    fn matmul(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        (m, n, k): (usize, usize, usize),
+        a: Operand<'_>,
+        b: Operand<'_>,
+        mask: Option<&wgpu::Buffer>,
+        bias: Option<&wgpu::Buffer>,
+        c: &wgpu::Buffer,
+        c_offset: usize,
+        flags: u32,
+    ) -> Result<(), NnError> {
+        if m == 0 || n == 0 {
+            return Ok(());
+        }
+        let m_tiles = m.div_ceil(TILE);
+        let n_tiles = n.div_ceil(TILE);
+        // Split along k when the output has few tiles and the reduction is long (the weight
+        // gradient); partials go to scratch and are summed in order afterwards.
+        let tiles = m_tiles * n_tiles;
+        let epilogue = flags & (ADD_BIAS | RELU) != 0;
+        let mut splits = if epilogue {
+            1
+        } else {
+            TARGET_WORKGROUPS
+                .div_ceil(tiles)
+                .min(k.div_ceil(256))
+                .max(1)
+        };
+        let max_scratch_splits = (self.max_binding_bytes as usize / 4) / (m * n).max(1);
+        splits = splits.min(max_scratch_splits.max(1));
+        let k_per_split = k.div_ceil(splits).div_ceil(TILE_K).max(1) * TILE_K;
+        let splits = k.div_ceil(k_per_split).max(1);
+        let groups_y = m_tiles * splits;
+        if groups_y > self.max_groups_per_dimension as usize
+            || n_tiles > self.max_groups_per_dimension as usize
+        {
+            return Err(NnError::Gpu(format!(
+                "a {m} x {n} product needs a {n_tiles} x {groups_y} grid, beyond the device limit {}",
+                self.max_groups_per_dimension
+            )));
+        }
+        let scratch = if splits > 1 {
+            Some(self.scratch(splits * m * n)?)
+        } else {
+            None
+        };
+        let (target, target_offset, kernel_flags) = match &scratch {
+            None => (c, c_offset, flags),
+            Some(partials) => (partials, 0, flags & !ACCUMULATE),
+        };
+        let params = MatmulParams {
+            m: to_u32("rows", m)?,
+            n: to_u32("columns", n)?,
+            k: to_u32("reduction length", k)?,
+            flags: kernel_flags,
+            a_offset: to_u32("offset", a.offset)?,
+            a_row_stride: to_u32("stride", a.row_stride)?,
+            a_col_stride: to_u32("stride", a.col_stride)?,
+            b_offset: to_u32("offset", b.offset)?,
+            b_row_stride: to_u32("stride", b.row_stride)?,
+            b_col_stride: to_u32("stride", b.col_stride)?,
+            c_offset: to_u32("offset", target_offset)?,
+            c_row_stride: to_u32("columns", n)?,
+            k_per_split: to_u32("k slice", k_per_split)?,
+            m_tiles: to_u32("tiles", m_tiles)?,
+            split_stride: to_u32("partial size", if splits == 1 { 0 } else { m * n })?,
+            pad: 0,
+        };
+        let mask = mask.unwrap_or(&self.placeholder);
+        let bias = bias.unwrap_or(&self.placeholder);
+        self.dispatch(
+            encoder,
+            &self.matmul,
+            bytemuck::bytes_of(&params),
+            &[
+                (1, a.buffer),
+                (2, b.buffer),
+                (3, mask),
+                (4, bias),
+                (5, target),
+            ],
+            to_u32("tiles", n_tiles)?,
+            to_u32("tiles", groups_y)?,
+        );
+        if let Some(partials) = &scratch {
+            self.accumulate_into(
+                encoder,
+                partials,
+                splits,
+                m * n,
+                c,
+                c_offset,
+                flags & ACCUMULATE != 0,
+            )?;
+        }
+        Ok(())
+    }
+
+    /// `destination[offset + i] (+)= sum_s partials[s * len + i]`.
+    #[allow(clippy::too_many_arguments)]
+    fn accumulate_into(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        partials: &wgpu::Buffer,
+        slices: usize,
+        len: usize,
+        destination: &wgpu::Buffer,
+        offset: usize,
+        accumulate: bool,
+    ) -> Result<(), NnError> {
+        let (x, y) = self.grid(len.div_ceil(256))?;
+        let params = [
+            to_u32("length", len)?,
+            to_u32("slices", slices)?,
+            to_u32("offset", offset)?,
+            x,
+            u32::from(accumulate),
+            0,
+            0,
+            0,
+        ];
+        self.dispatch(
+            encoder,
+            &self.accumulate_partials,
+            bytemuck::bytes_of(&params),
+            &[(1, partials), (3, destination)],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
+    fn check_layer(
+        &self,
+        shape: LinearShape,
+        weight: &wgpu::Buffer,
+        inputs: &[GpuInputPart<'_>],
+        rows: usize,
+    ) -> Result<(), NnError> {
+        if shape.in_features == 0 || shape.out_features == 0 {
+            return Err(NnError::Shape {
+                operand: "linear layer".into(),
+                message: format!(
+                    "in_features ({}) and out_features ({}) must be positive",
+                    shape.in_features, shape.out_features
+                ),
+            });
+        }
+        let total: usize = inputs.iter().map(|part| part.cols).sum();
+        if total != shape.in_features || inputs.iter().any(|part| part.cols == 0) {
+            return Err(NnError::Shape {
+                operand: "linear input".into(),
+                message: format!(
+                    "input part widths {:?} must be positive and sum to in_features = {}",
+                    inputs.iter().map(|part| part.cols).collect::<Vec<_>>(),
+                    shape.in_features
+                ),
+            });
+        }
+        self.check_buffer("linear weight", weight, shape.weight_len())?;
+        for (index, part) in inputs.iter().enumerate() {
+            self.check_buffer(
+                &format!("linear input part {index}"),
+                part.buffer,
+                rows * part.cols,
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Records `output = act(concat(inputs) W + b)` (`rows x out`, overwritten).
+    #[allow(clippy::too_many_arguments)]
+    pub fn linear_forward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        shape: LinearShape,
+        weight: &wgpu::Buffer,
+        bias: &wgpu::Buffer,
+        inputs: &[GpuInputPart<'_>],
+        rows: usize,
+        output: &wgpu::Buffer,
+    ) -> Result<(), NnError> {
+        self.check_layer(shape, weight, inputs, rows)?;
+        let out = shape.out_features;
+        self.check_buffer("linear bias", bias, out)?;
+        self.check_buffer("linear output", output, rows * out)?;
+        let mut weight_row = 0;
+        for (index, part) in inputs.iter().enumerate() {
+            let last = index + 1 == inputs.len();
+            let mut flags = if index > 0 { ACCUMULATE } else { 0 };
+            if last {
+                flags |= ADD_BIAS;
+                if shape.activation == Activation::Relu {
+                    flags |= RELU;
+                }
+            }
+            self.matmul(
+                encoder,
+                (rows, out, part.cols),
+                Operand {
+                    buffer: part.buffer,
+                    offset: 0,
+                    row_stride: part.cols,
+                    col_stride: 1,
+                },
+                Operand {
+                    buffer: weight,
+                    offset: weight_row * out,
+                    row_stride: out,
+                    col_stride: 1,
+                },
+                None,
+                Some(bias),
+                output,
+                0,
+                flags,
+            )?;
+            weight_row += part.cols;
+        }
+        Ok(())
+    }
+
+    /// Records the backward of [`NnGpu::linear_forward`]: parameter gradients accumulated into
+    /// `grads`, input gradients per `d_inputs`. `output` is the forward output (ReLU mask);
+    /// `d_output = dL/dY` is only read.
+    #[allow(clippy::too_many_arguments)]
+    pub fn linear_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        shape: LinearShape,
+        weight: &wgpu::Buffer,
+        inputs: &[GpuInputPart<'_>],
+        rows: usize,
+        output: &wgpu::Buffer,
+        d_output: &wgpu::Buffer,
+        grads: GpuLinearGrads<'_>,
+        d_inputs: &[GpuInputGrad<'_>],
+    ) -> Result<(), NnError> {
+        self.check_layer(shape, weight, inputs, rows)?;
+        let out = shape.out_features;
+        self.check_buffer("linear output", output, rows * out)?;
+        self.check_buffer("linear output gradient", d_output, rows * out)?;
+        self.check_buffer("linear weight gradient", grads.weight, shape.weight_len())?;
+        self.check_buffer("linear bias gradient", grads.bias, out)?;
+        if d_inputs.len() != inputs.len() {
+            return Err(NnError::Shape {
+                operand: "linear input gradients".into(),
+                message: format!(
+                    "{} entries for {} input parts",
+                    d_inputs.len(),
+                    inputs.len()
+                ),
+            });
+        }
+        for (index, (part, grad)) in inputs.iter().zip(d_inputs).enumerate() {
+            if let GpuInputGrad::Write(buffer) | GpuInputGrad::Accumulate(buffer) = grad {
+                self.check_buffer(
+                    &format!("linear input part {index} gradient"),
+                    buffer,
+                    rows * part.cols,
+                )?;
+            }
+        }
+        let relu = shape.activation == Activation::Relu;
+        let mask = relu.then_some(output);
+
+        // Bias gradient: masked column sums by row chunks, then summed in order.
+        if rows > 0 {
+            let chunks = rows.div_ceil(COLUMN_SUM_ROWS);
+            let scratch = self.scratch(chunks * out)?;
+            let params = [
+                to_u32("rows", rows)?,
+                to_u32("columns", out)?,
+                COLUMN_SUM_ROWS as u32,
+                u32::from(relu),
+                0,
+                0,
+                0,
+                0,
+            ];
+            let groups_y = to_u32("row chunks", chunks)?;
+            if groups_y > self.max_groups_per_dimension {
+                return Err(NnError::Gpu(format!(
+                    "{rows} rows exceed the column-sum grid"
+                )));
+            }
+            self.dispatch(
+                encoder,
+                &self.column_sums,
+                bytemuck::bytes_of(&params),
+                &[
+                    (1, d_output),
+                    (2, mask.unwrap_or(&self.placeholder)),
+                    (3, &scratch),
+                ],
+                to_u32("column groups", out.div_ceil(64))?,
+                groups_y,
+            );
+            self.accumulate_into(encoder, &scratch, chunks, out, grads.bias, 0, true)?;
+        }
+
+        let masked = if relu { MASK_B } else { 0 };
+        let mut weight_row = 0;
+        for (part, d_input) in inputs.iter().zip(d_inputs) {
+            let cols = part.cols;
+            // dW_part += X_part^T dY' (cols x rows times rows x out).
+            self.matmul(
+                encoder,
+                (cols, out, rows),
+                Operand {
+                    buffer: part.buffer,
+                    offset: 0,
+                    row_stride: 1,
+                    col_stride: cols,
+                },
+                Operand {
+                    buffer: d_output,
+                    offset: 0,
+                    row_stride: out,
+                    col_stride: 1,
+                },
+                mask,
+                None,
+                grads.weight,
+                weight_row * out,
+                ACCUMULATE | masked,
+            )?;
+            // dX_part (+)= dY' W_part^T (rows x out times out x cols).
+            let (target, accumulate) = match d_input {
+                GpuInputGrad::Skip => (None, false),
+                GpuInputGrad::Write(buffer) => (Some(*buffer), false),
+                GpuInputGrad::Accumulate(buffer) => (Some(*buffer), true),
+            };
+            if let Some(target) = target {
+                self.matmul(
+                    encoder,
+                    (rows, cols, out),
+                    Operand {
+                        buffer: d_output,
+                        offset: 0,
+                        row_stride: out,
+                        col_stride: 1,
+                    },
+                    Operand {
+                        buffer: weight,
+                        offset: weight_row * out,
+                        row_stride: 1,
+                        col_stride: out,
+                    },
+                    mask,
+                    None,
+                    target,
+                    0,
+                    if accumulate { ACCUMULATE } else { 0 } | if relu { MASK_A } else { 0 },
+                )?;
+            }
+            weight_row += cols;
+        }
+        Ok(())
+    }
+
+    /// Records one Adam update of `len` values at rate `lr`, `t` being the 1-based index of
+    /// this update (the `cpu` twin is [`adam_update`](super::adam::adam_update)).
+    #[allow(clippy::too_many_arguments)]
+    pub fn adam_update(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        config: &AdamConfig,
+        lr: f64,
+        t: u64,
+        params: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        first_moment: &wgpu::Buffer,
+        second_moment: &wgpu::Buffer,
+        len: usize,
+    ) -> Result<(), NnError> {
+        config.validate()?;
+        self.check_buffer("adam parameters", params, len)?;
+        self.check_buffer("adam gradient", grads, len)?;
+        self.check_buffer("adam first moment", first_moment, len)?;
+        self.check_buffer("adam second moment", second_moment, len)?;
+        let factors = AdamStepFactors::new(config, lr, t);
+        let (x, y) = self.grid(len.div_ceil(256))?;
+        let uniform = AdamParams {
+            len: to_u32("adam length", len)?,
+            groups_x: x,
+            beta1: config.beta1 as f32,
+            beta2: config.beta2 as f32,
+            one_minus_beta1: (1.0 - config.beta1) as f32,
+            one_minus_beta2: (1.0 - config.beta2) as f32,
+            eps: config.eps as f32,
+            step_size: factors.step_size as f32,
+            correction: factors.bias_correction2_sqrt as f32,
+            pad: [0; 3],
+        };
+        self.dispatch(
+            encoder,
+            &self.adam,
+            bytemuck::bytes_of(&uniform),
+            &[
+                (1, params),
+                (2, grads),
+                (3, first_moment),
+                (4, second_moment),
+            ],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
+    fn posenc_params(
+        &self,
+        encoding: PositionalEncoding,
+        rows: usize,
+        in_features: usize,
+    ) -> Result<(PosencParams, u32, u32), NnError> {
+        if encoding.frequencies > 30 {
+            return Err(NnError::Config {
+                field: "positional_encoding.frequencies".into(),
+                message: format!("{} bands exceed 30", encoding.frequencies),
+            });
+        }
+        let (x, y) = self.grid((rows * in_features).div_ceil(64))?;
+        let params = PosencParams {
+            rows: to_u32("rows", rows)?,
+            in_features: to_u32("in_features", in_features)?,
+            frequencies: encoding.frequencies as u32,
+            include_input: u32::from(encoding.include_input),
+            groups_x: x,
+            pad: [0; 3],
+        };
+        to_u32("encoding size", rows * encoding.out_features(in_features))?;
+        Ok((params, x, y))
+    }
+
+    /// Records the positional encoding of `input` (`rows x in_features`) into `output`.
+    pub fn positional_encoding_forward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        encoding: PositionalEncoding,
+        input: &wgpu::Buffer,
+        rows: usize,
+        in_features: usize,
+        output: &wgpu::Buffer,
+    ) -> Result<(), NnError> {
+        self.check_buffer("positional encoding input", input, rows * in_features)?;
+        self.check_buffer(
+            "positional encoding output",
+            output,
+            rows * encoding.out_features(in_features),
+        )?;
+        let (params, x, y) = self.posenc_params(encoding, rows, in_features)?;
+        self.dispatch(
+            encoder,
+            &self.posenc_forward,
+            bytemuck::bytes_of(&params),
+            &[(1, input), (3, output)],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
+    /// Records the encoding's backward: `d_input` (`rows x in_features`) is overwritten.
+    #[allow(clippy::too_many_arguments)]
+    pub fn positional_encoding_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        encoding: PositionalEncoding,
+        output: &wgpu::Buffer,
+        d_output: &wgpu::Buffer,
+        rows: usize,
+        in_features: usize,
+        d_input: &wgpu::Buffer,
+    ) -> Result<(), NnError> {
+        let width = encoding.out_features(in_features);
+        self.check_buffer("positional encoding output", output, rows * width)?;
+        self.check_buffer(
+            "positional encoding output gradient",
+            d_output,
+            rows * width,
+        )?;
+        self.check_buffer(
+            "positional encoding input gradient",
+            d_input,
+            rows * in_features,
+        )?;
+        let (params, x, y) = self.posenc_params(encoding, rows, in_features)?;
+        self.dispatch(
+            encoder,
+            &self.posenc_backward,
+            bytemuck::bytes_of(&params),
+            &[(1, output), (2, d_output), (3, d_input)],
+            x,
+            y,
+        );
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::GpuContext;
+    use crate::backend::test_support::gpu_test_context;
+    use crate::nn::adam::{AdamState, adam_update};
+    use crate::nn::encoding::{positional_encoding_backward, positional_encoding_forward};
+    use crate::nn::init::{Rng, uniform_fill};
+    use crate::nn::linear::{InputGrad, InputPart, LinearGrads, linear_backward, linear_forward};
+
+    fn random(rng: &mut Rng, len: usize, bound: f64) -> Vec<f32> {
+        let mut values = vec![0.0f32; len];
+        uniform_fill(rng, &mut values, bound);
+        values
+    }
+
+    fn upload(context: &GpuContext, data: &[f32]) -> wgpu::Buffer {
+        context.upload("nn test", data).unwrap().buffer
+    }
+
+    fn download(
+        context: &GpuContext,
+        encoder: wgpu::CommandEncoder,
+        buffer: &wgpu::Buffer,
+        len: usize,
+    ) -> Vec<f32> {
+        context.download(encoder, buffer, len).unwrap()
+    }
+
+    /// `|gpu - cpu| <= tolerance * (1 + |cpu|)` everywhere, naming the first offender.
+    fn assert_close(what: &str, gpu: &[f32], cpu: &[f32], tolerance: f32) {
+        assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
+        for (index, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+            assert!(
+                (g - c).abs() <= tolerance * (1.0 + c.abs()),
+                "{what}[{index}]: gpu {g} vs cpu {c}"
+            );
+        }
+    }
+
+    /// Forward and backward of a two-part layer on both backends. `rows` above 256 makes the
+    /// weight gradient take the split-and-reduce path.
+    fn check_linear(rows: usize, widths: [usize; 2], out: usize, activation: Activation) {
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let nn = NnGpu::new(context.device()).unwrap();
+        let mut rng = Rng::new(rows as u64);
+        let shape = LinearShape {
+            in_features: widths[0] + widths[1],
+            out_features: out,
+            activation,
+        };
+        let weight = random(&mut rng, shape.weight_len(), 0.5);
+        let bias = random(&mut rng, out, 0.5);
+        let x0 = random(&mut rng, rows * widths[0], 1.0);
+        let x1 = random(&mut rng, rows * widths[1], 1.0);
+        let d_y = random(&mut rng, rows * out, 1.0);
+        let d_weight0 = random(&mut rng, shape.weight_len(), 0.1);
+        let d_bias0 = random(&mut rng, out, 0.1);
+        let d_x1_0 = random(&mut rng, rows * widths[1], 0.1);
+
+        // cpu reference.
+        let parts = [
+            InputPart {
+                data: &x0[..],
+                cols: widths[0],
+            },
+            InputPart {
+                data: &x1[..],
+                cols: widths[1],
+            },
+        ];
+        let mut y = vec![0.0f32; rows * out];
+        linear_forward(shape, &weight, &bias, &parts, rows, &mut y).unwrap();
+        let (mut d_weight, mut d_bias, mut d_x1) =
+            (d_weight0.clone(), d_bias0.clone(), d_x1_0.clone());
+        let mut d_x0 = vec![0.0f32; rows * widths[0]];
+        let mut d_pre = d_y.clone();
+        linear_backward(
+            shape,
+            &weight,
+            &parts,
+            rows,
+            &y,
+            &mut d_pre,
+            LinearGrads {
+                weight: &mut d_weight,
+                bias: &mut d_bias,
+            },
+            &mut [
+                InputGrad::Write(&mut d_x0),
+                InputGrad::Accumulate(&mut d_x1),
+            ],
+        )
+        .unwrap();
+
+        // gpu.
+        let (g_weight, g_bias, g_x0, g_x1) = (
+            upload(&context, &weight),
+            upload(&context, &bias),
+            upload(&context, &x0),
+            upload(&context, &x1),
+        );
+        let g_y = upload(&context, &vec![f32::NAN; rows * out]);
+        let g_dy = upload(&context, &d_y);
+        let g_dw = upload(&context, &d_weight0);
+        let g_db = upload(&context, &d_bias0);
+        let g_dx0 = upload(&context, &vec![f32::NAN; rows * widths[0]]);
+        let g_dx1 = upload(&context, &d_x1_0);
+        let g_parts = [
+            GpuInputPart {
+                buffer: &g_x0,
+                cols: widths[0],
+            },
+            GpuInputPart {
+                buffer: &g_x1,
+                cols: widths[1],
+            },
+        ];
+        let mut encoder = context.encoder();
+        nn.linear_forward(
+            &mut encoder,
+            shape,
+            &g_weight,
+            &g_bias,
+            &g_parts,
+            rows,
+            &g_y,
+        )
+        .unwrap();
+        nn.linear_backward(
+            &mut encoder,
+            shape,
+            &g_weight,
+            &g_parts,
+            rows,
+            &g_y,
+            &g_dy,
+            GpuLinearGrads {
+                weight: &g_dw,
+                bias: &g_db,
+            },
+            &[
+                GpuInputGrad::Write(&g_dx0),
+                GpuInputGrad::Accumulate(&g_dx1),
+            ],
+        )
+        .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        let label = format!("{rows}x{widths:?}x{out} {activation:?}");
+        let read =
+            |buffer: &wgpu::Buffer, len: usize| download(&context, context.encoder(), buffer, len);
+        assert_close(&format!("{label} Y"), &read(&g_y, y.len()), &y, 1e-5);
+        // Sums over `rows` terms: f32 rounding grows like sqrt(rows).
+        let sum_tolerance = 1e-6 * (rows as f32).sqrt().max(8.0);
+        assert_close(
+            &format!("{label} dW"),
+            &read(&g_dw, d_weight.len()),
+            &d_weight,
+            sum_tolerance,
+        );
+        assert_close(
+            &format!("{label} db"),
+            &read(&g_db, d_bias.len()),
+            &d_bias,
+            sum_tolerance,
+        );
+        assert_close(
+            &format!("{label} dX0"),
+            &read(&g_dx0, d_x0.len()),
+            &d_x0,
+            1e-5,
+        );
+        assert_close(
+            &format!("{label} dX1"),
+            &read(&g_dx1, d_x1.len()),
+            &d_x1,
+            1e-5,
+        );
+    }
+
+    #[test]
+    fn linear_matches_cpu_small() {
+        check_linear(70, [5, 19], 67, Activation::Relu);
+        check_linear(3, [1, 2], 1, Activation::Identity);
+    }
+
+    #[test]
+    fn linear_matches_cpu_with_split_weight_gradient() {
+        check_linear(600, [40, 23], 33, Activation::Relu);
+    }
+
+    #[test]
+    fn adam_matches_cpu() {
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let nn = NnGpu::new(context.device()).unwrap();
+        let mut rng = Rng::new(77);
+        let len = 1000;
+        let config = AdamConfig::default();
+        let mut params = random(&mut rng, len, 1.0);
+        let g_params = upload(&context, &params);
+        let g_m = upload(&context, &vec![0.0; len]);
+        let g_v = upload(&context, &vec![0.0; len]);
+        let mut state = AdamState::<f32>::new(len);
+        for step in 1..=3u64 {
+            // Gradients spanning magnitudes, including exact zeros.
+            let mut grads = random(&mut rng, len, 1.0);
+            for (i, g) in grads.iter_mut().enumerate() {
+                *g *= 10f32.powi((i % 7) as i32 - 4);
+                if i % 11 == 0 {
+                    *g = 0.0;
+                }
+            }
+            let lr = 1e-3 * 0.9f64.powi(step as i32);
+            adam_update(&config, lr, &mut params, &grads, &mut state).unwrap();
+            let g_grads = upload(&context, &grads);
+            let mut encoder = context.encoder();
+            nn.adam_update(
+                &mut encoder,
+                &config,
+                lr,
+                step,
+                &g_params,
+                &g_grads,
+                &g_m,
+                &g_v,
+                len,
+            )
+            .unwrap();
+            context.submit_and_wait(encoder).unwrap();
+        }
+        assert_close(
+            "adam params",
+            &download(&context, context.encoder(), &g_params, len),
+            &params,
+            1e-6,
+        );
+        assert_close(
+            "adam m",
+            &download(&context, context.encoder(), &g_m, len),
+            &state.m,
+            1e-6,
+        );
+        assert_close(
+            "adam v",
+            &download(&context, context.encoder(), &g_v, len),
+            &state.v,
+            1e-6,
+        );
+    }
+
+    #[test]
+    fn positional_encoding_matches_cpu() {
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let nn = NnGpu::new(context.device()).unwrap();
+        let mut rng = Rng::new(5);
+        let encoding = PositionalEncoding::NERF_XYZ;
+        let (rows, d) = (70, 3);
+        let width = encoding.out_features(d);
+        let input = random(&mut rng, rows * d, 1.5);
+        let d_output = random(&mut rng, rows * width, 1.0);
+        let mut output = vec![0.0f32; rows * width];
+        positional_encoding_forward(encoding, &input, rows, d, &mut output).unwrap();
+        let mut d_input = vec![0.0f32; rows * d];
+        positional_encoding_backward(encoding, &output, &d_output, rows, d, &mut d_input).unwrap();
+
+        let g_input = upload(&context, &input);
+        let g_output = upload(&context, &vec![f32::NAN; rows * width]);
+        let g_d_output = upload(&context, &d_output);
+        let g_d_input = upload(&context, &vec![f32::NAN; rows * d]);
+        let mut encoder = context.encoder();
+        nn.positional_encoding_forward(&mut encoder, encoding, &g_input, rows, d, &g_output)
+            .unwrap();
+        nn.positional_encoding_backward(
+            &mut encoder,
+            encoding,
+            &g_output,
+            &g_d_output,
+            rows,
+            d,
+            &g_d_input,
+        )
+        .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        assert_close(
+            "encoding",
+            &download(&context, context.encoder(), &g_output, output.len()),
+            &output,
+            2e-5,
+        );
+        // Band 9 scales errors of the sines and cosines by 512.
+        assert_close(
+            "encoding gradient",
+            &download(&context, context.encoder(), &g_d_input, rows * d),
+            &d_input,
+            2e-3,
+        );
+    }
+
+    #[test]
+    fn rejects_short_buffers_naming_the_operand() {
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let nn = NnGpu::new(context.device()).unwrap();
+        let shape = LinearShape {
+            in_features: 4,
+            out_features: 3,
+            activation: Activation::Relu,
+        };
+        let weight = upload(&context, &[0.0; 12]);
+        let bias = upload(&context, &[0.0; 3]);
+        let input = upload(&context, &[0.0; 8]);
+        let output = upload(&context, &[0.0; 5]);
+        let mut encoder = context.encoder();
+        let error = nn
+            .linear_forward(
+                &mut encoder,
+                shape,
+                &weight,
+                &bias,
+                &[GpuInputPart {
+                    buffer: &input,
+                    cols: 4,
+                }],
+                2,
+                &output,
+            )
+            .unwrap_err();
+        assert_eq!(
+            error,
+            NnError::Length {
+                operand: "linear output".into(),
+                expected: 6,
+                actual: 5
+            }
+        );
+    }
+}
