@@ -21,6 +21,7 @@ use super::NnError;
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
+use super::mlp::{Mlp, MlpSpec};
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -836,6 +837,247 @@ impl NnGpu {
     }
 }
 
+/// A dense network on the gpu: the [`Mlp`] twin, with parameter, gradient and activation
+/// buffers of its own (activations sized for up to `max_rows` rows).
+#[derive(Debug)]
+pub struct GpuMlp {
+    spec: MlpSpec,
+    shapes: Vec<LinearShape>,
+    max_rows: usize,
+    /// Per layer: weight (`in x out`) and bias (`out`) buffers.
+    pub params: Vec<(wgpu::Buffer, wgpu::Buffer)>,
+    /// Per layer: weight and bias gradient buffers (accumulated into; zero them with
+    /// [`GpuMlp::zero_grads`]).
+    pub grads: Vec<(wgpu::Buffer, wgpu::Buffer)>,
+    outputs: Vec<wgpu::Buffer>,
+    grad_current: wgpu::Buffer,
+    grad_previous: wgpu::Buffer,
+}
+
+fn storage_buffer(device: &wgpu::Device, label: &str, values: &[f32]) -> wgpu::Buffer {
+    let mut bytes: Vec<u8> = bytemuck::cast_slice(values).to_vec();
+    bytes.resize(bytes.len().max(16), 0);
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: &bytes,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+impl GpuMlp {
+    /// Uploads `mlp`'s parameters, with zero gradients and room for `max_rows` rows.
+    pub fn upload(device: &wgpu::Device, mlp: &Mlp<f32>, max_rows: usize) -> Result<Self, NnError> {
+        let spec = mlp.spec().clone();
+        let shapes = spec.shapes()?;
+        let params = mlp
+            .layers
+            .iter()
+            .enumerate()
+            .map(|(index, layer)| {
+                (
+                    storage_buffer(device, &format!("mlp layer {index} weight"), &layer.weight),
+                    storage_buffer(device, &format!("mlp layer {index} bias"), &layer.bias),
+                )
+            })
+            .collect();
+        let grads = shapes
+            .iter()
+            .map(|shape| {
+                (
+                    storage_buffer(
+                        device,
+                        "mlp weight gradient",
+                        &vec![0.0; shape.weight_len()],
+                    ),
+                    storage_buffer(device, "mlp bias gradient", &vec![0.0; shape.out_features]),
+                )
+            })
+            .collect();
+        let widest = shapes
+            .iter()
+            .map(|shape| shape.out_features)
+            .max()
+            .unwrap_or(0);
+        let zeros = |label: &str, len: usize| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: (len.max(4) * 4) as u64,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let outputs = shapes
+            .iter()
+            .map(|shape| zeros("mlp layer output", max_rows * shape.out_features))
+            .collect();
+        Ok(GpuMlp {
+            spec,
+            max_rows,
+            params,
+            grads,
+            outputs,
+            grad_current: zeros("mlp gradient scratch", max_rows * widest),
+            grad_previous: zeros("mlp gradient scratch", max_rows * widest),
+            shapes,
+        })
+    }
+
+    /// The architecture.
+    pub fn spec(&self) -> &MlpSpec {
+        &self.spec
+    }
+
+    /// The layer shapes, first to last.
+    pub fn shapes(&self) -> &[LinearShape] {
+        &self.shapes
+    }
+
+    /// The network output buffer of the last recorded forward (`rows x out`).
+    pub fn output(&self) -> &wgpu::Buffer {
+        self.outputs
+            .last()
+            .expect("an Mlp has at least one layer (checked by MlpSpec::shapes)")
+    }
+
+    /// Records zeroing of every gradient buffer.
+    pub fn zero_grads(&self, encoder: &mut wgpu::CommandEncoder) {
+        for (weight, bias) in &self.grads {
+            encoder.clear_buffer(weight, 0, None);
+            encoder.clear_buffer(bias, 0, None);
+        }
+    }
+
+    fn check_rows(&self, rows: usize) -> Result<(), NnError> {
+        if rows > self.max_rows {
+            return Err(NnError::Shape {
+                operand: "gpu mlp rows".into(),
+                message: format!(
+                    "{rows} rows exceed the {} the buffers were sized for",
+                    self.max_rows
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    fn input_parts<'a>(&'a self, index: usize, input: &'a wgpu::Buffer) -> Vec<GpuInputPart<'a>> {
+        let in_features = self.spec.in_features;
+        if index == 0 {
+            return vec![GpuInputPart {
+                buffer: input,
+                cols: in_features,
+            }];
+        }
+        let previous = GpuInputPart {
+            buffer: &self.outputs[index - 1],
+            cols: self.shapes[index - 1].out_features,
+        };
+        if self.spec.layers[index].skip_input {
+            vec![
+                previous,
+                GpuInputPart {
+                    buffer: input,
+                    cols: in_features,
+                },
+            ]
+        } else {
+            vec![previous]
+        }
+    }
+
+    /// Records the forward pass over `rows` rows of `input` (`rows x in`); the result is in
+    /// [`GpuMlp::output`].
+    pub fn forward(
+        &self,
+        nn: &NnGpu,
+        encoder: &mut wgpu::CommandEncoder,
+        input: &wgpu::Buffer,
+        rows: usize,
+    ) -> Result<(), NnError> {
+        self.check_rows(rows)?;
+        for (index, shape) in self.shapes.iter().enumerate() {
+            let parts = self.input_parts(index, input);
+            let (weight, bias) = &self.params[index];
+            nn.linear_forward(
+                encoder,
+                *shape,
+                weight,
+                bias,
+                &parts,
+                rows,
+                &self.outputs[index],
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Records the backward of the last recorded forward (same `input` and `rows`):
+    /// parameter gradients accumulate into [`GpuMlp::grads`]; `d_input`, when given, is
+    /// overwritten with `dL/d(input)`. `d_output` is only read.
+    pub fn backward(
+        &self,
+        nn: &NnGpu,
+        encoder: &mut wgpu::CommandEncoder,
+        input: &wgpu::Buffer,
+        rows: usize,
+        d_output: &wgpu::Buffer,
+        d_input: Option<&wgpu::Buffer>,
+    ) -> Result<(), NnError> {
+        self.check_rows(rows)?;
+        // The first contribution to `d_input` writes it, later ones add (backward visits skip
+        // layers before layer 0).
+        let mut input_written = false;
+        let input_grad = |written: &mut bool| match d_input {
+            None => GpuInputGrad::Skip,
+            Some(buffer) if *written => GpuInputGrad::Accumulate(buffer),
+            Some(buffer) => {
+                *written = true;
+                GpuInputGrad::Write(buffer)
+            }
+        };
+        let (mut current, mut previous) = (&self.grad_current, &self.grad_previous);
+        for index in (0..self.shapes.len()).rev() {
+            let parts = self.input_parts(index, input);
+            let d_layer_output = if index + 1 == self.shapes.len() {
+                d_output
+            } else {
+                current
+            };
+            let mut d_parts = Vec::with_capacity(2);
+            if index == 0 {
+                d_parts.push(input_grad(&mut input_written));
+            } else {
+                d_parts.push(GpuInputGrad::Write(previous));
+                if self.spec.layers[index].skip_input {
+                    d_parts.push(input_grad(&mut input_written));
+                }
+            }
+            let (weight, _) = &self.params[index];
+            let (d_weight, d_bias) = &self.grads[index];
+            nn.linear_backward(
+                encoder,
+                self.shapes[index],
+                weight,
+                &parts,
+                rows,
+                &self.outputs[index],
+                d_layer_output,
+                GpuLinearGrads {
+                    weight: d_weight,
+                    bias: d_bias,
+                },
+                &d_parts,
+            )?;
+            std::mem::swap(&mut current, &mut previous);
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1178,5 +1420,90 @@ mod tests {
                 actual: 5
             }
         );
+    }
+
+    #[test]
+    fn mlp_with_skip_matches_cpu() {
+        use crate::nn::mlp::{MlpCache, MlpLayerSpec};
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let nn = NnGpu::new(context.device()).unwrap();
+        let spec = MlpSpec {
+            in_features: 7,
+            layers: vec![
+                MlpLayerSpec::new(20, Activation::Relu),
+                MlpLayerSpec::new(9, Activation::Relu),
+                MlpLayerSpec::with_skip(13, Activation::Relu),
+                MlpLayerSpec::new(3, Activation::Identity),
+            ],
+        };
+        let mut rng = Rng::new(8);
+        let mlp = Mlp::<f32>::new(spec, &mut rng).unwrap();
+        let rows = 300;
+        let input = random(&mut rng, rows * 7, 1.0);
+        let d_output = random(&mut rng, rows * 3, 1.0);
+        let mut cache = MlpCache::new();
+        let output = mlp.forward(&input, rows, &mut cache).unwrap().to_vec();
+        let mut grads = mlp.zero_grads();
+        let mut d_input = vec![0.0f32; input.len()];
+        mlp.backward(
+            &input,
+            &mut cache,
+            &mut d_output.clone(),
+            &mut grads,
+            Some(&mut d_input),
+        )
+        .unwrap();
+
+        let gpu_mlp = GpuMlp::upload(context.device(), &mlp, rows).unwrap();
+        let (g_input, g_d_output) = (upload(&context, &input), upload(&context, &d_output));
+        let g_d_input = upload(&context, &vec![f32::NAN; input.len()]);
+        let mut encoder = context.encoder();
+        gpu_mlp.forward(&nn, &mut encoder, &g_input, rows).unwrap();
+        gpu_mlp
+            .backward(
+                &nn,
+                &mut encoder,
+                &g_input,
+                rows,
+                &g_d_output,
+                Some(&g_d_input),
+            )
+            .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        let read =
+            |buffer: &wgpu::Buffer, len: usize| download(&context, context.encoder(), buffer, len);
+        assert_close(
+            "mlp output",
+            &read(gpu_mlp.output(), output.len()),
+            &output,
+            1e-5,
+        );
+        assert_close(
+            "mlp input gradient",
+            &read(&g_d_input, d_input.len()),
+            &d_input,
+            1e-5,
+        );
+        for (index, (cpu, (g_weight, g_bias))) in grads.iter().zip(&gpu_mlp.grads).enumerate() {
+            let tolerance = 2e-5;
+            assert_close(
+                &format!("layer {index} dW"),
+                &read(g_weight, cpu.weight.len()),
+                &cpu.weight,
+                tolerance,
+            );
+            assert_close(
+                &format!("layer {index} db"),
+                &read(g_bias, cpu.bias.len()),
+                &cpu.bias,
+                tolerance,
+            );
+        }
+        let error = gpu_mlp
+            .forward(&nn, &mut context.encoder(), &g_input, rows + 1)
+            .unwrap_err();
+        assert!(error.to_string().contains("exceed"), "{error}");
     }
 }

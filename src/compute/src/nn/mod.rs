@@ -23,7 +23,8 @@
 //! - [`init`]: the seeded PRNG and PyTorch-default initialisation.
 //! - [`encoding`]: NeRF positional encoding, forward and backward.
 //! - [`adam`]: Adam with parameter groups and learning-rate schedules.
-//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above, f32 only.
+//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above and `GpuMlp`, the
+//!   `Mlp` twin, f32 only.
 
 pub mod adam;
 pub mod encoding;
