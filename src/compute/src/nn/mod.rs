@@ -17,7 +17,7 @@
 //!   a layer sum up; the caller zeroes them before a step.
 //!
 //! Modules:
-//! - [`scalar`]: the minimal float trait the `cpu` code is generic over (f32 and f64).
+//! - [`scalar`]: the float trait the `cpu` code is generic over (the crate `Scalar` + sin/cos).
 //! - [`linear`]: the `cpu` layer forward and backward on `gemm`.
 //! - [`mlp`]: a layer stack with skip concatenation, activation caching and initialisation.
 //! - [`init`]: the seeded PRNG and PyTorch-default initialisation.
