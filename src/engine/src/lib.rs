@@ -1,1 +1,173 @@
-//! Pipeline engine.
+//! Pipeline engine: YAML pipelines, content-addressed Zarr cache, staging and publishing,
+//! the runner, and the `status`, `inspect` and `gc` commands.
+//!
+//! Stages see only [`StageKind`], [`StageContext`], [`EntryReader`], [`EntryWriter`] and
+//! [`NdArray`]; everything about where and how entries are stored stays behind [`Store`].
+
+mod array;
+mod builtin;
+pub mod commands;
+mod config;
+mod entry;
+pub mod key;
+mod picture;
+mod pipeline;
+mod runner;
+mod store;
+mod timefmt;
+mod yaml_lines;
+
+use std::collections::BTreeMap;
+
+/// Version of this tool, recorded in every manifest.
+pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
+use std::path::PathBuf;
+
+pub use array::{Element, NdArray};
+pub use builtin::TestArrays;
+pub use config::{ConfigError, ConfigPathSegment, resolve_typed};
+pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray};
+pub use pipeline::{Pipeline, PipelineError, StageSpec};
+pub use runner::{
+    BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
+    open_verified, run, selected_stages,
+};
+pub use store::{EntryId, EntryState, KeyLock, LocalStore, Staging, Store};
+
+/// One kind of stage (`kind:` in the pipeline YAML): its identity, its configuration schema
+/// and the computation it performs.
+pub trait StageKind: Send + Sync {
+    /// The name used as `kind:` in the pipeline YAML and as the cache folder name.
+    fn kind(&self) -> &'static str;
+    /// Implementation version; bump whenever the code changes the result.
+    fn version(&self) -> u32;
+    /// Kinds of stages accepted as inputs.
+    fn input_kinds(&self) -> &'static [&'static str];
+    /// Validates the raw config and returns the effective config with all defaults explicit.
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError>;
+    /// External files (raw dataset files) whose content the result depends on.
+    fn external_files(&self, _config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
+        Ok(vec![])
+    }
+    /// Computes the entry: reads inputs from `ctx`, writes arrays to `ctx.output()`.
+    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()>;
+    /// Pictures `pipeline inspect --picture NAME` can draw from an entry of this kind.
+    fn pictures(&self) -> Vec<PictureKind> {
+        vec![]
+    }
+    /// Draws one of [`StageKind::pictures`].
+    fn draw_picture(
+        &self,
+        _entry: &EntryReader,
+        picture: &str,
+        _options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        anyhow::bail!(
+            "stage kind \"{}\" has no picture named \"{picture}\"",
+            self.kind()
+        )
+    }
+}
+
+/// A picture a stage kind can draw for `inspect`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PictureKind {
+    pub name: &'static str,
+    pub description: &'static str,
+}
+
+/// `--opt key=value` options given to [`StageKind::draw_picture`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct PictureOptions {
+    pub values: BTreeMap<String, String>,
+}
+
+impl PictureOptions {
+    /// Parses `key=value` strings.
+    pub fn parse(pairs: &[String]) -> anyhow::Result<Self> {
+        let mut values = BTreeMap::new();
+        for pair in pairs {
+            let (key, value) = pair
+                .split_once('=')
+                .ok_or_else(|| anyhow::anyhow!("--opt \"{pair}\": expected key=value"))?;
+            values.insert(key.trim().to_string(), value.trim().to_string());
+        }
+        Ok(Self { values })
+    }
+
+    /// An unsigned integer option, or `default` when absent.
+    pub fn get_u64(&self, name: &str, default: u64) -> anyhow::Result<u64> {
+        match self.values.get(name) {
+            None => Ok(default),
+            Some(text) => text.parse::<u64>().map_err(|_| {
+                anyhow::anyhow!("picture option {name}={text}: expected an unsigned integer")
+            }),
+        }
+    }
+
+    /// A floating-point option, or `default` when absent.
+    pub fn get_f64(&self, name: &str, default: f64) -> anyhow::Result<f64> {
+        match self.values.get(name) {
+            None => Ok(default),
+            Some(text) => match text.parse::<f64>() {
+                Ok(value) if value.is_finite() => Ok(value),
+                _ => anyhow::bail!("picture option {name}={text}: expected a finite number"),
+            },
+        }
+    }
+
+    /// A string option, or `default` when absent.
+    pub fn get_str(&self, name: &str, default: &str) -> anyhow::Result<String> {
+        Ok(self
+            .values
+            .get(name)
+            .cloned()
+            .unwrap_or_else(|| default.to_string()))
+    }
+
+    /// Names of options that are not in `known`, so callers can reject typos.
+    pub fn unknown_keys(&self, known: &[&str]) -> Vec<String> {
+        self.values
+            .keys()
+            .filter(|key| !known.contains(&key.as_str()))
+            .cloned()
+            .collect()
+    }
+}
+
+/// All stage kinds known to the binary.
+pub struct Registry {
+    kinds: BTreeMap<&'static str, Box<dyn StageKind>>,
+}
+
+impl Default for Registry {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Registry {
+    /// A registry holding the built-in `test_arrays` kind.
+    pub fn new() -> Self {
+        let mut registry = Self {
+            kinds: BTreeMap::new(),
+        };
+        registry.add(Box::new(TestArrays));
+        registry
+    }
+
+    /// Adds a stage kind; a later kind with the same name replaces the earlier one.
+    pub fn add(&mut self, stage: Box<dyn StageKind>) {
+        self.kinds.insert(stage.kind(), stage);
+    }
+
+    /// The stage kind named `kind`.
+    pub fn get(&self, kind: &str) -> Option<&dyn StageKind> {
+        self.kinds.get(kind).map(|boxed| boxed.as_ref())
+    }
+
+    /// Names of all registered kinds, sorted.
+    pub fn kind_names(&self) -> Vec<&'static str> {
+        self.kinds.keys().copied().collect()
+    }
+}

@@ -1,0 +1,588 @@
+//! The commands behind the CLI: `run`, `status`, `inspect` and `gc`. They print to stdout and
+//! return errors for the binary to report.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::Context as _;
+use zarrs::filesystem::FilesystemStore;
+
+use crate::array::Element;
+use crate::entry::EntryReader;
+use crate::pipeline::Pipeline;
+use crate::runner::{self, Outcome, RunOptions, StageReport};
+use crate::store::{COMPLETION_MARKER, EntryId, EntryState, LocalStore, Store, empty_trash};
+use crate::{PictureOptions, Registry};
+
+/// Number of key characters shown in tables.
+const KEY_PREFIX: usize = 12;
+
+/// `pipeline run`.
+pub fn run(
+    registry: &Registry,
+    file: &Path,
+    sets: &[String],
+    options: &RunOptions,
+    cache: &Path,
+) -> anyhow::Result<Vec<StageReport>> {
+    let pipeline = Pipeline::load(file, registry, sets)?;
+    let store = LocalStore::open(cache)?;
+    let reports = runner::run(&pipeline, registry, &store, options)?;
+    print!("{}", summary_table(&reports));
+    Ok(reports)
+}
+
+/// The run summary: stage, kind, key prefix, cached/ran, time (and backend when reported).
+pub fn summary_table(reports: &[StageReport]) -> String {
+    let with_backend = reports.iter().any(|report| report.backend.is_some());
+    let mut rows = vec![{
+        let mut header = vec!["stage", "kind", "key", "result", "time"];
+        if with_backend {
+            header.push("backend");
+        }
+        header.into_iter().map(String::from).collect::<Vec<_>>()
+    }];
+    for report in reports {
+        let mut row = vec![
+            report.name.clone(),
+            report.kind.clone(),
+            report.key[..KEY_PREFIX.min(report.key.len())].to_string(),
+            report.outcome.to_string(),
+            format_seconds(report.seconds),
+        ];
+        if with_backend {
+            row.push(report.backend.clone().unwrap_or_else(|| "-".to_string()));
+        }
+        rows.push(row);
+    }
+    let ran = reports
+        .iter()
+        .filter(|report| report.outcome != Outcome::Cached)
+        .count();
+    let mut text = format_table(&rows);
+    text.push_str(&format!(
+        "{} stages: {ran} ran, {} cached\n",
+        reports.len(),
+        reports.len() - ran
+    ));
+    text
+}
+
+fn format_seconds(seconds: f64) -> String {
+    if seconds < 60.0 {
+        format!("{seconds:.2} s")
+    } else {
+        let minutes = (seconds / 60.0).floor();
+        format!("{minutes:.0} min {:.0} s", seconds - minutes * 60.0)
+    }
+}
+
+/// Left-aligned columns separated by two spaces.
+fn format_table(rows: &[Vec<String>]) -> String {
+    let columns = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let widths: Vec<usize> = (0..columns)
+        .map(|column| {
+            rows.iter()
+                .filter_map(|row| row.get(column))
+                .map(|cell| cell.chars().count())
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let mut text = String::new();
+    for row in rows {
+        let mut line = String::new();
+        for (column, cell) in row.iter().enumerate() {
+            if column + 1 == row.len() {
+                line.push_str(cell);
+            } else {
+                line.push_str(&format!("{cell:<width$}  ", width = widths[column]));
+            }
+        }
+        text.push_str(line.trim_end());
+        text.push('\n');
+    }
+    text
+}
+
+/// `pipeline status`: cached, partial (resumable) or missing for each stage, with its key.
+pub fn status(
+    registry: &Registry,
+    file: &Path,
+    sets: &[String],
+    cache: &Path,
+) -> anyhow::Result<()> {
+    let pipeline = Pipeline::load(file, registry, sets)?;
+    let store = LocalStore::open(cache)?;
+    let keys = runner::compute_keys(&pipeline, registry, &store)?;
+    let mut rows = vec![vec![
+        "stage".to_string(),
+        "kind".to_string(),
+        "key".to_string(),
+        "state".to_string(),
+    ]];
+    for &index in pipeline.order() {
+        let stage = &pipeline.stages[index];
+        let id = EntryId::new(&stage.kind, &keys[&stage.name].key);
+        let state = match store.entry_state(&id)? {
+            EntryState::Complete => "cached",
+            _ if store.has_resumable_work(&id) => "partial",
+            _ => "missing",
+        };
+        rows.push(vec![
+            stage.name.clone(),
+            stage.kind.clone(),
+            id.key.clone(),
+            state.to_string(),
+        ]);
+    }
+    print!("{}", format_table(&rows));
+    Ok(())
+}
+
+/// What `pipeline inspect` should export.
+#[derive(Debug, Clone, Default)]
+pub struct InspectOptions {
+    pub array: Option<String>,
+    pub png: Option<PathBuf>,
+    pub exr: Option<PathBuf>,
+    pub picture: Option<String>,
+    pub picture_options: Vec<String>,
+    pub sets: Vec<String>,
+}
+
+/// Resolves `FILE:STAGE[:ARRAY]` or `CACHE_PATH[/ARRAY]` to an entry and an optional array.
+fn resolve_target(
+    registry: &Registry,
+    target: &str,
+    sets: &[String],
+    cache: &Path,
+) -> anyhow::Result<(EntryReader, Option<String>)> {
+    let as_path = Path::new(target);
+    if as_path.join(COMPLETION_MARKER).is_file() {
+        return Ok((open_entry_folder(as_path)?, None));
+    }
+    if let (Some(parent), Some(name)) = (as_path.parent(), as_path.file_name())
+        && parent.join(COMPLETION_MARKER).is_file()
+    {
+        return Ok((
+            open_entry_folder(parent)?,
+            Some(name.to_string_lossy().to_string()),
+        ));
+    }
+    if as_path.is_dir() {
+        anyhow::bail!(
+            "{target}: not a published cache entry (no {COMPLETION_MARKER} marker; the entry may be incomplete)"
+        );
+    }
+    let split = [".yaml:", ".yml:"]
+        .iter()
+        .find_map(|suffix| target.find(suffix).map(|at| at + suffix.len() - 1));
+    let Some(colon) = split else {
+        anyhow::bail!("{target}: expected FILE.yaml:STAGE[:ARRAY] or the folder of a cache entry");
+    };
+    let file = Path::new(&target[..colon]);
+    let rest = &target[colon + 1..];
+    let (stage_name, array) = match rest.split_once(':') {
+        Some((stage, array)) => (stage, Some(array.to_string())),
+        None => (rest, None),
+    };
+    let pipeline = Pipeline::load(file, registry, sets)?;
+    let stage = pipeline.stage(stage_name).ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: no stage named \"{stage_name}\" (stages: {})",
+            file.display(),
+            pipeline.stage_names().join(", ")
+        )
+    })?;
+    let store = LocalStore::open(cache)?;
+    let keys = runner::compute_keys(&pipeline, registry, &store)?;
+    let id = EntryId::new(&stage.kind, &keys[&stage.name].key);
+    anyhow::ensure!(
+        store.entry_state(&id)? == EntryState::Complete,
+        "stage \"{stage_name}\" ({id}) is not in the cache {}; run `pipeline run {}` first",
+        cache.display(),
+        file.display()
+    );
+    Ok((store.open_entry(&id)?, array))
+}
+
+fn open_entry_folder(folder: &Path) -> anyhow::Result<EntryReader> {
+    let store = FilesystemStore::new(folder)
+        .with_context(|| format!("cannot open {}", folder.display()))?;
+    EntryReader::open(Arc::new(store), &folder.display().to_string())
+}
+
+/// `pipeline inspect`.
+pub fn inspect(
+    registry: &Registry,
+    target: &str,
+    options: &InspectOptions,
+    cache: &Path,
+) -> anyhow::Result<()> {
+    let (entry, target_array) = resolve_target(registry, target, &options.sets, cache)?;
+    let array = options.array.clone().or(target_array);
+    if let Some(name) = &array {
+        anyhow::ensure!(
+            entry.array_names().contains(name),
+            "{}: no array \"{name}\" (arrays: {})",
+            entry.location(),
+            entry.array_names().join(", ")
+        );
+    }
+    print!("{}", describe_entry(&entry, array.as_deref(), registry)?);
+    let picture_options = PictureOptions::parse(&options.picture_options)?;
+    if let Some(picture) = &options.picture {
+        let kind = registry.get(entry.kind()).ok_or_else(|| {
+            anyhow::anyhow!(
+                "stage kind \"{}\" is not known to this binary",
+                entry.kind()
+            )
+        })?;
+        let out = options
+            .png
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("--picture needs --png OUT"))?;
+        let image = kind.draw_picture(&entry, picture, &picture_options)?;
+        image
+            .save(out)
+            .with_context(|| format!("cannot write {}", out.display()))?;
+        println!(
+            "wrote {} ({}x{})",
+            out.display(),
+            image.width(),
+            image.height()
+        );
+    } else if let Some(out) = &options.png {
+        let name = image_array_name(&entry, array.as_deref())?;
+        let image = crate::picture::array_png(&entry, &name, &picture_options)?;
+        image
+            .save(out)
+            .with_context(|| format!("cannot write {}", out.display()))?;
+        println!(
+            "wrote {} ({}x{}) from array \"{name}\"",
+            out.display(),
+            image.width(),
+            image.height()
+        );
+    }
+    if let Some(out) = &options.exr {
+        let name = image_array_name(&entry, array.as_deref())?;
+        let (width, height, channels) =
+            crate::picture::array_exr(&entry, &name, &picture_options, out)?;
+        println!(
+            "wrote {} ({width}x{height}, {channels} channel(s)) from array \"{name}\"",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+fn image_array_name(entry: &EntryReader, array: Option<&str>) -> anyhow::Result<String> {
+    match array {
+        Some(name) => Ok(name.to_string()),
+        None => anyhow::bail!(
+            "--png/--exr need an array: add it to the target or pass --array (arrays: {})",
+            entry.array_names().join(", ")
+        ),
+    }
+}
+
+/// The provenance and array table of an entry.
+fn describe_entry(
+    entry: &EntryReader,
+    only: Option<&str>,
+    registry: &Registry,
+) -> anyhow::Result<String> {
+    let manifest = entry.manifest();
+    let mut text = String::new();
+    text.push_str(&format!("entry     {}\n", entry.location()));
+    text.push_str(&format!(
+        "stage     {} (kind {}, version {})\n",
+        manifest.stage_name, manifest.kind, manifest.version
+    ));
+    text.push_str(&format!("key       {}\n", manifest.key));
+    text.push_str(&format!(
+        "computed  {} .. {} ({}) by seqavatar {}\n",
+        manifest.started_at,
+        manifest.finished_at,
+        format_seconds(manifest.wall_time_s),
+        manifest.tool_version
+    ));
+    for input in &manifest.inputs {
+        text.push_str(&format!(
+            "input     {} ({} {})\n",
+            input.stage_name,
+            input.kind,
+            &input.key[..KEY_PREFIX.min(input.key.len())]
+        ));
+    }
+    for file in &manifest.external_files {
+        text.push_str(&format!(
+            "file      {} ({})\n",
+            file.path,
+            &file.digest[..KEY_PREFIX.min(file.digest.len())]
+        ));
+    }
+    text.push_str(&format!(
+        "config    {}\n",
+        serde_json::to_string(&manifest.config).unwrap_or_default()
+    ));
+    for (key, value) in entry.attributes() {
+        let mut shown = value.to_string();
+        if shown.len() > 200 {
+            shown.truncate(200);
+            shown.push_str("...");
+        }
+        text.push_str(&format!("attribute {key} = {shown}\n"));
+    }
+    for line in &manifest.log {
+        text.push_str(&format!("log       {line}\n"));
+    }
+    for line in &manifest.warnings {
+        text.push_str(&format!("warning   {line}\n"));
+    }
+    if let Some(kind) = registry.get(&manifest.kind) {
+        for picture in kind.pictures() {
+            text.push_str(&format!(
+                "picture   {}: {}\n",
+                picture.name, picture.description
+            ));
+        }
+    }
+    let mut rows = vec![
+        [
+            "array", "dtype", "shape", "chunks", "dims", "stored", "min", "max", "mean", "nan",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect::<Vec<_>>(),
+    ];
+    for (name, record) in &manifest.arrays {
+        if only.is_some_and(|wanted| wanted != name) {
+            continue;
+        }
+        let stats = array_stats(entry, name, &record.dtype)?;
+        rows.push(vec![
+            name.clone(),
+            record.dtype.clone(),
+            format!("{:?}", record.shape),
+            format!("{:?}", record.chunk_shape),
+            record.dimension_names.join(","),
+            format_bytes(entry.stored_bytes(name)),
+            stats.min_text(),
+            stats.max_text(),
+            stats.mean_text(),
+            stats.nan.to_string(),
+        ]);
+    }
+    text.push_str(&format_table(&rows));
+    if let Some(name) = only {
+        for key in ["units", "description"] {
+            if let Some(value) = entry.array_attribute(name, key) {
+                text.push_str(&format!("{name}.{key} = {value}\n"));
+            }
+        }
+    }
+    Ok(text)
+}
+
+/// Running min / max / mean / NaN count.
+#[derive(Debug, Clone, Copy, Default)]
+struct Stats {
+    min: f64,
+    max: f64,
+    sum: f64,
+    finite: u64,
+    nan: u64,
+}
+
+impl Stats {
+    fn add(&mut self, value: f64) {
+        if value.is_nan() {
+            self.nan += 1;
+            return;
+        }
+        if self.finite == 0 {
+            self.min = value;
+            self.max = value;
+        } else {
+            self.min = self.min.min(value);
+            self.max = self.max.max(value);
+        }
+        self.sum += value;
+        self.finite += 1;
+    }
+
+    fn min_text(&self) -> String {
+        if self.finite == 0 {
+            "-".into()
+        } else {
+            format!("{:.6}", self.min)
+        }
+    }
+
+    fn max_text(&self) -> String {
+        if self.finite == 0 {
+            "-".into()
+        } else {
+            format!("{:.6}", self.max)
+        }
+    }
+
+    fn mean_text(&self) -> String {
+        if self.finite == 0 {
+            "-".into()
+        } else {
+            format!("{:.6}", self.sum / self.finite as f64)
+        }
+    }
+}
+
+/// Statistics of an array, read in blocks along the first axis to bound memory.
+fn array_stats(entry: &EntryReader, name: &str, dtype: &str) -> anyhow::Result<Stats> {
+    fn typed<T: Element>(entry: &EntryReader, name: &str) -> anyhow::Result<Stats> {
+        let shape = entry.shape(name)?;
+        let mut stats = Stats::default();
+        if shape.is_empty() {
+            for value in entry.read::<T>(name)?.data {
+                stats.add(value.to_f64());
+            }
+            return Ok(stats);
+        }
+        let inner: u64 = shape[1..].iter().product::<u64>().max(1);
+        let rows_per_block = (16_000_000 / inner).max(1);
+        let mut row = 0u64;
+        while row < shape[0] {
+            let rows = rows_per_block.min(shape[0] - row);
+            let mut start = vec![0u64; shape.len()];
+            start[0] = row;
+            let mut block_shape = shape.clone();
+            block_shape[0] = rows;
+            for value in entry.read_region::<T>(name, &start, &block_shape)?.data {
+                stats.add(value.to_f64());
+            }
+            row += rows;
+        }
+        Ok(stats)
+    }
+    match dtype {
+        "uint8" => typed::<u8>(entry, name),
+        "uint16" => typed::<u16>(entry, name),
+        "uint32" => typed::<u32>(entry, name),
+        "uint64" => typed::<u64>(entry, name),
+        "int32" => typed::<i32>(entry, name),
+        "int64" => typed::<i64>(entry, name),
+        "float32" => typed::<f32>(entry, name),
+        "float64" => typed::<f64>(entry, name),
+        other => anyhow::bail!("array \"{name}\": unsupported dtype {other}"),
+    }
+}
+
+fn format_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut value = bytes as f64;
+    let mut unit = 0;
+    while value >= 1024.0 && unit + 1 < UNITS.len() {
+        value /= 1024.0;
+        unit += 1;
+    }
+    if unit == 0 {
+        format!("{bytes} B")
+    } else {
+        format!("{value:.1} {}", UNITS[unit])
+    }
+}
+
+/// `pipeline gc`: removes entries that none of `keep` references.
+pub fn gc(
+    registry: &Registry,
+    keep: &[PathBuf],
+    dry_run: bool,
+    cache: &Path,
+) -> anyhow::Result<()> {
+    let store = LocalStore::open(cache)?;
+    let mut referenced: BTreeSet<EntryId> = BTreeSet::new();
+    for file in keep {
+        let pipeline = Pipeline::load(file, registry, &[])?;
+        let keys = runner::compute_keys(&pipeline, registry, &store)?;
+        for stage in &pipeline.stages {
+            referenced.insert(EntryId::new(&stage.kind, &keys[&stage.name].key));
+        }
+    }
+    let verb = if dry_run { "would remove" } else { "removed" };
+    let mut freed = 0u64;
+    let mut count = 0usize;
+    for id in store.list()? {
+        if referenced.contains(&id) {
+            continue;
+        }
+        if dry_run {
+            let bytes = store.entry_bytes(&id);
+            println!("{verb} {id} ({})", format_bytes(bytes));
+            freed += bytes;
+            count += 1;
+            continue;
+        }
+        let Some(lock) = store.try_lock(&id)? else {
+            println!("skipped {id}: a running pipeline holds it");
+            continue;
+        };
+        let bytes = store.remove(lock.as_ref())?;
+        println!("{verb} {id} ({})", format_bytes(bytes));
+        freed += bytes;
+        count += 1;
+    }
+    if !dry_run {
+        for line in store.clean_leftovers()? {
+            println!("{verb} {line}");
+        }
+    }
+    let trash = empty_trash(&store, dry_run)?;
+    if trash > 0 {
+        println!("{verb} quarantined entries ({})", format_bytes(trash));
+        freed += trash;
+    }
+    println!(
+        "{verb} {count} entries, {} freed; {} entries kept",
+        format_bytes(freed),
+        referenced.len()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_aligns_columns() {
+        let rows = vec![
+            vec!["a".to_string(), "long".to_string(), "x".to_string()],
+            vec!["longer".to_string(), "b".to_string(), "y".to_string()],
+        ];
+        assert_eq!(format_table(&rows), "a       long  x\nlonger  b     y\n");
+    }
+
+    #[test]
+    fn byte_sizes_are_readable() {
+        assert_eq!(format_bytes(12), "12 B");
+        assert_eq!(format_bytes(2048), "2.0 KiB");
+        assert_eq!(format_bytes(5 * 1024 * 1024 * 1024), "5.0 GiB");
+    }
+
+    #[test]
+    fn stats_skip_nan_and_handle_empty() {
+        let mut stats = Stats::default();
+        assert_eq!(stats.mean_text(), "-");
+        for value in [1.0, f64::NAN, -3.0, 5.0] {
+            stats.add(value);
+        }
+        assert_eq!(
+            (stats.min, stats.max, stats.nan, stats.finite),
+            (-3.0, 5.0, 1, 3)
+        );
+        assert_eq!(stats.mean_text(), "1.000000");
+    }
+}

@@ -1,0 +1,176 @@
+//! Stage configuration: typed resolution of raw config values and the error that names the
+//! offending key.
+
+use std::fmt;
+
+/// One step of a path into a config value.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum ConfigPathSegment {
+    Key(String),
+    Index(usize),
+}
+
+/// A config value that a stage kind rejected; `path` names the key (empty: the whole config).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub struct ConfigError {
+    pub path: Vec<ConfigPathSegment>,
+    pub message: String,
+}
+
+impl ConfigError {
+    /// An error about the key at `path`.
+    pub fn new(path: Vec<ConfigPathSegment>, message: impl Into<String>) -> Self {
+        Self {
+            path,
+            message: message.into(),
+        }
+    }
+
+    /// An error about the top-level key `key`.
+    pub fn at_key(key: &str, message: impl Into<String>) -> Self {
+        Self::new(vec![ConfigPathSegment::Key(key.to_string())], message)
+    }
+
+    /// The dotted path, e.g. `cameras[2].name`; empty for the whole config.
+    pub fn path_string(&self) -> String {
+        path_to_string(&self.path)
+    }
+}
+
+/// Formats a config path as `a.b[2].c`.
+pub fn path_to_string(path: &[ConfigPathSegment]) -> String {
+    let mut text = String::new();
+    for segment in path {
+        match segment {
+            ConfigPathSegment::Key(key) => {
+                if !text.is_empty() {
+                    text.push('.');
+                }
+                text.push_str(key);
+            }
+            ConfigPathSegment::Index(index) => text.push_str(&format!("[{index}]")),
+        }
+    }
+    text
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, formatter: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.path.is_empty() {
+            write!(formatter, "config: {}", self.message)
+        } else {
+            write!(
+                formatter,
+                "config key \"{}\": {}",
+                self.path_string(),
+                self.message
+            )
+        }
+    }
+}
+
+/// Deserializes `raw` into `T` (normally `#[serde(deny_unknown_fields, default)]`) and
+/// re-serializes it, so the result has every default explicit and a canonical form.
+///
+/// An unknown field is reported at the path of the unknown key itself, so the engine can
+/// point at its line.
+pub fn resolve_typed<T: serde::de::DeserializeOwned + serde::Serialize>(
+    raw: &serde_json::Value,
+) -> Result<serde_json::Value, ConfigError> {
+    let empty = serde_json::Value::Object(serde_json::Map::new());
+    let raw = if raw.is_null() { &empty } else { raw };
+    let typed: T = serde_path_to_error::deserialize(raw).map_err(|error| {
+        let mut path: Vec<ConfigPathSegment> = error
+            .path()
+            .iter()
+            .filter_map(|segment| match segment {
+                serde_path_to_error::Segment::Map { key } => {
+                    Some(ConfigPathSegment::Key(key.clone()))
+                }
+                serde_path_to_error::Segment::Seq { index } => {
+                    Some(ConfigPathSegment::Index(*index))
+                }
+                serde_path_to_error::Segment::Enum { .. }
+                | serde_path_to_error::Segment::Unknown => None,
+            })
+            .collect();
+        let message = error.inner().to_string();
+        if let Some(unknown) = unknown_field_name(&message)
+            && path.last() != Some(&ConfigPathSegment::Key(unknown.clone()))
+        {
+            path.push(ConfigPathSegment::Key(unknown));
+        }
+        ConfigError::new(path, message)
+    })?;
+    serde_json::to_value(&typed)
+        .map_err(|error| ConfigError::new(vec![], format!("cannot re-serialize config: {error}")))
+}
+
+/// The field name in serde's "unknown field `x`, expected ..." message.
+fn unknown_field_name(message: &str) -> Option<String> {
+    let rest = message.strip_prefix("unknown field `")?;
+    let end = rest.find('`')?;
+    Some(rest[..end].to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(serde::Deserialize, serde::Serialize, Default)]
+    #[serde(deny_unknown_fields, default)]
+    struct Inner {
+        name: String,
+    }
+
+    #[derive(serde::Deserialize, serde::Serialize)]
+    #[serde(deny_unknown_fields, default)]
+    struct Example {
+        iterations: u32,
+        rate: f64,
+        cameras: Vec<Inner>,
+    }
+
+    impl Default for Example {
+        fn default() -> Self {
+            Self {
+                iterations: 10,
+                rate: 0.5,
+                cameras: vec![],
+            }
+        }
+    }
+
+    #[test]
+    fn defaults_become_explicit() {
+        let resolved = resolve_typed::<Example>(&serde_json::json!({"rate": 1})).unwrap();
+        assert_eq!(
+            resolved,
+            serde_json::json!({"iterations": 10, "rate": 1.0, "cameras": []})
+        );
+        let from_null = resolve_typed::<Example>(&serde_json::Value::Null).unwrap();
+        assert_eq!(from_null["iterations"], 10);
+    }
+
+    #[test]
+    fn unknown_field_names_the_key() {
+        let error = resolve_typed::<Example>(&serde_json::json!({"iteratons": 3})).unwrap_err();
+        assert_eq!(error.path_string(), "iteratons");
+        assert!(error.message.contains("expected one of"), "{error}");
+        let nested = resolve_typed::<Example>(&serde_json::json!({"cameras": [{}, {"nam": 1}]}))
+            .unwrap_err();
+        assert_eq!(nested.path_string(), "cameras[1].nam");
+    }
+
+    #[test]
+    fn wrong_type_names_the_key() {
+        let error =
+            resolve_typed::<Example>(&serde_json::json!({"iterations": "many"})).unwrap_err();
+        assert_eq!(error.path_string(), "iterations");
+        assert!(
+            error
+                .to_string()
+                .starts_with("config key \"iterations\": invalid type")
+        );
+    }
+}

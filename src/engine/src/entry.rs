@@ -1,0 +1,659 @@
+//! Cache entries: writing arrays into a staging group, the manifest, chunk digests, and
+//! reading published entries through zarrs storage traits (so any store can serve them).
+
+use std::collections::BTreeMap;
+use std::marker::PhantomData;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use anyhow::Context as _;
+use serde::{Deserialize, Serialize};
+use zarrs::array::codec::{BytesCodec, Crc32cCodec, ZstdCodec};
+use zarrs::array::{Array, ArrayBuilder, ArraySubset};
+use zarrs::filesystem::FilesystemStore;
+use zarrs::group::{Group, GroupBuilder};
+use zarrs::storage::{ReadableListableStorage, StoreKey, StorePrefix};
+
+use crate::array::{Element, NdArray};
+
+/// The group attribute holding the [`Manifest`].
+pub const MANIFEST_ATTRIBUTE: &str = "manifest";
+/// zstd level for every chunk.
+const ZSTD_LEVEL: i32 = 3;
+
+/// Provenance and integrity record of an entry, stored in the group attributes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub kind: String,
+    pub version: u32,
+    pub stage_name: String,
+    pub key: String,
+    pub config: serde_json::Value,
+    pub inputs: Vec<ManifestInput>,
+    pub external_files: Vec<ManifestExternalFile>,
+    pub tool_version: String,
+    pub arrays: BTreeMap<String, ManifestArray>,
+    pub wall_time_s: f64,
+    pub started_at: String,
+    pub finished_at: String,
+    pub log: Vec<String>,
+    pub warnings: Vec<String>,
+}
+
+/// One upstream entry a stage read.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ManifestInput {
+    pub stage_name: String,
+    pub kind: String,
+    pub key: String,
+}
+
+/// One external file the key depends on.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ManifestExternalFile {
+    pub path: String,
+    pub digest: String,
+}
+
+/// One array of an entry and the blake3 digests of its stored files.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ManifestArray {
+    pub dtype: String,
+    pub shape: Vec<u64>,
+    pub chunk_shape: Vec<u64>,
+    pub dimension_names: Vec<String>,
+    /// blake3 over the sorted (store key, file digest) pairs.
+    pub digest: String,
+    /// Store key (relative to the entry) -> blake3 of the stored bytes.
+    pub files: BTreeMap<String, String>,
+}
+
+/// Checks an array name: a plain name usable as a folder and a Zarr node name.
+fn check_array_name(name: &str) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        !name.is_empty()
+            && !name.starts_with('.')
+            && name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-' || c == '.'),
+        "array name \"{name}\" must be non-empty, not start with '.', and use only ASCII letters, digits, '_', '-', '.'"
+    );
+    Ok(())
+}
+
+#[derive(Debug, Clone)]
+struct ArraySpec {
+    dtype: &'static str,
+    shape: Vec<u64>,
+    chunk_shape: Vec<u64>,
+    dimension_names: Vec<String>,
+}
+
+/// Writes the arrays and attributes of one entry into its staging group. `Sync`: arrays can be
+/// created and written from many threads (distinct chunks only).
+pub struct EntryWriter {
+    root: PathBuf,
+    store: Arc<FilesystemStore>,
+    arrays: Mutex<BTreeMap<String, ArraySpec>>,
+    attributes: Mutex<serde_json::Map<String, serde_json::Value>>,
+    array_metadata_lock: Mutex<()>,
+}
+
+impl EntryWriter {
+    /// A writer for a new, empty group in the existing directory `root`.
+    pub(crate) fn create(root: &Path) -> anyhow::Result<Self> {
+        let store = Arc::new(
+            FilesystemStore::new(root)
+                .with_context(|| format!("cannot open staging store {}", root.display()))?,
+        );
+        GroupBuilder::new()
+            .build(store.clone(), "/")
+            .context("cannot create the entry group")?
+            .store_metadata()
+            .with_context(|| format!("cannot write group metadata in {}", root.display()))?;
+        Ok(Self {
+            root: root.to_path_buf(),
+            store,
+            arrays: Mutex::new(BTreeMap::new()),
+            attributes: Mutex::new(serde_json::Map::new()),
+            array_metadata_lock: Mutex::new(()),
+        })
+    }
+
+    /// The staging directory (for diagnostics).
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Creates an array of zeros; fill it with [`ArrayWriter::write_chunk`] or
+    /// [`ArrayWriter::write_region`].
+    pub fn create_array<T: Element>(
+        &self,
+        name: &str,
+        dimension_names: &[&str],
+        shape: &[u64],
+        chunk_shape: &[u64],
+    ) -> anyhow::Result<ArrayWriter<T>> {
+        check_array_name(name)?;
+        anyhow::ensure!(
+            dimension_names.len() == shape.len() && chunk_shape.len() == shape.len(),
+            "array \"{name}\": shape {shape:?}, chunk shape {chunk_shape:?} and dimension names {dimension_names:?} must have the same length"
+        );
+        anyhow::ensure!(
+            chunk_shape.iter().all(|&extent| extent > 0),
+            "array \"{name}\": chunk shape {chunk_shape:?} has a zero extent"
+        );
+        anyhow::ensure!(
+            dimension_names
+                .iter()
+                .all(|dimension| !dimension.is_empty()),
+            "array \"{name}\": empty dimension name in {dimension_names:?}"
+        );
+        {
+            let mut arrays = self.arrays.lock().expect("array table poisoned");
+            anyhow::ensure!(
+                !arrays.contains_key(name),
+                "array \"{name}\" was already created in this entry"
+            );
+            arrays.insert(
+                name.to_string(),
+                ArraySpec {
+                    dtype: T::DTYPE,
+                    shape: shape.to_vec(),
+                    chunk_shape: chunk_shape.to_vec(),
+                    dimension_names: dimension_names.iter().map(|d| d.to_string()).collect(),
+                },
+            );
+        }
+        let array = ArrayBuilder::new(
+            shape.to_vec(),
+            chunk_shape.to_vec(),
+            T::zarr_data_type(),
+            T::fill_value(),
+        )
+        .array_to_bytes_codec(Arc::new(BytesCodec::little()))
+        .bytes_to_bytes_codecs(vec![
+            Arc::new(ZstdCodec::new(ZSTD_LEVEL, false)),
+            Arc::new(Crc32cCodec::new()),
+        ])
+        .dimension_names(Some(dimension_names.to_vec()))
+        .build(self.store.clone(), &format!("/{name}"))
+        .with_context(|| format!("cannot create array \"{name}\""))?;
+        array
+            .store_metadata()
+            .with_context(|| format!("cannot write metadata of array \"{name}\""))?;
+        Ok(ArrayWriter {
+            name: name.to_string(),
+            array,
+            element: PhantomData,
+        })
+    }
+
+    /// Creates an array and writes all of `data` (row-major) into it.
+    pub fn write_array<T: Element>(
+        &self,
+        name: &str,
+        dimension_names: &[&str],
+        shape: &[u64],
+        chunk_shape: &[u64],
+        data: &[T],
+    ) -> anyhow::Result<()> {
+        let writer = self.create_array::<T>(name, dimension_names, shape, chunk_shape)?;
+        let origin = vec![0u64; shape.len()];
+        writer.write_region(&origin, shape, data)
+    }
+
+    /// Sets a stage-level attribute of the entry (the key `manifest` is reserved).
+    pub fn set_attribute(&self, key: &str, value: serde_json::Value) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            key != MANIFEST_ATTRIBUTE,
+            "attribute name \"{MANIFEST_ATTRIBUTE}\" is reserved for the engine"
+        );
+        self.attributes
+            .lock()
+            .expect("attribute table poisoned")
+            .insert(key.to_string(), value);
+        Ok(())
+    }
+
+    /// Sets an attribute of an array created earlier.
+    pub fn set_array_attribute(
+        &self,
+        array: &str,
+        key: &str,
+        value: serde_json::Value,
+    ) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            self.arrays
+                .lock()
+                .expect("array table poisoned")
+                .contains_key(array),
+            "cannot set attribute \"{key}\": no array \"{array}\" in this entry"
+        );
+        let _guard = self
+            .array_metadata_lock
+            .lock()
+            .expect("array metadata lock poisoned");
+        let mut opened = Array::open(self.store.clone(), &format!("/{array}"))
+            .with_context(|| format!("cannot reopen array \"{array}\""))?;
+        opened.attributes_mut().insert(key.to_string(), value);
+        opened
+            .store_metadata()
+            .with_context(|| format!("cannot write metadata of array \"{array}\""))?;
+        Ok(())
+    }
+
+    /// Names of the arrays created so far.
+    pub fn array_names(&self) -> Vec<String> {
+        self.arrays
+            .lock()
+            .expect("array table poisoned")
+            .keys()
+            .cloned()
+            .collect()
+    }
+
+    /// Digests every array and writes the group metadata with the stage attributes and the
+    /// manifest (whose `arrays` field is filled in here).
+    pub(crate) fn finish(&self, manifest: &mut Manifest) -> anyhow::Result<()> {
+        let specs = self.arrays.lock().expect("array table poisoned").clone();
+        let storage: ReadableListableStorage = self.store.clone();
+        let mut arrays = BTreeMap::new();
+        for (name, spec) in specs {
+            let files = digest_array_files(&storage, &name)?;
+            arrays.insert(
+                name,
+                ManifestArray {
+                    dtype: spec.dtype.to_string(),
+                    shape: spec.shape,
+                    chunk_shape: spec.chunk_shape,
+                    dimension_names: spec.dimension_names,
+                    digest: combined_digest(&files),
+                    files,
+                },
+            );
+        }
+        manifest.arrays = arrays;
+        let mut attributes = self
+            .attributes
+            .lock()
+            .expect("attribute table poisoned")
+            .clone();
+        attributes.insert(
+            MANIFEST_ATTRIBUTE.to_string(),
+            serde_json::to_value(&*manifest).context("cannot serialize manifest")?,
+        );
+        let mut group = GroupBuilder::new()
+            .build(self.store.clone(), "/")
+            .context("cannot rebuild the entry group")?;
+        *group.attributes_mut() = attributes;
+        group
+            .store_metadata()
+            .context("cannot write the entry group metadata")?;
+        Ok(())
+    }
+}
+
+/// blake3 of every stored file under the array `name`, keyed relative to the entry.
+fn digest_array_files(
+    storage: &ReadableListableStorage,
+    name: &str,
+) -> anyhow::Result<BTreeMap<String, String>> {
+    let prefix = StorePrefix::new(format!("{name}/"))
+        .with_context(|| format!("invalid array name \"{name}\""))?;
+    let keys = storage
+        .list_prefix(&prefix)
+        .with_context(|| format!("cannot list the files of array \"{name}\""))?;
+    let mut files = BTreeMap::new();
+    for key in keys {
+        let bytes = storage
+            .get(&key)
+            .with_context(|| format!("cannot read {}", key.as_str()))?
+            .ok_or_else(|| anyhow::anyhow!("file {} vanished while digesting", key.as_str()))?;
+        files.insert(
+            key.as_str().to_string(),
+            blake3::hash(&bytes).to_hex().to_string(),
+        );
+    }
+    Ok(files)
+}
+
+fn combined_digest(files: &BTreeMap<String, String>) -> String {
+    let mut hasher = blake3::Hasher::new();
+    for (key, digest) in files {
+        hasher.update(key.as_bytes());
+        hasher.update(&[0]);
+        hasher.update(digest.as_bytes());
+        hasher.update(&[0]);
+    }
+    hasher.finalize().to_hex().to_string()
+}
+
+/// Writes one array of an entry. `Sync`: distinct chunks may be written from many threads.
+pub struct ArrayWriter<T: Element> {
+    name: String,
+    array: Array<FilesystemStore>,
+    element: PhantomData<fn(T)>,
+}
+
+impl<T: Element> ArrayWriter<T> {
+    /// The array name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The array shape.
+    pub fn shape(&self) -> &[u64] {
+        self.array.shape()
+    }
+
+    /// Writes a whole chunk (edge chunks have the full chunk shape; elements beyond the
+    /// array are ignored).
+    pub fn write_chunk(&self, chunk_indices: &[u64], data: &[T]) -> anyhow::Result<()> {
+        let grid = self.array.chunk_grid_shape();
+        anyhow::ensure!(
+            chunk_indices.len() == grid.len()
+                && chunk_indices
+                    .iter()
+                    .zip(grid)
+                    .all(|(&index, &count)| index < count),
+            "array \"{}\": chunk {chunk_indices:?} is outside the chunk grid {grid:?}",
+            self.name
+        );
+        let chunk_shape = self
+            .array
+            .chunk_shape(chunk_indices)
+            .with_context(|| format!("array \"{}\": chunk {chunk_indices:?}", self.name))?;
+        let expected: u64 = chunk_shape.iter().map(|extent| extent.get()).product();
+        anyhow::ensure!(
+            data.len() as u64 == expected,
+            "array \"{}\": chunk {chunk_indices:?} needs {expected} elements, got {}",
+            self.name,
+            data.len()
+        );
+        self.array
+            .store_chunk(chunk_indices, data)
+            .with_context(|| {
+                format!(
+                    "cannot write chunk {chunk_indices:?} of array \"{}\"",
+                    self.name
+                )
+            })
+    }
+
+    /// Writes the region of `shape` starting at `start` (row-major data). Writing part of a
+    /// chunk is a read-modify-write: threads must not share chunks.
+    pub fn write_region(&self, start: &[u64], shape: &[u64], data: &[T]) -> anyhow::Result<()> {
+        let ranges = region_ranges(&self.name, self.array.shape(), start, shape)?;
+        let expected: u64 = shape.iter().product();
+        anyhow::ensure!(
+            data.len() as u64 == expected,
+            "array \"{}\": region {shape:?} needs {expected} elements, got {}",
+            self.name,
+            data.len()
+        );
+        if expected == 0 {
+            return Ok(());
+        }
+        self.array
+            .store_array_subset(&ranges, data)
+            .with_context(|| {
+                format!(
+                    "cannot write region at {start:?} of array \"{}\"",
+                    self.name
+                )
+            })
+    }
+}
+
+/// Checked ranges of a region inside an array.
+fn region_ranges(
+    name: &str,
+    array_shape: &[u64],
+    start: &[u64],
+    shape: &[u64],
+) -> anyhow::Result<Vec<Range<u64>>> {
+    anyhow::ensure!(
+        start.len() == array_shape.len() && shape.len() == array_shape.len(),
+        "array \"{name}\": region start {start:?} and shape {shape:?} must have rank {}",
+        array_shape.len()
+    );
+    let mut ranges = Vec::with_capacity(start.len());
+    for ((&begin, &extent), &size) in start.iter().zip(shape).zip(array_shape) {
+        let end = begin.checked_add(extent);
+        match end {
+            Some(end) if end <= size => ranges.push(begin..end),
+            _ => anyhow::bail!(
+                "array \"{name}\": region at {start:?} of shape {shape:?} exceeds the array shape {array_shape:?}"
+            ),
+        }
+    }
+    Ok(ranges)
+}
+
+/// Reads a published entry through a zarrs storage (local folder now, object store later).
+#[derive(Clone)]
+pub struct EntryReader {
+    storage: ReadableListableStorage,
+    location: String,
+    manifest: Manifest,
+    attributes: serde_json::Map<String, serde_json::Value>,
+}
+
+impl std::fmt::Debug for EntryReader {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        formatter
+            .debug_struct("EntryReader")
+            .field("location", &self.location)
+            .field("kind", &self.manifest.kind)
+            .field("key", &self.manifest.key)
+            .finish()
+    }
+}
+
+impl EntryReader {
+    /// Opens the entry group at the root of `storage`; `location` names it in messages.
+    pub fn open(storage: ReadableListableStorage, location: &str) -> anyhow::Result<Self> {
+        let group = Group::open(storage.clone(), "/")
+            .with_context(|| format!("{location}: cannot open the entry group"))?;
+        let mut attributes = group.attributes().clone();
+        let manifest_value = attributes.remove(MANIFEST_ATTRIBUTE).ok_or_else(|| {
+            anyhow::anyhow!("{location}: the group has no \"manifest\" attribute")
+        })?;
+        let manifest: Manifest = serde_json::from_value(manifest_value)
+            .with_context(|| format!("{location}: malformed manifest"))?;
+        Ok(Self {
+            storage,
+            location: location.to_string(),
+            manifest,
+            attributes,
+        })
+    }
+
+    /// Where the entry lives (a path or URL), for messages.
+    pub fn location(&self) -> &str {
+        &self.location
+    }
+
+    pub fn kind(&self) -> &str {
+        &self.manifest.kind
+    }
+
+    pub fn key(&self) -> &str {
+        &self.manifest.key
+    }
+
+    pub fn stage_name(&self) -> &str {
+        &self.manifest.stage_name
+    }
+
+    /// The effective config the entry was computed with.
+    pub fn config(&self) -> &serde_json::Value {
+        &self.manifest.config
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// The zarrs storage the entry is read from.
+    pub fn storage(&self) -> &ReadableListableStorage {
+        &self.storage
+    }
+
+    /// Array names, sorted.
+    pub fn array_names(&self) -> Vec<String> {
+        self.manifest.arrays.keys().cloned().collect()
+    }
+
+    fn open_array(
+        &self,
+        name: &str,
+    ) -> anyhow::Result<Array<dyn zarrs::storage::ReadableListableStorageTraits>> {
+        anyhow::ensure!(
+            self.manifest.arrays.contains_key(name),
+            "entry {} ({}): no array \"{name}\" (arrays: {})",
+            self.manifest.stage_name,
+            self.location,
+            self.array_names().join(", ")
+        );
+        Array::open(self.storage.clone(), &format!("/{name}"))
+            .with_context(|| format!("entry {}: cannot open array \"{name}\"", self.location))
+    }
+
+    /// The shape of array `name`.
+    pub fn shape(&self, name: &str) -> anyhow::Result<Vec<u64>> {
+        Ok(self.open_array(name)?.shape().to_vec())
+    }
+
+    /// The data type name of array `name` (`float32`, ...).
+    pub fn dtype(&self, name: &str) -> anyhow::Result<String> {
+        let record = self
+            .manifest
+            .arrays
+            .get(name)
+            .ok_or_else(|| anyhow::anyhow!("entry {}: no array \"{name}\"", self.location))?;
+        Ok(record.dtype.clone())
+    }
+
+    fn checked_array<T: Element>(
+        &self,
+        name: &str,
+    ) -> anyhow::Result<Array<dyn zarrs::storage::ReadableListableStorageTraits>> {
+        let array = self.open_array(name)?;
+        if <T as zarrs::array::Element>::validate_data_type(array.data_type()).is_err() {
+            let stored = serde_json::to_value(array.metadata())
+                .ok()
+                .and_then(|metadata| metadata.get("data_type").cloned())
+                .map(|value| value.to_string())
+                .unwrap_or_else(|| "an unknown type".to_string());
+            anyhow::bail!(
+                "entry {} ({}): array \"{name}\" holds {stored}, read as {}",
+                self.manifest.stage_name,
+                self.location,
+                T::DTYPE
+            );
+        }
+        Ok(array)
+    }
+
+    /// Reads the whole array `name`.
+    pub fn read<T: Element>(&self, name: &str) -> anyhow::Result<NdArray<T>> {
+        let array = self.checked_array::<T>(name)?;
+        let shape = array.shape().to_vec();
+        let data: Vec<T> = array
+            .retrieve_array_subset(&array.subset_all())
+            .with_context(|| format!("entry {}: cannot read array \"{name}\"", self.location))?;
+        NdArray::new(to_usize_shape(&shape)?, data)
+    }
+
+    /// Reads the region of `shape` starting at `start` of array `name`.
+    pub fn read_region<T: Element>(
+        &self,
+        name: &str,
+        start: &[u64],
+        shape: &[u64],
+    ) -> anyhow::Result<NdArray<T>> {
+        let array = self.checked_array::<T>(name)?;
+        let ranges = region_ranges(name, array.shape(), start, shape)?;
+        let subset = ArraySubset::new_with_ranges(&ranges);
+        let data: Vec<T> = array.retrieve_array_subset(&subset).with_context(|| {
+            format!(
+                "entry {}: cannot read a region of array \"{name}\"",
+                self.location
+            )
+        })?;
+        NdArray::new(to_usize_shape(shape)?, data)
+    }
+
+    /// A stage-level attribute.
+    pub fn attribute(&self, key: &str) -> Option<serde_json::Value> {
+        self.attributes.get(key).cloned()
+    }
+
+    /// All stage-level attributes.
+    pub fn attributes(&self) -> &serde_json::Map<String, serde_json::Value> {
+        &self.attributes
+    }
+
+    /// An attribute of array `array`.
+    pub fn array_attribute(&self, array: &str, key: &str) -> Option<serde_json::Value> {
+        let opened = self.open_array(array).ok()?;
+        opened.attributes().get(key).cloned()
+    }
+
+    /// The stored chunk files of array `name` and their compressed size in bytes.
+    pub fn stored_bytes(&self, name: &str) -> u64 {
+        self.manifest.arrays.get(name).map_or(0, |record| {
+            record
+                .files
+                .keys()
+                .filter_map(|key| StoreKey::new(key.clone()).ok())
+                .filter_map(|key| self.storage.size_key(&key).ok().flatten())
+                .sum()
+        })
+    }
+
+    /// Checks every stored file against the manifest digests; returns one line per problem,
+    /// naming the array and the file.
+    pub fn verify(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        for (name, record) in &self.manifest.arrays {
+            for (key, expected) in &record.files {
+                let store_key = match StoreKey::new(key.clone()) {
+                    Ok(store_key) => store_key,
+                    Err(_) => {
+                        problems.push(format!("array \"{name}\": invalid file name {key}"));
+                        continue;
+                    }
+                };
+                match self.storage.get(&store_key) {
+                    Ok(Some(bytes)) => {
+                        if blake3::hash(&bytes).to_hex().as_str() != expected {
+                            problems.push(format!(
+                                "array \"{name}\": file {key} does not match its digest"
+                            ));
+                        }
+                    }
+                    Ok(None) => problems.push(format!("array \"{name}\": file {key} is missing")),
+                    Err(error) => {
+                        problems.push(format!("array \"{name}\": file {key} unreadable: {error}"))
+                    }
+                }
+            }
+        }
+        problems
+    }
+}
+
+/// Converts a stored shape to `usize`.
+fn to_usize_shape(shape: &[u64]) -> anyhow::Result<Vec<usize>> {
+    shape
+        .iter()
+        .map(|&extent| {
+            usize::try_from(extent)
+                .map_err(|_| anyhow::anyhow!("array extent {extent} does not fit in memory"))
+        })
+        .collect()
+}

@@ -1,0 +1,810 @@
+//! Pipeline files: YAML parsing, validation (unknown keys, wrong types, missing inputs,
+//! unknown kinds, cycles), `--set` overrides and `${VAR}` expansion; every error names the
+//! file, the line and the key, and all of it happens before anything runs.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+use crate::Registry;
+use crate::config::{ConfigPathSegment, path_to_string};
+use crate::yaml_lines::LineMap;
+
+/// A pipeline file that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("{file}: cannot read: {source}")]
+    Read {
+        file: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{file}:{line}: {message}")]
+    At {
+        file: String,
+        line: usize,
+        message: String,
+    },
+    #[error("{file}: {message}")]
+    General { file: String, message: String },
+}
+
+/// One stage of a validated pipeline.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StageSpec {
+    pub name: String,
+    pub kind: String,
+    /// The effective config: overrides applied, variables expanded, defaults explicit.
+    pub config: serde_json::Value,
+    /// Names of upstream stages, in the order given.
+    pub inputs: Vec<String>,
+    /// Line of the stage in the file.
+    pub line: usize,
+}
+
+/// A validated pipeline.
+#[derive(Debug, Clone)]
+pub struct Pipeline {
+    pub file: PathBuf,
+    pub description: Option<String>,
+    /// Stages in file order.
+    pub stages: Vec<StageSpec>,
+    order: Vec<usize>,
+}
+
+const TOP_LEVEL_KEYS: &[&str] = &["stages", "description"];
+const STAGE_KEYS: &[&str] = &["name", "kind", "config", "inputs"];
+
+fn type_name(value: &serde_json::Value) -> &'static str {
+    match value {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Array(_) => "a list",
+        serde_json::Value::Object(_) => "a mapping",
+    }
+}
+
+fn key(name: &str) -> ConfigPathSegment {
+    ConfigPathSegment::Key(name.to_string())
+}
+
+/// Checks a stage name: used in `--set`, `--until` and messages.
+fn valid_stage_name(name: &str) -> bool {
+    !name.is_empty()
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+struct Loader<'a> {
+    file: String,
+    lines: LineMap,
+    registry: &'a Registry,
+}
+
+impl Loader<'_> {
+    fn at(&self, path: &[ConfigPathSegment], message: String) -> PipelineError {
+        PipelineError::At {
+            file: self.file.clone(),
+            line: self.lines.line_of(path),
+            message,
+        }
+    }
+
+    fn general(&self, message: String) -> PipelineError {
+        PipelineError::General {
+            file: self.file.clone(),
+            message,
+        }
+    }
+}
+
+impl Pipeline {
+    /// Reads and validates a pipeline file; `overrides` are `stage.key=value` strings.
+    pub fn load(
+        file: &Path,
+        registry: &Registry,
+        overrides: &[String],
+    ) -> Result<Self, PipelineError> {
+        let text = std::fs::read_to_string(file).map_err(|source| PipelineError::Read {
+            file: file.display().to_string(),
+            source,
+        })?;
+        Self::parse(&text, file, registry, overrides)
+    }
+
+    /// Validates pipeline `text`; `file` names it in errors.
+    pub fn parse(
+        text: &str,
+        file: &Path,
+        registry: &Registry,
+        overrides: &[String],
+    ) -> Result<Self, PipelineError> {
+        let file_label = file.display().to_string();
+        let lines = LineMap::build(text).map_err(|error| PipelineError::At {
+            file: file_label.clone(),
+            line: error.line,
+            message: format!("YAML syntax error: {}", error.message),
+        })?;
+        let loader = Loader {
+            file: file_label,
+            lines,
+            registry,
+        };
+        let document: serde_json::Value = if text.trim().is_empty() {
+            serde_json::Value::Null
+        } else {
+            serde_saphyr::from_str(text)
+                .map_err(|error| loader.at(&[], format!("YAML error: {error}")))?
+        };
+        let (description, stage_values, stages_path) = match &document {
+            serde_json::Value::Object(map) => {
+                for name in map.keys() {
+                    if !TOP_LEVEL_KEYS.contains(&name.as_str()) {
+                        return Err(loader.at(
+                            &[key(name)],
+                            format!(
+                                "unknown top-level key \"{name}\", expected one of: {}",
+                                TOP_LEVEL_KEYS.join(", ")
+                            ),
+                        ));
+                    }
+                }
+                let description = match map.get("description") {
+                    None | Some(serde_json::Value::Null) => None,
+                    Some(serde_json::Value::String(text)) => Some(text.clone()),
+                    Some(other) => {
+                        return Err(loader.at(
+                            &[key("description")],
+                            format!(
+                                "key \"description\": expected a string, found {}",
+                                type_name(other)
+                            ),
+                        ));
+                    }
+                };
+                match map.get("stages") {
+                    Some(serde_json::Value::Array(items)) => {
+                        (description, items.clone(), vec![key("stages")])
+                    }
+                    Some(other) => {
+                        return Err(loader.at(
+                            &[key("stages")],
+                            format!(
+                                "key \"stages\": expected a list of stages, found {}",
+                                type_name(other)
+                            ),
+                        ));
+                    }
+                    None => {
+                        return Err(
+                            loader.at(&[], "missing key \"stages\" (a list of stages)".to_string())
+                        );
+                    }
+                }
+            }
+            serde_json::Value::Array(items) => (None, items.clone(), vec![]),
+            other => {
+                return Err(loader.at(
+                    &[],
+                    format!(
+                        "expected a mapping with a \"stages\" list, found {}",
+                        type_name(other)
+                    ),
+                ));
+            }
+        };
+        if stage_values.is_empty() {
+            return Err(loader.at(&stages_path, "the pipeline has no stages".to_string()));
+        }
+
+        let mut stages: Vec<StageSpec> = Vec::with_capacity(stage_values.len());
+        let mut raw_configs = Vec::with_capacity(stage_values.len());
+        let mut seen: BTreeMap<String, usize> = BTreeMap::new();
+        for (index, value) in stage_values.iter().enumerate() {
+            let mut path = stages_path.clone();
+            path.push(ConfigPathSegment::Index(index));
+            let (spec, raw_config) = loader.stage(value, &path)?;
+            if let Some(&first) = seen.get(&spec.name) {
+                return Err(loader.at(
+                    &[path.as_slice(), &[key("name")]].concat(),
+                    format!(
+                        "stage name \"{}\" is used twice (first at line {})",
+                        spec.name, stages[first].line
+                    ),
+                ));
+            }
+            seen.insert(spec.name.clone(), index);
+            stages.push(spec);
+            raw_configs.push(raw_config);
+        }
+
+        // Inputs: they exist, and their kinds are accepted.
+        for (index, stage) in stages.iter().enumerate() {
+            let kind = registry.get(&stage.kind).expect("kind checked above");
+            for (input_index, input) in stage.inputs.iter().enumerate() {
+                let path = [
+                    stages_path.as_slice(),
+                    &[
+                        ConfigPathSegment::Index(index),
+                        key("inputs"),
+                        ConfigPathSegment::Index(input_index),
+                    ],
+                ]
+                .concat();
+                let Some(&upstream) = seen.get(input) else {
+                    return Err(loader.at(
+                        &path,
+                        format!(
+                            "stage \"{}\": input \"{input}\" is not a stage of this pipeline (stages: {})",
+                            stage.name,
+                            seen.keys().cloned().collect::<Vec<_>>().join(", ")
+                        ),
+                    ));
+                };
+                let upstream_kind = &stages[upstream].kind;
+                if !kind.input_kinds().contains(&upstream_kind.as_str()) {
+                    return Err(loader.at(
+                        &path,
+                        format!(
+                            "stage \"{}\" (kind {}): input \"{input}\" has kind {upstream_kind}, accepted input kinds: {}",
+                            stage.name,
+                            stage.kind,
+                            if kind.input_kinds().is_empty() {
+                                "none".to_string()
+                            } else {
+                                kind.input_kinds().join(", ")
+                            }
+                        ),
+                    ));
+                }
+            }
+        }
+
+        let order = topological_order(&stages).map_err(|cycle| {
+            let first = seen[&cycle[0]];
+            loader.at(
+                &[
+                    stages_path.as_slice(),
+                    &[ConfigPathSegment::Index(first), key("inputs")],
+                ]
+                .concat(),
+                format!(
+                    "the inputs form a cycle (data flows {})",
+                    cycle.join(" -> ")
+                ),
+            )
+        })?;
+
+        // Overrides, then variable expansion, then the stage kind's own validation.
+        let mut overridden: BTreeMap<usize, Vec<Vec<ConfigPathSegment>>> = BTreeMap::new();
+        for assignment in overrides {
+            let (stage_name, config_path, value) = parse_override(assignment)
+                .map_err(|message| loader.general(format!("--set {assignment}: {message}")))?;
+            let Some(&index) = seen.get(&stage_name) else {
+                return Err(loader.general(format!(
+                    "--set {assignment}: no stage named \"{stage_name}\" (stages: {})",
+                    seen.keys().cloned().collect::<Vec<_>>().join(", ")
+                )));
+            };
+            set_path(&mut raw_configs[index], &config_path, value)
+                .map_err(|message| loader.general(format!("--set {assignment}: {message}")))?;
+            overridden.entry(index).or_default().push(config_path);
+        }
+        for (index, stage) in stages.iter_mut().enumerate() {
+            let config_root = [
+                stages_path.as_slice(),
+                &[ConfigPathSegment::Index(index), key("config")],
+            ]
+            .concat();
+            let from_command_line = |path: &[ConfigPathSegment]| {
+                overridden
+                    .get(&index)
+                    .is_some_and(|paths| paths.iter().any(|set| path.starts_with(set)))
+            };
+            let mut raw = raw_configs[index].clone();
+            expand_variables(&mut raw, &mut Vec::new()).map_err(|(path, message)| {
+                let text = format!(
+                    "stage \"{}\": config key \"{}\": {message}{}",
+                    stage.name,
+                    path_to_string(&path),
+                    if from_command_line(&path) {
+                        " (set with --set)"
+                    } else {
+                        ""
+                    }
+                );
+                loader.at(&[config_root.as_slice(), &path].concat(), text)
+            })?;
+            let kind = registry.get(&stage.kind).expect("kind checked above");
+            stage.config = kind.resolve_config(&raw).map_err(|error| {
+                let text = format!(
+                    "stage \"{}\": {error}{}",
+                    stage.name,
+                    if from_command_line(&error.path) {
+                        " (set with --set)"
+                    } else {
+                        ""
+                    }
+                );
+                loader.at(&[config_root.as_slice(), &error.path].concat(), text)
+            })?;
+        }
+
+        Ok(Self {
+            file: file.to_path_buf(),
+            description,
+            stages,
+            order,
+        })
+    }
+
+    /// Stage indices in a topological order (file order among independent stages).
+    pub fn order(&self) -> &[usize] {
+        &self.order
+    }
+
+    /// The stage named `name`.
+    pub fn stage(&self, name: &str) -> Option<&StageSpec> {
+        self.stages.iter().find(|stage| stage.name == name)
+    }
+
+    /// Stage names in file order.
+    pub fn stage_names(&self) -> Vec<String> {
+        self.stages.iter().map(|stage| stage.name.clone()).collect()
+    }
+
+    /// `name` and every stage it depends on, directly or not.
+    pub fn ancestors_and_self(&self, name: &str) -> BTreeSet<String> {
+        let mut found = BTreeSet::new();
+        let mut pending = vec![name.to_string()];
+        while let Some(current) = pending.pop() {
+            if !found.insert(current.clone()) {
+                continue;
+            }
+            if let Some(stage) = self.stage(&current) {
+                pending.extend(stage.inputs.iter().cloned());
+            }
+        }
+        found
+    }
+}
+
+impl Loader<'_> {
+    /// Validates one stage mapping; returns the spec (config unresolved) and the raw config.
+    fn stage(
+        &self,
+        value: &serde_json::Value,
+        path: &[ConfigPathSegment],
+    ) -> Result<(StageSpec, serde_json::Value), PipelineError> {
+        let at_key = |name: &str| [path, &[key(name)]].concat();
+        let serde_json::Value::Object(map) = value else {
+            return Err(self.at(
+                path,
+                format!(
+                    "a stage must be a mapping with keys {}, found {}",
+                    STAGE_KEYS.join(", "),
+                    type_name(value)
+                ),
+            ));
+        };
+        for name in map.keys() {
+            if !STAGE_KEYS.contains(&name.as_str()) {
+                let label = map
+                    .get("name")
+                    .and_then(|n| n.as_str())
+                    .map(|n| format!("stage \"{n}\": "))
+                    .unwrap_or_default();
+                return Err(self.at(
+                    &at_key(name),
+                    format!(
+                        "{label}unknown key \"{name}\", expected one of: {}",
+                        STAGE_KEYS.join(", ")
+                    ),
+                ));
+            }
+        }
+        let name = match map.get("name") {
+            Some(serde_json::Value::String(name)) if valid_stage_name(name) => name.clone(),
+            Some(serde_json::Value::String(name)) => {
+                return Err(self.at(
+                    &at_key("name"),
+                    format!("stage name \"{name}\" must be non-empty and use only ASCII letters, digits, '_' and '-'"),
+                ));
+            }
+            Some(other) => {
+                return Err(self.at(
+                    &at_key("name"),
+                    format!(
+                        "key \"name\": expected a string, found {}",
+                        type_name(other)
+                    ),
+                ));
+            }
+            None => return Err(self.at(path, "stage without a \"name\"".to_string())),
+        };
+        let kind = match map.get("kind") {
+            Some(serde_json::Value::String(kind)) => kind.clone(),
+            Some(other) => {
+                return Err(self.at(
+                    &at_key("kind"),
+                    format!(
+                        "stage \"{name}\": key \"kind\": expected a string, found {}",
+                        type_name(other)
+                    ),
+                ));
+            }
+            None => {
+                return Err(self.at(path, format!("stage \"{name}\" has no \"kind\"")));
+            }
+        };
+        if self.registry.get(&kind).is_none() {
+            return Err(self.at(
+                &at_key("kind"),
+                format!(
+                    "stage \"{name}\": unknown stage kind \"{kind}\", known kinds: {}",
+                    self.registry.kind_names().join(", ")
+                ),
+            ));
+        }
+        let inputs = match map.get("inputs") {
+            None | Some(serde_json::Value::Null) => vec![],
+            Some(serde_json::Value::String(single)) => vec![single.clone()],
+            Some(serde_json::Value::Array(items)) => {
+                let mut inputs = Vec::with_capacity(items.len());
+                for (index, item) in items.iter().enumerate() {
+                    match item {
+                        serde_json::Value::String(input) => {
+                            if inputs.contains(input) {
+                                return Err(self.at(
+                                    &[path, &[key("inputs"), ConfigPathSegment::Index(index)]]
+                                        .concat(),
+                                    format!("stage \"{name}\": input \"{input}\" is listed twice"),
+                                ));
+                            }
+                            inputs.push(input.clone())
+                        }
+                        other => {
+                            return Err(self.at(
+                                &[path, &[key("inputs"), ConfigPathSegment::Index(index)]].concat(),
+                                format!(
+                                    "stage \"{name}\": key \"inputs\": expected stage names, found {}",
+                                    type_name(other)
+                                ),
+                            ));
+                        }
+                    }
+                }
+                inputs
+            }
+            Some(other) => {
+                return Err(self.at(
+                    &at_key("inputs"),
+                    format!(
+                        "stage \"{name}\": key \"inputs\": expected a list of stage names, found {}",
+                        type_name(other)
+                    ),
+                ));
+            }
+        };
+        let raw_config = match map.get("config") {
+            None | Some(serde_json::Value::Null) => {
+                serde_json::Value::Object(serde_json::Map::new())
+            }
+            Some(config @ serde_json::Value::Object(_)) => config.clone(),
+            Some(other) => {
+                return Err(self.at(
+                    &at_key("config"),
+                    format!(
+                        "stage \"{name}\": key \"config\": expected a mapping, found {}",
+                        type_name(other)
+                    ),
+                ));
+            }
+        };
+        Ok((
+            StageSpec {
+                name,
+                kind,
+                config: serde_json::Value::Null,
+                inputs,
+                line: self.lines.line_of(path),
+            },
+            raw_config,
+        ))
+    }
+}
+
+/// Kahn's algorithm, taking ready stages in file order; on a cycle returns the stage names
+/// around it.
+fn topological_order(stages: &[StageSpec]) -> Result<Vec<usize>, Vec<String>> {
+    let index_of: BTreeMap<&str, usize> = stages
+        .iter()
+        .enumerate()
+        .map(|(index, stage)| (stage.name.as_str(), index))
+        .collect();
+    let mut remaining_inputs: Vec<usize> = stages.iter().map(|stage| stage.inputs.len()).collect();
+    let mut order = Vec::with_capacity(stages.len());
+    let mut done = vec![false; stages.len()];
+    while order.len() < stages.len() {
+        let Some(next) =
+            (0..stages.len()).find(|&index| !done[index] && remaining_inputs[index] == 0)
+        else {
+            // Every remaining stage waits on another: follow inputs until a stage repeats.
+            let start = (0..stages.len())
+                .find(|&index| !done[index])
+                .expect("a stage remains");
+            let mut walk = vec![start];
+            loop {
+                let current = *walk.last().expect("walk is non-empty");
+                let upstream = stages[current]
+                    .inputs
+                    .iter()
+                    .map(|input| index_of[input.as_str()])
+                    .find(|&index| !done[index])
+                    .expect("a waiting stage has an unfinished input");
+                if let Some(position) = walk.iter().position(|&index| index == upstream) {
+                    let mut cycle: Vec<String> = walk[position..]
+                        .iter()
+                        .rev()
+                        .map(|&index| stages[index].name.clone())
+                        .collect();
+                    cycle.push(cycle[0].clone());
+                    return Err(cycle);
+                }
+                walk.push(upstream);
+            }
+        };
+        done[next] = true;
+        order.push(next);
+        for (index, stage) in stages.iter().enumerate() {
+            if stage.inputs.iter().any(|input| input == &stages[next].name) {
+                remaining_inputs[index] -= 1;
+            }
+        }
+    }
+    Ok(order)
+}
+
+/// Splits `stage.key.sub=value` and parses the value as YAML.
+fn parse_override(
+    assignment: &str,
+) -> Result<(String, Vec<ConfigPathSegment>, serde_json::Value), String> {
+    let (target, value_text) = assignment
+        .split_once('=')
+        .ok_or_else(|| "expected stage.key=value".to_string())?;
+    let mut parts = target.trim().split('.');
+    let stage = parts.next().unwrap_or_default().to_string();
+    let path: Vec<ConfigPathSegment> = parts.map(key).collect();
+    if stage.is_empty() || path.is_empty() || path.iter().any(|segment| *segment == key("")) {
+        return Err("expected stage.key=value".to_string());
+    }
+    let value = if value_text.trim().is_empty() {
+        serde_json::Value::String(String::new())
+    } else {
+        serde_saphyr::from_str::<serde_json::Value>(value_text)
+            .map_err(|error| format!("the value is not valid YAML: {error}"))?
+    };
+    Ok((stage, path, value))
+}
+
+/// Sets `path` in `config`, creating mappings on the way.
+fn set_path(
+    config: &mut serde_json::Value,
+    path: &[ConfigPathSegment],
+    value: serde_json::Value,
+) -> Result<(), String> {
+    let mut current = config;
+    for (depth, segment) in path.iter().enumerate() {
+        let ConfigPathSegment::Key(name) = segment else {
+            return Err("list indices are not supported".to_string());
+        };
+        if current.is_null() {
+            *current = serde_json::Value::Object(serde_json::Map::new());
+        }
+        let serde_json::Value::Object(map) = current else {
+            return Err(format!(
+                "config key \"{}\" is {}, not a mapping",
+                path_to_string(&path[..depth]),
+                type_name(current)
+            ));
+        };
+        if depth + 1 == path.len() {
+            map.insert(name.clone(), value);
+            return Ok(());
+        }
+        current = map.entry(name.clone()).or_insert(serde_json::Value::Null);
+    }
+    Ok(())
+}
+
+/// Expands `${NAME}` in every string (`$$` is a literal `$`); errors carry the key path.
+fn expand_variables(
+    value: &mut serde_json::Value,
+    path: &mut Vec<ConfigPathSegment>,
+) -> Result<(), (Vec<ConfigPathSegment>, String)> {
+    match value {
+        serde_json::Value::String(text) if text.contains('$') => {
+            *text = expand_string(text).map_err(|message| (path.clone(), message))?;
+        }
+        serde_json::Value::Array(items) => {
+            for (index, item) in items.iter_mut().enumerate() {
+                path.push(ConfigPathSegment::Index(index));
+                expand_variables(item, path)?;
+                path.pop();
+            }
+        }
+        serde_json::Value::Object(map) => {
+            for (name, item) in map.iter_mut() {
+                path.push(key(name));
+                expand_variables(item, path)?;
+                path.pop();
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+fn expand_string(text: &str) -> Result<String, String> {
+    let mut result = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(position) = rest.find('$') {
+        result.push_str(&rest[..position]);
+        let after = &rest[position + 1..];
+        if let Some(stripped) = after.strip_prefix('$') {
+            result.push('$');
+            rest = stripped;
+        } else if let Some(body) = after.strip_prefix('{') {
+            let end = body
+                .find('}')
+                .ok_or_else(|| format!("unterminated \"${{\" in \"{text}\""))?;
+            let name = &body[..end];
+            if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+                return Err(format!("invalid variable name \"{name}\" in \"{text}\""));
+            }
+            let value = std::env::var(name).map_err(|_| {
+                format!("environment variable {name} is not set (used in \"{text}\")")
+            })?;
+            result.push_str(&value);
+            rest = &body[end + 1..];
+        } else {
+            result.push('$');
+            rest = after;
+        }
+    }
+    result.push_str(rest);
+    Ok(result)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str, overrides: &[&str]) -> Result<Pipeline, String> {
+        let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+        Pipeline::parse(text, Path::new("p.yaml"), &Registry::new(), &overrides)
+            .map_err(|error| error.to_string())
+    }
+
+    fn check_error(text: &str, overrides: &[&str], expected: &str) {
+        let error = parse(text, overrides).expect_err("must be rejected");
+        assert!(
+            error.contains(expected),
+            "expected {expected:?} in {error:?}"
+        );
+    }
+
+    const GOOD: &str = "description: demo\nstages:\n  - name: a\n    kind: test_arrays\n    config:\n      size: 8\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n    config: {seed: 2, size: 8}\n";
+
+    #[test]
+    fn valid_pipeline_resolves_defaults() {
+        let pipeline = parse(GOOD, &[]).unwrap();
+        assert_eq!(pipeline.stage_names(), ["a", "b"]);
+        assert_eq!(pipeline.stages[0].config["chunk"], 4);
+        assert_eq!(pipeline.stages[1].config["seed"], 2);
+        assert_eq!(pipeline.stages[1].line, 7);
+        assert_eq!(pipeline.order(), [0, 1]);
+        assert_eq!(pipeline.ancestors_and_self("b").len(), 2);
+    }
+
+    #[test]
+    fn malformed_files_name_line_and_key() {
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      size: 8\n      seeed: 1\n",
+            &[],
+            "p.yaml:6: stage \"a\": config key \"seeed\": unknown field `seeed`, expected one of",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      size: many\n",
+            &[],
+            "p.yaml:5: stage \"a\": config key \"size\": invalid type",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: nope\n",
+            &[],
+            "p.yaml:3: stage \"a\": unknown stage kind \"nope\", known kinds: test_arrays",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    inputs: [ghost]\n",
+            &[],
+            "p.yaml:4: stage \"a\": input \"ghost\" is not a stage of this pipeline",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    inputs: [b]\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n",
+            &[],
+            "p.yaml:7: the inputs form a cycle (data flows b -> a -> b)",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    inputs: [a]\n",
+            &[],
+            "p.yaml:4: the inputs form a cycle (data flows a -> a)",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    confg: {}\n",
+            &[],
+            "p.yaml:4: stage \"a\": unknown key \"confg\", expected one of: name, kind, config, inputs",
+        );
+        check_error(
+            "stage:\n  - name: a\n",
+            &[],
+            "p.yaml:1: unknown top-level key \"stage\"",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: 3\n",
+            &[],
+            "p.yaml:3: stage \"a\": key \"kind\": expected a string, found a number",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: [1]\n",
+            &[],
+            "p.yaml:4: stage \"a\": key \"config\": expected a mapping, found a list",
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n  - name: a\n    kind: test_arrays\n",
+            &[],
+            "p.yaml:4: stage name \"a\" is used twice (first at line 2)",
+        );
+        check_error("stages: [\n", &[], "p.yaml:");
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      size: 0\n",
+            &[],
+            "p.yaml:5: stage \"a\": config key \"size\": must be in 1..=4096",
+        );
+    }
+
+    #[test]
+    fn overrides_parse_yaml_scalars() {
+        let pipeline = parse(GOOD, &["b.seed=7", "a.count_file=/tmp/x"]).unwrap();
+        assert_eq!(pipeline.stages[1].config["seed"], 7);
+        assert_eq!(pipeline.stages[0].config["count_file"], "/tmp/x");
+        check_error(GOOD, &["c.seed=1"], "--set c.seed=1: no stage named \"c\"");
+        check_error(GOOD, &["b.seed"], "expected stage.key=value");
+        check_error(
+            GOOD,
+            &["b.seeed=1"],
+            "stage \"b\": config key \"seeed\": unknown field `seeed`, expected one of",
+        );
+        check_error(GOOD, &["b.seed=x"], "(set with --set)");
+    }
+
+    #[test]
+    fn variables_expand_in_strings() {
+        // SAFETY of the test: the variable name is unique to this test.
+        unsafe { std::env::set_var("SEQAVATAR_ENGINE_TEST_ROOT", "/data/root") };
+        let text = "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      count_file: ${SEQAVATAR_ENGINE_TEST_ROOT}/count$$1\n";
+        let pipeline = parse(text, &[]).unwrap();
+        assert_eq!(
+            pipeline.stages[0].config["count_file"],
+            "/data/root/count$1"
+        );
+        check_error(
+            "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      count_file: ${SEQAVATAR_ENGINE_TEST_UNSET_VARIABLE}\n",
+            &[],
+            "p.yaml:5: stage \"a\": config key \"count_file\": environment variable SEQAVATAR_ENGINE_TEST_UNSET_VARIABLE is not set",
+        );
+        assert!(expand_string("${unterminated").is_err());
+        assert_eq!(expand_string("cost $5").unwrap(), "cost $5");
+    }
+}

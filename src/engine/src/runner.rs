@@ -1,0 +1,531 @@
+//! The runner: computes keys in topological order, reuses verified entries, computes the
+//! missing ones under the per-key lock, and publishes them. Also the [`StageContext`] that
+//! stages see while they run.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::io::IsTerminal as _;
+use std::panic::AssertUnwindSafe;
+use std::path::Path;
+use std::sync::Mutex;
+use std::time::{Duration, Instant, SystemTime};
+
+use anyhow::Context as _;
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde::de::DeserializeOwned;
+
+use crate::Registry;
+use crate::entry::{EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput};
+use crate::key::{FileDigests, KeyMaterial, stage_key};
+use crate::pipeline::{Pipeline, StageSpec};
+use crate::store::{EntryId, EntryState, Store};
+
+/// The file (in the store's local state folder) remembering external file digests.
+const FILE_DIGEST_MEMO: &str = ".file-digests.json";
+/// A log line starting with this prefix names the compute backend for the run summary.
+pub const BACKEND_LOG_PREFIX: &str = "backend:";
+
+/// Progress bars and log lines; plain stderr lines when stderr is not a terminal.
+pub(crate) struct Progress {
+    multi: MultiProgress,
+    visible: bool,
+}
+
+impl Progress {
+    pub(crate) fn new() -> Self {
+        let visible = std::io::stderr().is_terminal();
+        let target = if visible {
+            ProgressDrawTarget::stderr()
+        } else {
+            ProgressDrawTarget::hidden()
+        };
+        Self {
+            multi: MultiProgress::with_draw_target(target),
+            visible,
+        }
+    }
+
+    pub(crate) fn println(&self, message: &str) {
+        if self.visible {
+            // A failed terminal write is not worth aborting a stage for.
+            let _ = self.multi.println(message);
+        } else {
+            eprintln!("{message}");
+        }
+    }
+
+    fn spinner(&self, message: String) -> ProgressBar {
+        let bar = self.multi.add(ProgressBar::new_spinner());
+        bar.set_style(
+            ProgressStyle::with_template("{spinner} {msg} [{elapsed}]")
+                .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+        );
+        bar.set_message(message);
+        bar.enable_steady_tick(Duration::from_millis(120));
+        bar
+    }
+
+    fn bar(&self, len: u64, message: String) -> ProgressBar {
+        let bar = self.multi.add(ProgressBar::new(len));
+        bar.set_style(
+            ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len} ({per_sec}, eta {eta})")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        bar.set_message(message);
+        bar
+    }
+}
+
+/// What a running stage sees: its config, its inputs, its output and a work folder.
+pub struct StageContext<'a> {
+    stage_name: &'a str,
+    key: &'a str,
+    config: &'a serde_json::Value,
+    inputs: &'a [EntryReader],
+    output: &'a EntryWriter,
+    work_dir: &'a Path,
+    progress: &'a Progress,
+    log: Mutex<Vec<String>>,
+    warnings: Mutex<Vec<String>>,
+}
+
+impl StageContext<'_> {
+    /// The stage's name in the pipeline.
+    pub fn stage_name(&self) -> &str {
+        self.stage_name
+    }
+
+    /// The key of the entry being computed.
+    pub fn key(&self) -> &str {
+        self.key
+    }
+
+    /// The resolved config, deserialized.
+    pub fn config<T: DeserializeOwned>(&self) -> anyhow::Result<T> {
+        serde_json::from_value(self.config.clone())
+            .with_context(|| format!("stage \"{}\": config does not deserialize", self.stage_name))
+    }
+
+    /// The resolved config as JSON.
+    pub fn config_value(&self) -> &serde_json::Value {
+        self.config
+    }
+
+    /// The unique input of stage kind `kind`.
+    pub fn input(&self, kind: &str) -> anyhow::Result<&EntryReader> {
+        let mut matching = self.inputs.iter().filter(|input| input.kind() == kind);
+        let first = matching.next().ok_or_else(|| {
+            anyhow::anyhow!(
+                "stage \"{}\" needs an input of kind \"{kind}\"; its inputs are: {}",
+                self.stage_name,
+                describe_inputs(self.inputs)
+            )
+        })?;
+        anyhow::ensure!(
+            matching.next().is_none(),
+            "stage \"{}\" has several inputs of kind \"{kind}\" ({}); expected one",
+            self.stage_name,
+            describe_inputs(self.inputs)
+        );
+        Ok(first)
+    }
+
+    /// All inputs, in the order the pipeline lists them.
+    pub fn inputs(&self) -> &[EntryReader] {
+        self.inputs
+    }
+
+    /// Where the stage writes its arrays.
+    pub fn output(&self) -> &EntryWriter {
+        self.output
+    }
+
+    /// A folder that persists across interrupted runs of the same key (checkpoints); it is
+    /// deleted after the entry is published.
+    pub fn work_dir(&self) -> &Path {
+        self.work_dir
+    }
+
+    /// A progress bar shown under the stage's line.
+    pub fn progress_bar(&self, len: u64, message: &str) -> ProgressBar {
+        self.progress
+            .bar(len, format!("{}: {message}", self.stage_name))
+    }
+
+    /// Prints a line and records it in the manifest `log`. A line `backend: NAME` names the
+    /// compute backend in the run summary.
+    pub fn log(&self, message: &str) {
+        self.progress
+            .println(&format!("[{}] {message}", self.stage_name));
+        self.log
+            .lock()
+            .expect("log poisoned")
+            .push(message.to_string());
+    }
+
+    /// Prints a warning and records it in the manifest `warnings`.
+    pub fn warn(&self, message: &str) {
+        self.progress
+            .println(&format!("[{}] warning: {message}", self.stage_name));
+        self.warnings
+            .lock()
+            .expect("warnings poisoned")
+            .push(message.to_string());
+    }
+}
+
+fn describe_inputs(inputs: &[EntryReader]) -> String {
+    if inputs.is_empty() {
+        return "none".to_string();
+    }
+    inputs
+        .iter()
+        .map(|input| format!("{} ({})", input.stage_name(), input.kind()))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The key of one stage and the external file digests that went into it.
+#[derive(Debug, Clone)]
+pub struct StageKey {
+    pub key: String,
+    pub external_files: Vec<ManifestExternalFile>,
+}
+
+/// Computes the keys of the stages at `indices` (and, needed for them, their ancestors).
+pub fn compute_keys(
+    pipeline: &Pipeline,
+    registry: &Registry,
+    store: &dyn Store,
+) -> anyhow::Result<BTreeMap<String, StageKey>> {
+    let mut digests = FileDigests::load(&store.local_state_dir().join(FILE_DIGEST_MEMO));
+    let mut keys: BTreeMap<String, StageKey> = BTreeMap::new();
+    for &index in pipeline.order() {
+        let stage = &pipeline.stages[index];
+        let kind = registry
+            .get(&stage.kind)
+            .ok_or_else(|| anyhow::anyhow!("unknown stage kind \"{}\"", stage.kind))?;
+        let files = kind
+            .external_files(&stage.config)
+            .with_context(|| format!("stage \"{}\": cannot list its external files", stage.name))?;
+        let mut external_files = Vec::with_capacity(files.len());
+        for file in files {
+            let digest = digests
+                .digest(&file)
+                .with_context(|| format!("stage \"{}\"", stage.name))?;
+            external_files.push(ManifestExternalFile {
+                path: file.display().to_string(),
+                digest,
+            });
+        }
+        let input_keys: Vec<String> = stage
+            .inputs
+            .iter()
+            .map(|input| keys[input].key.clone())
+            .collect();
+        let external_digests: Vec<String> = external_files
+            .iter()
+            .map(|file| file.digest.clone())
+            .collect();
+        let key = stage_key(&KeyMaterial {
+            kind: &stage.kind,
+            version: kind.version(),
+            config: &stage.config,
+            input_keys: &input_keys,
+            external_digests: &external_digests,
+        });
+        keys.insert(
+            stage.name.clone(),
+            StageKey {
+                key,
+                external_files,
+            },
+        );
+    }
+    // The memo is an optimisation; failing to save it must not fail the run.
+    let _ = digests.save();
+    Ok(keys)
+}
+
+/// Options of `pipeline run`.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// Run only this stage and its ancestors.
+    pub until: Option<String>,
+    /// Recompute these stages even when cached.
+    pub force: Vec<String>,
+}
+
+/// How a stage's entry was obtained.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Outcome {
+    Cached,
+    Ran,
+    /// Recomputed because `--force` or a corrupt entry.
+    Recomputed(String),
+}
+
+impl std::fmt::Display for Outcome {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Outcome::Cached => write!(formatter, "cached"),
+            Outcome::Ran => write!(formatter, "ran"),
+            Outcome::Recomputed(reason) => write!(formatter, "ran ({reason})"),
+        }
+    }
+}
+
+/// One row of the run summary.
+#[derive(Debug, Clone)]
+pub struct StageReport {
+    pub name: String,
+    pub kind: String,
+    pub key: String,
+    pub outcome: Outcome,
+    pub seconds: f64,
+    pub backend: Option<String>,
+}
+
+/// The stages selected by `until` (that stage and its ancestors), in topological order.
+pub fn selected_stages<'p>(
+    pipeline: &'p Pipeline,
+    until: Option<&str>,
+) -> anyhow::Result<Vec<&'p StageSpec>> {
+    let wanted: Option<BTreeSet<String>> = match until {
+        None => None,
+        Some(name) => {
+            anyhow::ensure!(
+                pipeline.stage(name).is_some(),
+                "--until {name}: no stage named \"{name}\" in {} (stages: {})",
+                pipeline.file.display(),
+                pipeline.stage_names().join(", ")
+            );
+            Some(pipeline.ancestors_and_self(name))
+        }
+    };
+    Ok(pipeline
+        .order()
+        .iter()
+        .map(|&index| &pipeline.stages[index])
+        .filter(|stage| wanted.as_ref().is_none_or(|set| set.contains(&stage.name)))
+        .collect())
+}
+
+/// Opens a published entry and checks every file against its manifest.
+pub fn open_verified(store: &dyn Store, id: &EntryId) -> Result<EntryReader, String> {
+    let reader = store.open_entry(id).map_err(|error| format!("{error:#}"))?;
+    if reader.kind() != id.kind || reader.key() != id.key {
+        return Err(format!(
+            "manifest names {}/{}, expected {id}",
+            reader.kind(),
+            reader.key()
+        ));
+    }
+    let problems = reader.verify();
+    if problems.is_empty() {
+        Ok(reader)
+    } else {
+        Err(problems.join("; "))
+    }
+}
+
+/// Runs the pipeline: reuses verified entries and computes the missing ones.
+pub fn run(
+    pipeline: &Pipeline,
+    registry: &Registry,
+    store: &dyn Store,
+    options: &RunOptions,
+) -> anyhow::Result<Vec<StageReport>> {
+    for name in &options.force {
+        anyhow::ensure!(
+            pipeline.stage(name).is_some(),
+            "--force {name}: no stage named \"{name}\" in {} (stages: {})",
+            pipeline.file.display(),
+            pipeline.stage_names().join(", ")
+        );
+    }
+    let progress = Progress::new();
+    for line in store.clean_leftovers()? {
+        progress.println(&format!("cleaned up {line}"));
+    }
+    let keys = compute_keys(pipeline, registry, store)?;
+    let stages = selected_stages(pipeline, options.until.as_deref())?;
+    let mut readers: HashMap<String, EntryReader> = HashMap::new();
+    let mut reports = Vec::new();
+    for stage in stages {
+        let kind = registry
+            .get(&stage.kind)
+            .ok_or_else(|| anyhow::anyhow!("unknown stage kind \"{}\"", stage.kind))?;
+        let stage_key = &keys[&stage.name];
+        let id = EntryId::new(&stage.kind, &stage_key.key);
+        let forced = options.force.contains(&stage.name);
+        let started = Instant::now();
+        let mut recompute_reason: Option<String> = forced.then(|| "forced".to_string());
+
+        let mut cached = None;
+        if !forced && store.entry_state(&id)? == EntryState::Complete {
+            match open_verified(store, &id) {
+                Ok(reader) => cached = Some(reader),
+                Err(problems) => {
+                    progress.println(&format!(
+                        "[{}] cached entry {id} is corrupt ({problems}); recomputing",
+                        stage.name
+                    ));
+                    recompute_reason = Some("corrupt entry".to_string());
+                }
+            }
+        }
+        if let Some(reader) = cached {
+            reports.push(StageReport {
+                name: stage.name.clone(),
+                kind: stage.kind.clone(),
+                key: stage_key.key.clone(),
+                outcome: Outcome::Cached,
+                seconds: started.elapsed().as_secs_f64(),
+                backend: backend_of(&reader.manifest().log),
+            });
+            readers.insert(stage.name.clone(), reader);
+            continue;
+        }
+
+        let lock = store.lock(&id, &mut || {
+            progress.println(&format!(
+                "[{}] waiting for another run computing {id}",
+                stage.name
+            ));
+        })?;
+        // Another run may have published it while we waited.
+        if !forced && store.entry_state(&id)? == EntryState::Complete {
+            match open_verified(store, &id) {
+                Ok(reader) => {
+                    reports.push(StageReport {
+                        name: stage.name.clone(),
+                        kind: stage.kind.clone(),
+                        key: stage_key.key.clone(),
+                        outcome: Outcome::Cached,
+                        seconds: started.elapsed().as_secs_f64(),
+                        backend: backend_of(&reader.manifest().log),
+                    });
+                    readers.insert(stage.name.clone(), reader);
+                    continue;
+                }
+                Err(problems) => {
+                    let moved = store.quarantine(lock.as_ref())?;
+                    progress.println(&format!(
+                        "[{}] entry {id} is corrupt ({problems}); moved to {moved}",
+                        stage.name
+                    ));
+                    recompute_reason = Some("corrupt entry".to_string());
+                }
+            }
+        } else if store.entry_state(&id)? != EntryState::Missing {
+            store.quarantine(lock.as_ref())?;
+        }
+
+        let inputs: Vec<EntryReader> = stage
+            .inputs
+            .iter()
+            .map(|input| readers[input].clone())
+            .collect();
+        let staging = store.begin_staging(lock.as_ref())?;
+        let resumed = std::fs::read_dir(&staging.work_dir)
+            .map(|mut read| read.next().is_some())
+            .unwrap_or(false);
+        let writer = EntryWriter::create(&staging.output_dir)?;
+        let spinner = progress.spinner(format!(
+            "{} ({}, {})",
+            stage.name,
+            stage.kind,
+            &stage_key.key[..12]
+        ));
+        let started_at = SystemTime::now();
+        let mut context = StageContext {
+            stage_name: &stage.name,
+            key: &stage_key.key,
+            config: &stage.config,
+            inputs: &inputs,
+            output: &writer,
+            work_dir: &staging.work_dir,
+            progress: &progress,
+            log: Mutex::new(Vec::new()),
+            warnings: Mutex::new(Vec::new()),
+        };
+        if resumed {
+            context.log("resuming from the work folder of an interrupted run");
+        }
+        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
+            .unwrap_or_else(|panic| {
+                let text = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "unknown panic".to_string());
+                Err(anyhow::anyhow!("panicked: {text}"))
+            });
+        spinner.finish_and_clear();
+        result.with_context(|| {
+            format!(
+                "stage \"{}\" (kind {}, key {}) failed",
+                stage.name,
+                stage.kind,
+                &stage_key.key[..12]
+            )
+        })?;
+        let log = context.log.into_inner().expect("log poisoned");
+        let warnings = context.warnings.into_inner().expect("warnings poisoned");
+        let finished_at = SystemTime::now();
+        let mut manifest = Manifest {
+            kind: stage.kind.clone(),
+            version: kind.version(),
+            stage_name: stage.name.clone(),
+            key: stage_key.key.clone(),
+            config: stage.config.clone(),
+            inputs: inputs
+                .iter()
+                .map(|input| ManifestInput {
+                    stage_name: input.stage_name().to_string(),
+                    kind: input.kind().to_string(),
+                    key: input.key().to_string(),
+                })
+                .collect(),
+            external_files: stage_key.external_files.clone(),
+            tool_version: crate::TOOL_VERSION.to_string(),
+            arrays: BTreeMap::new(),
+            wall_time_s: started.elapsed().as_secs_f64(),
+            started_at: crate::timefmt::rfc3339(started_at),
+            finished_at: crate::timefmt::rfc3339(finished_at),
+            log,
+            warnings,
+        };
+        writer
+            .finish(&mut manifest)
+            .with_context(|| format!("stage \"{}\": cannot finish its entry", stage.name))?;
+        drop(writer);
+        store
+            .publish(lock.as_ref(), &staging)
+            .with_context(|| format!("stage \"{}\": cannot publish {id}", stage.name))?;
+        drop(lock);
+        let reader = store.open_entry(&id)?;
+        reports.push(StageReport {
+            name: stage.name.clone(),
+            kind: stage.kind.clone(),
+            key: stage_key.key.clone(),
+            outcome: match recompute_reason {
+                Some(reason) => Outcome::Recomputed(reason),
+                None => Outcome::Ran,
+            },
+            seconds: started.elapsed().as_secs_f64(),
+            backend: backend_of(&manifest.log),
+        });
+        readers.insert(stage.name.clone(), reader);
+    }
+    Ok(reports)
+}
+
+/// The backend named by a `backend: NAME` log line, if any.
+fn backend_of(log: &[String]) -> Option<String> {
+    log.iter().rev().find_map(|line| {
+        line.strip_prefix(BACKEND_LOG_PREFIX)
+            .map(|rest| rest.trim().to_string())
+    })
+}

@@ -1,0 +1,573 @@
+//! Where entries live. [`Store`] is the seam between the engine and storage: a local folder
+//! now ([`LocalStore`]), an object store (S3 leases, read-through local cache) later.
+//! Staging always happens in a local directory; publishing makes an entry visible by writing
+//! its completion marker last.
+
+use std::fs::{self, File, OpenOptions};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::Context as _;
+use zarrs::filesystem::FilesystemStore;
+use zarrs::storage::ReadableListableStorage;
+
+use crate::entry::EntryReader;
+
+/// The file whose presence makes an entry visible.
+pub const COMPLETION_MARKER: &str = ".complete";
+const STAGING_DIR: &str = ".staging";
+const LOCKS_DIR: &str = ".locks";
+const TRASH_DIR: &str = ".trash";
+/// Inside a staging area: the group being written, and the stage's resumable work folder.
+const STAGING_OUTPUT: &str = "out";
+const STAGING_WORK: &str = "work";
+
+/// One entry: its stage kind and key.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct EntryId {
+    pub kind: String,
+    pub key: String,
+}
+
+impl EntryId {
+    pub fn new(kind: &str, key: &str) -> Self {
+        Self {
+            kind: kind.to_string(),
+            key: key.to_string(),
+        }
+    }
+}
+
+impl std::fmt::Display for EntryId {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(formatter, "{}/{}", self.kind, self.key)
+    }
+}
+
+/// Whether an entry can be used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EntryState {
+    /// Published: the completion marker exists.
+    Complete,
+    /// Present without a completion marker (a publish was interrupted); never used.
+    Incomplete,
+    Missing,
+}
+
+/// Exclusive right to compute one entry; released on drop. Locally a file lock, remotely a
+/// lease object.
+pub trait KeyLock: Send {
+    fn id(&self) -> &EntryId;
+}
+
+/// Local directories where a stage computes its entry before publishing.
+#[derive(Debug, Clone)]
+pub struct Staging {
+    /// The Zarr group being written (cleared when a run starts).
+    pub output_dir: PathBuf,
+    /// The stage's resumable work folder (kept across interrupted runs of the same key).
+    pub work_dir: PathBuf,
+}
+
+/// Storage of cache entries. Methods that change an entry take the [`KeyLock`] as proof that
+/// the caller holds it.
+pub trait Store: Send + Sync {
+    /// Human-readable location (a path or URL).
+    fn describe(&self) -> String;
+    /// Whether the entry is published.
+    fn entry_state(&self, id: &EntryId) -> anyhow::Result<EntryState>;
+    /// A zarrs storage rooted at the published entry, and a location for messages.
+    fn reader_storage(&self, id: &EntryId) -> anyhow::Result<(ReadableListableStorage, String)>;
+    /// Opens a published entry.
+    fn open_entry(&self, id: &EntryId) -> anyhow::Result<EntryReader> {
+        let (storage, location) = self.reader_storage(id)?;
+        EntryReader::open(storage, &location)
+    }
+    /// Takes the per-key lock, waiting for another holder; `on_wait` is called once before
+    /// waiting.
+    fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>>;
+    /// Takes the per-key lock if nobody holds it.
+    fn try_lock(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn KeyLock>>>;
+    /// Prepares the staging area: an empty output directory and the kept work directory.
+    fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging>;
+    /// Whether a staging work directory with content exists (a resumable partial run).
+    fn has_resumable_work(&self, id: &EntryId) -> bool;
+    /// Makes the staged output the published entry and removes the staging area.
+    fn publish(&self, lock: &dyn KeyLock, staging: &Staging) -> anyhow::Result<()>;
+    /// Moves a published or incomplete entry aside (it will be recomputed); returns where.
+    fn quarantine(&self, lock: &dyn KeyLock) -> anyhow::Result<String>;
+    /// Every published entry.
+    fn list(&self) -> anyhow::Result<Vec<EntryId>>;
+    /// Stored bytes of an entry.
+    fn entry_bytes(&self, id: &EntryId) -> u64;
+    /// Deletes an entry; returns the bytes freed.
+    fn remove(&self, lock: &dyn KeyLock) -> anyhow::Result<u64>;
+    /// Removes leftovers of killed runs whose lock nobody holds (partial outputs, unpublished
+    /// entries, quarantined entries); keeps work directories for resume. Returns one line per
+    /// removal.
+    fn clean_leftovers(&self) -> anyhow::Result<Vec<String>>;
+    /// A local directory for engine bookkeeping (file digest memo).
+    fn local_state_dir(&self) -> PathBuf;
+}
+
+/// A cache in a local folder: `<root>/<kind>/<key>/` entries, `<root>/.staging/<kind>/<key>/`
+/// staging areas, `<root>/.locks/<kind>/<key>.lock` lock files.
+#[derive(Debug, Clone)]
+pub struct LocalStore {
+    root: PathBuf,
+}
+
+struct LocalLock {
+    id: EntryId,
+    _file: File,
+}
+
+impl KeyLock for LocalLock {
+    fn id(&self) -> &EntryId {
+        &self.id
+    }
+}
+
+/// Checks that a kind or key is a plain folder name.
+fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        !value.is_empty()
+            && !value.starts_with('.')
+            && value
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-'),
+        "invalid {what} \"{value}\" for a cache folder name"
+    );
+    Ok(())
+}
+
+impl LocalStore {
+    /// A store rooted at `root` (created if missing).
+    pub fn open(root: &Path) -> anyhow::Result<Self> {
+        fs::create_dir_all(root)
+            .with_context(|| format!("cannot create cache folder {}", root.display()))?;
+        Ok(Self {
+            root: root.to_path_buf(),
+        })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// The published entry folder.
+    pub fn entry_dir(&self, id: &EntryId) -> PathBuf {
+        self.root.join(&id.kind).join(&id.key)
+    }
+
+    fn staging_dir(&self, id: &EntryId) -> PathBuf {
+        self.root.join(STAGING_DIR).join(&id.kind).join(&id.key)
+    }
+
+    fn lock_path(&self, id: &EntryId) -> PathBuf {
+        self.root
+            .join(LOCKS_DIR)
+            .join(&id.kind)
+            .join(format!("{}.lock", id.key))
+    }
+
+    fn open_lock_file(&self, id: &EntryId) -> anyhow::Result<File> {
+        check_component("stage kind", &id.kind)?;
+        check_component("key", &id.key)?;
+        let path = self.lock_path(id);
+        if let Some(parent) = path.parent() {
+            fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
+        OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .with_context(|| format!("cannot open lock file {}", path.display()))
+    }
+
+    fn trash_destination(&self, id: &EntryId) -> PathBuf {
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default()
+            .as_nanos();
+        self.root.join(TRASH_DIR).join(&id.kind).join(format!(
+            "{}.{stamp}.{}",
+            id.key,
+            std::process::id()
+        ))
+    }
+
+    /// Sub-folders of `dir` that are plain names (kinds or keys), sorted.
+    fn plain_subdirs(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = match fs::read_dir(dir) {
+            Ok(read) => read
+                .filter_map(Result::ok)
+                .filter(|entry| entry.file_type().map(|t| t.is_dir()).unwrap_or(false))
+                .filter_map(|entry| entry.file_name().into_string().ok())
+                .filter(|name| !name.starts_with('.'))
+                .collect(),
+            Err(_) => vec![],
+        };
+        names.sort();
+        names
+    }
+}
+
+impl Store for LocalStore {
+    fn describe(&self) -> String {
+        self.root.display().to_string()
+    }
+
+    fn entry_state(&self, id: &EntryId) -> anyhow::Result<EntryState> {
+        let dir = self.entry_dir(id);
+        if dir.join(COMPLETION_MARKER).is_file() {
+            Ok(EntryState::Complete)
+        } else if dir.exists() {
+            Ok(EntryState::Incomplete)
+        } else {
+            Ok(EntryState::Missing)
+        }
+    }
+
+    fn reader_storage(&self, id: &EntryId) -> anyhow::Result<(ReadableListableStorage, String)> {
+        let dir = self.entry_dir(id);
+        anyhow::ensure!(
+            dir.join(COMPLETION_MARKER).is_file(),
+            "entry {} is not published in {}",
+            id,
+            self.root.display()
+        );
+        let store = FilesystemStore::new(&dir)
+            .with_context(|| format!("cannot open entry {}", dir.display()))?;
+        Ok((Arc::new(store), dir.display().to_string()))
+    }
+
+    fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>> {
+        let file = self.open_lock_file(id)?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(fs::TryLockError::WouldBlock) => {
+                on_wait();
+                file.lock()
+                    .with_context(|| format!("cannot lock {}", self.lock_path(id).display()))?;
+            }
+            Err(fs::TryLockError::Error(error)) => {
+                return Err(error)
+                    .with_context(|| format!("cannot lock {}", self.lock_path(id).display()));
+            }
+        }
+        Ok(Box::new(LocalLock {
+            id: id.clone(),
+            _file: file,
+        }))
+    }
+
+    fn try_lock(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn KeyLock>>> {
+        let file = self.open_lock_file(id)?;
+        match file.try_lock() {
+            Ok(()) => Ok(Some(Box::new(LocalLock {
+                id: id.clone(),
+                _file: file,
+            }))),
+            Err(fs::TryLockError::WouldBlock) => Ok(None),
+            Err(fs::TryLockError::Error(error)) => {
+                Err(error).with_context(|| format!("cannot lock {}", self.lock_path(id).display()))
+            }
+        }
+    }
+
+    fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging> {
+        let staging_dir = self.staging_dir(lock.id());
+        let output_dir = staging_dir.join(STAGING_OUTPUT);
+        let work_dir = staging_dir.join(STAGING_WORK);
+        if output_dir.exists() {
+            fs::remove_dir_all(&output_dir).with_context(|| {
+                format!("cannot clear a partial output {}", output_dir.display())
+            })?;
+        }
+        fs::create_dir_all(&output_dir)
+            .with_context(|| format!("cannot create {}", output_dir.display()))?;
+        fs::create_dir_all(&work_dir)
+            .with_context(|| format!("cannot create {}", work_dir.display()))?;
+        Ok(Staging {
+            output_dir,
+            work_dir,
+        })
+    }
+
+    fn has_resumable_work(&self, id: &EntryId) -> bool {
+        let work_dir = self.staging_dir(id).join(STAGING_WORK);
+        fs::read_dir(work_dir)
+            .map(|mut read| read.next().is_some())
+            .unwrap_or(false)
+    }
+
+    fn publish(&self, lock: &dyn KeyLock, staging: &Staging) -> anyhow::Result<()> {
+        let id = lock.id();
+        fsync_tree(&staging.output_dir)?;
+        let target = self.entry_dir(id);
+        if target.exists() {
+            // Unpublished (no marker) or forced: never used, safe to move aside under the lock.
+            self.quarantine(lock)?;
+        }
+        let kind_dir = self.root.join(&id.kind);
+        fs::create_dir_all(&kind_dir)
+            .with_context(|| format!("cannot create {}", kind_dir.display()))?;
+        fs::rename(&staging.output_dir, &target).with_context(|| {
+            format!(
+                "cannot move {} to {}",
+                staging.output_dir.display(),
+                target.display()
+            )
+        })?;
+        fsync_dir(&kind_dir)?;
+        let marker = target.join(COMPLETION_MARKER);
+        let mut file =
+            File::create(&marker).with_context(|| format!("cannot create {}", marker.display()))?;
+        writeln!(
+            file,
+            "{{\"kind\":\"{}\",\"key\":\"{}\",\"published_at\":\"{}\"}}",
+            id.kind,
+            id.key,
+            crate::timefmt::rfc3339(std::time::SystemTime::now())
+        )
+        .and_then(|()| file.sync_all())
+        .with_context(|| format!("cannot write {}", marker.display()))?;
+        fsync_dir(&target)?;
+        let staging_dir = self.staging_dir(id);
+        fs::remove_dir_all(&staging_dir)
+            .with_context(|| format!("cannot remove {}", staging_dir.display()))?;
+        Ok(())
+    }
+
+    fn quarantine(&self, lock: &dyn KeyLock) -> anyhow::Result<String> {
+        let id = lock.id();
+        let source = self.entry_dir(id);
+        let destination = self.trash_destination(id);
+        if let Some(parent) = destination.parent() {
+            fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
+        // Remove the marker first so that a crash mid-way never leaves a visible bad entry.
+        let marker = source.join(COMPLETION_MARKER);
+        if marker.exists() {
+            fs::remove_file(&marker)
+                .with_context(|| format!("cannot remove {}", marker.display()))?;
+            fsync_dir(&source)?;
+        }
+        fs::rename(&source, &destination).with_context(|| {
+            format!(
+                "cannot move {} to {}",
+                source.display(),
+                destination.display()
+            )
+        })?;
+        Ok(destination.display().to_string())
+    }
+
+    fn list(&self) -> anyhow::Result<Vec<EntryId>> {
+        let mut ids = Vec::new();
+        for kind in Self::plain_subdirs(&self.root) {
+            for key in Self::plain_subdirs(&self.root.join(&kind)) {
+                let id = EntryId::new(&kind, &key);
+                if self.entry_state(&id)? == EntryState::Complete {
+                    ids.push(id);
+                }
+            }
+        }
+        Ok(ids)
+    }
+
+    fn entry_bytes(&self, id: &EntryId) -> u64 {
+        tree_bytes(&self.entry_dir(id))
+    }
+
+    fn remove(&self, lock: &dyn KeyLock) -> anyhow::Result<u64> {
+        let dir = self.entry_dir(lock.id());
+        let bytes = tree_bytes(&dir);
+        let marker = dir.join(COMPLETION_MARKER);
+        if marker.exists() {
+            fs::remove_file(&marker)
+                .with_context(|| format!("cannot remove {}", marker.display()))?;
+        }
+        fs::remove_dir_all(&dir).with_context(|| format!("cannot remove {}", dir.display()))?;
+        Ok(bytes)
+    }
+
+    fn clean_leftovers(&self) -> anyhow::Result<Vec<String>> {
+        let mut removed = Vec::new();
+        let staging_root = self.root.join(STAGING_DIR);
+        for kind in Self::plain_subdirs(&staging_root) {
+            for key in Self::plain_subdirs(&staging_root.join(&kind)) {
+                let id = EntryId::new(&kind, &key);
+                let Some(lock) = self.try_lock(&id)? else {
+                    continue; // A live run owns it.
+                };
+                let staging_dir = self.staging_dir(&id);
+                if remove_dir_if_present(&staging_dir.join(STAGING_OUTPUT))? {
+                    removed.push(format!("partial output of {id} (killed run)"));
+                }
+                if !self.has_resumable_work(&id) {
+                    remove_dir_if_present(&staging_dir)?;
+                }
+                drop(lock);
+            }
+        }
+        for kind in Self::plain_subdirs(&self.root) {
+            for key in Self::plain_subdirs(&self.root.join(&kind)) {
+                let id = EntryId::new(&kind, &key);
+                if self.entry_state(&id)? != EntryState::Incomplete {
+                    continue;
+                }
+                if let Some(lock) = self.try_lock(&id)?
+                    && self.entry_state(&id)? == EntryState::Incomplete
+                {
+                    remove_dir_if_present(&self.entry_dir(&id))?;
+                    removed.push(format!("unpublished entry {id} (interrupted publish)"));
+                    drop(lock);
+                }
+            }
+        }
+        Ok(removed)
+    }
+
+    fn local_state_dir(&self) -> PathBuf {
+        self.root.clone()
+    }
+}
+
+/// Removes the quarantined entries; returns the bytes freed.
+pub(crate) fn empty_trash(store: &LocalStore, dry_run: bool) -> anyhow::Result<u64> {
+    let trash = store.root().join(TRASH_DIR);
+    let bytes = tree_bytes(&trash);
+    if !dry_run && trash.exists() {
+        fs::remove_dir_all(&trash).with_context(|| format!("cannot remove {}", trash.display()))?;
+    }
+    Ok(bytes)
+}
+
+/// Removes a folder tree; a folder that is already gone (another run cleaned it) is fine.
+/// Returns whether something was removed.
+fn remove_dir_if_present(dir: &Path) -> anyhow::Result<bool> {
+    match fs::remove_dir_all(dir) {
+        Ok(()) => Ok(true),
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(error) => Err(error).with_context(|| format!("cannot remove {}", dir.display())),
+    }
+}
+
+/// Total size of the files under `path`.
+pub(crate) fn tree_bytes(path: &Path) -> u64 {
+    let Ok(metadata) = fs::symlink_metadata(path) else {
+        return 0;
+    };
+    if metadata.is_file() {
+        return metadata.len();
+    }
+    if !metadata.is_dir() {
+        return 0;
+    }
+    fs::read_dir(path)
+        .map(|read| {
+            read.filter_map(Result::ok)
+                .map(|entry| tree_bytes(&entry.path()))
+                .sum()
+        })
+        .unwrap_or(0)
+}
+
+/// fsyncs every file and directory under `root` (and `root` itself).
+fn fsync_tree(root: &Path) -> anyhow::Result<()> {
+    for entry in fs::read_dir(root).with_context(|| format!("cannot list {}", root.display()))? {
+        let entry = entry.with_context(|| format!("cannot list {}", root.display()))?;
+        let path = entry.path();
+        let file_type = entry
+            .file_type()
+            .with_context(|| format!("cannot stat {}", path.display()))?;
+        if file_type.is_dir() {
+            fsync_tree(&path)?;
+        } else if file_type.is_file() {
+            File::open(&path)
+                .and_then(|file| file.sync_all())
+                .with_context(|| format!("cannot fsync {}", path.display()))?;
+        }
+    }
+    fsync_dir(root)
+}
+
+fn fsync_dir(dir: &Path) -> anyhow::Result<()> {
+    File::open(dir)
+        .and_then(|file| file.sync_all())
+        .with_context(|| format!("cannot fsync folder {}", dir.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp_store() -> (tempfile::TempDir, LocalStore) {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        (dir, store)
+    }
+
+    #[test]
+    fn lock_is_exclusive_until_dropped() {
+        let (_dir, store) = temp_store();
+        let id = EntryId::new("test_arrays", "abc");
+        let held = store.try_lock(&id).unwrap().expect("free lock");
+        assert!(store.try_lock(&id).unwrap().is_none());
+        drop(held);
+        assert!(store.try_lock(&id).unwrap().is_some());
+    }
+
+    #[test]
+    fn publish_makes_entry_visible_and_clears_staging() {
+        let (_dir, store) = temp_store();
+        let id = EntryId::new("test_arrays", "k1");
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        fs::write(staging.output_dir.join("zarr.json"), b"{}").unwrap();
+        fs::write(staging.work_dir.join("checkpoint"), b"1").unwrap();
+        assert!(store.has_resumable_work(&id));
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+        store.publish(lock.as_ref(), &staging).unwrap();
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Complete);
+        assert!(!store.has_resumable_work(&id));
+        assert_eq!(store.list().unwrap(), vec![id.clone()]);
+        assert!(store.remove(lock.as_ref()).unwrap() > 0);
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+    }
+
+    #[test]
+    fn leftovers_lose_output_but_keep_work() {
+        let (_dir, store) = temp_store();
+        let id = EntryId::new("test_arrays", "k2");
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        fs::write(staging.output_dir.join("partial"), b"x").unwrap();
+        fs::write(staging.work_dir.join("checkpoint"), b"1").unwrap();
+        // While the lock is held, nothing is a leftover.
+        assert!(store.clean_leftovers().unwrap().is_empty());
+        drop(lock);
+        let removed = store.clean_leftovers().unwrap();
+        assert_eq!(removed.len(), 1, "{removed:?}");
+        assert!(!staging.output_dir.exists());
+        assert!(staging.work_dir.join("checkpoint").exists());
+        // An entry folder without its marker is never visible and gets cleaned.
+        fs::create_dir_all(store.entry_dir(&id)).unwrap();
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Incomplete);
+        assert_eq!(store.clean_leftovers().unwrap().len(), 1);
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+    }
+
+    #[test]
+    fn rejects_path_like_components() {
+        let (_dir, store) = temp_store();
+        assert!(store.try_lock(&EntryId::new("../x", "k")).is_err());
+        assert!(store.try_lock(&EntryId::new("kind", ".hidden")).is_err());
+    }
+}
