@@ -17,7 +17,7 @@ pub mod cpu;
 pub mod render;
 pub mod scene;
 pub mod sh;
-// gpu implementation: see gpu.rs (owned by the gpu engineer)
+pub mod gpu;
 
 use seqavatar_core::camera::{Camera, CameraError};
 

@@ -138,7 +138,11 @@ fn camera_uniform(
     }
 }
 
-fn kernel_source(name: &'static str, wgsl: &'static str, entry_point: &'static str) -> KernelSource {
+fn kernel_source(
+    name: &'static str,
+    wgsl: &'static str,
+    entry_point: &'static str,
+) -> KernelSource {
     KernelSource {
         name,
         wgsl: Cow::Borrowed(wgsl),
@@ -159,10 +163,14 @@ pub struct ResidentGaussians {
 
 impl ResidentGaussians {
     /// Validates and uploads the Gaussians.
-    pub fn upload(context: &GpuContext, gaussians: &GaussianSet<'_, f32>) -> Result<Self, GpuSplatError> {
+    pub fn upload(
+        context: &GpuContext,
+        gaussians: &GaussianSet<'_, f32>,
+    ) -> Result<Self, GpuSplatError> {
         gaussians.validate()?;
-        let count = u32::try_from(gaussians.len())
-            .map_err(|_| SplatError::TooManyGaussians { count: gaussians.len() })?;
+        let count = u32::try_from(gaussians.len()).map_err(|_| SplatError::TooManyGaussians {
+            count: gaussians.len(),
+        })?;
         Ok(Self {
             means: context.upload("means", gaussians.means)?,
             covariances: context.upload("covariances", gaussians.covariances)?,
@@ -299,7 +307,11 @@ fn forward_camera(
     let indices = context.zeros("depth order", n as usize, 4)?;
     let diagnostics = context.zeros("diagnostics", DIAGNOSTICS, 4)?;
 
-    let project = context.kernel(&kernel_source("project_forward", PROJECT_WGSL, "project_forward"))?;
+    let project = context.kernel(&kernel_source(
+        "project_forward",
+        PROJECT_WGSL,
+        "project_forward",
+    ))?;
     let mut encoder = context.encoder();
     context.dispatch(
         &mut encoder,
@@ -406,8 +418,14 @@ fn forward_camera(
             n.div_ceil(GROUP),
         );
         let tile_bits = 32 - (tiles_x * tiles_y).saturating_sub(1).leading_zeros();
-        let (keys, pair_gaussians) =
-            radix_sort(context, &mut encoder, keys, pair_gaussians, pairs, tile_bits)?;
+        let (keys, pair_gaussians) = radix_sort(
+            context,
+            &mut encoder,
+            keys,
+            pair_gaussians,
+            pairs,
+            tile_bits,
+        )?;
         context.dispatch(
             &mut encoder,
             &ranges_kernel,
@@ -540,7 +558,9 @@ pub fn backward(
 ) -> Result<SplatGradients<f32>, GpuSplatError> {
     gaussians.validate()?;
     let resident = &forward.resident;
-    if gaussians.len() != resident.gaussians.len() || gaussians.sh_degree != resident.gaussians.sh_degree {
+    if gaussians.len() != resident.gaussians.len()
+        || gaussians.sh_degree != resident.gaussians.sh_degree
+    {
         return Err(SplatError::GaussiansChanged {
             expected: resident.gaussians.len(),
             actual: gaussians.len(),
@@ -575,8 +595,8 @@ impl ResidentGradients {
                 (&self.mean_2d_norm.buffer, self.mean_2d_norm.len),
             ],
         )?;
-        let mut counters =
-            context.download_many::<u32>(&mut encoder, &[(&self.diagnostics.buffer, DIAGNOSTICS)])?;
+        let mut counters = context
+            .download_many::<u32>(&mut encoder, &[(&self.diagnostics.buffer, DIAGNOSTICS)])?;
         context.finish_downloads(encoder, &mut floats)?;
         context.finish_downloads(context.encoder(), &mut counters)?;
         let [means, covariances, opacities, sh, mean_2d_norm] =
@@ -686,21 +706,38 @@ pub fn backward_resident(
         mean_2d_norm: context.zeros("grad mean 2d norm", n, 4)?,
         diagnostics: context.zeros("backward diagnostics", DIAGNOSTICS, 4)?,
     };
-    let mode = forward.gpu_options.atomic_add.unwrap_or(if context.has_float_atomics() {
-        AtomicAdd::NativeFloat
-    } else {
-        AtomicAdd::CompareExchange
-    });
+    let mode = forward
+        .gpu_options
+        .atomic_add
+        .unwrap_or(if context.has_float_atomics() {
+            AtomicAdd::NativeFloat
+        } else {
+            AtomicAdd::CompareExchange
+        });
     let (name, wgsl) = match mode {
-        AtomicAdd::NativeFloat => ("rasterize_backward_float_atomics", with_atomic_add("splat_rasterize_backward.wgsl", RASTERIZE_BACKWARD_WGSL, mode)?),
-        AtomicAdd::CompareExchange => ("rasterize_backward_compare_exchange", RASTERIZE_BACKWARD_WGSL.to_owned()),
+        AtomicAdd::NativeFloat => (
+            "rasterize_backward_float_atomics",
+            with_atomic_add(
+                "splat_rasterize_backward.wgsl",
+                RASTERIZE_BACKWARD_WGSL,
+                mode,
+            )?,
+        ),
+        AtomicAdd::CompareExchange => (
+            "rasterize_backward_compare_exchange",
+            RASTERIZE_BACKWARD_WGSL.to_owned(),
+        ),
     };
     let rasterize = context.kernel(&KernelSource {
         name,
         wgsl: Cow::Owned(wgsl),
         entry_point: "rasterize_backward",
     })?;
-    let project = context.kernel(&kernel_source("project_backward", PROJECT_WGSL, "project_backward"))?;
+    let project = context.kernel(&kernel_source(
+        "project_backward",
+        PROJECT_WGSL,
+        "project_backward",
+    ))?;
     let screen = context.zeros("screen gradients", n * SCREEN_GRADIENTS, 4)?;
     let placeholder = context.zeros("absent gradient", 1, 4)?;
     let mut encoder = context.encoder();

@@ -122,12 +122,18 @@ fn assert_images_match(gpu: &GpuForward, cpu: &cpu::CpuForward<f32>) {
     assert_eq!(gpu.diagnostics, cpu.diagnostics, "diagnostics");
     for (camera, (g, c)) in gpu.images.iter().zip(&cpu.images).enumerate() {
         assert_eq!((g.width, g.height), (c.width, c.height));
-        assert_close(&format!("camera {camera} colour"), &g.colour, &c.colour, |_| {
-            IMAGE_TOLERANCE
-        });
-        assert_close(&format!("camera {camera} alpha"), &g.alpha, &c.alpha, |_| {
-            IMAGE_TOLERANCE
-        });
+        assert_close(
+            &format!("camera {camera} colour"),
+            &g.colour,
+            &c.colour,
+            |_| IMAGE_TOLERANCE,
+        );
+        assert_close(
+            &format!("camera {camera} alpha"),
+            &g.alpha,
+            &c.alpha,
+            |_| IMAGE_TOLERANCE,
+        );
         assert_close(&format!("camera {camera} depth"), &g.depth, &c.depth, |v| {
             IMAGE_TOLERANCE * v.abs().max(1.0)
         });
@@ -155,9 +161,8 @@ fn upstream(cameras: &[Camera], seed: u64) -> Vec<(Vec<f32>, Vec<f32>, Vec<f32>)
         .iter()
         .map(|camera| {
             let pixels = (camera.width * camera.height) as usize;
-            let mut draw = |count: usize| -> Vec<f32> {
-                (0..count).map(|_| rng.normal() as f32).collect()
-            };
+            let mut draw =
+                |count: usize| -> Vec<f32> { (0..count).map(|_| rng.normal() as f32).collect() };
             (draw(pixels * 3), draw(pixels), draw(pixels))
         })
         .collect()
@@ -196,6 +201,11 @@ fn check_parity(
         let grads = image_gradients(&values, with_alpha_depth);
         let cpu_gradients = cpu::backward(&cpu_forward, &view, &grads).unwrap();
         let gpu_gradients = backward(&context, &gpu_forward, &view, &grads).unwrap();
+        // A scene with visible Gaussians must produce gradients, or the comparison is empty.
+        let visible: usize = cpu_forward.diagnostics.iter().map(|d| d.visible).sum();
+        if visible > 0 {
+            assert!(max_abs(&cpu_gradients.means) > 0.0 && max_abs(&cpu_gradients.sh) > 0.0);
+        }
         assert_gradients_match(&gpu_gradients, &cpu_gradients);
     }
 }
@@ -235,7 +245,12 @@ fn smooth_cutoff_and_low_degrees_match_cpu() {
         ..options()
     };
     for degree in [0, 1] {
-        check_parity(&scene(60, degree, 3 + u64::from(degree)), &two_cameras(), &smooth, GpuOptions::default());
+        check_parity(
+            &scene(60, degree, 3 + u64::from(degree)),
+            &two_cameras(),
+            &smooth,
+            GpuOptions::default(),
+        );
     }
 }
 
@@ -252,9 +267,20 @@ fn splitting_into_bands_of_tile_rows_changes_nothing() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let result = forward_with(&context, &gaussians.view(), &cameras, &options(), gpu_options).unwrap();
+    let result = forward_with(
+        &context,
+        &gaussians.view(),
+        &cameras,
+        &options(),
+        gpu_options,
+    )
+    .unwrap();
     let bands = result.resident().band_counts();
-    assert!(bands[0] > 1, "bands {bands:?}, pairs {}", result.diagnostics[0].intersections);
+    assert!(
+        bands[0] > 1,
+        "bands {bands:?}, pairs {}",
+        result.diagnostics[0].intersections
+    );
 }
 
 #[test]
@@ -267,20 +293,38 @@ fn a_band_that_cannot_be_split_further_is_a_clear_error() {
         max_pairs_per_band: Some(1),
         ..GpuOptions::default()
     };
-    let result = forward_with(&context, &gaussians.view(), &two_cameras(), &options(), gpu_options);
-    let error = result.err().expect("one pair per band cannot hold the scene");
+    let result = forward_with(
+        &context,
+        &gaussians.view(),
+        &two_cameras(),
+        &options(),
+        gpu_options,
+    );
+    let error = result
+        .err()
+        .expect("one pair per band cannot hold the scene");
     assert!(error.to_string().contains("tile row"), "{error}");
 }
 
 #[test]
 fn zero_gaussians_render_the_background() {
     let gaussians = scene(0, 0, 7);
-    check_parity(&gaussians, &two_cameras(), &options(), GpuOptions::default());
+    check_parity(
+        &gaussians,
+        &two_cameras(),
+        &options(),
+        GpuOptions::default(),
+    );
     let Some(context) = gpu_test_context() else {
         return;
     };
     let result = forward(&context, &gaussians.view(), &two_cameras(), &options()).unwrap();
-    assert!(result.images[0].colour.chunks(3).all(|c| c == [0.1, 0.2, 0.3]));
+    assert!(
+        result.images[0]
+            .colour
+            .chunks(3)
+            .all(|c| c == [0.1, 0.2, 0.3])
+    );
 }
 
 #[test]
@@ -346,5 +390,11 @@ fn bad_upstream_gradients_are_rejected_with_the_field_named() {
     assert!(error.to_string().contains("colour"), "{error}");
     let other = scene(11, 0, 10);
     let error = backward(&context, &result, &other.view(), &upstream).unwrap_err();
-    assert!(matches!(error, GpuSplatError::Splat(SplatError::GaussiansChanged { .. })), "{error}");
+    assert!(
+        matches!(
+            error,
+            GpuSplatError::Splat(SplatError::GaussiansChanged { .. })
+        ),
+        "{error}"
+    );
 }

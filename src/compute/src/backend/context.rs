@@ -1,0 +1,520 @@
+//! The wgpu context: adapter selection, device limits and features, compiled kernels, buffer
+//! upload/download and dispatch helpers (2D dispatch beyond the per-dimension limit).
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use wgpu::util::DeviceExt;
+
+use super::BackendError;
+
+/// Which adapters [`GpuContext::new`] may pick.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AdapterChoice {
+    /// Discrete, integrated or virtual GPUs only (real work).
+    Hardware,
+    /// Also a software adapter such as Mesa lavapipe (tests); hardware is still preferred.
+    AllowSoftware,
+}
+
+/// A compute kernel's WGSL text and entry point. `name` identifies the compiled pipeline in
+/// the context's cache, so two sources with one name must be the same text.
+#[derive(Clone, Debug)]
+pub struct KernelSource {
+    pub name: &'static str,
+    pub wgsl: Cow<'static, str>,
+    pub entry_point: &'static str,
+}
+
+/// A compiled compute pipeline and its workgroup size along x (for dispatch arithmetic).
+#[derive(Debug)]
+pub struct Kernel {
+    pub name: &'static str,
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+/// A storage buffer with its length in elements (the buffer itself is at least 16 bytes so
+/// that empty inputs still bind).
+#[derive(Debug)]
+pub struct GpuBuffer {
+    pub buffer: wgpu::Buffer,
+    pub len: usize,
+}
+
+/// The device, queue and everything derived from the adapter once.
+pub struct GpuContext {
+    info: wgpu::AdapterInfo,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    limits: wgpu::Limits,
+    float_atomics: bool,
+    kernels: Mutex<HashMap<&'static str, Arc<Kernel>>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        formatter
+            .debug_struct("GpuContext")
+            .field("adapter", &self.info.name)
+            .field("float_atomics", &self.float_atomics)
+            .finish_non_exhaustive()
+    }
+}
+
+fn is_hardware(info: &wgpu::AdapterInfo) -> bool {
+    matches!(
+        info.device_type,
+        wgpu::DeviceType::DiscreteGpu
+            | wgpu::DeviceType::IntegratedGpu
+            | wgpu::DeviceType::VirtualGpu
+    )
+}
+
+/// Preference order among acceptable adapters: discrete, integrated, virtual, other, software.
+fn adapter_rank(info: &wgpu::AdapterInfo) -> u32 {
+    match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+impl GpuContext {
+    /// Opens the best adapter allowed by `choice`, with the adapter's own limits and, when it
+    /// has them, native f32 atomics.
+    pub fn new(choice: AdapterChoice) -> Result<Self, BackendError> {
+        let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
+        descriptor.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL;
+        let instance = wgpu::Instance::new(descriptor);
+        let adapters = pollster::block_on(instance.enumerate_adapters(descriptor_backends()));
+        let adapter = adapters
+            .into_iter()
+            .filter(|adapter| {
+                let info = adapter.get_info();
+                match choice {
+                    AdapterChoice::Hardware => is_hardware(&info),
+                    AdapterChoice::AllowSoftware => {
+                        is_hardware(&info) || info.device_type == wgpu::DeviceType::Cpu
+                    }
+                }
+            })
+            .min_by_key(|adapter| adapter_rank(&adapter.get_info()))
+            .ok_or(BackendError::NoAdapter {
+                wanted: match choice {
+                    AdapterChoice::Hardware => "hardware GPU",
+                    AdapterChoice::AllowSoftware => "hardware or software Vulkan/Metal adapter",
+                },
+            })?;
+        let info = adapter.get_info();
+        let float_atomics = adapter
+            .features()
+            .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
+        let required_features = if float_atomics {
+            wgpu::Features::SHADER_FLOAT32_ATOMIC
+        } else {
+            wgpu::Features::empty()
+        };
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("seqavatar"),
+            required_features,
+            required_limits: limits.clone(),
+            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|error| BackendError::DeviceRequest {
+            adapter: info.name.clone(),
+            message: error.to_string(),
+        })?;
+        Ok(Self {
+            info,
+            device,
+            queue,
+            limits,
+            float_atomics,
+            kernels: Mutex::new(HashMap::new()),
+        })
+    }
+
+    pub fn info(&self) -> &wgpu::AdapterInfo {
+        &self.info
+    }
+
+    /// Adapter name, kind, driver and whether f32 atomics are native.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} [{:?}, {:?}, {}{}]",
+            self.info.name,
+            self.info.device_type,
+            self.info.backend,
+            self.info.driver,
+            if self.float_atomics {
+                ", f32 atomics"
+            } else {
+                ", no f32 atomics"
+            }
+        )
+    }
+
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
+    }
+
+    pub fn limits(&self) -> &wgpu::Limits {
+        &self.limits
+    }
+
+    /// Whether the device was opened with `SHADER_FLOAT32_ATOMIC`.
+    pub fn has_float_atomics(&self) -> bool {
+        self.float_atomics
+    }
+
+    /// The largest storage buffer one binding may hold, in bytes.
+    pub fn max_binding_bytes(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    /// Compiles (once) and returns the pipeline for `source`.
+    pub fn kernel(&self, source: &KernelSource) -> Result<Arc<Kernel>, BackendError> {
+        let mut kernels = self.kernels.lock().map_err(|_| BackendError::Gpu {
+            message: "kernel cache lock poisoned".to_owned(),
+        })?;
+        if let Some(kernel) = kernels.get(source.name) {
+            return Ok(kernel.clone());
+        }
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(source.name),
+                source: wgpu::ShaderSource::Wgsl(source.wgsl.clone()),
+            });
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(source.name),
+                layout: None,
+                module: &module,
+                entry_point: Some(source.entry_point),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                cache: None,
+            });
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Shader {
+                name: source.name.to_owned(),
+                message: error.to_string(),
+            });
+        }
+        let layout = pipeline.get_bind_group_layout(0);
+        let kernel = Arc::new(Kernel {
+            name: source.name,
+            pipeline,
+            layout,
+        });
+        kernels.insert(source.name, kernel.clone());
+        Ok(kernel)
+    }
+
+    fn check_size(&self, what: &str, bytes: u64) -> Result<(), BackendError> {
+        let limit = self.max_binding_bytes();
+        if bytes > limit {
+            return Err(BackendError::BufferTooLarge {
+                what: what.to_owned(),
+                bytes,
+                limit,
+            });
+        }
+        Ok(())
+    }
+
+    /// A storage buffer holding `data` (copyable back with [`GpuContext::download`]).
+    pub fn upload<T: bytemuck::Pod>(
+        &self,
+        what: &str,
+        data: &[T],
+    ) -> Result<GpuBuffer, BackendError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        self.check_size(what, bytes.len() as u64)?;
+        let buffer = if bytes.len() >= 16 {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(what),
+                    contents: bytes,
+                    usage: storage_usage(),
+                })
+        } else {
+            let mut padded = [0_u8; 16];
+            padded[..bytes.len()].copy_from_slice(bytes);
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(what),
+                    contents: &padded,
+                    usage: storage_usage(),
+                })
+        };
+        Ok(GpuBuffer {
+            buffer,
+            len: data.len(),
+        })
+    }
+
+    /// A zero-filled storage buffer of `len` elements of `element_bytes` bytes each.
+    pub fn zeros(
+        &self,
+        what: &str,
+        len: usize,
+        element_bytes: usize,
+    ) -> Result<GpuBuffer, BackendError> {
+        let bytes = (len as u64)
+            .checked_mul(element_bytes as u64)
+            .ok_or_else(|| BackendError::BufferTooLarge {
+                what: what.to_owned(),
+                bytes: u64::MAX,
+                limit: self.max_binding_bytes(),
+            })?;
+        self.check_size(what, bytes)?;
+        // Buffers are zero-initialised by wgpu; round up to 16 bytes so empty ones still bind.
+        let size = bytes.max(16).div_ceil(4) * 4;
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size,
+            usage: storage_usage(),
+            mapped_at_creation: false,
+        });
+        Ok(GpuBuffer { buffer, len })
+    }
+
+    /// A small uniform buffer holding one `T`.
+    pub fn uniform<T: bytemuck::Pod>(&self, what: &str, value: &T) -> wgpu::Buffer {
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(what),
+                contents: bytemuck::bytes_of(value),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            })
+    }
+
+    pub fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
+    }
+
+    /// Records one dispatch of `workgroups` workgroups, laid out in 2D when they exceed the
+    /// per-dimension limit. Shaders recover the linear index as `id.x + id.y * num.x`.
+    /// `bindings` are `(binding index, buffer)` in group 0.
+    pub fn dispatch(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        bindings: &[(u32, &wgpu::Buffer)],
+        workgroups: u32,
+    ) {
+        if workgroups == 0 {
+            return;
+        }
+        let (x, y) = split_workgroups(workgroups, self.limits.max_compute_workgroups_per_dimension);
+        self.dispatch_grid(encoder, kernel, bindings, x, y);
+    }
+
+    /// Records one dispatch of an `x` by `y` grid of workgroups.
+    pub fn dispatch_grid(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        bindings: &[(u32, &wgpu::Buffer)],
+        x: u32,
+        y: u32,
+    ) {
+        if x == 0 || y == 0 {
+            return;
+        }
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+            .iter()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: *binding,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(kernel.name),
+            layout: &kernel.layout,
+            entries: &entries,
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(kernel.name),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&kernel.pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// Submits `encoder` and waits for the GPU to finish.
+    pub fn submit_and_wait(&self, encoder: wgpu::CommandEncoder) -> Result<(), BackendError> {
+        let index = self.queue.submit([encoder.finish()]);
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|error| BackendError::Gpu {
+                message: error.to_string(),
+            })?;
+        Ok(())
+    }
+
+    /// Copies the first `len` elements of `source` back to the host (submits pending work in
+    /// `encoder` first).
+    pub fn download<T: bytemuck::Pod>(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        source: &wgpu::Buffer,
+        len: usize,
+    ) -> Result<Vec<T>, BackendError> {
+        let mut results = self.download_many::<T>(&mut encoder, &[(source, len)])?;
+        self.finish_downloads(encoder, &mut results)?;
+        Ok(results
+            .pop()
+            .map(|pending| pending.values)
+            .unwrap_or_default())
+    }
+
+    /// Records copies of several buffers into staging buffers; call
+    /// [`GpuContext::finish_downloads`] to submit and read them.
+    pub fn download_many<T: bytemuck::Pod>(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        sources: &[(&wgpu::Buffer, usize)],
+    ) -> Result<Vec<PendingDownload<T>>, BackendError> {
+        let element = std::mem::size_of::<T>() as u64;
+        sources
+            .iter()
+            .map(|(source, len)| {
+                let bytes = (*len as u64) * element;
+                let size = bytes.max(4).div_ceil(4) * 4;
+                let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("download"),
+                    size,
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                if bytes > 0 {
+                    encoder.copy_buffer_to_buffer(source, 0, &staging, 0, size.min(source.size()));
+                }
+                Ok(PendingDownload {
+                    staging,
+                    len: *len,
+                    values: Vec::new(),
+                })
+            })
+            .collect()
+    }
+
+    /// Submits `encoder` and reads every pending download into its `values`.
+    pub fn finish_downloads<T: bytemuck::Pod>(
+        &self,
+        encoder: wgpu::CommandEncoder,
+        pending: &mut [PendingDownload<T>],
+    ) -> Result<(), BackendError> {
+        let index = self.queue.submit([encoder.finish()]);
+        let (sender, receiver) = std::sync::mpsc::channel();
+        for (position, download) in pending.iter().enumerate() {
+            let sender = sender.clone();
+            download
+                .staging
+                .map_async(wgpu::MapMode::Read, .., move |result| {
+                    let _ = sender.send((position, result));
+                });
+        }
+        drop(sender);
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|error| BackendError::Gpu {
+                message: error.to_string(),
+            })?;
+        for (_, result) in receiver.iter() {
+            result.map_err(|error| BackendError::Gpu {
+                message: format!("mapping a download buffer: {error}"),
+            })?;
+        }
+        for download in pending.iter_mut() {
+            let element = std::mem::size_of::<T>();
+            let view =
+                download
+                    .staging
+                    .get_mapped_range(..)
+                    .map_err(|error| BackendError::Gpu {
+                        message: format!("reading a download buffer: {error}"),
+                    })?;
+            let bytes = &view[..download.len * element];
+            download.values = bytemuck::pod_collect_to_vec(bytes);
+            drop(view);
+            download.staging.unmap();
+        }
+        Ok(())
+    }
+}
+
+/// A staging buffer waiting to be read; `values` is filled by
+/// [`GpuContext::finish_downloads`].
+#[derive(Debug)]
+pub struct PendingDownload<T> {
+    staging: wgpu::Buffer,
+    len: usize,
+    pub values: Vec<T>,
+}
+
+fn descriptor_backends() -> wgpu::Backends {
+    wgpu::Backends::VULKAN | wgpu::Backends::METAL
+}
+
+fn storage_usage() -> wgpu::BufferUsages {
+    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST
+}
+
+/// Splits `workgroups` into an `x` by `y` grid with `x <= max_per_dimension` and
+/// `x * y >= workgroups` (the excess workgroups must return early).
+pub fn split_workgroups(workgroups: u32, max_per_dimension: u32) -> (u32, u32) {
+    if workgroups <= max_per_dimension {
+        (workgroups, 1)
+    } else {
+        let y = workgroups.div_ceil(max_per_dimension);
+        (workgroups.div_ceil(y), y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn split_workgroups_covers_and_respects_the_limit() {
+        for (count, max) in [
+            (1, 65535),
+            (65535, 65535),
+            (65536, 65535),
+            (10_000_000, 65535),
+            (7, 3),
+        ] {
+            let (x, y) = split_workgroups(count, max);
+            assert!(x <= max && y <= max, "{count} {max}: {x} {y}");
+            assert!(u64::from(x) * u64::from(y) >= u64::from(count));
+            // No whole row of excess workgroups.
+            assert!(u64::from(x) * u64::from(y - 1) < u64::from(count));
+        }
+    }
+}

@@ -1,0 +1,35 @@
+//! How gpu tests get a context: the software adapter is allowed, a missing adapter skips the
+//! test with a printed reason, except under CI (`CI` set) where it is a failure.
+//!
+//! `SEQAVATAR_GPU_TESTS=0` skips gpu tests on purpose (a machine without any Vulkan driver).
+
+use std::sync::{Arc, OnceLock};
+
+use super::{AdapterChoice, GpuContext};
+
+/// The shared gpu context for tests, or `None` (after printing why) when the test should be
+/// skipped. Panics when `CI` is set and no adapter exists, so CI never passes vacuously.
+pub fn gpu_test_context() -> Option<Arc<GpuContext>> {
+    if std::env::var("SEQAVATAR_GPU_TESTS").is_ok_and(|value| value == "0") {
+        eprintln!("skipped: SEQAVATAR_GPU_TESTS=0");
+        return None;
+    }
+    static CONTEXT: OnceLock<Result<Arc<GpuContext>, String>> = OnceLock::new();
+    let context = CONTEXT.get_or_init(|| {
+        GpuContext::new(AdapterChoice::AllowSoftware)
+            .map(Arc::new)
+            .map_err(|error| error.to_string())
+    });
+    match context {
+        Ok(context) => Some(context.clone()),
+        Err(error) if std::env::var_os("CI").is_some() => {
+            panic!(
+                "CI is set but no Vulkan adapter was found ({error}); install mesa-vulkan-drivers or set SEQAVATAR_GPU_TESTS=0"
+            )
+        }
+        Err(error) => {
+            eprintln!("skipped: no Vulkan adapter ({error})");
+            None
+        }
+    }
+}
