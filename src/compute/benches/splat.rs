@@ -3,7 +3,8 @@
 //! Gaussians, and the speed-up over the published OpenSplat CPU figures. Prints a table and
 //! never fails on speed.
 //!
-//! Run: `cargo bench -p seqavatar-compute --bench splat` (optional argument: repetitions).
+//! Run: `cargo bench -p seqavatar-compute --bench splat` (optional arguments: repetitions,
+//! `--device cpu|gpu` to run one backend only).
 //! A backend adds one function with the signature of [`time_cpu`] to [`BACKENDS`].
 
 use std::time::Instant;
@@ -11,6 +12,8 @@ use std::time::Instant;
 use seqavatar_compute::splat::scene::{BenchmarkScene, STANDARD_SEED, standard_scene};
 use seqavatar_compute::splat::{GaussianBuffers, ImageGradient, RasterOptions, cpu};
 use seqavatar_core::camera::Camera;
+
+mod splat_gpu;
 
 /// Gaussian counts of the standard benchmark.
 const COUNTS: [usize; 3] = [10_000, 50_000, 200_000];
@@ -40,7 +43,7 @@ impl Prepared {
 /// `None` when the backend is unavailable here.
 type TimeFn = fn(&Prepared, usize) -> Option<(f64, f64)>;
 
-const BACKENDS: &[(&str, TimeFn)] = &[("cpu", time_cpu)];
+const BACKENDS: &[(&str, TimeFn)] = &[("cpu", time_cpu), ("gpu", splat_gpu::time_gpu)];
 
 fn median(mut samples: Vec<f64>) -> f64 {
     samples.sort_by(f64::total_cmp);
@@ -76,6 +79,11 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<(f64, f64)> {
 }
 
 fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let device = args
+        .windows(2)
+        .find(|pair| pair[0] == "--device")
+        .map(|pair| pair[1].clone());
     let reps = std::env::args()
         .skip(1)
         .find_map(|a| a.parse::<usize>().ok())
@@ -105,7 +113,10 @@ fn main() {
         )
         .map(|f| f.diagnostics[0])
         .ok();
-        for (name, time) in BACKENDS {
+        for (name, time) in BACKENDS
+            .iter()
+            .filter(|(name, _)| device.as_deref().is_none_or(|d| d == *name))
+        {
             let Some((forward_ms, total_ms)) = time(&scene, reps) else {
                 println!("{name:<8} {count:>9} unavailable");
                 continue;

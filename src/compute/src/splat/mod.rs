@@ -14,10 +14,10 @@
 
 pub mod covariance;
 pub mod cpu;
+pub mod gpu;
 pub mod render;
 pub mod scene;
 pub mod sh;
-pub mod gpu;
 
 use seqavatar_core::camera::{Camera, CameraError};
 
