@@ -50,6 +50,9 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     limits: wgpu::Limits,
     float_atomics: bool,
+    /// Workgroups per dimension a dispatch may use before it goes 2D: the adapter limit,
+    /// lowered in tests to exercise the 2D index arithmetic of every kernel.
+    dispatch_limit: u32,
     kernels: Mutex<HashMap<&'static str, Arc<Kernel>>>,
 }
 
@@ -135,10 +138,24 @@ impl GpuContext {
             info,
             device,
             queue,
-            limits,
+            limits: limits.clone(),
             float_atomics,
+            dispatch_limit: limits.max_compute_workgroups_per_dimension,
             kernels: Mutex::new(HashMap::new()),
         })
+    }
+
+    /// Lowers the number of workgroups per dimension before dispatches go 2D (tests only:
+    /// small scenes then cover the 2D index arithmetic). Values above the adapter limit are
+    /// clamped to it.
+    pub fn with_dispatch_limit(mut self, limit: u32) -> Self {
+        self.dispatch_limit = limit.clamp(1, self.limits.max_compute_workgroups_per_dimension);
+        self
+    }
+
+    /// The most workgroups one dimension of a grid may have.
+    pub fn max_workgroups_per_dimension(&self) -> u32 {
+        self.limits.max_compute_workgroups_per_dimension
     }
 
     pub fn info(&self) -> &wgpu::AdapterInfo {
@@ -323,7 +340,7 @@ impl GpuContext {
         if workgroups == 0 {
             return;
         }
-        let (x, y) = split_workgroups(workgroups, self.limits.max_compute_workgroups_per_dimension);
+        let (x, y) = split_workgroups(workgroups, self.dispatch_limit);
         self.dispatch_grid(encoder, kernel, bindings, x, y);
     }
 

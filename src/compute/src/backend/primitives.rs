@@ -139,10 +139,14 @@ mod tests {
         let Some(context) = gpu_test_context() else {
             return;
         };
+        check_scan_on(&context, values);
+    }
+
+    fn check_scan_on(context: &GpuContext, values: &[u32]) {
         let buffer = context.upload("scan input", values).unwrap();
         let mut encoder = context.encoder();
         let total =
-            exclusive_scan(&context, &mut encoder, &buffer.buffer, values.len() as u32).unwrap();
+            exclusive_scan(context, &mut encoder, &buffer.buffer, values.len() as u32).unwrap();
         context.submit_and_wait(encoder).unwrap();
         let scanned: Vec<u32> = context
             .download(context.encoder(), &buffer.buffer, values.len())
@@ -174,10 +178,14 @@ mod tests {
         let Some(context) = gpu_test_context() else {
             return;
         };
+        check_sort_on(&context, keys, key_bits);
+    }
+
+    fn check_sort_on(context: &GpuContext, keys: &[u32], key_bits: u32) {
         let values: Vec<u32> = (0..keys.len() as u32).collect();
         let mut encoder = context.encoder();
         let (sorted_keys, sorted_values) = radix_sort(
-            &context,
+            context,
             &mut encoder,
             context.upload("keys", keys).unwrap(),
             context.upload("values", &values).unwrap(),
@@ -240,5 +248,16 @@ mod tests {
     fn radix_sort_with_fewer_bits_leaves_high_bits_unsorted_but_stable() {
         let keys: Vec<u32> = pseudo_random(21, 1_000);
         check_sort(&keys, 8);
+    }
+
+    #[test]
+    fn scan_and_sort_on_two_dimensional_grids_match_the_cpu() {
+        let Some(context) = crate::backend::test_support::gpu_test_context_with_dispatch_limit(2)
+        else {
+            return;
+        };
+        let values: Vec<u32> = pseudo_random(4, 3_000).iter().map(|x| x % 50).collect();
+        check_scan_on(&context, &values);
+        check_sort_on(&context, &pseudo_random(6, 2_000), 32);
     }
 }

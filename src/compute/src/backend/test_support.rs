@@ -33,3 +33,13 @@ pub fn gpu_test_context() -> Option<Arc<GpuContext>> {
         }
     }
 }
+
+/// A separate context whose dispatches go 2D beyond `limit` workgroups per dimension, or
+/// `None` under the same rules as [`gpu_test_context`].
+pub fn gpu_test_context_with_dispatch_limit(limit: u32) -> Option<Arc<GpuContext>> {
+    gpu_test_context()?;
+    match GpuContext::new(AdapterChoice::AllowSoftware) {
+        Ok(context) => Some(Arc::new(context.with_dispatch_limit(limit))),
+        Err(error) => panic!("a second gpu context could not be opened: {error}"),
+    }
+}

@@ -290,6 +290,17 @@ fn forward_camera(
 ) -> Result<CameraState, GpuSplatError> {
     let n = gaussians.count;
     let (tiles_x, tiles_y) = tiles(camera);
+    // Tile kernels run on a tiles_x by tiles_y grid of workgroups.
+    let max_grid = context.max_workgroups_per_dimension();
+    if tiles_x > max_grid || tiles_y > max_grid {
+        return Err(BackendError::Gpu {
+            message: format!(
+                "image {}x{} has more than {max_grid} tiles along one side",
+                camera.width, camera.height
+            ),
+        }
+        .into());
+    }
     let pixels = camera.width as usize * camera.height as usize;
     let uniform = camera_uniform(
         camera,

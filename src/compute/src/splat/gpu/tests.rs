@@ -192,15 +192,25 @@ fn check_parity(
     let Some(context) = gpu_test_context() else {
         return;
     };
+    check_parity_on(&context, gaussians, cameras, options, gpu_options);
+}
+
+fn check_parity_on(
+    context: &GpuContext,
+    gaussians: &GaussianBuffers<f32>,
+    cameras: &[Camera],
+    options: &RasterOptions,
+    gpu_options: GpuOptions,
+) {
     let view = gaussians.view();
     let cpu_forward = cpu::forward(&view, cameras, options).unwrap();
-    let gpu_forward = forward_with(&context, &view, cameras, options, gpu_options).unwrap();
+    let gpu_forward = forward_with(context, &view, cameras, options, gpu_options).unwrap();
     assert_images_match(&gpu_forward, &cpu_forward);
     let values = upstream(cameras, 99);
     for with_alpha_depth in [false, true] {
         let grads = image_gradients(&values, with_alpha_depth);
         let cpu_gradients = cpu::backward(&cpu_forward, &view, &grads).unwrap();
-        let gpu_gradients = backward(&context, &gpu_forward, &view, &grads).unwrap();
+        let gpu_gradients = backward(context, &gpu_forward, &view, &grads).unwrap();
         // A scene with visible Gaussians must produce gradients, or the comparison is empty.
         let visible: usize = cpu_forward.diagnostics.iter().map(|d| d.visible).sum();
         if visible > 0 {
@@ -236,6 +246,23 @@ fn forward_and_backward_match_cpu_with_the_compare_exchange_fallback() {
         ..GpuOptions::default()
     };
     check_parity(&scene(150, 2, 2), &two_cameras(), &options(), gpu_options);
+}
+
+#[test]
+fn two_dimensional_dispatches_match_cpu() {
+    // Three workgroups per dimension at most: every one-thread-per-item kernel (projection,
+    // binning, scan, sort) runs on a 2D grid with excess workgroups.
+    let Some(context) = crate::backend::test_support::gpu_test_context_with_dispatch_limit(3)
+    else {
+        return;
+    };
+    check_parity_on(
+        &context,
+        &scene(1100, 1, 12),
+        &two_cameras(),
+        &options(),
+        GpuOptions::default(),
+    );
 }
 
 #[test]
