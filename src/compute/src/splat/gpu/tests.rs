@@ -378,6 +378,11 @@ fn non_finite_behind_camera_and_offscreen_gaussians_are_culled_like_cpu() {
     // A huge Gaussian straddling the camera plane and one with a tiny opacity.
     gaussians.means[18..21].copy_from_slice(&[0.0, 0.0, -2.495]);
     gaussians.opacities[7] = 1e-4;
+    // A covariance whose projection overflows f32, and a denormal one (the blur keeps it
+    // visible), and an opacity of exactly 1/255.
+    gaussians.covariances[8 * 6..9 * 6].copy_from_slice(&[1e30, 0.0, 0.0, 1e30, 0.0, 1e30]);
+    gaussians.covariances[9 * 6..10 * 6].copy_from_slice(&[1e-40, 0.0, 0.0, 1e-40, 0.0, 1e-40]);
+    gaussians.opacities[10] = 1.0 / 255.0;
     let cameras = vec![camera(48, 40, DVec3::new(0.0, 0.0, -2.5))];
     check_parity(&gaussians, &cameras, &options(), GpuOptions::default());
     let Some(context) = gpu_test_context() else {
@@ -389,6 +394,7 @@ fn non_finite_behind_camera_and_offscreen_gaussians_are_culled_like_cpu() {
     assert!(diagnostics.culled_depth >= 1, "{diagnostics:?}");
     assert!(diagnostics.culled_offscreen >= 1, "{diagnostics:?}");
     assert!(diagnostics.culled_opacity >= 1, "{diagnostics:?}");
+    assert!(diagnostics.non_finite_projections >= 1, "{diagnostics:?}");
 }
 
 #[test]
