@@ -1,0 +1,397 @@
+//! Training checkpoints as Zarr v3 groups in the stage's work directory: every tensor
+//! (Gaussian columns, network weights, Adam moments) as an f64 array, plus the iteration, the
+//! generator state and free-form metadata as group attributes.
+//!
+//! Crash safety: a checkpoint is written into `ckpt-<iteration>.partial/`, its files are
+//! synced, the directory is renamed to `ckpt-<iteration>/` and only then are older
+//! checkpoints deleted, so a killed run always leaves the last complete checkpoint behind.
+//! f32 values survive the f64 round trip exactly, so a resumed `cpu` run is bit-identical.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use zarrs::array::ArraySubset;
+use zarrs::array::codec::{BytesCodec, Crc32cCodec, ZstdCodec};
+use zarrs::array::{Array, ArrayBuilder, data_type};
+use zarrs::filesystem::FilesystemStore;
+use zarrs::group::{Group, GroupBuilder};
+
+/// One named tensor.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor {
+    /// Array path inside the checkpoint, `/`-separated (for example `gaussians/xyz`).
+    pub name: String,
+    pub shape: Vec<usize>,
+    /// One name per dimension (Zarr `dimension_names`).
+    pub dimension_names: Vec<String>,
+    pub values: Vec<f64>,
+}
+
+/// The complete resumable state of a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checkpoint {
+    pub iteration: u64,
+    pub rng_state: u64,
+    pub metadata: serde_json::Value,
+    pub tensors: Vec<Tensor>,
+}
+
+/// Why a checkpoint could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("checkpoint {path}: {message}")]
+    Invalid { path: PathBuf, message: String },
+    #[error("checkpoint {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+fn invalid(path: &Path, message: impl std::fmt::Display) -> CheckpointError {
+    CheckpointError::Invalid {
+        path: path.to_owned(),
+        message: message.to_string(),
+    }
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
+    move |source| CheckpointError::Io {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+const PREFIX: &str = "ckpt-";
+const PARTIAL: &str = ".partial";
+const FORMAT: u64 = 1;
+
+/// Writes `checkpoint` under `dir` and removes older checkpoints; returns its directory.
+pub fn save(dir: &Path, checkpoint: &Checkpoint) -> Result<PathBuf, CheckpointError> {
+    fs::create_dir_all(dir).map_err(io(dir))?;
+    let final_dir = dir.join(format!("{PREFIX}{:010}", checkpoint.iteration));
+    let partial = dir.join(format!("{PREFIX}{:010}{PARTIAL}", checkpoint.iteration));
+    if partial.exists() {
+        fs::remove_dir_all(&partial).map_err(io(&partial))?;
+    }
+    write_group(&partial, checkpoint)?;
+    sync_tree(&partial)?;
+    if final_dir.exists() {
+        fs::remove_dir_all(&final_dir).map_err(io(&final_dir))?;
+    }
+    fs::rename(&partial, &final_dir).map_err(io(&final_dir))?;
+    if let Ok(handle) = fs::File::open(dir) {
+        // Persist the rename (directory fsync; not supported everywhere, hence best effort).
+        let _ = handle.sync_all();
+    }
+    for (_, old) in list(dir)? {
+        if old != final_dir {
+            fs::remove_dir_all(&old).map_err(io(&old))?;
+        }
+    }
+    Ok(final_dir)
+}
+
+/// Complete checkpoints under `dir`, oldest first; removes leftovers of interrupted writes.
+fn list(dir: &Path) -> Result<Vec<(u64, PathBuf)>, CheckpointError> {
+    let mut found = Vec::new();
+    if !dir.exists() {
+        return Ok(found);
+    }
+    for entry in fs::read_dir(dir).map_err(io(dir))? {
+        let entry = entry.map_err(io(dir))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(rest) = name.strip_prefix(PREFIX) else {
+            continue;
+        };
+        if rest.ends_with(PARTIAL) {
+            let path = entry.path();
+            fs::remove_dir_all(&path).map_err(io(&path))?;
+            continue;
+        }
+        if let Ok(iteration) = rest.parse::<u64>() {
+            found.push((iteration, entry.path()));
+        }
+    }
+    found.sort();
+    Ok(found)
+}
+
+/// Loads the newest complete checkpoint under `dir`, if any.
+pub fn load_latest(dir: &Path) -> Result<Option<Checkpoint>, CheckpointError> {
+    match list(dir)?.pop() {
+        Some((_, path)) => read_group(&path).map(Some),
+        None => Ok(None),
+    }
+}
+
+fn sync_tree(path: &Path) -> Result<(), CheckpointError> {
+    for entry in fs::read_dir(path).map_err(io(path))? {
+        let entry = entry.map_err(io(path))?;
+        let p = entry.path();
+        if entry.file_type().map_err(io(&p))?.is_dir() {
+            sync_tree(&p)?;
+        } else {
+            fs::File::open(&p)
+                .and_then(|f| f.sync_all())
+                .map_err(io(&p))?;
+        }
+    }
+    Ok(())
+}
+
+fn write_group(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+    fs::create_dir_all(path).map_err(io(path))?;
+    let store = Arc::new(FilesystemStore::new(path).map_err(|e| invalid(path, e))?);
+    let mut attributes = serde_json::Map::new();
+    attributes.insert("format".into(), FORMAT.into());
+    attributes.insert("iteration".into(), checkpoint.iteration.into());
+    // As a string: JSON readers outside Rust often hold numbers in f64.
+    attributes.insert("rng_state".into(), checkpoint.rng_state.to_string().into());
+    attributes.insert("metadata".into(), checkpoint.metadata.clone());
+    let names: Vec<serde_json::Value> = checkpoint
+        .tensors
+        .iter()
+        .map(|t| t.name.clone().into())
+        .collect();
+    attributes.insert("tensors".into(), names.into());
+    GroupBuilder::new()
+        .attributes(attributes)
+        .build(store.clone(), "/")
+        .and_then(|g| g.store_metadata().map_err(Into::into))
+        .map_err(|e| invalid(path, e))?;
+    for tensor in &checkpoint.tensors {
+        check_tensor(path, tensor)?;
+        let shape: Vec<u64> = tensor.shape.iter().map(|&d| d as u64).collect();
+        let chunk: Vec<u64> = shape.iter().map(|&d| d.max(1)).collect();
+        let array = ArrayBuilder::new(shape, chunk, data_type::float64(), 0.0f64)
+            .array_to_bytes_codec(Arc::new(BytesCodec::little()))
+            .bytes_to_bytes_codecs(vec![
+                Arc::new(ZstdCodec::new(3, false)),
+                Arc::new(Crc32cCodec::new()),
+            ])
+            .dimension_names(Some(tensor.dimension_names.clone()))
+            .build(store.clone(), &format!("/{}", tensor.name))
+            .map_err(|e| invalid(path, format!("array {}: {e}", tensor.name)))?;
+        array.store_metadata().map_err(|e| invalid(path, e))?;
+        if !tensor.values.is_empty() {
+            let zeros = vec![0u64; tensor.shape.len()];
+            array
+                .store_chunk(&zeros, tensor.values.as_slice())
+                .map_err(|e| invalid(path, format!("array {}: {e}", tensor.name)))?;
+        }
+    }
+    Ok(())
+}
+
+fn check_tensor(path: &Path, tensor: &Tensor) -> Result<(), CheckpointError> {
+    let valid_name = !tensor.name.is_empty()
+        && tensor.name.split('/').all(|part| {
+            !part.is_empty()
+                && part != "."
+                && part != ".."
+                && part
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c))
+        });
+    if !valid_name {
+        return Err(invalid(
+            path,
+            format!("tensor name `{}` is not a plain array path", tensor.name),
+        ));
+    }
+    if tensor.shape.len() != tensor.dimension_names.len() || tensor.shape.is_empty() {
+        return Err(invalid(
+            path,
+            format!(
+                "tensor {}: {} dimensions but {} names",
+                tensor.name,
+                tensor.shape.len(),
+                tensor.dimension_names.len()
+            ),
+        ));
+    }
+    if tensor.shape.iter().product::<usize>() != tensor.values.len() {
+        return Err(invalid(
+            path,
+            format!(
+                "tensor {}: shape {:?} does not hold {} values",
+                tensor.name,
+                tensor.shape,
+                tensor.values.len()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn read_group(path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let store = Arc::new(FilesystemStore::new(path).map_err(|e| invalid(path, e))?);
+    let group = Group::open(store.clone(), "/").map_err(|e| invalid(path, e))?;
+    let attributes = group.attributes();
+    let field = |name: &str| {
+        attributes
+            .get(name)
+            .ok_or_else(|| invalid(path, format!("attribute `{name}` is missing")))
+    };
+    let format = field("format")?
+        .as_u64()
+        .ok_or_else(|| invalid(path, "attribute `format` is not an integer"))?;
+    if format != FORMAT {
+        return Err(invalid(
+            path,
+            format!("attribute `format` is {format}, this build reads {FORMAT}"),
+        ));
+    }
+    let iteration = field("iteration")?
+        .as_u64()
+        .ok_or_else(|| invalid(path, "attribute `iteration` is not an integer"))?;
+    let rng_state = field("rng_state")?
+        .as_str()
+        .and_then(|s| s.parse::<u64>().ok())
+        .ok_or_else(|| invalid(path, "attribute `rng_state` is not a decimal u64 string"))?;
+    let metadata = field("metadata")?.clone();
+    let names = field("tensors")?
+        .as_array()
+        .ok_or_else(|| invalid(path, "attribute `tensors` is not a list"))?;
+    let mut tensors = Vec::with_capacity(names.len());
+    for name in names {
+        let name = name
+            .as_str()
+            .ok_or_else(|| invalid(path, "attribute `tensors` holds a non-string"))?;
+        let array = Array::open(store.clone(), &format!("/{name}"))
+            .map_err(|e| invalid(path, format!("array {name}: {e}")))?;
+        let shape: Vec<usize> = array.shape().iter().map(|&d| d as usize).collect();
+        let dimension_names = array
+            .dimension_names()
+            .as_ref()
+            .map(|names| {
+                names
+                    .iter()
+                    .map(|n| n.clone().unwrap_or_default())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let subset = ArraySubset::new_with_shape(array.shape().to_vec());
+        let values: Vec<f64> = if shape.iter().product::<usize>() == 0 {
+            Vec::new()
+        } else {
+            array
+                .retrieve_array_subset(&subset)
+                .map_err(|e| invalid(path, format!("array {name}: {e}")))?
+        };
+        tensors.push(Tensor {
+            name: name.to_owned(),
+            shape,
+            dimension_names,
+            values,
+        });
+    }
+    Ok(Checkpoint {
+        iteration,
+        rng_state,
+        metadata,
+        tensors,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(iteration: u64) -> Checkpoint {
+        Checkpoint {
+            iteration,
+            rng_state: u64::MAX - 12345,
+            metadata: serde_json::json!({"loss": [1.0, 0.5]}),
+            tensors: vec![
+                Tensor {
+                    name: "gaussians/xyz".into(),
+                    shape: vec![2, 3],
+                    dimension_names: vec!["gaussian".into(), "xyz".into()],
+                    values: vec![1.0, -2.5, f64::MIN_POSITIVE, 1e300, 0.1f32 as f64, -0.0],
+                },
+                Tensor {
+                    name: "gaussians/empty".into(),
+                    shape: vec![0, 4],
+                    dimension_names: vec!["gaussian_empty".into(), "wxyz".into()],
+                    values: vec![],
+                },
+                Tensor {
+                    name: "networks/trunk.0.weight".into(),
+                    shape: vec![1],
+                    dimension_names: vec!["one".into()],
+                    values: vec![std::f64::consts::PI],
+                },
+            ],
+        }
+    }
+
+    #[test]
+    fn round_trip_is_exact_and_keeps_only_the_newest() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(load_latest(dir.path()).unwrap().is_none());
+        save(dir.path(), &sample(10)).unwrap();
+        let newest = sample(20);
+        save(dir.path(), &newest).unwrap();
+        let loaded = load_latest(dir.path()).unwrap().unwrap();
+        assert_eq!(loaded.iteration, 20);
+        assert_eq!(loaded.rng_state, newest.rng_state);
+        assert_eq!(loaded.metadata, newest.metadata);
+        for (a, b) in loaded.tensors.iter().zip(&newest.tensors) {
+            assert_eq!(a.name, b.name);
+            assert_eq!(a.shape, b.shape);
+            assert_eq!(a.dimension_names, b.dimension_names);
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&a.values), bits(&b.values));
+        }
+        let entries: Vec<_> = fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(entries.len(), 1);
+    }
+
+    #[test]
+    fn interrupted_writes_are_ignored_and_cleaned() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(5)).unwrap();
+        // A later checkpoint that died half-way.
+        let partial = dir.path().join("ckpt-0000000009.partial");
+        fs::create_dir_all(partial.join("gaussians")).unwrap();
+        let loaded = load_latest(dir.path()).unwrap().unwrap();
+        assert_eq!(loaded.iteration, 5);
+        assert!(!partial.exists());
+    }
+
+    #[test]
+    fn bad_input_names_the_problem() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut bad = sample(1);
+        bad.tensors[0].values.pop();
+        let err = save(dir.path(), &bad).unwrap_err().to_string();
+        assert!(
+            err.contains("gaussians/xyz") && err.contains("does not hold"),
+            "{err}"
+        );
+        let mut bad = sample(1);
+        bad.tensors[0].name = "../escape".into();
+        assert!(
+            save(dir.path(), &bad)
+                .unwrap_err()
+                .to_string()
+                .contains("not a plain array path")
+        );
+        // A corrupted attribute is reported with the file and the field.
+        save(dir.path(), &sample(2)).unwrap();
+        let meta = dir.path().join("ckpt-0000000002/zarr.json");
+        let text = fs::read_to_string(&meta)
+            .unwrap()
+            .replace("\"rng_state\"", "\"rng_stat\"");
+        fs::write(&meta, text).unwrap();
+        let err = load_latest(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("rng_state") && err.contains("ckpt-0000000002"),
+            "{err}"
+        );
+    }
+}

@@ -1,0 +1,477 @@
+//! The train stage's configuration: presets `fast`, `balanced` and `paper`, each field
+//! overridable, validated once into a [`TrainConfig`] whose canonical JSON enters the key.
+//!
+//! The YAML names a `preset` (default `balanced`) and any fields to change; resolution fills
+//! every other field from the preset, so the stored config is always explicit.
+
+use serde::{Deserialize, Serialize};
+
+/// The paper's ablation rows (a) to (e): which motion conditions feed the non-rigid network.
+/// Each level includes the previous ones; a disabled condition's encoder is not built at all.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, PartialOrd, Ord)]
+#[serde(rename_all = "snake_case")]
+pub enum MotionContext {
+    /// (a) No non-rigid deformation: skinning only.
+    None,
+    /// (b) Non-rigid network on position and current pose.
+    Pose,
+    /// (c) Plus the skeleton motion sequence (Delta P).
+    Skeleton,
+    /// (d) Plus KNN vertex velocities at the single smallest scale.
+    Velocity,
+    /// (e) Plus all scales.
+    Multiscale,
+}
+
+impl MotionContext {
+    pub fn has_non_rigid(self) -> bool {
+        self >= Self::Pose
+    }
+    pub fn has_skeleton_motion(self) -> bool {
+        self >= Self::Skeleton
+    }
+    pub fn has_velocity(self) -> bool {
+        self >= Self::Velocity
+    }
+    pub fn is_multiscale(self) -> bool {
+        self == Self::Multiscale
+    }
+    /// The ablation row letter.
+    pub fn row(self) -> char {
+        match self {
+            Self::None => 'a',
+            Self::Pose => 'b',
+            Self::Skeleton => 'c',
+            Self::Velocity => 'd',
+            Self::Multiscale => 'e',
+        }
+    }
+}
+
+/// Named starting points trading speed for accuracy.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// The demo: minutes on 2 CPU cores.
+    Fast,
+    /// A reasonable single-GPU run.
+    Balanced,
+    /// The paper's I3D-Human settings.
+    Paper,
+}
+
+/// Where the numeric work runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Device {
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+/// Learning rates (method.md, "Optimisation").
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearningRates {
+    /// Times the scene extent; decays exponentially to `position_final` over
+    /// `position_decay_steps`.
+    pub position_initial: f64,
+    pub position_final: f64,
+    pub position_decay_steps: u32,
+    pub sh_dc: f64,
+    pub sh_rest: f64,
+    pub opacity: f64,
+    pub scaling: f64,
+    pub rotation: f64,
+    pub pose_refiner: f64,
+    pub lbs_offsets: f64,
+    pub non_rigid: f64,
+    /// Per-step factor of the network rates is `network_decay^(1 / iterations)`.
+    pub network_decay: f64,
+    pub adam_eps: f64,
+}
+
+impl Default for LearningRates {
+    fn default() -> Self {
+        Self {
+            position_initial: 1.6e-4,
+            position_final: 1.6e-6,
+            position_decay_steps: 30_000,
+            sh_dc: 2.5e-3,
+            sh_rest: 1.25e-4,
+            opacity: 0.05,
+            scaling: 5e-3,
+            rotation: 1e-3,
+            pose_refiner: 5e-5,
+            lbs_offsets: 5e-5,
+            non_rigid: 1e-3,
+            network_decay: 0.1,
+            adam_eps: 1e-15,
+        }
+    }
+}
+
+/// The effective configuration of one training run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    pub preset: Preset,
+    pub device: Device,
+    pub seed: u64,
+    pub iterations: u32,
+    /// Image scale applied to the ingest images (1 = as ingested).
+    pub resolution_scale: f64,
+    pub motion_context: MotionContext,
+    /// Width of the non-rigid trunk's hidden layers.
+    pub trunk_width: usize,
+    /// Number of hidden layers of the non-rigid trunk.
+    pub trunk_depth: usize,
+    /// Nearest template vertices per Gaussian for the velocity context (tau).
+    pub tau: usize,
+    /// Sequence length L.
+    pub sequence_length: usize,
+    /// Temporal scales to use (must exist in the motion entry); empty: all of them.
+    /// `velocity` uses only the smallest one.
+    pub scales: Vec<u32>,
+    pub max_gaussians: usize,
+    pub densify: bool,
+    pub densify_from: u32,
+    pub densify_until: u32,
+    pub densify_interval: u32,
+    pub densify_grad_threshold: f64,
+    pub prune_opacity: f64,
+    pub percent_dense: f64,
+    pub cameras_per_step: usize,
+    pub pose_refiner: bool,
+    pub lbs_offsets: bool,
+    pub sh_degree: u32,
+    pub sh_degree_interval: u32,
+    pub mask_weight: f64,
+    pub ssim_weight: f64,
+    /// LPIPS needs the evaluation stage's network; 0 until it exists (the run says so).
+    pub lpips_weight: f64,
+    pub aiap_centre_weight: f64,
+    pub aiap_covariance_weight: f64,
+    pub aiap_neighbours: usize,
+    pub bound_padding: usize,
+    /// Bounds of the linear scale after the non-rigid offset, metres.
+    pub scale_min: f64,
+    pub scale_max: f64,
+    pub learning_rates: LearningRates,
+    pub checkpoint_every: u32,
+    /// Background colour (the datasets use black).
+    pub background: [f64; 3],
+}
+
+impl TrainConfig {
+    /// The preset's full configuration.
+    pub fn preset(preset: Preset) -> Self {
+        let base = Self {
+            preset,
+            device: Device::Auto,
+            seed: 0,
+            iterations: 3000,
+            resolution_scale: 1.0,
+            motion_context: MotionContext::Multiscale,
+            trunk_width: 256,
+            trunk_depth: 3,
+            tau: 6,
+            sequence_length: 3,
+            scales: Vec::new(),
+            max_gaussians: 120_000,
+            densify: true,
+            densify_from: 400,
+            densify_until: 1200,
+            densify_interval: 100,
+            densify_grad_threshold: 2e-4,
+            prune_opacity: 0.005,
+            percent_dense: 0.01,
+            cameras_per_step: 1,
+            pose_refiner: true,
+            lbs_offsets: true,
+            sh_degree: 3,
+            sh_degree_interval: 1000,
+            mask_weight: 0.1,
+            ssim_weight: 0.1,
+            lpips_weight: 0.0,
+            aiap_centre_weight: 1.0,
+            aiap_covariance_weight: 100.0,
+            aiap_neighbours: 5,
+            bound_padding: 5,
+            scale_min: 1e-5,
+            scale_max: 0.5,
+            learning_rates: LearningRates::default(),
+            checkpoint_every: 500,
+            background: [0.0; 3],
+        };
+        match preset {
+            Preset::Balanced => base,
+            Preset::Fast => Self {
+                iterations: 400,
+                resolution_scale: 0.5,
+                trunk_width: 64,
+                tau: 4,
+                sequence_length: 2,
+                max_gaussians: 20_000,
+                densify: false,
+                sh_degree: 1,
+                sh_degree_interval: 200,
+                checkpoint_every: 100,
+                ..base
+            },
+            Preset::Paper => Self {
+                iterations: 15_000,
+                trunk_width: 512,
+                tau: 8,
+                sequence_length: 8,
+                densify_until: 1800,
+                checkpoint_every: 1000,
+                ..base
+            },
+        }
+    }
+
+    /// Resolves a raw YAML/JSON config: the preset, then the given overrides, then checks.
+    pub fn resolve(raw: &serde_json::Value) -> Result<Self, ConfigError> {
+        let object = match raw {
+            serde_json::Value::Null => serde_json::Map::new(),
+            serde_json::Value::Object(map) => map.clone(),
+            _ => return Err(ConfigError::NotAMapping),
+        };
+        let preset: Preset = match object.get("preset") {
+            Some(value) => {
+                serde_json::from_value(value.clone()).map_err(|e| ConfigError::Field {
+                    field: "preset".into(),
+                    message: e.to_string(),
+                })?
+            }
+            None => Preset::Balanced,
+        };
+        let mut merged = serde_json::to_value(Self::preset(preset)).expect("config serialises");
+        merge(&mut merged, &serde_json::Value::Object(object));
+        let config: Self =
+            serde_path_to_error::deserialize(merged).map_err(|e| ConfigError::Field {
+                field: e.path().to_string(),
+                message: e.inner().to_string(),
+            })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks ranges and cross-field rules.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, message: String| {
+            Err(ConfigError::Field {
+                field: field.into(),
+                message,
+            })
+        };
+        if self.iterations == 0 {
+            return bad("iterations", "must be at least 1".into());
+        }
+        if !(self.resolution_scale > 0.0 && self.resolution_scale <= 4.0) {
+            return bad(
+                "resolution_scale",
+                format!("must be in (0, 4], got {}", self.resolution_scale),
+            );
+        }
+        if self.motion_context.has_non_rigid() && (self.trunk_width == 0 || self.trunk_depth == 0) {
+            return bad(
+                "trunk_width",
+                "the non-rigid trunk needs width and depth >= 1".into(),
+            );
+        }
+        if self.motion_context.has_velocity() && self.tau == 0 {
+            return bad("tau", "velocity context needs tau >= 1".into());
+        }
+        if self.motion_context.has_skeleton_motion() && self.sequence_length == 0 {
+            return bad("sequence_length", "must be at least 1".into());
+        }
+        if self.scales.contains(&0) {
+            return bad("scales", "a temporal scale must be at least 1 frame".into());
+        }
+        if self.max_gaussians == 0 {
+            return bad("max_gaussians", "must be at least 1".into());
+        }
+        if self.cameras_per_step == 0 {
+            return bad("cameras_per_step", "must be at least 1".into());
+        }
+        if self.sh_degree > 3 {
+            return bad(
+                "sh_degree",
+                format!("must be 0..=3, got {}", self.sh_degree),
+            );
+        }
+        if self.sh_degree_interval == 0 || self.densify_interval == 0 || self.checkpoint_every == 0
+        {
+            return bad("sh_degree_interval", "intervals must be at least 1".into());
+        }
+        if self.aiap_neighbours < 2 {
+            return bad(
+                "aiap_neighbours",
+                "needs self plus at least one neighbour".into(),
+            );
+        }
+        if !(self.scale_min > 0.0 && self.scale_max > self.scale_min) {
+            return bad("scale_min", "need 0 < scale_min < scale_max".into());
+        }
+        for (name, value) in [
+            ("mask_weight", self.mask_weight),
+            ("ssim_weight", self.ssim_weight),
+            ("lpips_weight", self.lpips_weight),
+            ("aiap_centre_weight", self.aiap_centre_weight),
+            ("aiap_covariance_weight", self.aiap_covariance_weight),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(name, format!("must be finite and >= 0, got {value}"));
+            }
+        }
+        if self.lpips_weight > 0.0 {
+            return bad(
+                "lpips_weight",
+                "LPIPS is not available yet (needs the eval stage's network); use 0".into(),
+            );
+        }
+        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            return bad("background", "components must be in [0, 1]".into());
+        }
+        Ok(())
+    }
+
+    /// Scales to feed the networks given those the motion entry holds (largest first).
+    pub fn effective_scales(&self, available: &[u32]) -> Result<Vec<u32>, ConfigError> {
+        let mut chosen: Vec<u32> = if self.scales.is_empty() {
+            available.to_vec()
+        } else {
+            self.scales.clone()
+        };
+        if let Some(missing) = chosen.iter().find(|s| !available.contains(s)) {
+            return Err(ConfigError::Field {
+                field: "scales".into(),
+                message: format!(
+                    "scale {missing} is not in the motion entry (it has {available:?})"
+                ),
+            });
+        }
+        chosen.sort_unstable_by(|a, b| b.cmp(a));
+        chosen.dedup();
+        if chosen.is_empty() {
+            return Err(ConfigError::Field {
+                field: "scales".into(),
+                message: "no temporal scales".into(),
+            });
+        }
+        if !self.motion_context.is_multiscale() {
+            let smallest = *chosen.last().expect("not empty");
+            chosen = vec![smallest];
+        }
+        Ok(chosen)
+    }
+}
+
+/// Overlays `patch` onto `base` (objects merged recursively, other values replaced).
+fn merge(base: &mut serde_json::Value, patch: &serde_json::Value) {
+    match (base, patch) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
+            for (k, v) in p {
+                match b.get_mut(k) {
+                    Some(slot) if slot.is_object() && v.is_object() => merge(slot, v),
+                    _ => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (b, p) => *b = p.clone(),
+    }
+}
+
+/// A rejected configuration, naming the field.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ConfigError {
+    #[error("the train config must be a mapping")]
+    NotAMapping,
+    #[error("train config field `{field}`: {message}")]
+    Field { field: String, message: String },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn presets_resolve_and_are_valid() {
+        for preset in [Preset::Fast, Preset::Balanced, Preset::Paper] {
+            let c = TrainConfig::preset(preset);
+            c.validate().unwrap();
+            let raw = json!({ "preset": serde_json::to_value(preset).unwrap() });
+            assert_eq!(TrainConfig::resolve(&raw).unwrap(), c);
+        }
+        let paper = TrainConfig::preset(Preset::Paper);
+        assert_eq!(
+            (paper.trunk_width, paper.tau, paper.sequence_length),
+            (512, 8, 8)
+        );
+        assert_eq!(
+            TrainConfig::resolve(&serde_json::Value::Null)
+                .unwrap()
+                .preset,
+            Preset::Balanced
+        );
+    }
+
+    #[test]
+    fn overrides_apply_and_round_trip() {
+        let raw = json!({"preset": "fast", "iterations": 50, "motion_context": "pose",
+                         "learning_rates": {"non_rigid": 0.01}});
+        let c = TrainConfig::resolve(&raw).unwrap();
+        assert_eq!(c.iterations, 50);
+        assert_eq!(c.motion_context, MotionContext::Pose);
+        assert_eq!(c.learning_rates.non_rigid, 0.01);
+        assert_eq!(c.learning_rates.rotation, 1e-3);
+        assert_eq!(c.trunk_width, 64);
+        // Resolving the resolved config changes nothing (the key is stable).
+        let again = TrainConfig::resolve(&serde_json::to_value(&c).unwrap()).unwrap();
+        assert_eq!(again, c);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let cases = [
+            (json!({"iterations": 0}), "iterations"),
+            (json!({"motion_context": "everything"}), "motion_context"),
+            (json!({"learning_rates": {"typo": 1.0}}), "learning_rates"),
+            (json!({"unknown_field": 1}), "unknown_field"),
+            (json!({"sh_degree": 4}), "sh_degree"),
+            (json!({"lpips_weight": 0.1}), "lpips_weight"),
+            (json!({"preset": "slow"}), "preset"),
+            (json!({"scale_min": 0.0}), "scale_min"),
+        ];
+        for (raw, field) in cases {
+            let err = TrainConfig::resolve(&raw).unwrap_err().to_string();
+            assert!(err.contains(field), "{raw} gave `{err}`");
+        }
+        assert_eq!(
+            TrainConfig::resolve(&json!([1])),
+            Err(ConfigError::NotAMapping)
+        );
+    }
+
+    #[test]
+    fn scales_follow_the_motion_context() {
+        let mut c = TrainConfig::preset(Preset::Paper);
+        assert_eq!(c.effective_scales(&[24, 42, 33]).unwrap(), vec![42, 33, 24]);
+        c.motion_context = MotionContext::Velocity;
+        assert_eq!(c.effective_scales(&[24, 42, 33]).unwrap(), vec![24]);
+        c.scales = vec![5];
+        assert!(
+            c.effective_scales(&[24])
+                .unwrap_err()
+                .to_string()
+                .contains("scale 5")
+        );
+        assert!(MotionContext::Pose < MotionContext::Skeleton);
+        assert!(!MotionContext::None.has_non_rigid() && MotionContext::Pose.has_non_rigid());
+    }
+}

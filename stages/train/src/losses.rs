@@ -1,0 +1,738 @@
+//! Image and geometry losses of SeqAvatar training, each with its exact backward.
+//!
+//! - L1 on colour and `mask_weight x` MSE between rendered alpha and the foreground mask,
+//!   both averaged over the bound mask (the 2D bounding box of the foreground, padded).
+//! - `1 - SSIM` on the bounding-box crop, 11 px Gaussian window with sigma 1.5, zero padding
+//!   ("same" output), constants `C1 = 0.01^2`, `C2 = 0.03^2`, as 3DGS computes it.
+//! - As-isometric-as-possible: L1 between canonical and deformed distances of each Gaussian
+//!   to its canonical nearest neighbours, for centres and for covariances (6 upper entries).
+//!
+//! Images are row-major `H x W x 3` (colour) and `H x W` (alpha, mask), values in `[0, 1]`,
+//! held in f64 so that the gradients can be checked against finite differences.
+
+/// Side of the SSIM window in pixels.
+pub const SSIM_WINDOW: usize = 11;
+/// Standard deviation of the SSIM Gaussian window in pixels.
+pub const SSIM_SIGMA: f64 = 1.5;
+const SSIM_C1: f64 = 0.01 * 0.01;
+const SSIM_C2: f64 = 0.03 * 0.03;
+
+/// A half-open pixel rectangle `[x0, x1) x [y0, y1)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Rect {
+    pub x0: usize,
+    pub y0: usize,
+    pub x1: usize,
+    pub y1: usize,
+}
+
+impl Rect {
+    pub fn width(&self) -> usize {
+        self.x1 - self.x0
+    }
+    pub fn height(&self) -> usize {
+        self.y1 - self.y0
+    }
+    pub fn area(&self) -> usize {
+        self.width() * self.height()
+    }
+}
+
+/// The bound mask: bounding box of the pixels whose mask value exceeds 0.5, grown by `pad`
+/// pixels on each side and clipped to the image. `None` when the mask is empty.
+pub fn bound_box(mask: &[f64], width: usize, height: usize, pad: usize) -> Option<Rect> {
+    assert_eq!(mask.len(), width * height, "mask size");
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0usize, 0usize);
+    for row in 0..height {
+        for col in 0..width {
+            if mask[row * width + col] > 0.5 {
+                x0 = x0.min(col);
+                y0 = y0.min(row);
+                x1 = x1.max(col + 1);
+                y1 = y1.max(row + 1);
+            }
+        }
+    }
+    if x0 == usize::MAX {
+        return None;
+    }
+    Some(Rect {
+        x0: x0.saturating_sub(pad),
+        y0: y0.saturating_sub(pad),
+        x1: (x1 + pad).min(width),
+        y1: (y1 + pad).min(height),
+    })
+}
+
+/// Weights of the photometric loss `l1 + mask_weight mask_mse + ssim_weight (1 - SSIM)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageLossWeights {
+    pub mask: f64,
+    pub ssim: f64,
+}
+
+/// The terms of the photometric loss (unweighted) and their weighted sum.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ImageLossTerms {
+    pub l1: f64,
+    pub mask_mse: f64,
+    /// `1 - SSIM` on the crop.
+    pub dssim: f64,
+    pub total: f64,
+}
+
+/// Gradients of the photometric loss with respect to the rendered image and alpha.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageLossGrads {
+    /// `H x W x 3`, zero outside the bound box.
+    pub colour: Vec<f64>,
+    /// `H x W`, zero outside the bound box.
+    pub alpha: Vec<f64>,
+}
+
+/// One camera's images for the photometric loss.
+pub struct ImagePair<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// Rendered colour, `H x W x 3`.
+    pub colour: &'a [f64],
+    /// Rendered accumulated alpha, `H x W`.
+    pub alpha: &'a [f64],
+    /// Ground-truth colour, `H x W x 3`.
+    pub target_colour: &'a [f64],
+    /// Ground-truth foreground mask in `[0, 1]`, `H x W`.
+    pub target_mask: &'a [f64],
+}
+
+/// Photometric loss and its gradients over the bound box `rect`.
+pub fn image_loss(
+    pair: &ImagePair<'_>,
+    rect: Rect,
+    weights: ImageLossWeights,
+) -> (ImageLossTerms, ImageLossGrads) {
+    let (w, h) = (pair.width, pair.height);
+    assert_eq!(pair.colour.len(), w * h * 3, "colour size");
+    assert_eq!(pair.target_colour.len(), w * h * 3, "target colour size");
+    assert_eq!(pair.alpha.len(), w * h, "alpha size");
+    assert_eq!(pair.target_mask.len(), w * h, "mask size");
+    assert!(
+        rect.x1 <= w && rect.y1 <= h && rect.area() > 0,
+        "bad rect {rect:?}"
+    );
+    let mut grads = ImageLossGrads {
+        colour: vec![0.0; w * h * 3],
+        alpha: vec![0.0; w * h],
+    };
+    let pixel_count = rect.area() as f64;
+    let mut l1 = 0.0;
+    let mut mse = 0.0;
+    let l1_scale = 1.0 / (3.0 * pixel_count);
+    let mse_scale = 1.0 / pixel_count;
+    for row in rect.y0..rect.y1 {
+        for col in rect.x0..rect.x1 {
+            let p = row * w + col;
+            for c in 0..3 {
+                let diff = pair.colour[3 * p + c] - pair.target_colour[3 * p + c];
+                l1 += diff.abs();
+                grads.colour[3 * p + c] = l1_scale * sign(diff);
+            }
+            let diff = pair.alpha[p] - pair.target_mask[p];
+            mse += diff * diff;
+            grads.alpha[p] = weights.mask * mse_scale * 2.0 * diff;
+        }
+    }
+    let l1 = l1 * l1_scale;
+    let mask_mse = mse * mse_scale;
+    let mut dssim = 0.0;
+    if weights.ssim != 0.0 {
+        let crop = crop_planes(pair.colour, w, rect);
+        let crop_target = crop_planes(pair.target_colour, w, rect);
+        let (ssim, d_crop) = ssim_planes(&crop, &crop_target, rect.width(), rect.height());
+        dssim = 1.0 - ssim;
+        for c in 0..3 {
+            for row in 0..rect.height() {
+                for col in 0..rect.width() {
+                    let p = (rect.y0 + row) * w + rect.x0 + col;
+                    grads.colour[3 * p + c] -= weights.ssim * d_crop[c][row * rect.width() + col];
+                }
+            }
+        }
+    }
+    let total = l1 + weights.mask * mask_mse + weights.ssim * dssim;
+    (
+        ImageLossTerms {
+            l1,
+            mask_mse,
+            dssim,
+            total,
+        },
+        grads,
+    )
+}
+
+fn sign(v: f64) -> f64 {
+    if v > 0.0 {
+        1.0
+    } else if v < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// Copies the crop of an interleaved `H x W x 3` image into three row-major planes.
+fn crop_planes(image: &[f64], width: usize, rect: Rect) -> [Vec<f64>; 3] {
+    std::array::from_fn(|c| {
+        let mut plane = Vec::with_capacity(rect.area());
+        for row in rect.y0..rect.y1 {
+            for col in rect.x0..rect.x1 {
+                plane.push(image[3 * (row * width + col) + c]);
+            }
+        }
+        plane
+    })
+}
+
+/// The normalised 1D Gaussian window.
+pub fn gaussian_window(size: usize, sigma: f64) -> Vec<f64> {
+    let centre = (size / 2) as f64;
+    let raw: Vec<f64> = (0..size)
+        .map(|i| (-((i as f64 - centre).powi(2)) / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let sum: f64 = raw.iter().sum();
+    raw.into_iter().map(|v| v / sum).collect()
+}
+
+/// Separable "same" correlation with zero padding. The kernel is symmetric, so this operator
+/// is its own adjoint, which the SSIM backward relies on.
+fn blur_same(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> Vec<f64> {
+    let half = kernel.len() / 2;
+    let mut rows = vec![0.0; plane.len()];
+    for row in 0..height {
+        for col in 0..width {
+            let mut acc = 0.0;
+            for (k, weight) in kernel.iter().enumerate() {
+                let src = col as isize + k as isize - half as isize;
+                if src >= 0 && (src as usize) < width {
+                    acc += weight * plane[row * width + src as usize];
+                }
+            }
+            rows[row * width + col] = acc;
+        }
+    }
+    let mut out = vec![0.0; plane.len()];
+    for row in 0..height {
+        for col in 0..width {
+            let mut acc = 0.0;
+            for (k, weight) in kernel.iter().enumerate() {
+                let src = row as isize + k as isize - half as isize;
+                if src >= 0 && (src as usize) < height {
+                    acc += weight * rows[src as usize * width + col];
+                }
+            }
+            out[row * width + col] = acc;
+        }
+    }
+    out
+}
+
+/// Mean SSIM over three planes and its gradient with respect to the first image's planes.
+pub fn ssim_planes(
+    x: &[Vec<f64>; 3],
+    y: &[Vec<f64>; 3],
+    width: usize,
+    height: usize,
+) -> (f64, [Vec<f64>; 3]) {
+    let kernel = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
+    let n = (width * height) as f64;
+    let mut total = 0.0;
+    let grads = std::array::from_fn(|c| {
+        let (xs, ys) = (&x[c], &y[c]);
+        let mu_x = blur_same(xs, width, height, &kernel);
+        let mu_y = blur_same(ys, width, height, &kernel);
+        let sq = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
+        let e_xx = blur_same(&sq(xs, xs), width, height, &kernel);
+        let e_yy = blur_same(&sq(ys, ys), width, height, &kernel);
+        let e_xy = blur_same(&sq(xs, ys), width, height, &kernel);
+        // Per-pixel partial derivatives of S (times dMean/dS = 1/(3n)) with respect to
+        // mu_x, E[x^2] and E[xy], the three blurred quantities that depend on x.
+        let mut d_mu = vec![0.0; xs.len()];
+        let mut d_exx = vec![0.0; xs.len()];
+        let mut d_exy = vec![0.0; xs.len()];
+        for i in 0..xs.len() {
+            let (m, k) = (mu_x[i], mu_y[i]);
+            let sxx = e_xx[i] - m * m;
+            let syy = e_yy[i] - k * k;
+            let sxy = e_xy[i] - m * k;
+            let a1 = 2.0 * m * k + SSIM_C1;
+            let a2 = 2.0 * sxy + SSIM_C2;
+            let b1 = m * m + k * k + SSIM_C1;
+            let b2 = sxx + syy + SSIM_C2;
+            let s = a1 * a2 / (b1 * b2);
+            total += s;
+            let inv = 1.0 / (b1 * b2);
+            let mean_factor = 1.0 / (3.0 * n);
+            d_mu[i] = ((2.0 * k * a2 - 2.0 * k * a1) * inv - s * (2.0 * m / b1 - 2.0 * m / b2))
+                * mean_factor;
+            d_exx[i] = -s / b2 * mean_factor;
+            d_exy[i] = 2.0 * a1 * inv * mean_factor;
+        }
+        let g_mu = blur_same(&d_mu, width, height, &kernel);
+        let g_exx = blur_same(&d_exx, width, height, &kernel);
+        let g_exy = blur_same(&d_exy, width, height, &kernel);
+        (0..xs.len())
+            .map(|i| g_mu[i] + 2.0 * xs[i] * g_exx[i] + ys[i] * g_exy[i])
+            .collect()
+    });
+    (total / (3.0 * n), grads)
+}
+
+/// Unweighted as-isometric-as-possible terms (means over all neighbour pairs).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AiapTerms {
+    pub centres: f64,
+    pub covariances: f64,
+}
+
+/// Gradients of `centre_weight x centres + covariance_weight x covariances`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AiapGrads {
+    pub canonical_centres: Vec<f64>,
+    pub deformed_centres: Vec<f64>,
+    pub canonical_covariances: Vec<f64>,
+    pub deformed_covariances: Vec<f64>,
+}
+
+/// Inputs of the as-isometric-as-possible loss: `N x 3` centres and `N x 6` covariance upper
+/// triangles before and after deformation, and `N x k` canonical neighbour indices whose first
+/// column is the Gaussian itself (it is skipped, as in 3DGS-Avatar).
+pub struct AiapInputs<'a> {
+    pub canonical_centres: &'a [f64],
+    pub deformed_centres: &'a [f64],
+    pub canonical_covariances: &'a [f64],
+    pub deformed_covariances: &'a [f64],
+    pub neighbours: &'a [u32],
+    pub k: usize,
+}
+
+/// As-isometric-as-possible loss on centres and covariances, with gradients for all four
+/// tensors scaled by the given weights.
+pub fn aiap_loss(
+    inputs: &AiapInputs<'_>,
+    centre_weight: f64,
+    covariance_weight: f64,
+) -> (AiapTerms, AiapGrads) {
+    let n = inputs.canonical_centres.len() / 3;
+    assert_eq!(inputs.deformed_centres.len(), 3 * n);
+    assert_eq!(inputs.canonical_covariances.len(), 6 * n);
+    assert_eq!(inputs.deformed_covariances.len(), 6 * n);
+    assert_eq!(inputs.neighbours.len(), inputs.k * n);
+    let mut grads = AiapGrads {
+        canonical_centres: vec![0.0; 3 * n],
+        deformed_centres: vec![0.0; 3 * n],
+        canonical_covariances: vec![0.0; 6 * n],
+        deformed_covariances: vec![0.0; 6 * n],
+    };
+    let pairs = (n * inputs.k.saturating_sub(1)) as f64;
+    if pairs == 0.0 {
+        return (AiapTerms::default(), grads);
+    }
+    let centres = aiap_term::<3>(
+        inputs.canonical_centres,
+        inputs.deformed_centres,
+        inputs,
+        centre_weight / pairs,
+        &mut grads.canonical_centres,
+        &mut grads.deformed_centres,
+    );
+    let covariances = aiap_term::<6>(
+        inputs.canonical_covariances,
+        inputs.deformed_covariances,
+        inputs,
+        covariance_weight / pairs,
+        &mut grads.canonical_covariances,
+        &mut grads.deformed_covariances,
+    );
+    (
+        AiapTerms {
+            centres: centres / pairs,
+            covariances: covariances / pairs,
+        },
+        grads,
+    )
+}
+
+/// Sum over pairs of `|d(a_i, a_j) - d(b_i, b_j)|` for `D`-vectors; accumulates gradients
+/// times `scale`. A zero distance has a zero (sub)gradient instead of NaN.
+fn aiap_term<const D: usize>(
+    canonical: &[f64],
+    deformed: &[f64],
+    inputs: &AiapInputs<'_>,
+    scale: f64,
+    grad_canonical: &mut [f64],
+    grad_deformed: &mut [f64],
+) -> f64 {
+    let n = canonical.len() / D;
+    let mut sum = 0.0;
+    for i in 0..n {
+        for slot in 1..inputs.k {
+            let j = inputs.neighbours[i * inputs.k + slot] as usize;
+            let mut du = [0.0; D];
+            let mut dv = [0.0; D];
+            for d in 0..D {
+                du[d] = canonical[i * D + d] - canonical[j * D + d];
+                dv[d] = deformed[i * D + d] - deformed[j * D + d];
+            }
+            let lu = du.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let lv = dv.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let diff = lu - lv;
+            sum += diff.abs();
+            let g = scale * sign(diff);
+            if g == 0.0 {
+                continue;
+            }
+            for d in 0..D {
+                if lu > 0.0 {
+                    let t = g * du[d] / lu;
+                    grad_canonical[i * D + d] += t;
+                    grad_canonical[j * D + d] -= t;
+                }
+                if lv > 0.0 {
+                    let t = g * dv[d] / lv;
+                    grad_deformed[i * D + d] -= t;
+                    grad_deformed[j * D + d] += t;
+                }
+            }
+        }
+    }
+    sum
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    fn random_vec(rng: &mut Rng, n: usize, lo: f64, hi: f64) -> Vec<f64> {
+        (0..n).map(|_| rng.uniform(lo, hi)).collect()
+    }
+
+    #[test]
+    fn bound_box_pads_and_clips() {
+        let (w, h) = (20, 10);
+        let mut mask = vec![0.0; w * h];
+        mask[3 * w + 2] = 1.0;
+        mask[6 * w + 17] = 0.9;
+        mask[9 * w + 10] = 0.4; // below threshold
+        let rect = bound_box(&mask, w, h, 5).unwrap();
+        assert_eq!(
+            rect,
+            Rect {
+                x0: 0,
+                y0: 0,
+                x1: 20,
+                y1: 10
+            }
+        );
+        let rect = bound_box(&mask, w, h, 1).unwrap();
+        assert_eq!(
+            rect,
+            Rect {
+                x0: 1,
+                y0: 2,
+                x1: 19,
+                y1: 8
+            }
+        );
+        assert_eq!(bound_box(&vec![0.0; w * h], w, h, 5), None);
+    }
+
+    #[test]
+    fn window_is_normalised_and_symmetric() {
+        let k = gaussian_window(11, 1.5);
+        assert!((k.iter().sum::<f64>() - 1.0).abs() < 1e-15);
+        for i in 0..11 {
+            assert_eq!(k[i], k[10 - i]);
+        }
+        // Closed form ratio of the centre to its neighbour.
+        assert!((k[5] / k[4] - (1.0 / (2.0 * 2.25f64)).exp()).abs() < 1e-12);
+    }
+
+    /// SSIM recomputed with a direct 2D window sum (no separability), per pixel.
+    fn ssim_direct(x: &[f64], y: &[f64], w: usize, h: usize) -> f64 {
+        let k = gaussian_window(11, 1.5);
+        let mut total = 0.0;
+        for r in 0..h as isize {
+            for c in 0..w as isize {
+                let (mut mx, mut my, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for dr in -5isize..=5 {
+                    for dc in -5isize..=5 {
+                        let (rr, cc) = (r + dr, c + dc);
+                        if rr < 0 || cc < 0 || rr >= h as isize || cc >= w as isize {
+                            continue;
+                        }
+                        let g = k[(dr + 5) as usize] * k[(dc + 5) as usize];
+                        let i = rr as usize * w + cc as usize;
+                        mx += g * x[i];
+                        my += g * y[i];
+                        xx += g * x[i] * x[i];
+                        yy += g * y[i] * y[i];
+                        xy += g * x[i] * y[i];
+                    }
+                }
+                let (sx, sy, sxy) = (xx - mx * mx, yy - my * my, xy - mx * my);
+                total += (2.0 * mx * my + SSIM_C1) * (2.0 * sxy + SSIM_C2)
+                    / ((mx * mx + my * my + SSIM_C1) * (sx + sy + SSIM_C2));
+            }
+        }
+        total / (w * h) as f64
+    }
+
+    #[test]
+    fn ssim_matches_direct_window_sum_and_is_one_on_identical_images() {
+        let mut rng = Rng::new(3);
+        let (w, h) = (13, 9);
+        let x: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, w * h, 0.0, 1.0));
+        let y: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, w * h, 0.0, 1.0));
+        let (s, _) = ssim_planes(&x, &y, w, h);
+        let direct = (0..3).map(|c| ssim_direct(&x[c], &y[c], w, h)).sum::<f64>() / 3.0;
+        assert!((s - direct).abs() < 1e-12, "{s} vs {direct}");
+        let (same, grad) = ssim_planes(&x, &x, w, h);
+        assert!((same - 1.0).abs() < 1e-12);
+        // SSIM is maximal at x = y: the gradient vanishes there.
+        assert!(grad.iter().flatten().all(|g| g.abs() < 1e-12));
+    }
+
+    #[test]
+    fn ssim_gradient_matches_finite_differences() {
+        let mut rng = Rng::new(8);
+        let (w, h) = (9, 7);
+        let x: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, w * h, 0.0, 1.0));
+        let y: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, w * h, 0.0, 1.0));
+        let (_, grad) = ssim_planes(&x, &y, w, h);
+        let eps = 1e-6;
+        for c in 0..3 {
+            for i in 0..w * h {
+                let mut plus = x.clone();
+                plus[c][i] += eps;
+                let mut minus = x.clone();
+                minus[c][i] -= eps;
+                let numeric = (ssim_planes(&plus, &y, w, h).0 - ssim_planes(&minus, &y, w, h).0)
+                    / (2.0 * eps);
+                assert!(
+                    (numeric - grad[c][i]).abs() < 1e-8,
+                    "plane {c} pixel {i}: {numeric} vs {}",
+                    grad[c][i]
+                );
+            }
+        }
+    }
+
+    fn image_loss_value(pair: &ImagePair<'_>, rect: Rect, weights: ImageLossWeights) -> f64 {
+        image_loss(pair, rect, weights).0.total
+    }
+
+    #[test]
+    fn image_loss_gradient_matches_finite_differences() {
+        let mut rng = Rng::new(11);
+        let (w, h) = (16, 12);
+        let colour = random_vec(&mut rng, w * h * 3, 0.0, 1.0);
+        let target = random_vec(&mut rng, w * h * 3, 0.0, 1.0);
+        let alpha = random_vec(&mut rng, w * h, 0.0, 1.0);
+        let mask: Vec<f64> = (0..w * h).map(|_| rng.uniform(0.0, 1.0).round()).collect();
+        let rect = Rect {
+            x0: 2,
+            y0: 1,
+            x1: 14,
+            y1: 11,
+        };
+        let weights = ImageLossWeights {
+            mask: 0.1,
+            ssim: 0.3,
+        };
+        let pair = ImagePair {
+            width: w,
+            height: h,
+            colour: &colour,
+            alpha: &alpha,
+            target_colour: &target,
+            target_mask: &mask,
+        };
+        let (terms, grads) = image_loss(&pair, rect, weights);
+        assert!(terms.l1 > 0.0 && terms.mask_mse > 0.0 && terms.dssim > 0.0);
+        let eps = 1e-6;
+        for index in [
+            0usize,
+            3 * (2 * w + 3) + 1,
+            3 * (5 * w + 7),
+            3 * (10 * w + 13) + 2,
+            3 * (11 * w + 15),
+        ] {
+            let mut plus = colour.clone();
+            plus[index] += eps;
+            let mut minus = colour.clone();
+            minus[index] -= eps;
+            let fp = image_loss_value(
+                &ImagePair {
+                    colour: &plus,
+                    ..pair
+                },
+                rect,
+                weights,
+            );
+            let fm = image_loss_value(
+                &ImagePair {
+                    colour: &minus,
+                    ..pair
+                },
+                rect,
+                weights,
+            );
+            let numeric = (fp - fm) / (2.0 * eps);
+            assert!(
+                (numeric - grads.colour[index]).abs() < 1e-7,
+                "colour {index}: numeric {numeric} analytic {}",
+                grads.colour[index]
+            );
+        }
+        for index in [0usize, 2 * w + 3, 7 * w + 9, 11 * w + 15] {
+            let mut plus = alpha.clone();
+            plus[index] += eps;
+            let mut minus = alpha.clone();
+            minus[index] -= eps;
+            let fp = image_loss_value(
+                &ImagePair {
+                    alpha: &plus,
+                    ..pair
+                },
+                rect,
+                weights,
+            );
+            let fm = image_loss_value(
+                &ImagePair {
+                    alpha: &minus,
+                    ..pair
+                },
+                rect,
+                weights,
+            );
+            let numeric = (fp - fm) / (2.0 * eps);
+            assert!((numeric - grads.alpha[index]).abs() < 1e-7, "alpha {index}");
+        }
+    }
+
+    #[test]
+    fn image_loss_of_perfect_render_is_zero() {
+        let mut rng = Rng::new(5);
+        let (w, h) = (12, 12);
+        let colour = random_vec(&mut rng, w * h * 3, 0.0, 1.0);
+        let mask: Vec<f64> = (0..w * h).map(|_| rng.uniform(0.0, 1.0).round()).collect();
+        let pair = ImagePair {
+            width: w,
+            height: h,
+            colour: &colour,
+            alpha: &mask,
+            target_colour: &colour,
+            target_mask: &mask,
+        };
+        let rect = Rect {
+            x0: 0,
+            y0: 0,
+            x1: 12,
+            y1: 12,
+        };
+        let (terms, _) = image_loss(
+            &pair,
+            rect,
+            ImageLossWeights {
+                mask: 0.1,
+                ssim: 0.1,
+            },
+        );
+        assert!(terms.total.abs() < 1e-12, "{terms:?}");
+    }
+
+    #[test]
+    fn aiap_gradient_matches_finite_differences() {
+        let mut rng = Rng::new(9);
+        let n = 12;
+        let k = 4;
+        let cx = random_vec(&mut rng, 3 * n, -1.0, 1.0);
+        let dx = random_vec(&mut rng, 3 * n, -1.0, 1.0);
+        let cc = random_vec(&mut rng, 6 * n, -1.0, 1.0);
+        let dc = random_vec(&mut rng, 6 * n, -1.0, 1.0);
+        let neighbours: Vec<u32> = (0..n)
+            .flat_map(|i| {
+                let mut row = vec![i as u32];
+                row.extend((1..k).map(|s| ((i + 3 * s) % n) as u32));
+                row
+            })
+            .collect();
+        let eval = |cx: &[f64], dx: &[f64], cc: &[f64], dc: &[f64]| {
+            let inputs = AiapInputs {
+                canonical_centres: cx,
+                deformed_centres: dx,
+                canonical_covariances: cc,
+                deformed_covariances: dc,
+                neighbours: &neighbours,
+                k,
+            };
+            aiap_loss(&inputs, 1.0, 100.0)
+        };
+        let (terms, grads) = eval(&cx, &dx, &cc, &dc);
+        assert!(terms.centres > 0.0 && terms.covariances > 0.0);
+        let value = |t: AiapTerms| t.centres + 100.0 * t.covariances;
+        let eps = 1e-7;
+        let tensors = [&cx, &dx, &cc, &dc];
+        let analytic = [
+            &grads.canonical_centres,
+            &grads.deformed_centres,
+            &grads.canonical_covariances,
+            &grads.deformed_covariances,
+        ];
+        for which in 0..4 {
+            for index in 0..tensors[which].len() {
+                let mut plus: Vec<Vec<f64>> = tensors.iter().map(|t| t.to_vec()).collect();
+                let mut minus = plus.clone();
+                plus[which][index] += eps;
+                minus[which][index] -= eps;
+                let fp = value(eval(&plus[0], &plus[1], &plus[2], &plus[3]).0);
+                let fm = value(eval(&minus[0], &minus[1], &minus[2], &minus[3]).0);
+                let numeric = (fp - fm) / (2.0 * eps);
+                assert!(
+                    (numeric - analytic[which][index]).abs() < 1e-6,
+                    "tensor {which} index {index}: {numeric} vs {}",
+                    analytic[which][index]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn aiap_is_zero_for_rigid_motion_and_finite_for_duplicates() {
+        let n = 6;
+        let centres: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.37).sin()).collect();
+        // A rotation about z by 90 degrees plus a translation preserves distances.
+        let moved: Vec<f64> = centres
+            .chunks(3)
+            .flat_map(|p| [-p[1] + 1.0, p[0] - 2.0, p[2] + 0.5])
+            .collect();
+        let mut covs = vec![0.1; 6 * n];
+        covs[0] = 0.3;
+        let neighbours: Vec<u32> = (0..n)
+            .flat_map(|i| [i as u32, ((i + 1) % n) as u32, 0])
+            .collect();
+        let inputs = AiapInputs {
+            canonical_centres: &centres,
+            deformed_centres: &moved,
+            canonical_covariances: &covs,
+            deformed_covariances: &covs,
+            neighbours: &neighbours,
+            k: 3,
+        };
+        let (terms, grads) = aiap_loss(&inputs, 1.0, 100.0);
+        assert!(terms.centres.abs() < 1e-12 && terms.covariances == 0.0);
+        // Neighbour 0 of Gaussian 0 is itself (distance 0): gradients stay finite.
+        assert!(grads.canonical_centres.iter().all(|g| g.is_finite()));
+    }
+}
