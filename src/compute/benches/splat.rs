@@ -45,6 +45,18 @@ type TimeFn = fn(&Prepared, usize) -> Option<(f64, f64)>;
 
 const BACKENDS: &[(&str, TimeFn)] = &[("cpu", time_cpu), ("gpu", splat_gpu::time_gpu)];
 
+/// CPU time of the whole process (all threads) in milliseconds, from Linux
+/// `/proc/self/task/*/schedstat`; `None` elsewhere. On a shared machine this, divided by the
+/// thread count, is closer to what an idle machine would give than the wall time.
+fn process_cpu_ms() -> Option<f64> {
+    let mut total_ns: u64 = 0;
+    for task in std::fs::read_dir("/proc/self/task").ok()? {
+        let stat = std::fs::read_to_string(task.ok()?.path().join("schedstat")).ok()?;
+        total_ns += stat.split_whitespace().next()?.parse::<u64>().ok()?;
+    }
+    Some(total_ns as f64 / 1e6)
+}
+
 fn median(mut samples: Vec<f64>) -> f64 {
     samples.sort_by(f64::total_cmp);
     samples[samples.len() / 2]
@@ -94,13 +106,14 @@ fn main() {
         rayon::current_num_threads()
     );
     println!(
-        "{:<8} {:>9} {:>11} {:>13} {:>12} {:>14} {:>11} {:>13}",
+        "{:<8} {:>9} {:>9} {:>9} {:>11} {:>11} {:>12} {:>10} {:>14}",
         "backend",
         "gaussians",
         "visible",
         "list/tile",
         "forward ms",
         "fwd+bwd ms",
+        "host cpu ms",
         "fwd vs OS",
         "fwd+bwd vs OS"
     );
@@ -117,25 +130,36 @@ fn main() {
             .iter()
             .filter(|(name, _)| device.as_deref().is_none_or(|d| d == *name))
         {
+            let cpu_before = process_cpu_ms();
             let Some((forward_ms, total_ms)) = time(&scene, reps) else {
                 println!("{name:<8} {count:>9} unavailable");
                 continue;
             };
             let (visible, per_pixel) =
                 stats.map_or((0, 0.0), |d| (d.visible, d.intersections as f64 / 1024.0));
+            // Every backend runs one warm-up forward+backward before its `reps` timed ones.
+            let cpu_ms = match (cpu_before, process_cpu_ms()) {
+                (Some(before), Some(after)) => (after - before) / (reps + 1) as f64,
+                _ => f64::NAN,
+            };
             println!(
-                "{:<8} {:>9} {:>11} {:>13.1} {:>12.1} {:>14.1} {:>10.1}x {:>12.1}x",
+                "{:<8} {:>9} {:>9} {:>9.1} {:>11.1} {:>11.1} {:>12.1} {:>9.1}x {:>13.1}x",
                 name,
                 count,
                 visible,
                 per_pixel,
                 forward_ms,
                 total_ms,
+                cpu_ms,
                 OPENSPLAT_FORWARD_MS[i] / forward_ms,
                 OPENSPLAT_FORWARD_BACKWARD_MS[i] / total_ms
             );
         }
     }
+    println!(
+        "host cpu ms = CPU time of all threads per forward+backward, warm-up included \
+         (about twice the wall time of an idle 2-core machine when both cores are busy)"
+    );
     println!(
         "OS = OpenSplat CPU rasteriser, published in rasterizer.md: fwd {OPENSPLAT_FORWARD_MS:?} ms, fwd+bwd {OPENSPLAT_FORWARD_BACKWARD_MS:?} ms"
     );

@@ -42,3 +42,37 @@ pub fn render_png<S: Scalar>(
         })?;
     Ok(diagnostics)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::splat::scene::{standard_camera, standard_scene};
+
+    #[test]
+    fn png_round_trips_the_quantised_render() {
+        let scene = standard_scene(2_000, 3);
+        let gaussians = scene.gaussians.convert::<f32>();
+        let options = RasterOptions {
+            background: [1.0, 1.0, 1.0],
+            smooth_cutoff: false,
+        };
+        let camera = standard_camera();
+        let (image, diagnostics) = render_rgb8(&gaussians.view(), &camera, &options).unwrap();
+        assert!(diagnostics.visible > 1_500, "{diagnostics:?}");
+        // White background in the corner, Gaussians in the middle.
+        assert_eq!(image.get_pixel(0, 0).0, [255, 255, 255]);
+        assert_ne!(image.get_pixel(256, 256).0, [255, 255, 255]);
+        let path = std::env::temp_dir().join(format!("seqavatar-splat-{}.png", std::process::id()));
+        render_png(&gaussians.view(), &camera, &options, &path).unwrap();
+        let read = image::open(&path).unwrap().to_rgb8();
+        std::fs::remove_file(&path).unwrap();
+        assert_eq!(read, image);
+        let missing = std::env::temp_dir()
+            .join("no-such-directory-seqavatar")
+            .join("x.png");
+        assert!(matches!(
+            render_png(&gaussians.view(), &camera, &options, &missing),
+            Err(SplatError::Png { .. })
+        ));
+    }
+}

@@ -78,8 +78,16 @@ pub(super) struct Splat2d<S> {
     pub colour: [S; 3],
     /// Camera-space `z` (metres).
     pub depth: S,
-    /// Screen half-extent `(rx, ry)` in pixels (integers).
-    pub radius: [S; 2],
+    /// `ln(1 / (255 opacity)) - 0.01`: a power below this gives an alpha below `1/255` by a
+    /// 1% margin, far beyond rounding, so the rasteriser skips the `exp` with the same result.
+    pub min_power: S,
+    /// Pixels `[x_lo, x_hi) x [y_lo, y_hi)` of the screen box `mean -+ radius` grown by one
+    /// pixel (so rounding cannot drop a pixel the contract composites), clipped to the image.
+    pub pixel_box: [u32; 4],
+    /// `[mean_x, -B/A, -2 min_power / A, det(conic) / A^2]` in f64: on the row at
+    /// `dy = mean_y - row centre`, `power >= min_power` exactly for
+    /// `dx in -B/A dy -+ sqrt(-2 min_power / A - dy^2 det / A^2)`.
+    pub row_span: [f64; 4],
 }
 
 /// Tiles `[x0, x1) x [y0, y1)` a Gaussian's screen box touches.
@@ -264,6 +272,7 @@ pub(super) fn project<S: Scalar>(
     if rect.x0 >= rect.x1 || rect.y0 >= rect.y1 {
         return Err(Cull::Offscreen);
     }
+    let min_power = (threshold / opacity).ln() - S::from_f64(0.01);
     let (dir, _) = unit_view_direction(cam, mean);
     let basis = sh_basis(dir, gaussians.sh_degree, None);
     let colour = sh_colour_unclamped(sh, &basis).map(|v| v.max(S::ZERO));
@@ -277,10 +286,37 @@ pub(super) fn project<S: Scalar>(
             opacity,
             colour,
             depth: geo.p[2],
-            radius,
+            min_power,
+            pixel_box: pixel_box(cam, mean_2d, radius),
+            row_span: row_span_constants(mean_2d[0], conic, min_power),
         },
         rect,
     ))
+}
+
+/// See [`Splat2d::pixel_box`].
+fn pixel_box<S: Scalar>(cam: &CameraParams<S>, mean: [S; 2], radius: [S; 2]) -> [u32; 4] {
+    let range = |m: S, r: S, size: u32| {
+        let (m, r) = (m.to_f64(), r.to_f64());
+        let lo = (m - r - 1.0).floor().clamp(0.0, f64::from(size)) as u32;
+        let hi = (m + r + 1.0).ceil().clamp(0.0, f64::from(size)) as u32;
+        (lo, hi)
+    };
+    let (x_lo, x_hi) = range(mean[0], radius[0], cam.width);
+    let (y_lo, y_hi) = range(mean[1], radius[1], cam.height);
+    [x_lo, x_hi, y_lo, y_hi]
+}
+
+/// See [`Splat2d::row_span`].
+pub(super) fn row_span_constants<S: Scalar>(mean_x: S, conic: [S; 3], min_power: S) -> [f64; 4] {
+    let [a, b, c] = conic.map(|v| v.to_f64());
+    let det = a * c - b * b;
+    [
+        mean_x.to_f64(),
+        -b / a,
+        -2.0 * min_power.to_f64() / a,
+        det / (a * a),
+    ]
 }
 
 /// `[floor((m - r) / 16), ceil((m + r) / 16))` per axis, clamped to the tile grid.

@@ -110,7 +110,7 @@ fn splat_alpha<S: Scalar>(splat: &Splat2d<S>, dx: S, dy: S, smooth: bool) -> Opt
     let [a, b, c] = splat.conic;
     let half = S::from_f64(0.5);
     let power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy;
-    if power > S::ZERO {
+    if power > S::ZERO || power < splat.min_power {
         return None;
     }
     let gaussian = power.exp();
@@ -141,18 +141,39 @@ fn smooth_step<S: Scalar>(alpha: S) -> (S, S) {
     )
 }
 
-/// Pixel range `[lo, hi)` of a tile row or column covered by a splat's box (one pixel of
-/// margin so rounding at the box edge cannot drop a pixel the contract would composite).
+/// The splat's pixel box intersected with a tile: `(x0, x1, y0, y1)`, possibly empty.
 #[inline(always)]
-fn box_range<S: Scalar>(mean: S, radius: S, tile_start: u32, tile_end: u32) -> (u32, u32) {
-    let (m, r) = (mean.to_f64(), radius.to_f64());
-    let lo = (m - r - 1.0)
-        .floor()
-        .clamp(f64::from(tile_start), f64::from(tile_end)) as u32;
-    let hi = (m + r + 1.0)
-        .ceil()
-        .clamp(f64::from(tile_start), f64::from(tile_end)) as u32;
-    (lo, hi)
+fn box_in_tile<S: Scalar>(splat: &Splat2d<S>, bounds: [u32; 4]) -> (u32, u32, u32, u32) {
+    let [x_start, x_end, y_start, y_end] = bounds;
+    let [x_lo, x_hi, y_lo, y_hi] = splat.pixel_box;
+    (
+        x_lo.max(x_start),
+        x_hi.min(x_end),
+        y_lo.max(y_start),
+        y_hi.min(y_end),
+    )
+}
+
+/// Columns `[lo, hi)` within `[x0, x1)` of the row at `dy = mean_y - row centre` where the
+/// splat's power can reach `min_power`, with at least one pixel of margin either side.
+/// Columns outside would be skipped by [`splat_alpha`] anyway, so this only saves work.
+#[inline(always)]
+fn row_span<S: Scalar>(splat: &Splat2d<S>, dy: S, x0: u32, x1: u32) -> (u32, u32) {
+    let [mean_x, slope, w0, w1] = splat.row_span;
+    let dy = dy.to_f64();
+    let half_width_sq = w0 - dy * dy * w1;
+    // NaN (a degenerate conic) also gives an empty span.
+    if half_width_sq.is_nan() || half_width_sq < 0.0 || x0 >= x1 {
+        return (x0, x0);
+    }
+    let half_width = half_width_sq.sqrt();
+    // Column centre `col + 0.5 = mean_x - dx`; values are clamped to `[x0, x1]` (non-negative)
+    // before truncation, so `as` is a floor, and `hi` ends past `ceil(centre + w + 0.5)`.
+    let centre = mean_x - slope * dy;
+    let (lo_f, hi_f) = (f64::from(x0), f64::from(x1));
+    let lo = (centre - half_width - 1.5).clamp(lo_f, hi_f) as u32;
+    let hi = (centre + half_width + 1.5).clamp(lo_f, hi_f) as u32;
+    (lo, hi.max(lo))
 }
 
 /// Per-camera outputs of the forward compositing (all `H x W`, colour `H x W x 3`).
@@ -267,12 +288,12 @@ impl<S: Scalar> TileState<S> {
                 break;
             }
             let splat = &splats[g as usize];
-            let (x0, x1) = box_range(splat.mean[0], splat.radius[0], x_start, x_end);
-            let (y0, y1) = box_range(splat.mean[1], splat.radius[1], y_start, y_end);
+            let (x0, x1, y0, y1) = box_in_tile(splat, bounds);
             for py in y0..y1 {
                 let dy = splat.mean[1] - (S::from_u32(py) + half);
                 let row = (py - y_start) as usize * TS;
-                for px in x0..x1 {
+                let (span_lo, span_hi) = row_span(splat, dy, x0, x1);
+                for px in span_lo..span_hi {
                     let local = row + (px - x_start) as usize;
                     if self.done[local] {
                         continue;
@@ -437,20 +458,20 @@ impl<S: Scalar> BackwardState<S> {
         bounds: [u32; 4],
         smooth: bool,
     ) {
-        let [x_start, x_end, y_start, y_end] = bounds;
+        let [x_start, _, y_start, _] = bounds;
         let half = S::from_f64(0.5);
         let max_alpha = S::from_f64(MAX_ALPHA);
         let zero = S::ZERO;
         for j in (0..self.max_contributors as usize).rev() {
             let splat = &splats[list[j] as usize];
-            let (x0, x1) = box_range(splat.mean[0], splat.radius[0], x_start, x_end);
-            let (y0, y1) = box_range(splat.mean[1], splat.radius[1], y_start, y_end);
+            let (x0, x1, y0, y1) = box_in_tile(splat, bounds);
             let [ca, cb, cc] = splat.conic;
             let mut grad = [zero; 10];
             for py in y0..y1 {
                 let dy = splat.mean[1] - (S::from_u32(py) + half);
                 let row = (py - y_start) as usize * TS;
-                for px in x0..x1 {
+                let (span_lo, span_hi) = row_span(splat, dy, x0, x1);
+                for px in span_lo..span_hi {
                     let local = row + (px - x_start) as usize;
                     if j as u32 >= self.contributors[local] {
                         continue;
@@ -502,6 +523,57 @@ impl<S: Scalar> BackwardState<S> {
                 }
             }
             slots[j] = grad;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::splat::scene::SplitMix64;
+
+    #[test]
+    fn row_spans_hold_every_pixel_the_contract_composites() {
+        let mut rng = SplitMix64::new(5);
+        for _ in 0..300 {
+            // A random 2D covariance (blur included) and opacity.
+            let (sx, sy) = (rng.uniform_in(0.1, 30.0), rng.uniform_in(0.1, 30.0));
+            let angle = rng.uniform_in(0.0, std::f64::consts::PI);
+            let (cos, sin) = (angle.cos(), angle.sin());
+            let a = cos * cos * sx * sx + sin * sin * sy * sy + 0.3;
+            let b = cos * sin * (sx * sx - sy * sy);
+            let c = sin * sin * sx * sx + cos * cos * sy * sy + 0.3;
+            let det = a * c - b * b;
+            let opacity = rng.uniform_in(ALPHA_THRESHOLD, 1.0) as f32;
+            let mean = [
+                rng.uniform_in(-5.0, 70.0) as f32,
+                rng.uniform_in(-5.0, 70.0) as f32,
+            ];
+            let conic = [(c / det) as f32, (-b / det) as f32, (a / det) as f32];
+            let min_power = (ALPHA_THRESHOLD as f32 / opacity).ln() - 0.01;
+            let splat = Splat2d::<f32> {
+                mean,
+                conic,
+                opacity,
+                colour: [0.5; 3],
+                depth: 1.0,
+                min_power,
+                pixel_box: [0, 64, 0, 64],
+                row_span: super::super::project::row_span_constants(mean[0], conic, min_power),
+            };
+            for py in 0..64_u32 {
+                let dy = splat.mean[1] - (py as f32 + 0.5);
+                let (lo, hi) = row_span(&splat, dy, 0, 64);
+                for px in 0..64_u32 {
+                    let dx = splat.mean[0] - (px as f32 + 0.5);
+                    if splat_alpha(&splat, dx, dy, false).is_some() {
+                        assert!(
+                            (lo..hi).contains(&px),
+                            "pixel ({px}, {py}) outside span {lo}..{hi}"
+                        );
+                    }
+                }
+            }
         }
     }
 }

@@ -318,13 +318,15 @@ fn composite_gradients_match_central_differences_of_projected_values() {
             s.depth,
         ]
     };
-    let unflatten = |v: &[f64], radius: [f64; 2]| Splat2d {
+    let unflatten = |v: &[f64], original: &Splat2d<f64>| Splat2d {
         mean: [v[0], v[1]],
         conic: [v[2], v[3], v[4]],
         opacity: v[5],
         colour: [v[6], v[7], v[8]],
         depth: v[9],
-        radius,
+        min_power: original.min_power,
+        pixel_box: original.pixel_box,
+        row_span: original.row_span,
     };
     let values: Vec<f64> = splats.iter().flat_map(flatten).collect();
     let analytic: Vec<f64> = per_splat.iter().flatten().copied().collect();
@@ -332,7 +334,7 @@ fn composite_gradients_match_central_differences_of_projected_values() {
         let perturbed: Vec<Splat2d<f64>> = v
             .chunks(10)
             .zip(&splats)
-            .map(|(chunk, s)| unflatten(chunk, s.radius))
+            .map(|(chunk, s)| unflatten(chunk, s))
             .collect();
         render(&perturbed)
     });
