@@ -28,6 +28,7 @@ use crate::scalar::Scalar;
 /// What one camera's forward pass keeps for the backward pass.
 struct CameraState<S> {
     params: CameraParams<S>,
+    /// Visible splats in depth order.
     splats: Vec<Splat2d<S>>,
     binning: Binning,
     pixels: PixelState<S>,
@@ -63,6 +64,7 @@ pub fn forward<S: Scalar>(
         let (splats, rects, diag) = project_all(&params, gaussians);
         let tiles = (params.tiles_x * params.tiles_y) as usize;
         let binning = raster::bin(&splats, &rects, tiles, params.tiles_x)?;
+        let splats = raster::sort_splats(&splats, &binning);
         let buffers = raster::forward(
             &splats,
             &binning,

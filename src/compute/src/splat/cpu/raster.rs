@@ -22,8 +22,12 @@ const TS: usize = TILE_SIZE as usize;
 pub(super) struct Binning {
     /// `tiles + 1` offsets into `tile_gaussians`.
     pub tile_offsets: Vec<u32>,
-    /// Gaussian index of each intersection.
+    /// Each intersection's position in the depth order of the visible Gaussians (an index
+    /// into `sorted` and into the splats permuted by [`sort_splats`]). Tiles walk increasing
+    /// positions, so the permuted splats are read almost sequentially.
     pub tile_gaussians: Vec<u32>,
+    /// Gaussian index of each depth-order position.
+    pub sorted: Vec<u32>,
     /// `N + 1` offsets into `intersection_positions` (a Gaussian's intersections).
     pub gaussian_offsets: Vec<u32>,
     /// Position in `tile_gaussians` of each of a Gaussian's intersections.
@@ -79,8 +83,9 @@ pub(super) fn bin<S: Scalar>(
     let mut cursor = tile_offsets[..tiles].to_vec();
     let mut tile_gaussians = vec![0_u32; total as usize];
     let mut intersection_positions = vec![0_u32; total as usize];
-    for key in &order {
-        let g = (*key & 0xffff_ffff) as usize;
+    let sorted: Vec<u32> = order.iter().map(|key| (key & 0xffff_ffff) as u32).collect();
+    for (rank, &g) in sorted.iter().enumerate() {
+        let g = g as usize;
         let rect = rects[g];
         let mut slot = gaussian_offsets[g] as usize;
         for ty in rect.y0..rect.y1 {
@@ -89,7 +94,7 @@ pub(super) fn bin<S: Scalar>(
                 let tile = row + tx as usize;
                 let position = cursor[tile];
                 cursor[tile] += 1;
-                tile_gaussians[position as usize] = g as u32;
+                tile_gaussians[position as usize] = rank as u32;
                 intersection_positions[slot] = position;
                 slot += 1;
             }
@@ -98,9 +103,15 @@ pub(super) fn bin<S: Scalar>(
     Ok(Binning {
         tile_offsets,
         tile_gaussians,
+        sorted,
         gaussian_offsets,
         intersection_positions,
     })
+}
+
+/// The visible splats in depth order (the order `Binning::tile_gaussians` refers to).
+pub(super) fn sort_splats<S: Scalar>(splats: &[Splat2d<S>], binning: &Binning) -> Vec<Splat2d<S>> {
+    binning.sorted.iter().map(|&g| splats[g as usize]).collect()
 }
 
 /// Alpha of a splat at a pixel centre offset `d = mean - q`, or `None` when skipped.

@@ -262,7 +262,7 @@ fn composite_gradients_match_central_differences_of_projected_values() {
     let render = |splats: &[Splat2d<f64>]| {
         let binning = raster::bin(splats, &rects, tiles, params.tiles_x).unwrap();
         let buffers = raster::forward(
-            splats,
+            &raster::sort_splats(splats, &binning),
             &binning,
             params.width,
             params.height,
@@ -275,8 +275,9 @@ fn composite_gradients_match_central_differences_of_projected_values() {
             + dot(&buffers.depth, &loss.depth[0])
     };
     let binning = raster::bin(&splats, &rects, tiles, params.tiles_x).unwrap();
+    let sorted = raster::sort_splats(&splats, &binning);
     let buffers = raster::forward(
-        &splats,
+        &sorted,
         &binning,
         params.width,
         params.height,
@@ -289,7 +290,7 @@ fn composite_gradients_match_central_differences_of_projected_values() {
         depth: Some(&loss.depth[0]),
     };
     let slots = raster::backward(
-        &splats,
+        &sorted,
         &binning,
         &buffers.pixels,
         &upstream,
@@ -299,8 +300,9 @@ fn composite_gradients_match_central_differences_of_projected_values() {
         true,
     );
     let mut per_splat = vec![[0.0; 10]; splats.len()];
-    for (position, &g) in binning.tile_gaussians.iter().enumerate() {
-        for (acc, v) in per_splat[g as usize].iter_mut().zip(&slots[position]) {
+    for (position, &rank) in binning.tile_gaussians.iter().enumerate() {
+        let g = binning.sorted[rank as usize] as usize;
+        for (acc, v) in per_splat[g].iter_mut().zip(&slots[position]) {
             *acc += v;
         }
     }
