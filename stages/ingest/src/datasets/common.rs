@@ -1,0 +1,262 @@
+//! Helpers shared by the dataset readers: reading pickled/npy files with the file named in
+//! every error, typed field access that names the field, and image/mask decoding with size
+//! checks.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use image::{GrayImage, RgbImage};
+
+use crate::formats::{Value, npy, pickle};
+
+/// Reads a whole file, naming it in the error.
+pub fn read_bytes(path: &Path) -> anyhow::Result<Vec<u8>> {
+    std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))
+}
+
+/// Reads an `.npy` file; `np.save` of a dict comes back as the dict.
+pub fn read_npy(path: &Path) -> anyhow::Result<Value> {
+    let bytes = read_bytes(path)?;
+    let value =
+        npy::read(&bytes).with_context(|| format!("{}: not a readable .npy", path.display()))?;
+    Ok(value.unwrap_object_scalar().clone())
+}
+
+/// Reads a Python pickle file.
+pub fn read_pickle(path: &Path) -> anyhow::Result<Value> {
+    let bytes = read_bytes(path)?;
+    pickle::load(&bytes).with_context(|| format!("{}: not a readable pickle", path.display()))
+}
+
+/// A value inside a file, with its path for messages (`cams.K[3]`).
+#[derive(Clone, Copy)]
+pub struct Field<'a> {
+    pub file: &'a Path,
+    pub path: &'a str,
+    pub value: &'a Value,
+}
+
+impl<'a> Field<'a> {
+    pub fn root(file: &'a Path, value: &'a Value) -> Self {
+        Self {
+            file,
+            path: "",
+            value,
+        }
+    }
+
+    fn describe(&self) -> String {
+        if self.path.is_empty() {
+            format!("{} (top level)", self.file.display())
+        } else {
+            format!("{} field `{}`", self.file.display(), self.path)
+        }
+    }
+
+    /// A dict entry; `key_path` is the full dotted path used in messages.
+    pub fn get(&self, key: &str, key_path: &'a str) -> anyhow::Result<Field<'a>> {
+        if self.value.as_dict().is_none() {
+            bail!("{}: expected a dict, found {}", self.describe(), self.value);
+        }
+        let value = self
+            .value
+            .get(key)
+            .with_context(|| format!("{}: missing field `{key_path}`", self.file.display()))?;
+        Ok(Field {
+            file: self.file,
+            path: key_path,
+            value,
+        })
+    }
+
+    /// The items of a list, tuple or 1-D object array.
+    pub fn sequence(&self) -> anyhow::Result<&'a [Value]> {
+        self.value
+            .as_sequence()
+            .with_context(|| format!("{}: expected a list, found {}", self.describe(), self.value))
+    }
+
+    /// A numeric array of exactly `len` finite values (any shape whose product is `len`,
+    /// so `(1, 72)`, `(72,)` and `(24, 3)` all give 72 values).
+    pub fn finite_f64s(&self, len: usize) -> anyhow::Result<Vec<f64>> {
+        let (shape, values) = self.value.to_f64_array().with_context(|| {
+            format!(
+                "{}: expected a numeric array, found {}",
+                self.describe(),
+                self.value
+            )
+        })?;
+        if values.len() != len {
+            bail!(
+                "{}: expected {len} values, found shape {shape:?} ({} values)",
+                self.describe(),
+                values.len()
+            );
+        }
+        check_finite(&values, &self.describe())?;
+        Ok(values)
+    }
+
+    /// A numeric array with its shape, all values finite.
+    pub fn finite_array(&self) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+        let (shape, values) = self.value.to_f64_array().with_context(|| {
+            format!(
+                "{}: expected a numeric array, found {}",
+                self.describe(),
+                self.value
+            )
+        })?;
+        check_finite(&values, &self.describe())?;
+        Ok((shape, values))
+    }
+
+    /// A 3 x 3 matrix (row-major).
+    pub fn matrix3(&self) -> anyhow::Result<[[f64; 3]; 3]> {
+        let v = self.finite_f64s(9)?;
+        Ok([[v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]]])
+    }
+}
+
+/// Errors on the first NaN or infinity, naming where it is.
+pub fn check_finite(values: &[f64], what: &str) -> anyhow::Result<()> {
+    if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+        bail!(
+            "{what}: value {} at flat index {index} is not finite",
+            values[index]
+        );
+    }
+    Ok(())
+}
+
+/// Decodes an RGB image (JPEG or PNG by content), naming the file on failure.
+pub fn decode_rgb(bytes: &[u8], source: &str) -> anyhow::Result<RgbImage> {
+    let image = image::load_from_memory(bytes)
+        .with_context(|| format!("{source}: cannot decode the image (truncated or corrupt?)"))?;
+    Ok(image.to_rgb8())
+}
+
+/// Decodes a mask image: the maximum over its channels, scaled to 0..255 when the file
+/// stores labels 0/1 (`binary` = any non-zero value is foreground).
+pub fn decode_mask(bytes: &[u8], source: &str, binary: bool) -> anyhow::Result<GrayImage> {
+    let image = image::load_from_memory(bytes)
+        .with_context(|| format!("{source}: cannot decode the mask (truncated or corrupt?)"))?;
+    let rgba = image.to_rgba8();
+    let has_colour = image.color().has_color();
+    let (w, h) = rgba.dimensions();
+    let mut out = GrayImage::new(w, h);
+    for (o, p) in out.pixels_mut().zip(rgba.pixels()) {
+        let value = if has_colour {
+            p.0[0].max(p.0[1]).max(p.0[2])
+        } else {
+            p.0[0]
+        };
+        o.0[0] = if binary && value != 0 { 255 } else { value };
+    }
+    Ok(out)
+}
+
+/// Checks that a mask has the image's size.
+pub fn check_mask_size(mask: &GrayImage, rgb: &RgbImage, mask_source: &str) -> anyhow::Result<()> {
+    if mask.dimensions() != rgb.dimensions() {
+        bail!(
+            "{mask_source}: mask is {}x{} but its image is {}x{}",
+            mask.width(),
+            mask.height(),
+            rgb.width(),
+            rgb.height()
+        );
+    }
+    Ok(())
+}
+
+/// Checks that an image has the size its camera was calibrated for.
+pub fn check_image_size(
+    rgb: &RgbImage,
+    width: u32,
+    height: u32,
+    source: &str,
+) -> anyhow::Result<()> {
+    if rgb.dimensions() != (width, height) {
+        bail!(
+            "{source}: image is {}x{} but its camera is calibrated for {width}x{height}",
+            rgb.width(),
+            rgb.height()
+        );
+    }
+    Ok(())
+}
+
+/// Image width and height from the file header only.
+pub fn image_size(path: &Path) -> anyhow::Result<(u32, u32)> {
+    image::image_dimensions(path)
+        .with_context(|| format!("{}: cannot read the image size", path.display()))
+}
+
+/// `path` joined with a relative path from a dataset file, refusing absolute paths and `..`
+/// (a dataset file must not point outside its dataset).
+pub fn join_relative(
+    root: &Path,
+    relative: &str,
+    file: &Path,
+    field: &str,
+) -> anyhow::Result<PathBuf> {
+    let rel = Path::new(relative);
+    if rel.is_absolute()
+        || rel
+            .components()
+            .any(|c| matches!(c, std::path::Component::ParentDir))
+    {
+        bail!(
+            "{} field `{field}`: path {relative:?} leaves the dataset folder",
+            file.display()
+        );
+    }
+    Ok(root.join(rel))
+}
+
+/// The trailing decimal number of a name (`Camera_B12` -> 12, `000123` -> 123).
+pub fn trailing_number(name: &str) -> Option<i64> {
+    let digits: String = name
+        .chars()
+        .rev()
+        .take_while(char::is_ascii_digit)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
+    if digits.is_empty() || digits.len() > 15 {
+        return None;
+    }
+    digits.parse().ok()
+}
+
+/// Prints a warning about the data; readers also keep them for the stage to report.
+pub fn warn(warnings: &mut Vec<String>, message: String) {
+    eprintln!("warning: {message}");
+    warnings.push(message);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn trailing_numbers() {
+        assert_eq!(trailing_number("Camera_B12"), Some(12));
+        assert_eq!(trailing_number("000123"), Some(123));
+        assert_eq!(trailing_number("abc"), None);
+        assert_eq!(trailing_number("x99999999999999999999"), None);
+    }
+
+    #[test]
+    fn relative_paths_stay_inside() {
+        let root = Path::new("/data");
+        let file = Path::new("/data/annots.npy");
+        assert_eq!(
+            join_relative(root, "Camera_B1/000000.jpg", file, "ims").unwrap(),
+            PathBuf::from("/data/Camera_B1/000000.jpg")
+        );
+        assert!(join_relative(root, "../etc/passwd", file, "ims").is_err());
+        assert!(join_relative(root, "/etc/passwd", file, "ims").is_err());
+    }
+}

@@ -1,0 +1,582 @@
+//! DNA-Rendering takes: a main `.smc` (HDF5) with JPEG-encoded images and an annotation
+//! `.smc` with cameras, masks and SMPL-X fits (layout in `datasets.md`).
+//!
+//! Conventions converted here:
+//! - `Camera_Parameter/<NN>/RT` is camera-to-world: the world-to-camera rotation is `R^T`
+//!   and the translation `-R^T c`. `K` has integer pixel centres ([`Camera::from_opencv`]
+//!   adds 0.5); `D` is OpenCV's `(k1, k2, p1, p2, k3)`. `Color_Calibration` is not applied.
+//! - Image sizes come from the camera groups' `resolution` attribute, `(height, width)`.
+//! - Masks: the maximum over the decoded channels, soft values kept.
+//! - SMPL-X: `fullpose` (N, 55, 3) is the pose in SMPL-X joint order; the model was built
+//!   with `flat_hand_mean=False`, so the body model's mean hand pose (`hands_meanl`,
+//!   `hands_meanr`) is added to joints 25..55 here, giving the rotations the model actually
+//!   applies. `transl` is [`BodyParams::world_translation`] (no world rotation). `betas` and
+//!   `expression` with a single row, or fewer rows than frames, are broadcast (the last row
+//!   repeats) with a warning; extra rows are dropped with a warning. `scale` other than 1 is
+//!   reported as a warning and not applied.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use seqavatar_core::body::{BodyModel, BodyParams};
+use seqavatar_core::camera::Camera;
+use seqavatar_core::glam::{DMat3, DVec3};
+
+use super::body_model::{ComponentLimits, load_body_model_npz};
+use super::common::{
+    check_finite, check_image_size, check_mask_size, decode_mask, decode_rgb, warn,
+};
+use crate::formats::npz;
+use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+
+/// The two camera groups of the main file.
+const CAMERA_GROUPS: [&str; 2] = ["Camera_5mp", "Camera_12mp"];
+
+/// An opened DNA-Rendering take.
+pub struct DnaRendering {
+    main: PathBuf,
+    annotations: PathBuf,
+    cameras: Vec<SourceCamera>,
+    /// Per camera: the main-file group holding its images.
+    camera_groups: Vec<&'static str>,
+    num_frames: usize,
+    /// Per frame, before the hand mean is added.
+    params: Vec<BodyParams>,
+    body_model_path: Option<PathBuf>,
+    /// SMPL-X mean hand pose (90 values), read from the body model file at open.
+    hands_mean: Option<Vec<f64>>,
+    pub gender: Option<String>,
+    pub warnings: Vec<String>,
+}
+
+/// Where the annotation file of `main` is: `<part>_main/<take>.smc` ->
+/// `<part>_annotations/<take>_annots.smc`, or `<take>_annots.smc` next to the main file.
+pub fn annotation_candidates(main: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let (Some(dir), Some(stem)) = (main.parent(), main.file_stem().and_then(|s| s.to_str())) else {
+        return out;
+    };
+    let name = format!("{stem}_annots.smc");
+    if let Some(dir_name) = dir.file_name().and_then(|s| s.to_str())
+        && let Some(part) = dir_name.strip_suffix("main")
+    {
+        out.push(dir.with_file_name(format!("{part}annotations")).join(&name));
+    }
+    out.push(dir.join(&name));
+    out
+}
+
+fn h5_context(file: &Path, what: &str) -> String {
+    format!("{}: {what}", file.display())
+}
+
+fn read_f64s(
+    group: &hdf5::Group,
+    name: &str,
+    file: &Path,
+    path: &str,
+) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+    let dataset = group
+        .dataset(name)
+        .with_context(|| h5_context(file, &format!("missing dataset `{path}`")))?;
+    let values: Vec<f64> = dataset
+        .read_raw()
+        .with_context(|| h5_context(file, &format!("dataset `{path}` is not numeric")))?;
+    check_finite(&values, &h5_context(file, &format!("dataset `{path}`")))?;
+    Ok((dataset.shape(), values))
+}
+
+fn read_bytes(group: &hdf5::Group, name: &str, file: &Path, path: &str) -> anyhow::Result<Vec<u8>> {
+    let dataset = group
+        .dataset(name)
+        .with_context(|| h5_context(file, &format!("missing dataset `{path}`")))?;
+    dataset
+        .read_raw::<u8>()
+        .with_context(|| h5_context(file, &format!("dataset `{path}` is not a byte array")))
+}
+
+fn read_string_attr(location: &hdf5::Location, name: &str) -> Option<String> {
+    let attr = location.attr(name).ok()?;
+    if let Ok(s) = attr.read_scalar::<hdf5::types::VarLenUnicode>() {
+        return Some(s.as_str().to_owned());
+    }
+    if let Ok(s) = attr.read_scalar::<hdf5::types::VarLenAscii>() {
+        return Some(s.as_str().to_owned());
+    }
+    None
+}
+
+/// Rows of a per-frame array: `rows` values each, broadcast or truncated to `frames` rows.
+fn per_frame(
+    values: Vec<f64>,
+    shape: &[usize],
+    width: usize,
+    frames: usize,
+    what: &str,
+    warnings: &mut Vec<String>,
+) -> anyhow::Result<Vec<Vec<f64>>> {
+    if width == 0 || values.len() % width != 0 || values.is_empty() {
+        bail!("{what} has shape {shape:?}; expected (frames, {width})");
+    }
+    let mut rows: Vec<Vec<f64>> = values.chunks_exact(width).map(<[f64]>::to_vec).collect();
+    if rows.len() < frames {
+        warn(
+            warnings,
+            format!(
+                "{what} has {} rows for {frames} frames: repeating the last row for frames {}..{frames}",
+                rows.len(),
+                rows.len()
+            ),
+        );
+        let last = rows.last().expect("non-empty").clone();
+        rows.resize(frames, last);
+    } else if rows.len() > frames {
+        warn(
+            warnings,
+            format!(
+                "{what} has {} rows for {frames} frames: ignoring the extra rows",
+                rows.len()
+            ),
+        );
+        rows.truncate(frames);
+    }
+    Ok(rows)
+}
+
+/// Reads one member array of an `.npz` without loading the others.
+fn npz_member(path: &Path, name: &str) -> anyhow::Result<Option<Vec<f64>>> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let entries =
+        npz::list(&bytes).with_context(|| format!("{}: not a readable .npz", path.display()))?;
+    let Some(entry) = entries.iter().find(|e| e.name == format!("{name}.npy")) else {
+        return Ok(None);
+    };
+    let data = npz::extract(&bytes, entry)
+        .with_context(|| format!("{}: member `{name}`", path.display()))?;
+    let value = crate::formats::npy::read(&data)
+        .with_context(|| format!("{}: member `{name}`", path.display()))?;
+    let (_, values) = value
+        .to_f64_array()
+        .with_context(|| format!("{}: member `{name}` is not numeric", path.display()))?;
+    Ok(Some(values))
+}
+
+impl DnaRendering {
+    /// Opens a take from its main file; the annotation file is `annotations` or found next
+    /// to the main file ([`annotation_candidates`]).
+    pub fn open(
+        main: &Path,
+        annotations: Option<&Path>,
+        body_model: Option<&Path>,
+    ) -> anyhow::Result<Self> {
+        let mut warnings = Vec::new();
+        let annotations = match annotations {
+            Some(a) => a.to_owned(),
+            None => {
+                let candidates = annotation_candidates(main);
+                candidates.iter().find(|c| c.is_file()).cloned().with_context(|| {
+                    format!(
+                        "{}: the annotation file is missing (looked for {}); DNA-Rendering needs both \
+                         the main and the annotation .smc",
+                        main.display(),
+                        candidates
+                            .iter()
+                            .map(|c| c.display().to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                })?
+            }
+        };
+        let main_file = hdf5::File::open(main)
+            .with_context(|| h5_context(main, "cannot open as HDF5 (.smc)"))?;
+        let annot_file = hdf5::File::open(&annotations)
+            .with_context(|| h5_context(&annotations, "cannot open as HDF5 (.smc)"))?;
+        let gender = read_string_attr(&main_file, "gender");
+
+        // Cameras: every calibrated camera that has images in the main file.
+        let parameters = annot_file
+            .group("Camera_Parameter")
+            .with_context(|| h5_context(&annotations, "missing group `Camera_Parameter`"))?;
+        let mut ids: Vec<(i64, String)> = parameters
+            .member_names()
+            .with_context(|| h5_context(&annotations, "cannot list `Camera_Parameter`"))?
+            .into_iter()
+            .filter_map(|name| name.parse::<i64>().ok().map(|id| (id, name)))
+            .collect();
+        ids.sort();
+        let mut cameras = Vec::new();
+        let mut camera_groups = Vec::new();
+        let mut num_frames: Option<usize> = None;
+        for (id, key) in ids {
+            let Some(group_name) = CAMERA_GROUPS.into_iter().find(|g| {
+                main_file
+                    .group(g)
+                    .map(|group| group.link_exists(&id.to_string()))
+                    .unwrap_or(false)
+            }) else {
+                warn(
+                    &mut warnings,
+                    format!(
+                        "{}: camera {key} is calibrated but has no images in {}",
+                        annotations.display(),
+                        main.display()
+                    ),
+                );
+                continue;
+            };
+            let group = main_file.group(group_name)?;
+            let resolution: Vec<i64> = group
+                .attr("resolution")
+                .and_then(|a| a.read_raw())
+                .with_context(|| {
+                    h5_context(
+                        main,
+                        &format!("group `{group_name}` attribute `resolution`"),
+                    )
+                })?;
+            let [height, width] = resolution[..] else {
+                bail!(
+                    "{}",
+                    h5_context(
+                        main,
+                        &format!(
+                            "group `{group_name}` attribute `resolution` must be (height, width)"
+                        )
+                    )
+                );
+            };
+            let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
+                bail!(
+                    "{}",
+                    h5_context(
+                        main,
+                        &format!("group `{group_name}` attribute `resolution` is negative")
+                    )
+                );
+            };
+            let frames = group
+                .group(&format!("{id}/color"))
+                .and_then(|g| g.member_names())
+                .with_context(|| {
+                    h5_context(main, &format!("missing group `{group_name}/{id}/color`"))
+                })?
+                .len();
+            num_frames = Some(num_frames.map_or(frames, |n| n.min(frames)));
+            let camera_group = parameters.group(&key)?;
+            let prefix = format!("Camera_Parameter/{key}");
+            let (_, k) = read_f64s(&camera_group, "K", &annotations, &format!("{prefix}/K"))?;
+            let (_, d) = read_f64s(&camera_group, "D", &annotations, &format!("{prefix}/D"))?;
+            let (_, rt) = read_f64s(&camera_group, "RT", &annotations, &format!("{prefix}/RT"))?;
+            if k.len() != 9 || rt.len() != 16 || d.len() < 4 || d.len() > 5 {
+                bail!(
+                    "{}",
+                    h5_context(
+                        &annotations,
+                        &format!(
+                            "`{prefix}`: K must be 3x3, RT 4x4 and D 5 values; got {}, {}, {} values",
+                            k.len(),
+                            rt.len(),
+                            d.len()
+                        )
+                    )
+                );
+            }
+            let mut distortion = [0.0; 5];
+            distortion[..d.len()].copy_from_slice(&d);
+            // Camera-to-world: rotation columns are the camera axes in world coordinates.
+            let cam_to_world = DMat3::from_cols_array(&[
+                rt[0], rt[4], rt[8], rt[1], rt[5], rt[9], rt[2], rt[6], rt[10],
+            ]);
+            let centre = DVec3::new(rt[3], rt[7], rt[11]);
+            let rotation = cam_to_world.transpose();
+            let translation = -(rotation * centre);
+            let kk = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
+            let camera = Camera::from_opencv(width, height, kk, rotation, translation, distortion)
+                .with_context(|| h5_context(&annotations, &format!("`{prefix}`")))?;
+            cameras.push(SourceCamera { id, camera });
+            camera_groups.push(group_name);
+        }
+        if cameras.is_empty() {
+            bail!(
+                "{}",
+                h5_context(
+                    &annotations,
+                    "no camera in `Camera_Parameter` has images in the main file"
+                )
+            );
+        }
+        let num_frames = num_frames.unwrap_or(0);
+        if num_frames == 0 {
+            bail!("{}", h5_context(main, "the cameras hold no frame"));
+        }
+
+        // SMPL-X fits.
+        let smplx = annot_file.group("SMPLx").with_context(|| {
+            h5_context(
+                &annotations,
+                "missing group `SMPLx` (fits exist for parts 1 and 2 only)",
+            )
+        })?;
+        let (pose_shape, fullpose) = read_f64s(&smplx, "fullpose", &annotations, "SMPLx/fullpose")?;
+        if fullpose.len() % 165 != 0 {
+            bail!(
+                "{}",
+                h5_context(
+                    &annotations,
+                    &format!(
+                        "dataset `SMPLx/fullpose` has shape {pose_shape:?}; expected (frames, 55, 3)"
+                    )
+                )
+            );
+        }
+        let pose_frames = fullpose.len() / 165;
+        if pose_frames < num_frames {
+            bail!(
+                "{}",
+                h5_context(
+                    &annotations,
+                    &format!(
+                        "dataset `SMPLx/fullpose` has {pose_frames} frames but the main file has {num_frames}"
+                    )
+                )
+            );
+        }
+        let file_what = |path: &str| format!("{} dataset `{path}`", annotations.display());
+        let (transl_shape, transl) = read_f64s(&smplx, "transl", &annotations, "SMPLx/transl")?;
+        if transl.len() / 3 < num_frames || transl.len() % 3 != 0 {
+            bail!(
+                "{}",
+                h5_context(
+                    &annotations,
+                    &format!(
+                        "dataset `SMPLx/transl` has shape {transl_shape:?}; expected ({num_frames}, 3)"
+                    )
+                )
+            );
+        }
+        let (betas_shape, betas) = read_f64s(&smplx, "betas", &annotations, "SMPLx/betas")?;
+        let beta_width = *betas_shape.last().unwrap_or(&0);
+        let betas = per_frame(
+            betas,
+            &betas_shape,
+            beta_width,
+            num_frames,
+            &file_what("SMPLx/betas"),
+            &mut warnings,
+        )?;
+        let expression = if smplx.link_exists("expression") {
+            let (shape, values) =
+                read_f64s(&smplx, "expression", &annotations, "SMPLx/expression")?;
+            let width = *shape.last().unwrap_or(&0);
+            per_frame(
+                values,
+                &shape,
+                width,
+                num_frames,
+                &file_what("SMPLx/expression"),
+                &mut warnings,
+            )?
+        } else {
+            vec![Vec::new(); num_frames]
+        };
+        if smplx.link_exists("scale") {
+            let (_, scale) = read_f64s(&smplx, "scale", &annotations, "SMPLx/scale")?;
+            if scale.iter().any(|s| (s - 1.0).abs() > 1e-6) {
+                warn(
+                    &mut warnings,
+                    format!(
+                        "{}: SMPL-X scale {scale:?} is not applied (the body model has no scale)",
+                        file_what("SMPLx/scale")
+                    ),
+                );
+            }
+        }
+        let params = (0..num_frames)
+            .map(|f| BodyParams {
+                pose: fullpose[f * 165..(f + 1) * 165]
+                    .chunks_exact(3)
+                    .map(|c| DVec3::new(c[0], c[1], c[2]))
+                    .collect(),
+                betas: betas[f].clone(),
+                expression: expression[f].clone(),
+                world_rotation: DVec3::ZERO,
+                world_translation: DVec3::new(transl[3 * f], transl[3 * f + 1], transl[3 * f + 2]),
+            })
+            .collect();
+        let hands_mean = match body_model {
+            Some(path) => {
+                let left = npz_member(path, "hands_meanl")?;
+                let right = npz_member(path, "hands_meanr")?;
+                match (left, right) {
+                    (Some(l), Some(r)) if l.len() == 45 && r.len() == 45 => {
+                        Some(l.into_iter().chain(r).collect())
+                    }
+                    _ => {
+                        warn(
+                            &mut warnings,
+                            format!(
+                                "{}: no 45-value `hands_meanl`/`hands_meanr`; the DNA-Rendering hand poses are used without the SMPL-X mean hand pose",
+                                path.display()
+                            ),
+                        );
+                        None
+                    }
+                }
+            }
+            None => None,
+        };
+        Ok(Self {
+            main: main.to_owned(),
+            annotations,
+            cameras,
+            camera_groups,
+            num_frames,
+            params,
+            body_model_path: body_model.map(Path::to_owned),
+            hands_mean,
+            gender,
+            warnings,
+        })
+    }
+
+    pub fn annotations_path(&self) -> &Path {
+        &self.annotations
+    }
+}
+
+impl DatasetReader for DnaRendering {
+    fn describe(&self) -> String {
+        format!(
+            "DNA-Rendering {} (gender {})",
+            self.main.display(),
+            self.gender.as_deref().unwrap_or("unknown")
+        )
+    }
+
+    fn cameras(&self) -> &[SourceCamera] {
+        &self.cameras
+    }
+
+    fn num_frames(&self) -> usize {
+        self.num_frames
+    }
+
+    fn frame_id(&self, frame: usize) -> i64 {
+        frame as i64
+    }
+
+    fn default_split(&self) -> Split {
+        let index_of = |ids: &mut dyn Iterator<Item = i64>| -> Vec<usize> {
+            ids.filter_map(|id| self.cameras.iter().position(|c| c.id == id))
+                .collect()
+        };
+        let train_end = 100.min(self.num_frames);
+        Split {
+            train_views: index_of(&mut (0..=46).step_by(2)),
+            test_views: index_of(&mut (48..=58).step_by(2)),
+            train_frames: FrameRange {
+                start: 0,
+                end: Some(train_end),
+                step: 1,
+            },
+            test_frames: FrameRange {
+                start: 0,
+                end: Some(train_end),
+                step: 5,
+            },
+            frame_interval: 1,
+        }
+    }
+
+    fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
+        let path = self.body_model_path.as_deref().with_context(|| {
+            "DNA-Rendering needs the SMPL-X model: set `body_model:` in the ingest config to a \
+             dense SMPL-X .npz"
+        })?;
+        let loaded = load_body_model_npz(path, ComponentLimits::default())?;
+        if loaded.kind != BodyModelKind::Smplx {
+            bail!(
+                "{}: DNA-Rendering fits are SMPL-X (55 joints) but this model is {}",
+                path.display(),
+                loaded.kind.as_str()
+            );
+        }
+        Ok((loaded.model, loaded.kind))
+    }
+
+    fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
+        let mut params = self
+            .params
+            .get(frame)
+            .cloned()
+            .with_context(|| format!("DNA-Rendering: frame {frame} of {}", self.num_frames))?;
+        if let Some(mean) = &self.hands_mean {
+            for (joint, m) in params.pose[25..55].iter_mut().zip(mean.chunks_exact(3)) {
+                *joint += DVec3::new(m[0], m[1], m[2]);
+            }
+        }
+        Ok(params)
+    }
+
+    fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        let id = self.cameras[view].id;
+        let main =
+            hdf5::File::open(&self.main).with_context(|| h5_context(&self.main, "cannot open"))?;
+        let color_path = format!("{}/{id}/color", self.camera_groups[view]);
+        let color = main
+            .group(&color_path)
+            .with_context(|| h5_context(&self.main, &format!("missing group `{color_path}`")))?;
+        let image_path = format!("{color_path}/{frame}");
+        let bytes = read_bytes(&color, &frame.to_string(), &self.main, &image_path)?;
+        let source = format!("{} dataset `{image_path}`", self.main.display());
+        let rgb = decode_rgb(&bytes, &source)?;
+        let camera = &self.cameras[view].camera;
+        check_image_size(&rgb, camera.width, camera.height, &source)?;
+        let annotations = hdf5::File::open(&self.annotations)
+            .with_context(|| h5_context(&self.annotations, "cannot open"))?;
+        let mask_group_path = format!("Mask/{id}/mask");
+        let masks = annotations.group(&mask_group_path).with_context(|| {
+            h5_context(
+                &self.annotations,
+                &format!("missing group `{mask_group_path}`"),
+            )
+        })?;
+        let mask_path = format!("{mask_group_path}/{frame}");
+        let mask_bytes = read_bytes(&masks, &frame.to_string(), &self.annotations, &mask_path)?;
+        let mask_source = format!("{} dataset `{mask_path}`", self.annotations.display());
+        let mask = decode_mask(&mask_bytes, &mask_source, false)?;
+        check_mask_size(&mask, &rgb, &mask_source)?;
+        Ok(SourceImage { rgb, mask })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn annotation_file_names() {
+        let c = annotation_candidates(Path::new("/d/dna_rendering_part1_main/0007_04.smc"));
+        assert_eq!(
+            c,
+            vec![
+                PathBuf::from("/d/dna_rendering_part1_annotations/0007_04_annots.smc"),
+                PathBuf::from("/d/dna_rendering_part1_main/0007_04_annots.smc"),
+            ]
+        );
+    }
+
+    #[test]
+    fn per_frame_rows_broadcast_and_truncate_with_warnings() {
+        let mut warnings = Vec::new();
+        let rows = per_frame(vec![1.0, 2.0], &[1, 2], 2, 3, "betas", &mut warnings).unwrap();
+        assert_eq!(rows, vec![vec![1.0, 2.0]; 3]);
+        assert_eq!(warnings.len(), 1);
+        let rows = per_frame(vec![1.0, 2.0, 3.0, 4.0], &[2, 2], 2, 1, "x", &mut warnings).unwrap();
+        assert_eq!(rows, vec![vec![1.0, 2.0]]);
+        assert_eq!(warnings.len(), 2);
+        assert!(per_frame(vec![1.0; 3], &[3], 2, 1, "x", &mut warnings).is_err());
+        assert!(per_frame(vec![], &[0, 2], 2, 1, "x", &mut warnings).is_err());
+    }
+}

@@ -1,0 +1,336 @@
+//! ZJU-MoCap (`CoreView_XXX/`): `annots.npy` cameras and image lists, SMPL fits in
+//! `new_params/` (or `params/`), images `Camera_B*/NNNNNN.jpg`, masks in `mask_cihp/` (or
+//! `mask/`) mirroring the image paths as `.png`.
+//!
+//! Conventions converted here:
+//! - `annots.npy` `cams.T` is in millimetres: divided by 1000. `R`, `T` are world-to-camera.
+//!   `K` has integer pixel centres: [`Camera::from_opencv`] adds 0.5.
+//! - The fits state world vertices as `SMPL(poses, shapes) R(Rh)^T + Th` on row vectors,
+//!   which is `R(Rh) x + Th` on column vectors: `Rh` is [`BodyParams::world_rotation`] and `Th`
+//!   [`BodyParams::world_translation`] unchanged; `poses[0..3]` is the root's local rotation.
+//! - Mask files store labels (0/1, or a part id for `mask_cihp`): any non-zero is foreground
+//!   (255).
+//! - A frame's number is its image file stem (`000123.jpg` -> 123); fits are
+//!   `new_params/<number>.npy`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use seqavatar_core::body::{BodyModel, BodyParams};
+use seqavatar_core::camera::Camera;
+use seqavatar_core::glam::{DMat3, DVec3};
+
+use super::body_model::{ComponentLimits, load_body_model_npz};
+use super::common::{
+    Field, check_image_size, check_mask_size, decode_mask, decode_rgb, image_size, join_relative,
+    read_bytes, read_npy, trailing_number,
+};
+use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+
+/// Frames used by the 3DGS-Avatar split, per sequence number (method.md).
+const SPLIT_FRAMES: [(i64, usize); 6] = [
+    (377, 570),
+    (386, 540),
+    (387, 540),
+    (392, 556),
+    (393, 658),
+    (394, 475),
+];
+
+/// Test views are every view but the first, test frames every 30th (method.md).
+const TEST_FRAME_STEP: usize = 30;
+
+/// An opened ZJU-MoCap sequence.
+pub struct ZjuMocap {
+    root: PathBuf,
+    cameras: Vec<SourceCamera>,
+    /// Per frame, per camera: the image path relative to the root.
+    images: Vec<Vec<String>>,
+    frame_ids: Vec<i64>,
+    params_dir: PathBuf,
+    mask_dir: PathBuf,
+    body_model_path: Option<PathBuf>,
+    sequence_number: Option<i64>,
+}
+
+impl ZjuMocap {
+    /// Opens `root` (the `CoreView_XXX` folder). `body_model` is the SMPL dense `.npz`.
+    pub fn open(root: &Path, body_model: Option<&Path>) -> anyhow::Result<Self> {
+        let annots_path = root.join("annots.npy");
+        let annots = read_npy(&annots_path)?;
+        let annots_field = Field::root(&annots_path, &annots);
+        let cams = annots_field.get("cams", "cams")?;
+        let ks = cams.get("K", "cams.K")?.sequence()?;
+        let rs = cams.get("R", "cams.R")?.sequence()?;
+        let ts = cams.get("T", "cams.T")?.sequence()?;
+        let ds = match cams.value.get("D") {
+            Some(_) => Some(cams.get("D", "cams.D")?.sequence()?),
+            None => None,
+        };
+        let num_cameras = ks.len();
+        if num_cameras == 0 {
+            bail!("{}: field `cams.K` lists no camera", annots_path.display());
+        }
+        for (name, list) in [("cams.R", rs.len()), ("cams.T", ts.len())]
+            .into_iter()
+            .chain(ds.map(|d| ("cams.D", d.len())))
+        {
+            if list != num_cameras {
+                bail!(
+                    "{}: field `{name}` has {list} cameras but `cams.K` has {num_cameras}",
+                    annots_path.display()
+                );
+            }
+        }
+        let ims = annots_field.get("ims", "ims")?.sequence()?;
+        if ims.is_empty() {
+            bail!("{}: field `ims` lists no frame", annots_path.display());
+        }
+        let mut images = Vec::with_capacity(ims.len());
+        for (f, frame) in ims.iter().enumerate() {
+            let path = format!("ims[{f}].ims");
+            let frame_field = Field {
+                file: &annots_path,
+                path: "ims[]",
+                value: frame,
+            };
+            let list = frame_field.get("ims", &path)?.sequence()?;
+            if list.len() != num_cameras {
+                bail!(
+                    "{}: field `{path}` has {} images but there are {num_cameras} cameras",
+                    annots_path.display(),
+                    list.len()
+                );
+            }
+            let names = list
+                .iter()
+                .map(|v| {
+                    v.as_str().map(str::to_owned).with_context(|| {
+                        format!(
+                            "{}: field `{path}` holds {v}, not a path",
+                            annots_path.display()
+                        )
+                    })
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            images.push(names);
+        }
+        let frame_ids = images
+            .iter()
+            .enumerate()
+            .map(|(f, names)| {
+                let stem = Path::new(&names[0])
+                    .file_stem()
+                    .and_then(|s| s.to_str())
+                    .unwrap_or_default();
+                // Sequences whose file names are not numbers (313, 315) use the list index.
+                stem.parse::<i64>().unwrap_or(f as i64)
+            })
+            .collect();
+
+        let mut cameras = Vec::with_capacity(num_cameras);
+        for c in 0..num_cameras {
+            let k = Field {
+                file: &annots_path,
+                path: "",
+                value: &ks[c],
+            };
+            let at = |name: &str| format!("{name}[{c}]");
+            let k_path = at("cams.K");
+            let k = Field { path: &k_path, ..k }.matrix3()?;
+            let r_path = at("cams.R");
+            let r = Field {
+                file: &annots_path,
+                path: &r_path,
+                value: &rs[c],
+            }
+            .matrix3()?;
+            let t_path = at("cams.T");
+            let t = Field {
+                file: &annots_path,
+                path: &t_path,
+                value: &ts[c],
+            }
+            .finite_f64s(3)?;
+            let distortion = match ds {
+                Some(ds) => {
+                    let d_path = at("cams.D");
+                    let d = Field {
+                        file: &annots_path,
+                        path: &d_path,
+                        value: &ds[c],
+                    }
+                    .finite_array()?
+                    .1;
+                    if d.len() != 5 && d.len() != 4 {
+                        bail!(
+                            "{}: field `{d_path}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
+                            annots_path.display(),
+                            d.len()
+                        );
+                    }
+                    let mut out = [0.0; 5];
+                    out[..d.len()].copy_from_slice(&d);
+                    out
+                }
+                None => [0.0; 5],
+            };
+            let first_image = join_relative(root, &images[0][c], &annots_path, "ims[0].ims")?;
+            let (width, height) = image_size(&first_image)?;
+            let rotation = DMat3::from_cols_array_2d(&r).transpose();
+            let translation = DVec3::new(t[0], t[1], t[2]) / 1000.0;
+            let camera = Camera::from_opencv(width, height, k, rotation, translation, distortion)
+                .with_context(|| {
+                format!("{}: camera {c} (`cams.*[{c}]`)", annots_path.display())
+            })?;
+            let dir_name = Path::new(&images[0][c])
+                .parent()
+                .and_then(|p| p.to_str())
+                .unwrap_or_default();
+            let id = trailing_number(dir_name).unwrap_or(c as i64 + 1);
+            cameras.push(SourceCamera { id, camera });
+        }
+
+        let params_dir = ["new_params", "params"]
+            .iter()
+            .map(|d| root.join(d))
+            .find(|d| d.is_dir())
+            .with_context(|| {
+                format!(
+                    "{}: neither `new_params/` nor `params/` exists (SMPL fits)",
+                    root.display()
+                )
+            })?;
+        let mask_dir = ["mask_cihp", "mask"]
+            .iter()
+            .map(|d| root.join(d))
+            .find(|d| d.is_dir())
+            .with_context(|| {
+                format!(
+                    "{}: neither `mask_cihp/` nor `mask/` exists",
+                    root.display()
+                )
+            })?;
+        let sequence_number = root
+            .file_name()
+            .and_then(|n| n.to_str())
+            .and_then(trailing_number);
+        Ok(Self {
+            root: root.to_owned(),
+            cameras,
+            images,
+            frame_ids,
+            params_dir,
+            mask_dir,
+            body_model_path: body_model.map(Path::to_owned),
+            sequence_number,
+        })
+    }
+
+    /// The fits file of a frame-list index.
+    fn params_path(&self, frame: usize) -> PathBuf {
+        self.params_dir
+            .join(format!("{}.npy", self.frame_ids[frame]))
+    }
+}
+
+/// Reads one ZJU/EasyMocap fits dict (`poses`, `Rh`, `Th`, `shapes`) into body parameters.
+pub fn read_smpl_params(path: &Path) -> anyhow::Result<BodyParams> {
+    let value = read_npy(path)?;
+    let root = Field::root(path, &value);
+    let poses = root.get("poses", "poses")?.finite_f64s(72)?;
+    let rh = root.get("Rh", "Rh")?.finite_f64s(3)?;
+    let th = root.get("Th", "Th")?.finite_f64s(3)?;
+    let shapes = root.get("shapes", "shapes")?.finite_array()?.1;
+    Ok(BodyParams {
+        pose: poses
+            .chunks_exact(3)
+            .map(|c| DVec3::new(c[0], c[1], c[2]))
+            .collect(),
+        betas: shapes,
+        expression: Vec::new(),
+        world_rotation: DVec3::new(rh[0], rh[1], rh[2]),
+        world_translation: DVec3::new(th[0], th[1], th[2]),
+    })
+}
+
+impl DatasetReader for ZjuMocap {
+    fn describe(&self) -> String {
+        format!("ZJU-MoCap {}", self.root.display())
+    }
+
+    fn cameras(&self) -> &[SourceCamera] {
+        &self.cameras
+    }
+
+    fn num_frames(&self) -> usize {
+        self.images.len()
+    }
+
+    fn frame_id(&self, frame: usize) -> i64 {
+        self.frame_ids[frame]
+    }
+
+    fn default_split(&self) -> Split {
+        let used = SPLIT_FRAMES
+            .iter()
+            .find(|(n, _)| Some(*n) == self.sequence_number)
+            .map_or(self.num_frames(), |&(_, frames)| frames)
+            .min(self.num_frames());
+        Split {
+            train_views: vec![0],
+            test_views: (1..self.cameras.len()).collect(),
+            train_frames: FrameRange {
+                start: 0,
+                end: Some(used),
+                step: 1,
+            },
+            test_frames: FrameRange {
+                start: 0,
+                end: Some(used),
+                step: TEST_FRAME_STEP,
+            },
+            frame_interval: 1,
+        }
+    }
+
+    fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
+        let path = self.body_model_path.as_deref().with_context(|| {
+            "ZJU-MoCap needs the SMPL model: set `body_model:` in the ingest config to a dense \
+             SMPL .npz (v_template, f, kintree_table, weights, J_regressor, shapedirs, posedirs)"
+        })?;
+        let loaded = load_body_model_npz(path, ComponentLimits::default())?;
+        if loaded.kind != BodyModelKind::Smpl {
+            bail!(
+                "{}: ZJU-MoCap fits are SMPL (24 joints) but this model is {}",
+                path.display(),
+                loaded.kind.as_str()
+            );
+        }
+        Ok((loaded.model, loaded.kind))
+    }
+
+    fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
+        read_smpl_params(&self.params_path(frame))
+    }
+
+    fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        let relative = &self.images[frame][view];
+        let annots = self.root.join("annots.npy");
+        let image_path = join_relative(&self.root, relative, &annots, "ims")?;
+        let rgb = decode_rgb(&read_bytes(&image_path)?, &image_path.display().to_string())?;
+        let camera = &self.cameras[view].camera;
+        check_image_size(
+            &rgb,
+            camera.width,
+            camera.height,
+            &image_path.display().to_string(),
+        )?;
+        let mask_path =
+            join_relative(&self.mask_dir, relative, &annots, "ims")?.with_extension("png");
+        let source = mask_path.display().to_string();
+        let mask = decode_mask(&read_bytes(&mask_path)?, &source, true)?;
+        check_mask_size(&mask, &rgb, &source)?;
+        Ok(SourceImage { rgb, mask })
+    }
+}

@@ -1,0 +1,460 @@
+//! The dataset readers on tiny datasets written in each real layout by
+//! `tests/fixtures/write_datasets.py` (numpy.save of pickled dicts, pickle with OrderedDict,
+//! h5py with JPEG bytes and string attributes). Expectations come from numpy: camera
+//! matrices, the pixel a known 3D point projects to (full resolution and rescaled), SMPL
+//! world vertices from an independent numpy LBS, body parameters, decoded images and masks.
+
+mod support;
+
+use std::path::Path;
+
+use seqavatar_core::glam::DVec3;
+use seqavatar_ingest::datasets::body_model::{ComponentLimits, load_body_model_npz};
+use seqavatar_ingest::datasets::dna_rendering::DnaRendering;
+use seqavatar_ingest::datasets::i3d_human::I3dHuman;
+use seqavatar_ingest::datasets::zju_mocap::ZjuMocap;
+use seqavatar_ingest::formats::{ArrayData, Value, npy};
+use seqavatar_ingest::stage::{BodyModelKind, DatasetReader, SourceCamera};
+use support::{assert_close, dataset_fixture, f64s, read_json};
+
+fn expected_array(path: &Path) -> (Vec<usize>, Vec<u8>) {
+    match npy::read(&std::fs::read(path).unwrap()).unwrap() {
+        Value::Array(a) => match a.data {
+            ArrayData::U8(v) => (a.shape, v),
+            other => panic!("{}: not uint8: {other:?}", path.display()),
+        },
+        other => panic!("{}: not an array: {other}", path.display()),
+    }
+}
+
+/// Checks a camera against the numpy expectation, including the pixel of a known point at
+/// full resolution and after rescaling by `scale`.
+fn check_camera(
+    source: &SourceCamera,
+    expected: &serde_json::Value,
+    point: DVec3,
+    scale: Option<(f64, &str)>,
+) {
+    let camera = &source.camera;
+    let k: Vec<f64> = camera.k_matrix().iter().flatten().copied().collect();
+    assert_close(&k, &f64s(&expected["K"]), 1e-12, "K");
+    let r: Vec<f64> = camera.rotation.transpose().to_cols_array().to_vec();
+    assert_close(&r, &f64s(&expected["R"]), 1e-12, "R (row-major)");
+    assert_close(
+        &camera.translation.to_array(),
+        &f64s(&expected["t"]),
+        1e-12,
+        "t",
+    );
+    let pixel = camera.project(point).expect("in front of the camera");
+    assert_close(
+        &pixel.to_array(),
+        &f64s(&expected["point_pixel"]),
+        1e-9,
+        "pixel of the known point",
+    );
+    if let Some((factor, key)) = scale {
+        let rescaled = camera.rescaled(factor);
+        let pixel = rescaled.project(point).unwrap();
+        assert_close(
+            &pixel.to_array(),
+            &f64s(&expected[key]),
+            1e-9,
+            "rescaled pixel",
+        );
+    }
+}
+
+fn point_of(expected: &serde_json::Value) -> DVec3 {
+    let p = f64s(&expected["point"]);
+    DVec3::new(p[0], p[1], p[2])
+}
+
+fn assert_error_mentions(result: anyhow::Result<impl Sized>, needles: &[&str]) {
+    let message = match result {
+        Ok(_) => panic!("expected an error mentioning {needles:?}"),
+        Err(e) => format!("{e:#}"),
+    };
+    for needle in needles {
+        assert!(
+            message.contains(needle),
+            "error {message:?} does not mention {needle:?}"
+        );
+    }
+}
+
+fn image_close(actual: &[u8], expected: &[u8], what: &str) {
+    assert_eq!(actual.len(), expected.len(), "{what}: size");
+    // Two JPEG decoders differ slightly (IDCT rounding, chroma upsampling).
+    let worst = actual
+        .iter()
+        .zip(expected)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap_or(0);
+    let mean = actual
+        .iter()
+        .zip(expected)
+        .map(|(a, b)| f64::from(a.abs_diff(*b)))
+        .sum::<f64>()
+        / actual.len().max(1) as f64;
+    assert!(
+        worst <= 8 && mean < 1.0,
+        "{what}: largest difference {worst}, mean {mean}"
+    );
+}
+
+#[test]
+fn zju_mocap_reads_cameras_images_masks_and_fits() {
+    let dir = dataset_fixture("zju");
+    let root = dir.path().join("CoreView_377");
+    let smpl = dir.path().join("smpl.npz");
+    let expected = read_json(&dir.path().join("expected.json"));
+    let reader = ZjuMocap::open(&root, Some(&smpl)).unwrap();
+    let point = point_of(&expected);
+    assert_eq!(reader.cameras().len(), 3);
+    for (c, camera) in reader.cameras().iter().enumerate() {
+        let e = &expected["cameras"][c];
+        assert_eq!(camera.id, e["id"].as_i64().unwrap());
+        assert_eq!((camera.camera.width, camera.camera.height), (40, 32));
+        assert_close(
+            &camera.camera.distortion,
+            &f64s(&e["distortion"]),
+            0.0,
+            "distortion",
+        );
+        check_camera(camera, e, point, Some((0.5, "point_pixel_half")));
+    }
+    assert_eq!(reader.num_frames(), 4);
+    assert_eq!(reader.frame_id(3), 3);
+    for view in 0..3 {
+        for frame in 0..4 {
+            let image = reader.read_image(view, frame).unwrap();
+            let (shape, rgb) =
+                expected_array(&dir.path().join(format!("expected_rgb_{view}_{frame}.npy")));
+            assert_eq!(shape, vec![32, 40, 3]);
+            image_close(image.rgb.as_raw(), &rgb, "rgb");
+            let (_, mask) =
+                expected_array(&dir.path().join(format!("expected_mask_{view}_{frame}.npy")));
+            assert_eq!(image.mask.as_raw(), &mask, "mask view {view} frame {frame}");
+        }
+    }
+    // Fits, and the Rh/Th convention: our forward pass reproduces numpy's world vertices.
+    let (model, kind) = reader.body_model().unwrap();
+    assert_eq!(kind, BodyModelKind::Smpl);
+    for frame in 0..4 {
+        let params = reader.body_params(frame).unwrap();
+        let e = &expected["params"][frame];
+        let pose: Vec<f64> = params.pose.iter().flat_map(|v| v.to_array()).collect();
+        assert_close(&pose, &f64s(&e["poses"]), 0.0, "poses");
+        assert_close(
+            &params.world_rotation.to_array(),
+            &f64s(&e["Rh"]),
+            0.0,
+            "Rh",
+        );
+        assert_close(
+            &params.world_translation.to_array(),
+            &f64s(&e["Th"]),
+            0.0,
+            "Th",
+        );
+        assert_close(&params.betas, &f64s(&e["shapes"]), 0.0, "shapes");
+        let posed = model.forward(&params).unwrap();
+        let vertices =
+            npy::read(&std::fs::read(root.join(format!("new_vertices/{frame}.npy"))).unwrap())
+                .unwrap();
+        let (shape, want) = vertices.to_f64_array().unwrap();
+        assert_eq!(shape, vec![30, 3]);
+        let got: Vec<f64> = posed.vertices.iter().flat_map(|v| v.to_array()).collect();
+        assert_close(&got, &want, 1e-9, "world vertices");
+    }
+    let split = reader.default_split();
+    assert_eq!(split.train_views, vec![0]);
+    assert_eq!(split.test_views, vec![1, 2]);
+    assert_eq!(split.train_frames.end, Some(4));
+    assert_eq!(split.test_frames.step, 30);
+}
+
+#[test]
+fn zju_mocap_bad_input_names_file_and_field() {
+    let dir = dataset_fixture("zju");
+    let root = dir.path().join("CoreView_377");
+    let variants = dir.path().join("variants");
+    // A camera missing from one of the calibration lists.
+    let good_annots = std::fs::read(root.join("annots.npy")).unwrap();
+    std::fs::copy(
+        variants.join("annots_missing_camera.npy"),
+        root.join("annots.npy"),
+    )
+    .unwrap();
+    assert_error_mentions(
+        ZjuMocap::open(&root, None),
+        &["annots.npy", "cams.T", "2 cameras"],
+    );
+    std::fs::write(root.join("annots.npy"), good_annots).unwrap();
+    let reader = ZjuMocap::open(&root, None).unwrap();
+    // A NaN in the pose, and a pose of the wrong length.
+    std::fs::copy(
+        variants.join("params_nan.npy"),
+        root.join("new_params/1.npy"),
+    )
+    .unwrap();
+    assert_error_mentions(
+        reader.body_params(1),
+        &["new_params/1.npy", "`poses`", "NaN"],
+    );
+    std::fs::copy(
+        variants.join("params_short.npy"),
+        root.join("new_params/2.npy"),
+    )
+    .unwrap();
+    assert_error_mentions(
+        reader.body_params(2),
+        &["new_params/2.npy", "`poses`", "expected 72 values"],
+    );
+    // A truncated image, and a mask of the wrong size.
+    let image = root.join("Camera_B2/000001.jpg");
+    let bytes = std::fs::read(&image).unwrap();
+    std::fs::write(&image, &bytes[..bytes.len() / 2]).unwrap();
+    assert_error_mentions(reader.read_image(1, 1), &["Camera_B2/000001.jpg"]);
+    std::fs::copy(
+        variants.join("mask_small.png"),
+        root.join("mask_cihp/Camera_B3/000002.png"),
+    )
+    .unwrap();
+    assert_error_mentions(
+        reader.read_image(2, 2),
+        &["mask_cihp/Camera_B3/000002.png", "38x32", "40x32"],
+    );
+    // No body model configured.
+    assert_error_mentions(reader.body_model(), &["body_model"]);
+}
+
+#[test]
+fn i3d_human_merges_folders_and_reads_pickled_cameras() {
+    let dir = dataset_fixture("i3d");
+    let expected = read_json(&dir.path().join("expected.json"));
+    let smpl = dir.path().join("smpl.npz");
+    let reader = I3dHuman::open(dir.path(), "ID2_1", Some(&smpl)).unwrap();
+    let ids: Vec<i64> = reader.cameras().iter().map(|c| c.id).collect();
+    assert_eq!(ids, vec![1, 2, 3]);
+    let point = point_of(&expected);
+    for camera in reader.cameras() {
+        let e = &expected["cameras"][camera.id.to_string()];
+        assert_eq!((camera.camera.width, camera.camera.height), (24, 20));
+        check_camera(camera, e, point, None);
+    }
+    assert_eq!(reader.num_frames(), 12);
+    for frame in 0..12 {
+        let params = reader.body_params(frame).unwrap();
+        let e = &expected["params"][frame.to_string()];
+        let pose: Vec<f64> = params.pose.iter().flat_map(|v| v.to_array()).collect();
+        assert_close(
+            &pose,
+            &f64s(&e["poses"]),
+            0.0,
+            &format!("poses of frame {frame}"),
+        );
+        assert_close(
+            &params.world_rotation.to_array(),
+            &f64s(&e["Rh"]),
+            0.0,
+            "Rh",
+        );
+        assert_close(
+            &params.world_translation.to_array(),
+            &f64s(&e["Th"]),
+            0.0,
+            "Th",
+        );
+        assert!(params.betas.is_empty());
+    }
+    // Train view 3 (index 2) at frame 6, novel view 2 (index 1), novel pose view 1 at frame 9.
+    for (view, id, frame) in [(2, 3, 6), (1, 2, 3), (0, 1, 9)] {
+        let image = reader.read_image(view, frame).unwrap();
+        let (_, rgb) = expected_array(&dir.path().join(format!("expected_rgb_{id}_{frame}.npy")));
+        assert_eq!(image.rgb.as_raw(), &rgb, "PNG images decode exactly");
+        assert!(image.mask.as_raw().iter().all(|&m| m == 0 || m == 255));
+        assert!(image.mask.as_raw().contains(&255));
+    }
+    assert_error_mentions(reader.read_image(1, 9), &["no image of view 2 at frame 9"]);
+    let split = reader.default_split();
+    // ID2_1: train views 1, 3, 5, 7, 9 and test 2, 4, 6, 10, of which 1, 3 and 2 exist.
+    assert_eq!(split.train_views, vec![0, 2]);
+    assert_eq!(split.test_views, vec![1]);
+    assert_eq!(split.frame_interval, 3);
+    assert_eq!(
+        (
+            split.train_frames.start,
+            split.train_frames.end,
+            split.train_frames.step
+        ),
+        (0, Some(7), 3)
+    );
+    let (_, kind) = reader.body_model().unwrap();
+    assert_eq!(kind, BodyModelKind::Smpl);
+}
+
+#[test]
+fn dna_rendering_reads_smc_pairs() {
+    let dir = dataset_fixture("dna");
+    let expected = read_json(&dir.path().join("expected.json"));
+    let main = dir.path().join("dna_rendering_part1_main/0007_04.smc");
+    let smplx = dir.path().join("smplx.npz");
+    let reader = DnaRendering::open(&main, None, Some(&smplx)).unwrap();
+    assert_eq!(reader.gender.as_deref(), Some("female"));
+    let ids: Vec<i64> = reader.cameras().iter().map(|c| c.id).collect();
+    assert_eq!(ids, vec![0, 2, 48]);
+    let point = point_of(&expected);
+    for camera in reader.cameras() {
+        let e = &expected["cameras"][camera.id.to_string()];
+        let size = (
+            e["width"].as_u64().unwrap() as u32,
+            e["height"].as_u64().unwrap() as u32,
+        );
+        assert_eq!((camera.camera.width, camera.camera.height), size);
+        check_camera(camera, e, point, Some((0.25, "point_pixel_quarter")));
+    }
+    assert_eq!(reader.num_frames(), 3);
+    for (view, id) in [(0, 0), (2, 48)] {
+        for frame in 0..3 {
+            let image = reader.read_image(view, frame).unwrap();
+            let (_, rgb) =
+                expected_array(&dir.path().join(format!("expected_rgb_{id}_{frame}.npy")));
+            image_close(image.rgb.as_raw(), &rgb, "rgb");
+            let (_, mask) =
+                expected_array(&dir.path().join(format!("expected_mask_{id}_{frame}.npy")));
+            assert_eq!(image.mask.as_raw(), &mask, "soft mask, max over channels");
+        }
+    }
+    // SMPL-X: the mean hand pose is added; betas (one row) and expression (two rows) are
+    // broadcast to three frames with warnings; camera 01 has no images (warning).
+    let pose = f64s(&expected["pose"]);
+    let transl = f64s(&expected["transl"]);
+    let betas = f64s(&expected["betas"]);
+    let expression = f64s(&expected["expression"]);
+    for frame in 0..3 {
+        let params = reader.body_params(frame).unwrap();
+        let got: Vec<f64> = params.pose.iter().flat_map(|v| v.to_array()).collect();
+        assert_close(
+            &got,
+            &pose[frame * 165..(frame + 1) * 165],
+            1e-12,
+            "pose + hand mean",
+        );
+        assert_close(
+            &params.world_translation.to_array(),
+            &transl[frame * 3..frame * 3 + 3],
+            0.0,
+            "transl",
+        );
+        assert_eq!(params.world_rotation, DVec3::ZERO);
+        assert_close(&params.betas, &betas, 0.0, "betas");
+        assert_close(
+            &params.expression,
+            &expression[frame * 10..frame * 10 + 10],
+            0.0,
+            "expression",
+        );
+    }
+    assert_eq!(reader.warnings.len(), 3, "{:?}", reader.warnings);
+    assert!(
+        reader
+            .warnings
+            .iter()
+            .any(|w| w.contains("SMPLx/betas") && w.contains("1 rows for 3 frames"))
+    );
+    assert!(
+        reader
+            .warnings
+            .iter()
+            .any(|w| w.contains("SMPLx/expression") && w.contains("2 rows"))
+    );
+    let (model, kind) = reader.body_model().unwrap();
+    assert_eq!(kind, BodyModelKind::Smplx);
+    assert_eq!(
+        (
+            model.num_joints(),
+            model.num_betas(),
+            model.num_expression()
+        ),
+        (55, 10, 10)
+    );
+    let split = reader.default_split();
+    assert_eq!(split.train_views, vec![0, 1]);
+    assert_eq!(split.test_views, vec![2]);
+}
+
+#[test]
+fn dna_rendering_without_annotations_or_with_a_bad_image_fails_clearly() {
+    let dir = dataset_fixture("dna");
+    let main = dir.path().join("dna_rendering_part1_main/0007_04.smc");
+    let annotations = dir
+        .path()
+        .join("dna_rendering_part1_annotations/0007_04_annots.smc");
+    // Side by side is accepted too.
+    let side = dir
+        .path()
+        .join("dna_rendering_part1_main/0007_04_annots.smc");
+    std::fs::rename(&annotations, &side).unwrap();
+    assert!(DnaRendering::open(&main, None, None).is_ok());
+    std::fs::remove_file(&side).unwrap();
+    assert_error_mentions(
+        DnaRendering::open(&main, None, None),
+        &[
+            "0007_04.smc",
+            "annotation file is missing",
+            "0007_04_annots.smc",
+        ],
+    );
+    // An annotation file that is not HDF5.
+    std::fs::write(&annotations, b"not hdf5").unwrap();
+    assert_error_mentions(
+        DnaRendering::open(&main, None, None),
+        &["0007_04_annots.smc", "HDF5"],
+    );
+}
+
+#[test]
+fn body_model_npz_loads_smpl_and_smplx() {
+    for kind in ["smpl", "smplx"] {
+        let dir = dataset_fixture(kind);
+        let expected = read_json(&dir.path().join("expected.json"));
+        let loaded =
+            load_body_model_npz(&dir.path().join("model.npz"), ComponentLimits::default()).unwrap();
+        let joints = if kind == "smpl" { 24 } else { 55 };
+        assert_eq!(loaded.model.num_joints(), joints);
+        assert_eq!(
+            loaded.model.num_betas(),
+            10,
+            "{kind}: truncated to 10 betas"
+        );
+        assert_eq!(
+            loaded.model.num_expression(),
+            if kind == "smpl" { 0 } else { 10 }
+        );
+        assert_eq!(loaded.hands_mean.is_some(), kind == "smplx");
+        let pose = f64s(&expected["pose"]);
+        let rh = f64s(&expected["Rh"]);
+        let th = f64s(&expected["Th"]);
+        let params = seqavatar_core::body::BodyParams {
+            pose: pose
+                .chunks_exact(3)
+                .map(|c| DVec3::new(c[0], c[1], c[2]))
+                .collect(),
+            betas: f64s(&expected["betas"]),
+            expression: f64s(&expected["expression"]),
+            world_rotation: DVec3::new(rh[0], rh[1], rh[2]),
+            world_translation: DVec3::new(th[0], th[1], th[2]),
+        };
+        let posed = loaded.model.forward(&params).unwrap();
+        let got: Vec<f64> = posed.vertices.iter().flat_map(|v| v.to_array()).collect();
+        assert_close(
+            &got,
+            &f64s(&expected["vertices"]),
+            1e-9,
+            &format!("{kind} vertices"),
+        );
+    }
+}
