@@ -7,7 +7,10 @@
 //! rows). The backward pass walks the same lists back to front, writes one gradient per
 //! Gaussian-tile intersection, then reduces them per Gaussian (parallel over Gaussians, in a
 //! fixed order, so results are deterministic) and chains through the projection.
+//! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 when the CPU
+//! has it); `f64` runs (gradient checks) use the generic per-pixel loops of `raster.rs`.
 
+mod lanes;
 mod project;
 mod raster;
 
@@ -67,6 +70,7 @@ pub fn forward<S: Scalar>(
         let splats = raster::sort_splats(&splats, &binning);
         let buffers = raster::forward(
             &splats,
+            fast_splats(&splats),
             &binning,
             params.width,
             params.height,
@@ -99,6 +103,16 @@ pub fn forward<S: Scalar>(
         gaussian_count: gaussians.len(),
         sh_degree: gaussians.sh_degree,
     })
+}
+
+/// The splats as `f32` when the scalar type is `f32` (the speed path), `None` for `f64` (the
+/// exact path gradient checks use). Takes the `Vec` because the type test needs a `'static`
+/// sized type to downcast.
+#[allow(clippy::ptr_arg)]
+fn fast_splats<S: Scalar>(splats: &Vec<Splat2d<S>>) -> Option<&[Splat2d<f32>]> {
+    (splats as &dyn std::any::Any)
+        .downcast_ref::<Vec<Splat2d<f32>>>()
+        .map(Vec::as_slice)
 }
 
 /// Projects every Gaussian; culled ones get an empty tile rectangle.
@@ -189,6 +203,7 @@ pub fn backward<S: Scalar>(
     for (state, up) in forward.states.iter().zip(&checked) {
         let slots = raster::backward(
             &state.splats,
+            fast_splats(&state.splats),
             &state.binning,
             &state.pixels,
             up,

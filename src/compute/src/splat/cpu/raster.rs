@@ -11,6 +11,7 @@
 use rayon::prelude::*;
 
 use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, SplatError, TILE_SIZE};
+use super::lanes::{BackwardTile, ForwardRows, ForwardTile};
 use super::project::{Splat2d, TileRect};
 use crate::scalar::Scalar;
 
@@ -142,7 +143,7 @@ fn splat_alpha<S: Scalar>(splat: &Splat2d<S>, dx: S, dy: S, smooth: bool) -> Opt
 /// The tests-only C1 cutoff: `s(u) = 3u^2 - 2u^3`, `u = clamp((alpha - t) / t, 0, 1)`,
 /// `t = 1/255`. Returns `(s, ds/dalpha)`.
 #[inline(always)]
-fn smooth_step<S: Scalar>(alpha: S) -> (S, S) {
+pub(super) fn smooth_step<S: Scalar>(alpha: S) -> (S, S) {
     let threshold = S::from_f64(ALPHA_THRESHOLD);
     let u = ((alpha - threshold) / threshold).clamp(S::ZERO, S::ONE);
     let (two, three, six) = (S::from_f64(2.0), S::from_f64(3.0), S::from_f64(6.0));
@@ -154,7 +155,7 @@ fn smooth_step<S: Scalar>(alpha: S) -> (S, S) {
 
 /// The splat's pixel box intersected with a tile: `(x0, x1, y0, y1)`, possibly empty.
 #[inline(always)]
-fn box_in_tile<S: Scalar>(splat: &Splat2d<S>, bounds: [u32; 4]) -> (u32, u32, u32, u32) {
+pub(super) fn box_in_tile<S: Scalar>(splat: &Splat2d<S>, bounds: [u32; 4]) -> (u32, u32, u32, u32) {
     let [x_start, x_end, y_start, y_end] = bounds;
     let [x_lo, x_hi, y_lo, y_hi] = splat.pixel_box;
     (
@@ -169,7 +170,7 @@ fn box_in_tile<S: Scalar>(splat: &Splat2d<S>, bounds: [u32; 4]) -> (u32, u32, u3
 /// splat's power can reach `min_power`, with at least one pixel of margin either side.
 /// Columns outside would be skipped by [`splat_alpha`] anyway, so this only saves work.
 #[inline(always)]
-fn row_span<S: Scalar>(splat: &Splat2d<S>, dy: S, x0: u32, x1: u32) -> (u32, u32) {
+pub(super) fn row_span<S: Scalar>(splat: &Splat2d<S>, dy: S, x0: u32, x1: u32) -> (u32, u32) {
     let [mean_x, slope, w0, w1] = splat.row_span;
     let dy = dy.to_f64();
     let half_width_sq = w0 - dy * dy * w1;
@@ -202,9 +203,12 @@ pub(super) struct PixelState<S> {
     pub contributors: Vec<u32>,
 }
 
-/// Composites every tile front to back.
+/// Composites every tile front to back. `fast` is `splats` itself when `S` is `f32`: then
+/// the lane-parallel path of `lanes.rs` runs instead of the generic one.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn forward<S: Scalar>(
     splats: &[Splat2d<S>],
+    fast: Option<&[Splat2d<f32>]>,
     binning: &Binning,
     width: u32,
     height: u32,
@@ -232,9 +236,35 @@ pub(super) fn forward<S: Scalar>(
         .enumerate()
         .for_each(
             |(ty, ((((colour, alpha), depth), transmittance), contributors))| {
-                let mut state = TileState::<S>::new();
                 let y_start = ty as u32 * TILE_SIZE;
                 let y_end = (y_start + TILE_SIZE).min(height);
+                if let Some(fast) = fast {
+                    let mut tile = ForwardTile::new();
+                    for tx in 0..tiles_x {
+                        let tile_index = (ty as u32 * tiles_x + tx) as usize;
+                        let list = &binning.tile_gaussians[binning.tile_offsets[tile_index] as usize
+                            ..binning.tile_offsets[tile_index + 1] as usize];
+                        let x_start = tx * TILE_SIZE;
+                        let x_end = (x_start + TILE_SIZE).min(width);
+                        tile.composite(
+                            fast,
+                            list,
+                            [x_start, x_end, y_start, y_end],
+                            smooth,
+                            background,
+                            w,
+                            ForwardRows {
+                                colour: &mut *colour,
+                                alpha: &mut *alpha,
+                                depth: &mut *depth,
+                                transmittance: &mut *transmittance,
+                                contributors: &mut *contributors,
+                            },
+                        );
+                    }
+                    return;
+                }
+                let mut state = TileState::<S>::new();
                 for tx in 0..tiles_x {
                     let tile = (ty as u32 * tiles_x + tx) as usize;
                     let list = &binning.tile_gaussians[binning.tile_offsets[tile] as usize
@@ -348,6 +378,7 @@ pub(super) type Slot<S> = [S; 10];
 #[allow(clippy::too_many_arguments)]
 pub(super) fn backward<S: Scalar>(
     splats: &[Splat2d<S>],
+    fast: Option<&[Splat2d<f32>]>,
     binning: &Binning,
     buffers: &PixelState<S>,
     upstream: &Upstream<'_, S>,
@@ -371,10 +402,32 @@ pub(super) fn backward<S: Scalar>(
         rest = tail;
     }
     row_slots.into_par_iter().for_each(|(ty, row_slots)| {
-        let mut state = BackwardState::<S>::new();
         let row_base = binning.tile_offsets[ty * tiles_x as usize] as usize;
         let y_start = ty as u32 * TILE_SIZE;
         let y_end = (y_start + TILE_SIZE).min(height);
+        if let Some(fast) = fast {
+            let mut tile = BackwardTile::new();
+            for tx in 0..tiles_x {
+                let tile_index = ty * tiles_x as usize + tx as usize;
+                let (begin, end) = (
+                    binning.tile_offsets[tile_index] as usize,
+                    binning.tile_offsets[tile_index + 1] as usize,
+                );
+                let x_start = tx * TILE_SIZE;
+                let bounds = [x_start, (x_start + TILE_SIZE).min(width), y_start, y_end];
+                let count = tile.load(buffers, upstream, bounds, w, background);
+                tile.walk(
+                    fast,
+                    &binning.tile_gaussians[begin..end],
+                    count,
+                    &mut row_slots[begin - row_base..end - row_base],
+                    bounds,
+                    smooth,
+                );
+            }
+            return;
+        }
+        let mut state = BackwardState::<S>::new();
         for tx in 0..tiles_x {
             let tile = ty * tiles_x as usize + tx as usize;
             let (begin, end) = (
