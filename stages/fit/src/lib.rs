@@ -1,1 +1,17 @@
-//! The `fit` stage.
+//! The `fit` stage: refines per-frame body-model fits (pose, translation, shared shape) with a
+//! data term and a temporal term measured in rotation space, before anything differentiates
+//! them.
+
+pub mod banded;
+pub mod io;
+pub mod plot;
+pub mod refine;
+pub mod smooth;
+pub mod stage;
+
+pub use stage::{FitConfig, FitMode, FitStage};
+
+/// Adds this crate's stage kinds to the registry.
+pub fn register(registry: &mut seqavatar_engine::Registry) {
+    registry.add(Box::new(FitStage));
+}

@@ -1,0 +1,641 @@
+//! Temporal smoothing of one track (one joint's rotations, or the root translation) by
+//! Levenberg-Marquardt on the rotation manifold.
+//!
+//! Energy of a rotation track `R_0..R_{F-1}` with input fits `Q_t`:
+//!
+//! ```text
+//! E = sum_t |R_t - Q_t|_F^2 / (2 sn^2)  +  sum_{t=1}^{F-2} robust(|A_t|_F / (sqrt(2) sa))
+//! A_t = R_t^T R_{t+1} - R_{t-1}^T R_t
+//! ```
+//!
+//! Both terms are chordal distances, so they are measured in rotation space (never on
+//! axis-angle components): `|R - Q|_F = 2 sqrt(2) sin(theta / 2) ~ sqrt(2) theta` for the
+//! geodesic angle `theta` between them, and `A_t = 0` exactly when the body-frame step
+//! `R_{t-1}^T R_t` is constant (zero angular acceleration). Chordal residuals are smooth
+//! everywhere, including at a rotation of pi, where the logarithm jumps. `sn` is the noise of
+//! the input fit and `sa` the expected angular acceleration (radians per frame squared).
+//!
+//! A Cauchy kernel `rho` on accelerations keeps genuine
+//! discontinuities (a 180-degree flip, a teleport) instead of smearing them over neighbouring
+//! frames. Each step solves the Gauss-Newton normal equations (iteratively reweighted for
+//! the kernel) with Levenberg damping;
+//! updates are right-multiplied, `R <- R Exp(delta)`. The normal equations are banded (a
+//! residual touches three consecutive frames), so a step costs `O(F)`.
+//! Translations use the same energy with Euclidean residuals (a linear least-squares problem
+//! apart from the robust weights).
+
+use crate::banded::{BandedError, BandedMatrix};
+use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_core::rotation::{axis_angle_to_matrix, skew};
+
+/// Standard deviations and solver limits of the smoothing energy.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SmoothingWeights {
+    /// Expected error of an input rotation, radians.
+    pub rotation_noise: f64,
+    /// Expected angular acceleration of a joint, radians per frame squared.
+    pub rotation_acceleration: f64,
+    /// Expected error of an input translation, metres.
+    pub translation_noise: f64,
+    /// Expected acceleration of the root translation, metres per frame squared.
+    pub translation_acceleration: f64,
+    /// Scale of the Cauchy kernel on acceleration residuals, in standard deviations.
+    pub robust_threshold: f64,
+    /// Levenberg-Marquardt iteration limit.
+    pub max_iterations: usize,
+}
+
+impl Default for SmoothingWeights {
+    fn default() -> Self {
+        Self {
+            rotation_noise: 2.0_f64.to_radians(),
+            rotation_acceleration: 1.0_f64.to_radians(),
+            translation_noise: 0.01,
+            translation_acceleration: 0.003,
+            robust_threshold: 3.0,
+            max_iterations: 50,
+        }
+    }
+}
+
+/// Why a track could not be smoothed.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SmoothError {
+    #[error("smoothing weight `{name}` must be positive and finite, got {value}")]
+    BadWeight { name: &'static str, value: f64 },
+    #[error("input is not finite at frame {frame}")]
+    NotFinite { frame: usize },
+    #[error(transparent)]
+    Solve(#[from] BandedError),
+}
+
+/// What the solver did on one track.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackReport {
+    pub iterations: usize,
+    pub initial_energy: f64,
+    pub final_energy: f64,
+}
+
+impl SmoothingWeights {
+    /// Checks every standard deviation is positive and finite.
+    pub fn validate(&self) -> Result<(), SmoothError> {
+        for (name, value) in [
+            ("rotation_noise", self.rotation_noise),
+            ("rotation_acceleration", self.rotation_acceleration),
+            ("translation_noise", self.translation_noise),
+            ("translation_acceleration", self.translation_acceleration),
+            ("robust_threshold", self.robust_threshold),
+        ] {
+            if !(value > 0.0 && value.is_finite()) {
+                return Err(SmoothError::BadWeight { name, value });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Cauchy (Lorentzian) cost `c^2 ln(1 + s^2 / c^2)` of a residual of norm `s` (in standard
+/// deviations) and its IRLS weight `1 / (1 + s^2 / c^2)`. Quadratic (`~ s^2`) well below `c`,
+/// logarithmic above: a jump far beyond `c` costs almost the same whether it happens in one
+/// frame or is smeared over several, so the data term keeps it sharp. (Huber's linear tail
+/// prefers smearing a step over a few frames: its cost falls as `1/k`.)
+fn robust(s: f64, scale: f64) -> (f64, f64) {
+    let ratio = s * s / (scale * scale);
+    (scale * scale * ratio.ln_1p(), 1.0 / (1.0 + ratio))
+}
+
+fn mat_entries(m: DMat3) -> [f64; 9] {
+    m.to_cols_array()
+}
+
+fn frobenius_sq(m: DMat3) -> f64 {
+    mat_entries(m).iter().map(|x| x * x).sum()
+}
+
+const BASIS: [DVec3; 3] = [DVec3::X, DVec3::Y, DVec3::Z];
+
+/// Acceleration residual matrix `A_t` of a rotation track.
+pub fn rotation_acceleration(prev: DMat3, cur: DMat3, next: DMat3) -> DMat3 {
+    cur.transpose() * next - prev.transpose() * cur
+}
+
+/// Derivatives of `A_t` with respect to right perturbations `R <- R Exp(delta)` of the
+/// previous, current and next rotation: `[frame][component]`.
+pub fn rotation_acceleration_jacobian(prev: DMat3, cur: DMat3, next: DMat3) -> [[DMat3; 3]; 3] {
+    let step_next = cur.transpose() * next;
+    let step_prev = prev.transpose() * cur;
+    let mut out = [[DMat3::ZERO; 3]; 3];
+    for (i, e) in BASIS.iter().enumerate() {
+        let k = skew(*e);
+        // d(-R_{t-1}^T R_t): (R_{t-1} Exp(d))^T = (I - [d]x) R_{t-1}^T.
+        out[0][i] = k * step_prev;
+        out[1][i] = -(k * step_next) - step_prev * k;
+        out[2][i] = step_next * k;
+    }
+    out
+}
+
+fn rotation_energy(track: &[DMat3], input: &[DMat3], w: &SmoothingWeights) -> f64 {
+    let data_scale = 1.0 / (2.0 * w.rotation_noise * w.rotation_noise);
+    let accel_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_acceleration);
+    let mut energy = 0.0;
+    for (r, q) in track.iter().zip(input) {
+        energy += frobenius_sq(*r - *q) * data_scale;
+    }
+    for t in 1..track.len().saturating_sub(1) {
+        let a = rotation_acceleration(track[t - 1], track[t], track[t + 1]);
+        let s = frobenius_sq(a).sqrt() * accel_scale;
+        energy += robust(s, w.robust_threshold).0;
+    }
+    energy
+}
+
+/// Adds `weight * J^T J` and `weight * J^T r` of one residual block to the normal equations.
+/// `jac[f][i]` is the derivative (a 9-vector) with respect to component `i` of frame
+/// `frames[f]`.
+fn accumulate(
+    h: &mut BandedMatrix,
+    g: &mut [f64],
+    frames: &[usize],
+    jac: &[[[f64; 9]; 3]],
+    residual: &[f64; 9],
+    weight: f64,
+) {
+    for (fa, &ta) in frames.iter().enumerate() {
+        for ia in 0..3 {
+            let row = ta * 3 + ia;
+            let ja = &jac[fa][ia];
+            g[row] += weight * ja.iter().zip(residual).map(|(a, b)| a * b).sum::<f64>();
+            for (fb, &tb) in frames.iter().enumerate() {
+                for ib in 0..3 {
+                    let col = tb * 3 + ib;
+                    if col > row {
+                        continue;
+                    }
+                    let jb = &jac[fb][ib];
+                    let v: f64 = ja.iter().zip(jb).map(|(a, b)| a * b).sum();
+                    h.add(row, col, weight * v);
+                }
+            }
+        }
+    }
+}
+
+fn rotation_normal_equations(
+    track: &[DMat3],
+    input: &[DMat3],
+    w: &SmoothingWeights,
+) -> (BandedMatrix, Vec<f64>) {
+    let n = track.len();
+    let mut h = BandedMatrix::zeros(3 * n, 8);
+    let mut g = vec![0.0; 3 * n];
+    let data_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_noise);
+    for t in 0..n {
+        let residual = mat_entries((track[t] - input[t]) * data_scale);
+        let jac = [BASIS.map(|e| mat_entries(track[t] * skew(e) * data_scale))];
+        accumulate(&mut h, &mut g, &[t], &jac, &residual, 1.0);
+    }
+    let accel_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_acceleration);
+    for t in 1..n.saturating_sub(1) {
+        let (p, c, x) = (track[t - 1], track[t], track[t + 1]);
+        let a = rotation_acceleration(p, c, x) * accel_scale;
+        let residual = mat_entries(a);
+        let s = frobenius_sq(a).sqrt();
+        let weight = robust(s, w.robust_threshold).1;
+        let d = rotation_acceleration_jacobian(p, c, x);
+        let jac = d.map(|frame| frame.map(|m| mat_entries(m * accel_scale)));
+        accumulate(&mut h, &mut g, &[t - 1, t, t + 1], &jac, &residual, weight);
+    }
+    (h, g)
+}
+
+/// Generic damped Gauss-Newton loop: `model` gives the (reweighted) normal equations at a
+/// state, `energy` the true robust energy, `retract` applies a step.
+fn levenberg_marquardt<S: Clone>(
+    start: S,
+    max_iterations: usize,
+    energy: impl Fn(&S) -> f64,
+    model: impl Fn(&S) -> (BandedMatrix, Vec<f64>),
+    retract: impl Fn(&S, &[f64]) -> S,
+) -> Result<(S, TrackReport), SmoothError> {
+    let mut state = start;
+    let initial_energy = energy(&state);
+    let mut current = initial_energy;
+    let mut damping = 1e-4;
+    let mut iterations = 0;
+    while iterations < max_iterations {
+        iterations += 1;
+        let (h, g) = model(&state);
+        let scale = (0..h.size())
+            .map(|i| h.get(i, i))
+            .fold(0.0, f64::max)
+            .max(1.0);
+        let mut accepted = false;
+        for _attempt in 0..20 {
+            let mut damped = h.clone();
+            damped.add_to_diagonal(damping * scale);
+            let rhs: Vec<f64> = g.iter().map(|x| -x).collect();
+            let step = damped.solve(&rhs)?;
+            let candidate = retract(&state, &step);
+            let e = energy(&candidate);
+            if e.is_finite() && e <= current {
+                let decrease = current - e;
+                state = candidate;
+                current = e;
+                damping = (damping / 3.0).max(1e-12);
+                accepted = true;
+                let step_norm = step.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+                if step_norm < 1e-10 || decrease <= 1e-12 * current.max(1e-300) {
+                    return Ok((
+                        state,
+                        TrackReport {
+                            iterations,
+                            initial_energy,
+                            final_energy: current,
+                        },
+                    ));
+                }
+                break;
+            }
+            damping *= 4.0;
+        }
+        if !accepted {
+            break;
+        }
+    }
+    Ok((
+        state,
+        TrackReport {
+            iterations,
+            initial_energy,
+            final_energy: current,
+        },
+    ))
+}
+
+/// Smooths one joint's rotation track (input fits `input`, one per frame).
+pub fn smooth_rotation_track(
+    input: &[DMat3],
+    w: &SmoothingWeights,
+) -> Result<(Vec<DMat3>, TrackReport), SmoothError> {
+    w.validate()?;
+    if let Some(frame) = input
+        .iter()
+        .position(|m| m.to_cols_array().iter().any(|x| !x.is_finite()))
+    {
+        return Err(SmoothError::NotFinite { frame });
+    }
+    levenberg_marquardt(
+        input.to_vec(),
+        w.max_iterations,
+        |track| rotation_energy(track, input, w),
+        |track| rotation_normal_equations(track, input, w),
+        |track, step| {
+            track
+                .iter()
+                .enumerate()
+                .map(|(t, r)| {
+                    let delta = DVec3::new(step[3 * t], step[3 * t + 1], step[3 * t + 2]);
+                    *r * axis_angle_to_matrix(delta)
+                })
+                .collect()
+        },
+    )
+}
+
+fn translation_energy(track: &[DVec3], input: &[DVec3], w: &SmoothingWeights) -> f64 {
+    let mut energy = 0.0;
+    for (x, q) in track.iter().zip(input) {
+        energy += (*x - *q).length_squared() / (w.translation_noise * w.translation_noise);
+    }
+    for t in 1..track.len().saturating_sub(1) {
+        let a = track[t + 1] - 2.0 * track[t] + track[t - 1];
+        energy += robust(a.length() / w.translation_acceleration, w.robust_threshold).0;
+    }
+    energy
+}
+
+fn translation_normal_equations(
+    track: &[DVec3],
+    input: &[DVec3],
+    w: &SmoothingWeights,
+) -> (BandedMatrix, Vec<f64>) {
+    let n = track.len();
+    let mut h = BandedMatrix::zeros(3 * n, 8);
+    let mut g = vec![0.0; 3 * n];
+    let data_weight = 1.0 / (w.translation_noise * w.translation_noise);
+    for t in 0..n {
+        let r = track[t] - input[t];
+        for c in 0..3 {
+            h.add(3 * t + c, 3 * t + c, data_weight);
+            g[3 * t + c] += data_weight * r[c];
+        }
+    }
+    let accel_weight = 1.0 / (w.translation_acceleration * w.translation_acceleration);
+    let coefficients = [1.0, -2.0, 1.0];
+    for t in 1..n.saturating_sub(1) {
+        let a = track[t + 1] - 2.0 * track[t] + track[t - 1];
+        let irls = robust(a.length() / w.translation_acceleration, w.robust_threshold).1;
+        let frames = [t - 1, t, t + 1];
+        for (fa, &ta) in frames.iter().enumerate() {
+            for c in 0..3 {
+                g[3 * ta + c] += irls * accel_weight * coefficients[fa] * a[c];
+                for (fb, &tb) in frames.iter().enumerate() {
+                    if tb <= ta {
+                        let v = irls * accel_weight * coefficients[fa] * coefficients[fb];
+                        h.add(3 * ta + c, 3 * tb + c, v);
+                    }
+                }
+            }
+        }
+    }
+    (h, g)
+}
+
+/// Smooths the root translation track.
+pub fn smooth_translation_track(
+    input: &[DVec3],
+    w: &SmoothingWeights,
+) -> Result<(Vec<DVec3>, TrackReport), SmoothError> {
+    w.validate()?;
+    if let Some(frame) = input.iter().position(|v| !v.is_finite()) {
+        return Err(SmoothError::NotFinite { frame });
+    }
+    levenberg_marquardt(
+        input.to_vec(),
+        w.max_iterations,
+        |track| translation_energy(track, input, w),
+        |track| translation_normal_equations(track, input, w),
+        |track, step| {
+            track
+                .iter()
+                .enumerate()
+                .map(|(t, x)| *x + DVec3::new(step[3 * t], step[3 * t + 1], step[3 * t + 2]))
+                .collect()
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_core::rotation::matrix_to_axis_angle;
+    use std::f64::consts::PI;
+
+    fn angle_between(a: DMat3, b: DMat3) -> f64 {
+        matrix_to_axis_angle(a.transpose() * b).length()
+    }
+
+    /// Deterministic noise in [-1, 1].
+    fn noise(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+
+    fn max_abs(m: DMat3) -> f64 {
+        m.to_cols_array()
+            .iter()
+            .fold(0.0_f64, |a, x| a.max(x.abs()))
+    }
+
+    #[test]
+    fn acceleration_jacobian_matches_central_differences() {
+        let p = axis_angle_to_matrix(DVec3::new(0.3, -1.2, 0.4));
+        let c = axis_angle_to_matrix(DVec3::new(0.1, 2.9, -0.2));
+        let x = axis_angle_to_matrix(DVec3::new(-3.0, 0.1, 0.05));
+        let jac = rotation_acceleration_jacobian(p, c, x);
+        let h = 1e-6;
+        for frame in 0..3 {
+            for (i, e) in BASIS.iter().enumerate() {
+                let perturb = |sign: f64| {
+                    let d = axis_angle_to_matrix(*e * (sign * h));
+                    let mut m = [p, c, x];
+                    m[frame] *= d;
+                    rotation_acceleration(m[0], m[1], m[2])
+                };
+                let fd = (perturb(1.0) - perturb(-1.0)) * (0.5 / h);
+                assert!(max_abs(fd - jac[frame][i]) < 1e-8, "frame {frame} comp {i}");
+            }
+        }
+    }
+
+    /// The normal equations' gradient is half the gradient of the energy (E = |r|^2), checked
+    /// by central differences of the energy along each tangent direction.
+    #[test]
+    fn normal_equation_gradient_matches_energy_differences() {
+        let w = SmoothingWeights {
+            robust_threshold: 0.5, // most residuals far in the kernel's tail
+            ..SmoothingWeights::default()
+        };
+        let mut seed = 3;
+        let input: Vec<DMat3> = (0..6)
+            .map(|t| {
+                axis_angle_to_matrix(DVec3::new(
+                    0.2 * t as f64 + 0.05 * noise(&mut seed),
+                    0.1 * noise(&mut seed),
+                    3.0 + 0.1 * noise(&mut seed),
+                ))
+            })
+            .collect();
+        let track: Vec<DMat3> = input
+            .iter()
+            .map(|r| {
+                *r * axis_angle_to_matrix(DVec3::new(
+                    0.02 * noise(&mut seed),
+                    0.02 * noise(&mut seed),
+                    0.02 * noise(&mut seed),
+                ))
+            })
+            .collect();
+        let (_, g) = rotation_normal_equations(&track, &input, &w);
+        let h = 1e-6;
+        for t in 0..track.len() {
+            for (i, e) in BASIS.iter().enumerate() {
+                let energy_at = |sign: f64| {
+                    let mut m = track.clone();
+                    m[t] *= axis_angle_to_matrix(*e * (sign * h));
+                    rotation_energy(&m, &input, &w)
+                };
+                let fd = (energy_at(1.0) - energy_at(-1.0)) / (2.0 * h);
+                let tol = 1e-5 * fd.abs().max(1.0);
+                assert!(
+                    (fd - 2.0 * g[3 * t + i]).abs() < tol,
+                    "t={t} i={i}: {fd} vs {}",
+                    2.0 * g[3 * t + i]
+                );
+            }
+        }
+        // Translation, likewise.
+        let tin: Vec<DVec3> = (0..6)
+            .map(|t| DVec3::new(t as f64 * 0.1, noise(&mut seed), 0.0))
+            .collect();
+        let ttrack: Vec<DVec3> = tin
+            .iter()
+            .map(|v| *v + DVec3::splat(0.01 * noise(&mut seed)))
+            .collect();
+        let (_, g) = translation_normal_equations(&ttrack, &tin, &w);
+        for t in 0..6 {
+            for c in 0..3 {
+                let energy_at = |sign: f64| {
+                    let mut m = ttrack.clone();
+                    m[t][c] += sign * h;
+                    translation_energy(&m, &tin, &w)
+                };
+                let fd = (energy_at(1.0) - energy_at(-1.0)) / (2.0 * h);
+                assert!((fd - 2.0 * g[3 * t + c]).abs() < 1e-4 * fd.abs().max(1.0));
+            }
+        }
+    }
+
+    #[test]
+    fn smoothing_reduces_rotation_error_of_a_jittered_track() {
+        let w = SmoothingWeights::default();
+        let mut seed = 11;
+        let n = 120;
+        let truth: Vec<DMat3> = (0..n)
+            .map(|t| {
+                let s = t as f64 / 30.0;
+                axis_angle_to_matrix(DVec3::new(0.8 * s.sin(), 0.5 * (1.3 * s).cos(), 0.3 * s))
+            })
+            .collect();
+        let sigma = 2.0_f64.to_radians();
+        let noisy: Vec<DMat3> = truth
+            .iter()
+            .map(|r| {
+                *r * axis_angle_to_matrix(DVec3::new(
+                    sigma * noise(&mut seed),
+                    sigma * noise(&mut seed),
+                    sigma * noise(&mut seed),
+                ))
+            })
+            .collect();
+        let (smooth, report) = smooth_rotation_track(&noisy, &w).unwrap();
+        assert!(report.final_energy < report.initial_energy);
+        let err = |track: &[DMat3]| {
+            track
+                .iter()
+                .zip(&truth)
+                .map(|(a, b)| angle_between(*a, *b))
+                .sum::<f64>()
+                / n as f64
+        };
+        let (before, after) = (err(&noisy), err(&smooth));
+        println!(
+            "rotation error before {:.4} deg after {:.4} deg",
+            before.to_degrees(),
+            after.to_degrees()
+        );
+        assert!(after < 0.6 * before, "{before} -> {after}");
+    }
+
+    #[test]
+    fn tracks_near_pi_and_through_a_flip_stay_finite_and_keep_the_flip() {
+        let w = SmoothingWeights::default();
+        // A joint rotating slowly around pi about z (crossing the log's discontinuity).
+        let near_pi: Vec<DMat3> = (0..40)
+            .map(|t| axis_angle_to_matrix(DVec3::Z * (PI - 0.05 + 0.0025 * t as f64)))
+            .collect();
+        let (out, _) = smooth_rotation_track(&near_pi, &w).unwrap();
+        for (a, b) in out.iter().zip(&near_pi) {
+            assert!(
+                angle_between(*a, *b) < 1e-6,
+                "a constant-rate track is already smooth"
+            );
+        }
+        // A 180-degree flip between frames 19 and 20.
+        let flip: Vec<DMat3> = (0..40)
+            .map(|t| {
+                let base = axis_angle_to_matrix(DVec3::new(0.01 * t as f64, 0.2, 0.0));
+                if t >= 20 {
+                    axis_angle_to_matrix(DVec3::X * PI) * base
+                } else {
+                    base
+                }
+            })
+            .collect();
+        let (out, _) = smooth_rotation_track(&flip, &w).unwrap();
+        assert!(
+            out.iter()
+                .all(|m| m.to_cols_array().iter().all(|x| x.is_finite()))
+        );
+        for t in 0..40 {
+            let moved = angle_between(out[t], flip[t]);
+            let far = !(17..=22).contains(&t);
+            if far {
+                assert!(moved < 2.0_f64.to_radians(), "t={t} moved {moved}");
+            }
+        }
+        assert!(angle_between(out[19], out[20]) > 2.5, "the flip survives");
+    }
+
+    #[test]
+    fn teleporting_translation_is_kept_and_noise_is_reduced() {
+        let w = SmoothingWeights::default();
+        let mut seed = 5;
+        let n = 60;
+        let truth: Vec<DVec3> = (0..n)
+            .map(|t| {
+                let jump = if t >= 30 { 3.0 } else { 0.0 };
+                DVec3::new(0.01 * t as f64 + jump, 0.9, 0.02 * (t as f64 / 10.0).sin())
+            })
+            .collect();
+        let noisy: Vec<DVec3> = truth
+            .iter()
+            .map(|v| *v + DVec3::new(noise(&mut seed), noise(&mut seed), noise(&mut seed)) * 0.01)
+            .collect();
+        let (out, _) = smooth_translation_track(&noisy, &w).unwrap();
+        assert!(
+            (out[30].x - out[29].x) > 2.9,
+            "the teleport survives: {}",
+            out[30].x - out[29].x
+        );
+        let err = |track: &[DVec3]| -> f64 {
+            track
+                .iter()
+                .zip(&truth)
+                .enumerate()
+                .filter(|(t, _)| !(27..=32).contains(t))
+                .map(|(_, (a, b))| (*a - *b).length())
+                .sum()
+        };
+        assert!(
+            err(&out) < 0.7 * err(&noisy),
+            "{} -> {}",
+            err(&noisy),
+            err(&out)
+        );
+    }
+
+    #[test]
+    fn short_tracks_and_bad_input() {
+        let w = SmoothingWeights::default();
+        let one = vec![axis_angle_to_matrix(DVec3::new(0.1, 0.2, 0.3))];
+        let (out, _) = smooth_rotation_track(&one, &w).unwrap();
+        assert!(max_abs(out[0] - one[0]) < 1e-12);
+        let (out, _) = smooth_rotation_track(&[], &w).unwrap();
+        assert!(out.is_empty());
+        let (out, _) = smooth_translation_track(&[DVec3::ONE, DVec3::ZERO], &w).unwrap();
+        assert_eq!(out, vec![DVec3::ONE, DVec3::ZERO]);
+        let mut bad = vec![DMat3::IDENTITY; 3];
+        bad[1].x_axis.y = f64::NAN;
+        assert_eq!(
+            smooth_rotation_track(&bad, &w).unwrap_err(),
+            SmoothError::NotFinite { frame: 1 }
+        );
+        assert_eq!(
+            smooth_translation_track(&[DVec3::ZERO, DVec3::NAN], &w).unwrap_err(),
+            SmoothError::NotFinite { frame: 1 }
+        );
+        let zero = SmoothingWeights {
+            rotation_noise: 0.0,
+            ..w
+        };
+        assert!(matches!(
+            smooth_rotation_track(&one, &zero),
+            Err(SmoothError::BadWeight { .. })
+        ));
+    }
+}

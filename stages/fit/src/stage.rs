@@ -1,0 +1,249 @@
+//! The `fit` stage kind: configuration, run, and its picture.
+//!
+//! Output arrays (same names and layout as the ingest stage's parameter arrays):
+//! `body_pose`, `body_world_rotation`, `body_world_translation`, `body_betas` and, when the
+//! input has it, `body_expression`; plus the report arrays `jitter_before` and
+//! `jitter_after` f64 `(frame)`: per-frame joint jitter (mean over joints of the second
+//! difference of world joint positions, metres per frame squared). Attributes:
+//! `mode`, `mean_jitter_before`, `mean_jitter_after`, and for the synthetic scene (input with
+//! `gt_` arrays) `joint_error_before`/`_after` (mean joint position error against ground
+//! truth, metres) and `velocity_error_before`/`_after` (mean template vertex velocity error
+//! against ground truth, metres per frame).
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use seqavatar_engine::{
+    ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
+};
+
+use crate::io::BodySequence;
+use crate::plot;
+use crate::refine::{
+    joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
+};
+use crate::smooth::SmoothingWeights;
+use seqavatar_ingest::read_body_model;
+
+/// What the stage does with the input fits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum FitMode {
+    /// Pass the fits through unchanged (no solve).
+    Off,
+    /// Data term (stay close to the input fit) plus temporal term, per track.
+    #[default]
+    Smooth,
+}
+
+/// The `fit` stage configuration (all fields optional in the YAML).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FitConfig {
+    pub mode: FitMode,
+    /// Expected error of an input joint rotation, degrees.
+    pub rotation_noise_deg: f64,
+    /// Expected angular acceleration of a joint, degrees per frame squared.
+    pub rotation_acceleration_deg: f64,
+    /// Expected error of an input translation, metres.
+    pub translation_noise_m: f64,
+    /// Expected acceleration of the translation, metres per frame squared.
+    pub translation_acceleration_m: f64,
+    /// Scale of the Cauchy kernel on acceleration residuals, in standard deviations: much
+    /// larger jumps are treated as genuine (a flip, a teleport) and kept sharp.
+    pub robust_threshold: f64,
+    /// Levenberg-Marquardt iteration limit per track.
+    pub max_iterations: usize,
+}
+
+impl Default for FitConfig {
+    fn default() -> Self {
+        let w = SmoothingWeights::default();
+        Self {
+            mode: FitMode::Smooth,
+            rotation_noise_deg: w.rotation_noise.to_degrees(),
+            rotation_acceleration_deg: w.rotation_acceleration.to_degrees(),
+            translation_noise_m: w.translation_noise,
+            translation_acceleration_m: w.translation_acceleration,
+            robust_threshold: w.robust_threshold,
+            max_iterations: w.max_iterations,
+        }
+    }
+}
+
+impl FitConfig {
+    /// The solver weights in radians.
+    pub fn weights(&self) -> SmoothingWeights {
+        SmoothingWeights {
+            rotation_noise: self.rotation_noise_deg.to_radians(),
+            rotation_acceleration: self.rotation_acceleration_deg.to_radians(),
+            translation_noise: self.translation_noise_m,
+            translation_acceleration: self.translation_acceleration_m,
+            robust_threshold: self.robust_threshold,
+            max_iterations: self.max_iterations,
+        }
+    }
+}
+
+/// The stage kind.
+pub struct FitStage;
+
+/// Bump whenever the code changes the result.
+const VERSION: u32 = 1;
+
+impl StageKind for FitStage {
+    fn kind(&self) -> &'static str {
+        "fit"
+    }
+
+    fn version(&self) -> u32 {
+        VERSION
+    }
+
+    fn input_kinds(&self) -> &'static [&'static str] {
+        &["ingest"]
+    }
+
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
+        let resolved = seqavatar_engine::resolve_typed::<FitConfig>(raw)?;
+        let config: FitConfig = serde_json::from_value(resolved.clone())
+            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+        if let Err(e) = config.weights().validate() {
+            // Name the YAML field: the error names the solver's field.
+            let field = match &e {
+                crate::smooth::SmoothError::BadWeight { name, .. } => match *name {
+                    "rotation_noise" => "rotation_noise_deg",
+                    "rotation_acceleration" => "rotation_acceleration_deg",
+                    "translation_noise" => "translation_noise_m",
+                    "translation_acceleration" => "translation_acceleration_m",
+                    other => other,
+                },
+                _ => "mode",
+            };
+            return Err(ConfigError::at_key(field, e.to_string()));
+        }
+        Ok(resolved)
+    }
+
+    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        let config: FitConfig = ctx.config()?;
+        let ingest = ctx.input("ingest")?.clone();
+        let input = BodySequence::read(&ingest, "body")?;
+        let model = read_body_model(&ingest)?;
+        let output = match config.mode {
+            FitMode::Off => input.clone(),
+            FitMode::Smooth => {
+                let started = std::time::Instant::now();
+                let (refined, summary) =
+                    refine_sequence(&input, &config.weights()).with_context(|| {
+                        format!("entry {}: refining the body fits", ingest.location())
+                    })?;
+                ctx.log(&format!(
+                    "smoothed {} frames x {} joints in {:.2} s: energy {:.4e} -> {:.4e}, at most {} iterations per track",
+                    input.num_frames,
+                    input.num_joints,
+                    started.elapsed().as_secs_f64(),
+                    summary.energy_before,
+                    summary.energy_after,
+                    summary.max_iterations_used
+                ));
+                if summary.betas_averaged {
+                    ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
+                }
+                refined
+            }
+        };
+        output.write(ctx.output(), &model)?;
+
+        let (f, j) = (input.num_frames, input.num_joints);
+        let joints_before = joint_positions(&model, &input)?;
+        let joints_after = joint_positions(&model, &output)?;
+        let jitter_before = joint_jitter(&joints_before, f, j);
+        let jitter_after = joint_jitter(&joints_after, f, j);
+        let chunk = f.clamp(1, 1024) as u64;
+        let out = ctx.output();
+        out.write_array(
+            "jitter_before",
+            &["frame"],
+            &[f as u64],
+            &[chunk],
+            &jitter_before,
+        )?;
+        out.write_array(
+            "jitter_after",
+            &["frame"],
+            &[f as u64],
+            &[chunk],
+            &jitter_after,
+        )?;
+        let mean = |v: &[f64]| {
+            if v.is_empty() {
+                0.0
+            } else {
+                v.iter().sum::<f64>() / v.len() as f64
+            }
+        };
+        let (mb, ma) = (mean(&jitter_before), mean(&jitter_after));
+        out.set_attribute("mode", serde_json::to_value(config.mode)?)?;
+        out.set_attribute("mean_jitter_before", mb.into())?;
+        out.set_attribute("mean_jitter_after", ma.into())?;
+        ctx.log(&format!("mean joint jitter {mb:.3e} -> {ma:.3e} m/frame^2"));
+
+        if ingest.array_names().iter().any(|n| n == "gt_body_pose") {
+            let truth = BodySequence::read(&ingest, "gt_body")?;
+            anyhow::ensure!(
+                truth.num_frames == f && truth.num_joints == j,
+                "entry {}: gt_ arrays have {} frames x {} joints, the fits {f} x {j}",
+                ingest.location(),
+                truth.num_frames,
+                truth.num_joints
+            );
+            let joints_truth = joint_positions(&model, &truth)?;
+            let je_before = mean_distance(&joints_before, &joints_truth);
+            let je_after = mean_distance(&joints_after, &joints_truth);
+            let ve_before = vertex_velocity_error(&model, &input, &truth)?;
+            let ve_after = vertex_velocity_error(&model, &output, &truth)?;
+            out.set_attribute("joint_error_before", je_before.into())?;
+            out.set_attribute("joint_error_after", je_after.into())?;
+            out.set_attribute("velocity_error_before", ve_before.into())?;
+            out.set_attribute("velocity_error_after", ve_after.into())?;
+            ctx.log(&format!(
+                "against ground truth: joint error {:.2} -> {:.2} mm, vertex velocity error {:.3} -> {:.3} mm/frame",
+                je_before * 1e3,
+                je_after * 1e3,
+                ve_before * 1e3,
+                ve_after * 1e3
+            ));
+        }
+        Ok(())
+    }
+
+    fn pictures(&self) -> Vec<PictureKind> {
+        vec![PictureKind {
+            name: "jitter",
+            description: "per-frame joint jitter before (blue) and after (orange) refinement; options: width, height",
+        }]
+    }
+
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        anyhow::ensure!(
+            picture == "jitter",
+            "stage kind \"fit\" has no picture named \"{picture}\" (it has: jitter)"
+        );
+        let unknown = options.unknown_keys(&["width", "height"]);
+        anyhow::ensure!(
+            unknown.is_empty(),
+            "picture jitter: unknown options {unknown:?} (known: width, height)"
+        );
+        let width = options.get_u64("width", 800)?.clamp(64, 8192) as u32;
+        let height = options.get_u64("height", 300)?.clamp(48, 8192) as u32;
+        let before = entry.read::<f64>("jitter_before")?.data;
+        let after = entry.read::<f64>("jitter_after")?.data;
+        Ok(plot::line_plot(width, height, &[before, after]))
+    }
+}

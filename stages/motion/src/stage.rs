@@ -1,0 +1,609 @@
+//! The `motion` stage kind: configuration, run, pictures.
+//!
+//! Inputs: an `ingest` entry (body model, cameras, frame axis) and optionally a `fit` entry
+//! (refined parameters; without one the ingest fits are used).
+//!
+//! Output arrays (per-frame arrays are chunked one frame per chunk, so a run reads only the
+//! frames its windows touch; scale slots are ordered largest scale first):
+//! - `posed_vertices` f32 `(frame, vertex, xyz)`: world-space posed template.
+//! - `joint_rotations` f32 `(frame, joint, row, col)`: root world orientation, then local
+//!   joint rotations.
+//! - `skeleton_motion` f32 `(frame, scale, joint, xyz)`: axis-angle of `R_t R_{t-s}^-1`.
+//! - `vertex_velocity` f32 `(frame, scale, vertex, xyz)`.
+//! - `scales` u32 `(scale)` raw frames; `scale_steps` u32 `(scale)` frames on the frame axis.
+//! - `frame_source_id` i64 `(frame)` (copied from ingest).
+//! - `canonical_vertices` f32 `(vertex, xyz)`; `canonical_knn` u32 and
+//!   `canonical_knn_distance` f32 `(vertex, neighbour)`, nearest first, self first.
+//! - `camera_K`, `camera_R` f64 `(view, row, col)`, `camera_t` f64 `(view, xyz)`,
+//!   `camera_image_size` u32 `(view, hw)` (copied from ingest, for pictures).
+//!
+//! A training window `(t, L, S)` is [`crate::window`]`(t, L, scale_steps)`: a gather of rows of
+//! `skeleton_motion` and `vertex_velocity`. `L` is not part of this stage's config, so the
+//! entry is shared by every training run.
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use seqavatar_core::camera::{Camera, Intrinsics};
+use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_engine::{
+    ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
+};
+use seqavatar_fit::io::BodySequence;
+use seqavatar_fit::plot;
+use seqavatar_ingest::read_body_model;
+
+use crate::compute::{canonical_template, compute_motion};
+use crate::context::{Scales, VelocityNormalisation};
+
+/// The `motion` stage configuration: only what changes the motion templates.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MotionConfig {
+    /// Every sampling scale any run may ask for, in raw video frames (multiples of the
+    /// ingest `frame_interval`). Stored largest first.
+    pub scales: Vec<u32>,
+    /// How displacements become velocities (`kind: per_scale` or
+    /// `kind: reference, multi: 300`).
+    pub velocity: VelocityNormalisation,
+    /// Neighbours per vertex in the canonical KNN graph (self included).
+    pub knn: usize,
+}
+
+impl Default for MotionConfig {
+    fn default() -> Self {
+        Self {
+            scales: vec![3, 2, 1],
+            velocity: VelocityNormalisation::PerScale,
+            knn: 8,
+        }
+    }
+}
+
+/// The stage kind.
+pub struct MotionStage;
+
+/// Bump whenever the code changes the result.
+const VERSION: u32 = 1;
+
+fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
+    let value = ingest.attribute("frame_interval").ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {}: attribute `frame_interval` is missing",
+            ingest.location()
+        )
+    })?;
+    value
+        .as_u64()
+        .filter(|&v| v >= 1 && v <= u64::from(u32::MAX))
+        .map(|v| v as u32)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "entry {}: attribute `frame_interval` = {value} is not a positive integer",
+                ingest.location()
+            )
+        })
+}
+
+impl StageKind for MotionStage {
+    fn kind(&self) -> &'static str {
+        "motion"
+    }
+
+    fn version(&self) -> u32 {
+        VERSION
+    }
+
+    fn input_kinds(&self) -> &'static [&'static str] {
+        &["ingest", "fit"]
+    }
+
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
+        let resolved = seqavatar_engine::resolve_typed::<MotionConfig>(raw)?;
+        let mut config: MotionConfig = serde_json::from_value(resolved)
+            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+        // Interval 1 checks everything but divisibility, which needs the ingest entry.
+        let scales = Scales::new(&config.scales, 1)
+            .map_err(|e| ConfigError::at_key("scales", e.to_string()))?;
+        if config.knn == 0 {
+            return Err(ConfigError::at_key("knn", "knn must be at least 1"));
+        }
+        if let VelocityNormalisation::Reference { multi } = config.velocity
+            && !(multi.is_finite() && multi > 0.0)
+        {
+            return Err(ConfigError::at_key(
+                "velocity",
+                format!("multi = {multi} must be positive and finite"),
+            ));
+        }
+        // Canonical order (largest first) so [1, 2, 3] and [3, 2, 1] share a key.
+        config.scales = scales.raw;
+        serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
+    }
+
+    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        let config: MotionConfig = ctx.config()?;
+        let ingest = ctx.input("ingest")?.clone();
+        let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
+        let params_entry = fit.as_ref().unwrap_or(&ingest);
+        let interval = frame_interval(&ingest)?;
+        let scales = Scales::new(&config.scales, interval)
+            .with_context(|| format!("config `scales` against entry {}", ingest.location()))?;
+        let model = read_body_model(&ingest)?;
+        let sequence = BodySequence::read(params_entry, "body")?;
+        let started = std::time::Instant::now();
+        let motion = compute_motion(&model, &sequence, &scales, config.velocity)
+            .with_context(|| format!("posing the fits of entry {}", params_entry.location()))?;
+        let (canonical, graph) = canonical_template(&model, config.knn)?;
+        let seconds = started.elapsed().as_secs_f64();
+        ctx.log(&format!(
+            "motion templates for {} frames x {} vertices x {} scales in {:.2} s ({:.2} ms per frame)",
+            motion.num_frames,
+            motion.num_vertices,
+            scales.len(),
+            seconds,
+            1e3 * seconds / motion.num_frames.max(1) as f64
+        ));
+
+        let out = ctx.output();
+        let (f, v, j, s) = (
+            motion.num_frames as u64,
+            motion.num_vertices as u64,
+            motion.num_joints as u64,
+            scales.len() as u64,
+        );
+        out.write_array(
+            "posed_vertices",
+            &["frame", "vertex", "xyz"],
+            &[f, v, 3],
+            &[1, v, 3],
+            &motion.posed_vertices,
+        )?;
+        out.write_array(
+            "joint_rotations",
+            &["frame", "joint", "row", "col"],
+            &[f, j, 3, 3],
+            &[1, j, 3, 3],
+            &motion.joint_rotations,
+        )?;
+        out.write_array(
+            "skeleton_motion",
+            &["frame", "scale", "joint", "xyz"],
+            &[f, s, j, 3],
+            &[1, s, j, 3],
+            &motion.skeleton_motion,
+        )?;
+        out.write_array(
+            "vertex_velocity",
+            &["frame", "scale", "vertex", "xyz"],
+            &[f, s, v, 3],
+            &[1, s, v, 3],
+            &motion.vertex_velocity,
+        )?;
+        out.write_array("scales", &["scale"], &[s], &[s], &scales.raw)?;
+        let steps: Vec<u32> = scales.steps.iter().map(|&k| k as u32).collect();
+        out.write_array("scale_steps", &["scale"], &[s], &[s], &steps)?;
+        let flat: Vec<f32> = canonical.iter().flatten().copied().collect();
+        out.write_array(
+            "canonical_vertices",
+            &["vertex", "xyz"],
+            &[v, 3],
+            &[v, 3],
+            &flat,
+        )?;
+        let k = graph.k as u64;
+        out.write_array(
+            "canonical_knn",
+            &["vertex", "neighbour"],
+            &[v, k],
+            &[v, k],
+            &graph.indices,
+        )?;
+        out.write_array(
+            "canonical_knn_distance",
+            &["vertex", "neighbour"],
+            &[v, k],
+            &[v, k],
+            &graph.distances,
+        )?;
+        let names = ingest.array_names();
+        if names.iter().any(|n| n == "frame_source_id") {
+            let ids = ingest.read::<i64>("frame_source_id")?;
+            anyhow::ensure!(
+                ids.len() as u64 == f,
+                "entry {}: `frame_source_id` has {} frames, the body parameters {f}",
+                ingest.location(),
+                ids.len()
+            );
+            out.write_array("frame_source_id", &["frame"], &[f], &[f.max(1)], &ids.data)?;
+        }
+        for (name, dims) in [
+            ("camera_K", &["view", "row", "col"][..]),
+            ("camera_R", &["view", "row", "col"][..]),
+            ("camera_t", &["view", "xyz"][..]),
+        ] {
+            if names.iter().any(|n| n == name) {
+                let a = ingest.read::<f64>(name)?;
+                let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+                out.write_array(
+                    name,
+                    dims,
+                    &shape,
+                    &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
+                    &a.data,
+                )?;
+            }
+        }
+        if names.iter().any(|n| n == "camera_image_size") {
+            let a = ingest.read::<u32>("camera_image_size")?;
+            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+            out.write_array(
+                "camera_image_size",
+                &["view", "hw"],
+                &shape,
+                &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
+                &a.data,
+            )?;
+        }
+        out.set_attribute("frame_interval", interval.into())?;
+        out.set_attribute("velocity", serde_json::to_value(config.velocity)?)?;
+        Ok(())
+    }
+
+    fn pictures(&self) -> Vec<PictureKind> {
+        vec![
+            PictureKind {
+                name: "speed",
+                description: "posed template seen from a dataset camera, coloured by vertex speed, with a colour bar; options: frame, scale (raw frames), view, max (speed at the top of the bar), radius",
+            },
+            PictureKind {
+                name: "skeleton_motion",
+                description: "per-joint skeleton-motion magnitude (radians) over frames, one line per joint; options: scale (raw frames), width, height",
+            },
+        ]
+    }
+
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        match picture {
+            "speed" => draw_speed(entry, options),
+            "skeleton_motion" => draw_skeleton_motion(entry, options),
+            _ => anyhow::bail!(
+                "stage kind \"motion\" has no picture named \"{picture}\" (it has: speed, skeleton_motion)"
+            ),
+        }
+    }
+}
+
+/// The scale slot of a raw scale given as a picture option (default: the smallest scale).
+fn scale_slot(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<(usize, u32)> {
+    let scales = entry.read::<u32>("scales")?.data;
+    anyhow::ensure!(
+        !scales.is_empty(),
+        "entry {}: `scales` is empty",
+        entry.location()
+    );
+    let smallest = *scales.iter().min().expect("non-empty");
+    let wanted = options.get_u64("scale", u64::from(smallest))?;
+    let slot = scales
+        .iter()
+        .position(|&s| u64::from(s) == wanted)
+        .ok_or_else(|| {
+            anyhow::anyhow!("picture option scale={wanted}: the entry has scales {scales:?}")
+        })?;
+    Ok((slot, scales[slot]))
+}
+
+fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<image::RgbImage> {
+    let unknown = options.unknown_keys(&["frame", "scale", "view", "max", "radius"]);
+    anyhow::ensure!(
+        unknown.is_empty(),
+        "picture speed: unknown options {unknown:?}"
+    );
+    let shape = entry.shape("posed_vertices")?;
+    let (num_frames, num_vertices) = (shape[0], shape[1]);
+    anyhow::ensure!(num_frames > 0, "entry {}: no frames", entry.location());
+    let frame = options.get_u64("frame", num_frames / 2)?;
+    anyhow::ensure!(
+        frame < num_frames,
+        "picture option frame={frame}: the entry has {num_frames} frames"
+    );
+    let (slot, _) = scale_slot(entry, options)?;
+    let view = options.get_u64("view", 0)? as usize;
+    let radius = options.get_u64("radius", 2)?.min(20) as i64;
+    let posed = entry
+        .read_region::<f32>("posed_vertices", &[frame, 0, 0], &[1, num_vertices, 3])?
+        .data;
+    let velocity = entry
+        .read_region::<f32>(
+            "vertex_velocity",
+            &[frame, slot as u64, 0, 0],
+            &[1, 1, num_vertices, 3],
+        )?
+        .data;
+    let speeds: Vec<f64> = velocity
+        .chunks_exact(3)
+        .map(|c| {
+            f64::from(c[0])
+                .hypot(f64::from(c[1]))
+                .hypot(f64::from(c[2]))
+        })
+        .collect();
+    let auto_max = speeds.iter().copied().fold(0.0_f64, f64::max);
+    let max = options.get_f64("max", auto_max)?.max(1e-12);
+    let camera = read_camera(entry, view)?;
+    let bar = 70;
+    let mut img = image::RgbImage::from_pixel(camera.width + bar, camera.height, plot::WHITE);
+    let points: Vec<(f64, f64, f64, image::Rgb<u8>)> = posed
+        .chunks_exact(3)
+        .zip(&speeds)
+        .filter_map(|(p, &speed)| {
+            let world = DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let pixel = camera.project(world)?;
+            let depth = camera.world_to_camera(world).z;
+            Some((pixel.x, pixel.y, depth, plot::colour_map(speed / max)))
+        })
+        .collect();
+    plot::splat_points(&mut img, &points, radius);
+    let (w, h) = (i64::from(camera.width), i64::from(camera.height));
+    plot::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
+    Ok(img)
+}
+
+fn read_camera(entry: &EntryReader, view: usize) -> anyhow::Result<Camera> {
+    let k = entry.read::<f64>("camera_K")?;
+    let r = entry.read::<f64>("camera_R")?;
+    let t = entry.read::<f64>("camera_t")?;
+    let size = entry.read::<u32>("camera_image_size")?;
+    let views = k.shape[0];
+    anyhow::ensure!(
+        view < views,
+        "picture option view={view}: the entry has {views} views"
+    );
+    let kk = &k.data[view * 9..view * 9 + 9];
+    let rr = &r.data[view * 9..view * 9 + 9];
+    let tt = &t.data[view * 3..view * 3 + 3];
+    let hw = &size.data[view * 2..view * 2 + 2];
+    let camera = Camera {
+        width: hw[1],
+        height: hw[0],
+        intrinsics: Intrinsics {
+            fx: kk[0],
+            fy: kk[4],
+            cx: kk[2],
+            cy: kk[5],
+        },
+        rotation: DMat3::from_cols_array(&[
+            rr[0], rr[3], rr[6], rr[1], rr[4], rr[7], rr[2], rr[5], rr[8],
+        ]),
+        translation: DVec3::new(tt[0], tt[1], tt[2]),
+        distortion: [0.0; 5],
+    };
+    camera
+        .validate()
+        .with_context(|| format!("entry {}: camera of view {view}", entry.location()))?;
+    Ok(camera)
+}
+
+fn draw_skeleton_motion(
+    entry: &EntryReader,
+    options: &PictureOptions,
+) -> anyhow::Result<image::RgbImage> {
+    let unknown = options.unknown_keys(&["scale", "width", "height"]);
+    anyhow::ensure!(
+        unknown.is_empty(),
+        "picture skeleton_motion: unknown options {unknown:?}"
+    );
+    let (slot, _) = scale_slot(entry, options)?;
+    let motion = entry.read::<f32>("skeleton_motion")?;
+    let (f, s, j) = (motion.shape[0], motion.shape[1], motion.shape[2]);
+    let series: Vec<Vec<f64>> = (0..j)
+        .map(|joint| {
+            (0..f)
+                .map(|t| {
+                    let at = ((t * s + slot) * j + joint) * 3;
+                    let c = &motion.data[at..at + 3];
+                    f64::from(c[0])
+                        .hypot(f64::from(c[1]))
+                        .hypot(f64::from(c[2]))
+                })
+                .collect()
+        })
+        .collect();
+    let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
+    let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
+    Ok(plot::line_plot(width, height, &series))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_engine::{
+        EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, compute_keys, run,
+    };
+    use std::path::Path;
+
+    /// A tiny synthetic scene through ingest, fit and motion.
+    const PIPELINE: &str = r#"
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {kind: synthetic, cameras: 2, frames: 9, width: 32, height: 32, supersample: 1, garment: false, body_grid_spacing: 0.04}
+      past_frames: 0
+  - name: fit
+    kind: fit
+    inputs: [ingest]
+  - name: motion
+    kind: motion
+    inputs: [ingest, fit]
+    config: {scales: [1, 3], knn: 4}
+"#;
+
+    fn registry() -> Registry {
+        let mut registry = Registry::new();
+        seqavatar_ingest::register(&mut registry);
+        seqavatar_fit::register(&mut registry);
+        crate::register(&mut registry);
+        registry.add(Box::new(TrainingSettingsProbe));
+        registry
+    }
+
+    /// Test fixture standing for any downstream consumer with training settings (sequence
+    /// length, iterations): only its own key may change when those change.
+    struct TrainingSettingsProbe;
+
+    impl StageKind for TrainingSettingsProbe {
+        fn kind(&self) -> &'static str {
+            "training_settings_probe"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &["motion"]
+        }
+        fn resolve_config(
+            &self,
+            raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            Ok(raw.clone())
+        }
+        fn run(&self, _ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            anyhow::bail!("never run")
+        }
+    }
+
+    fn keys(text: &str, store: &LocalStore) -> std::collections::BTreeMap<String, String> {
+        let registry = registry();
+        let pipeline = Pipeline::parse(text, Path::new("test.yaml"), &registry, &[]).unwrap();
+        compute_keys(&pipeline, &registry, store)
+            .unwrap()
+            .into_iter()
+            .map(|(name, key)| (name, key.key))
+            .collect()
+    }
+
+    #[test]
+    fn changing_only_training_settings_keeps_the_motion_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let with = |length: u32, iterations: u32| {
+            format!(
+                "{PIPELINE}  - name: train\n    kind: training_settings_probe\n    inputs: [motion]\n    config: {{sequence_length: {length}, iterations: {iterations}}}\n"
+            )
+        };
+        let a = keys(&with(3, 3000), &store);
+        let b = keys(&with(8, 15000), &store);
+        assert_eq!(a["motion"], b["motion"]);
+        assert_eq!(a["fit"], b["fit"]);
+        assert_ne!(a["train"], b["train"]);
+        // Scale order is canonical; a different scale set is a different entry.
+        let reordered = keys(&PIPELINE.replace("[1, 3]", "[3, 1]"), &store);
+        assert_eq!(reordered["motion"], a["motion"]);
+        let other = keys(&PIPELINE.replace("[1, 3]", "[1, 2]"), &store);
+        assert_ne!(other["motion"], a["motion"]);
+        // Training settings cannot leak into the motion config.
+        let registry = registry();
+        let leaked = PIPELINE.replace("knn: 4}", "knn: 4, sequence_length: 8}");
+        assert!(Pipeline::parse(&leaked, Path::new("test.yaml"), &registry, &[]).is_err());
+    }
+
+    #[test]
+    fn motion_entry_is_consistent_with_its_definition() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let registry = registry();
+        let pipeline = Pipeline::parse(PIPELINE, Path::new("test.yaml"), &registry, &[]).unwrap();
+        let reports = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
+        let key = &reports.iter().find(|r| r.name == "motion").unwrap().key;
+        let entry = store.open_entry(&EntryId::new("motion", key)).unwrap();
+
+        let posed = entry.read::<f32>("posed_vertices").unwrap();
+        let velocity = entry.read::<f32>("vertex_velocity").unwrap();
+        let skeleton = entry.read::<f32>("skeleton_motion").unwrap();
+        let steps = entry.read::<u32>("scale_steps").unwrap().data;
+        assert_eq!(entry.read::<u32>("scales").unwrap().data, vec![3, 1]);
+        assert_eq!(steps, vec![3, 1]);
+        let (f, v) = (posed.shape[0], posed.shape[1]);
+        assert_eq!(f, 9);
+        assert_eq!(velocity.shape, vec![f, 2, v, 3]);
+        assert_eq!(skeleton.shape[..2], [f, 2]);
+        // Velocity is the displacement over the scale, zero at the first frame.
+        for t in 0..f {
+            for (slot, &k) in steps.iter().enumerate() {
+                let former = t.saturating_sub(k as usize);
+                for vertex in [0, v / 2, v - 1] {
+                    for c in 0..3 {
+                        let expected = (posed.data[(t * v + vertex) * 3 + c]
+                            - posed.data[(former * v + vertex) * 3 + c])
+                            / k as f32;
+                        let got = velocity.data[((t * 2 + slot) * v + vertex) * 3 + c];
+                        assert!((got - expected).abs() < 1e-5, "t={t} slot={slot}");
+                    }
+                }
+            }
+        }
+        // A window is a gather of these rows.
+        let w = crate::window(7, 3, &steps.iter().map(|&s| s as usize).collect::<Vec<_>>());
+        assert_eq!(w.frames, vec![7, 7, 4, 6, 1, 5]);
+        // The KNN graph starts with the vertex itself.
+        let knn = entry.read::<u32>("canonical_knn").unwrap();
+        assert_eq!(knn.shape, vec![v, 4]);
+        assert!((0..v).all(|i| knn.data[i * 4] == i as u32));
+        // Pictures draw.
+        let stage = MotionStage;
+        let speed = stage
+            .draw_picture(
+                &entry,
+                "speed",
+                &PictureOptions::parse(&["frame=5".into(), "scale=1".into()]).unwrap(),
+            )
+            .unwrap();
+        assert_eq!((speed.width(), speed.height()), (32 + 70, 32));
+        let plot = stage
+            .draw_picture(&entry, "skeleton_motion", &PictureOptions::default())
+            .unwrap();
+        assert!(plot.width() > 0);
+        assert!(
+            stage
+                .draw_picture(
+                    &entry,
+                    "speed",
+                    &PictureOptions::parse(&["scale=2".into()]).unwrap()
+                )
+                .is_err()
+        );
+        assert!(
+            stage
+                .draw_picture(
+                    &entry,
+                    "speed",
+                    &PictureOptions::parse(&["frame=9".into()]).unwrap()
+                )
+                .is_err()
+        );
+        // The fit entry reports jitter and, on the synthetic scene, ground-truth errors.
+        let fit_key = &reports.iter().find(|r| r.name == "fit").unwrap().key;
+        let fit = store.open_entry(&EntryId::new("fit", fit_key)).unwrap();
+        let before = fit
+            .attribute("joint_error_before")
+            .unwrap()
+            .as_f64()
+            .unwrap();
+        let after = fit
+            .attribute("joint_error_after")
+            .unwrap()
+            .as_f64()
+            .unwrap();
+        assert!(after < before, "{before} -> {after}");
+        let jitter = seqavatar_fit::FitStage
+            .draw_picture(&fit, "jitter", &PictureOptions::default())
+            .unwrap();
+        assert_eq!((jitter.width(), jitter.height()), (800, 300));
+    }
+}
