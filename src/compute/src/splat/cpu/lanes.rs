@@ -24,13 +24,15 @@ const TS: usize = TILE_SIZE as usize;
 const TILE_PIXELS: usize = TS * TS;
 /// Pixel-centre offsets of the lanes from the group's first column.
 const LANE_CENTRES: [f32; LANES] = [0.5, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5];
+/// How many list entries ahead a tile loop prefetches splats.
+const PREFETCH_DISTANCE: usize = 8;
 const THRESHOLD: f32 = ALPHA_THRESHOLD as f32;
 const ALPHA_MAX: f32 = MAX_ALPHA as f32;
 const T_MIN: f32 = MIN_TRANSMITTANCE as f32;
 
 /// `e^x` in `f32` for `x` in `[-87, 0]` (the rasteriser needs `[ln(1/255) - 0.01, 0]`):
 /// Cephes `expf`, range reduction by `n = round(x / ln 2)` with a two-part `ln 2`, a degree-6
-/// polynomial, and `2^n` built in the exponent bits. Branch-free so that it vectorises; an
+/// polynomial (Horner steps fused, `f32::mul_add`), and `2^n` built in the exponent bits. Branch-free so that it vectorises; an
 /// argument outside the range gives an unspecified value (never a panic), which the callers
 /// discard.
 #[inline(always)]
@@ -40,9 +42,9 @@ pub(super) fn fast_exp(x: f32) -> f32 {
     let r = x - n * LN2_HI - n * LN2_LO;
     let mut p = EXP_POLY[0];
     for &c in &EXP_POLY[1..] {
-        p = p * r + c;
+        p = p.mul_add(r, c);
     }
-    let y = p * r * r + r + 1.0;
+    let y = (p * r).mul_add(r, r) + 1.0;
     // `shifted` has the bits `0x4b40_0000 + n`; `2^n` has `(n + 127) << 23`.
     let scale = f32::from_bits(shifted.to_bits().wrapping_add(EXP_BIAS).wrapping_shl(23));
     y * scale
@@ -72,7 +74,7 @@ const EXP_POLY: [f32; 6] = [
 /// also carry `u32` values (contributor counts) through [`Lanes::select`] unchanged.
 ///
 /// The two implementations compute every lane with the same IEEE operations in the same
-/// order (no fused multiply-add), so they agree bit for bit.
+/// order (fused multiply-adds in `exp` in both, nowhere else), so they agree bit for bit.
 trait Lanes: Copy {
     fn splat(value: f32) -> Self;
     fn load(values: &[f32; LANES]) -> Self;
@@ -96,6 +98,8 @@ trait Lanes: Copy {
     fn mask_bits(self) -> u32;
     /// [`fast_exp`] per lane.
     fn exp(self) -> Self;
+    /// Hints that `value` will be read soon (a no-op where there is no such instruction).
+    fn prefetch<T>(value: &T);
 }
 
 /// The portable implementation (plain arrays; the compiler uses SSE2 where it can).
@@ -199,6 +203,8 @@ impl Lanes for Portable {
     fn exp(self) -> Self {
         Self(self.0.map(fast_exp))
     }
+    #[inline(always)]
+    fn prefetch<T>(_value: &T) {}
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -206,8 +212,8 @@ mod avx2 {
     //! [`Lanes`] on AVX2 registers.
     //!
     //! SAFETY (for every `unsafe` block below): [`Avx2`] values are only created inside
-    //! functions compiled with `#[target_feature(enable = "avx2")]`, which are only called
-    //! after `is_x86_feature_detected!("avx2")`; these `#[inline(always)]` methods are inlined
+    //! functions compiled with `#[target_feature(enable = "avx2,fma")]`, which are only
+    //! called after [`super::has_avx2`]; these `#[inline(always)]` methods are inlined
     //! into them.
 
     use std::arch::x86_64::*;
@@ -301,9 +307,9 @@ mod avx2 {
                 .sub(n.mul(Self::splat(super::LN2_LO)));
             let mut p = Self::splat(super::EXP_POLY[0]);
             for &c in &super::EXP_POLY[1..] {
-                p = p.mul(r).add(Self::splat(c));
+                p = Self(unsafe { _mm256_fmadd_ps(p.0, r.0, _mm256_set1_ps(c)) });
             }
-            let y = p.mul(r).mul(r).add(r).add(Self::splat(1.0));
+            let y = Self(unsafe { _mm256_fmadd_ps(p.mul(r).0, r.0, r.0) }).add(Self::splat(1.0));
             let scale = unsafe {
                 _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(
                     _mm256_castps_si256(shifted.0),
@@ -312,15 +318,24 @@ mod avx2 {
             };
             y.mul(Self(scale))
         }
+        #[inline(always)]
+        fn prefetch<T>(value: &T) {
+            let address = (value as *const T).cast::<i8>();
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(address) };
+            if size_of::<T>() > 64 {
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(address.wrapping_add(64)) };
+            }
+        }
     }
 }
 
-/// Whether the AVX2 lanes can run here (cached by the standard library).
+/// Whether the AVX2 lanes (which also use FMA in `exp`) can run here (cached by the standard
+/// library).
 #[inline(always)]
 fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
-        std::arch::is_x86_feature_detected!("avx2")
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
@@ -380,6 +395,8 @@ pub(super) struct ForwardTile {
     contributors: [f32; TILE_PIXELS],
     /// All-ones bits once the pixel has stopped (or lies outside the image), else zero.
     done: [f32; TILE_PIXELS],
+    /// Pixels of each tile row still compositing (rows with none are skipped).
+    row_active: [u32; TS],
 }
 
 impl ForwardTile {
@@ -390,6 +407,7 @@ impl ForwardTile {
             depth: [0.0; TILE_PIXELS],
             contributors: [0.0; TILE_PIXELS],
             done: [0.0; TILE_PIXELS],
+            row_active: [0; TS],
         })
     }
 
@@ -433,7 +451,7 @@ impl ForwardTile {
         #[cfg(target_arch = "x86_64")]
         if has_avx2() {
             /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2")]
+            #[target_feature(enable = "avx2,fma")]
             fn run_avx2(
                 tile: &mut ForwardTile,
                 splats: &[Splat2d<f32>],
@@ -471,20 +489,32 @@ impl ForwardTile {
             let outside = local % TS >= w || local / TS >= h;
             *done = f32::from_bits(if outside { u32::MAX } else { 0 });
         }
+        for (row, active) in self.row_active.iter_mut().enumerate() {
+            *active = if row < h { w as u32 } else { 0 };
+        }
         let mut active = (w * h) as u32;
         for (j, &g) in list.iter().enumerate() {
             if active == 0 {
                 break;
             }
+            // The list jumps through the splats (they are in depth order, tiles in space):
+            // fetch a few entries ahead so the cache misses overlap.
+            if let Some(&ahead) = list.get(j + PREFETCH_DISTANCE) {
+                V::prefetch(&splats[ahead as usize]);
+            }
             let splat = &splats[g as usize];
             let (x0, x1, y0, y1) = box_in_tile(splat, bounds);
             for py in y0..y1 {
+                let row_index = (py - y_start) as usize;
+                if self.row_active[row_index] == 0 {
+                    continue;
+                }
                 let dy = splat.mean[1] - (py as f32 + 0.5);
                 let (lo, hi) = row_span(splat, dy, x0, x1);
                 if lo >= hi {
                     continue;
                 }
-                let row = (py - y_start) as usize * TS;
+                let row = row_index * TS;
                 let (g0, g1) = (
                     (lo - x_start) as usize / LANES,
                     ((hi - x_start) as usize).div_ceil(LANES),
@@ -492,11 +522,13 @@ impl ForwardTile {
                 for group in g0..g1 {
                     let column = (x_start as usize + group * LANES) as f32;
                     let base = row + group * LANES;
-                    active -= if smooth {
+                    let stops = if smooth {
                         self.group::<V, true>(base, splat, column, dy, j as u32 + 1)
                     } else {
                         self.group::<V, false>(base, splat, column, dy, j as u32 + 1)
                     };
+                    self.row_active[row_index] -= stops;
+                    active -= stops;
                 }
             }
         }
@@ -579,6 +611,8 @@ pub(super) struct BackwardTile {
     d_colour: [[f32; TILE_PIXELS]; 3],
     d_alpha: [f32; TILE_PIXELS],
     d_depth: [f32; TILE_PIXELS],
+    /// Largest contributor count of each tile row (a list entry at or past it is skipped).
+    row_contributors: [u32; TS],
 }
 
 /// Per-lane partial sums of one Gaussian's gradient (the layout of [`Slot`]).
@@ -595,6 +629,7 @@ impl BackwardTile {
             d_colour: [[0.0; TILE_PIXELS]; 3],
             d_alpha: [0.0; TILE_PIXELS],
             d_depth: [0.0; TILE_PIXELS],
+            row_contributors: [0; TS],
         })
     }
 
@@ -610,6 +645,7 @@ impl BackwardTile {
         let [x_start, x_end, y_start, y_end] = bounds;
         let background = background.map(|b| b.to_f32());
         self.contributors.fill(0.0);
+        self.row_contributors.fill(0);
         let mut max_contributors = 0;
         for py in y_start..y_end {
             for px in x_start..x_end {
@@ -626,6 +662,8 @@ impl BackwardTile {
                 let count = buffers.contributors[index];
                 self.contributors[local] = f32::from_bits(count);
                 max_contributors = max_contributors.max(count);
+                let row = &mut self.row_contributors[(py - y_start) as usize];
+                *row = (*row).max(count);
                 self.d_alpha[local] = upstream.alpha.map_or(0.0, |a| a[index].to_f32());
                 self.d_depth[local] = upstream.depth.map_or(0.0, |d| d[index].to_f32());
             }
@@ -647,7 +685,7 @@ impl BackwardTile {
         #[cfg(target_arch = "x86_64")]
         if has_avx2() {
             /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2")]
+            #[target_feature(enable = "avx2,fma")]
             fn walk_avx2<S: Scalar>(
                 tile: &mut BackwardTile,
                 splats: &[Splat2d<f32>],
@@ -678,16 +716,23 @@ impl BackwardTile {
     ) {
         let [x_start, _, y_start, _] = bounds;
         for j in (0..count as usize).rev() {
+            if let Some(ahead) = j.checked_sub(PREFETCH_DISTANCE) {
+                V::prefetch(&splats[list[ahead] as usize]);
+            }
             let splat = &splats[list[j] as usize];
             let (x0, x1, y0, y1) = box_in_tile(splat, bounds);
             let mut acc: LaneGradient<V> = [V::splat(0.0); 10];
             for py in y0..y1 {
+                let row_index = (py - y_start) as usize;
+                if j as u32 >= self.row_contributors[row_index] {
+                    continue;
+                }
                 let dy = splat.mean[1] - (py as f32 + 0.5);
                 let (lo, hi) = row_span(splat, dy, x0, x1);
                 if lo >= hi {
                     continue;
                 }
-                let row = (py - y_start) as usize * TS;
+                let row = row_index * TS;
                 let (g0, g1) = (
                     (lo - x_start) as usize / LANES,
                     ((hi - x_start) as usize).div_ceil(LANES),
@@ -879,7 +924,7 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_lanes_agree_bit_for_bit_with_portable_lanes() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+        if !has_avx2() {
             return;
         }
         fn run<V: Lanes>(a: &[f32; LANES], b: &[f32; LANES]) -> Vec<[u32; LANES]> {
@@ -910,7 +955,7 @@ mod tests {
                 .chain([[x.less(y).mask_bits(); LANES]])
                 .collect()
         }
-        #[target_feature(enable = "avx2")]
+        #[target_feature(enable = "avx2,fma")]
         fn run_avx2(a: &[f32; LANES], b: &[f32; LANES]) -> Vec<[u32; LANES]> {
             run::<avx2::Avx2>(a, b)
         }
