@@ -115,7 +115,7 @@ fn per_frame(
     what: &str,
     warnings: &mut Vec<String>,
 ) -> anyhow::Result<Vec<Vec<f64>>> {
-    if width == 0 || values.len() % width != 0 || values.is_empty() {
+    if width == 0 || !values.len().is_multiple_of(width) || values.is_empty() {
         bail!("{what} has shape {shape:?}; expected (frames, {width})");
     }
     let mut rows: Vec<Vec<f64>> = values.chunks_exact(width).map(<[f64]>::to_vec).collect();

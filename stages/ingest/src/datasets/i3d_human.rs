@@ -229,26 +229,30 @@ impl I3dHuman {
                     folder: folder.clone(),
                     name: name.to_owned(),
                 };
-                if !views.contains_key(&view) {
-                    let image_path = folder.join("images").join(format!("{name}.png"));
-                    let size = image_size(&image_path)?;
-                    let camera = camera_from_entry(&cameras_path, name, entry, size)?;
-                    views.insert(
-                        view,
-                        (camera, format!("{} `{name}`", cameras_path.display())),
-                    );
-                } else {
-                    let (first, origin) = &views[&view];
-                    let camera =
-                        camera_from_entry(&cameras_path, name, entry, (first.width, first.height))?;
-                    if !same_camera(first, &camera) {
-                        warn(
-                            &mut warnings,
-                            format!(
-                                "{}: camera `{name}` of view {view} differs from {origin}, which the reader uses",
-                                cameras_path.display()
-                            ),
-                        );
+                match views.entry(view) {
+                    std::collections::btree_map::Entry::Vacant(slot) => {
+                        let image_path = folder.join("images").join(format!("{name}.png"));
+                        let size = image_size(&image_path)?;
+                        let camera = camera_from_entry(&cameras_path, name, entry, size)?;
+                        slot.insert((camera, format!("{} `{name}`", cameras_path.display())));
+                    }
+                    std::collections::btree_map::Entry::Occupied(known) => {
+                        let (first, origin) = known.get();
+                        let camera = camera_from_entry(
+                            &cameras_path,
+                            name,
+                            entry,
+                            (first.width, first.height),
+                        )?;
+                        if !same_camera(first, &camera) {
+                            warn(
+                                &mut warnings,
+                                format!(
+                                    "{}: camera `{name}` of view {view} differs from {origin}, which the reader uses",
+                                    cameras_path.display()
+                                ),
+                            );
+                        }
                     }
                 }
                 match part {
@@ -280,8 +284,8 @@ impl I3dHuman {
             let list = Field::root(path, value).sequence()?;
             let mut filled = 0;
             for (index, entry) in list.iter().enumerate() {
-                if !params.contains_key(&index) {
-                    params.insert(index, params_from_frameid_pose(path, index, entry)?);
+                if let std::collections::btree_map::Entry::Vacant(slot) = params.entry(index) {
+                    slot.insert(params_from_frameid_pose(path, index, entry)?);
                     filled += 1;
                 }
             }

@@ -111,7 +111,7 @@ enum Obj {
     /// `_reconstruct(ndarray, ...)` before its `BUILD`.
     PendingArray,
     NumArray(NpArray),
-    ObjArray {
+    ObjectArray {
         shape: Vec<usize>,
         items: Vec<Id>,
     },
@@ -650,7 +650,7 @@ impl<'a> Machine<'a> {
     }
 
     fn pairs(&self, items: Vec<Id>) -> Result<Vec<(Id, Id)>, PickleError> {
-        if items.len() % 2 != 0 {
+        if !items.len().is_multiple_of(2) {
             return Err(self.malformed("odd number of items for a dict"));
         }
         Ok(items.chunks_exact(2).map(|p| (p[0], p[1])).collect())
@@ -882,7 +882,7 @@ impl<'a> Machine<'a> {
                     } else {
                         list
                     };
-                    Obj::ObjArray { shape, items }
+                    Obj::ObjectArray { shape, items }
                 } else {
                     let bytes = self.raw_bytes(items[3])?;
                     Obj::NumArray(self.numeric_array(&dtype, shape, fortran, &bytes)?)
@@ -1207,7 +1207,7 @@ impl Builder<'_> {
                 self.charge(array.len().saturating_mul(element))?;
                 Value::Array(array.clone())
             }
-            Obj::ObjArray { shape, items } => Value::Array(NpArray {
+            Obj::ObjectArray { shape, items } => Value::Array(NpArray {
                 dtype: "|O".to_owned(),
                 shape: shape.clone(),
                 data: ArrayData::Object(self.build_all(items, depth)?),
