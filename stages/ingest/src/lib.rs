@@ -1,1 +1,73 @@
-//! The `ingest` stage.
+//! The `ingest` stage: reads a multi-view capture (or generates the built-in synthetic scene)
+//! and writes cameras, the frame axis and split, undistorted and rescaled images with masks,
+//! per-frame body-model parameters and the body model itself.
+//!
+//! # Output schema (one Zarr group per entry)
+//!
+//! Axes: `view` (ingested cameras), `frame` (the motion frame axis), `image` (ingested
+//! (view, frame) pairs), `height`/`width` (the largest rescaled image), `rgb` = 3,
+//! `row`/`col` = 3, `xyz` = 3, `hw` = 2, `coeff` = 5, `joint`, `vertex`, `face`, `corner` = 3,
+//! `beta`, `expression`, `pose_feature` = 9 (J - 1). Every array has these `dimension_names`.
+//!
+//! Cameras (after undistortion and rescaling; the images are distortion free):
+//! - `camera_K` f64 `(view, row, col)`: intrinsics in the continuous pixel convention
+//!   (ARCHITECTURE.md: pixel centres at `+0.5`).
+//! - `camera_R` f64 `(view, row, col)`, `camera_t` f64 `(view, xyz)`: world-to-camera,
+//!   `x_cam = R x + t`, metres, OpenCV axes.
+//! - `camera_image_size` u32 `(view, hw)`: `[height, width]` of that view's images.
+//! - `camera_source_distortion` f64 `(view, coeff)`: the capture's OpenCV `(k1,k2,p1,p2,k3)`,
+//!   for provenance only; it is already removed from the images.
+//! - `camera_source_id` i64 `(view)`: the dataset's camera id.
+//!
+//! Frames: the frame axis is an arithmetic sequence of dataset frames with step
+//! `frame_interval` (attribute), from `past_frames` steps before the first used frame
+//! (clamped at the sequence start) to the last used frame. The motion stage indexes it
+//! directly: "frame t - l s" is position `t - l s` (clamped at 0).
+//! - `frame_source_id` i64 `(frame)`: the dataset's frame number.
+//! - `frame_split` u8 `(frame)`: bit 0 = a training image uses it, bit 1 = a test image
+//!   does; 0 = only the motion windows use it (no image ingested).
+//!
+//! Images (only those the split uses, one image per chunk):
+//! - `images` u8 `(image, height, width, rgb)` and `masks` u8 `(image, height, width)`
+//!   (0 background .. 255 foreground). A view smaller than the array is stored in the
+//!   top-left corner, padded with zeros; crop with `camera_image_size`.
+//! - `image_view` u32 `(image)`, `image_frame` u32 `(image)`: positions on the view and frame
+//!   axes; `image_split` u8 `(image)`: 0 train, 1 test. Images are ordered train first, then
+//!   test, each by view then frame. A (view, frame) in both splits is stored once, as train.
+//!
+//! Body parameters per frame (the dataset's fits; for the synthetic scene, the jittered
+//! copy), in [`seqavatar_core::body::BodyParams`] conventions:
+//! - `body_pose` f64 `(frame, joint, xyz)`: local axis-angle per joint, root first
+//!   (`body_pose[:, 0]` is SMPL's `global_orient`).
+//! - `body_world_rotation` f64 `(frame, xyz)` axis-angle and `body_world_translation` f64
+//!   `(frame, xyz)`: `world = R(rot) x + trans` applied after skinning (`Rh`, `Th`).
+//! - `body_betas` f64 `(frame, beta)`; `body_expression` f64 `(frame, expression)` (only when
+//!   the body model has expression components).
+//! - Synthetic scene only: the same five arrays with the prefix `gt_` (`gt_body_pose`, ...)
+//!   hold the exact parameters the images were rendered with.
+//!
+//! Body model (the arrays of [`seqavatar_core::body::BodyModelArrays`]):
+//! - `body_model_template` f64 `(vertex, xyz)`, `body_model_faces` u32 `(face, corner)`,
+//!   `body_model_parents` i64 `(joint)` (-1 for the root), `body_model_weights` f64
+//!   `(vertex, joint)`, `body_model_joint_regressor` f64 `(joint, vertex)`,
+//!   `body_model_shape_dirs` f64 `(vertex, xyz, beta)`, `body_model_expression_dirs` f64
+//!   `(vertex, xyz, expression)` (only when present), `body_model_pose_dirs` f32
+//!   `(vertex, xyz, pose_feature)` (only when the model has pose blend shapes).
+//!
+//! [`read_body_model`] and [`read_body_params`] read the body arrays back.
+//!
+//! Group attributes: `dataset` (the dataset kind), `body_model_kind` (`smpl`, `smplx` or
+//! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `num_train_images`,
+//! `num_test_images`, `background` (`[0, 0, 0]`).
+
+pub mod datasets;
+pub mod formats;
+pub mod stage;
+pub mod synthetic;
+
+pub use stage::{DatasetReader, Ingest, IngestConfig, read_body_model, read_body_params};
+
+/// Adds the `ingest` stage kind to the registry.
+pub fn register(registry: &mut seqavatar_engine::Registry) {
+    registry.add(Box::new(stage::Ingest));
+}

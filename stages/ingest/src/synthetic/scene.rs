@@ -1,0 +1,493 @@
+//! The synthetic scene: body, motion, garment simulation, cameras, textures and shading,
+//! exposed as a [`DatasetReader`].
+//!
+//! World: metres, y up, the floor at y = 0, the walk centred on the origin. Cameras stand on
+//! a ring (irregular by a few degrees and centimetres, seeded) looking at the subject's
+//! centre; each camera's focal length is the largest that keeps the whole sequence inside
+//! its image, and its principal point is off-centre by up to two pixels.
+//!
+//! Appearance: the body's albedo is a colour per body region times a 3D checkerboard and
+//! stripes of a few centimetres evaluated at the rest-pose (template) position of the
+//! surface point, so the texture moves with the skin and has detail at the pixel scale; the
+//! skirt has stripes and bands in its own coordinates. Shading is Lambertian with one
+//! directional light plus ambient; both sides of the skirt are lit.
+
+use rayon::prelude::*;
+use seqavatar_core::body::procedural::{self, procedural_body};
+use seqavatar_core::body::{BodyModel, BodyParams};
+use seqavatar_core::camera::{Camera, Intrinsics};
+use seqavatar_core::glam::{DAffine3, DVec2, DVec3};
+
+use super::SyntheticConfig;
+use super::garment::{self, Skirt};
+use super::motion::sample_script;
+use super::raster::{EMPTY, rasterize};
+use super::rng::Rng;
+use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+
+/// Garment simulation rate (substeps per second).
+const SIMULATION_RATE: f64 = 240.0;
+/// Seconds simulated standing still before the first frame, so the skirt settles.
+const WARMUP_SECONDS: f64 = 2.0;
+/// Direction towards the light.
+const LIGHT: DVec3 = DVec3::new(0.35, 0.85, 0.4);
+
+/// A generated synthetic sequence. Images are rendered on demand by
+/// [`DatasetReader::read_image`].
+pub struct SyntheticScene {
+    config: SyntheticConfig,
+    model: BodyModel,
+    cameras: Vec<SourceCamera>,
+    ground_truth: Vec<BodyParams>,
+    jittered: Vec<BodyParams>,
+    /// Per frame, the skirt particle positions (empty without a garment).
+    skirt: Vec<Vec<DVec3>>,
+    skirt_triangles: Vec<[u32; 3]>,
+    skirt_texture: Vec<DVec3>,
+    /// Per body vertex: albedo region colour.
+    body_colour: Vec<DVec3>,
+}
+
+/// The albedo region colour of a body vertex from its dominant joint.
+fn region_colour(joint: usize) -> DVec3 {
+    match joint {
+        12 | 15 | 20..=23 => DVec3::new(0.85, 0.64, 0.52), // skin: neck, head, hands
+        1 | 2 | 4 | 5 => DVec3::new(0.25, 0.35, 0.75),     // legs
+        7 | 8 | 10 | 11 => DVec3::new(0.2, 0.2, 0.2),      // shoes
+        _ => DVec3::new(0.9, 0.75, 0.2),                   // shirt
+    }
+}
+
+/// High-frequency pattern on the body: 3 cm checkerboard in rest space and 1 cm stripes.
+fn body_pattern(rest: DVec3) -> f64 {
+    let cell = 0.03;
+    let checker = ((rest.x / cell).floor() + (rest.y / cell).floor() + (rest.z / cell).floor())
+        .rem_euclid(2.0);
+    let stripe = ((rest.x + rest.y + rest.z) / 0.01).floor().rem_euclid(3.0) == 0.0;
+    0.55 + 0.35 * checker + if stripe { 0.1 } else { 0.0 }
+}
+
+/// Skirt albedo from its (around, down) coordinates: 24 stripes around, bands down.
+fn skirt_albedo(tc: DVec3) -> DVec3 {
+    let stripe = (tc.x * 24.0).floor().rem_euclid(2.0) == 0.0;
+    let band = (tc.y * 9.0).floor().rem_euclid(3.0) == 0.0;
+    let base = if stripe {
+        DVec3::new(0.8, 0.1, 0.15)
+    } else {
+        DVec3::new(0.95, 0.95, 0.9)
+    };
+    if band { base * 0.45 } else { base }
+}
+
+fn vertex_normals(positions: &[DVec3], triangles: &[[u32; 3]]) -> Vec<DVec3> {
+    let mut normals = vec![DVec3::ZERO; positions.len()];
+    for t in triangles {
+        let [a, b, c] = t.map(|i| positions[i as usize]);
+        let n = (b - a).cross(c - a);
+        for &i in t {
+            normals[i as usize] += n;
+        }
+    }
+    normals.iter().map(|n| n.normalize_or_zero()).collect()
+}
+
+fn jitter(
+    params: &BodyParams,
+    config: &super::JitterConfig,
+    rng: &mut Rng,
+    betas: &[f64],
+) -> BodyParams {
+    BodyParams {
+        pose: params
+            .pose
+            .iter()
+            .map(|p| {
+                *p + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * config.pose_radians
+            })
+            .collect(),
+        betas: betas.to_vec(),
+        expression: Vec::new(),
+        world_rotation: params.world_rotation,
+        world_translation: params.world_translation
+            + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * config.translation_metres,
+    }
+}
+
+impl SyntheticScene {
+    /// Builds the body, runs the motion script and the garment simulation, and places the
+    /// cameras. Cost: about a second for the default sizes; images are rendered later.
+    pub fn generate(config: &SyntheticConfig) -> anyhow::Result<Self> {
+        config.validate()?;
+        let model = procedural_body(config.body_grid_spacing);
+        let mut rest_params = model.zero_params();
+        rest_params.betas = config.betas.to_vec();
+        let shaped = model.shaped_vertices(&rest_params);
+        let rest_joints = model.regress_joints(&shaped);
+        // Pelvis height so the soles touch the floor when standing.
+        let sole = shaped.iter().map(|v| v.y).fold(f64::INFINITY, f64::min);
+        let pelvis_height = rest_joints[0].y - sole;
+
+        let duration = config.frames as f64 / config.fps;
+        let dt = 1.0 / SIMULATION_RATE;
+        let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
+        let frame_step =
+            |frame: usize| (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize;
+        let params_at = |sample: usize| {
+            let s = &samples[sample.min(samples.len() - 1)];
+            BodyParams {
+                pose: s.pose.clone(),
+                betas: config.betas.to_vec(),
+                expression: Vec::new(),
+                world_rotation: DVec3::ZERO,
+                // The pelvis joint of the shaped rest body sits at rest_joints[0].
+                world_translation: s.position - rest_joints[0],
+            }
+        };
+        let ground_truth: Vec<BodyParams> = (0..config.frames)
+            .map(|f| params_at(frame_step(f)))
+            .collect();
+
+        // Garment simulation over every substep, recording the frames.
+        let mut skirt_frames = Vec::new();
+        if config.garment {
+            let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
+            let mut skirt = Skirt::new(&model, &shaped, scale);
+            let transforms = |sample: usize| {
+                let p = params_at(sample);
+                (
+                    model.joint_transforms(&rest_joints, &p.pose),
+                    DAffine3::from_translation(p.world_translation),
+                )
+            };
+            let (t0, w0) = transforms(0);
+            skirt.reset(&t0, w0);
+            let last = frame_step(config.frames - 1);
+            let mut next_frame = 0;
+            for step in 0..=last {
+                if step > 0 {
+                    let (t, w) = transforms(step);
+                    skirt.step(&t, w, dt);
+                }
+                while next_frame < config.frames && frame_step(next_frame) == step {
+                    skirt_frames.push(skirt.positions().to_vec());
+                    next_frame += 1;
+                }
+            }
+            anyhow::ensure!(
+                skirt_frames.len() == config.frames,
+                "garment simulation recorded {} of {} frames",
+                skirt_frames.len(),
+                config.frames
+            );
+            anyhow::ensure!(
+                skirt_frames.iter().flatten().all(|p| p.is_finite()),
+                "garment simulation diverged"
+            );
+        }
+
+        let mut rng = Rng::new(config.seed);
+        let fitted_betas: Vec<f64> = config
+            .betas
+            .iter()
+            .map(|b| b + rng.normal() * config.jitter.betas)
+            .collect();
+        let jittered = ground_truth
+            .iter()
+            .map(|p| jitter(p, &config.jitter, &mut rng, &fitted_betas))
+            .collect();
+
+        let body_colour = (0..model.num_vertices())
+            .map(|v| {
+                let dominant = model
+                    .vertex_weights(v)
+                    .max_by(|a, b| a.1.total_cmp(&b.1))
+                    .map_or(0, |(j, _)| j);
+                region_colour(dominant)
+            })
+            .collect();
+
+        let mut scene = Self {
+            config: config.clone(),
+            model,
+            cameras: Vec::new(),
+            ground_truth,
+            jittered,
+            skirt: skirt_frames,
+            skirt_triangles: if config.garment {
+                garment::triangles()
+            } else {
+                Vec::new()
+            },
+            skirt_texture: garment::texture_coordinates(),
+            body_colour,
+        };
+        scene.cameras = scene.place_cameras(&mut rng)?;
+        Ok(scene)
+    }
+
+    /// World-space points of frame `frame`: body vertices then skirt particles.
+    fn frame_geometry(&self, frame: usize) -> anyhow::Result<(Vec<DVec3>, usize)> {
+        let posed = self.model.forward(&self.ground_truth[frame])?;
+        let body_count = posed.vertices.len();
+        let mut points = posed.vertices;
+        if let Some(skirt) = self.skirt.get(frame) {
+            points.extend_from_slice(skirt);
+        }
+        Ok((points, body_count))
+    }
+
+    fn place_cameras(&self, rng: &mut Rng) -> anyhow::Result<Vec<SourceCamera>> {
+        let config = &self.config;
+        // Every 7th point of every frame bounds the sequence.
+        let mut points = Vec::new();
+        for frame in 0..config.frames {
+            let (p, _) = self.frame_geometry(frame)?;
+            points.extend(p.into_iter().step_by(7));
+        }
+        let (lo, hi) = points
+            .iter()
+            .fold((DVec3::MAX, DVec3::MIN), |(l, h), p| (l.min(*p), h.max(*p)));
+        let target = (lo + hi) * 0.5;
+        let (w, h) = (config.width as f64, config.height as f64);
+        let mut cameras = Vec::with_capacity(config.cameras);
+        for index in 0..config.cameras {
+            let azimuth = std::f64::consts::TAU * index as f64 / config.cameras as f64
+                + (rng.uniform() - 0.5) * 0.1;
+            let height = 1.3 + (rng.uniform() - 0.5) * 0.3;
+            let eye = DVec3::new(
+                target.x + config.camera_distance * azimuth.sin(),
+                height,
+                target.z + config.camera_distance * azimuth.cos(),
+            );
+            let offset = DVec2::new(rng.uniform() - 0.5, rng.uniform() - 0.5) * 4.0;
+            let aspect = 1.0 + (rng.uniform() - 0.5) * 0.004;
+            let unit = Intrinsics {
+                fx: 1.0,
+                fy: aspect,
+                cx: 0.0,
+                cy: 0.0,
+            };
+            let probe = Camera::look_at(config.width, config.height, unit, eye, target, DVec3::Y);
+            // Largest focal length keeping every point 4 % inside the image borders.
+            let (cx, cy) = (0.5 * w + offset.x, 0.5 * h + offset.y);
+            let margin = 0.04 * w.min(h);
+            let mut focal = f64::INFINITY;
+            for p in &points {
+                let c = probe.world_to_camera(*p);
+                anyhow::ensure!(
+                    c.z > 0.5,
+                    "a synthetic camera is too close to the subject; increase dataset.camera_distance"
+                );
+                let (nx, ny) = ((c.x / c.z).abs(), (aspect * c.y / c.z).abs());
+                let room_x = if c.x >= 0.0 {
+                    w - margin - cx
+                } else {
+                    cx - margin
+                };
+                let room_y = if c.y >= 0.0 {
+                    h - margin - cy
+                } else {
+                    cy - margin
+                };
+                if nx > 0.0 {
+                    focal = focal.min(room_x / nx);
+                }
+                if ny > 0.0 {
+                    focal = focal.min(room_y / ny);
+                }
+            }
+            let intrinsics = Intrinsics {
+                fx: focal,
+                fy: focal * aspect,
+                cx,
+                cy,
+            };
+            let camera = Camera::look_at(
+                config.width,
+                config.height,
+                intrinsics,
+                eye,
+                target,
+                DVec3::Y,
+            );
+            camera.validate()?;
+            cameras.push(SourceCamera {
+                id: index as i64,
+                camera,
+            });
+        }
+        Ok(cameras)
+    }
+
+    /// The exact body parameters of every frame.
+    pub fn ground_truth(&self) -> &[BodyParams] {
+        &self.ground_truth
+    }
+
+    /// Skirt particle positions of a frame (empty without a garment).
+    pub fn skirt_positions(&self, frame: usize) -> &[DVec3] {
+        self.skirt.get(frame).map_or(&[], |s| s.as_slice())
+    }
+
+    /// Renders camera `view` at frame `frame`: supersampled visibility, shading, box filter.
+    pub fn render(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        let config = &self.config;
+        let camera = &self.cameras[view].camera;
+        let s = config.supersample as usize;
+        let fine = camera.resized(camera.width * s as u32, camera.height * s as u32);
+        let (points, body_count) = self.frame_geometry(frame)?;
+        let body_faces = self.model.faces();
+        let mut triangles: Vec<[u32; 3]> = body_faces.to_vec();
+        triangles.extend(
+            self.skirt_triangles
+                .iter()
+                .map(|t| t.map(|i| i + body_count as u32)),
+        );
+        let normals = {
+            let mut n = vertex_normals(&points[..body_count], body_faces);
+            n.extend(vertex_normals(&points[body_count..], &self.skirt_triangles));
+            n
+        };
+        let buffer = rasterize(&fine, &points, &triangles);
+        let light = LIGHT.normalize();
+        let centre = camera.center();
+        let num_body_faces = body_faces.len();
+        let shade = |sample: usize| -> Option<DVec3> {
+            let tri = buffer.triangle[sample];
+            if tri == EMPTY {
+                return None;
+            }
+            let corners = triangles[tri as usize];
+            let bary = buffer.barycentric[sample].map(|b| b as f64);
+            let interpolate = |values: &dyn Fn(usize) -> DVec3| -> DVec3 {
+                (0..3).map(|k| values(corners[k] as usize) * bary[k]).sum()
+            };
+            let position = interpolate(&|i| points[i]);
+            let mut normal = interpolate(&|i| normals[i]).normalize_or_zero();
+            let albedo = if (tri as usize) < num_body_faces {
+                let rest = interpolate(&|i| self.model.template_vertex(i));
+                interpolate(&|i| self.body_colour[i]) * body_pattern(rest)
+            } else {
+                // Both sides of the skirt are seen: light the side facing the camera.
+                if normal.dot(centre - position) < 0.0 {
+                    normal = -normal;
+                }
+                skirt_albedo(interpolate(&|i| self.skirt_texture[i - body_count]))
+            };
+            let lambert = normal.dot(light).max(0.0);
+            Some(albedo * (0.45 + 0.55 * lambert))
+        };
+        let (width, height) = (camera.width as usize, camera.height as usize);
+        let fine_width = width * s;
+        let mut rgb = image::RgbImage::new(camera.width, camera.height);
+        let mut mask = image::GrayImage::new(camera.width, camera.height);
+        let samples_per_pixel = (s * s) as f64;
+        for row in 0..height {
+            for col in 0..width {
+                let mut colour = DVec3::ZERO;
+                let mut covered = 0usize;
+                for dy in 0..s {
+                    for dx in 0..s {
+                        let sample = (row * s + dy) * fine_width + col * s + dx;
+                        if let Some(c) = shade(sample) {
+                            colour += c;
+                            covered += 1;
+                        }
+                    }
+                }
+                let c = (colour / samples_per_pixel * 255.0)
+                    .round()
+                    .clamp(DVec3::ZERO, DVec3::splat(255.0));
+                rgb.put_pixel(
+                    col as u32,
+                    row as u32,
+                    image::Rgb([c.x as u8, c.y as u8, c.z as u8]),
+                );
+                let coverage = (covered as f64 / samples_per_pixel * 255.0).round() as u8;
+                mask.put_pixel(col as u32, row as u32, image::Luma([coverage]));
+            }
+        }
+        Ok(SourceImage { rgb, mask })
+    }
+
+    /// Renders every view of a frame in parallel (used by tests and previews).
+    pub fn render_frame(&self, frame: usize) -> anyhow::Result<Vec<SourceImage>> {
+        (0..self.cameras.len())
+            .into_par_iter()
+            .map(|v| self.render(v, frame))
+            .collect()
+    }
+}
+
+impl DatasetReader for SyntheticScene {
+    fn describe(&self) -> String {
+        format!(
+            "synthetic scene ({} cameras, {} frames, {}x{})",
+            self.config.cameras, self.config.frames, self.config.width, self.config.height
+        )
+    }
+
+    fn cameras(&self) -> &[SourceCamera] {
+        &self.cameras
+    }
+
+    fn num_frames(&self) -> usize {
+        self.config.frames
+    }
+
+    fn frame_id(&self, frame: usize) -> i64 {
+        frame as i64
+    }
+
+    /// Every fourth camera (1, 5, ...) is a test view, the others train; training uses every
+    /// frame, testing every second frame.
+    fn default_split(&self) -> Split {
+        let n = self.cameras.len();
+        let test_views: Vec<usize> = if n >= 2 {
+            (1..n).step_by(4).collect()
+        } else {
+            Vec::new()
+        };
+        let train_views = (0..n).filter(|v| !test_views.contains(v)).collect();
+        Split {
+            train_views,
+            test_views,
+            train_frames: FrameRange::all(),
+            test_frames: FrameRange {
+                start: 0,
+                end: None,
+                step: 2,
+            },
+            frame_interval: 1,
+        }
+    }
+
+    fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
+        Ok((self.model.clone(), BodyModelKind::Procedural))
+    }
+
+    fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
+        self.jittered
+            .get(frame)
+            .cloned()
+            .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))
+    }
+
+    fn ground_truth_body_params(&self, frame: usize) -> anyhow::Result<Option<BodyParams>> {
+        Ok(Some(self.ground_truth.get(frame).cloned().ok_or_else(
+            || anyhow::anyhow!("synthetic scene has no frame {frame}"),
+        )?))
+    }
+
+    fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        anyhow::ensure!(
+            view < self.cameras.len(),
+            "synthetic scene has no camera {view}"
+        );
+        anyhow::ensure!(
+            frame < self.config.frames,
+            "synthetic scene has no frame {frame}"
+        );
+        self.render(view, frame)
+    }
+}
