@@ -116,6 +116,8 @@ impl BandedMatrix {
 }
 
 #[cfg(test)]
+// Dense reference linear algebra reads best with explicit indices.
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 

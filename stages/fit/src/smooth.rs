@@ -168,12 +168,11 @@ fn accumulate(
             let ja = &jac[fa][ia];
             g[row] += weight * ja.iter().zip(residual).map(|(a, b)| a * b).sum::<f64>();
             for (fb, &tb) in frames.iter().enumerate() {
-                for ib in 0..3 {
+                for (ib, jb) in jac[fb].iter().enumerate() {
                     let col = tb * 3 + ib;
                     if col > row {
                         continue;
                     }
-                    let jb = &jac[fb][ib];
                     let v: f64 = ja.iter().zip(jb).map(|(a, b)| a * b).sum();
                     h.add(row, col, weight * v);
                 }
