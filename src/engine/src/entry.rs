@@ -657,3 +657,119 @@ fn to_usize_shape(shape: &[u64]) -> anyhow::Result<Vec<usize>> {
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rayon::prelude::*;
+
+    fn manifest() -> Manifest {
+        Manifest {
+            kind: "test_arrays".into(),
+            version: 1,
+            stage_name: "s".into(),
+            key: "k".into(),
+            config: serde_json::json!({}),
+            inputs: vec![],
+            external_files: vec![],
+            tool_version: "0".into(),
+            arrays: BTreeMap::new(),
+            wall_time_s: 0.0,
+            started_at: String::new(),
+            finished_at: String::new(),
+            log: vec![],
+            warnings: vec![],
+        }
+    }
+
+    fn reopen(dir: &Path) -> EntryReader {
+        let store = FilesystemStore::new(dir).unwrap();
+        EntryReader::open(Arc::new(store), &dir.display().to_string()).unwrap()
+    }
+
+    #[test]
+    fn arrays_round_trip_through_chunks_and_regions() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = EntryWriter::create(dir.path()).unwrap();
+        // 5 x 7 float32 written one 2 x 3 chunk per thread (edge chunks padded).
+        let grid: Vec<(u64, u64)> = (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).collect();
+        let array = writer
+            .create_array::<f32>("field", &["row", "col"], &[5, 7], &[2, 3])
+            .unwrap();
+        grid.par_iter()
+            .try_for_each(|&(chunk_row, chunk_col)| {
+                let mut data = Vec::new();
+                for row in chunk_row * 2..chunk_row * 2 + 2 {
+                    for col in chunk_col * 3..chunk_col * 3 + 3 {
+                        data.push((row * 10 + col) as f32);
+                    }
+                }
+                array.write_chunk(&[chunk_row, chunk_col], &data)
+            })
+            .unwrap();
+        assert!(array.write_chunk(&[3, 0], &[0.0; 6]).is_err());
+        assert!(array.write_chunk(&[0, 0], &[0.0; 5]).is_err());
+        writer
+            .write_array::<u8>("mask", &["y", "x"], &[2, 2], &[2, 2], &[0, 1, 254, 255])
+            .unwrap();
+        writer.set_attribute("note", serde_json::json!("hi")).unwrap();
+        assert!(writer.set_attribute(MANIFEST_ATTRIBUTE, serde_json::json!(1)).is_err());
+        writer
+            .set_array_attribute("mask", "meaning", serde_json::json!("foreground"))
+            .unwrap();
+        assert!(writer.set_array_attribute("nope", "a", serde_json::json!(1)).is_err());
+        assert!(writer.create_array::<u8>("mask", &["y"], &[1], &[1]).is_err());
+        assert!(writer.create_array::<u8>("../x", &["y"], &[1], &[1]).is_err());
+        assert!(writer.create_array::<u8>("z", &["y"], &[1], &[0]).is_err());
+        let mut record = manifest();
+        writer.finish(&mut record).unwrap();
+        assert_eq!(record.arrays["field"].files.len(), 10, "9 chunks and zarr.json");
+
+        let reader = reopen(dir.path());
+        assert_eq!(reader.array_names(), ["field", "mask"]);
+        let field = reader.read::<f32>("field").unwrap();
+        assert_eq!(field.shape, [5, 7]);
+        for row in 0..5 {
+            for col in 0..7 {
+                assert_eq!(field.get(&[row, col]), Some(&((row * 10 + col) as f32)));
+            }
+        }
+        let region = reader.read_region::<f32>("field", &[3, 2], &[2, 4]).unwrap();
+        assert_eq!(region.data, [32.0, 33.0, 34.0, 35.0, 42.0, 43.0, 44.0, 45.0]);
+        assert!(reader.read_region::<f32>("field", &[4, 0], &[2, 1]).is_err());
+        let error = reader.read::<f64>("field").unwrap_err().to_string();
+        assert!(error.contains("array \"field\" holds \"float32\", read as float64"), "{error}");
+        assert!(reader.read::<u8>("missing").is_err());
+        assert_eq!(reader.read::<u8>("mask").unwrap().data, [0, 1, 254, 255]);
+        assert_eq!(reader.attribute("note"), Some(serde_json::json!("hi")));
+        assert_eq!(
+            reader.array_attribute("mask", "meaning"),
+            Some(serde_json::json!("foreground"))
+        );
+        assert!(reader.verify().is_empty());
+    }
+
+    #[test]
+    fn verify_names_the_damaged_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = EntryWriter::create(dir.path()).unwrap();
+        let data: Vec<f64> = (0..8).map(f64::from).collect();
+        writer
+            .write_array::<f64>("values", &["index"], &[8], &[4], &data)
+            .unwrap();
+        writer.finish(&mut manifest()).unwrap();
+        let chunk = dir.path().join("values/c/1");
+        let mut bytes = std::fs::read(&chunk).unwrap();
+        bytes[0] ^= 1;
+        std::fs::write(&chunk, &bytes).unwrap();
+        let reader = reopen(dir.path());
+        assert_eq!(
+            reader.verify(),
+            ["array \"values\": file values/c/1 does not match its digest"]
+        );
+        // The crc32c codec independently rejects the damaged chunk on decode.
+        assert!(reader.read::<f64>("values").is_err());
+        std::fs::remove_file(&chunk).unwrap();
+        assert_eq!(reader.verify(), ["array \"values\": file values/c/1 is missing"]);
+    }
+}

@@ -529,3 +529,79 @@ fn backend_of(log: &[String]) -> Option<String> {
             .map(|rest| rest.trim().to_string())
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::builtin::TestArrays;
+    use crate::config::ConfigError;
+    use crate::store::LocalStore;
+    use crate::StageKind;
+
+    /// `test_arrays` with another implementation version.
+    struct Bumped;
+
+    impl StageKind for Bumped {
+        fn kind(&self) -> &'static str {
+            "test_arrays"
+        }
+        fn version(&self) -> u32 {
+            TestArrays.version() + 1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            TestArrays.input_kinds()
+        }
+        fn resolve_config(
+            &self,
+            raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            TestArrays.resolve_config(raw)
+        }
+        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            TestArrays.run(ctx)
+        }
+    }
+
+    const TEXT: &str = "stages:\n  - name: a\n    kind: test_arrays\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n";
+
+    fn keys(registry: &Registry, store: &LocalStore) -> (String, String) {
+        let pipeline = Pipeline::parse(TEXT, Path::new("p.yaml"), registry, &[]).unwrap();
+        let keys = compute_keys(&pipeline, registry, store).unwrap();
+        (keys["a"].key.clone(), keys["b"].key.clone())
+    }
+
+    #[test]
+    fn stage_version_changes_every_downstream_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let original = keys(&Registry::new(), &store);
+        let mut bumped_registry = Registry::new();
+        bumped_registry.add(Box::new(Bumped));
+        let bumped = keys(&bumped_registry, &store);
+        assert_ne!(original.0, bumped.0);
+        assert_ne!(original.1, bumped.1);
+        assert_eq!(original, keys(&Registry::new(), &store));
+    }
+
+    #[test]
+    fn run_publishes_then_reuses() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let registry = Registry::new();
+        let pipeline = Pipeline::parse(TEXT, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let first = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
+        assert!(first.iter().all(|report| report.outcome == Outcome::Ran));
+        assert_eq!(first[0].backend.as_deref(), Some("cpu"));
+        let second = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
+        assert!(second.iter().all(|report| report.outcome == Outcome::Cached));
+        let b = store
+            .open_entry(&EntryId::new("test_arrays", &second[1].key))
+            .unwrap();
+        // b = (i) + (i) for the default size 16.
+        let values = b.read::<f64>("values").unwrap();
+        assert_eq!(values.data, (0..16).map(|i| 2.0 * f64::from(i)).collect::<Vec<_>>());
+        assert_eq!(b.manifest().inputs[0].key, second[0].key);
+        assert_eq!(b.manifest().log, ["backend: cpu"]);
+        assert!(b.manifest().started_at.ends_with('Z'));
+    }
+}
