@@ -712,18 +712,40 @@ mod tests {
         writer
             .write_array::<u8>("mask", &["y", "x"], &[2, 2], &[2, 2], &[0, 1, 254, 255])
             .unwrap();
-        writer.set_attribute("note", serde_json::json!("hi")).unwrap();
-        assert!(writer.set_attribute(MANIFEST_ATTRIBUTE, serde_json::json!(1)).is_err());
+        writer
+            .set_attribute("note", serde_json::json!("hi"))
+            .unwrap();
+        assert!(
+            writer
+                .set_attribute(MANIFEST_ATTRIBUTE, serde_json::json!(1))
+                .is_err()
+        );
         writer
             .set_array_attribute("mask", "meaning", serde_json::json!("foreground"))
             .unwrap();
-        assert!(writer.set_array_attribute("nope", "a", serde_json::json!(1)).is_err());
-        assert!(writer.create_array::<u8>("mask", &["y"], &[1], &[1]).is_err());
-        assert!(writer.create_array::<u8>("../x", &["y"], &[1], &[1]).is_err());
+        assert!(
+            writer
+                .set_array_attribute("nope", "a", serde_json::json!(1))
+                .is_err()
+        );
+        assert!(
+            writer
+                .create_array::<u8>("mask", &["y"], &[1], &[1])
+                .is_err()
+        );
+        assert!(
+            writer
+                .create_array::<u8>("../x", &["y"], &[1], &[1])
+                .is_err()
+        );
         assert!(writer.create_array::<u8>("z", &["y"], &[1], &[0]).is_err());
         let mut record = manifest();
         writer.finish(&mut record).unwrap();
-        assert_eq!(record.arrays["field"].files.len(), 10, "9 chunks and zarr.json");
+        assert_eq!(
+            record.arrays["field"].files.len(),
+            10,
+            "9 chunks and zarr.json"
+        );
 
         let reader = reopen(dir.path());
         assert_eq!(reader.array_names(), ["field", "mask"]);
@@ -734,11 +756,23 @@ mod tests {
                 assert_eq!(field.get(&[row, col]), Some(&((row * 10 + col) as f32)));
             }
         }
-        let region = reader.read_region::<f32>("field", &[3, 2], &[2, 4]).unwrap();
-        assert_eq!(region.data, [32.0, 33.0, 34.0, 35.0, 42.0, 43.0, 44.0, 45.0]);
-        assert!(reader.read_region::<f32>("field", &[4, 0], &[2, 1]).is_err());
+        let region = reader
+            .read_region::<f32>("field", &[3, 2], &[2, 4])
+            .unwrap();
+        assert_eq!(
+            region.data,
+            [32.0, 33.0, 34.0, 35.0, 42.0, 43.0, 44.0, 45.0]
+        );
+        assert!(
+            reader
+                .read_region::<f32>("field", &[4, 0], &[2, 1])
+                .is_err()
+        );
         let error = reader.read::<f64>("field").unwrap_err().to_string();
-        assert!(error.contains("array \"field\" holds \"float32\", read as float64"), "{error}");
+        assert!(
+            error.contains("array \"field\" holds \"float32\", read as float64"),
+            "{error}"
+        );
         assert!(reader.read::<u8>("missing").is_err());
         assert_eq!(reader.read::<u8>("mask").unwrap().data, [0, 1, 254, 255]);
         assert_eq!(reader.attribute("note"), Some(serde_json::json!("hi")));
@@ -770,6 +804,9 @@ mod tests {
         // The crc32c codec independently rejects the damaged chunk on decode.
         assert!(reader.read::<f64>("values").is_err());
         std::fs::remove_file(&chunk).unwrap();
-        assert_eq!(reader.verify(), ["array \"values\": file values/c/1 is missing"]);
+        assert_eq!(
+            reader.verify(),
+            ["array \"values\": file values/c/1 is missing"]
+        );
     }
 }

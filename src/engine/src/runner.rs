@@ -533,10 +533,10 @@ fn backend_of(log: &[String]) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::StageKind;
     use crate::builtin::TestArrays;
     use crate::config::ConfigError;
     use crate::store::LocalStore;
-    use crate::StageKind;
 
     /// `test_arrays` with another implementation version.
     struct Bumped;
@@ -593,13 +593,20 @@ mod tests {
         assert!(first.iter().all(|report| report.outcome == Outcome::Ran));
         assert_eq!(first[0].backend.as_deref(), Some("cpu"));
         let second = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
-        assert!(second.iter().all(|report| report.outcome == Outcome::Cached));
+        assert!(
+            second
+                .iter()
+                .all(|report| report.outcome == Outcome::Cached)
+        );
         let b = store
             .open_entry(&EntryId::new("test_arrays", &second[1].key))
             .unwrap();
         // b = (i) + (i) for the default size 16.
         let values = b.read::<f64>("values").unwrap();
-        assert_eq!(values.data, (0..16).map(|i| 2.0 * f64::from(i)).collect::<Vec<_>>());
+        assert_eq!(
+            values.data,
+            (0..16).map(|i| 2.0 * f64::from(i)).collect::<Vec<_>>()
+        );
         assert_eq!(b.manifest().inputs[0].key, second[0].key);
         assert_eq!(b.manifest().log, ["backend: cpu"]);
         assert!(b.manifest().started_at.ends_with('Z'));
