@@ -281,7 +281,10 @@ impl IngestPlan {
         let used: Vec<usize> = train_frames.iter().chain(&test_frames).copied().collect();
         let first = *used.iter().min().expect("at least one split is non-empty");
         let last = *used.iter().max().expect("at least one split is non-empty");
-        if let Some(bad) = used.iter().find(|&&f| !(f - first).is_multiple_of(interval)) {
+        if let Some(bad) = used
+            .iter()
+            .find(|&&f| !(f - first).is_multiple_of(interval))
+        {
             bail!(
                 "frame {bad} is not on the frame axis {first} + k * {interval}: the split's frame steps must be multiples of split.frame_interval"
             );
