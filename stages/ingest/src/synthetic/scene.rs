@@ -491,3 +491,93 @@ impl DatasetReader for SyntheticScene {
         self.render(view, frame)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn same_pose_different_garment_and_textured_images() {
+        let config = SyntheticConfig {
+            cameras: 2,
+            frames: 30,
+            width: 64,
+            height: 64,
+            supersample: 1,
+            body_grid_spacing: 0.04,
+            ..Default::default()
+        };
+        let scene = SyntheticScene::generate(&config).unwrap();
+        // During the stop (normalised time 0.62..0.78) the pose is the same standing pose,
+        // but the skirt is still swinging from the stop.
+        let (a, b) = (19, 22);
+        let pose_change: f64 = scene.ground_truth()[a]
+            .pose
+            .iter()
+            .zip(&scene.ground_truth()[b].pose)
+            .map(|(x, y)| (*x - *y).length())
+            .sum();
+        assert!(pose_change < 1e-6, "pose changed by {pose_change}");
+        let skirt_change = scene
+            .skirt_positions(a)
+            .iter()
+            .zip(scene.skirt_positions(b))
+            .map(|(x, y)| (*x - *y).length())
+            .fold(0.0, f64::max);
+        assert!(skirt_change > 0.005, "skirt moved only {skirt_change} m");
+        // Images: a foreground with texture contrast, black background.
+        let image = scene.render(0, 10).unwrap();
+        let foreground: Vec<u8> = image
+            .rgb
+            .pixels()
+            .zip(image.mask.pixels())
+            .filter(|(_, m)| m.0[0] == 255)
+            .map(|(p, _)| p.0[1])
+            .collect();
+        assert!(
+            foreground.len() > 200,
+            "{} foreground pixels",
+            foreground.len()
+        );
+        let (lo, hi) = foreground
+            .iter()
+            .fold((255, 0), |(l, h), &g| (l.min(g), h.max(g)));
+        assert!(hi - lo > 80, "texture contrast {lo}..{hi}");
+        assert!(
+            image
+                .rgb
+                .pixels()
+                .zip(image.mask.pixels())
+                .all(|(p, m)| m.0[0] > 0 || p.0 == [0, 0, 0])
+        );
+    }
+
+    /// Timing of the demo's default scene (`SEQAVATAR_SLOW_TESTS=1`).
+    #[test]
+    fn default_scene_timing() {
+        if std::env::var("SEQAVATAR_SLOW_TESTS").is_err() {
+            return;
+        }
+        let started = std::time::Instant::now();
+        let scene = SyntheticScene::generate(&SyntheticConfig::default()).unwrap();
+        let generated = started.elapsed();
+        let started = std::time::Instant::now();
+        let images = scene.render_frame(24).unwrap();
+        let rendered = started.elapsed();
+        println!(
+            "default synthetic scene: generate {:.2} s, render {} views {:.3} s ({:.1} ms per image)",
+            generated.as_secs_f64(),
+            images.len(),
+            rendered.as_secs_f64(),
+            rendered.as_secs_f64() * 1e3 / images.len() as f64
+        );
+        if let Ok(dir) = std::env::var("SEQAVATAR_PREVIEW_DIR") {
+            for (v, image) in images.iter().enumerate() {
+                image
+                    .rgb
+                    .save(format!("{dir}/synthetic_view{v}.png"))
+                    .unwrap();
+            }
+        }
+    }
+}
