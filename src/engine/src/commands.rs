@@ -12,7 +12,7 @@ use crate::array::Element;
 use crate::entry::EntryReader;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{COMPLETION_MARKER, EntryId, EntryState, LocalStore, Store, empty_trash};
+use crate::store::{COMPLETION_MARKER, EntryId, EntryState, open_store};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -27,8 +27,8 @@ pub fn run(
     cache: &Path,
 ) -> anyhow::Result<Vec<StageReport>> {
     let pipeline = Pipeline::load(file, registry, sets)?;
-    let store = LocalStore::open(cache)?;
-    let reports = runner::run(&pipeline, registry, &store, options)?;
+    let store = open_store(cache)?;
+    let reports = runner::run(&pipeline, registry, store.as_ref(), options)?;
     print!("{}", summary_table(&reports));
     Ok(reports)
 }
@@ -114,8 +114,8 @@ pub fn status(
     cache: &Path,
 ) -> anyhow::Result<()> {
     let pipeline = Pipeline::load(file, registry, sets)?;
-    let store = LocalStore::open(cache)?;
-    let keys = runner::compute_keys(&pipeline, registry, &store)?;
+    let store = open_store(cache)?;
+    let keys = runner::compute_keys(&pipeline, registry, store.as_ref())?;
     let mut rows = vec![vec![
         "stage".to_string(),
         "kind".to_string(),
@@ -196,8 +196,8 @@ fn resolve_target(
             pipeline.stage_names().join(", ")
         )
     })?;
-    let store = LocalStore::open(cache)?;
-    let keys = runner::compute_keys(&pipeline, registry, &store)?;
+    let store = open_store(cache)?;
+    let keys = runner::compute_keys(&pipeline, registry, store.as_ref())?;
     let id = EntryId::new(&stage.kind, &keys[&stage.name].key);
     anyhow::ensure!(
         store.entry_state(&id)? == EntryState::Complete,
@@ -502,11 +502,11 @@ pub fn gc(
     dry_run: bool,
     cache: &Path,
 ) -> anyhow::Result<()> {
-    let store = LocalStore::open(cache)?;
+    let store = open_store(cache)?;
     let mut referenced: BTreeSet<EntryId> = BTreeSet::new();
     for file in keep {
         let pipeline = Pipeline::load(file, registry, &[])?;
-        let keys = runner::compute_keys(&pipeline, registry, &store)?;
+        let keys = runner::compute_keys(&pipeline, registry, store.as_ref())?;
         for stage in &pipeline.stages {
             referenced.insert(EntryId::new(&stage.kind, &keys[&stage.name].key));
         }
@@ -539,7 +539,7 @@ pub fn gc(
             println!("{verb} {line}");
         }
     }
-    let trash = empty_trash(&store, dry_run)?;
+    let trash = store.empty_trash(dry_run)?;
     if trash > 0 {
         println!("{verb} quarantined entries ({})", format_bytes(trash));
         freed += trash;

@@ -12,6 +12,8 @@ mod entry;
 pub mod key;
 mod picture;
 mod pipeline;
+#[cfg(feature = "remote")]
+pub mod remote;
 mod runner;
 mod store;
 mod timefmt;
@@ -32,7 +34,7 @@ pub use runner::{
     BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
     open_verified, run, selected_stages,
 };
-pub use store::{EntryId, EntryState, KeyLock, LocalStore, Staging, Store};
+pub use store::{EntryId, EntryState, KeyLock, LocalStore, Staging, Store, open_store};
 
 /// One kind of stage (`kind:` in the pipeline YAML): its identity, its configuration schema
 /// and the computation it performs.

@@ -107,6 +107,9 @@ pub trait Store: Send + Sync {
     /// entries, quarantined entries); keeps work directories for resume. Returns one line per
     /// removal.
     fn clean_leftovers(&self) -> anyhow::Result<Vec<String>>;
+    /// Deletes quarantined entries and unreferenced uploads; returns the bytes freed (or that
+    /// would be, when `dry_run`).
+    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64>;
     /// A local directory for engine bookkeeping (file digest memo).
     fn local_state_dir(&self) -> PathBuf;
 }
@@ -130,7 +133,7 @@ impl KeyLock for LocalLock {
 }
 
 /// Checks that a kind or key is a plain folder name.
-fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
+pub(crate) fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
     anyhow::ensure!(
         !value.is_empty()
             && !value.starts_with('.')
@@ -434,9 +437,34 @@ impl Store for LocalStore {
         Ok(removed)
     }
 
+    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64> {
+        empty_trash(self, dry_run)
+    }
+
     fn local_state_dir(&self) -> PathBuf {
         self.root.clone()
     }
+}
+
+/// Opens the cache `cache`: a local folder, or `s3://bucket/prefix` fronted by the local
+/// folder `$SEQAVATAR_LOCAL_CACHE` (default `cache`).
+pub fn open_store(cache: &Path) -> anyhow::Result<Box<dyn Store>> {
+    let text = cache.to_string_lossy();
+    if !text.starts_with("s3://") {
+        return Ok(Box::new(LocalStore::open(cache)?));
+    }
+    #[cfg(feature = "remote")]
+    {
+        let url = crate::remote::S3Url::parse(&text)?;
+        let local = std::env::var_os("SEQAVATAR_LOCAL_CACHE")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("cache"));
+        Ok(Box::new(crate::remote::RemoteStore::open(&url, &local)?))
+    }
+    #[cfg(not(feature = "remote"))]
+    anyhow::bail!(
+        "cache {text}: this binary was built without the \"remote\" feature of seqavatar-engine"
+    )
 }
 
 /// Removes the quarantined entries; returns the bytes freed.
@@ -451,7 +479,7 @@ pub(crate) fn empty_trash(store: &LocalStore, dry_run: bool) -> anyhow::Result<u
 
 /// Removes a folder tree; a folder that is already gone (another run cleaned it) is fine.
 /// Returns whether something was removed.
-fn remove_dir_if_present(dir: &Path) -> anyhow::Result<bool> {
+pub(crate) fn remove_dir_if_present(dir: &Path) -> anyhow::Result<bool> {
     match fs::remove_dir_all(dir) {
         Ok(()) => Ok(true),
         Err(error) if error.kind() == std::io::ErrorKind::NotFound => Ok(false),
@@ -480,7 +508,7 @@ pub(crate) fn tree_bytes(path: &Path) -> u64 {
 }
 
 /// fsyncs every file and directory under `root` (and `root` itself).
-fn fsync_tree(root: &Path) -> anyhow::Result<()> {
+pub(crate) fn fsync_tree(root: &Path) -> anyhow::Result<()> {
     for entry in fs::read_dir(root).with_context(|| format!("cannot list {}", root.display()))? {
         let entry = entry.with_context(|| format!("cannot list {}", root.display()))?;
         let path = entry.path();
