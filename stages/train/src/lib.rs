@@ -6,6 +6,7 @@
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`knn`]: exact grid k-nearest neighbours (and the brute-force reference).
 //! - [`densify`]: per-Gaussian state and clone/split/prune.
+//! - [`gaussians`]: trainable Gaussian columns and one optimisation step through splatting.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
 
@@ -16,6 +17,7 @@
 pub mod checkpoint;
 pub mod config;
 pub mod densify;
+pub mod gaussians;
 pub mod knn;
 pub mod losses;
 pub mod rng;
