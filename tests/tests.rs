@@ -1,1 +1,3 @@
 //! Integration tests: run the real `pipeline` binary in fresh temporary directories.
+
+mod engine;

@@ -1,0 +1,518 @@
+//! Engine tests against the real binary: caching, keys, crash safety, concurrency,
+//! corruption, malformed pipelines, inspect and gc. They use the built-in `test_arrays` kind.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// A temporary folder with a cache and pipeline files.
+struct Sandbox {
+    dir: tempfile::TempDir,
+}
+
+impl Sandbox {
+    fn new() -> Self {
+        Self {
+            dir: tempfile::tempdir().expect("temporary folder"),
+        }
+    }
+
+    fn path(&self) -> &Path {
+        self.dir.path()
+    }
+
+    fn cache(&self) -> PathBuf {
+        self.path().join("cache")
+    }
+
+    fn write(&self, name: &str, text: &str) -> PathBuf {
+        let path = self.path().join(name);
+        fs::write(&path, text).expect("write pipeline");
+        path
+    }
+
+    fn command(&self, args: &[&str]) -> Command {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_pipeline"));
+        command
+            .current_dir(self.path())
+            .env_remove("SEQAVATAR_CACHE")
+            .arg("--cache")
+            .arg(self.cache())
+            .args(args);
+        command
+    }
+
+    fn run(&self, args: &[&str]) -> Output {
+        self.command(args).output().expect("run pipeline binary")
+    }
+
+    fn ok(&self, args: &[&str]) -> String {
+        let output = self.run(args);
+        assert!(
+            output.status.success(),
+            "pipeline {args:?} failed:\nstdout:\n{}\nstderr:\n{}",
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        );
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    }
+
+    fn fails(&self, args: &[&str]) -> String {
+        let output = self.run(args);
+        assert!(
+            !output.status.success(),
+            "pipeline {args:?} should fail; stdout:\n{}",
+            String::from_utf8_lossy(&output.stdout)
+        );
+        String::from_utf8_lossy(&output.stderr).into_owned()
+    }
+
+    fn spawn(&self, args: &[&str]) -> Child {
+        self.command(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn pipeline binary")
+    }
+
+    /// (stage, kind, key, state) rows of `pipeline status`.
+    fn status(&self, file: &str) -> Vec<(String, String, String, String)> {
+        self.ok(&["status", file])
+            .lines()
+            .skip(1)
+            .map(|line| {
+                let cells: Vec<&str> = line.split_whitespace().collect();
+                assert_eq!(cells.len(), 4, "status line {line:?}");
+                (
+                    cells[0].to_string(),
+                    cells[1].to_string(),
+                    cells[2].to_string(),
+                    cells[3].to_string(),
+                )
+            })
+            .collect()
+    }
+
+    fn key_of(&self, file: &str, stage: &str) -> String {
+        self.status(file)
+            .into_iter()
+            .find(|row| row.0 == stage)
+            .unwrap_or_else(|| panic!("no stage {stage}"))
+            .2
+    }
+
+    fn state_of(&self, file: &str, stage: &str) -> String {
+        self.status(file)
+            .into_iter()
+            .find(|row| row.0 == stage)
+            .unwrap_or_else(|| panic!("no stage {stage}"))
+            .3
+    }
+
+    fn count_lines(&self, name: &str) -> usize {
+        fs::read_to_string(self.path().join(name))
+            .map(|text| text.lines().count())
+            .unwrap_or(0)
+    }
+}
+
+/// A two-stage pipeline: `a` feeds `b`.
+fn two_stages(a_config: &str, b_config: &str) -> String {
+    format!(
+        "stages:\n  - name: a\n    kind: test_arrays\n    config: {{{a_config}}}\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n    config: {{{b_config}}}\n"
+    )
+}
+
+/// The summary table rows (stage, result) of `pipeline run` output.
+fn results(stdout: &str) -> Vec<(String, String)> {
+    stdout
+        .lines()
+        .skip(1)
+        .filter(|line| !line.contains(" stages: "))
+        .map(|line| {
+            let cells: Vec<&str> = line.split_whitespace().collect();
+            (cells[0].to_string(), cells[3].to_string())
+        })
+        .collect()
+}
+
+fn wait_for(what: &str, timeout: Duration, mut condition: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !condition() {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn second_run_recomputes_nothing() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        &two_stages(
+            "size: 8, count_file: count",
+            "size: 8, seed: 3, count_file: count",
+        ),
+    );
+    let first = sandbox.ok(&["run", "p.yaml"]);
+    assert_eq!(
+        results(&first),
+        [("a".into(), "ran".into()), ("b".into(), "ran".into())]
+    );
+    assert!(first.contains("backend"), "{first}");
+    assert_eq!(sandbox.count_lines("count"), 2);
+    let second = sandbox.ok(&["run", "p.yaml"]);
+    assert_eq!(
+        results(&second),
+        [("a".into(), "cached".into()), ("b".into(), "cached".into())]
+    );
+    assert!(second.contains("2 stages: 0 ran, 2 cached"), "{second}");
+    assert_eq!(sandbox.count_lines("count"), 2);
+    for (_, _, _, state) in sandbox.status("p.yaml") {
+        assert_eq!(state, "cached");
+    }
+}
+
+#[test]
+fn keys_follow_config_upstream_and_not_key_order() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p1.yaml",
+        &two_stages("size: 8, seed: 1", "size: 8, chunk: 2"),
+    );
+    sandbox.write(
+        "p2.yaml",
+        &two_stages("seed: 1, size: 8", "chunk: 2, size: 8"),
+    );
+    // Defaults written out explicitly give the same key.
+    sandbox.write(
+        "p3.yaml",
+        &two_stages(
+            "seed: 1, size: 8, sleep_ms: 0, steps: 1",
+            "chunk: 2, size: 8",
+        ),
+    );
+    sandbox.write(
+        "p4.yaml",
+        &two_stages("size: 8, seed: 2", "size: 8, chunk: 2"),
+    );
+    sandbox.write(
+        "p5.yaml",
+        &two_stages("size: 8, seed: 1", "size: 8, chunk: 4"),
+    );
+    let keys = |file: &str| (sandbox.key_of(file, "a"), sandbox.key_of(file, "b"));
+    let (a1, b1) = keys("p1.yaml");
+    assert_eq!(keys("p2.yaml"), (a1.clone(), b1.clone()));
+    assert_eq!(keys("p3.yaml"), (a1.clone(), b1.clone()));
+    // Changed upstream config: both keys change.
+    let (a4, b4) = keys("p4.yaml");
+    assert_ne!(a4, a1);
+    assert_ne!(b4, b1);
+    // Changed own config: only that key changes.
+    let (a5, b5) = keys("p5.yaml");
+    assert_eq!(a5, a1);
+    assert_ne!(b5, b1);
+    // --set changes the key like an edit of the file.
+    let set_key = sandbox
+        .ok(&["status", "p1.yaml", "--set", "a.seed=2"])
+        .lines()
+        .find(|line| line.starts_with("a "))
+        .map(|line| line.split_whitespace().nth(2).unwrap().to_string())
+        .unwrap();
+    assert_eq!(set_key, a4);
+}
+
+#[test]
+fn killed_run_leaves_no_entry_and_next_run_resumes() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        "stages:\n  - name: slow\n    kind: test_arrays\n    config: {sleep_ms: 3000, steps: 30, count_file: count}\n",
+    );
+    let mut child = sandbox.spawn(&["run", "p.yaml"]);
+    let staging = sandbox.cache().join(".staging").join("test_arrays");
+    wait_for("a recorded step", Duration::from_secs(60), || {
+        fs::read_dir(&staging)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|entry| entry.path().join("work").join("steps_done").exists())
+    });
+    child.kill().expect("kill the run");
+    let status = child.wait().expect("wait for the killed run");
+    assert!(!status.success());
+    // Nothing visible: the key is not cached, but the work folder makes it resumable.
+    assert_eq!(sandbox.state_of("p.yaml", "slow"), "partial");
+    let key = sandbox.key_of("p.yaml", "slow");
+    assert!(
+        !sandbox
+            .cache()
+            .join("test_arrays")
+            .join(&key)
+            .join(".complete")
+            .exists()
+    );
+    let output = sandbox.run(&["run", "p.yaml"]);
+    assert!(output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("resuming at step"), "{stderr}");
+    assert!(stderr.contains("cleaned up partial output"), "{stderr}");
+    assert_eq!(sandbox.state_of("p.yaml", "slow"), "cached");
+    assert_eq!(sandbox.count_lines("count"), 2);
+    // Publishing removed the staging area.
+    assert!(
+        !sandbox
+            .cache()
+            .join(".staging/test_arrays")
+            .join(&key)
+            .exists()
+    );
+    assert_eq!(results(&sandbox.ok(&["run", "p.yaml"]))[0].1, "cached");
+}
+
+#[test]
+fn concurrent_runs_compute_each_stage_once() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        &two_stages(
+            "sleep_ms: 800, count_file: count",
+            "sleep_ms: 300, seed: 5, count_file: count",
+        ),
+    );
+    let first = sandbox.spawn(&["run", "p.yaml"]);
+    let second = sandbox.spawn(&["run", "p.yaml"]);
+    let outputs = [
+        first.wait_with_output().unwrap(),
+        second.wait_with_output().unwrap(),
+    ];
+    let mut ran = 0;
+    for output in &outputs {
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        ran += results(&String::from_utf8_lossy(&output.stdout))
+            .iter()
+            .filter(|(_, result)| result == "ran")
+            .count();
+    }
+    assert_eq!(sandbox.count_lines("count"), 2, "each stage computed once");
+    assert_eq!(ran, 2);
+}
+
+#[test]
+fn corrupted_chunk_is_reported_and_recomputed() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        &two_stages("count_file: count", "count_file: count"),
+    );
+    sandbox.ok(&["run", "p.yaml"]);
+    let key = sandbox.key_of("p.yaml", "a");
+    let chunk = sandbox
+        .cache()
+        .join("test_arrays")
+        .join(&key)
+        .join("values/c/1");
+    let mut bytes = fs::read(&chunk).expect("chunk file");
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x5a;
+    fs::write(&chunk, bytes).unwrap();
+    let output = sandbox.run(&["run", "p.yaml"]);
+    assert!(output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("array \"values\": file values/c/1 does not match its digest"),
+        "{stderr}"
+    );
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert_eq!(
+        results(&stdout),
+        [("a".into(), "ran".into()), ("b".into(), "cached".into())]
+    );
+    assert_eq!(sandbox.count_lines("count"), 3);
+    // A deleted chunk is caught the same way.
+    fs::remove_file(&chunk).unwrap();
+    let stderr = sandbox.run(&["run", "p.yaml"]).stderr;
+    assert!(String::from_utf8_lossy(&stderr).contains("file values/c/1 is missing"));
+    assert_eq!(results(&sandbox.ok(&["run", "p.yaml"]))[0].1, "cached");
+    assert_eq!(sandbox.count_lines("count"), 4);
+}
+
+#[test]
+fn malformed_pipelines_are_rejected_before_running() {
+    let sandbox = Sandbox::new();
+    let cases: &[(&str, &str)] = &[
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      count_file: count\n      sizee: 3\n",
+            "bad.yaml:6: stage \"a\": config key \"sizee\": unknown field `sizee`",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: {count_file: count, size: [1]}\n",
+            "bad.yaml:4: stage \"a\": config key \"size\": invalid type",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: {count_file: count}\n  - name: b\n    kind: tset_arrays\n",
+            "bad.yaml:6: stage \"b\": unknown stage kind \"tset_arrays\"",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: {count_file: count}\n    inputs: [c]\n",
+            "bad.yaml:5: stage \"a\": input \"c\" is not a stage of this pipeline",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: {count_file: count}\n    inputs: [b]\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n",
+            "the inputs form a cycle",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    colour: red\n",
+            "bad.yaml:4: stage \"a\": unknown key \"colour\"",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: test_arrays\n    config: {count_file: \"${SEQAVATAR_SURELY_UNSET_VAR}\"}\n",
+            "environment variable SEQAVATAR_SURELY_UNSET_VAR is not set",
+        ),
+        (
+            "stages:\n  - name: a\n    kind: [test_arrays\n",
+            "bad.yaml:",
+        ),
+    ];
+    for (text, expected) in cases {
+        sandbox.write("bad.yaml", text);
+        let stderr = sandbox.fails(&["run", "bad.yaml"]);
+        assert!(
+            stderr.contains(expected),
+            "expected {expected:?} in {stderr:?}"
+        );
+        assert_eq!(sandbox.count_lines("count"), 0, "nothing may run");
+    }
+    sandbox.write("good.yaml", &two_stages("count_file: count", ""));
+    let stderr = sandbox.fails(&["run", "good.yaml", "--set", "a.chunk=zero"]);
+    assert!(stderr.contains("config key \"chunk\""), "{stderr}");
+    let stderr = sandbox.fails(&["run", "good.yaml", "--until", "zz"]);
+    assert!(
+        stderr.contains("--until zz: no stage named \"zz\""),
+        "{stderr}"
+    );
+    assert_eq!(sandbox.count_lines("count"), 0);
+}
+
+#[test]
+fn until_force_and_failures() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        &two_stages("count_file: count", "count_file: count"),
+    );
+    let until = sandbox.ok(&["run", "p.yaml", "--until", "a"]);
+    assert_eq!(results(&until), [("a".into(), "ran".into())]);
+    assert_eq!(sandbox.state_of("p.yaml", "b"), "missing");
+    let forced = sandbox.ok(&["run", "p.yaml", "--force", "a"]);
+    assert_eq!(
+        results(&forced),
+        [("a".into(), "ran".into()), ("b".into(), "ran".into())]
+    );
+    assert!(forced.contains("forced"), "{forced}");
+    assert_eq!(sandbox.count_lines("count"), 3);
+    // A failing stage reports itself and publishes nothing.
+    sandbox.write(
+        "fail.yaml",
+        "stages:\n  - name: f\n    kind: test_arrays\n    config: {steps: 3, fail_at: 2}\n",
+    );
+    let stderr = sandbox.fails(&["run", "fail.yaml"]);
+    assert!(
+        stderr.contains("stage \"f\" (kind test_arrays") && stderr.contains("failing at step 2"),
+        "{stderr}"
+    );
+    assert_eq!(sandbox.state_of("fail.yaml", "f"), "partial");
+}
+
+#[test]
+fn inspect_prints_arrays_and_exports_pictures() {
+    let sandbox = Sandbox::new();
+    sandbox.write(
+        "p.yaml",
+        &two_stages("size: 6, chunk: 4", "size: 6, seed: 1"),
+    );
+    sandbox.ok(&["run", "p.yaml"]);
+    let text = sandbox.ok(&["inspect", "p.yaml:b"]);
+    for expected in [
+        "kind test_arrays",
+        "values",
+        "float64",
+        "[6]",
+        "uint8",
+        "[6, 6, 3]",
+        "input     a",
+        "attribute sum",
+    ] {
+        assert!(text.contains(expected), "{expected:?} missing in\n{text}");
+    }
+    // b's values are 1 + i + i for i in 0..6: min 1, max 11, mean 6.
+    let values_line = text
+        .lines()
+        .find(|line| line.starts_with("values "))
+        .unwrap();
+    assert!(
+        values_line.contains("1.000000  11.000000  6.000000  0"),
+        "{values_line}"
+    );
+    let key = sandbox.key_of("p.yaml", "b");
+    let folder = sandbox.cache().join("test_arrays").join(&key);
+    let by_path = sandbox.ok(&["inspect", folder.join("values").to_str().unwrap()]);
+    assert!(by_path.contains("units = \"counts\""), "{by_path}");
+    sandbox.ok(&["inspect", "p.yaml:b:image", "--png", "image.png"]);
+    let png = image_size(&sandbox.path().join("image.png"));
+    assert_eq!(png, (6, 6));
+    sandbox.ok(&[
+        "inspect",
+        "p.yaml:b",
+        "--picture",
+        "values",
+        "--opt",
+        "height=10",
+        "--png",
+        "bars.png",
+    ]);
+    assert_eq!(image_size(&sandbox.path().join("bars.png")), (6, 10));
+    sandbox.ok(&["inspect", "p.yaml:b:image", "--exr", "image.exr"]);
+    let exr = fs::read(sandbox.path().join("image.exr")).unwrap();
+    assert_eq!(&exr[..4], &[0x76, 0x2f, 0x31, 0x01], "OpenEXR magic");
+    let stderr = sandbox.fails(&["inspect", "p.yaml:b:values", "--png", "v.png"]);
+    assert!(stderr.contains("not image-like"), "{stderr}");
+    let stderr = sandbox.fails(&["inspect", "p.yaml:b:nothing"]);
+    assert!(stderr.contains("no array \"nothing\""), "{stderr}");
+}
+
+/// Width and height from a PNG header.
+fn image_size(path: &Path) -> (u32, u32) {
+    let bytes = fs::read(path).expect("png file");
+    assert_eq!(&bytes[1..4], b"PNG");
+    let width = u32::from_be_bytes(bytes[16..20].try_into().unwrap());
+    let height = u32::from_be_bytes(bytes[20..24].try_into().unwrap());
+    (width, height)
+}
+
+#[test]
+fn gc_keeps_only_listed_pipelines() {
+    let sandbox = Sandbox::new();
+    sandbox.write("keep.yaml", &two_stages("seed: 1", ""));
+    sandbox.write("drop.yaml", &two_stages("seed: 2", ""));
+    sandbox.ok(&["run", "keep.yaml"]);
+    sandbox.ok(&["run", "drop.yaml"]);
+    let dry = sandbox.ok(&["gc", "--keep", "keep.yaml", "--dry-run"]);
+    assert_eq!(dry.matches("would remove test_arrays/").count(), 2, "{dry}");
+    assert_eq!(sandbox.state_of("drop.yaml", "a"), "cached");
+    let removed = sandbox.ok(&["gc", "--keep", "keep.yaml"]);
+    assert_eq!(
+        removed.matches("removed test_arrays/").count(),
+        2,
+        "{removed}"
+    );
+    assert_eq!(sandbox.state_of("drop.yaml", "a"), "missing");
+    assert_eq!(sandbox.state_of("drop.yaml", "b"), "missing");
+    assert_eq!(sandbox.state_of("keep.yaml", "a"), "cached");
+    assert_eq!(sandbox.state_of("keep.yaml", "b"), "cached");
+}
