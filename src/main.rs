@@ -12,7 +12,8 @@ use seqavatar_engine::{Registry, RunOptions};
 #[derive(Debug, Parser)]
 #[command(name = "pipeline", version, about)]
 struct Cli {
-    /// Cache folder [default: $SEQAVATAR_CACHE, else ./cache].
+    /// Cache folder, or s3://bucket/prefix for a shared remote cache fronted by the folder
+    /// $SEQAVATAR_LOCAL_CACHE (else ./cache) [default: $SEQAVATAR_CACHE, else ./cache].
     #[arg(long, global = true)]
     cache: Option<PathBuf>,
     #[command(subcommand)]
