@@ -1,3 +1,4 @@
 //! Integration tests: run the real `pipeline` binary in fresh temporary directories.
 
 mod engine;
+mod remote;
