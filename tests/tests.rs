@@ -1,4 +1,6 @@
 //! Integration tests: run the real `pipeline` binary in fresh temporary directories.
 
+mod datasets;
 mod engine;
 mod remote;
+mod support;

@@ -1,0 +1,150 @@
+//! The dataset pipelines (`pipelines/{zju_mocap,i3d_human,dna_rendering}.yaml`) ingest tiny
+//! datasets written in each real layout by `tests/fixtures/write_datasets.py` (numpy, h5py),
+//! through the real binary and the committed YAML files, with the dataset roots given the
+//! way a user gives them: environment variables. `pipeline inspect` then draws the ingest
+//! contact sheet. The readers' numerics are checked in `stages/ingest/tests/datasets.rs`;
+//! this checks the files users run.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use crate::support::Sandbox;
+
+/// Runs the fixture writer for `kind` into `out`.
+fn write_fixture(kind: &str, out: &Path) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/write_datasets.py");
+    let output = Command::new("python3")
+        .arg(&script)
+        .arg(kind)
+        .arg(out)
+        .output()
+        .unwrap_or_else(|e| panic!("python3 {} ({e}): install Python 3", script.display()));
+    assert!(
+        output.status.success(),
+        "{} {kind} failed (it needs `pip install numpy h5py pillow`):\n{}",
+        script.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+fn pipeline_file(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("pipelines")
+        .join(name)
+        .to_str()
+        .expect("utf-8 repository path")
+        .to_string()
+}
+
+/// Runs `args` with the environment `vars`, asserting success; returns stdout.
+fn ok_with_env(sandbox: &Sandbox, vars: &[(&str, &Path)], args: &[&str]) -> String {
+    let mut command = sandbox.command(args);
+    for (name, value) in vars {
+        command.env(name, value);
+    }
+    let output = command.output().expect("run pipeline binary");
+    assert!(
+        output.status.success(),
+        "pipeline {args:?} failed:\nstdout:\n{}\nstderr:\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// Ingests with `yaml`, checks the entry's image count and draws its contact sheet.
+fn ingest_and_inspect(
+    sandbox: &Sandbox,
+    yaml: &str,
+    vars: &[(&str, &Path)],
+    sets: &[&str],
+    expected_images: usize,
+) {
+    let file = pipeline_file(yaml);
+    let mut run: Vec<&str> = vec!["run", &file, "--until", "ingest"];
+    for set in sets {
+        run.extend(["--set", set]);
+    }
+    ok_with_env(sandbox, vars, &run);
+
+    let target = format!("{file}:ingest");
+    let mut inspect: Vec<&str> = vec!["inspect", &target];
+    for set in sets {
+        inspect.extend(["--set", set]);
+    }
+    let listing = ok_with_env(sandbox, vars, &inspect);
+    let images_line = listing
+        .lines()
+        .find(|line| line.trim_start().starts_with("images "))
+        .unwrap_or_else(|| panic!("no `images` array in the listing:\n{listing}"));
+    assert!(
+        images_line.contains(&format!("[{expected_images},")),
+        "{yaml}: expected {expected_images} images: {images_line}"
+    );
+
+    let sheet: PathBuf = sandbox.path().join(format!("{yaml}.png"));
+    let sheet_arg = sheet.to_str().expect("utf-8 temp path").to_string();
+    inspect.extend(["--png", &sheet_arg, "--picture", "contact_sheet"]);
+    ok_with_env(sandbox, vars, &inspect);
+    let picture = image::open(&sheet).expect("contact sheet is a PNG");
+    assert!(picture.width() > 0 && picture.height() > 0);
+}
+
+#[test]
+fn zju_mocap_yaml_ingests_the_fixture() {
+    let sandbox = Sandbox::new();
+    let data = sandbox.path().join("zju");
+    let model = sandbox.path().join("smpl");
+    write_fixture("zju", &data);
+    write_fixture("smpl", &model);
+    // Three cameras and four frames: train camera 0 on all frames, test cameras 1 and 2 on
+    // frame 0 (every 30th).
+    ingest_and_inspect(
+        &sandbox,
+        "zju_mocap.yaml",
+        &[
+            ("ZJU_MOCAP_ROOT", &data),
+            ("SMPL_NEUTRAL_NPZ", &model.join("model.npz")),
+        ],
+        &[],
+        4 + 2,
+    );
+}
+
+#[test]
+fn i3d_human_yaml_ingests_the_fixture() {
+    let sandbox = Sandbox::new();
+    let data = sandbox.path().join("i3d");
+    let model = sandbox.path().join("smpl");
+    write_fixture("i3d", &data);
+    write_fixture("smpl", &model);
+    ingest_and_inspect(
+        &sandbox,
+        "i3d_human.yaml",
+        &[
+            ("I3D_HUMAN_ROOT", &data),
+            ("SMPL_NEUTRAL_NPZ", &model.join("model.npz")),
+        ],
+        &["ingest.dataset.sequence=ID2_1"],
+        // ID2_1 (interval 3): train views 1 and 3, test view 2, each on frames 0, 3, 6.
+        2 * 3 + 3,
+    );
+}
+
+#[test]
+fn dna_rendering_yaml_ingests_the_fixture() {
+    let sandbox = Sandbox::new();
+    let data = sandbox.path().join("dna");
+    write_fixture("dna", &data);
+    ingest_and_inspect(
+        &sandbox,
+        "dna_rendering.yaml",
+        &[
+            ("DNA_RENDERING_ROOT", &data),
+            ("SMPLX_NEUTRAL_NPZ", &data.join("smplx.npz")),
+        ],
+        &[],
+        // Train cameras 0 and 2 on frames 0..2, test camera 48 on frame 0 (every 5th).
+        2 * 3 + 1,
+    );
+}
