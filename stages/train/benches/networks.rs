@@ -1,0 +1,148 @@
+//! Benchmark of the SeqAvatar networks on `cpu`: milliseconds per non-rigid forward +
+//! backward at the paper widths (trunk 512 x 3, L = 8, tau = 8, three scales, SMPL), for
+//! 10k and 50k Gaussians, and the GFLOP/s of the dominant layer (the 512 x 512 trunk layer).
+//!
+//! Run: `cargo bench -p seqavatar-train --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
+//! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
+
+use std::time::Instant;
+
+use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
+use seqavatar_train::config::MotionContext;
+use seqavatar_train::model::{FrameInputs, GaussianInputs, NetworkConfig, Networks, Widths};
+
+fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
+    (0..len).map(|_| rng.uniform(-1.0, 1.0) as f32).collect()
+}
+
+fn paper_config(context: MotionContext) -> NetworkConfig {
+    NetworkConfig {
+        motion_context: context,
+        trunk_width: 512,
+        trunk_depth: 3,
+        skinning_joints: 24,
+        motion_joints: 24,
+        tau: 8,
+        sequence_length: 8,
+        n_scales: if context == MotionContext::Multiscale {
+            3
+        } else {
+            1
+        },
+        pose_refiner: true,
+        lbs_offsets: true,
+        widths: Widths::PAPER,
+    }
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+fn bench_non_rigid(context: MotionContext, n: usize, repeats: usize) {
+    let config = paper_config(context);
+    let mut networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
+    let mut rng = Rng::new(1);
+    let pose = random(&mut rng, config.pose_dim());
+    let skeleton = random(&mut rng, config.skeleton_motion_len());
+    let xyz = random(&mut rng, 3 * n);
+    let velocity = random(&mut rng, n * config.sequence_length * config.seq_xyz_row());
+    let frame = FrameInputs {
+        local_pose: &pose,
+        skeleton_motion: context.has_skeleton_motion().then_some(&skeleton[..]),
+    };
+    let gaussians = GaussianInputs {
+        xyz: &xyz,
+        knn_velocity: context.has_velocity().then_some(&velocity[..]),
+    };
+    let d_xyz = random(&mut rng, 3 * n);
+    let d_rot = random(&mut rng, 4 * n);
+    let d_scale = random(&mut rng, 3 * n);
+    let (mut forward, mut backward) = (Vec::new(), Vec::new());
+    for repeat in 0..=repeats {
+        let start = Instant::now();
+        let (_, cache) = networks
+            .non_rigid_forward(&frame, &gaussians)
+            .expect("forward");
+        let middle = Instant::now();
+        networks
+            .non_rigid_backward(&cache, &d_xyz, &d_rot, &d_scale)
+            .expect("backward");
+        let end = Instant::now();
+        if repeat > 0 {
+            forward.push((middle - start).as_secs_f64() * 1e3);
+            backward.push((end - middle).as_secs_f64() * 1e3);
+        }
+    }
+    let (f, b) = (median(forward), median(backward));
+    println!(
+        "non-rigid {context:?} n = {n}: forward {f:.1} ms, backward {b:.1} ms, total {:.1} ms ({} parameters)",
+        f + b,
+        networks.parameter_count()
+    );
+}
+
+fn bench_trunk_layer(n: usize, repeats: usize) {
+    let mut rng = Rng::new(2);
+    let shape = LinearShape {
+        in_features: 512,
+        out_features: 512,
+        activation: Activation::Relu,
+    };
+    let weight = random(&mut rng, shape.weight_len());
+    let bias = random(&mut rng, 512);
+    let input = random(&mut rng, n * 512);
+    let mut output = vec![0.0f32; n * 512];
+    let mut times = Vec::new();
+    for repeat in 0..=repeats {
+        let start = Instant::now();
+        linear_forward(
+            shape,
+            &weight,
+            &bias,
+            &[InputPart {
+                data: &input,
+                cols: 512,
+            }],
+            n,
+            &mut output,
+        )
+        .expect("layer");
+        if repeat > 0 {
+            times.push(start.elapsed().as_secs_f64());
+        }
+    }
+    let seconds = median(times);
+    println!(
+        "trunk layer 512 x 512, n = {n}: {:.1} ms, {:.1} GFLOP/s",
+        seconds * 1e3,
+        shape.forward_flops(n) / seconds / 1e9
+    );
+}
+
+fn main() {
+    let sizes: Vec<usize> = std::env::var("SEQAVATAR_BENCH_SIZES")
+        .ok()
+        .map(|text| {
+            text.split(',')
+                .filter_map(|s| s.trim().parse().ok())
+                .collect()
+        })
+        .unwrap_or_else(|| vec![10_000, 50_000]);
+    let repeats: usize = std::env::var("SEQAVATAR_BENCH_REPEATS")
+        .ok()
+        .and_then(|text| text.parse().ok())
+        .unwrap_or(3)
+        .max(1);
+    println!(
+        "cpu threads: {} (f32, median of {repeats} after one warm-up)",
+        rayon::current_num_threads()
+    );
+    for &n in &sizes {
+        bench_trunk_layer(n, repeats);
+        for context in [MotionContext::Pose, MotionContext::Multiscale] {
+            bench_non_rigid(context, n, repeats);
+        }
+    }
+}

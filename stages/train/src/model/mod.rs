@@ -1,0 +1,694 @@
+//! The SeqAvatar networks on `cpu` (generic over f32/f64) and `gpu` (f32): non-rigid
+//! deformation conditioned on pose and motion context, body-pose refiner, LBS-weight offsets.
+//!
+//! # Architecture (`/work/shared/reference/method.md`, "Networks")
+//!
+//! - Canonical positions are NeRF-encoded (10 bands, input included: 63 values).
+//! - `PoseEncoder`: local pose without root (`3 (J - 1)`) -> 32 -> 32, ReLU. One row per frame.
+//! - `SeqPoseEncoder`: skeleton motion `(L, |S|, motion_joints, 3)`: each of the `L` rows
+//!   `Linear(3 motion_joints |S|, 16)` + ReLU, the `L` rows flattened, `Linear(16 L, 32)` +
+//!   ReLU. One row per frame.
+//! - `SeqXYZEncoder`: per Gaussian and window element `l`, the velocities of its `tau` nearest
+//!   template vertices over all scales (`[neighbour][scale, largest first][xyz]`),
+//!   `Linear(3 tau |S|, 64)` + ReLU, concatenated with `Linear(63, 32)` + ReLU of the
+//!   encoding, `Linear(96, 96)` + ReLU; the `L` results flattened, `Linear(96 L, 256)` + ReLU,
+//!   `Linear(256, 96)` + ReLU.
+//! - Trunk: `concat(encoding 63, seq-xyz 96, pose 32, seq-pose 32)` -> `depth` x
+//!   (`Linear(width)` + ReLU) -> heads `d_xyz` (3), `d_rot` (4, plus 1 on `w` so a fresh
+//!   network starts near the identity quaternion), `d_scale` (3), stored as one layer of 10.
+//!   The per-frame inputs (pose, seq-pose) are never copied to every Gaussian: their product
+//!   with their rows of the first weight, plus the bias, is one per-frame bias of the
+//!   per-Gaussian product (identical maths), and its gradient is the column sum.
+//!   **Row order of `non_rigid.trunk.0.weight`**: per-Gaussian inputs first (encoding, then
+//!   seq-xyz), then per-frame inputs (pose, then seq-pose). This is a permutation of the
+//!   reference concatenation order `(63, 32, 32, 96)`; the function class and the
+//!   initialisation distribution are the same.
+//! - `BodyPoseRefiner`: `3 (J - 1)` -> 128 -> 128 -> `3 (J - 1)` (last layer `U(+-1e-5)`, bias
+//!   0), each 3-vector to a matrix by the reference's regularised Rodrigues
+//!   ([`pose_refiner::regularised_rodrigues`]), to be right-multiplied onto the joint's
+//!   rotation by the caller.
+//! - `LbsOffsetNet`: encoding (detached) 63 -> 128 -> 128 -> 128, skip `concat(128, 63)` -> 128
+//!   -> `J`; [`lbs::blend_weights`] turns offsets into skinning weights
+//!   `softmax(log(w_template + 1e-9) + offset)`.
+//!
+//! [`NetworkConfig::motion_context`] decides which blocks exist: `none` has no non-rigid
+//! network at all (no encoding, no buffers), `pose` the encoding, `PoseEncoder` and trunk,
+//! `skeleton` adds `SeqPoseEncoder`, `velocity` adds `SeqXYZEncoder`, `multiscale` uses all
+//! scales (the other levels use one scale slot, chosen by the caller). The pose refiner and
+//! the LBS offsets are independent switches.
+//!
+//! # API
+//!
+//! - [`Networks::new`]`(&NetworkConfig, seed)`; [`NetworkConfig::from_train`] derives the
+//!   configuration from a [`TrainConfig`](crate::config::TrainConfig) and the body sizes.
+//! - [`Networks::parameters`] / [`Networks::parameters_mut`]: every array with its stable
+//!   name (`{layer}.weight` `(in, out)` and `{layer}.bias` `(out)`), its gradient and its
+//!   [`NetworkGroup`] (learning rates differ per group); [`Networks::zero_grad`];
+//!   [`Networks::load_parameters`] (named arrays back, checked).
+//! - [`Networks::non_rigid_forward`]`(&FrameInputs, &GaussianInputs) -> (NonRigidOutput,
+//!   NonRigidCache)` and [`Networks::non_rigid_backward`]`(cache, d_dxyz, d_drot, d_dscale)
+//!   -> d_canonical_xyz` (parameter gradients accumulate; the position gradient goes through
+//!   the encoding).
+//! - [`Networks::pose_refiner_forward`] / [`Networks::pose_refiner_backward`]: local pose to
+//!   `(J - 1)` row-major 3x3 matrices and back from their gradient.
+//! - [`Networks::lbs_offsets_forward`] / [`Networks::lbs_offsets_backward`]: positions to
+//!   `n x J` offsets (input detached), plus [`lbs::blend_weights`] /
+//!   [`lbs::blend_weights_backward`].
+//! - [`gpu::GpuNetworks`]: the f32 twin on wgpu (same forward/backward, parameter and
+//!   gradient upload/download, buffers for Adam on the device).
+
+pub mod dense;
+pub mod gpu;
+pub mod lbs;
+pub mod non_rigid;
+pub mod pose_refiner;
+#[cfg(test)]
+mod tests;
+
+use seqavatar_compute::nn::{NnError, NnScalar, PositionalEncoding, Rng};
+
+use crate::config::{MotionContext, TrainConfig};
+use dense::Dense;
+use lbs::LbsOffsetNet;
+use non_rigid::NonRigidNet;
+use pose_refiner::PoseRefiner;
+
+pub use lbs::LbsOffsetsCache;
+pub use non_rigid::{FrameInputs, GaussianInputs, NonRigidCache, NonRigidOutput};
+pub use pose_refiner::PoseRefinerCache;
+
+/// The encoding of canonical positions shared by the non-rigid and LBS-offset networks.
+pub const POSITION_ENCODING: PositionalEncoding = PositionalEncoding::NERF_XYZ;
+
+/// Width of the heads layer: `d_xyz` (3), `d_rot` (4), `d_scale` (3).
+pub const HEAD_WIDTH: usize = 10;
+
+/// Errors of the networks: each names the input, field or parameter it is about.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ModelError {
+    /// An input array does not have the length the configuration implies.
+    #[error("{field}: expected {expected} values, got {actual}")]
+    InputLength {
+        /// Which input (e.g. `gaussians.xyz`).
+        field: String,
+        /// The length the configuration implies.
+        expected: usize,
+        /// The length given.
+        actual: usize,
+    },
+    /// An input the configuration needs is missing, or one it does not use is given.
+    #[error("{field}: {message}")]
+    Input {
+        /// Which input.
+        field: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// The network configuration is invalid.
+    #[error("network config {field}: {message}")]
+    Config {
+        /// Which field.
+        field: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A parameter array being loaded is missing or has the wrong size.
+    #[error("parameter {name}: {message}")]
+    Parameter {
+        /// The parameter's stable name.
+        name: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A backward pass was asked of a block that is disabled by the configuration.
+    #[error("{block} is disabled by the network configuration")]
+    Disabled {
+        /// The block.
+        block: &'static str,
+    },
+    /// A dense-layer operation failed (an internal shape error).
+    #[error(transparent)]
+    Nn(#[from] NnError),
+    /// The gpu could not run the networks.
+    #[error("gpu: {0}")]
+    Gpu(String),
+}
+
+/// The optimiser group of a parameter; each has its own learning rate (method.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum NetworkGroup {
+    /// Encoders and trunk of the non-rigid deformation (lr 1e-3).
+    NonRigid,
+    /// The body-pose refiner (lr 5e-5).
+    PoseRefiner,
+    /// The LBS-weight offsets (lr 5e-5).
+    LbsOffsets,
+}
+
+/// Hidden and output widths of the blocks; [`Widths::PAPER`] is the reference architecture,
+/// tests shrink them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Widths {
+    /// NeRF bands of the position encoding (63 values with 10).
+    pub encoding_frequencies: usize,
+    /// `PoseEncoder` hidden and output width (32).
+    pub pose_encoder: usize,
+    /// `SeqPoseEncoder` per-frame width (16).
+    pub seq_pose_frame: usize,
+    /// `SeqPoseEncoder` output width (32).
+    pub seq_pose: usize,
+    /// `SeqXYZEncoder` velocity branch width (64).
+    pub seq_xyz_velocity: usize,
+    /// `SeqXYZEncoder` position branch width (32).
+    pub seq_xyz_position: usize,
+    /// `SeqXYZEncoder` per-frame fused width (96).
+    pub seq_xyz_frame: usize,
+    /// `SeqXYZEncoder` hidden width after flattening the frames (256).
+    pub seq_xyz_hidden: usize,
+    /// `SeqXYZEncoder` output width (96).
+    pub seq_xyz: usize,
+    /// `BodyPoseRefiner` hidden width (128).
+    pub pose_refiner_hidden: usize,
+    /// `LbsOffsetNet` hidden width (128).
+    pub lbs_hidden: usize,
+}
+
+impl Widths {
+    /// The widths of the published code.
+    pub const PAPER: Widths = Widths {
+        encoding_frequencies: 10,
+        pose_encoder: 32,
+        seq_pose_frame: 16,
+        seq_pose: 32,
+        seq_xyz_velocity: 64,
+        seq_xyz_position: 32,
+        seq_xyz_frame: 96,
+        seq_xyz_hidden: 256,
+        seq_xyz: 96,
+        pose_refiner_hidden: 128,
+        lbs_hidden: 128,
+    };
+
+    /// The encoding of 3D positions with these widths.
+    pub fn encoding(&self) -> PositionalEncoding {
+        PositionalEncoding {
+            frequencies: self.encoding_frequencies,
+            include_input: true,
+        }
+    }
+
+    /// Width of the position encoding (63 for the paper).
+    pub fn encoding_width(&self) -> usize {
+        self.encoding().out_features(3)
+    }
+}
+
+impl Default for Widths {
+    fn default() -> Self {
+        Widths::PAPER
+    }
+}
+
+/// Everything that fixes the networks' shapes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NetworkConfig {
+    /// Which conditioning blocks exist.
+    pub motion_context: MotionContext,
+    /// Trunk width (512 in the paper).
+    pub trunk_width: usize,
+    /// Number of `Linear(width) + ReLU` layers of the trunk (3 in the paper).
+    pub trunk_depth: usize,
+    /// Skinning joints `J`, root included (24 for SMPL, 55 for SMPL-X). The pose refiner and
+    /// the pose encoder read `3 (J - 1)` values, the LBS offsets have `J` outputs.
+    pub skinning_joints: usize,
+    /// Joints per skeleton-motion frame (the motion entry's `joint` axis).
+    pub motion_joints: usize,
+    /// Nearest template vertices per Gaussian in the velocity context.
+    pub tau: usize,
+    /// Window length `L`.
+    pub sequence_length: usize,
+    /// Scale slots the encoders read: all of them for `multiscale`, else 1.
+    pub n_scales: usize,
+    /// Whether the body-pose refiner exists.
+    pub pose_refiner: bool,
+    /// Whether the LBS-offset network exists.
+    pub lbs_offsets: bool,
+    /// Block widths.
+    pub widths: Widths,
+}
+
+impl NetworkConfig {
+    /// The configuration of a training run: trunk size, `tau`, `L`, switches from `config`,
+    /// body sizes from the body model and the motion entry, `available_scales` the motion
+    /// entry's scale count (only `multiscale` uses more than one).
+    pub fn from_train(
+        config: &TrainConfig,
+        skinning_joints: usize,
+        motion_joints: usize,
+        available_scales: usize,
+    ) -> Result<Self, ModelError> {
+        let n_scales = if config.motion_context.is_multiscale() {
+            available_scales
+        } else {
+            1
+        };
+        let network = NetworkConfig {
+            motion_context: config.motion_context,
+            trunk_width: config.trunk_width,
+            trunk_depth: config.trunk_depth,
+            skinning_joints,
+            motion_joints,
+            tau: config.tau,
+            sequence_length: config.sequence_length,
+            n_scales,
+            pose_refiner: config.pose_refiner,
+            lbs_offsets: config.lbs_offsets,
+            widths: Widths::PAPER,
+        };
+        network.validate()?;
+        Ok(network)
+    }
+
+    /// Local pose values without the root: `3 (J - 1)`.
+    pub fn pose_dim(&self) -> usize {
+        3 * self.skinning_joints.saturating_sub(1)
+    }
+
+    /// Skeleton-motion values per frame: `L |S| motion_joints 3`.
+    pub fn skeleton_motion_len(&self) -> usize {
+        self.sequence_length * self.seq_pose_row()
+    }
+
+    /// One window element of skeleton motion: `|S| motion_joints 3`.
+    pub fn seq_pose_row(&self) -> usize {
+        self.n_scales * self.motion_joints * 3
+    }
+
+    /// One window element of one Gaussian's velocities: `tau |S| 3`.
+    pub fn seq_xyz_row(&self) -> usize {
+        self.tau * self.n_scales * 3
+    }
+
+    /// Checks every size the enabled blocks use.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let bad = |field: &str, message: String| {
+            Err(ModelError::Config {
+                field: field.into(),
+                message,
+            })
+        };
+        let w = &self.widths;
+        if w.encoding_frequencies > 30 {
+            return bad(
+                "widths.encoding_frequencies",
+                format!("{} bands exceed 30", w.encoding_frequencies),
+            );
+        }
+        let needs_pose = self.motion_context.has_non_rigid() || self.pose_refiner;
+        if needs_pose && self.skinning_joints < 2 {
+            return bad(
+                "skinning_joints",
+                format!(
+                    "the pose encoder and refiner need a non-root joint, got J = {}",
+                    self.skinning_joints
+                ),
+            );
+        }
+        if self.lbs_offsets && self.skinning_joints == 0 {
+            return bad("skinning_joints", "the LBS offsets need J >= 1".into());
+        }
+        if self.motion_context.has_non_rigid() {
+            if self.trunk_width == 0 || self.trunk_depth == 0 {
+                return bad(
+                    "trunk_width",
+                    format!(
+                        "the trunk needs width and depth >= 1, got {} and {}",
+                        self.trunk_width, self.trunk_depth
+                    ),
+                );
+            }
+            if w.pose_encoder == 0 {
+                return bad("widths.pose_encoder", "must be positive".into());
+            }
+        }
+        if self.motion_context.has_skeleton_motion() {
+            if self.sequence_length == 0 || self.n_scales == 0 || self.motion_joints == 0 {
+                return bad(
+                    "sequence_length",
+                    format!(
+                        "skeleton motion needs L, scales and motion joints >= 1, got {}, {}, {}",
+                        self.sequence_length, self.n_scales, self.motion_joints
+                    ),
+                );
+            }
+            if w.seq_pose_frame == 0 || w.seq_pose == 0 {
+                return bad("widths.seq_pose", "must be positive".into());
+            }
+        }
+        if self.motion_context.has_velocity() {
+            if self.tau == 0 {
+                return bad("tau", "velocity context needs tau >= 1".into());
+            }
+            if [
+                w.seq_xyz_velocity,
+                w.seq_xyz_position,
+                w.seq_xyz_frame,
+                w.seq_xyz_hidden,
+                w.seq_xyz,
+            ]
+            .contains(&0)
+            {
+                return bad("widths.seq_xyz", "must be positive".into());
+            }
+        }
+        if self.motion_context.has_non_rigid()
+            && !self.motion_context.is_multiscale()
+            && self.n_scales > 1
+        {
+            return bad(
+                "n_scales",
+                format!(
+                    "motion context {:?} reads one scale, got {}",
+                    self.motion_context, self.n_scales
+                ),
+            );
+        }
+        if self.pose_refiner && w.pose_refiner_hidden == 0 {
+            return bad("widths.pose_refiner_hidden", "must be positive".into());
+        }
+        if self.lbs_offsets && w.lbs_hidden == 0 {
+            return bad("widths.lbs_hidden", "must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// One parameter array, read-only.
+#[derive(Debug)]
+pub struct NamedParam<'a, S> {
+    /// Stable name (a Zarr array name in checkpoints and the trained avatar).
+    pub name: String,
+    /// `[in, out]` for weights, `[out]` for biases.
+    pub shape: Vec<usize>,
+    /// The values, row-major.
+    pub values: &'a [S],
+    /// The accumulated gradient, same layout.
+    pub grads: &'a [S],
+    /// Its optimiser group.
+    pub group: NetworkGroup,
+}
+
+/// One parameter array, values writable (an optimiser step), gradient read-only.
+#[derive(Debug)]
+pub struct NamedParamMut<'a, S> {
+    /// Stable name.
+    pub name: String,
+    /// `[in, out]` for weights, `[out]` for biases.
+    pub shape: Vec<usize>,
+    /// The values, row-major.
+    pub values: &'a mut [S],
+    /// The accumulated gradient.
+    pub grads: &'a [S],
+    /// Its optimiser group.
+    pub group: NetworkGroup,
+}
+
+/// All networks of one avatar, on `cpu`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Networks<S> {
+    config: NetworkConfig,
+    non_rigid: Option<NonRigidNet<S>>,
+    pose_refiner: Option<PoseRefiner<S>>,
+    lbs_offsets: Option<LbsOffsetNet<S>>,
+}
+
+/// A generator per block, so switching one block off leaves the others' initial values as
+/// they were.
+fn block_rng(seed: u64, block: u64) -> Rng {
+    Rng::new(seed ^ block.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+}
+
+impl<S: NnScalar> Networks<S> {
+    /// The enabled blocks, initialised from `seed` (PyTorch-default initialisation, the pose
+    /// refiner's last layer `U(-1e-5, 1e-5)` with zero bias).
+    pub fn new(config: &NetworkConfig, seed: u64) -> Result<Self, ModelError> {
+        config.validate()?;
+        let non_rigid = config
+            .motion_context
+            .has_non_rigid()
+            .then(|| NonRigidNet::new(config, &mut block_rng(seed, 1)));
+        let pose_refiner = config
+            .pose_refiner
+            .then(|| PoseRefiner::new(config, &mut block_rng(seed, 2)));
+        let lbs_offsets = config
+            .lbs_offsets
+            .then(|| LbsOffsetNet::new(config, &mut block_rng(seed, 3)));
+        Ok(Networks {
+            config: config.clone(),
+            non_rigid,
+            pose_refiner,
+            lbs_offsets,
+        })
+    }
+
+    /// The configuration the networks were built from.
+    pub fn config(&self) -> &NetworkConfig {
+        &self.config
+    }
+
+    /// Whether the non-rigid network exists (`motion_context` is not `none`).
+    pub fn has_non_rigid(&self) -> bool {
+        self.non_rigid.is_some()
+    }
+
+    /// Whether the body-pose refiner exists.
+    pub fn has_pose_refiner(&self) -> bool {
+        self.pose_refiner.is_some()
+    }
+
+    /// Whether the LBS-offset network exists.
+    pub fn has_lbs_offsets(&self) -> bool {
+        self.lbs_offsets.is_some()
+    }
+
+    /// Every layer, in a fixed order (non-rigid, pose refiner, LBS offsets).
+    pub(crate) fn layers(&self) -> Vec<&Dense<S>> {
+        let mut layers = Vec::new();
+        if let Some(net) = &self.non_rigid {
+            layers.extend(net.layers());
+        }
+        if let Some(net) = &self.pose_refiner {
+            layers.extend(net.layers.iter());
+        }
+        if let Some(net) = &self.lbs_offsets {
+            layers.extend(net.layers.iter());
+        }
+        layers
+    }
+
+    fn layers_mut(&mut self) -> Vec<&mut Dense<S>> {
+        let mut layers = Vec::new();
+        if let Some(net) = &mut self.non_rigid {
+            layers.extend(net.layers_mut());
+        }
+        if let Some(net) = &mut self.pose_refiner {
+            layers.extend(net.layers.iter_mut());
+        }
+        if let Some(net) = &mut self.lbs_offsets {
+            layers.extend(net.layers.iter_mut());
+        }
+        layers
+    }
+
+    /// Every parameter array with its gradient, weights before biases, layers in order.
+    pub fn parameters(&self) -> Vec<NamedParam<'_, S>> {
+        let mut params = Vec::new();
+        for layer in self.layers() {
+            params.push(NamedParam {
+                name: format!("{}.weight", layer.name),
+                shape: vec![layer.shape.in_features, layer.shape.out_features],
+                values: &layer.weight,
+                grads: &layer.d_weight,
+                group: layer.group,
+            });
+            params.push(NamedParam {
+                name: format!("{}.bias", layer.name),
+                shape: vec![layer.shape.out_features],
+                values: &layer.bias,
+                grads: &layer.d_bias,
+                group: layer.group,
+            });
+        }
+        params
+    }
+
+    /// Like [`Networks::parameters`], with writable values (for an optimiser step).
+    pub fn parameters_mut(&mut self) -> Vec<NamedParamMut<'_, S>> {
+        let mut params = Vec::new();
+        for layer in self.layers_mut() {
+            let Dense {
+                name,
+                group,
+                shape,
+                weight,
+                bias,
+                d_weight,
+                d_bias,
+            } = layer;
+            params.push(NamedParamMut {
+                name: format!("{name}.weight"),
+                shape: vec![shape.in_features, shape.out_features],
+                values: weight.as_mut_slice(),
+                grads: d_weight.as_slice(),
+                group: *group,
+            });
+            params.push(NamedParamMut {
+                name: format!("{name}.bias"),
+                shape: vec![shape.out_features],
+                values: bias.as_mut_slice(),
+                grads: d_bias.as_slice(),
+                group: *group,
+            });
+        }
+        params
+    }
+
+    /// Total number of trainable values.
+    pub fn parameter_count(&self) -> usize {
+        self.layers()
+            .iter()
+            .map(|layer| layer.weight.len() + layer.bias.len())
+            .sum()
+    }
+
+    /// Sets every gradient to zero.
+    pub fn zero_grad(&mut self) {
+        for layer in self.layers_mut() {
+            layer.zero_grad();
+        }
+    }
+
+    /// Replaces every parameter by `source(name)` (e.g. a checkpoint's array of that name).
+    /// Every array must be present with the exact length; nothing is changed on error.
+    pub fn load_parameters(
+        &mut self,
+        mut source: impl FnMut(&str) -> Option<Vec<S>>,
+    ) -> Result<(), ModelError> {
+        let mut loaded = Vec::new();
+        for param in self.parameters() {
+            let values = source(&param.name).ok_or_else(|| ModelError::Parameter {
+                name: param.name.clone(),
+                message: "missing".into(),
+            })?;
+            if values.len() != param.values.len() {
+                return Err(ModelError::Parameter {
+                    name: param.name.clone(),
+                    message: format!(
+                        "expected {} values (shape {:?}), got {}",
+                        param.values.len(),
+                        param.shape,
+                        values.len()
+                    ),
+                });
+            }
+            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+                return Err(ModelError::Parameter {
+                    name: param.name.clone(),
+                    message: format!("value {index} is not finite"),
+                });
+            }
+            loaded.push(values);
+        }
+        for (param, values) in self.parameters_mut().into_iter().zip(loaded) {
+            param.values.copy_from_slice(&values);
+        }
+        Ok(())
+    }
+
+    /// The non-rigid deformation of `gaussians` at one frame (see [`non_rigid`]).
+    pub fn non_rigid_forward(
+        &self,
+        frame: &FrameInputs<'_, S>,
+        gaussians: &GaussianInputs<'_, S>,
+    ) -> Result<(NonRigidOutput<S>, NonRigidCache<S>), ModelError> {
+        let net = self.non_rigid.as_ref().ok_or(ModelError::Disabled {
+            block: "the non-rigid network",
+        })?;
+        net.forward(&self.config, frame, gaussians)
+    }
+
+    /// Backward of [`Networks::non_rigid_forward`]: accumulates parameter gradients and
+    /// returns `dL/d(canonical xyz)` (`n x 3`), which flows through the encoding.
+    pub fn non_rigid_backward(
+        &mut self,
+        cache: &NonRigidCache<S>,
+        d_dxyz: &[S],
+        d_drot: &[S],
+        d_dscale: &[S],
+    ) -> Result<Vec<S>, ModelError> {
+        let net = self.non_rigid.as_mut().ok_or(ModelError::Disabled {
+            block: "the non-rigid network",
+        })?;
+        net.backward(&self.config, cache, d_dxyz, d_drot, d_dscale)
+    }
+
+    /// The pose corrections: `(J - 1)` row-major 3x3 matrices, one per non-root joint, for
+    /// the local pose without root (`3 (J - 1)` values).
+    pub fn pose_refiner_forward(
+        &self,
+        local_pose: &[S],
+    ) -> Result<(Vec<S>, PoseRefinerCache<S>), ModelError> {
+        let net = self.pose_refiner.as_ref().ok_or(ModelError::Disabled {
+            block: "the pose refiner",
+        })?;
+        net.forward(local_pose)
+    }
+
+    /// Backward of [`Networks::pose_refiner_forward`] from `dL/d(matrices)` (`(J - 1) x 9`).
+    pub fn pose_refiner_backward(
+        &mut self,
+        cache: &PoseRefinerCache<S>,
+        d_rotations: &[S],
+    ) -> Result<(), ModelError> {
+        let net = self.pose_refiner.as_mut().ok_or(ModelError::Disabled {
+            block: "the pose refiner",
+        })?;
+        net.backward(cache, d_rotations)
+    }
+
+    /// LBS-weight offsets (`n x J`) for positions `xyz` (`n x 3`; the encoding is detached).
+    pub fn lbs_offsets_forward(
+        &self,
+        xyz: &[S],
+    ) -> Result<(Vec<S>, LbsOffsetsCache<S>), ModelError> {
+        let net = self.lbs_offsets.as_ref().ok_or(ModelError::Disabled {
+            block: "the LBS offsets",
+        })?;
+        net.forward(xyz)
+    }
+
+    /// Backward of [`Networks::lbs_offsets_forward`] from `dL/d(offsets)` (`n x J`).
+    pub fn lbs_offsets_backward(
+        &mut self,
+        cache: &LbsOffsetsCache<S>,
+        d_offsets: &[S],
+    ) -> Result<(), ModelError> {
+        let net = self.lbs_offsets.as_mut().ok_or(ModelError::Disabled {
+            block: "the LBS offsets",
+        })?;
+        net.backward(cache, d_offsets)
+    }
+}
+
+/// Checks an input length, naming the field.
+pub(crate) fn check_input(field: &str, expected: usize, actual: usize) -> Result<(), ModelError> {
+    if expected == actual {
+        Ok(())
+    } else {
+        Err(ModelError::InputLength {
+            field: field.into(),
+            expected,
+            actual,
+        })
+    }
+}

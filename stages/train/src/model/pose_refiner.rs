@@ -1,0 +1,210 @@
+//! The body-pose refiner: local pose without root -> one correction matrix per non-root
+//! joint, and its backward from the matrices' gradient.
+//!
+//! The network is `Linear(3 (J - 1), 128)` + ReLU, `Linear(128, 128)` + ReLU,
+//! `Linear(128, 3 (J - 1))` with the last weight from `U(-1e-5, 1e-5)` and zero bias, so a
+//! fresh refiner returns matrices within ~1e-5 of the identity.
+
+use seqavatar_compute::nn::linear::InputGrad;
+use seqavatar_compute::nn::{Activation, NnScalar, Rng};
+use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_core::rotation::skew;
+
+use super::dense::{Dense, Init, part};
+use super::{ModelError, NetworkConfig, NetworkGroup, check_input};
+
+/// Bound of the uniform initialisation of the refiner's last layer.
+pub const LAST_LAYER_BOUND: f64 = 1e-5;
+
+/// The `theta^2` regulariser of [`regularised_rodrigues`].
+pub const THETA_SQUARED_EPSILON: f64 = 1e-5;
+
+/// The reference refiner's Rodrigues map: `theta = sqrt(1e-5 + |v|^2)`, `k = v / theta`,
+/// `R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x`.
+///
+/// This is deliberately not [`seqavatar_core::rotation::axis_angle_to_matrix`]: the
+/// regulariser makes the map smooth at `v = 0` without a series branch, at the price of not
+/// being exactly orthogonal for `|v|` near `sqrt(1e-5)` (at `v = 0` it is
+/// `cos(sqrt(1e-5)) I`, 5e-6 from the identity). For `|v| >> 3e-3` the two agree.
+pub fn regularised_rodrigues(v: DVec3) -> DMat3 {
+    let theta = (THETA_SQUARED_EPSILON + v.length_squared()).sqrt();
+    let k = v / theta;
+    let (sin, cos) = theta.sin_cos();
+    DMat3::IDENTITY * cos + outer(k, k) * (1.0 - cos) + skew(k) * sin
+}
+
+/// Backward of [`regularised_rodrigues`]: `dL/dv` from `g = dL/dR`.
+pub fn regularised_rodrigues_backward(v: DVec3, g: DMat3) -> DVec3 {
+    let theta = (THETA_SQUARED_EPSILON + v.length_squared()).sqrt();
+    let k = v / theta;
+    let (sin, cos) = theta.sin_cos();
+    // <G, [k]x> = k . a with a = (G21 - G12, G02 - G20, G10 - G01) (row, column indices).
+    let e = |row: usize, col: usize| g.col(col)[row];
+    let a = DVec3::new(e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1));
+    let trace = e(0, 0) + e(1, 1) + e(2, 2);
+    let k_g_k = k.dot(g * k);
+    let d_theta = -sin * trace + sin * k_g_k + cos * k.dot(a);
+    let d_k = (g + g.transpose()) * k * (1.0 - cos) + a * sin;
+    // theta = sqrt(eps + |v|^2): d theta / dv = k; k = v / theta: dk/dv = (I - k k^T) / theta.
+    k * d_theta + (d_k - k * k.dot(d_k)) / theta
+}
+
+fn outer(a: DVec3, b: DVec3) -> DMat3 {
+    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
+}
+
+/// The refiner's activations for its backward.
+#[derive(Clone, Debug, Default)]
+pub struct PoseRefinerCache<S> {
+    input: Vec<S>,
+    hidden: [Vec<S>; 2],
+    rotation_vectors: Vec<S>,
+}
+
+impl<S> PoseRefinerCache<S> {
+    /// The network output: one axis-angle-like 3-vector per non-root joint.
+    pub fn rotation_vectors(&self) -> &[S] {
+        &self.rotation_vectors
+    }
+}
+
+/// The refiner's layers.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct PoseRefiner<S> {
+    pub(crate) layers: [Dense<S>; 3],
+}
+
+impl<S: NnScalar> PoseRefiner<S> {
+    pub(crate) fn new(config: &NetworkConfig, rng: &mut Rng) -> Self {
+        let pose = config.pose_dim();
+        let hidden = config.widths.pose_refiner_hidden;
+        let group = NetworkGroup::PoseRefiner;
+        let layers = [
+            Dense::new(
+                "pose_refiner.0",
+                group,
+                pose,
+                hidden,
+                Activation::Relu,
+                Init::PytorchDefault,
+                rng,
+            ),
+            Dense::new(
+                "pose_refiner.1",
+                group,
+                hidden,
+                hidden,
+                Activation::Relu,
+                Init::PytorchDefault,
+                rng,
+            ),
+            Dense::new(
+                "pose_refiner.2",
+                group,
+                hidden,
+                pose,
+                Activation::Identity,
+                Init::SmallUniform(LAST_LAYER_BOUND),
+                rng,
+            ),
+        ];
+        PoseRefiner { layers }
+    }
+
+    fn pose_dim(&self) -> usize {
+        self.layers[0].shape.in_features
+    }
+
+    pub(crate) fn forward(
+        &self,
+        local_pose: &[S],
+    ) -> Result<(Vec<S>, PoseRefinerCache<S>), ModelError> {
+        let pose = self.pose_dim();
+        check_input("local_pose", pose, local_pose.len())?;
+        let hidden = self.layers[0].out_features();
+        let mut cache = PoseRefinerCache {
+            input: local_pose.to_vec(),
+            ..PoseRefinerCache::default()
+        };
+        let [h0, h1] = &mut cache.hidden;
+        self.layers[0].forward(&[part(local_pose, pose)], 1, h0)?;
+        self.layers[1].forward(&[part(h0, hidden)], 1, h1)?;
+        self.layers[2].forward(&[part(h1, hidden)], 1, &mut cache.rotation_vectors)?;
+        let rotations = rotations_from_vectors(&cache.rotation_vectors);
+        Ok((rotations, cache))
+    }
+
+    pub(crate) fn backward(
+        &mut self,
+        cache: &PoseRefinerCache<S>,
+        d_rotations: &[S],
+    ) -> Result<(), ModelError> {
+        let pose = self.pose_dim();
+        check_input("d_rotations", 3 * pose, d_rotations.len())?;
+        check_input("pose refiner cache", pose, cache.rotation_vectors.len())?;
+        let mut d_vectors = rotation_vectors_backward(&cache.rotation_vectors, d_rotations);
+        let hidden = self.layers[0].out_features();
+        let (mut d_h1, mut d_h0) = (vec![S::ZERO; hidden], vec![S::ZERO; hidden]);
+        let [l0, l1, l2] = &mut self.layers;
+        l2.backward(
+            &[part(&cache.hidden[1], hidden)],
+            1,
+            &cache.rotation_vectors,
+            &mut d_vectors,
+            &mut [InputGrad::Write(&mut d_h1)],
+        )?;
+        l1.backward(
+            &[part(&cache.hidden[0], hidden)],
+            1,
+            &cache.hidden[1],
+            &mut d_h1,
+            &mut [InputGrad::Write(&mut d_h0)],
+        )?;
+        l0.backward(
+            &[part(&cache.input, pose)],
+            1,
+            &cache.hidden[0],
+            &mut d_h0,
+            &mut [InputGrad::Skip],
+        )?;
+        Ok(())
+    }
+}
+
+/// `(J - 1) x 3` refiner outputs to `(J - 1)` row-major 3x3 matrices.
+pub(crate) fn rotations_from_vectors<S: NnScalar>(vectors: &[S]) -> Vec<S> {
+    let mut rotations = Vec::with_capacity(3 * vectors.len());
+    for v in vectors.chunks_exact(3) {
+        let m = regularised_rodrigues(DVec3::new(v[0].to_f64(), v[1].to_f64(), v[2].to_f64()));
+        for row in 0..3 {
+            for col in 0..3 {
+                rotations.push(S::from_f64(m.col(col)[row]));
+            }
+        }
+    }
+    rotations
+}
+
+/// `dL/d(vectors)` from `dL/d(matrices)` (row-major), one joint at a time.
+pub(crate) fn rotation_vectors_backward<S: NnScalar>(vectors: &[S], d_rotations: &[S]) -> Vec<S> {
+    let mut d_vectors = Vec::with_capacity(vectors.len());
+    for (v, d) in vectors.chunks_exact(3).zip(d_rotations.chunks_exact(9)) {
+        let g = DMat3::from_cols_array(&[
+            d[0].to_f64(),
+            d[3].to_f64(),
+            d[6].to_f64(),
+            d[1].to_f64(),
+            d[4].to_f64(),
+            d[7].to_f64(),
+            d[2].to_f64(),
+            d[5].to_f64(),
+            d[8].to_f64(),
+        ]);
+        let dv = regularised_rodrigues_backward(
+            DVec3::new(v[0].to_f64(), v[1].to_f64(), v[2].to_f64()),
+            g,
+        );
+        d_vectors.extend([dv.x, dv.y, dv.z].map(S::from_f64));
+    }
+    d_vectors
+}

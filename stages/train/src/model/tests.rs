@@ -1,0 +1,992 @@
+//! Tests of the networks: every gradient against f64 central differences, the per-frame
+//! bias trick against a materialised-concatenation forward written with naive loops, the
+//! identity start, disabled blocks, extremes and input errors.
+
+use seqavatar_compute::nn::Rng;
+use seqavatar_core::glam::DVec3;
+use seqavatar_core::rotation::axis_angle_to_matrix;
+
+use super::lbs::{blend_weights, blend_weights_backward};
+use super::pose_refiner::{regularised_rodrigues, regularised_rodrigues_backward};
+use super::*;
+use crate::config::MotionContext;
+
+fn random(rng: &mut Rng, len: usize, bound: f64) -> Vec<f64> {
+    (0..len).map(|_| rng.uniform(-bound, bound)).collect()
+}
+
+/// Small widths so finite differences over every parameter stay fast.
+fn small_config(context: MotionContext, n_scales: usize, length: usize) -> NetworkConfig {
+    NetworkConfig {
+        motion_context: context,
+        trunk_width: 7,
+        trunk_depth: 2,
+        skinning_joints: 3,
+        motion_joints: 4,
+        tau: 2,
+        sequence_length: length,
+        n_scales,
+        pose_refiner: true,
+        lbs_offsets: true,
+        widths: Widths {
+            encoding_frequencies: 2,
+            pose_encoder: 5,
+            seq_pose_frame: 3,
+            seq_pose: 4,
+            seq_xyz_velocity: 5,
+            seq_xyz_position: 3,
+            seq_xyz_frame: 4,
+            seq_xyz_hidden: 6,
+            seq_xyz: 5,
+            pose_refiner_hidden: 6,
+            lbs_hidden: 5,
+        },
+    }
+}
+
+struct Inputs {
+    pose: Vec<f64>,
+    skeleton: Option<Vec<f64>>,
+    xyz: Vec<f64>,
+    velocity: Option<Vec<f64>>,
+}
+
+fn inputs(config: &NetworkConfig, n: usize, rng: &mut Rng) -> Inputs {
+    Inputs {
+        pose: random(rng, config.pose_dim(), 1.0),
+        skeleton: config
+            .motion_context
+            .has_skeleton_motion()
+            .then(|| random(rng, config.skeleton_motion_len(), 1.0)),
+        xyz: random(rng, 3 * n, 1.0),
+        velocity: config
+            .motion_context
+            .has_velocity()
+            .then(|| random(rng, n * config.sequence_length * config.seq_xyz_row(), 1.0)),
+    }
+}
+
+impl Inputs {
+    fn frame(&self) -> FrameInputs<'_, f64> {
+        FrameInputs {
+            local_pose: &self.pose,
+            skeleton_motion: self.skeleton.as_deref(),
+        }
+    }
+    fn gaussians(&self) -> GaussianInputs<'_, f64> {
+        GaussianInputs {
+            xyz: &self.xyz,
+            knn_velocity: self.velocity.as_deref(),
+        }
+    }
+}
+
+/// Moves every bias a little so that ReLU units are rarely exactly at their kink and
+/// default-initialised biases do not make most units dead for tiny widths.
+fn perturb(networks: &mut Networks<f64>, rng: &mut Rng) {
+    for param in networks.parameters_mut() {
+        for value in param.values.iter_mut() {
+            *value += rng.uniform(-0.05, 0.05);
+        }
+    }
+}
+
+struct Probe {
+    dxyz: Vec<f64>,
+    drot: Vec<f64>,
+    dscale: Vec<f64>,
+}
+
+fn non_rigid_loss(networks: &Networks<f64>, input: &Inputs, probe: &Probe) -> f64 {
+    let (out, _) = networks
+        .non_rigid_forward(&input.frame(), &input.gaussians())
+        .unwrap();
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    dot(&out.d_xyz, &probe.dxyz) + dot(&out.d_rot, &probe.drot) + dot(&out.d_scale, &probe.dscale)
+}
+
+/// Compares every parameter gradient of `group` with central differences of `loss`.
+fn check_parameter_gradients(
+    networks: &Networks<f64>,
+    group: NetworkGroup,
+    loss: &dyn Fn(&Networks<f64>) -> f64,
+) -> usize {
+    let h = 1e-6;
+    let analytic: Vec<(String, Vec<f64>)> = networks
+        .parameters()
+        .into_iter()
+        .filter(|p| p.group == group)
+        .map(|p| (p.name, p.grads.to_vec()))
+        .collect();
+    let mut checked = 0;
+    for (name, grads) in analytic {
+        for i in 0..grads.len() {
+            let mut shifted = networks.clone();
+            let set = |net: &mut Networks<f64>, delta: f64| {
+                for param in net.parameters_mut() {
+                    if param.name == name {
+                        param.values[i] += delta;
+                    }
+                }
+            };
+            set(&mut shifted, h);
+            let plus = loss(&shifted);
+            set(&mut shifted, -2.0 * h);
+            let minus = loss(&shifted);
+            let fd = (plus - minus) / (2.0 * h);
+            assert!(
+                (grads[i] - fd).abs() <= 1e-6 * (1.0 + fd.abs()),
+                "{name}[{i}]: analytic {} vs finite difference {fd}",
+                grads[i]
+            );
+            checked += 1;
+        }
+    }
+    checked
+}
+
+fn check_non_rigid(config: &NetworkConfig, n: usize, seed: u64) {
+    let mut rng = Rng::new(seed);
+    let mut networks = Networks::<f64>::new(config, seed).unwrap();
+    perturb(&mut networks, &mut rng);
+    let input = inputs(config, n, &mut rng);
+    let probe = Probe {
+        dxyz: random(&mut rng, 3 * n, 1.0),
+        drot: random(&mut rng, 4 * n, 1.0),
+        dscale: random(&mut rng, 3 * n, 1.0),
+    };
+    let (out, cache) = networks
+        .non_rigid_forward(&input.frame(), &input.gaussians())
+        .unwrap();
+    assert_eq!(
+        (out.d_xyz.len(), out.d_rot.len(), out.d_scale.len()),
+        (3 * n, 4 * n, 3 * n)
+    );
+    networks.zero_grad();
+    let d_xyz = networks
+        .non_rigid_backward(&cache, &probe.dxyz, &probe.drot, &probe.dscale)
+        .unwrap();
+    let checked = check_parameter_gradients(&networks, NetworkGroup::NonRigid, &|net| {
+        non_rigid_loss(net, &input, &probe)
+    });
+    assert_eq!(
+        checked,
+        networks
+            .parameters()
+            .iter()
+            .filter(|p| p.group == NetworkGroup::NonRigid)
+            .map(|p| p.values.len())
+            .sum::<usize>()
+    );
+    // The position gradient flows through the encoding.
+    let h = 1e-6;
+    for i in 0..input.xyz.len() {
+        let mut shifted = Inputs {
+            pose: input.pose.clone(),
+            skeleton: input.skeleton.clone(),
+            xyz: input.xyz.clone(),
+            velocity: input.velocity.clone(),
+        };
+        shifted.xyz[i] += h;
+        let plus = non_rigid_loss(&networks, &shifted, &probe);
+        shifted.xyz[i] -= 2.0 * h;
+        let minus = non_rigid_loss(&networks, &shifted, &probe);
+        let fd = (plus - minus) / (2.0 * h);
+        assert!(
+            (d_xyz[i] - fd).abs() <= 1e-6 * (1.0 + fd.abs()),
+            "d_xyz[{i}]: analytic {} vs finite difference {fd}",
+            d_xyz[i]
+        );
+    }
+}
+
+#[test]
+fn non_rigid_gradients_match_finite_differences_at_every_level() {
+    check_non_rigid(&small_config(MotionContext::Pose, 1, 2), 4, 1);
+    check_non_rigid(&small_config(MotionContext::Skeleton, 1, 2), 4, 2);
+    check_non_rigid(&small_config(MotionContext::Velocity, 1, 3), 3, 3);
+    check_non_rigid(&small_config(MotionContext::Multiscale, 2, 2), 3, 4);
+}
+
+#[test]
+fn non_rigid_extremes_one_gaussian_one_frame_one_scale_and_full_encoding() {
+    let mut config = small_config(MotionContext::Multiscale, 1, 1);
+    check_non_rigid(&config, 1, 5);
+    config.widths.encoding_frequencies = 10;
+    config.tau = 1;
+    check_non_rigid(&config, 2, 6);
+}
+
+#[test]
+fn zero_gaussians_give_empty_outputs_and_only_per_frame_gradients() {
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let mut rng = Rng::new(9);
+    let mut networks = Networks::<f64>::new(&config, 3).unwrap();
+    let input = inputs(&config, 0, &mut rng);
+    let (out, cache) = networks
+        .non_rigid_forward(&input.frame(), &input.gaussians())
+        .unwrap();
+    assert!(out.d_xyz.is_empty() && out.d_rot.is_empty() && out.d_scale.is_empty());
+    let d_xyz = networks.non_rigid_backward(&cache, &[], &[], &[]).unwrap();
+    assert!(d_xyz.is_empty());
+    assert!(
+        networks
+            .parameters()
+            .iter()
+            .all(|p| p.grads.iter().all(|&g| g == 0.0))
+    );
+    let (offsets, lbs_cache) = networks.lbs_offsets_forward(&[]).unwrap();
+    assert!(offsets.is_empty());
+    networks.lbs_offsets_backward(&lbs_cache, &[]).unwrap();
+}
+
+// ---------------------------------------------------------------------------------------
+// Independent forward: naive loops, explicit concatenation in the reference order
+// (63, 32, 32, 96), every per-frame value copied to every Gaussian and the position branch
+// of the SeqXYZEncoder to every window element.
+
+fn naive_layer(x: &[f64], weight: &[f64], bias: &[f64], relu: bool) -> Vec<f64> {
+    let out = bias.len();
+    assert_eq!(weight.len(), x.len() * out);
+    (0..out)
+        .map(|j| {
+            let sum = bias[j]
+                + (0..x.len())
+                    .map(|i| x[i] * weight[i * out + j])
+                    .sum::<f64>();
+            if relu { sum.max(0.0) } else { sum }
+        })
+        .collect()
+}
+
+fn naive_encoding(p: &[f64], frequencies: usize) -> Vec<f64> {
+    let mut e = p.to_vec();
+    for k in 0..frequencies {
+        let s = f64::from(1u32 << k);
+        e.extend(p.iter().map(|x| (s * x).sin()));
+        e.extend(p.iter().map(|x| (s * x).cos()));
+    }
+    e
+}
+
+fn naive_non_rigid(
+    networks: &Networks<f64>,
+    config: &NetworkConfig,
+    input: &Inputs,
+) -> Vec<[f64; 10]> {
+    let params: std::collections::HashMap<String, Vec<f64>> = networks
+        .parameters()
+        .into_iter()
+        .map(|p| (p.name, p.values.to_vec()))
+        .collect();
+    let layer = |name: &str, x: &[f64], relu: bool| {
+        naive_layer(
+            x,
+            &params[&format!("non_rigid.{name}.weight")],
+            &params[&format!("non_rigid.{name}.bias")],
+            relu,
+        )
+    };
+    let w = config.widths;
+    let length = config.sequence_length;
+    let pose = layer(
+        "pose_encoder.1",
+        &layer("pose_encoder.0", &input.pose, true),
+        true,
+    );
+    let seq_pose = input.skeleton.as_ref().map(|motion| {
+        let frames: Vec<f64> = motion
+            .chunks(config.seq_pose_row())
+            .flat_map(|row| layer("seq_pose_encoder.frame", row, true))
+            .collect();
+        layer("seq_pose_encoder.sequence", &frames, true)
+    });
+    let n = input.xyz.len() / 3;
+    (0..n)
+        .map(|g| {
+            let encoding = naive_encoding(&input.xyz[3 * g..3 * g + 3], w.encoding_frequencies);
+            let seq_xyz = input.velocity.as_ref().map(|velocity| {
+                let row = config.seq_xyz_row();
+                let position = layer("seq_xyz_encoder.position", &encoding, true);
+                let mut frames = Vec::new();
+                for l in 0..length {
+                    let start = (g * length + l) * row;
+                    let mut concat = layer(
+                        "seq_xyz_encoder.velocity",
+                        &velocity[start..start + row],
+                        true,
+                    );
+                    concat.extend_from_slice(&position);
+                    frames.extend(layer("seq_xyz_encoder.frame", &concat, true));
+                }
+                layer(
+                    "seq_xyz_encoder.sequence.1",
+                    &layer("seq_xyz_encoder.sequence.0", &frames, true),
+                    true,
+                )
+            });
+            // The reference concatenation order: encoding, pose, seq-pose, seq-xyz. Our
+            // first trunk weight stores rows (encoding, seq-xyz, pose, seq-pose): permute.
+            let mut concat = encoding.clone();
+            concat.extend_from_slice(&pose);
+            concat.extend(seq_pose.iter().flatten());
+            concat.extend(seq_xyz.iter().flatten());
+            let weight = &params["non_rigid.trunk.0.weight"];
+            let width = config.trunk_width;
+            let block =
+                |start: usize, rows: usize| weight[start * width..(start + rows) * width].to_vec();
+            let e = w.encoding_width();
+            let xyz_rows = if seq_xyz.is_some() { w.seq_xyz } else { 0 };
+            let seq_pose_rows = if seq_pose.is_some() { w.seq_pose } else { 0 };
+            let mut reference_weight = block(0, e);
+            reference_weight.extend(block(e + xyz_rows, w.pose_encoder));
+            reference_weight.extend(block(e + xyz_rows + w.pose_encoder, seq_pose_rows));
+            reference_weight.extend(block(e, xyz_rows));
+            let mut h = naive_layer(
+                &concat,
+                &reference_weight,
+                &params["non_rigid.trunk.0.bias"],
+                true,
+            );
+            for index in 1..config.trunk_depth {
+                h = layer(&format!("trunk.{index}"), &h, true);
+            }
+            let heads = layer("heads", &h, false);
+            std::array::from_fn(|i| heads[i])
+        })
+        .collect()
+}
+
+#[test]
+fn per_frame_bias_equals_the_materialised_concatenation() {
+    for (context, scales, length) in [
+        (MotionContext::Pose, 1, 1),
+        (MotionContext::Skeleton, 1, 3),
+        (MotionContext::Velocity, 1, 2),
+        (MotionContext::Multiscale, 3, 2),
+    ] {
+        let mut config = small_config(context, scales, length);
+        config.widths = Widths::PAPER;
+        config.trunk_width = 32;
+        config.trunk_depth = 3;
+        let mut rng = Rng::new(21);
+        let networks = Networks::<f64>::new(&config, 8).unwrap();
+        let input = inputs(&config, 5, &mut rng);
+        let (out, _) = networks
+            .non_rigid_forward(&input.frame(), &input.gaussians())
+            .unwrap();
+        let expected = naive_non_rigid(&networks, &config, &input);
+        for (g, heads) in expected.iter().enumerate() {
+            let ours = [
+                &out.d_xyz[3 * g..3 * g + 3],
+                &out.d_rot[4 * g..4 * g + 4],
+                &out.d_scale[3 * g..3 * g + 3],
+            ]
+            .concat();
+            for i in 0..10 {
+                let reference = heads[i] + if i == 3 { 1.0 } else { 0.0 };
+                assert!(
+                    (ours[i] - reference).abs() < 1e-12,
+                    "{context:?} gaussian {g} output {i}: {} vs {reference}",
+                    ours[i]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn fresh_networks_start_at_the_identity() {
+    let config = NetworkConfig {
+        motion_context: MotionContext::Multiscale,
+        trunk_width: 512,
+        trunk_depth: 3,
+        skinning_joints: 24,
+        motion_joints: 24,
+        tau: 8,
+        sequence_length: 2,
+        n_scales: 3,
+        pose_refiner: true,
+        lbs_offsets: true,
+        widths: Widths::PAPER,
+    };
+    let mut rng = Rng::new(4);
+    let networks = Networks::<f32>::new(&config, 0).unwrap();
+    let n = 64;
+    let to32 = |v: Vec<f64>| v.into_iter().map(|x| x as f32).collect::<Vec<f32>>();
+    let input = inputs(&config, n, &mut rng);
+    let (pose, skeleton, xyz, velocity) = (
+        to32(input.pose),
+        to32(input.skeleton.unwrap()),
+        to32(input.xyz),
+        to32(input.velocity.unwrap()),
+    );
+    let (out, _) = networks
+        .non_rigid_forward(
+            &FrameInputs {
+                local_pose: &pose,
+                skeleton_motion: Some(&skeleton),
+            },
+            &GaussianInputs {
+                xyz: &xyz,
+                knn_velocity: Some(&velocity),
+            },
+        )
+        .unwrap();
+    // The quaternion is the head output plus [1, 0, 0, 0]: w averages near 1 while the raw
+    // head (w - 1) and the vector part average near 0 but are not zero.
+    let mean = |c: usize| out.d_rot.chunks(4).map(|q| f64::from(q[c])).sum::<f64>() / n as f64;
+    assert!((mean(0) - 1.0).abs() < 0.2, "mean w {}", mean(0));
+    for c in 1..4 {
+        assert!(mean(c).abs() < 0.2, "mean component {c}: {}", mean(c));
+    }
+    let raw_spread = out
+        .d_rot
+        .chunks(4)
+        .map(|q| (q[0] - 1.0).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        raw_spread > 1e-4,
+        "the head output itself is not forced to zero"
+    );
+
+    let (rotations, _) = networks.pose_refiner_forward(&pose).unwrap();
+    assert_eq!(rotations.len(), 23 * 9);
+    for (i, value) in rotations.iter().enumerate() {
+        let identity = if i % 9 % 4 == 0 { 1.0 } else { 0.0 };
+        assert!((value - identity).abs() < 1e-4, "entry {i}: {value}");
+    }
+}
+
+#[test]
+fn disabled_blocks_allocate_nothing() {
+    let mut config = small_config(MotionContext::None, 1, 2);
+    config.widths = Widths::PAPER;
+    let none = Networks::<f32>::new(&config, 0).unwrap();
+    assert!(!none.has_non_rigid());
+    assert!(
+        none.parameters()
+            .iter()
+            .all(|p| !p.name.starts_with("non_rigid."))
+    );
+    let pose = [0.0f32; 6];
+    let error = none
+        .non_rigid_forward(
+            &FrameInputs {
+                local_pose: &pose,
+                skeleton_motion: None,
+            },
+            &GaussianInputs {
+                xyz: &[0.0; 3],
+                knn_velocity: None,
+            },
+        )
+        .unwrap_err();
+    assert_eq!(
+        error,
+        ModelError::Disabled {
+            block: "the non-rigid network"
+        }
+    );
+    // J = 3: refiner 6 -> 128 -> 128 -> 6, LBS 63 -> 128 -> 128 -> 128, 191 -> 128 -> 3.
+    let refiner = 6 * 128 + 128 + 128 * 128 + 128 + 128 * 6 + 6;
+    let lbs = 63 * 128 + 128 + 2 * (128 * 128 + 128) + 191 * 128 + 128 + 128 * 3 + 3;
+    assert_eq!(none.parameter_count(), refiner + lbs);
+
+    config.pose_refiner = false;
+    config.lbs_offsets = false;
+    let nothing = Networks::<f32>::new(&config, 0).unwrap();
+    assert_eq!(nothing.parameter_count(), 0);
+    assert!(nothing.pose_refiner_forward(&pose).is_err());
+
+    // Each level adds exactly its block (trunk width 7, depth 2).
+    let count = |context, scales| {
+        let mut c = small_config(context, scales, 2);
+        c.widths = Widths::PAPER;
+        c.pose_refiner = false;
+        c.lbs_offsets = false;
+        let networks = Networks::<f32>::new(&c, 0).unwrap();
+        let names: Vec<String> = networks.parameters().into_iter().map(|p| p.name).collect();
+        (networks.parameter_count(), names)
+    };
+    let (pose_count, pose_names) = count(MotionContext::Pose, 1);
+    let pose_encoder = 6 * 32 + 32 + 32 * 32 + 32;
+    let trunk = |extra: usize| (63 + 32 + extra) * 7 + 7 + 7 * 7 + 7 + 7 * 10 + 10;
+    assert_eq!(pose_count, pose_encoder + trunk(0));
+    assert!(pose_names.iter().all(|n| !n.contains("seq_")));
+    let (skeleton_count, _) = count(MotionContext::Skeleton, 1);
+    let seq_pose = |scales: usize| (3 * 4 * scales) * 16 + 16 + 32 * 32 + 32;
+    assert_eq!(skeleton_count, pose_encoder + trunk(32) + seq_pose(1));
+    let seq_xyz = |scales: usize| {
+        (3 * 2 * scales) * 64 + 64 + 63 * 32 + 32 + 96 * 96 + 96 + 192 * 256 + 256 + 256 * 96 + 96
+    };
+    let (velocity_count, _) = count(MotionContext::Velocity, 1);
+    assert_eq!(
+        velocity_count,
+        pose_encoder + trunk(32 + 96) + seq_pose(1) + seq_xyz(1)
+    );
+    let (multi_count, _) = count(MotionContext::Multiscale, 3);
+    assert_eq!(
+        multi_count,
+        pose_encoder + trunk(32 + 96) + seq_pose(3) + seq_xyz(3)
+    );
+}
+
+#[test]
+fn regularised_rodrigues_matches_rodrigues_away_from_zero_and_its_backward_is_exact() {
+    for v in [
+        DVec3::new(0.3, -0.7, 1.1),
+        DVec3::new(2.0, 0.5, -0.1),
+        DVec3::new(0.0, 0.0, 3.0),
+    ] {
+        let ours = regularised_rodrigues(v);
+        let exact = axis_angle_to_matrix(v);
+        let diff = (ours - exact)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |m, x| m.max(x.abs()));
+        // The regulariser changes theta by ~1e-5 / (2 |v|) and the axis by as much.
+        assert!(diff < 2e-5 / v.length(), "{v}: {diff}");
+    }
+    let at_zero = regularised_rodrigues(DVec3::ZERO);
+    assert!((at_zero.x_axis.x - (1e-5f64).sqrt().cos()).abs() < 1e-15);
+    let mut rng = Rng::new(12);
+    for v in [
+        DVec3::ZERO,
+        DVec3::new(1e-4, -2e-4, 5e-5),
+        DVec3::new(0.3, -0.7, 1.1),
+        DVec3::new(-2.5, 1.5, 0.2),
+    ] {
+        let g = seqavatar_core::glam::DMat3::from_cols_array(
+            &random(&mut rng, 9, 1.0).try_into().unwrap(),
+        );
+        let loss = |v: DVec3| {
+            let r = regularised_rodrigues(v);
+            (0..3).map(|c| r.col(c).dot(g.col(c))).sum::<f64>()
+        };
+        let analytic = regularised_rodrigues_backward(v, g);
+        let h = 1e-7;
+        for axis in 0..3 {
+            let mut e = DVec3::ZERO;
+            e[axis] = h;
+            let fd = (loss(v + e) - loss(v - e)) / (2.0 * h);
+            assert!(
+                (analytic[axis] - fd).abs() < 1e-7 * (1.0 + fd.abs()),
+                "{v} axis {axis}: {} vs {fd}",
+                analytic[axis]
+            );
+        }
+    }
+}
+
+#[test]
+fn pose_refiner_gradients_match_finite_differences() {
+    let config = small_config(MotionContext::None, 1, 1);
+    let mut rng = Rng::new(31);
+    let mut networks = Networks::<f64>::new(&config, 5).unwrap();
+    // Large last-layer values so the rotations are far from the identity.
+    for param in networks.parameters_mut() {
+        for value in param.values.iter_mut() {
+            *value += rng.uniform(-0.3, 0.3);
+        }
+    }
+    let pose = random(&mut rng, config.pose_dim(), 1.0);
+    let probe = random(&mut rng, 9 * 2, 1.0);
+    let (rotations, cache) = networks.pose_refiner_forward(&pose).unwrap();
+    assert_eq!(rotations.len(), 18);
+    // Each matrix is the regularised Rodrigues of the network output.
+    for (m, v) in rotations.chunks(9).zip(cache.rotation_vectors().chunks(3)) {
+        let r = regularised_rodrigues(DVec3::new(v[0], v[1], v[2]));
+        for row in 0..3 {
+            for col in 0..3 {
+                assert_eq!(m[3 * row + col], r.col(col)[row]);
+            }
+        }
+    }
+    networks.zero_grad();
+    networks.pose_refiner_backward(&cache, &probe).unwrap();
+    let loss = |net: &Networks<f64>| {
+        let (r, _) = net.pose_refiner_forward(&pose).unwrap();
+        r.iter().zip(&probe).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let checked = check_parameter_gradients(&networks, NetworkGroup::PoseRefiner, &loss);
+    assert_eq!(checked, 6 * 6 + 6 + 6 * 6 + 6 + 6 * 6 + 6);
+}
+
+#[test]
+fn lbs_offsets_gradients_match_finite_differences() {
+    let config = small_config(MotionContext::None, 1, 1);
+    let mut rng = Rng::new(41);
+    let mut networks = Networks::<f64>::new(&config, 6).unwrap();
+    perturb(&mut networks, &mut rng);
+    let n = 4;
+    let xyz = random(&mut rng, 3 * n, 1.0);
+    let probe = random(&mut rng, 3 * n, 1.0);
+    let (offsets, cache) = networks.lbs_offsets_forward(&xyz).unwrap();
+    assert_eq!(offsets.len(), 3 * n);
+    networks.zero_grad();
+    networks.lbs_offsets_backward(&cache, &probe).unwrap();
+    let loss = |net: &Networks<f64>| {
+        let (o, _) = net.lbs_offsets_forward(&xyz).unwrap();
+        o.iter().zip(&probe).map(|(a, b)| a * b).sum::<f64>()
+    };
+    check_parameter_gradients(&networks, NetworkGroup::LbsOffsets, &loss);
+    // The skip layer reads the encoding: compare one output with naive loops.
+    let params: std::collections::HashMap<String, Vec<f64>> = networks
+        .parameters()
+        .into_iter()
+        .map(|p| (p.name, p.values.to_vec()))
+        .collect();
+    let layer = |i: usize, x: &[f64], relu: bool| {
+        naive_layer(
+            x,
+            &params[&format!("lbs_offsets.{i}.weight")],
+            &params[&format!("lbs_offsets.{i}.bias")],
+            relu,
+        )
+    };
+    let e = naive_encoding(&xyz[3..6], 2);
+    let mut h = layer(2, &layer(1, &layer(0, &e, true), true), true);
+    h.extend_from_slice(&e);
+    let expected = layer(4, &layer(3, &h, true), false);
+    for j in 0..3 {
+        assert!((offsets[3 + j] - expected[j]).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn blend_weights_is_a_softmax_of_log_weights_with_an_exact_backward() {
+    let template = [0.7f64, 0.3, 0.0, 0.1, 0.1, 0.8];
+    let offsets = [0.2f64, -0.1, 0.5, 0.0, 0.0, 0.0];
+    let weights = blend_weights(&template, &offsets, 3).unwrap();
+    // Zero offsets return the (normalised) template weights; a zero weight stays ~1e-9.
+    for j in 0..3 {
+        assert!((weights[3 + j] - template[3 + j]).abs() < 1e-8);
+    }
+    let logits: Vec<f64> = (0..3)
+        .map(|j| (template[j] + 1e-9f64).ln() + offsets[j])
+        .collect();
+    let sum: f64 = logits.iter().map(|l| l.exp()).sum();
+    for j in 0..3 {
+        assert!((weights[j] - logits[j].exp() / sum).abs() < 1e-14);
+    }
+    assert!(weights[2] < 1e-8);
+    // Large offsets do not overflow.
+    let big = blend_weights(&[0.5f64, 0.5], &[800.0, 0.0], 2).unwrap();
+    assert!((big[0] - 1.0).abs() < 1e-15 && big[1] >= 0.0);
+
+    let probe = [0.3, -1.2, 0.7, 0.4, 0.9, -0.5];
+    let d_offsets = blend_weights_backward(&weights, &probe, 3).unwrap();
+    let h = 1e-6;
+    for i in 0..6 {
+        let (mut plus, mut minus) = (offsets, offsets);
+        plus[i] += h;
+        minus[i] -= h;
+        let f = |o: &[f64]| {
+            blend_weights(&template, o, 3)
+                .unwrap()
+                .iter()
+                .zip(&probe)
+                .map(|(w, g)| w * g)
+                .sum::<f64>()
+        };
+        let fd = (f(&plus) - f(&minus)) / (2.0 * h);
+        assert!(
+            (d_offsets[i] - fd).abs() < 1e-8,
+            "{i}: {} vs {fd}",
+            d_offsets[i]
+        );
+    }
+    let error = blend_weights(&[0.5, -0.1], &[0.0, 0.0], 2).unwrap_err();
+    assert!(error.to_string().contains("row 0, joint 1"), "{error}");
+    assert!(blend_weights(&[0.5, f64::NAN], &[0.0, 0.0], 2).is_err());
+    assert!(blend_weights(&[0.5; 3], &[0.0; 3], 2).is_err());
+}
+
+#[test]
+fn parameters_round_trip_and_bad_arrays_are_named() {
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let source = Networks::<f32>::new(&config, 1).unwrap();
+    let mut target = Networks::<f32>::new(&config, 2).unwrap();
+    assert_ne!(source, target);
+    let arrays: std::collections::HashMap<String, Vec<f32>> = source
+        .parameters()
+        .into_iter()
+        .map(|p| (p.name, p.values.to_vec()))
+        .collect();
+    // Names are unique and shapes match lengths.
+    assert_eq!(arrays.len(), source.parameters().len());
+    for p in source.parameters() {
+        assert_eq!(
+            p.shape.iter().product::<usize>(),
+            p.values.len(),
+            "{}",
+            p.name
+        );
+    }
+    target
+        .load_parameters(|name| arrays.get(name).cloned())
+        .unwrap();
+    assert_eq!(source, target);
+
+    let before = target.clone();
+    let error = target
+        .load_parameters(|name| (name != "non_rigid.heads.bias").then(|| arrays[name].clone()))
+        .unwrap_err();
+    assert_eq!(
+        error,
+        ModelError::Parameter {
+            name: "non_rigid.heads.bias".into(),
+            message: "missing".into()
+        }
+    );
+    let error = target
+        .load_parameters(|name| {
+            let mut values = arrays[name].clone();
+            if name == "lbs_offsets.3.weight" {
+                values.pop();
+            }
+            Some(values)
+        })
+        .unwrap_err();
+    assert!(
+        error.to_string().contains("lbs_offsets.3.weight"),
+        "{error}"
+    );
+    assert!(error.to_string().contains("[20, 5]"), "{error}");
+    let error = target
+        .load_parameters(|name| {
+            let mut values = arrays[name].clone();
+            if name == "pose_refiner.0.bias" {
+                values[1] = f32::NAN;
+            }
+            Some(values)
+        })
+        .unwrap_err();
+    assert!(error.to_string().contains("pose_refiner.0.bias"), "{error}");
+    assert_eq!(target, before, "a failed load changes nothing");
+}
+
+#[test]
+fn bad_inputs_name_the_field() {
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let mut rng = Rng::new(2);
+    let networks = Networks::<f64>::new(&config, 0).unwrap();
+    let input = inputs(&config, 2, &mut rng);
+    let run = |frame: FrameInputs<'_, f64>, gaussians: GaussianInputs<'_, f64>| {
+        networks
+            .non_rigid_forward(&frame, &gaussians)
+            .unwrap_err()
+            .to_string()
+    };
+    let short = &input.velocity.as_ref().unwrap()[1..];
+    let message = run(
+        input.frame(),
+        GaussianInputs {
+            knn_velocity: Some(short),
+            ..input.gaussians()
+        },
+    );
+    assert!(
+        message.contains("gaussians.knn_velocity: expected"),
+        "{message}"
+    );
+    let message = run(
+        input.frame(),
+        GaussianInputs {
+            knn_velocity: None,
+            ..input.gaussians()
+        },
+    );
+    assert!(
+        message.contains("gaussians.knn_velocity: required"),
+        "{message}"
+    );
+    let message = run(
+        FrameInputs {
+            skeleton_motion: None,
+            ..input.frame()
+        },
+        input.gaussians(),
+    );
+    assert!(message.contains("frame.skeleton_motion"), "{message}");
+    let message = run(
+        FrameInputs {
+            local_pose: &input.pose[1..],
+            ..input.frame()
+        },
+        input.gaussians(),
+    );
+    assert!(message.contains("frame.local_pose"), "{message}");
+    let message = run(
+        input.frame(),
+        GaussianInputs {
+            xyz: &input.xyz[1..],
+            ..input.gaussians()
+        },
+    );
+    assert!(message.contains("gaussians.xyz"), "{message}");
+
+    let mut pose_only = config.clone();
+    pose_only.motion_context = MotionContext::Pose;
+    pose_only.n_scales = 1;
+    let pose_networks = Networks::<f64>::new(&pose_only, 0).unwrap();
+    let message = pose_networks
+        .non_rigid_forward(&input.frame(), &input.gaussians())
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("does not use it"), "{message}");
+
+    let mut bad = config.clone();
+    bad.motion_context = MotionContext::Velocity;
+    let message = Networks::<f64>::new(&bad, 0).unwrap_err().to_string();
+    assert!(message.contains("n_scales"), "{message}");
+    bad.n_scales = 1;
+    bad.tau = 0;
+    assert!(
+        Networks::<f64>::new(&bad, 0)
+            .unwrap_err()
+            .to_string()
+            .contains("tau")
+    );
+}
+
+#[test]
+fn from_train_uses_one_scale_below_multiscale() {
+    let mut train = crate::config::TrainConfig::preset(crate::config::Preset::Paper);
+    let config = NetworkConfig::from_train(&train, 24, 24, 3).unwrap();
+    assert_eq!(
+        (config.n_scales, config.trunk_width, config.tau),
+        (3, 512, 8)
+    );
+    assert_eq!(config.pose_dim(), 69);
+    train.motion_context = MotionContext::Velocity;
+    assert_eq!(
+        NetworkConfig::from_train(&train, 24, 24, 3)
+            .unwrap()
+            .n_scales,
+        1
+    );
+}
+
+// ---------------------------------------------------------------------------------------
+// gpu parity (lavapipe in CI; skipped without an adapter unless CI is set).
+
+/// `max |gpu - cpu| <= tolerance * max(1, max |cpu|)` over the whole array.
+fn assert_close_f32(what: &str, gpu: &[f32], cpu: &[f32], tolerance: f32) {
+    assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
+    let scale = cpu.iter().fold(1.0f32, |m, x| m.max(x.abs()));
+    for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+        assert!(
+            (g - c).abs() <= tolerance * scale,
+            "{what}[{i}]: gpu {g} vs cpu {c} (scale {scale})"
+        );
+    }
+}
+
+fn to_f32(values: &[f64]) -> Vec<f32> {
+    values.iter().map(|&x| x as f32).collect()
+}
+
+fn check_gpu_parity(config: &NetworkConfig, n: usize) {
+    use super::gpu::GpuNetworks;
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let label = format!("{:?} n = {n}", config.motion_context);
+    let mut rng = Rng::new(n as u64 + 17);
+    let mut cpu = Networks::<f32>::new(config, 11).unwrap();
+    let gpu = GpuNetworks::upload(context, &cpu).unwrap();
+    let input = inputs(config, n, &mut rng);
+    let (pose, xyz) = (to_f32(&input.pose), to_f32(&input.xyz));
+    let skeleton = input.skeleton.as_deref().map(to_f32);
+    let velocity = input.velocity.as_deref().map(to_f32);
+    let frame = FrameInputs {
+        local_pose: &pose,
+        skeleton_motion: skeleton.as_deref(),
+    };
+    let gaussians = GaussianInputs {
+        xyz: &xyz,
+        knn_velocity: velocity.as_deref(),
+    };
+    let probe: Vec<f32> = to_f32(&random(&mut rng, 10 * n, 1.0));
+    let (d_dxyz, rest) = probe.split_at(3 * n);
+    let (d_drot, d_dscale) = rest.split_at(4 * n);
+
+    if config.motion_context.has_non_rigid() {
+        let (cpu_out, cpu_cache) = cpu.non_rigid_forward(&frame, &gaussians).unwrap();
+        let (gpu_out, gpu_cache) = gpu.non_rigid_forward(&frame, &gaussians).unwrap();
+        assert_close_f32(
+            &format!("{label} d_xyz"),
+            &gpu_out.d_xyz,
+            &cpu_out.d_xyz,
+            1e-4,
+        );
+        assert_close_f32(
+            &format!("{label} d_rot"),
+            &gpu_out.d_rot,
+            &cpu_out.d_rot,
+            1e-4,
+        );
+        assert_close_f32(
+            &format!("{label} d_scale"),
+            &gpu_out.d_scale,
+            &cpu_out.d_scale,
+            1e-4,
+        );
+        let cpu_dx = cpu
+            .non_rigid_backward(&cpu_cache, d_dxyz, d_drot, d_dscale)
+            .unwrap();
+        let gpu_dx = gpu
+            .non_rigid_backward(&gpu_cache, d_dxyz, d_drot, d_dscale)
+            .unwrap();
+        assert_close_f32(&format!("{label} d canonical xyz"), &gpu_dx, &cpu_dx, 1e-4);
+    }
+    let (cpu_rot, cpu_cache) = cpu.pose_refiner_forward(&pose).unwrap();
+    let (gpu_rot, gpu_cache) = gpu.pose_refiner_forward(&pose).unwrap();
+    assert_close_f32(&format!("{label} refiner"), &gpu_rot, &cpu_rot, 1e-5);
+    let d_rot = to_f32(&random(&mut rng, cpu_rot.len(), 1.0));
+    cpu.pose_refiner_backward(&cpu_cache, &d_rot).unwrap();
+    gpu.pose_refiner_backward(&gpu_cache, &d_rot).unwrap();
+    let (cpu_off, cpu_cache) = cpu.lbs_offsets_forward(&xyz).unwrap();
+    let (gpu_off, gpu_cache) = gpu.lbs_offsets_forward(&xyz).unwrap();
+    assert_close_f32(&format!("{label} lbs offsets"), &gpu_off, &cpu_off, 1e-4);
+    let d_off = to_f32(&random(&mut rng, cpu_off.len(), 1.0));
+    cpu.lbs_offsets_backward(&cpu_cache, &d_off).unwrap();
+    gpu.lbs_offsets_backward(&gpu_cache, &d_off).unwrap();
+
+    let mut downloaded = cpu.clone();
+    gpu.download_into(&mut downloaded).unwrap();
+    for (c, g) in cpu.parameters().iter().zip(downloaded.parameters()) {
+        assert_eq!(c.name, g.name);
+        assert_eq!(c.values, g.values, "{label} {}: values", c.name);
+        assert_close_f32(
+            &format!("{label} {} gradient", c.name),
+            g.grads,
+            c.grads,
+            1e-4,
+        );
+    }
+    // Parameters go back up; gradients clear.
+    let other = Networks::<f32>::new(config, 99).unwrap();
+    gpu.upload_parameters(&other).unwrap();
+    gpu.zero_grad().unwrap();
+    gpu.download_into(&mut downloaded).unwrap();
+    for (o, g) in other.parameters().iter().zip(downloaded.parameters()) {
+        assert_eq!(o.values, g.values, "{}", o.name);
+        assert!(g.grads.iter().all(|&x| x == 0.0), "{}", o.name);
+    }
+}
+
+#[test]
+fn gpu_matches_cpu_at_every_level_and_the_extremes() {
+    let mut multiscale = small_config(MotionContext::Multiscale, 3, 3);
+    multiscale.widths = Widths::PAPER;
+    multiscale.trunk_width = 64;
+    multiscale.skinning_joints = 24;
+    check_gpu_parity(&multiscale, 300);
+    check_gpu_parity(&small_config(MotionContext::Pose, 1, 1), 5);
+    check_gpu_parity(&small_config(MotionContext::Skeleton, 1, 2), 1);
+    check_gpu_parity(&small_config(MotionContext::Velocity, 1, 1), 0);
+    check_gpu_parity(&small_config(MotionContext::None, 1, 1), 7);
+}
