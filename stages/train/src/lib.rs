@@ -8,23 +8,37 @@
 //! - [`densify`]: per-Gaussian state and clone/split/prune.
 //! - [`gaussians`]: trainable Gaussian columns and one optimisation step through splatting.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
-//! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
-//!   offsets) on `cpu` and `gpu`.
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
+//! - [`rig`]: canonical and per-frame skinning targets from the body model.
+//! - [`data`]: what a run reads from its input entries.
+//! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
+//! - [`avatar`]: the trained avatar, its entry arrays and its render path.
+//! - [`trainer`]: the training loop and its resumable state.
+//! - [`stage`]: the `train` stage kind.
 
 // Numeric kernels index several parallel arrays with one loop variable; iterator chains
 // would hide the maths.
 #![allow(clippy::needless_range_loop)]
 
+pub mod avatar;
 pub mod checkpoint;
 pub mod config;
+pub mod data;
 pub mod densify;
 pub mod gaussians;
 pub mod knn;
 pub mod losses;
-pub mod model;
+pub mod rig;
 pub mod rng;
 pub mod skinning;
+pub mod splatting;
+pub mod stage;
+pub mod trainer;
+
+pub use avatar::{FrameInputs, TrainedAvatar};
+pub use stage::TrainStage;
 
 /// Adds this crate's stage kinds to the registry.
-pub fn register(_registry: &mut seqavatar_engine::Registry) {}
+pub fn register(registry: &mut seqavatar_engine::Registry) {
+    registry.add(Box::new(stage::TrainStage));
+}

@@ -1,0 +1,441 @@
+//! The trained avatar: canonical Gaussians, the body rig and (with a motion context) the
+//! networks, as stored in a `train` entry, and its render path, which is exactly the
+//! training forward pass (networks, skinning, splatting) without gradients.
+//!
+//! # Entry arrays written by [`TrainedAvatar::write`]
+//!
+//! - `gaussian_xyz` f64 `(gaussian, xyz)`: canonical (big-pose) centres, metres.
+//! - `gaussian_sh` f64 `(gaussian, coeff, rgb)`: 16 SH coefficients per channel (degree 3
+//!   storage; the attribute `sh_degree` says how many are active).
+//! - `gaussian_opacity` f64 `(gaussian)`: opacity logits (activated with a sigmoid).
+//! - `gaussian_log_scale` f64 `(gaussian, xyz)`; `gaussian_rotation` f64 `(gaussian, wxyz)`.
+//! - The body model arrays of the ingest schema (`body_model_*`), so that the entry renders
+//!   on its own.
+//! - `network/<name>` f64: network parameters by their stable names (when the motion context
+//!   or the refiners use networks).
+//!
+//! Attributes: `config` (the resolved train config), `sh_degree`, `scales` (raw temporal
+//! scales fed to the networks, largest first), `scale_steps`, `sequence_length`,
+//! `background`, `body_model_kind`, `extent`.
+
+use anyhow::Context;
+use seqavatar_compute::backend::Backend;
+use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_count};
+use seqavatar_core::body::BodyParams;
+use seqavatar_core::camera::Camera;
+use seqavatar_engine::{EntryReader, EntryWriter};
+use seqavatar_ingest::stage::write_body_model;
+
+use crate::config::TrainConfig;
+use crate::data::MotionTrack;
+use crate::densify::{GaussianState, names};
+use crate::gaussians::{SH, SH_STORED};
+use crate::knn::{KnnGrid, as_points};
+use crate::rig::{BodyRig, FramePose, PoseChain};
+use crate::skinning::{GaussianParams, Skinned, skin_forward};
+use crate::splatting::{self, WorldGaussians};
+
+/// The per-Gaussian parameters of an avatar (flat, row-major).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AvatarGaussians {
+    pub xyz: Vec<f64>,
+    /// `N x 16 x 3`.
+    pub sh: Vec<f64>,
+    pub opacity_logit: Vec<f64>,
+    pub log_scale: Vec<f64>,
+    pub rotation: Vec<f64>,
+}
+
+impl AvatarGaussians {
+    pub fn len(&self) -> usize {
+        self.opacity_logit.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.opacity_logit.is_empty()
+    }
+
+    /// The trainable columns of a training state.
+    pub fn from_state(state: &GaussianState) -> anyhow::Result<Self> {
+        Ok(Self {
+            xyz: state.values(names::POSITION)?.to_vec(),
+            sh: state.values(SH)?.to_vec(),
+            opacity_logit: state.values(names::OPACITY_LOGIT)?.to_vec(),
+            log_scale: state.values(names::LOG_SCALE)?.to_vec(),
+            rotation: state.values(names::ROTATION)?.to_vec(),
+        })
+    }
+}
+
+/// One frame's inputs: body parameters and (for motion contexts that use them) the gathered
+/// motion window.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameInputs {
+    pub params: BodyParams,
+    /// `(L, S, J, 3)` skeleton motion, empty when unused.
+    pub skeleton_motion: Vec<f32>,
+    /// `(L, S, V, 3)` template-vertex velocities, empty when unused.
+    pub vertex_velocity: Vec<f32>,
+}
+
+/// The inputs of frame `frame`: its body parameters and, as the motion context needs, the
+/// window gathered at the raw `scales` (largest first).
+pub fn gather_frame_inputs(
+    config: &TrainConfig,
+    scales: &[u32],
+    motion: &MotionTrack,
+    params: &BodyParams,
+    frame: usize,
+) -> anyhow::Result<FrameInputs> {
+    anyhow::ensure!(
+        frame < motion.num_frames,
+        "frame {frame} is outside the motion track ({} frames)",
+        motion.num_frames
+    );
+    let context = config.motion_context;
+    let (skeleton_motion, vertex_velocity) = if context.has_skeleton_motion() {
+        let slots = motion.slots(scales)?;
+        let (s, v) = motion.gather(frame, config.sequence_length, &slots);
+        (
+            s,
+            if context.has_velocity() {
+                v
+            } else {
+                Vec::new()
+            },
+        )
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    Ok(FrameInputs {
+        params: params.clone(),
+        skeleton_motion,
+        vertex_velocity,
+    })
+}
+
+/// One frame's (possibly refined) skinning target and what its backward needs.
+pub struct PosedFrame {
+    pub pose: FramePose,
+    pub chain: PoseChain,
+}
+
+/// The local pose without the root joint, `3 (J - 1)` values.
+pub fn local_pose(params: &BodyParams) -> Vec<f64> {
+    params.pose[1..].iter().flat_map(|v| v.to_array()).collect()
+}
+
+/// The skinning target of a frame.
+pub fn frame_pose(rig: &BodyRig, params: &BodyParams) -> anyhow::Result<PosedFrame> {
+    let (pose, chain) = rig.pose_with_chain(params)?;
+    Ok(PosedFrame { pose, chain })
+}
+
+/// The deformed Gaussians of one frame and the intermediates the backward needs.
+pub struct Deformed {
+    /// Nearest template vertex of each (post-non-rigid) centre.
+    pub nearest: Vec<u32>,
+    /// Centres after the non-rigid offset (canonical space).
+    pub positions: Vec<f64>,
+    /// Linear scale offsets `N x 3` and rotation offsets `N x 4`.
+    pub d_scales: Vec<f64>,
+    pub d_rotations: Vec<f64>,
+    pub skinned: Skinned,
+    pub world: WorldGaussians,
+}
+
+/// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
+/// centre), `N x L x tau x S x 3`, from a window `(L, S, V, 3)`.
+pub fn knn_velocity(
+    template_grid: &KnnGrid,
+    xyz: &[f64],
+    window: &[f32],
+    length: usize,
+    n_scales: usize,
+    tau: usize,
+) -> Vec<f64> {
+    let n = xyz.len() / 3;
+    let v = window.len() / (length * n_scales * 3).max(1);
+    let neighbours = template_grid.query_all(&as_points(xyz), tau);
+    let mut out = Vec::with_capacity(n * length * tau * n_scales * 3);
+    for i in 0..n {
+        for l in 0..length {
+            for &vertex in &neighbours[i * tau..(i + 1) * tau] {
+                for s in 0..n_scales {
+                    let at = ((l * n_scales + s) * v + vertex as usize) * 3;
+                    out.extend(window[at..at + 3].iter().map(|x| f64::from(*x)));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The forward pass shared by training and rendering: non-rigid offsets (zeros until the
+/// networks are wired in), nearest template vertex of the centre, skinning, activations.
+pub fn deform(
+    rig: &BodyRig,
+    template_grid: &KnnGrid,
+    gaussians: &AvatarGaussians,
+    _inputs: &FrameInputs,
+    pose: &FramePose,
+    config: &TrainConfig,
+    sh_degree: u32,
+) -> anyhow::Result<Deformed> {
+    let n = gaussians.len();
+    if let Some(bad) = gaussians.xyz.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!("Gaussian {} has a non-finite centre", bad / 3);
+    }
+    let positions = gaussians.xyz.clone();
+    let d_scales = vec![0.0; 3 * n];
+    let d_rotations = [1.0, 0.0, 0.0, 0.0].repeat(n);
+    let nearest = template_grid.query_all(&as_points(&positions), 1);
+    anyhow::ensure!(
+        nearest.len() == n,
+        "nearest template vertex: {} results for {n} Gaussians",
+        nearest.len()
+    );
+    let frame = rig.frame(pose, config.scale_min, config.scale_max);
+    let skinned = skin_forward(
+        &frame,
+        &GaussianParams {
+            positions: &positions,
+            log_scales: &gaussians.log_scale,
+            d_scales: &d_scales,
+            rotations: &gaussians.rotation,
+            d_rotations: &d_rotations,
+            weight_offsets: None,
+            nearest: &nearest,
+        },
+    );
+    let k = sh_coefficient_count(sh_degree);
+    let sh: Vec<f64> = (0..n)
+        .flat_map(|i| {
+            gaussians.sh[i * 3 * SH_STORED..i * 3 * SH_STORED + 3 * k]
+                .iter()
+                .copied()
+        })
+        .collect();
+    let opacities = gaussians
+        .opacity_logit
+        .iter()
+        .map(|l| 1.0 / (1.0 + (-l).exp()))
+        .collect();
+    let world = WorldGaussians {
+        means: skinned.positions.clone(),
+        covariances: skinned.covariances.clone(),
+        opacities,
+        sh,
+        sh_degree,
+    };
+    Ok(Deformed {
+        nearest,
+        positions,
+        d_scales,
+        d_rotations,
+        skinned,
+        world,
+    })
+}
+
+/// Whether a configuration trains networks.
+pub fn needs_networks(config: &TrainConfig) -> bool {
+    config.motion_context.has_non_rigid() || config.pose_refiner || config.lbs_offsets
+}
+
+/// A grid over the canonical template vertices for nearest-vertex queries.
+pub fn template_grid(rig: &BodyRig) -> KnnGrid {
+    KnnGrid::new(&as_points(&rig.canonical_vertices), 4.0)
+}
+
+/// A trained avatar, ready to render.
+pub struct TrainedAvatar {
+    pub config: TrainConfig,
+    pub rig: BodyRig,
+    pub gaussians: AvatarGaussians,
+    /// Active SH degree.
+    pub sh_degree: u32,
+    /// Raw temporal scales the networks were trained with (largest first).
+    pub scales: Vec<u32>,
+    pub background: [f64; 3],
+    template_grid: KnnGrid,
+}
+
+impl TrainedAvatar {
+    pub fn new(
+        config: TrainConfig,
+        rig: BodyRig,
+        gaussians: AvatarGaussians,
+        sh_degree: u32,
+        scales: Vec<u32>,
+    ) -> Self {
+        let template_grid = template_grid(&rig);
+        Self {
+            background: config.background,
+            config,
+            rig,
+            gaussians,
+            sh_degree,
+            scales,
+            template_grid,
+        }
+    }
+
+    /// The inputs of frame `frame` of a motion track with its body parameters.
+    pub fn frame_inputs(
+        &self,
+        motion: &MotionTrack,
+        params: &BodyParams,
+        frame: usize,
+    ) -> anyhow::Result<FrameInputs> {
+        gather_frame_inputs(&self.config, &self.scales, motion, params, frame)
+    }
+
+    /// Renders one frame from `camera` on `backend`: colour (background included) and alpha.
+    pub fn render(
+        &self,
+        inputs: &FrameInputs,
+        camera: &Camera,
+        backend: &Backend,
+    ) -> anyhow::Result<RenderedImage<f64>> {
+        let posed = frame_pose(&self.rig, &inputs.params)?;
+        let deformed = deform(
+            &self.rig,
+            &self.template_grid,
+            &self.gaussians,
+            inputs,
+            &posed.pose,
+            &self.config,
+            self.sh_degree,
+        )?;
+        let options = RasterOptions {
+            background: self.background,
+            smooth_cutoff: false,
+        };
+        let mut pass = splatting::forward(
+            backend,
+            &deformed.world,
+            std::slice::from_ref(camera),
+            &options,
+        )?;
+        Ok(pass.images.swap_remove(0))
+    }
+
+    /// Writes the avatar arrays and attributes into an entry.
+    pub fn write(
+        &self,
+        out: &EntryWriter,
+        extent: f64,
+        body_model_kind: &str,
+    ) -> anyhow::Result<()> {
+        let g = &self.gaussians;
+        let n = g.len() as u64;
+        let chunk = n.max(1);
+        out.write_array(
+            "gaussian_xyz",
+            &["gaussian", "xyz"],
+            &[n, 3],
+            &[chunk, 3],
+            &g.xyz,
+        )?;
+        out.write_array(
+            "gaussian_sh",
+            &["gaussian", "coeff", "rgb"],
+            &[n, SH_STORED as u64, 3],
+            &[chunk, SH_STORED as u64, 3],
+            &g.sh,
+        )?;
+        out.write_array(
+            "gaussian_opacity",
+            &["gaussian"],
+            &[n],
+            &[chunk],
+            &g.opacity_logit,
+        )?;
+        out.write_array(
+            "gaussian_log_scale",
+            &["gaussian", "xyz"],
+            &[n, 3],
+            &[chunk, 3],
+            &g.log_scale,
+        )?;
+        out.write_array(
+            "gaussian_rotation",
+            &["gaussian", "wxyz"],
+            &[n, 4],
+            &[chunk, 4],
+            &g.rotation,
+        )?;
+        write_body_model(out, &self.rig.model)?;
+        out.set_attribute("config", serde_json::to_value(&self.config)?)?;
+        out.set_attribute("sh_degree", self.sh_degree.into())?;
+        out.set_attribute("scales", serde_json::to_value(&self.scales)?)?;
+        out.set_attribute("sequence_length", self.config.sequence_length.into())?;
+        out.set_attribute("background", serde_json::to_value(self.background)?)?;
+        out.set_attribute("body_model_kind", body_model_kind.into())?;
+        out.set_attribute("extent", extent.into())?;
+        Ok(())
+    }
+
+    /// Reads an avatar from a `train` entry; errors name the entry and the array or
+    /// attribute.
+    pub fn load(entry: &EntryReader) -> anyhow::Result<Self> {
+        let location = entry.location();
+        let attribute = |key: &str| {
+            entry
+                .attribute(key)
+                .ok_or_else(|| anyhow::anyhow!("entry {location}: attribute `{key}` is missing"))
+        };
+        let config: TrainConfig = serde_json::from_value(attribute("config")?)
+            .with_context(|| format!("entry {location}: attribute `config`"))?;
+        config
+            .validate()
+            .with_context(|| format!("entry {location}: attribute `config`"))?;
+        let sh_degree = attribute("sh_degree")?
+            .as_u64()
+            .filter(|d| *d <= 3)
+            .ok_or_else(|| {
+                anyhow::anyhow!("entry {location}: attribute `sh_degree` is not 0..=3")
+            })? as u32;
+        let scales: Vec<u32> = serde_json::from_value(attribute("scales")?)
+            .with_context(|| format!("entry {location}: attribute `scales`"))?;
+        let background: [f64; 3] = serde_json::from_value(attribute("background")?)
+            .with_context(|| format!("entry {location}: attribute `background`"))?;
+        let xyz = entry.read::<f64>("gaussian_xyz")?;
+        anyhow::ensure!(
+            xyz.shape.len() == 2 && xyz.shape[1] == 3,
+            "entry {location}: array `gaussian_xyz` has shape {:?}, expected (gaussian, 3)",
+            xyz.shape
+        );
+        let n = xyz.shape[0];
+        let read = |name: &str, shape: &[usize]| -> anyhow::Result<Vec<f64>> {
+            let a = entry.read::<f64>(name)?;
+            anyhow::ensure!(
+                a.shape == shape,
+                "entry {location}: array `{name}` has shape {:?}, expected {shape:?}",
+                a.shape
+            );
+            if let Some(bad) = a.data.iter().position(|v| !v.is_finite()) {
+                anyhow::bail!("entry {location}: array `{name}` has a non-finite value at {bad}");
+            }
+            Ok(a.data)
+        };
+        let gaussians = AvatarGaussians {
+            xyz: read("gaussian_xyz", &[n, 3])?,
+            sh: read("gaussian_sh", &[n, SH_STORED, 3])?,
+            opacity_logit: read("gaussian_opacity", &[n])?,
+            log_scale: read("gaussian_log_scale", &[n, 3])?,
+            rotation: read("gaussian_rotation", &[n, 4])?,
+        };
+        let model = seqavatar_ingest::read_body_model(entry)
+            .with_context(|| format!("entry {location}: body model"))?;
+        let rig = BodyRig::new(model)?;
+        anyhow::ensure!(
+            !needs_networks(&config),
+            "entry {location}: its config trains networks, which this build cannot load"
+        );
+        let mut avatar = Self::new(config, rig, gaussians, sh_degree, scales);
+        avatar.background = background;
+        Ok(avatar)
+    }
+}

@@ -1,0 +1,395 @@
+//! What a training run reads from its input entries: cameras and images of the ingest entry
+//! (rescaled by `resolution_scale`), per-frame body parameters (of the fit entry when there
+//! is one, else of the ingest entry), the body rig, and the motion entry's per-(frame, scale)
+//! arrays from which every training window is a gather.
+
+use anyhow::Context;
+use seqavatar_core::body::BodyParams;
+use seqavatar_core::camera::{Camera, Intrinsics};
+use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_engine::EntryReader;
+use seqavatar_ingest::stage::{SourceImage, resample};
+use seqavatar_ingest::{read_body_model, read_body_params};
+
+use crate::losses::{Rect, bound_box};
+use crate::rig::BodyRig;
+
+/// One ingested image, resampled to the training resolution.
+#[derive(Clone, Debug)]
+pub struct ImageRecord {
+    pub view: usize,
+    pub frame: usize,
+    /// 0 train, 1 test.
+    pub split: u8,
+    /// `H x W x 3` bytes.
+    pub rgb: Vec<u8>,
+    /// `H x W` bytes, 255 = foreground.
+    pub mask: Vec<u8>,
+    /// The padded foreground bounding box; `None` for an empty mask.
+    pub bound: Option<Rect>,
+}
+
+impl ImageRecord {
+    /// Colour in `[0, 1]` as f64.
+    pub fn colour_f64(&self) -> Vec<f64> {
+        self.rgb.iter().map(|&b| f64::from(b) / 255.0).collect()
+    }
+
+    /// Mask in `[0, 1]` as f64.
+    pub fn mask_f64(&self) -> Vec<f64> {
+        self.mask.iter().map(|&b| f64::from(b) / 255.0).collect()
+    }
+}
+
+/// Reads the cameras `camera_K`, `camera_R`, `camera_t`, `camera_image_size` of an entry.
+pub fn read_cameras(entry: &EntryReader) -> anyhow::Result<Vec<Camera>> {
+    let k = entry.read::<f64>("camera_K")?;
+    let r = entry.read::<f64>("camera_R")?;
+    let t = entry.read::<f64>("camera_t")?;
+    let size = entry.read::<u32>("camera_image_size")?;
+    let views = k.shape.first().copied().unwrap_or(0);
+    let location = entry.location();
+    for (name, shape, expected) in [
+        ("camera_K", &k.shape, vec![views, 3, 3]),
+        ("camera_R", &r.shape, vec![views, 3, 3]),
+        ("camera_t", &t.shape, vec![views, 3]),
+        ("camera_image_size", &size.shape, vec![views, 2]),
+    ] {
+        anyhow::ensure!(
+            *shape == expected,
+            "entry {location}: array `{name}` has shape {shape:?}, expected {expected:?}"
+        );
+    }
+    (0..views)
+        .map(|view| {
+            let kk = &k.data[view * 9..view * 9 + 9];
+            let rr = &r.data[view * 9..view * 9 + 9];
+            let tt = &t.data[view * 3..view * 3 + 3];
+            let hw = &size.data[view * 2..view * 2 + 2];
+            let camera = Camera {
+                width: hw[1],
+                height: hw[0],
+                intrinsics: Intrinsics {
+                    fx: kk[0],
+                    fy: kk[4],
+                    cx: kk[2],
+                    cy: kk[5],
+                },
+                rotation: DMat3::from_cols_array(&[
+                    rr[0], rr[3], rr[6], rr[1], rr[4], rr[7], rr[2], rr[5], rr[8],
+                ]),
+                translation: DVec3::new(tt[0], tt[1], tt[2]),
+                distortion: [0.0; 5],
+            };
+            camera
+                .validate()
+                .with_context(|| format!("entry {location}: camera of view {view}"))?;
+            Ok(camera)
+        })
+        .collect()
+}
+
+/// The motion entry's arrays a window gathers from.
+#[derive(Clone, Debug)]
+pub struct MotionTrack {
+    pub num_frames: usize,
+    pub num_joints: usize,
+    pub num_vertices: usize,
+    /// Raw scales, largest first.
+    pub scales: Vec<u32>,
+    /// The same scales in steps on the frame axis.
+    pub scale_steps: Vec<usize>,
+    /// `(frame, scale, joint, 3)`.
+    pub skeleton_motion: Vec<f32>,
+    /// `(frame, scale, vertex, 3)`.
+    pub vertex_velocity: Vec<f32>,
+}
+
+impl MotionTrack {
+    pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
+        let location = entry.location();
+        let scales = entry.read::<u32>("scales")?.data;
+        let steps = entry.read::<u32>("scale_steps")?.data;
+        anyhow::ensure!(
+            !scales.is_empty() && steps.len() == scales.len(),
+            "entry {location}: `scales` ({}) and `scale_steps` ({}) must be non-empty and equally long",
+            scales.len(),
+            steps.len()
+        );
+        let skeleton = entry.read::<f32>("skeleton_motion")?;
+        let velocity = entry.read::<f32>("vertex_velocity")?;
+        let s = scales.len();
+        anyhow::ensure!(
+            skeleton.shape.len() == 4 && skeleton.shape[1] == s && skeleton.shape[3] == 3,
+            "entry {location}: array `skeleton_motion` has shape {:?}, expected (frame, {s}, joint, 3)",
+            skeleton.shape
+        );
+        let (f, j) = (skeleton.shape[0], skeleton.shape[2]);
+        anyhow::ensure!(
+            velocity.shape.len() == 4
+                && velocity.shape[0] == f
+                && velocity.shape[1] == s
+                && velocity.shape[3] == 3,
+            "entry {location}: array `vertex_velocity` has shape {:?}, expected ({f}, {s}, vertex, 3)",
+            velocity.shape
+        );
+        for (name, data) in [
+            ("skeleton_motion", &skeleton.data),
+            ("vertex_velocity", &velocity.data),
+        ] {
+            if let Some(bad) = data.iter().position(|v| !v.is_finite()) {
+                anyhow::bail!("entry {location}: array `{name}` has a non-finite value at {bad}");
+            }
+        }
+        Ok(Self {
+            num_frames: f,
+            num_joints: j,
+            num_vertices: velocity.shape[2],
+            scales,
+            scale_steps: steps.iter().map(|&k| k as usize).collect(),
+            skeleton_motion: skeleton.data,
+            vertex_velocity: velocity.data,
+        })
+    }
+
+    /// Slots (indices into `scales`) of the wanted raw scales, in the order given.
+    pub fn slots(&self, wanted: &[u32]) -> anyhow::Result<Vec<usize>> {
+        wanted
+            .iter()
+            .map(|w| {
+                self.scales.iter().position(|s| s == w).ok_or_else(|| {
+                    anyhow::anyhow!("scale {w} is not in the motion entry ({:?})", self.scales)
+                })
+            })
+            .collect()
+    }
+
+    /// The gathered window of frame `frame`: skeleton motion `(L, S', J, 3)` and vertex
+    /// velocity `(L, S', V, 3)` for the scale slots `slots`, `l = 0` the most recent delta.
+    pub fn gather(&self, frame: usize, length: usize, slots: &[usize]) -> (Vec<f32>, Vec<f32>) {
+        let steps: Vec<usize> = slots.iter().map(|&s| self.scale_steps[s]).collect();
+        let window = seqavatar_motion::window(frame, length, &steps);
+        let (s_all, j, v) = (self.scales.len(), self.num_joints, self.num_vertices);
+        let mut skeleton = Vec::with_capacity(length * slots.len() * j * 3);
+        let mut velocity = Vec::with_capacity(length * slots.len() * v * 3);
+        for l in 0..length {
+            for (k, &slot) in slots.iter().enumerate() {
+                let row = window.frame(l, k).min(self.num_frames.saturating_sub(1));
+                let at = (row * s_all + slot) * j * 3;
+                skeleton.extend_from_slice(&self.skeleton_motion[at..at + j * 3]);
+                let at = (row * s_all + slot) * v * 3;
+                velocity.extend_from_slice(&self.vertex_velocity[at..at + v * 3]);
+            }
+        }
+        (skeleton, velocity)
+    }
+}
+
+/// Everything a run reads, in memory.
+#[derive(Clone, Debug)]
+pub struct TrainingData {
+    /// Cameras at the training resolution, one per view.
+    pub cameras: Vec<Camera>,
+    pub images: Vec<ImageRecord>,
+    /// Body parameters per frame.
+    pub params: Vec<BodyParams>,
+    pub rig: BodyRig,
+    pub motion: MotionTrack,
+    /// Extent of the camera rig (method.md: 1.1 x the largest distance of a training camera
+    /// from their centroid).
+    pub extent: f64,
+    /// The body model kind attribute of the ingest entry.
+    pub body_model_kind: String,
+}
+
+impl TrainingData {
+    /// Reads the entries. `params_entry` is the fit entry if the pipeline has one, else the
+    /// ingest entry.
+    pub fn read(
+        ingest: &EntryReader,
+        params_entry: &EntryReader,
+        motion: &EntryReader,
+        resolution_scale: f64,
+    ) -> anyhow::Result<Self> {
+        let location = ingest.location();
+        let source_cameras = read_cameras(ingest)?;
+        let cameras: Vec<Camera> = source_cameras
+            .iter()
+            .map(|c| c.rescaled(resolution_scale))
+            .collect();
+        let view_of = ingest.read::<u32>("image_view")?.data;
+        let frame_of = ingest.read::<u32>("image_frame")?.data;
+        let split_of = ingest.read::<u8>("image_split")?.data;
+        let count = view_of.len();
+        anyhow::ensure!(
+            frame_of.len() == count && split_of.len() == count,
+            "entry {location}: `image_view`, `image_frame` and `image_split` differ in length"
+        );
+        let shape = ingest.shape("images")?;
+        anyhow::ensure!(
+            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3,
+            "entry {location}: array `images` has shape {shape:?}, expected ({count}, H, W, 3)"
+        );
+        let mask_shape = ingest.shape("masks")?;
+        anyhow::ensure!(
+            mask_shape == shape[..3],
+            "entry {location}: array `masks` has shape {mask_shape:?}, expected {:?}",
+            &shape[..3]
+        );
+        let params = read_body_params(params_entry, "body")?;
+        let model = read_body_model(ingest)?;
+        let motion_track = MotionTrack::read(motion)?;
+        anyhow::ensure!(
+            motion_track.num_frames == params.len(),
+            "entry {}: {} motion frames, but entry {} has body parameters for {} frames",
+            motion.location(),
+            motion_track.num_frames,
+            params_entry.location(),
+            params.len()
+        );
+        anyhow::ensure!(
+            motion_track.num_vertices == model.num_vertices()
+                && motion_track.num_joints == model.num_joints(),
+            "entry {}: motion arrays have {} vertices and {} joints, the body model {} and {}",
+            motion.location(),
+            motion_track.num_vertices,
+            motion_track.num_joints,
+            model.num_vertices(),
+            model.num_joints()
+        );
+        for (i, p) in params.iter().enumerate() {
+            model.check_params(p).with_context(|| {
+                format!(
+                    "entry {}: body parameters of frame {i}",
+                    params_entry.location()
+                )
+            })?;
+        }
+        let rig = BodyRig::new(model)?;
+        let (height, width) = (shape[1], shape[2]);
+        let images = (0..count)
+            .map(|i| -> anyhow::Result<ImageRecord> {
+                let view = view_of[i] as usize;
+                let frame = frame_of[i] as usize;
+                anyhow::ensure!(
+                    view < cameras.len() && frame < params.len(),
+                    "entry {location}: image {i} names view {view} and frame {frame}, but there are {} views and {} frames",
+                    cameras.len(),
+                    params.len()
+                );
+                anyhow::ensure!(
+                    split_of[i] <= 1,
+                    "entry {location}: `image_split` of image {i} is {}, expected 0 or 1",
+                    split_of[i]
+                );
+                let source = &source_cameras[view];
+                let (w, h) = (u64::from(source.width), u64::from(source.height));
+                anyhow::ensure!(
+                    w <= width && h <= height,
+                    "entry {location}: view {view} is {w}x{h} but `images` is {width}x{height}"
+                );
+                let rgb = ingest
+                    .read_region::<u8>("images", &[i as u64, 0, 0, 0], &[1, h, w, 3])?
+                    .data;
+                let mask = ingest
+                    .read_region::<u8>("masks", &[i as u64, 0, 0], &[1, h, w])?
+                    .data;
+                let source_image = SourceImage {
+                    rgb: image::RgbImage::from_raw(w as u32, h as u32, rgb)
+                        .context("image buffer size")?,
+                    mask: image::GrayImage::from_raw(w as u32, h as u32, mask)
+                        .context("mask buffer size")?,
+                };
+                let target = &cameras[view];
+                let (rgb, mask) = resample(&source_image, source, target)
+                    .with_context(|| format!("entry {location}: resampling image {i}"))?;
+                let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
+                let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
+                Ok(ImageRecord {
+                    view,
+                    frame,
+                    split: split_of[i],
+                    rgb,
+                    mask,
+                    bound,
+                })
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let train_views: Vec<usize> = {
+            let mut v: Vec<usize> = images
+                .iter()
+                .filter(|r| r.split == 0)
+                .map(|r| r.view)
+                .collect();
+            v.sort_unstable();
+            v.dedup();
+            v
+        };
+        anyhow::ensure!(
+            !train_views.is_empty(),
+            "entry {location}: no training images"
+        );
+        let extent = camera_extent(train_views.iter().map(|&v| &cameras[v]));
+        let body_model_kind = ingest
+            .attribute("body_model_kind")
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_else(|| "unknown".to_owned());
+        Ok(Self {
+            cameras,
+            images,
+            params,
+            rig,
+            motion: motion_track,
+            extent,
+            body_model_kind,
+        })
+    }
+
+    /// Indices into `images` of one split.
+    pub fn split(&self, split: u8) -> Vec<usize> {
+        (0..self.images.len())
+            .filter(|&i| self.images[i].split == split)
+            .collect()
+    }
+}
+
+/// 1.1 x the largest distance of a camera centre from the centroid (at least 1 cm, so that
+/// one camera still has a scale).
+pub fn camera_extent<'a>(cameras: impl Iterator<Item = &'a Camera>) -> f64 {
+    let centres: Vec<DVec3> = cameras.map(|c| c.center()).collect();
+    let centroid = centres.iter().copied().sum::<DVec3>() / centres.len().max(1) as f64;
+    let radius = centres
+        .iter()
+        .map(|c| (*c - centroid).length())
+        .fold(0.0, f64::max);
+    (1.1 * radius).max(0.01)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn extent_of_a_ring_is_its_radius_times_1_1() {
+        let cams: Vec<Camera> = (0..6)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::TAU / 6.0;
+                Camera::look_at(
+                    64,
+                    64,
+                    Intrinsics {
+                        fx: 50.0,
+                        fy: 50.0,
+                        cx: 32.0,
+                        cy: 32.0,
+                    },
+                    DVec3::new(3.0 * a.cos(), 1.0, 3.0 * a.sin()),
+                    DVec3::ZERO,
+                    DVec3::Y,
+                )
+            })
+            .collect();
+        let e = camera_extent(cams.iter());
+        assert!((e - 3.3).abs() < 1e-9, "{e}");
+    }
+}

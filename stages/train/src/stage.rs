@@ -1,0 +1,352 @@
+//! The `train` stage kind: configuration, the resumable run, outputs, pictures.
+//!
+//! Inputs: an `ingest` entry (cameras, images, split, body model), a `motion` entry (windows)
+//! and optionally a `fit` entry (refined body parameters; without one the ingest fits are
+//! used).
+//!
+//! The run checkpoints into the stage's work folder every `checkpoint_every` iterations
+//! ([`crate::checkpoint`]) and resumes from the newest checkpoint when it starts again with
+//! the same key. Divergence stops it with an error naming the iteration and the tensor; the
+//! last good checkpoint stays.
+//!
+//! Output: the trained avatar ([`crate::avatar`] lists its arrays and attributes), and
+//! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `aiap`, `psnr`
+//!   (train PSNR inside the bound box) and `gaussians` (count after the iteration);
+//! - `test_psnr` f64 `(image)`: held-out PSNR per test image (method.md protocol), with
+//!   `test_image` u32 `(image)` the ingest image index;
+//! - attributes `wall_seconds`, `iterations_per_second` (of the last session when resumed),
+//!   `resumed_from`, `final_train_psnr` (mean over the last tenth of the iterations),
+//!   `test_psnr_mean`, `backend`, `gaussians`.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use serde_json::json;
+
+use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_engine::{
+    ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
+};
+use seqavatar_fit::plot;
+
+use crate::avatar::TrainedAvatar;
+use crate::checkpoint;
+use crate::config::{Device, TrainConfig};
+use crate::data::TrainingData;
+use crate::trainer::{LossCurve, Trainer};
+
+/// The stage kind.
+pub struct TrainStage;
+
+/// Bump whenever the code changes the result.
+const VERSION: u32 = 1;
+
+/// Converts the config's device to the compute crate's choice.
+pub fn device_choice(device: Device) -> DeviceChoice {
+    match device {
+        Device::Auto => DeviceChoice::Auto,
+        Device::Cpu => DeviceChoice::Cpu,
+        Device::Gpu => DeviceChoice::Gpu,
+    }
+}
+
+/// Held-out PSNR of one rendered image by the evaluation protocol of method.md: rendered
+/// pixels outside the bound box set to the background, ground-truth colour with non-mask
+/// pixels zeroed, PSNR over the whole image.
+pub fn protocol_psnr(
+    colour: &[f64],
+    target: &[u8],
+    mask: &[u8],
+    width: usize,
+    height: usize,
+    bound: Option<crate::losses::Rect>,
+    background: [f64; 3],
+) -> f64 {
+    let mut sum = 0.0;
+    for row in 0..height {
+        for col in 0..width {
+            let inside =
+                bound.is_some_and(|b| col >= b.x0 && col < b.x1 && row >= b.y0 && row < b.y1);
+            let foreground = mask[row * width + col] > 127;
+            for c in 0..3 {
+                let i = 3 * (row * width + col) + c;
+                let rendered = if inside { colour[i] } else { background[c] };
+                let truth = if foreground {
+                    f64::from(target[i]) / 255.0
+                } else {
+                    0.0
+                };
+                sum += (rendered - truth).powi(2);
+            }
+        }
+    }
+    let mse = sum / (3 * width * height).max(1) as f64;
+    -10.0 * mse.max(1e-20).log10()
+}
+
+impl StageKind for TrainStage {
+    fn kind(&self) -> &'static str {
+        "train"
+    }
+
+    fn version(&self) -> u32 {
+        VERSION
+    }
+
+    fn input_kinds(&self) -> &'static [&'static str] {
+        &["ingest", "fit", "motion"]
+    }
+
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
+        let config = TrainConfig::resolve(raw).map_err(|e| match e {
+            crate::config::ConfigError::Field { field, message } => {
+                let top = field.split(['.', '[']).next().unwrap_or("").to_owned();
+                if top.is_empty() {
+                    ConfigError::new(vec![], message)
+                } else {
+                    ConfigError::at_key(&top, format!("{field}: {message}"))
+                }
+            }
+            other => ConfigError::new(vec![], other.to_string()),
+        })?;
+        serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
+    }
+
+    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        let config: TrainConfig = ctx.config()?;
+        let ingest = ctx.input("ingest")?.clone();
+        let motion = ctx.input("motion")?.clone();
+        let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
+        let params_entry = fit.as_ref().unwrap_or(&ingest);
+        let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
+        let backend = Backend::select(device_choice(config.device))
+            .with_context(|| format!("config `device: {:?}`", config.device))?;
+        ctx.log(&format!("backend: {}", backend.describe()));
+        if config.lpips_weight == 0.0 {
+            ctx.log("LPIPS loss off: weights not provided");
+        }
+        let work = ctx.work_dir().join("checkpoints");
+        let mut trainer = match checkpoint::load_latest(&work)? {
+            Some(ckpt) => {
+                let t = Trainer::resume(config.clone(), &data, backend.clone(), &ckpt)
+                    .with_context(|| {
+                        format!("resuming from the checkpoint in {}", work.display())
+                    })?;
+                ctx.log(&format!("resumed from iteration {}", t.iteration));
+                t
+            }
+            None => Trainer::new(config.clone(), &data, backend.clone())?,
+        };
+        let resumed_from = trainer.iteration;
+        let total = u64::from(config.iterations);
+        let bar = ctx.progress_bar(total, "training");
+        bar.set_position(trainer.iteration);
+        let started = Instant::now();
+        while trainer.iteration < total {
+            let stats = trainer.step()?;
+            let elapsed = started.elapsed().as_secs_f64();
+            let rate = (trainer.iteration - resumed_from) as f64 / elapsed.max(1e-9);
+            bar.set_position(trainer.iteration);
+            bar.set_message(format!(
+                "{}: training, loss {:.4}, PSNR {:.2}, {} Gaussians, {:.2} it/s",
+                ctx.stage_name(),
+                stats.total,
+                stats.psnr,
+                stats.gaussians,
+                rate
+            ));
+            if let Some(report) = stats.densified {
+                ctx.log(&format!(
+                    "iteration {}: densified ({} cloned, {} split, {} pruned) -> {} Gaussians",
+                    stats.iteration, report.cloned, report.split, report.pruned, report.count
+                ));
+            }
+            if trainer
+                .iteration
+                .is_multiple_of(u64::from(config.checkpoint_every))
+                && trainer.iteration < total
+            {
+                checkpoint::save(&work, &trainer.checkpoint())?;
+            }
+        }
+        bar.finish_and_clear();
+        let wall = started.elapsed().as_secs_f64();
+        let ran = trainer.iteration - resumed_from;
+        let rate = ran as f64 / wall.max(1e-9);
+        let avatar = trainer.avatar()?;
+
+        // Held-out PSNR on the test split.
+        let test = data.split(1);
+        let mut test_psnr = Vec::with_capacity(test.len());
+        for &i in &test {
+            let record = &data.images[i];
+            let inputs =
+                avatar.frame_inputs(&data.motion, &data.params[record.frame], record.frame)?;
+            let camera = &data.cameras[record.view];
+            let image = avatar.render(&inputs, camera, &backend)?;
+            let bound = record.bound.map(|b| {
+                crate::trainer::pad_rect(
+                    b,
+                    config.bound_padding,
+                    camera.width as usize,
+                    camera.height as usize,
+                )
+            });
+            test_psnr.push(protocol_psnr(
+                &image.colour,
+                &record.rgb,
+                &record.mask,
+                camera.width as usize,
+                camera.height as usize,
+                bound,
+                config.background,
+            ));
+        }
+        let test_mean = if test_psnr.is_empty() {
+            f64::NAN
+        } else {
+            test_psnr.iter().sum::<f64>() / test_psnr.len() as f64
+        };
+        let tail = (trainer.curve.psnr.len() / 10).max(1);
+        let final_train_psnr = trainer.curve.psnr[trainer.curve.psnr.len() - tail..]
+            .iter()
+            .sum::<f64>()
+            / tail as f64;
+        ctx.log(&format!(
+            "{} iterations in {wall:.1} s ({rate:.2} it/s), {} Gaussians, train PSNR {final_train_psnr:.2} dB, held-out PSNR {test_mean:.2} dB over {} test images",
+            ran,
+            avatar.gaussians.len(),
+            test_psnr.len()
+        ));
+
+        let out = ctx.output();
+        avatar.write(out, data.extent, &data.body_model_kind)?;
+        let iterations = trainer.curve.total.len() as u64;
+        for name in LossCurve::NAMES {
+            let values = trainer.curve.get(name).expect("known curve");
+            out.write_array(
+                &format!("loss_{name}"),
+                &["iteration"],
+                &[iterations],
+                &[iterations.max(1)],
+                values,
+            )?;
+        }
+        let t = test.len() as u64;
+        out.write_array("test_psnr", &["image"], &[t], &[t.max(1)], &test_psnr)?;
+        let indices: Vec<u32> = test.iter().map(|&i| i as u32).collect();
+        out.write_array("test_image", &["image"], &[t], &[t.max(1)], &indices)?;
+        out.set_attribute("wall_seconds", json!(wall))?;
+        out.set_attribute("iterations_per_second", json!(rate))?;
+        out.set_attribute("resumed_from", json!(resumed_from))?;
+        out.set_attribute("final_train_psnr", json!(final_train_psnr))?;
+        out.set_attribute(
+            "test_psnr_mean",
+            if test_mean.is_finite() {
+                json!(test_mean)
+            } else {
+                serde_json::Value::Null
+            },
+        )?;
+        out.set_attribute("backend", json!(backend.describe()))?;
+        out.set_attribute("gaussians", json!(avatar.gaussians.len()))?;
+        Ok(())
+    }
+
+    fn pictures(&self) -> Vec<PictureKind> {
+        vec![PictureKind {
+            name: "loss_curve",
+            description: "training loss (blue) and train PSNR / 10 (orange) per iteration; options: width, height, smooth (moving-average window, iterations)",
+        }]
+    }
+
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        match picture {
+            "loss_curve" => draw_loss_curve(entry, options),
+            _ => anyhow::bail!(
+                "stage kind \"train\" has no picture named \"{picture}\" (it has: loss_curve)"
+            ),
+        }
+    }
+}
+
+/// Moving average over a trailing window of `window` values.
+fn smooth(values: &[f64], window: usize) -> Vec<f64> {
+    let window = window.max(1);
+    let mut sum = 0.0;
+    let mut out = Vec::with_capacity(values.len());
+    for i in 0..values.len() {
+        sum += values[i];
+        if i >= window {
+            sum -= values[i - window];
+        }
+        out.push(sum / (i + 1).min(window) as f64);
+    }
+    out
+}
+
+/// The loss-curve plot of a `train` entry.
+pub fn draw_loss_curve(
+    entry: &EntryReader,
+    options: &PictureOptions,
+) -> anyhow::Result<image::RgbImage> {
+    let unknown = options.unknown_keys(&["width", "height", "smooth"]);
+    anyhow::ensure!(
+        unknown.is_empty(),
+        "picture loss_curve: unknown options {unknown:?}"
+    );
+    let total = entry.read::<f64>("loss_total")?.data;
+    let psnr = entry.read::<f64>("loss_psnr")?.data;
+    let window = options
+        .get_u64("smooth", (total.len() as u64 / 50).max(1))?
+        .max(1) as usize;
+    let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
+    let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
+    let psnr_scaled: Vec<f64> = smooth(&psnr, window).iter().map(|p| p / 10.0).collect();
+    Ok(plot::line_plot(
+        width,
+        height,
+        &[smooth(&total, window), psnr_scaled],
+    ))
+}
+
+/// Reads a trained avatar (for callers that have only the entry).
+pub fn load_avatar(entry: &EntryReader) -> anyhow::Result<TrainedAvatar> {
+    TrainedAvatar::load(entry)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn protocol_psnr_closed_form() {
+        // 2 x 2 image, one foreground pixel rendered off by 0.1 in every channel, the rest
+        // exact: MSE = 0.01 * 3 / 12.
+        let target = vec![51u8; 12];
+        let mask = vec![255, 0, 0, 0];
+        let mut colour = vec![0.0; 12];
+        for c in 0..3 {
+            colour[c] = 51.0 / 255.0 + 0.1;
+        }
+        let bound = Some(crate::losses::Rect {
+            x0: 0,
+            y0: 0,
+            x1: 1,
+            y1: 1,
+        });
+        let p = protocol_psnr(&colour, &target, &mask, 2, 2, bound, [0.0; 3]);
+        let expected = -10.0 * (0.01f64 * 3.0 / 12.0).log10();
+        assert!((p - expected).abs() < 1e-9, "{p} vs {expected}");
+    }
+
+    #[test]
+    fn smoothing_is_a_trailing_mean() {
+        assert_eq!(smooth(&[1.0, 3.0, 5.0, 7.0], 2), vec![1.0, 2.0, 4.0, 6.0]);
+    }
+}

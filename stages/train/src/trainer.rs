@@ -1,0 +1,783 @@
+//! The training loop: per iteration a seeded choice of training image(s) of one frame, the
+//! avatar's forward pass ([`crate::avatar::deform`]), splatting on the chosen backend, the
+//! photometric and as-isometric-as-possible losses, the full backward, Adam with the
+//! method.md schedules, the SH degree schedule and density control.
+//!
+//! A [`Trainer`] holds the complete resumable state; [`Trainer::checkpoint`] and
+//! [`Trainer::resume`] convert it to and from a [`Checkpoint`] exactly, so a resumed `cpu`
+//! run reproduces an uninterrupted one bit for bit (every random draw comes from the one
+//! [`Rng`] whose state the checkpoint stores, and every reduction has a fixed order).
+
+use anyhow::Context;
+use seqavatar_compute::backend::Backend;
+use seqavatar_compute::nn::adam::{AdamConfig, AdamState, adam_update};
+use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
+
+use crate::avatar::{
+    AvatarGaussians, PosedFrame, TrainedAvatar, deform, gather_frame_inputs, needs_networks,
+    template_grid,
+};
+use crate::checkpoint::{Checkpoint, Tensor};
+use crate::config::TrainConfig;
+use crate::data::TrainingData;
+use crate::densify::{
+    DensifyReport, DensifySettings, GaussianState, Growth, densify_and_prune, names,
+};
+use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
+use crate::knn::{KnnGrid, as_points, knn_brute_force};
+use crate::losses::{AiapInputs, ImageLossWeights, ImagePair, Rect, aiap_loss, image_loss};
+use crate::rig::{FramePose, PoseChain};
+use crate::rng::Rng;
+use crate::skinning::{
+    GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
+};
+use crate::splatting;
+
+/// Loss and statistics of one iteration.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct IterationStats {
+    pub iteration: u64,
+    pub total: f64,
+    pub l1: f64,
+    pub mask_mse: f64,
+    pub dssim: f64,
+    pub aiap: f64,
+    pub psnr: f64,
+    pub gaussians: usize,
+    pub densified: Option<DensifyReport>,
+}
+
+/// Per-iteration curves (one value per completed iteration).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LossCurve {
+    pub total: Vec<f64>,
+    pub l1: Vec<f64>,
+    pub mask_mse: Vec<f64>,
+    pub dssim: Vec<f64>,
+    pub aiap: Vec<f64>,
+    pub psnr: Vec<f64>,
+    pub gaussians: Vec<f64>,
+}
+
+impl LossCurve {
+    /// Names of the curves, as stored (`curve/<name>` in checkpoints, `loss_<name>` in the
+    /// entry).
+    pub const NAMES: [&'static str; 7] = [
+        "total",
+        "l1",
+        "mask_mse",
+        "dssim",
+        "aiap",
+        "psnr",
+        "gaussians",
+    ];
+
+    fn columns(&self) -> [&Vec<f64>; 7] {
+        [
+            &self.total,
+            &self.l1,
+            &self.mask_mse,
+            &self.dssim,
+            &self.aiap,
+            &self.psnr,
+            &self.gaussians,
+        ]
+    }
+
+    fn columns_mut(&mut self) -> [&mut Vec<f64>; 7] {
+        [
+            &mut self.total,
+            &mut self.l1,
+            &mut self.mask_mse,
+            &mut self.dssim,
+            &mut self.aiap,
+            &mut self.psnr,
+            &mut self.gaussians,
+        ]
+    }
+
+    /// The named curve.
+    pub fn get(&self, name: &str) -> Option<&Vec<f64>> {
+        Self::NAMES
+            .iter()
+            .position(|n| *n == name)
+            .map(|i| self.columns()[i])
+    }
+
+    fn push(&mut self, s: &IterationStats) {
+        let values = [
+            s.total,
+            s.l1,
+            s.mask_mse,
+            s.dssim,
+            s.aiap,
+            s.psnr,
+            s.gaussians as f64,
+        ];
+        for (column, v) in self.columns_mut().into_iter().zip(values) {
+            column.push(v);
+        }
+    }
+}
+
+/// Training diverged: a non-finite loss, gradient or parameter.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("training diverged at iteration {iteration}: {what} `{tensor}` is not finite{detail}")]
+pub struct Divergence {
+    pub iteration: u64,
+    /// `loss`, `gradient of` or `parameter`.
+    pub what: &'static str,
+    pub tensor: String,
+    pub detail: String,
+}
+
+/// The complete state of a run.
+pub struct Trainer<'d> {
+    pub config: TrainConfig,
+    data: &'d TrainingData,
+    backend: Backend,
+    pub state: GaussianState,
+    /// Completed iterations.
+    pub iteration: u64,
+    /// Adam updates applied to the Gaussians.
+    pub adam_step: u64,
+    pub rng: Rng,
+    pub curve: LossCurve,
+    /// Raw scales fed to the networks (largest first).
+    pub scales: Vec<u32>,
+    train_images: Vec<usize>,
+    template_grid: KnnGrid,
+    /// Unrefined skinning targets per frame, computed once.
+    poses: Vec<Option<(FramePose, PoseChain)>>,
+}
+
+/// The active SH degree at (1-based) iteration `iteration`: one more every `interval`.
+pub fn sh_degree_at(config: &TrainConfig, iteration: u64) -> u32 {
+    let steps = iteration / u64::from(config.sh_degree_interval.max(1));
+    steps.min(u64::from(config.sh_degree)) as u32
+}
+
+/// Initial linear scales: `sqrt(mean squared distance to the 3 nearest other points)`.
+pub fn initial_scales(points: &[f64]) -> Vec<f64> {
+    let p = as_points(points);
+    let n = p.len();
+    let k = 4.min(n);
+    let grid = KnnGrid::new(&p, 4.0);
+    let nn = if n <= 64 {
+        knn_brute_force(&p, &p, k)
+    } else {
+        grid.query_all(&p, k)
+    };
+    (0..n)
+        .flat_map(|i| {
+            let mut sum = 0.0;
+            let mut count = 0;
+            for &j in &nn[i * k..(i + 1) * k] {
+                if j as usize != i {
+                    let d: f64 = (0..3).map(|a| (p[i][a] - p[j as usize][a]).powi(2)).sum();
+                    sum += d;
+                    count += 1;
+                }
+            }
+            let s = if count > 0 {
+                (sum / count as f64).sqrt().max(1e-7)
+            } else {
+                0.01
+            };
+            [s; 3]
+        })
+        .collect()
+}
+
+impl<'d> Trainer<'d> {
+    /// A fresh run: Gaussians at the canonical template vertices with random colours,
+    /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations.
+    pub fn new(
+        config: TrainConfig,
+        data: &'d TrainingData,
+        backend: Backend,
+    ) -> anyhow::Result<Self> {
+        anyhow::ensure!(
+            !needs_networks(&config),
+            "motion_context `{:?}`, pose_refiner and lbs_offsets need the networks, which are not wired in yet; use motion_context: none, pose_refiner: false, lbs_offsets: false",
+            config.motion_context
+        );
+        let scales = config
+            .effective_scales(&data.motion.scales)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut rng = Rng::new(config.seed);
+        let centres = data.rig.canonical_vertices.clone();
+        let colours: Vec<f64> = (0..centres.len()).map(|_| rng.next_f64()).collect();
+        let state = initial_state(&centres, &colours, 0.1, &initial_scales(&centres))?;
+        Self::assemble(
+            config,
+            data,
+            backend,
+            state,
+            0,
+            0,
+            rng,
+            LossCurve::default(),
+            scales,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        config: TrainConfig,
+        data: &'d TrainingData,
+        backend: Backend,
+        state: GaussianState,
+        iteration: u64,
+        adam_step: u64,
+        rng: Rng,
+        curve: LossCurve,
+        scales: Vec<u32>,
+    ) -> anyhow::Result<Self> {
+        let train_images: Vec<usize> = data
+            .split(0)
+            .into_iter()
+            .filter(|&i| data.images[i].bound.is_some())
+            .collect();
+        anyhow::ensure!(
+            !train_images.is_empty(),
+            "no training image has a non-empty foreground mask"
+        );
+        Ok(Self {
+            template_grid: template_grid(&data.rig),
+            poses: vec![None; data.params.len()],
+            config,
+            data,
+            backend,
+            state,
+            iteration,
+            adam_step,
+            rng,
+            curve,
+            scales,
+            train_images,
+        })
+    }
+
+    /// The frame's skinning target, computed once per frame.
+    fn posed_frame(&mut self, frame: usize) -> anyhow::Result<PosedFrame> {
+        let params = &self.data.params[frame];
+        if self.poses[frame].is_none() {
+            let posed = self
+                .data
+                .rig
+                .pose_with_chain(params)
+                .with_context(|| format!("frame {frame}"))?;
+            self.poses[frame] = Some(posed);
+        }
+        let (pose, chain) = self.poses[frame].clone().expect("just set");
+        Ok(PosedFrame { pose, chain })
+    }
+
+    /// Images of one iteration: a random training image, plus other training images of the
+    /// same frame up to `cameras_per_step`.
+    fn pick_images(&mut self) -> Vec<usize> {
+        let first = self.train_images[self.rng.below(self.train_images.len())];
+        let frame = self.data.images[first].frame;
+        let mut others: Vec<usize> = self
+            .train_images
+            .iter()
+            .copied()
+            .filter(|&i| i != first && self.data.images[i].frame == frame)
+            .collect();
+        let mut chosen = vec![first];
+        while chosen.len() < self.config.cameras_per_step && !others.is_empty() {
+            let k = self.rng.below(others.len());
+            chosen.push(others.swap_remove(k));
+        }
+        chosen
+    }
+
+    fn avatar_gaussians(&self) -> anyhow::Result<AvatarGaussians> {
+        AvatarGaussians::from_state(&self.state)
+    }
+
+    /// One training iteration.
+    pub fn step(&mut self) -> anyhow::Result<IterationStats> {
+        let iteration = self.iteration + 1;
+        let sh_degree = sh_degree_at(&self.config, iteration);
+        let chosen = self.pick_images();
+        let frame = self.data.images[chosen[0]].frame;
+        let posed = self.posed_frame(frame)?;
+        let pose = &posed.pose;
+        let inputs = gather_frame_inputs(
+            &self.config,
+            &self.scales,
+            &self.data.motion,
+            &self.data.params[frame],
+            frame,
+        )?;
+        let gaussians = self.avatar_gaussians()?;
+        let n = gaussians.len();
+        let deformed = deform(
+            &self.data.rig,
+            &self.template_grid,
+            &gaussians,
+            &inputs,
+            pose,
+            &self.config,
+            sh_degree,
+        )?;
+        let cameras: Vec<_> = chosen
+            .iter()
+            .map(|&i| self.data.cameras[self.data.images[i].view].clone())
+            .collect();
+        let options = RasterOptions {
+            background: self.config.background,
+            smooth_cutoff: false,
+        };
+        let pass = splatting::forward(&self.backend, &deformed.world, &cameras, &options)?;
+
+        // Photometric loss per camera, averaged.
+        let weights = ImageLossWeights {
+            mask: self.config.mask_weight,
+            ssim: self.config.ssim_weight,
+        };
+        let scale = 1.0 / chosen.len() as f64;
+        let mut stats = IterationStats {
+            iteration,
+            ..Default::default()
+        };
+        let mut upstream_colour = Vec::with_capacity(chosen.len());
+        let mut upstream_alpha = Vec::with_capacity(chosen.len());
+        for (image, &index) in pass.images.iter().zip(&chosen) {
+            let record = &self.data.images[index];
+            let (w, h) = (image.width as usize, image.height as usize);
+            let bound = pad_rect(
+                record.bound.expect("training images have a foreground"),
+                self.config.bound_padding,
+                w,
+                h,
+            );
+            let target_colour = record.colour_f64();
+            let target_mask = record.mask_f64();
+            let (terms, grads) = image_loss(
+                &ImagePair {
+                    width: w,
+                    height: h,
+                    colour: &image.colour,
+                    alpha: &image.alpha,
+                    target_colour: &target_colour,
+                    target_mask: &target_mask,
+                },
+                bound,
+                weights,
+            );
+            stats.l1 += scale * terms.l1;
+            stats.mask_mse += scale * terms.mask_mse;
+            stats.dssim += scale * terms.dssim;
+            stats.total += scale * terms.total;
+            stats.psnr += scale * psnr(&image.colour, &target_colour, w, bound);
+            upstream_colour.push(grads.colour.iter().map(|g| g * scale).collect::<Vec<f64>>());
+            upstream_alpha.push(grads.alpha.iter().map(|g| g * scale).collect::<Vec<f64>>());
+        }
+        let mut splat_grads = splatting::backward(
+            &self.backend,
+            &pass,
+            &deformed.world,
+            &upstream_colour,
+            &upstream_alpha,
+        )?;
+        drop(pass);
+
+        // As-isometric-as-possible between the canonical and the deformed Gaussians, over
+        // each Gaussian's canonical nearest neighbours (recomputed every iteration: the
+        // centres move and densification renumbers them).
+        let canonical_cov = canonical_covariances(&gaussians.log_scale, &gaussians.rotation);
+        let mut d_xyz = vec![0.0; 3 * n];
+        let mut d_log_scale_aiap = vec![0.0; 3 * n];
+        let mut d_rotation_aiap = vec![0.0; 4 * n];
+        let aiap_active =
+            self.config.aiap_centre_weight > 0.0 || self.config.aiap_covariance_weight > 0.0;
+        if aiap_active && n > 1 {
+            let k = self.config.aiap_neighbours.min(n);
+            let points = as_points(&gaussians.xyz);
+            let neighbours = KnnGrid::new(&points, 4.0).query_all(&points, k);
+            let (terms, grads) = aiap_loss(
+                &AiapInputs {
+                    canonical_centres: &gaussians.xyz,
+                    deformed_centres: &deformed.skinned.positions,
+                    canonical_covariances: &canonical_cov,
+                    deformed_covariances: &deformed.skinned.covariances,
+                    neighbours: &neighbours,
+                    k,
+                },
+                self.config.aiap_centre_weight,
+                self.config.aiap_covariance_weight,
+            );
+            stats.aiap = self.config.aiap_centre_weight * terms.centres
+                + self.config.aiap_covariance_weight * terms.covariances;
+            stats.total += stats.aiap;
+            for (a, b) in splat_grads.means.iter_mut().zip(&grads.deformed_centres) {
+                *a += b;
+            }
+            for (a, b) in splat_grads
+                .covariances
+                .iter_mut()
+                .zip(&grads.deformed_covariances)
+            {
+                *a += b;
+            }
+            d_xyz.copy_from_slice(&grads.canonical_centres);
+            canonical_covariances_backward(
+                &gaussians.log_scale,
+                &gaussians.rotation,
+                &grads.canonical_covariances,
+                &mut d_log_scale_aiap,
+                &mut d_rotation_aiap,
+            );
+        }
+        if !stats.total.is_finite() {
+            return Err(Divergence {
+                iteration,
+                what: "loss",
+                tensor: "total".into(),
+                detail: format!(
+                    " (l1 {}, mask {}, dssim {}, aiap {})",
+                    stats.l1, stats.mask_mse, stats.dssim, stats.aiap
+                ),
+            }
+            .into());
+        }
+
+        // Backward through the skinning.
+        let frame_data = self
+            .data
+            .rig
+            .frame(pose, self.config.scale_min, self.config.scale_max);
+        let params = GaussianParams {
+            positions: &deformed.positions,
+            log_scales: &gaussians.log_scale,
+            d_scales: &deformed.d_scales,
+            rotations: &gaussians.rotation,
+            d_rotations: &deformed.d_rotations,
+            weight_offsets: None,
+            nearest: &deformed.nearest,
+        };
+        let skin = skin_backward(
+            &frame_data,
+            &params,
+            &splat_grads.means,
+            &splat_grads.covariances,
+        );
+        for (a, b) in d_xyz.iter_mut().zip(&skin.positions) {
+            *a += b;
+        }
+        let d_log_scale: Vec<f64> = skin
+            .log_scales
+            .iter()
+            .zip(&d_log_scale_aiap)
+            .map(|(a, b)| a + b)
+            .collect();
+        let d_rotation: Vec<f64> = skin
+            .rotations
+            .iter()
+            .zip(&d_rotation_aiap)
+            .map(|(a, b)| a + b)
+            .collect();
+        let opacities = &deformed.world.opacities;
+        let d_opacity: Vec<f64> = (0..n)
+            .map(|i| splat_grads.opacities[i] * opacities[i] * (1.0 - opacities[i]))
+            .collect();
+        let k = sh_coefficient_count(sh_degree);
+        let mut d_sh = vec![0.0; n * 3 * SH_STORED];
+        for i in 0..n {
+            d_sh[i * 3 * SH_STORED..i * 3 * SH_STORED + 3 * k]
+                .copy_from_slice(&splat_grads.sh[i * 3 * k..(i + 1) * 3 * k]);
+        }
+        let gradients: [(&str, &Vec<f64>); 5] = [
+            (names::POSITION, &d_xyz),
+            (SH, &d_sh),
+            (names::OPACITY_LOGIT, &d_opacity),
+            (names::LOG_SCALE, &d_log_scale),
+            (names::ROTATION, &d_rotation),
+        ];
+        for (name, values) in gradients {
+            if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+                return Err(Divergence {
+                    iteration,
+                    what: "gradient of",
+                    tensor: format!("gaussians/{name}"),
+                    detail: format!(" (Gaussian {})", bad / (values.len() / n.max(1)).max(1)),
+                }
+                .into());
+            }
+        }
+
+        // Densification statistics (view-space gradient norm in 3DGS's NDC units).
+        if iteration <= u64::from(self.config.densify_until) {
+            let half_size = cameras
+                .iter()
+                .map(|c| c.width.max(c.height))
+                .max()
+                .unwrap_or(1) as f64
+                * 0.5;
+            let norms: Vec<f64> = splat_grads
+                .mean_2d_norm
+                .iter()
+                .map(|g| g * half_size)
+                .collect();
+            let visible: Vec<bool> = splat_grads.mean_2d_norm.iter().map(|g| *g > 0.0).collect();
+            self.state.accumulate_gradient_stats(&norms, &visible)?;
+        }
+
+        // Adam.
+        self.adam_step += 1;
+        let lr = &self.config.learning_rates;
+        let extent = self.data.extent;
+        let position_lr = exponential_lr(
+            lr.position_initial * extent,
+            lr.position_final * extent,
+            iteration,
+            u64::from(lr.position_decay_steps),
+        );
+        let adam = AdamConfig {
+            eps: lr.adam_eps,
+            ..AdamConfig::default()
+        };
+        for (name, gradient) in gradients {
+            let mut moments = AdamState {
+                m: std::mem::take(self.state.values_mut(&format!("{name}.adam_m"))?),
+                v: std::mem::take(self.state.values_mut(&format!("{name}.adam_v"))?),
+                step: self.adam_step - 1,
+            };
+            let values = self.state.values_mut(name)?;
+            if name == SH {
+                update_sh(
+                    &adam,
+                    lr.sh_dc,
+                    lr.sh_rest,
+                    values,
+                    gradient,
+                    &mut moments,
+                    n,
+                )?;
+            } else {
+                let rate = match name {
+                    names::POSITION => position_lr,
+                    names::OPACITY_LOGIT => lr.opacity,
+                    names::LOG_SCALE => lr.scaling,
+                    _ => lr.rotation,
+                };
+                adam_update(&adam, rate, values, gradient, &mut moments)?;
+            }
+            if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+                let width = values.len() / n.max(1);
+                return Err(Divergence {
+                    iteration,
+                    what: "parameter",
+                    tensor: format!("gaussians/{name}"),
+                    detail: format!(" (Gaussian {})", bad / width.max(1)),
+                }
+                .into());
+            }
+            *self.state.values_mut(&format!("{name}.adam_m"))? = moments.m;
+            *self.state.values_mut(&format!("{name}.adam_v"))? = moments.v;
+        }
+
+        // Density control.
+        let c = &self.config;
+        if c.densify
+            && iteration > u64::from(c.densify_from)
+            && iteration <= u64::from(c.densify_until)
+            && iteration.is_multiple_of(u64::from(c.densify_interval))
+        {
+            let settings = DensifySettings {
+                grad_threshold: c.densify_grad_threshold,
+                percent_dense: c.percent_dense,
+                extent,
+                min_opacity: c.prune_opacity,
+                max_gaussians: c.max_gaussians,
+            };
+            let report = densify_and_prune(&mut self.state, &settings, &mut self.rng)?;
+            anyhow::ensure!(
+                report.count > 0,
+                "iteration {iteration}: density control pruned every Gaussian"
+            );
+            stats.densified = Some(report);
+        }
+        self.iteration = iteration;
+        stats.gaussians = self.state.len();
+        self.curve.push(&stats);
+        Ok(stats)
+    }
+
+    /// The current avatar.
+    pub fn avatar(&self) -> anyhow::Result<TrainedAvatar> {
+        Ok(TrainedAvatar::new(
+            self.config.clone(),
+            self.data.rig.clone(),
+            self.avatar_gaussians()?,
+            sh_degree_at(&self.config, self.iteration.max(1)),
+            self.scales.clone(),
+        ))
+    }
+
+    /// The complete state as a checkpoint.
+    pub fn checkpoint(&self) -> Checkpoint {
+        let n = self.state.len();
+        let mut tensors: Vec<Tensor> = self
+            .state
+            .columns
+            .iter()
+            .map(|c| Tensor {
+                name: format!("gaussians/{}", c.name),
+                shape: vec![n, c.width],
+                dimension_names: vec!["gaussian".into(), "value".into()],
+                values: c.values.clone(),
+            })
+            .collect();
+        for (name, values) in LossCurve::NAMES.iter().zip(self.curve.columns()) {
+            tensors.push(Tensor {
+                name: format!("curve/{name}"),
+                shape: vec![values.len()],
+                dimension_names: vec!["iteration".into()],
+                values: values.clone(),
+            });
+        }
+        Checkpoint {
+            iteration: self.iteration,
+            rng_state: self.rng.state(),
+            metadata: serde_json::json!({
+                "adam_step": self.adam_step,
+                "gaussians": n,
+                "config": self.config,
+                "columns": self.state.columns.iter().map(|c| serde_json::json!({
+                    "name": c.name,
+                    "width": c.width,
+                    "growth": match c.growth { Growth::Inherit => "inherit", Growth::Zero => "zero" },
+                })).collect::<Vec<_>>(),
+            }),
+            tensors,
+        }
+    }
+
+    /// Restores a run from a checkpoint written by [`Trainer::checkpoint`] with the same
+    /// configuration.
+    pub fn resume(
+        config: TrainConfig,
+        data: &'d TrainingData,
+        backend: Backend,
+        checkpoint: &Checkpoint,
+    ) -> anyhow::Result<Self> {
+        let meta = &checkpoint.metadata;
+        let stored: TrainConfig = serde_json::from_value(meta["config"].clone())
+            .context("checkpoint metadata `config`")?;
+        anyhow::ensure!(
+            stored == config,
+            "the checkpoint was written with a different configuration"
+        );
+        let adam_step = meta["adam_step"]
+            .as_u64()
+            .context("checkpoint metadata `adam_step`")?;
+        let columns = meta["columns"]
+            .as_array()
+            .context("checkpoint metadata `columns`")?;
+        let find = |name: &str| {
+            checkpoint
+                .tensors
+                .iter()
+                .find(|t| t.name == name)
+                .ok_or_else(|| anyhow::anyhow!("checkpoint tensor `{name}` is missing"))
+        };
+        let mut state = GaussianState::default();
+        for column in columns {
+            let name = column["name"].as_str().context("checkpoint column name")?;
+            let width = column["width"]
+                .as_u64()
+                .context("checkpoint column width")? as usize;
+            let growth = match column["growth"].as_str() {
+                Some("inherit") => Growth::Inherit,
+                Some("zero") => Growth::Zero,
+                other => anyhow::bail!("checkpoint column `{name}`: growth {other:?}"),
+            };
+            let tensor = find(&format!("gaussians/{name}"))?;
+            state
+                .add(name, width, growth, tensor.values.clone())
+                .with_context(|| format!("checkpoint tensor `gaussians/{name}`"))?;
+        }
+        for (name, _) in TRAINABLE {
+            state
+                .column(name)
+                .with_context(|| format!("checkpoint Gaussians: column `{name}`"))?;
+        }
+        let mut curve = LossCurve::default();
+        for (name, column) in LossCurve::NAMES.iter().zip(curve.columns_mut()) {
+            *column = find(&format!("curve/{name}"))?.values.clone();
+            anyhow::ensure!(
+                column.len() as u64 == checkpoint.iteration,
+                "checkpoint tensor `curve/{name}` has {} values for {} iterations",
+                column.len(),
+                checkpoint.iteration
+            );
+        }
+        let scales = config
+            .effective_scales(&data.motion.scales)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Self::assemble(
+            config,
+            data,
+            backend,
+            state,
+            checkpoint.iteration,
+            adam_step,
+            Rng::from_state(checkpoint.rng_state),
+            curve,
+            scales,
+        )
+    }
+}
+
+/// `rect` grown by `pad` pixels on each side, clipped to the image.
+pub fn pad_rect(rect: Rect, pad: usize, width: usize, height: usize) -> Rect {
+    Rect {
+        x0: rect.x0.saturating_sub(pad),
+        y0: rect.y0.saturating_sub(pad),
+        x1: (rect.x1 + pad).min(width),
+        y1: (rect.y1 + pad).min(height),
+    }
+}
+
+/// Adam on the SH column with one rate for the DC coefficients and another for the rest.
+fn update_sh(
+    config: &AdamConfig,
+    dc_rate: f64,
+    rest_rate: f64,
+    values: &mut [f64],
+    gradient: &[f64],
+    adam: &mut AdamState<f64>,
+    n: usize,
+) -> anyhow::Result<()> {
+    let row = 3 * SH_STORED;
+    let start_step = adam.step;
+    for (part, lr) in [(0..3, dc_rate), (3..row, rest_rate)] {
+        let gather = |v: &[f64]| -> Vec<f64> {
+            (0..n)
+                .flat_map(|i| v[i * row + part.start..i * row + part.end].iter().copied())
+                .collect()
+        };
+        let mut p = gather(values);
+        let mut sub = AdamState {
+            m: gather(&adam.m),
+            v: gather(&adam.v),
+            step: start_step,
+        };
+        adam_update(config, lr, &mut p, &gather(gradient), &mut sub)?;
+        let width = part.end - part.start;
+        for i in 0..n {
+            values[i * row + part.start..i * row + part.end]
+                .copy_from_slice(&p[i * width..(i + 1) * width]);
+            adam.m[i * row + part.start..i * row + part.end]
+                .copy_from_slice(&sub.m[i * width..(i + 1) * width]);
+            adam.v[i * row + part.start..i * row + part.end]
+                .copy_from_slice(&sub.v[i * width..(i + 1) * width]);
+        }
+        adam.step = sub.step;
+    }
+    Ok(())
+}

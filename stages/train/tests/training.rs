@@ -1,0 +1,392 @@
+//! Training on a tiny synthetic scene through the real ingest and motion stages: the loss
+//! falls, checkpoints resume exactly (also after really killing a process), the gpu
+//! backend matches cpu, divergence names iteration and tensor, densification keeps every
+//! column consistent across real steps.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
+use seqavatar_engine::{
+    EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
+};
+use seqavatar_train::checkpoint;
+use seqavatar_train::config::TrainConfig;
+use seqavatar_train::data::TrainingData;
+use seqavatar_train::trainer::{Divergence, Trainer};
+use seqavatar_train::{TrainStage, TrainedAvatar};
+
+const UPSTREAM: &str = r#"
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}
+      past_frames: 0
+  - name: motion
+    kind: motion
+    inputs: [ingest]
+    config: {scales: [1, 2], knn: 4}
+"#;
+
+/// JSON, which is also a YAML flow mapping.
+const TRAIN_CONFIG: &str = r#"{"preset": "fast", "device": "cpu", "seed": 3, "iterations": ITERATIONS, "motion_context": "none", "pose_refiner": false, "lbs_offsets": false, "checkpoint_every": 10, "resolution_scale": 1.0, "sh_degree": 1, "sh_degree_interval": 20, "learning_rates": {"position_initial": 0.0016, "position_final": 0.000016}}"#;
+
+fn pipeline_text(iterations: u32) -> String {
+    format!(
+        "{UPSTREAM}  - name: train\n    kind: train\n    inputs: [ingest, motion]\n    config: {}\n",
+        TRAIN_CONFIG.replace("ITERATIONS", &iterations.to_string())
+    )
+}
+
+fn registry() -> Registry {
+    let mut registry = Registry::new();
+    seqavatar_ingest::register(&mut registry);
+    seqavatar_fit::register(&mut registry);
+    seqavatar_motion::register(&mut registry);
+    seqavatar_train::register(&mut registry);
+    registry
+}
+
+fn run_pipeline(cache: &Path, text: &str) -> anyhow::Result<Vec<seqavatar_engine::StageReport>> {
+    let registry = registry();
+    let store = LocalStore::open(cache)?;
+    let pipeline = Pipeline::parse(text, Path::new("test.yaml"), &registry, &[])?;
+    run(&pipeline, &registry, &store, &RunOptions::default())
+}
+
+fn entry(cache: &Path, reports: &[seqavatar_engine::StageReport], name: &str) -> EntryReader {
+    let store = LocalStore::open(cache).unwrap();
+    let report = reports.iter().find(|r| r.name == name).unwrap();
+    store
+        .open_entry(&EntryId::new(&report.kind, &report.key))
+        .unwrap()
+}
+
+/// Upstream entries (ingest, motion) of the tiny scene and the data a run reads.
+fn tiny_data(cache: &Path, iterations: u32) -> (TrainingData, TrainConfig) {
+    let reports = run_pipeline(cache, UPSTREAM).unwrap();
+    let ingest = entry(cache, &reports, "ingest");
+    let motion = entry(cache, &reports, "motion");
+    let raw: serde_json::Value =
+        serde_json::from_str(&TRAIN_CONFIG.replace("ITERATIONS", &iterations.to_string())).unwrap();
+    let config = TrainConfig::resolve(&raw).unwrap();
+    let data = TrainingData::read(&ingest, &ingest, &motion, config.resolution_scale).unwrap();
+    (data, config)
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+#[test]
+fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
+    let dir = tempfile::tempdir().unwrap();
+    let started = Instant::now();
+    let reports = run_pipeline(dir.path(), &pipeline_text(60)).unwrap();
+    let train = entry(dir.path(), &reports, "train");
+    let loss = train.read::<f64>("loss_total").unwrap().data;
+    assert_eq!(loss.len(), 60);
+    let (first, last) = (mean(&loss[..5]), mean(&loss[55..]));
+    eprintln!(
+        "tiny stage run: loss {first:.4} -> {last:.4} in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(last < first / 2.0, "loss {first} -> {last}");
+    let test_psnr = train.read::<f64>("test_psnr").unwrap().data;
+    assert!(!test_psnr.is_empty() && test_psnr.iter().all(|p| p.is_finite()));
+    let mean_attr = train.attribute("test_psnr_mean").unwrap().as_f64().unwrap();
+    assert!((mean_attr - mean(&test_psnr)).abs() < 1e-9);
+    // The stored avatar renders, and its pictures draw.
+    let avatar = TrainedAvatar::load(&train).unwrap();
+    assert_eq!(
+        avatar.gaussians.len() as u64,
+        train.attribute("gaussians").unwrap().as_u64().unwrap()
+    );
+    let plot = seqavatar_engine::StageKind::draw_picture(
+        &TrainStage,
+        &train,
+        "loss_curve",
+        &Default::default(),
+    )
+    .unwrap();
+    assert_eq!((plot.width(), plot.height()), (900, 400));
+}
+
+#[test]
+fn stored_avatar_renders_exactly_like_the_trainer() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, config) = tiny_data(dir.path(), 5);
+    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    for _ in 0..5 {
+        trainer.step().unwrap();
+    }
+    let avatar = trainer.avatar().unwrap();
+    let record = &data.images[0];
+    let inputs = avatar
+        .frame_inputs(&data.motion, &data.params[record.frame], record.frame)
+        .unwrap();
+    let camera = &data.cameras[record.view];
+    let direct = avatar.render(&inputs, camera, &Backend::Cpu).unwrap();
+    assert!(direct.alpha.iter().any(|a| *a > 0.5), "the body is visible");
+
+    // The same 5 iterations as a stage: its entry loads and renders identically.
+    let reports = run_pipeline(dir.path(), &pipeline_text(5)).unwrap();
+    let train = entry(dir.path(), &reports, "train");
+    let loaded = TrainedAvatar::load(&train).unwrap();
+    assert_eq!(loaded.gaussians, avatar.gaussians);
+    assert_eq!(loaded.config, avatar.config);
+    assert_eq!(loaded.sh_degree, avatar.sh_degree);
+    let again = loaded.render(&inputs, camera, &Backend::Cpu).unwrap();
+    assert_eq!(again.colour, direct.colour);
+    assert_eq!(again.alpha, direct.alpha);
+}
+
+#[test]
+fn checkpoint_resume_is_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, config) = tiny_data(dir.path(), 40);
+    let mut straight = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    for _ in 0..12 {
+        straight.step().unwrap();
+    }
+    let mut first = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    for _ in 0..7 {
+        first.step().unwrap();
+    }
+    let ckpt_dir = dir.path().join("ckpt");
+    checkpoint::save(&ckpt_dir, &first.checkpoint()).unwrap();
+    drop(first);
+    let loaded = checkpoint::load_latest(&ckpt_dir).unwrap().unwrap();
+    let mut resumed = Trainer::resume(config.clone(), &data, Backend::Cpu, &loaded).unwrap();
+    assert_eq!(resumed.iteration, 7);
+    for _ in 0..5 {
+        resumed.step().unwrap();
+    }
+    assert_eq!(resumed.state, straight.state);
+    assert_eq!(resumed.curve, straight.curve);
+    assert_eq!(resumed.rng.state(), straight.rng.state());
+    // A different configuration refuses the checkpoint.
+    let mut other = config;
+    other.seed += 1;
+    assert!(Trainer::resume(other, &data, Backend::Cpu, &loaded).is_err());
+}
+
+#[test]
+fn absurd_learning_rate_stops_with_iteration_and_tensor() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 40);
+    config.learning_rates.position_initial = 1e308;
+    config.learning_rates.position_final = 1e308;
+    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    let err = trainer.step().unwrap_err();
+    let divergence = err
+        .downcast_ref::<Divergence>()
+        .expect("a divergence error");
+    assert_eq!(divergence.iteration, 1);
+    assert_eq!(divergence.tensor, "gaussians/xyz");
+    let text = err.to_string();
+    assert!(
+        text.contains("iteration 1") && text.contains("gaussians/xyz"),
+        "{text}"
+    );
+}
+
+#[test]
+fn densification_keeps_columns_consistent_across_real_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 40);
+    config.densify = true;
+    config.densify_from = 1;
+    config.densify_until = 4;
+    config.densify_interval = 2;
+    config.densify_grad_threshold = 1e-9;
+    config.max_gaussians = 100_000;
+    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    let start = trainer.state.len();
+    trainer.step().unwrap();
+    let visible_before = trainer
+        .state
+        .values("grad_count")
+        .unwrap()
+        .iter()
+        .filter(|c| **c > 0.0)
+        .count();
+    assert!(visible_before > 0);
+    let stats = trainer.step().unwrap();
+    let report = stats.densified.expect("iteration 2 densifies");
+    assert_eq!(
+        report.count,
+        start + report.cloned + report.split - report.pruned,
+        "a clone adds one, a split replaces its parent by two"
+    );
+    assert!(report.cloned + report.split > 0, "{report:?}");
+    assert_eq!(trainer.state.len(), report.count);
+    for column in &trainer.state.columns {
+        assert_eq!(
+            column.values.len(),
+            column.width * report.count,
+            "{}",
+            column.name
+        );
+    }
+    // Statistics restart; Adam moments of new Gaussians are zero; training continues.
+    assert!(
+        trainer
+            .state
+            .values("grad_count")
+            .unwrap()
+            .iter()
+            .all(|c| *c == 0.0)
+    );
+    let moments = trainer.state.values("xyz.adam_v").unwrap();
+    assert!(moments[3 * (report.count - 1)..].iter().all(|m| *m == 0.0));
+    let next = trainer.step().unwrap();
+    assert!(next.total.is_finite());
+    assert_eq!(next.gaussians, report.count);
+}
+
+fn gpu_backend() -> Option<Backend> {
+    match GpuContext::new(AdapterChoice::AllowSoftware) {
+        Ok(context) => Some(Backend::Gpu(std::sync::Arc::new(context))),
+        Err(e) => {
+            if std::env::var_os("SEQAVATAR_REQUIRE_GPU").is_some() {
+                panic!("no GPU adapter: {e}");
+            }
+            eprintln!("skipping the gpu comparison: {e}");
+            None
+        }
+    }
+}
+
+#[test]
+fn gpu_steps_match_cpu() {
+    let Some(gpu) = gpu_backend() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (data, config) = tiny_data(dir.path(), 40);
+    let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut gpu = Trainer::new(config, &data, gpu).unwrap();
+    for step in 0..4 {
+        let a = cpu.step().unwrap();
+        let b = gpu.step().unwrap();
+        let relative = (a.total - b.total).abs() / a.total.abs();
+        eprintln!(
+            "step {step}: cpu loss {} gpu loss {} (relative {relative:e})",
+            a.total, b.total
+        );
+        assert!(relative < 1e-3, "step {step}: {} vs {}", a.total, b.total);
+    }
+    let xa = cpu.state.values("xyz").unwrap();
+    let xb = gpu.state.values("xyz").unwrap();
+    let worst = xa
+        .iter()
+        .zip(xb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 1e-4, "largest centre difference {worst}");
+}
+
+/// Child mode of the kill test: runs the pipeline in `SEQAVATAR_TRAIN_KILL_CACHE` (the
+/// parent kills this process while it trains).
+#[test]
+fn kill_child() {
+    let Some(cache) = std::env::var_os("SEQAVATAR_TRAIN_KILL_CACHE") else {
+        return;
+    };
+    let iterations: u32 = std::env::var("SEQAVATAR_TRAIN_KILL_ITERATIONS")
+        .unwrap()
+        .parse()
+        .unwrap();
+    run_pipeline(Path::new(&cache), &pipeline_text(iterations)).unwrap();
+}
+
+fn find_checkpoints(root: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with("ckpt-") && !name.ends_with(".partial") {
+                    found.push(p);
+                } else {
+                    stack.push(p);
+                }
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn killed_run_resumes_to_the_uninterrupted_result() {
+    let iterations = 60u32;
+    let killed = tempfile::tempdir().unwrap();
+    let exe = std::env::current_exe().unwrap();
+    let mut child = std::process::Command::new(exe)
+        .args([
+            "--exact",
+            "kill_child",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ])
+        .env("SEQAVATAR_TRAIN_KILL_CACHE", killed.path())
+        .env("SEQAVATAR_TRAIN_KILL_ITERATIONS", iterations.to_string())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(300);
+    loop {
+        if !find_checkpoints(killed.path()).is_empty() {
+            break;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the child finished before writing a checkpoint"
+        );
+        assert!(Instant::now() < deadline, "no checkpoint after 300 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let left = find_checkpoints(killed.path());
+    assert!(!left.is_empty());
+    // Resume in this process, and compare with an uninterrupted run.
+    let reports = run_pipeline(killed.path(), &pipeline_text(iterations)).unwrap();
+    let resumed = entry(killed.path(), &reports, "train");
+    let from = resumed.attribute("resumed_from").unwrap().as_u64().unwrap();
+    assert!(
+        from > 0 && from < u64::from(iterations),
+        "resumed from {from}"
+    );
+    let straight_dir = tempfile::tempdir().unwrap();
+    let reports = run_pipeline(straight_dir.path(), &pipeline_text(iterations)).unwrap();
+    let straight = entry(straight_dir.path(), &reports, "train");
+    assert_eq!(
+        straight.attribute("resumed_from").unwrap().as_u64(),
+        Some(0)
+    );
+    for name in [
+        "gaussian_xyz",
+        "gaussian_sh",
+        "gaussian_opacity",
+        "gaussian_log_scale",
+        "gaussian_rotation",
+        "loss_total",
+        "test_psnr",
+    ] {
+        let a = resumed.read::<f64>(name).unwrap();
+        let b = straight.read::<f64>(name).unwrap();
+        assert_eq!(a.shape, b.shape, "{name}");
+        assert!(
+            a.data == b.data,
+            "{name} differs after resuming from {from}"
+        );
+    }
+}
