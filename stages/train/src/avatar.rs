@@ -31,7 +31,10 @@ use crate::data::MotionTrack;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::{SH, SH_STORED};
 use crate::knn::{KnnGrid, as_points};
-use crate::rig::{BodyRig, FramePose, PoseChain};
+use crate::model::{
+    GaussianInputs, LbsOffsetsCache, NetworkConfig, Networks, NonRigidCache, PoseRefinerCache,
+};
+use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, skin_forward};
 use crate::splatting::{self, WorldGaussians};
 
@@ -118,6 +121,8 @@ pub fn gather_frame_inputs(
 pub struct PosedFrame {
     pub pose: FramePose,
     pub chain: PoseChain,
+    /// The refiner's cache and its `(J - 1) x 9` matrices, when the pose refiner is on.
+    pub refiner: Option<(PoseRefinerCache<f64>, Vec<f64>)>,
 }
 
 /// The local pose without the root joint, `3 (J - 1)` values.
@@ -125,16 +130,49 @@ pub fn local_pose(params: &BodyParams) -> Vec<f64> {
     params.pose[1..].iter().flat_map(|v| v.to_array()).collect()
 }
 
-/// The skinning target of a frame.
-pub fn frame_pose(rig: &BodyRig, params: &BodyParams) -> anyhow::Result<PosedFrame> {
-    let (pose, chain) = rig.pose_with_chain(params)?;
-    Ok(PosedFrame { pose, chain })
+/// The skinning target of a frame, through the pose refiner when the networks have one.
+pub fn frame_pose(
+    rig: &BodyRig,
+    networks: Option<&Networks<f64>>,
+    params: &BodyParams,
+) -> anyhow::Result<PosedFrame> {
+    match networks.filter(|n| n.has_pose_refiner()) {
+        Some(net) => {
+            let (matrices, cache) = net.pose_refiner_forward(&local_pose(params))?;
+            let refinements: Vec<seqavatar_core::glam::DMat3> = matrices
+                .chunks_exact(9)
+                .map(|m| {
+                    seqavatar_core::glam::DMat3::from_cols_array(&[
+                        m[0], m[3], m[6], m[1], m[4], m[7], m[2], m[5], m[8],
+                    ])
+                })
+                .collect();
+            let refined = refine_pose(params, &refinements);
+            let (pose, chain) = rig.pose_with_chain(&refined)?;
+            Ok(PosedFrame {
+                pose,
+                chain,
+                refiner: Some((cache, matrices)),
+            })
+        }
+        None => {
+            let (pose, chain) = rig.pose_with_chain(params)?;
+            Ok(PosedFrame {
+                pose,
+                chain,
+                refiner: None,
+            })
+        }
+    }
 }
 
 /// The deformed Gaussians of one frame and the intermediates the backward needs.
 pub struct Deformed {
     /// Nearest template vertex of each (post-non-rigid) centre.
     pub nearest: Vec<u32>,
+    pub non_rigid: Option<NonRigidCache<f64>>,
+    /// LBS weight offsets `N x J` and their cache.
+    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsCache<f64>)>,
     /// Centres after the non-rigid offset (canonical space).
     pub positions: Vec<f64>,
     /// Linear scale offsets `N x 3` and rotation offsets `N x 4`.
@@ -171,13 +209,16 @@ pub fn knn_velocity(
     out
 }
 
-/// The forward pass shared by training and rendering: non-rigid offsets (zeros until the
-/// networks are wired in), nearest template vertex of the centre, skinning, activations.
+/// The forward pass shared by training and rendering: non-rigid offsets from the networks
+/// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
+/// skinning, activations.
+#[allow(clippy::too_many_arguments)]
 pub fn deform(
     rig: &BodyRig,
     template_grid: &KnnGrid,
+    networks: Option<&Networks<f64>>,
     gaussians: &AvatarGaussians,
-    _inputs: &FrameInputs,
+    inputs: &FrameInputs,
     pose: &FramePose,
     config: &TrainConfig,
     sh_degree: u32,
@@ -186,9 +227,68 @@ pub fn deform(
     if let Some(bad) = gaussians.xyz.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite centre", bad / 3);
     }
-    let positions = gaussians.xyz.clone();
-    let d_scales = vec![0.0; 3 * n];
-    let d_rotations = [1.0, 0.0, 0.0, 0.0].repeat(n);
+    let (positions, d_scales, d_rotations, non_rigid) =
+        match networks.filter(|net| net.has_non_rigid()) {
+            Some(net) => {
+                let net_config = net.config();
+                let skeleton: Vec<f64>;
+                let skeleton_motion = if config.motion_context.has_skeleton_motion() {
+                    skeleton = inputs
+                        .skeleton_motion
+                        .iter()
+                        .map(|x| f64::from(*x))
+                        .collect();
+                    Some(skeleton.as_slice())
+                } else {
+                    None
+                };
+                let velocity: Vec<f64>;
+                let knn = if config.motion_context.has_velocity() {
+                    velocity = knn_velocity(
+                        template_grid,
+                        &gaussians.xyz,
+                        &inputs.vertex_velocity,
+                        net_config.sequence_length,
+                        net_config.n_scales,
+                        net_config.tau,
+                    );
+                    Some(velocity.as_slice())
+                } else {
+                    None
+                };
+                let pose_values = local_pose(&inputs.params);
+                let (out, cache) = net.non_rigid_forward(
+                    &crate::model::FrameInputs {
+                        local_pose: &pose_values,
+                        skeleton_motion,
+                    },
+                    &GaussianInputs {
+                        xyz: &gaussians.xyz,
+                        knn_velocity: knn,
+                    },
+                )?;
+                let positions: Vec<f64> = gaussians
+                    .xyz
+                    .iter()
+                    .zip(&out.d_xyz)
+                    .map(|(a, b)| a + b)
+                    .collect();
+                (positions, out.d_scale, out.d_rot, Some(cache))
+            }
+            None => (
+                gaussians.xyz.clone(),
+                vec![0.0; 3 * n],
+                [1.0, 0.0, 0.0, 0.0].repeat(n),
+                None,
+            ),
+        };
+    if let Some(bad) = positions.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!("Gaussian {} has a non-finite deformed centre", bad / 3);
+    }
+    let weight_offsets = match networks.filter(|net| net.has_lbs_offsets()) {
+        Some(net) => Some(net.lbs_offsets_forward(&positions)?),
+        None => None,
+    };
     let nearest = template_grid.query_all(&as_points(&positions), 1);
     anyhow::ensure!(
         nearest.len() == n,
@@ -204,7 +304,7 @@ pub fn deform(
             d_scales: &d_scales,
             rotations: &gaussians.rotation,
             d_rotations: &d_rotations,
-            weight_offsets: None,
+            weight_offsets: weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
             nearest: &nearest,
         },
     );
@@ -230,6 +330,8 @@ pub fn deform(
     };
     Ok(Deformed {
         nearest,
+        non_rigid,
+        weight_offsets,
         positions,
         d_scales,
         d_rotations,
@@ -258,6 +360,8 @@ pub struct TrainedAvatar {
     /// Raw temporal scales the networks were trained with (largest first).
     pub scales: Vec<u32>,
     pub background: [f64; 3],
+    /// The networks (absent for motion context `none` without refiners).
+    pub networks: Option<Networks<f64>>,
     template_grid: KnnGrid,
 }
 
@@ -268,10 +372,12 @@ impl TrainedAvatar {
         gaussians: AvatarGaussians,
         sh_degree: u32,
         scales: Vec<u32>,
+        networks: Option<Networks<f64>>,
     ) -> Self {
         let template_grid = template_grid(&rig);
         Self {
             background: config.background,
+            networks,
             config,
             rig,
             gaussians,
@@ -298,10 +404,11 @@ impl TrainedAvatar {
         camera: &Camera,
         backend: &Backend,
     ) -> anyhow::Result<RenderedImage<f64>> {
-        let posed = frame_pose(&self.rig, &inputs.params)?;
+        let posed = frame_pose(&self.rig, self.networks.as_ref(), &inputs.params)?;
         let deformed = deform(
             &self.rig,
             &self.template_grid,
+            self.networks.as_ref(),
             &self.gaussians,
             inputs,
             &posed.pose,
@@ -366,6 +473,24 @@ impl TrainedAvatar {
             &[chunk, 4],
             &g.rotation,
         )?;
+        if let Some(networks) = &self.networks {
+            for param in networks.parameters() {
+                let shape: Vec<u64> = param.shape.iter().map(|&d| d as u64).collect();
+                let dims: &[&str] = if shape.len() == 2 {
+                    &["input", "output"]
+                } else {
+                    &["output"]
+                };
+                let chunk: Vec<u64> = shape.iter().map(|&d| d.max(1)).collect();
+                out.write_array(
+                    &format!("network.{}", param.name),
+                    dims,
+                    &shape,
+                    &chunk,
+                    param.values,
+                )?;
+            }
+        }
         write_body_model(out, &self.rig.model)?;
         out.set_attribute("config", serde_json::to_value(&self.config)?)?;
         out.set_attribute("sh_degree", self.sh_degree.into())?;
@@ -374,6 +499,9 @@ impl TrainedAvatar {
         out.set_attribute("background", serde_json::to_value(self.background)?)?;
         out.set_attribute("body_model_kind", body_model_kind.into())?;
         out.set_attribute("extent", extent.into())?;
+        if let Some(networks) = &self.networks {
+            out.set_attribute("motion_joints", networks.config().motion_joints.into())?;
+        }
         Ok(())
     }
 
@@ -430,11 +558,31 @@ impl TrainedAvatar {
         let model = seqavatar_ingest::read_body_model(entry)
             .with_context(|| format!("entry {location}: body model"))?;
         let rig = BodyRig::new(model)?;
-        anyhow::ensure!(
-            !needs_networks(&config),
-            "entry {location}: its config trains networks, which this build cannot load"
-        );
-        let mut avatar = Self::new(config, rig, gaussians, sh_degree, scales);
+        let networks = if needs_networks(&config) {
+            let motion_joints = match attribute("motion_joints")?.as_u64() {
+                Some(j) => j as usize,
+                None => anyhow::bail!("entry {location}: attribute `motion_joints` is not a count"),
+            };
+            let net_config =
+                NetworkConfig::from_train(&config, rig.joint_count(), motion_joints, scales.len())
+                    .with_context(|| format!("entry {location}: network configuration"))?;
+            let mut networks = Networks::new(&net_config, config.seed)
+                .with_context(|| format!("entry {location}: network configuration"))?;
+            let names = entry.array_names();
+            networks
+                .load_parameters(|name| {
+                    let array = format!("network.{name}");
+                    if !names.contains(&array) {
+                        return None;
+                    }
+                    entry.read::<f64>(&array).ok().map(|a| a.data)
+                })
+                .with_context(|| format!("entry {location}: network arrays `network.*`"))?;
+            Some(networks)
+        } else {
+            None
+        };
+        let mut avatar = Self::new(config, rig, gaussians, sh_degree, scales, networks);
         avatar.background = background;
         Ok(avatar)
     }

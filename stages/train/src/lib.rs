@@ -8,6 +8,8 @@
 //! - [`densify`]: per-Gaussian state and clone/split/prune.
 //! - [`gaussians`]: trainable Gaussian columns and one optimisation step through splatting.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
+//! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
+//!   offsets) on `cpu` and `gpu`.
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
 //! - [`data`]: what a run reads from its input entries.
@@ -28,6 +30,7 @@ pub mod densify;
 pub mod gaussians;
 pub mod knn;
 pub mod losses;
+pub mod model;
 pub mod rig;
 pub mod rng;
 pub mod skinning;

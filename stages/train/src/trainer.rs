@@ -13,9 +13,11 @@ use seqavatar_compute::backend::Backend;
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState, adam_update};
 use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
 
+use std::collections::BTreeMap;
+
 use crate::avatar::{
-    AvatarGaussians, PosedFrame, TrainedAvatar, deform, gather_frame_inputs, needs_networks,
-    template_grid,
+    AvatarGaussians, PosedFrame, TrainedAvatar, deform, frame_pose, gather_frame_inputs,
+    needs_networks, template_grid,
 };
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;
@@ -26,12 +28,14 @@ use crate::densify::{
 use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
 use crate::knn::{KnnGrid, as_points, knn_brute_force};
 use crate::losses::{AiapInputs, ImageLossWeights, ImagePair, Rect, aiap_loss, image_loss};
+use crate::model::{NetworkConfig, NetworkGroup, Networks};
 use crate::rig::{FramePose, PoseChain};
 use crate::rng::Rng;
 use crate::skinning::{
     GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
 };
 use crate::splatting;
+use seqavatar_core::rotation::axis_angle_to_matrix;
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -145,6 +149,9 @@ pub struct Trainer<'d> {
     pub curve: LossCurve,
     /// Raw scales fed to the networks (largest first).
     pub scales: Vec<u32>,
+    /// The networks (when the configuration has any) and their Adam state by name.
+    pub networks: Option<Networks<f64>>,
+    network_adam: BTreeMap<String, AdamState<f64>>,
     train_images: Vec<usize>,
     template_grid: KnnGrid,
     /// Unrefined skinning targets per frame, computed once.
@@ -197,11 +204,6 @@ impl<'d> Trainer<'d> {
         data: &'d TrainingData,
         backend: Backend,
     ) -> anyhow::Result<Self> {
-        anyhow::ensure!(
-            !needs_networks(&config),
-            "motion_context `{:?}`, pose_refiner and lbs_offsets need the networks, which are not wired in yet; use motion_context: none, pose_refiner: false, lbs_offsets: false",
-            config.motion_context
-        );
         let scales = config
             .effective_scales(&data.motion.scales)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -209,6 +211,7 @@ impl<'d> Trainer<'d> {
         let centres = data.rig.canonical_vertices.clone();
         let colours: Vec<f64> = (0..centres.len()).map(|_| rng.next_f64()).collect();
         let state = initial_state(&centres, &colours, 0.1, &initial_scales(&centres))?;
+        let networks = build_networks(&config, data, scales.len())?;
         Self::assemble(
             config,
             data,
@@ -219,6 +222,8 @@ impl<'d> Trainer<'d> {
             rng,
             LossCurve::default(),
             scales,
+            networks,
+            BTreeMap::new(),
         )
     }
 
@@ -233,6 +238,8 @@ impl<'d> Trainer<'d> {
         rng: Rng,
         curve: LossCurve,
         scales: Vec<u32>,
+        networks: Option<Networks<f64>>,
+        network_adam: BTreeMap<String, AdamState<f64>>,
     ) -> anyhow::Result<Self> {
         let train_images: Vec<usize> = data
             .split(0)
@@ -255,13 +262,20 @@ impl<'d> Trainer<'d> {
             rng,
             curve,
             scales,
+            networks,
+            network_adam,
             train_images,
         })
     }
 
-    /// The frame's skinning target, computed once per frame.
+    /// The frame's skinning target: refined every iteration when the pose refiner is on,
+    /// else computed once per frame.
     fn posed_frame(&mut self, frame: usize) -> anyhow::Result<PosedFrame> {
         let params = &self.data.params[frame];
+        if self.networks.as_ref().is_some_and(|n| n.has_pose_refiner()) {
+            return frame_pose(&self.data.rig, self.networks.as_ref(), params)
+                .with_context(|| format!("frame {frame}"));
+        }
         if self.poses[frame].is_none() {
             let posed = self
                 .data
@@ -271,7 +285,11 @@ impl<'d> Trainer<'d> {
             self.poses[frame] = Some(posed);
         }
         let (pose, chain) = self.poses[frame].clone().expect("just set");
-        Ok(PosedFrame { pose, chain })
+        Ok(PosedFrame {
+            pose,
+            chain,
+            refiner: None,
+        })
     }
 
     /// Images of one iteration: a random training image, plus other training images of the
@@ -303,6 +321,9 @@ impl<'d> Trainer<'d> {
         let sh_degree = sh_degree_at(&self.config, iteration);
         let chosen = self.pick_images();
         let frame = self.data.images[chosen[0]].frame;
+        if let Some(net) = self.networks.as_mut() {
+            net.zero_grad();
+        }
         let posed = self.posed_frame(frame)?;
         let pose = &posed.pose;
         let inputs = gather_frame_inputs(
@@ -317,6 +338,7 @@ impl<'d> Trainer<'d> {
         let deformed = deform(
             &self.data.rig,
             &self.template_grid,
+            self.networks.as_ref(),
             &gaussians,
             &inputs,
             pose,
@@ -456,7 +478,7 @@ impl<'d> Trainer<'d> {
             d_scales: &deformed.d_scales,
             rotations: &gaussians.rotation,
             d_rotations: &deformed.d_rotations,
-            weight_offsets: None,
+            weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
             nearest: &deformed.nearest,
         };
         let skin = skin_backward(
@@ -467,6 +489,40 @@ impl<'d> Trainer<'d> {
         );
         for (a, b) in d_xyz.iter_mut().zip(&skin.positions) {
             *a += b;
+        }
+        // Backward through the networks (their parameter gradients accumulate).
+        if let Some(net) = self.networks.as_mut() {
+            if let Some(cache) = &deformed.non_rigid {
+                let through = net.non_rigid_backward(
+                    cache,
+                    &skin.positions,
+                    &skin.d_rotations,
+                    &skin.d_scales,
+                )?;
+                for (a, b) in d_xyz.iter_mut().zip(&through) {
+                    *a += b;
+                }
+            }
+            if let Some((_, cache)) = &deformed.weight_offsets {
+                net.lbs_offsets_backward(cache, &skin.weight_offsets)?;
+            }
+            if let Some((cache, _)) = &posed.refiner {
+                let d_rotations = self.data.rig.pose_backward(
+                    &posed.chain,
+                    &skin.target_joints,
+                    &skin.vertex_offsets,
+                );
+                // R'_j = R_j R_ref_j, so dL/dR_ref_j = R_j^T dL/dR'_j (non-root joints).
+                let params = &self.data.params[frame];
+                let mut flat = Vec::with_capacity(9 * (d_rotations.len() - 1));
+                for j in 1..d_rotations.len() {
+                    let g = axis_angle_to_matrix(params.pose[j]).transpose() * d_rotations[j];
+                    for r in 0..3 {
+                        flat.extend([g.x_axis[r], g.y_axis[r], g.z_axis[r]]);
+                    }
+                }
+                net.pose_refiner_backward(cache, &flat)?;
+            }
         }
         let d_log_scale: Vec<f64> = skin
             .log_scales
@@ -580,6 +636,46 @@ impl<'d> Trainer<'d> {
             *self.state.values_mut(&format!("{name}.adam_v"))? = moments.v;
         }
 
+        // Adam on the networks: per-group rates decayed by `network_decay^(step / iterations)`.
+        if let Some(net) = self.networks.as_mut() {
+            for param in net.parameters() {
+                if let Some(bad) = param.grads.iter().position(|v| !v.is_finite()) {
+                    return Err(Divergence {
+                        iteration,
+                        what: "gradient of",
+                        tensor: format!("network.{}", param.name),
+                        detail: format!(" (value {bad})"),
+                    }
+                    .into());
+                }
+            }
+            let decay = lr
+                .network_decay
+                .powf((iteration - 1) as f64 / f64::from(self.config.iterations));
+            for param in net.parameters_mut() {
+                let rate = decay
+                    * match param.group {
+                        NetworkGroup::NonRigid => lr.non_rigid,
+                        NetworkGroup::PoseRefiner => lr.pose_refiner,
+                        NetworkGroup::LbsOffsets => lr.lbs_offsets,
+                    };
+                let moments = self
+                    .network_adam
+                    .entry(param.name.clone())
+                    .or_insert_with(|| AdamState::new(param.values.len()));
+                adam_update(&adam, rate, param.values, param.grads, moments)?;
+                if let Some(bad) = param.values.iter().position(|v| !v.is_finite()) {
+                    return Err(Divergence {
+                        iteration,
+                        what: "parameter",
+                        tensor: format!("network.{}", param.name),
+                        detail: format!(" (value {bad})"),
+                    }
+                    .into());
+                }
+            }
+        }
+
         // Density control.
         let c = &self.config;
         if c.densify
@@ -615,6 +711,7 @@ impl<'d> Trainer<'d> {
             self.avatar_gaussians()?,
             sh_degree_at(&self.config, self.iteration.max(1)),
             self.scales.clone(),
+            self.networks.clone(),
         ))
     }
 
@@ -639,6 +736,29 @@ impl<'d> Trainer<'d> {
                 dimension_names: vec!["iteration".into()],
                 values: values.clone(),
             });
+        }
+        if let Some(net) = &self.networks {
+            for param in net.parameters() {
+                let state = self.network_adam.get(&param.name);
+                for (prefix, values) in [
+                    ("network", param.values.to_vec()),
+                    (
+                        "network_adam_m",
+                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.m.clone()),
+                    ),
+                    (
+                        "network_adam_v",
+                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.v.clone()),
+                    ),
+                ] {
+                    tensors.push(Tensor {
+                        name: format!("{prefix}/{}", param.name),
+                        shape: vec![values.len()],
+                        dimension_names: vec!["value".into()],
+                        values,
+                    });
+                }
+            }
         }
         Checkpoint {
             iteration: self.iteration,
@@ -719,6 +839,37 @@ impl<'d> Trainer<'d> {
         let scales = config
             .effective_scales(&data.motion.scales)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut networks = build_networks(&config, data, scales.len())?;
+        let mut network_adam = BTreeMap::new();
+        if let Some(net) = networks.as_mut() {
+            net.load_parameters(|name| {
+                find(&format!("network/{name}"))
+                    .ok()
+                    .map(|t| t.values.clone())
+            })
+            .context("checkpoint network parameters")?;
+            for param in net.parameters() {
+                let m = find(&format!("network_adam_m/{}", param.name))?
+                    .values
+                    .clone();
+                let v = find(&format!("network_adam_v/{}", param.name))?
+                    .values
+                    .clone();
+                anyhow::ensure!(
+                    m.len() == param.values.len() && v.len() == param.values.len(),
+                    "checkpoint Adam moments of `{}` have the wrong length",
+                    param.name
+                );
+                network_adam.insert(
+                    param.name.clone(),
+                    AdamState {
+                        m,
+                        v,
+                        step: adam_step,
+                    },
+                );
+            }
+        }
         Self::assemble(
             config,
             data,
@@ -729,8 +880,32 @@ impl<'d> Trainer<'d> {
             Rng::from_state(checkpoint.rng_state),
             curve,
             scales,
+            networks,
+            network_adam,
         )
     }
+}
+
+/// The networks a configuration trains, freshly initialised from its seed; `None` when it
+/// trains none.
+fn build_networks(
+    config: &TrainConfig,
+    data: &TrainingData,
+    scale_count: usize,
+) -> anyhow::Result<Option<Networks<f64>>> {
+    if !needs_networks(config) {
+        return Ok(None);
+    }
+    let net_config = NetworkConfig::from_train(
+        config,
+        data.rig.joint_count(),
+        data.motion.num_joints,
+        scale_count,
+    )
+    .context("network configuration")?;
+    Ok(Some(
+        Networks::new(&net_config, config.seed).context("network configuration")?,
+    ))
 }
 
 /// `rect` grown by `pad` pixels on each side, clipped to the image.
