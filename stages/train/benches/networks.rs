@@ -4,8 +4,14 @@
 //!
 //! Run: `cargo bench -p seqavatar-train --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
+//! `SEQAVATAR_BENCH_GPU=1` also times `GpuNetworks` on a hardware adapter (`=software` allows
+//! lavapipe); gpu times include the input uploads and output downloads of each call.
 
+use std::sync::Arc;
 use std::time::Instant;
+
+use seqavatar_compute::backend::{AdapterChoice, GpuContext};
+use seqavatar_train::model::gpu::GpuNetworks;
 
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_train::config::MotionContext;
@@ -40,7 +46,31 @@ fn median(mut values: Vec<f64>) -> f64 {
     values[values.len() / 2]
 }
 
-fn bench_non_rigid(context: MotionContext, n: usize, repeats: usize) {
+/// The gpu context the benchmark may use, per `SEQAVATAR_BENCH_GPU`.
+fn bench_gpu_context() -> Option<Arc<GpuContext>> {
+    let choice = match std::env::var("SEQAVATAR_BENCH_GPU").ok()?.as_str() {
+        "1" => AdapterChoice::Hardware,
+        "software" => AdapterChoice::AllowSoftware,
+        _ => return None,
+    };
+    match GpuContext::new(choice) {
+        Ok(context) => {
+            println!("gpu: {}", context.describe());
+            Some(Arc::new(context))
+        }
+        Err(error) => {
+            println!("gpu: not benchmarked ({error})");
+            None
+        }
+    }
+}
+
+fn bench_non_rigid(
+    context: MotionContext,
+    n: usize,
+    repeats: usize,
+    gpu_context: Option<&Arc<GpuContext>>,
+) {
     let config = paper_config(context);
     let mut networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
     let mut rng = Rng::new(1);
@@ -80,6 +110,30 @@ fn bench_non_rigid(context: MotionContext, n: usize, repeats: usize) {
         "non-rigid {context:?} n = {n}: forward {f:.1} ms, backward {b:.1} ms, total {:.1} ms ({} parameters)",
         f + b,
         networks.parameter_count()
+    );
+    let Some(gpu_context) = gpu_context else {
+        return;
+    };
+    let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+    let (mut forward, mut backward) = (Vec::new(), Vec::new());
+    for repeat in 0..=repeats {
+        let start = Instant::now();
+        let (_, cache) = gpu
+            .non_rigid_forward(&frame, &gaussians)
+            .expect("gpu forward");
+        let middle = Instant::now();
+        gpu.non_rigid_backward(&cache, &d_xyz, &d_rot, &d_scale)
+            .expect("gpu backward");
+        let end = Instant::now();
+        if repeat > 0 {
+            forward.push((middle - start).as_secs_f64() * 1e3);
+            backward.push((end - middle).as_secs_f64() * 1e3);
+        }
+    }
+    let (f, b) = (median(forward), median(backward));
+    println!(
+        "  gpu: forward {f:.1} ms, backward {b:.1} ms, total {:.1} ms",
+        f + b
     );
 }
 
@@ -139,10 +193,11 @@ fn main() {
         "cpu threads: {} (f32, median of {repeats} after one warm-up)",
         rayon::current_num_threads()
     );
+    let gpu_context = bench_gpu_context();
     for &n in &sizes {
         bench_trunk_layer(n, repeats);
         for context in [MotionContext::Pose, MotionContext::Multiscale] {
-            bench_non_rigid(context, n, repeats);
+            bench_non_rigid(context, n, repeats, gpu_context.as_ref());
         }
     }
 }

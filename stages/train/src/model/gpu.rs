@@ -25,7 +25,7 @@ use super::non_rigid::{check_inputs, split_heads};
 use super::pose_refiner::{rotation_vectors_backward, rotations_from_vectors};
 use super::{
     FrameInputs, GaussianInputs, HEAD_WIDTH, ModelError, NetworkConfig, NetworkGroup, Networks,
-    NonRigidOutput, check_input,
+    NonRigidOutput, check_finite, check_input,
 };
 
 /// One layer's parameter and gradient buffers.
@@ -821,6 +821,7 @@ impl GpuNetworks {
         let pose = self.config.pose_dim();
         let hidden = self.config.widths.pose_refiner_hidden;
         check_input("local_pose", pose, local_pose.len())?;
+        check_finite("local_pose", local_pose)?;
         let mut encoder = self.context.encoder();
         let pose_input = self.upload_values("refiner input", local_pose)?;
         let h0 = self.forward_layer(
@@ -915,6 +916,7 @@ impl GpuNetworks {
                 message: format!("{} values is not a whole number of 3-vectors", xyz.len()),
             });
         }
+        check_finite("lbs xyz", xyz)?;
         let n = xyz.len() / 3;
         let w = self.config.widths;
         let joints = self.config.skinning_joints;

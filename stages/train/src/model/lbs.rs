@@ -6,7 +6,7 @@ use seqavatar_compute::nn::linear::InputGrad;
 use seqavatar_compute::nn::{Activation, NnScalar, Rng, positional_encoding_forward};
 
 use super::dense::{Dense, Init, part};
-use super::{ModelError, NetworkConfig, NetworkGroup, Widths, check_input};
+use super::{ModelError, NetworkConfig, NetworkGroup, Widths, check_finite, check_input};
 
 /// Added to the template weights before the logarithm (the reference's value).
 pub const LOG_WEIGHT_EPSILON: f64 = 1e-9;
@@ -157,6 +157,7 @@ impl<S: NnScalar> LbsOffsetNet<S> {
                 message: format!("{} values is not a whole number of 3-vectors", xyz.len()),
             });
         }
+        check_finite("lbs xyz", xyz)?;
         let n = xyz.len() / 3;
         let encoding_width = self.widths.encoding_width();
         let hidden = self.widths.lbs_hidden;

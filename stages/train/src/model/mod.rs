@@ -680,6 +680,21 @@ impl<S: NnScalar> Networks<S> {
     }
 }
 
+/// Checks that every input value is finite, naming the field and the first bad index (a NaN
+/// would otherwise flow silently into every parameter gradient).
+pub(crate) fn check_finite<S: NnScalar>(field: &str, values: &[S]) -> Result<(), ModelError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(index) => Err(ModelError::Input {
+            field: field.into(),
+            message: format!(
+                "value {index} is {}, expected a finite number",
+                values[index]
+            ),
+        }),
+    }
+}
+
 /// Checks an input length, naming the field.
 pub(crate) fn check_input(field: &str, expected: usize, actual: usize) -> Result<(), ModelError> {
     if expected == actual {

@@ -15,7 +15,7 @@ use seqavatar_compute::nn::{
 };
 
 use super::dense::{Dense, Init, part};
-use super::{HEAD_WIDTH, ModelError, NetworkConfig, NetworkGroup, check_input};
+use super::{HEAD_WIDTH, ModelError, NetworkConfig, NetworkGroup, check_finite, check_input};
 
 /// The per-frame inputs of the non-rigid network.
 #[derive(Clone, Copy, Debug)]
@@ -664,7 +664,7 @@ impl<S: NnScalar> NonRigidNet<S> {
 }
 
 /// Checks the inputs against the configuration and returns the number of Gaussians.
-pub(crate) fn check_inputs<S>(
+pub(crate) fn check_inputs<S: NnScalar>(
     config: &NetworkConfig,
     has_seq_pose: bool,
     has_seq_xyz: bool,
@@ -705,6 +705,14 @@ pub(crate) fn check_inputs<S>(
         (false, None) => {}
         (true, None) => return Err(missing("gaussians.knn_velocity", config)),
         (false, Some(_)) => return Err(unused("gaussians.knn_velocity", config)),
+    }
+    check_finite("frame.local_pose", frame.local_pose)?;
+    check_finite("gaussians.xyz", gaussians.xyz)?;
+    if let Some(motion) = frame.skeleton_motion {
+        check_finite("frame.skeleton_motion", motion)?;
+    }
+    if let Some(velocity) = gaussians.knn_velocity {
+        check_finite("gaussians.knn_velocity", velocity)?;
     }
     Ok(n)
 }

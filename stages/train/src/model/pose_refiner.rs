@@ -11,7 +11,7 @@ use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_core::rotation::skew;
 
 use super::dense::{Dense, Init, part};
-use super::{ModelError, NetworkConfig, NetworkGroup, check_input};
+use super::{ModelError, NetworkConfig, NetworkGroup, check_finite, check_input};
 
 /// Bound of the uniform initialisation of the refiner's last layer.
 pub const LAST_LAYER_BOUND: f64 = 1e-5;
@@ -121,6 +121,7 @@ impl<S: NnScalar> PoseRefiner<S> {
     ) -> Result<(Vec<S>, PoseRefinerCache<S>), ModelError> {
         let pose = self.pose_dim();
         check_input("local_pose", pose, local_pose.len())?;
+        check_finite("local_pose", local_pose)?;
         let hidden = self.layers[0].out_features();
         let mut cache = PoseRefinerCache {
             input: local_pose.to_vec(),

@@ -827,6 +827,43 @@ fn bad_inputs_name_the_field() {
     );
     assert!(message.contains("gaussians.xyz"), "{message}");
 
+    let mut bad_xyz = input.xyz.clone();
+    bad_xyz[4] = f64::NAN;
+    let message = run(
+        input.frame(),
+        GaussianInputs {
+            xyz: &bad_xyz,
+            ..input.gaussians()
+        },
+    );
+    assert!(
+        message.contains("gaussians.xyz: value 4 is NaN"),
+        "{message}"
+    );
+    let mut bad_velocity = input.velocity.clone().unwrap();
+    bad_velocity[7] = f64::INFINITY;
+    let message = run(
+        input.frame(),
+        GaussianInputs {
+            knn_velocity: Some(&bad_velocity),
+            ..input.gaussians()
+        },
+    );
+    assert!(
+        message.contains("gaussians.knn_velocity: value 7"),
+        "{message}"
+    );
+    let message = networks
+        .pose_refiner_forward(&[f64::NAN; 6])
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("local_pose: value 0"), "{message}");
+    let message = networks
+        .lbs_offsets_forward(&[0.0, f64::NEG_INFINITY, 0.0])
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("lbs xyz: value 1"), "{message}");
+
     let mut pose_only = config.clone();
     pose_only.motion_context = MotionContext::Pose;
     pose_only.n_scales = 1;
