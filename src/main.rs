@@ -67,6 +67,47 @@ enum Command {
         #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
         sets: Vec<String>,
     },
+    /// Render a trained avatar driven by the poses of another sequence or a pose file (PNG
+    /// frames, and an MP4 when ffmpeg is on PATH).
+    Render {
+        /// The train entry: its cache folder, its key or a unique key prefix.
+        #[arg(long)]
+        avatar: String,
+        /// An ingest entry (folder, key or key prefix) or a pose file (.npz with body_pose,
+        /// global_orient, transl and optionally betas).
+        #[arg(long)]
+        poses: String,
+        /// View index of the avatar's training cameras.
+        #[arg(long, default_value_t = 0)]
+        camera: usize,
+        /// Image size factor applied to that camera.
+        #[arg(long, default_value_t = 1.0)]
+        resolution_scale: f64,
+        /// Output folder for frame_NNNNN.png and render.mp4.
+        #[arg(long)]
+        out: PathBuf,
+        /// Backend: auto, cpu or gpu.
+        #[arg(long, default_value = "auto")]
+        device: String,
+        /// Frames per second of the MP4.
+        #[arg(long, default_value_t = 25)]
+        fps: u32,
+        /// Render at most this many frames (0 = all).
+        #[arg(long, default_value_t = 0)]
+        max_frames: usize,
+    },
+    /// Write a Markdown report with PNG plots (metrics, loss curves, stage timing, cache
+    /// reuse, trade-off and Pareto plots for sweeps) from a pipeline's cached entries.
+    Report {
+        /// Pipeline YAML file.
+        file: PathBuf,
+        /// Output folder [default: reports/<pipeline file stem>].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Override a config value: stage.key=value.
+        #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+        sets: Vec<String>,
+    },
     /// Remove cache entries that none of the listed pipelines references.
     Gc {
         /// Pipelines whose entries are kept (repeatable).
@@ -125,6 +166,54 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             commands::inspect(&registry, &target, &options, &cache)?;
         }
         Command::Gc { keep, dry_run } => commands::gc(&registry, &keep, dry_run, &cache)?,
+        Command::Render {
+            avatar,
+            poses,
+            camera,
+            resolution_scale,
+            out,
+            device,
+            fps,
+            max_frames,
+        } => {
+            let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
+            let backend = seqavatar_compute::backend::Backend::select(choice)?;
+            let options = seqavatar_eval::animate::RenderOptions {
+                avatar,
+                poses: seqavatar_eval::animate::PoseSource::parse(&poses),
+                camera,
+                resolution_scale,
+                out,
+                backend,
+                fps,
+                max_frames,
+            };
+            let summary = seqavatar_eval::animate::render_poses(&cache, &options)?;
+            println!(
+                "rendered {} frames into {} in {:.2} s",
+                summary.frames.len(),
+                options.out.display(),
+                summary.seconds
+            );
+            match (&summary.video, &summary.video_note) {
+                (Some(video), _) => println!("video: {}", video.display()),
+                (None, Some(note)) => println!("{note}"),
+                (None, None) => {}
+            }
+        }
+        Command::Report { file, out, sets } => {
+            let out = out.unwrap_or_else(|| {
+                let stem = file
+                    .file_stem()
+                    .map(|stem| stem.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| "pipeline".to_owned());
+                PathBuf::from("reports").join(stem)
+            });
+            let path = seqavatar_eval::pipeline_report::write_report(
+                &registry, &file, &sets, &cache, &out,
+            )?;
+            println!("report: {}", path.display());
+        }
     }
     Ok(())
 }

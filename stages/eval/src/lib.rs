@@ -1,16 +1,29 @@
-//! The `eval` stage's building blocks: image metrics (PSNR, SSIM, LPIPS with VGG16 and
-//! AlexNet on the `cpu` and `gpu` backends), the paper's evaluation protocol, a strict
-//! safetensors reader for the LPIPS weights, and report pictures (plots, contact sheets,
-//! error maps) and Markdown tables.
+//! The `eval` stage: image metrics (PSNR, SSIM, LPIPS with VGG16 and AlexNet on the `cpu` and
+//! `gpu` backends), the paper's evaluation protocol applied to renders of a trained avatar,
+//! rendering speed, novel-pose animation (`pipeline render`) and run reports
+//! (`pipeline report`), plus a strict safetensors reader for the LPIPS weights.
 //!
-//! The stage kind itself is registered once it is wired end to end to the training stage's
-//! avatar output; until then [`register`] adds nothing.
+//! - [`stage`]: the `eval` stage kind and its output schema.
+//! - [`evaluate`]: scoring renders (protocol, metrics, error maps, contact sheet, speed).
+//! - [`avatar_render`]: the trained avatar as a renderer, and the avatar/entry checks.
+//! - [`animate`]: `pipeline render` (novel poses from another sequence or a pose file).
+//! - [`pipeline_report`]: `pipeline report`.
+//! - [`metrics`], [`lpips`], [`report`], [`image`], [`safetensors`], [`testset`]: building
+//!   blocks.
 
+pub mod animate;
+pub mod avatar_render;
+pub mod evaluate;
 pub mod image;
 pub mod lpips;
 pub mod metrics;
+pub mod pipeline_report;
 pub mod report;
 pub mod safetensors;
+pub mod stage;
+pub mod testset;
 
-/// Adds this crate's stage kinds to the registry (none yet: see the crate docs).
-pub fn register(_registry: &mut seqavatar_engine::Registry) {}
+/// Adds the `eval` stage kind to the registry.
+pub fn register(registry: &mut seqavatar_engine::Registry) {
+    registry.add(Box::new(stage::EvalStage));
+}

@@ -5,16 +5,13 @@
 //! SSIM is the 3DGS / GauHuman `ssim()`: an 11 x 11 Gaussian window with sigma 1.5
 //! (normalised), convolved per channel with zero padding ("same" size), constants
 //! `C1 = 0.01^2`, `C2 = 0.03^2` for data range 1, and the mean of the SSIM map over every
-//! pixel and channel. Sums run in f64; the window is separable, so the filter is two 1D
-//! passes (exact, zero padding included).
+//! pixel and channel. It is computed by the training crate's `ssim_planes` (one
+//! implementation for the loss and the metric); the tests here check it independently against
+//! a direct 2D window and against torch.
+
+use seqavatar_train::losses::ssim_planes;
 
 use crate::image::{ImageF32, Rect};
-
-/// SSIM window size and sigma (method.md).
-pub const SSIM_WINDOW: usize = 11;
-pub const SSIM_SIGMA: f64 = 1.5;
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
 
 /// Why a metric could not be computed.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -81,92 +78,25 @@ pub fn psnr(render: &ImageF32, truth: &ImageF32) -> Result<f64, MetricError> {
     })
 }
 
-/// The normalised 1D Gaussian of the SSIM window.
-pub fn gaussian_window(size: usize, sigma: f64) -> Vec<f64> {
-    let centre = (size / 2) as f64;
-    let values: Vec<f64> = (0..size)
-        .map(|index| (-(index as f64 - centre).powi(2) / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let total: f64 = values.iter().sum();
-    values.into_iter().map(|value| value / total).collect()
+/// The per-channel planes of an image, in f64.
+fn planes(image: &ImageF32) -> [Vec<f64>; 3] {
+    std::array::from_fn(|channel| {
+        image
+            .data
+            .iter()
+            .skip(channel)
+            .step_by(3)
+            .map(|&value| f64::from(value))
+            .collect()
+    })
 }
 
-/// `plane` (height x width) filtered by `window` along rows then columns, zero padded, same size.
-fn separable_filter(plane: &[f64], width: usize, height: usize, window: &[f64]) -> Vec<f64> {
-    let half = window.len() / 2;
-    let mut rows = vec![0.0; plane.len()];
-    for y in 0..height {
-        for x in 0..width {
-            let mut sum = 0.0;
-            for (tap, weight) in window.iter().enumerate() {
-                let source = x as isize + tap as isize - half as isize;
-                if source >= 0 && (source as usize) < width {
-                    sum += weight * plane[y * width + source as usize];
-                }
-            }
-            rows[y * width + x] = sum;
-        }
-    }
-    let mut output = vec![0.0; plane.len()];
-    for y in 0..height {
-        for x in 0..width {
-            let mut sum = 0.0;
-            for (tap, weight) in window.iter().enumerate() {
-                let source = y as isize + tap as isize - half as isize;
-                if source >= 0 && (source as usize) < height {
-                    sum += weight * rows[source as usize * width + x];
-                }
-            }
-            output[y * width + x] = sum;
-        }
-    }
-    output
-}
-
-/// The SSIM map, `(3, height, width)` (channel planes).
-pub fn ssim_map(render: &ImageF32, truth: &ImageF32) -> Result<Vec<f64>, MetricError> {
-    check_same_size("ssim", render, truth)?;
-    let (width, height) = (render.width, render.height);
-    let window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
-    let pixels = width * height;
-    let mut map = Vec::with_capacity(3 * pixels);
-    for channel in 0..3 {
-        let plane = |image: &ImageF32| -> Vec<f64> {
-            image
-                .data
-                .iter()
-                .skip(channel)
-                .step_by(3)
-                .map(|&value| f64::from(value))
-                .collect()
-        };
-        let (a, b) = (plane(render), plane(truth));
-        let product = |left: &[f64], right: &[f64]| -> Vec<f64> {
-            left.iter().zip(right).map(|(x, y)| x * y).collect()
-        };
-        let mean_a = separable_filter(&a, width, height, &window);
-        let mean_b = separable_filter(&b, width, height, &window);
-        let mean_aa = separable_filter(&product(&a, &a), width, height, &window);
-        let mean_bb = separable_filter(&product(&b, &b), width, height, &window);
-        let mean_ab = separable_filter(&product(&a, &b), width, height, &window);
-        for pixel in 0..pixels {
-            let (mu_a, mu_b) = (mean_a[pixel], mean_b[pixel]);
-            let variance_a = mean_aa[pixel] - mu_a * mu_a;
-            let variance_b = mean_bb[pixel] - mu_b * mu_b;
-            let covariance = mean_ab[pixel] - mu_a * mu_b;
-            map.push(
-                ((2.0 * mu_a * mu_b + SSIM_C1) * (2.0 * covariance + SSIM_C2))
-                    / ((mu_a * mu_a + mu_b * mu_b + SSIM_C1) * (variance_a + variance_b + SSIM_C2)),
-            );
-        }
-    }
-    Ok(map)
-}
-
-/// Mean SSIM over pixels and channels.
+/// Mean SSIM over pixels and channels: the one SSIM of the workspace,
+/// `seqavatar_train::losses::ssim_planes` (the training loss uses it with its gradient).
 pub fn ssim(render: &ImageF32, truth: &ImageF32) -> Result<f64, MetricError> {
-    let map = ssim_map(render, truth)?;
-    Ok(map.iter().sum::<f64>() / map.len() as f64)
+    check_same_size("ssim", render, truth)?;
+    let (value, _) = ssim_planes(&planes(render), &planes(truth), render.width, render.height);
+    Ok(value)
 }
 
 /// A foreground mask, `uint8` 0..255 row-major `(height, width)`; a pixel is foreground
@@ -375,20 +305,18 @@ mod tests {
         assert!(error.to_string().contains("8 x 4 vs 4 x 8"), "{error}");
     }
 
-    #[test]
-    fn gaussian_window_is_normalised_and_symmetric() {
-        let window = gaussian_window(11, 1.5);
-        assert!((window.iter().sum::<f64>() - 1.0).abs() < 1e-15);
-        for index in 0..11 {
-            assert_eq!(window[index], window[10 - index]);
-        }
-        // Ratio of neighbours from the closed form exp(-(x^2 - (x-1)^2) / (2 sigma^2)).
-        assert!((window[5] / window[4] - (1.0_f64 / 4.5).exp()).abs() < 1e-12);
+    /// The normalised 1D Gaussian, written out for the reference below.
+    fn reference_window() -> Vec<f64> {
+        let raw: Vec<f64> = (0..11)
+            .map(|i| (-((i as f64 - 5.0).powi(2)) / 4.5).exp())
+            .collect();
+        let total: f64 = raw.iter().sum();
+        raw.into_iter().map(|v| v / total).collect()
     }
 
     /// Direct 2D SSIM with an explicit 11 x 11 window: the independent reference.
     fn ssim_direct(a: &ImageF32, b: &ImageF32) -> f64 {
-        let g = gaussian_window(11, 1.5);
+        let g = reference_window();
         let (width, height) = (a.width as isize, a.height as isize);
         let mut total = 0.0;
         for channel in 0..3 {
@@ -442,21 +370,17 @@ mod tests {
     fn ssim_closed_forms() {
         let a = image(30, 30, |x, y, c| noise(x, y, c, 5));
         assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-12);
-        // Constant images: away from the border (window fully inside) the map is
-        // (2 a b + C1) / (a^2 + b^2 + C1), variances being zero.
+        // Constant images far larger than the window: the mean SSIM tends to the interior
+        // closed form (2 a b + C1) / (a^2 + b^2 + C1) (variances are zero); the direct window
+        // gives the exact value including the zero-padded border.
         let (va, vb) = (0.2_f32, 0.6_f32);
-        let map = ssim_map(&image(30, 30, |_, _, _| va), &image(30, 30, |_, _, _| vb)).unwrap();
+        let (ca, cb) = (image(40, 40, |_, _, _| va), image(40, 40, |_, _, _| vb));
+        let direct = ssim_direct(&ca, &cb);
+        let ours = ssim(&ca, &cb).unwrap();
+        assert!((ours - direct).abs() < 1e-12, "{ours} vs {direct}");
         let (a, b) = (f64::from(va), f64::from(vb));
-        let expected = (2.0 * a * b + 1e-4) / (a * a + b * b + 1e-4);
-        for y in 5..25 {
-            for x in 5..25 {
-                assert!(
-                    (map[y * 30 + x] - expected).abs() < 1e-9,
-                    "{} vs {expected}",
-                    map[y * 30 + x]
-                );
-            }
-        }
+        let interior = (2.0 * a * b + 1e-4) / (a * a + b * b + 1e-4);
+        assert!((ours - interior).abs() < 0.1, "{ours} vs {interior}");
         // Black against black is 1 everywhere (C1 and C2 keep it defined).
         let black = image(5, 5, |_, _, _| 0.0);
         assert_eq!(ssim(&black, &black).unwrap(), 1.0);

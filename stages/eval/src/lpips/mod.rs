@@ -251,6 +251,65 @@ impl LpipsWeights {
         Self::from_file(&file, net)
     }
 
+    /// Writes the weights as a safetensors file with the `lpips` package's state-dict names
+    /// (what `tests/lpips/convert_weights.py` produces), e.g. for seeded test weights.
+    pub fn write_safetensors(&self, path: &Path) -> std::io::Result<()> {
+        let bytes = |values: &[f32]| -> Vec<u8> {
+            values
+                .iter()
+                .flat_map(|value| value.to_le_bytes())
+                .collect()
+        };
+        let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+        for conv in &self.convs {
+            let spec = &conv.spec;
+            tensors.push((
+                format!("{}.weight", spec.name),
+                vec![
+                    spec.out_channels,
+                    spec.in_channels,
+                    spec.kernel,
+                    spec.kernel,
+                ],
+                bytes(&conv.weight),
+            ));
+            tensors.push((
+                format!("{}.bias", spec.name),
+                vec![spec.out_channels],
+                bytes(&conv.bias),
+            ));
+        }
+        for (layer, lin) in self.lins.iter().enumerate() {
+            tensors.push((
+                format!("lin{layer}.model.1.weight"),
+                vec![1, lin.len(), 1, 1],
+                bytes(lin),
+            ));
+        }
+        tensors.push((
+            "scaling_layer.shift".to_owned(),
+            vec![1, 3, 1, 1],
+            bytes(&self.shift),
+        ));
+        tensors.push((
+            "scaling_layer.scale".to_owned(),
+            vec![1, 3, 1, 1],
+            bytes(&self.scale),
+        ));
+        let views: Vec<(&str, crate::safetensors::Dtype, &[usize], &[u8])> = tensors
+            .iter()
+            .map(|(name, shape, data)| {
+                (
+                    name.as_str(),
+                    crate::safetensors::Dtype::F32,
+                    shape.as_slice(),
+                    data.as_slice(),
+                )
+            })
+            .collect();
+        crate::safetensors::write(path, &views, &Default::default())
+    }
+
     /// Reads `net`'s weights from an opened file; a missing or misshapen tensor is an error
     /// naming the file and the tensor.
     pub fn from_file(file: &SafetensorsFile, net: LpipsNet) -> Result<Self, LpipsError> {

@@ -438,3 +438,15 @@ fn identical_images_have_zero_distance_and_sizes_must_agree() {
     assert!(error.contains("pair 1"), "{error}");
     assert!(lpips.distances(&[]).unwrap().is_empty());
 }
+
+#[test]
+fn written_weights_load_back_identically() {
+    let folder = tempfile::tempdir().unwrap();
+    for net in [LpipsNet::Alex, LpipsNet::Vgg] {
+        let path = folder.path().join(format!("{}.safetensors", net.name()));
+        let mut weights = seeded::seeded_weights(net, 4);
+        weights.shift = [0.1, -0.2, 0.3];
+        weights.write_safetensors(&path).unwrap();
+        assert_eq!(LpipsWeights::load(&path, net).unwrap(), weights);
+    }
+}

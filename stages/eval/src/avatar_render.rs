@@ -1,0 +1,287 @@
+//! The trained avatar as a [`ViewRenderer`]: `seqavatar_train::avatar::TrainedAvatar` driven
+//! by per-frame body parameters and motion windows, plus the checks that an avatar and the
+//! entry it is evaluated on belong together (same body model, same cameras).
+
+use anyhow::Context as _;
+use seqavatar_compute::backend::Backend;
+use seqavatar_core::body::BodyParams;
+use seqavatar_core::camera::Camera;
+use seqavatar_engine::EntryReader;
+use seqavatar_train::avatar::{FrameInputs, TrainedAvatar};
+use seqavatar_train::data::MotionTrack;
+
+use crate::evaluate::ViewRenderer;
+use crate::image::ImageF32;
+
+/// Why an avatar cannot be evaluated on an entry.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum MismatchError {
+    #[error(
+        "the avatar of train entry {avatar} uses body model \"{avatar_kind}\" ({avatar_vertices} vertices, {avatar_joints} joints), but ingest entry {ingest} has \"{ingest_kind}\" ({ingest_vertices} vertices, {ingest_joints} joints){detail}"
+    )]
+    BodyModel {
+        avatar: String,
+        ingest: String,
+        avatar_kind: String,
+        ingest_kind: String,
+        avatar_vertices: usize,
+        ingest_vertices: usize,
+        avatar_joints: usize,
+        ingest_joints: usize,
+        detail: String,
+    },
+    #[error(
+        "the avatar of train entry {avatar} was trained on the cameras of ingest entry {trained_on}, but it is evaluated on ingest entry {ingest}: {detail}"
+    )]
+    Cameras {
+        avatar: String,
+        trained_on: String,
+        ingest: String,
+        detail: String,
+    },
+}
+
+/// Checks that the avatar's body model is the ingest entry's (kind and every array).
+pub fn check_body_model(
+    train: &EntryReader,
+    avatar: &TrainedAvatar,
+    ingest: &EntryReader,
+) -> anyhow::Result<()> {
+    let ingest_model = seqavatar_ingest::read_body_model(ingest)?;
+    let kind_of = |entry: &EntryReader| {
+        entry
+            .attribute("body_model_kind")
+            .and_then(|value| value.as_str().map(str::to_owned))
+            .unwrap_or_else(|| "unknown".to_owned())
+    };
+    let (avatar_kind, ingest_kind) = (kind_of(train), kind_of(ingest));
+    let model = &avatar.rig.model;
+    let same_kind = avatar_kind == ingest_kind;
+    let same_arrays = model.arrays() == ingest_model.arrays();
+    if same_kind && same_arrays {
+        return Ok(());
+    }
+    Err(MismatchError::BodyModel {
+        avatar: train.location().to_owned(),
+        ingest: ingest.location().to_owned(),
+        avatar_kind,
+        ingest_kind,
+        avatar_vertices: model.num_vertices(),
+        ingest_vertices: ingest_model.num_vertices(),
+        avatar_joints: model.num_joints(),
+        ingest_joints: ingest_model.num_joints(),
+        detail: if same_kind {
+            " (their arrays differ)".to_owned()
+        } else {
+            String::new()
+        },
+    }
+    .into())
+}
+
+/// The ingest key a train entry was computed from (its manifest inputs).
+pub fn trained_on_ingest(train: &EntryReader) -> Option<String> {
+    train
+        .manifest()
+        .inputs
+        .iter()
+        .find(|input| input.kind == "ingest")
+        .map(|input| input.key.clone())
+}
+
+/// Whether two cameras agree (extrinsics and intrinsics normalised by the image size, so an
+/// avatar trained at a lower `resolution_scale` still matches).
+pub fn same_camera(a: &Camera, b: &Camera) -> bool {
+    let close = |x: f64, y: f64| (x - y).abs() <= 1e-6 * (1.0 + x.abs().max(y.abs()));
+    let rotation_close = a
+        .rotation
+        .to_cols_array()
+        .iter()
+        .zip(b.rotation.to_cols_array())
+        .all(|(&x, y)| close(x, y));
+    let translation_close = a
+        .translation
+        .to_array()
+        .iter()
+        .zip(b.translation.to_array())
+        .all(|(&x, y)| close(x, y));
+    let (aw, ah) = (f64::from(a.width), f64::from(a.height));
+    let (bw, bh) = (f64::from(b.width), f64::from(b.height));
+    let intrinsics_close = close(a.intrinsics.fx / aw, b.intrinsics.fx / bw)
+        && close(a.intrinsics.fy / ah, b.intrinsics.fy / bh)
+        && close(a.intrinsics.cx / aw, b.intrinsics.cx / bw)
+        && close(a.intrinsics.cy / ah, b.intrinsics.cy / bh)
+        && close(aw / ah, bw / bh);
+    rotation_close && translation_close && intrinsics_close
+}
+
+/// Checks that the avatar was trained on the ingest entry's cameras: by the cameras stored in
+/// the train entry when it has them, else by the ingest key in its manifest.
+pub fn check_cameras(train: &EntryReader, ingest: &EntryReader) -> anyhow::Result<()> {
+    let trained_on = trained_on_ingest(train).unwrap_or_else(|| "(none recorded)".to_owned());
+    let mismatch = |detail: String| MismatchError::Cameras {
+        avatar: train.location().to_owned(),
+        trained_on: trained_on.clone(),
+        ingest: format!("{} ({})", ingest.key(), ingest.location()),
+        detail,
+    };
+    if train.manifest().arrays.contains_key("camera_K") {
+        let trained = seqavatar_train::data::read_cameras(train)?;
+        let evaluated = seqavatar_train::data::read_cameras(ingest)?;
+        if trained.len() != evaluated.len() {
+            return Err(mismatch(format!(
+                "{} cameras in the avatar, {} in the ingest entry",
+                trained.len(),
+                evaluated.len()
+            ))
+            .into());
+        }
+        if let Some(view) =
+            (0..trained.len()).find(|&view| !same_camera(&trained[view], &evaluated[view]))
+        {
+            return Err(mismatch(format!("camera of view {view} differs")).into());
+        }
+        return Ok(());
+    }
+    if trained_on == ingest.key() {
+        return Ok(());
+    }
+    Err(mismatch(
+        "the train entry stores no cameras to compare, so the test split must come from the ingest entry it was trained on (render other poses with `pipeline render`)".to_owned(),
+    )
+    .into())
+}
+
+/// A trained avatar with the per-frame body parameters and motion track of a sequence.
+pub struct AvatarRenderer {
+    pub avatar: TrainedAvatar,
+    params: Vec<BodyParams>,
+    motion: Option<MotionTrack>,
+    backend: Backend,
+    location: String,
+}
+
+impl AvatarRenderer {
+    /// Loads the avatar of `train`; errors name the entry and the array.
+    pub fn load_avatar(train: &EntryReader) -> anyhow::Result<TrainedAvatar> {
+        TrainedAvatar::load(train).with_context(|| {
+            format!(
+                "cannot load the trained avatar of entry {}",
+                train.location()
+            )
+        })
+    }
+
+    /// An avatar driven by `params` (one per frame) and `motion` (needed when the avatar's
+    /// motion context uses skeleton motion or velocities).
+    pub fn new(
+        avatar: TrainedAvatar,
+        params: Vec<BodyParams>,
+        motion: Option<MotionTrack>,
+        backend: Backend,
+        location: String,
+    ) -> anyhow::Result<Self> {
+        let context = avatar.config.motion_context;
+        if context.has_skeleton_motion() {
+            let Some(track) = &motion else {
+                anyhow::bail!(
+                    "the avatar of {location} uses motion context {context:?}: it needs a motion entry (add the motion stage to the eval stage's inputs)"
+                );
+            };
+            anyhow::ensure!(
+                track.num_frames == params.len(),
+                "the motion track has {} frames, the body parameters {}",
+                track.num_frames,
+                params.len()
+            );
+            let model = &avatar.rig.model;
+            anyhow::ensure!(
+                track.num_joints == model.num_joints()
+                    && track.num_vertices == model.num_vertices(),
+                "the motion track has {} joints and {} vertices, the avatar's body model {} and {}",
+                track.num_joints,
+                track.num_vertices,
+                model.num_joints(),
+                model.num_vertices()
+            );
+            track.slots(&avatar.scales).with_context(|| {
+                format!(
+                    "the avatar of {location} was trained with scales {:?}",
+                    avatar.scales
+                )
+            })?;
+        }
+        Ok(Self {
+            avatar,
+            params,
+            motion,
+            backend,
+            location,
+        })
+    }
+
+    /// The avatar of `train` driven by the body parameters of `params_entry` (a fit entry, or
+    /// the ingest entry) and the motion entry, after checking body model and cameras against
+    /// `ingest`.
+    pub fn open(
+        train: &EntryReader,
+        ingest: &EntryReader,
+        params_entry: &EntryReader,
+        motion: Option<&EntryReader>,
+        backend: &Backend,
+    ) -> anyhow::Result<Self> {
+        let avatar = Self::load_avatar(train)?;
+        check_body_model(train, &avatar, ingest)?;
+        check_cameras(train, ingest)?;
+        let params = seqavatar_ingest::read_body_params(params_entry, "body")?;
+        let motion = motion.map(MotionTrack::read).transpose()?;
+        Self::new(
+            avatar,
+            params,
+            motion,
+            backend.clone(),
+            train.location().to_owned(),
+        )
+    }
+
+    /// Number of frames this renderer can draw.
+    pub fn num_frames(&self) -> usize {
+        self.params.len()
+    }
+
+    /// The inputs of frame `frame`.
+    pub fn frame_inputs(&self, frame: usize) -> anyhow::Result<FrameInputs> {
+        let params = self.params.get(frame).ok_or_else(|| {
+            anyhow::anyhow!(
+                "frame {frame}: the sequence has {} frames",
+                self.params.len()
+            )
+        })?;
+        match &self.motion {
+            Some(track) => self.avatar.frame_inputs(track, params, frame),
+            None => Ok(FrameInputs {
+                params: params.clone(),
+                skeleton_motion: Vec::new(),
+                vertex_velocity: Vec::new(),
+            }),
+        }
+    }
+}
+
+impl ViewRenderer for AvatarRenderer {
+    fn render(&mut self, frame: usize, camera: &Camera) -> anyhow::Result<ImageF32> {
+        let inputs = self.frame_inputs(frame)?;
+        let image = self
+            .avatar
+            .render(&inputs, camera, &self.backend)
+            .with_context(|| format!("avatar {}: frame {frame}", self.location))?;
+        let colour: Vec<f32> = image.colour.iter().map(|&value| value as f32).collect();
+        ImageF32::from_f32(
+            "avatar render",
+            image.width as usize,
+            image.height as usize,
+            colour,
+        )
+        .map_err(anyhow::Error::from)
+    }
+}

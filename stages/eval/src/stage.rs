@@ -1,0 +1,573 @@
+//! The `eval` stage kind: renders every test (view, frame) of the ingest split with the trained
+//! avatar, scores it with the paper protocol and measures rendering speed.
+//!
+//! Inputs: a `train` entry (the avatar), an `ingest` entry (the test split, cameras, body
+//! parameters), optionally the `fit` entry (refined body parameters, as training used them)
+//! and the `motion` entry (motion windows; required when the avatar's motion context uses
+//! skeleton motion or velocities). The avatar must have been trained on the same cameras and
+//! body model: otherwise the stage stops with an error naming both entries.
+//!
+//! Output arrays (axis `image` = the scored test images, in ingest order):
+//! - `psnr`, `ssim` f64 `(image)`; `lpips_vgg`, `lpips_alex` f64 `(image)` only when the
+//!   matching weights file is configured (LPIPS is never reported as a number otherwise).
+//! - `image_index` u32 `(image)` (position on the ingest `image` axis), `image_view`,
+//!   `image_frame` u32 `(image)`, `render_seconds` f64 `(image)` (whole render path).
+//! - `renders` and `error_maps` u8 `(image, height, width, rgb)`, one image per chunk, views
+//!   smaller than the largest stored in the top-left corner (the ingest layout). Renders are
+//!   after the protocol (background outside the bound box); error maps are the per-pixel mean
+//!   absolute error in the "hot" colour map, white at `error_full_scale`.
+//! - `contact_sheet` u8 `(sheet_height, sheet_width, rgb)`: ground truth | render | error.
+//! - `speed_width`, `speed_height` u32 `(resolution)`, `speed_fps` f64 `(resolution)`.
+//!
+//! Attributes: `summary` (`sequence`, `means` = [`MeanScores`], `lpips` = `"unavailable"` or
+//! the nets used, `backend`), `speed` (a list of [`SpeedRow`]), `mean_table` (Markdown).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context as _;
+use serde::{Deserialize, Serialize};
+
+use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_engine::{
+    BACKEND_LOG_PREFIX, ConfigError, EntryReader, PictureKind, PictureOptions, StageContext,
+    StageKind,
+};
+use seqavatar_train::config::Device;
+
+use crate::evaluate::{
+    LpipsModels, MEAN_TABLE_HEADERS, SpeedRow, ViewRenderer, contact_sheet_rows, mean_scores,
+    mean_table_row, measure_speed, pad_to, score_image, spread,
+};
+use crate::image::ImageF32;
+use crate::lpips::{Lpips, LpipsNet, LpipsWeights};
+use crate::metrics::Protocol;
+use crate::report::{error_map, markdown_table};
+use crate::testset::TestSet;
+
+/// The kind name in pipeline files.
+pub const EVAL_KIND: &str = "eval";
+/// Entry attribute holding the sequence name, the means and the LPIPS availability.
+pub const SUMMARY_ATTRIBUTE: &str = "summary";
+/// Entry attribute holding the rendering speed rows.
+pub const SPEED_ATTRIBUTE: &str = "speed";
+
+/// The `eval` stage configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EvalConfig {
+    /// Backend for rendering and LPIPS (`auto`, `cpu`, `gpu`).
+    pub device: Device,
+    /// Background and bound-box rules (method.md "Evaluation protocol").
+    pub protocol: Protocol,
+    /// LPIPS weights converted with `tests/lpips/convert_weights.py`; none: "unavailable".
+    pub lpips_vgg_weights: Option<PathBuf>,
+    pub lpips_alex_weights: Option<PathBuf>,
+    /// Score at most this many test images, spread evenly over the split (0 = all).
+    pub max_images: usize,
+    /// Mean absolute error shown white in the error maps.
+    pub error_full_scale: f64,
+    /// Rows of the contact sheet.
+    pub contact_sheet_rows: usize,
+    /// Resolutions (factors of the first test view's size) the rendering speed is measured at.
+    pub speed_scales: Vec<f64>,
+    /// Timed renders per resolution (after one untimed warm-up render).
+    pub speed_frames: usize,
+}
+
+impl Default for EvalConfig {
+    fn default() -> Self {
+        Self {
+            device: Device::Auto,
+            protocol: Protocol::default(),
+            lpips_vgg_weights: None,
+            lpips_alex_weights: None,
+            max_images: 0,
+            error_full_scale: 0.25,
+            contact_sheet_rows: 4,
+            speed_scales: vec![1.0, 0.5],
+            speed_frames: 5,
+        }
+    }
+}
+
+impl EvalConfig {
+    fn validate(&self) -> Result<(), ConfigError> {
+        if !(self.error_full_scale.is_finite() && self.error_full_scale > 0.0) {
+            return Err(ConfigError::at_key(
+                "error_full_scale",
+                format!("{} must be positive and finite", self.error_full_scale),
+            ));
+        }
+        if self
+            .protocol
+            .background
+            .iter()
+            .any(|c| !(0.0..=1.0).contains(c))
+        {
+            return Err(ConfigError::at_key(
+                "protocol",
+                format!(
+                    "background {:?} must be in [0, 1]",
+                    self.protocol.background
+                ),
+            ));
+        }
+        if self.contact_sheet_rows == 0 {
+            return Err(ConfigError::at_key(
+                "contact_sheet_rows",
+                "at least one row is needed",
+            ));
+        }
+        if let Some(bad) = self
+            .speed_scales
+            .iter()
+            .find(|scale| !(scale.is_finite() && **scale > 0.0 && **scale <= 4.0))
+        {
+            return Err(ConfigError::at_key(
+                "speed_scales",
+                format!("{bad} must be in (0, 4]"),
+            ));
+        }
+        if self.speed_frames == 0 && !self.speed_scales.is_empty() {
+            return Err(ConfigError::at_key(
+                "speed_frames",
+                "at least one timed render per resolution is needed",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Maps the config's device to the compute backend choice.
+pub fn device_choice(device: Device) -> DeviceChoice {
+    match device {
+        Device::Auto => DeviceChoice::Auto,
+        Device::Cpu => DeviceChoice::Cpu,
+        Device::Gpu => DeviceChoice::Gpu,
+    }
+}
+
+/// The sequence name of an ingest entry for tables: the dataset kind and its sequence id or
+/// folder name.
+pub fn sequence_name(ingest: &EntryReader) -> String {
+    let dataset = ingest.config().get("dataset");
+    let kind = dataset
+        .and_then(|value| value.get("kind"))
+        .and_then(|value| value.as_str())
+        .unwrap_or("dataset");
+    let detail = dataset.and_then(|value| {
+        if let Some(sequence) = value.get("sequence").and_then(|v| v.as_str()) {
+            return Some(sequence.to_owned());
+        }
+        ["root", "main_file"].iter().find_map(|field| {
+            let path = value.get(*field)?.as_str()?;
+            Path::new(path)
+                .file_stem()
+                .map(|stem| stem.to_string_lossy().into_owned())
+        })
+    });
+    match detail {
+        Some(detail) if !detail.is_empty() => format!("{kind}/{detail}"),
+        _ => kind.to_owned(),
+    }
+}
+
+/// Loads the configured LPIPS models on `backend`.
+pub fn load_lpips(config: &EvalConfig, backend: &Backend) -> anyhow::Result<LpipsModels> {
+    let load = |path: &Option<PathBuf>, net: LpipsNet| -> anyhow::Result<Option<Lpips>> {
+        let Some(path) = path else {
+            return Ok(None);
+        };
+        let weights = LpipsWeights::load(path, net)?;
+        Ok(Some(Lpips::new(weights, backend)?))
+    };
+    Ok(LpipsModels {
+        vgg: load(&config.lpips_vgg_weights, LpipsNet::Vgg)?,
+        alex: load(&config.lpips_alex_weights, LpipsNet::Alex)?,
+    })
+}
+
+/// The `eval` stage kind.
+pub struct EvalStage;
+
+impl StageKind for EvalStage {
+    fn kind(&self) -> &'static str {
+        EVAL_KIND
+    }
+
+    fn version(&self) -> u32 {
+        1
+    }
+
+    fn input_kinds(&self) -> &'static [&'static str] {
+        &["train", "ingest", "fit", "motion"]
+    }
+
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
+        let resolved = seqavatar_engine::resolve_typed::<EvalConfig>(raw)?;
+        let config: EvalConfig = serde_json::from_value(resolved.clone())
+            .map_err(|error| ConfigError::new(vec![], error.to_string()))?;
+        config.validate()?;
+        Ok(resolved)
+    }
+
+    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
+        let config: EvalConfig =
+            serde_json::from_value(config.clone()).context("eval config does not deserialize")?;
+        Ok([config.lpips_vgg_weights, config.lpips_alex_weights]
+            .into_iter()
+            .flatten()
+            .collect())
+    }
+
+    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        let config: EvalConfig = ctx.config()?;
+        let train = ctx.input("train")?.clone();
+        let ingest = ctx.input("ingest")?.clone();
+        let backend = Backend::select(device_choice(config.device))?;
+        ctx.log(&format!("{BACKEND_LOG_PREFIX} {}", backend.describe()));
+        let lpips = load_lpips(&config, &backend)?;
+        if lpips.vgg.is_none() && lpips.alex.is_none() {
+            ctx.log("LPIPS unavailable: no lpips_vgg_weights / lpips_alex_weights configured");
+        }
+        let optional = |kind: &str| -> anyhow::Result<Option<EntryReader>> {
+            Ok(if ctx.inputs().iter().any(|input| input.kind() == kind) {
+                Some(ctx.input(kind)?.clone())
+            } else {
+                None
+            })
+        };
+        let fit = optional("fit")?;
+        let motion = optional("motion")?;
+        let mut renderer = crate::avatar_render::AvatarRenderer::open(
+            &train,
+            &ingest,
+            fit.as_ref().unwrap_or(&ingest),
+            motion.as_ref(),
+            &backend,
+        )?;
+        evaluate_entry(ctx, &config, &ingest, &mut renderer, &lpips, &backend)
+    }
+
+    fn pictures(&self) -> Vec<PictureKind> {
+        vec![
+            PictureKind {
+                name: "contact_sheet",
+                description: "ground truth | render | error map for a few test images",
+            },
+            PictureKind {
+                name: "render",
+                description: "one scored render (--opt index=N)",
+            },
+            PictureKind {
+                name: "error_map",
+                description: "one error map (--opt index=N)",
+            },
+        ]
+    }
+
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        match picture {
+            "contact_sheet" => read_rgb(entry, "contact_sheet", None),
+            "render" | "error_map" => {
+                let unknown = options.unknown_keys(&["index"]);
+                anyhow::ensure!(
+                    unknown.is_empty(),
+                    "picture {picture}: unknown options {unknown:?} (known: index)"
+                );
+                let index = options.get_u64("index", 0)? as usize;
+                let name = if picture == "render" {
+                    "renders"
+                } else {
+                    "error_maps"
+                };
+                read_rgb(entry, name, Some(index))
+            }
+            other => anyhow::bail!(
+                "eval has no picture named \"{other}\" (known: contact_sheet, render, error_map)"
+            ),
+        }
+    }
+}
+
+/// An RGB image array of an eval entry: the whole array, or image `index` of a stack.
+fn read_rgb(
+    entry: &EntryReader,
+    name: &str,
+    index: Option<usize>,
+) -> anyhow::Result<image::RgbImage> {
+    let shape = entry.shape(name)?;
+    let (data, height, width) = match index {
+        None => {
+            anyhow::ensure!(
+                shape.len() == 3 && shape[2] == 3,
+                "array \"{name}\" has shape {shape:?}, expected (height, width, 3)"
+            );
+            (entry.read::<u8>(name)?.data, shape[0], shape[1])
+        }
+        Some(index) => {
+            anyhow::ensure!(
+                shape.len() == 4 && shape[3] == 3,
+                "array \"{name}\" has shape {shape:?}, expected (image, height, width, 3)"
+            );
+            anyhow::ensure!(
+                (index as u64) < shape[0],
+                "index {index}: array \"{name}\" has {} images",
+                shape[0]
+            );
+            let region = entry.read_region::<u8>(
+                name,
+                &[index as u64, 0, 0, 0],
+                &[1, shape[1], shape[2], 3],
+            )?;
+            (region.data, shape[1], shape[2])
+        }
+    };
+    image::RgbImage::from_raw(width as u32, height as u32, data)
+        .ok_or_else(|| anyhow::anyhow!("array \"{name}\": size does not match its data"))
+}
+
+/// Writes the PNGs of an eval entry into `folder` (`contact_sheet.png`, `render_NNN.png`,
+/// `error_NNN.png`); returns how many test images were written.
+pub fn export_pngs(entry: &EntryReader, folder: &Path) -> anyhow::Result<usize> {
+    let save = |image: image::RgbImage, name: String| -> anyhow::Result<()> {
+        let path = folder.join(name);
+        image
+            .save(&path)
+            .with_context(|| format!("cannot write {}", path.display()))
+    };
+    save(
+        read_rgb(entry, "contact_sheet", None)?,
+        "contact_sheet.png".to_owned(),
+    )?;
+    let count = entry.shape("renders")?.first().copied().unwrap_or(0) as usize;
+    let views = entry.read::<u32>("image_view")?.data;
+    let frames = entry.read::<u32>("image_frame")?.data;
+    for index in 0..count {
+        let (view, frame) = (
+            views.get(index).copied().unwrap_or(0),
+            frames.get(index).copied().unwrap_or(0),
+        );
+        save(
+            read_rgb(entry, "renders", Some(index))?,
+            format!("render_{index:03}_view{view}_frame{frame}.png"),
+        )?;
+        save(
+            read_rgb(entry, "error_maps", Some(index))?,
+            format!("error_{index:03}_view{view}_frame{frame}.png"),
+        )?;
+    }
+    Ok(count)
+}
+
+/// Scores every selected test image rendered by `renderer` and writes the eval entry.
+pub fn evaluate_entry(
+    ctx: &StageContext<'_>,
+    config: &EvalConfig,
+    ingest: &EntryReader,
+    renderer: &mut dyn ViewRenderer,
+    lpips: &LpipsModels,
+    backend: &Backend,
+) -> anyhow::Result<()> {
+    let testset = TestSet::read(ingest)?;
+    anyhow::ensure!(
+        !testset.images.is_empty(),
+        "ingest entry {} has no test images to evaluate",
+        ingest.location()
+    );
+    let selected: Vec<usize> = if config.max_images == 0 {
+        (0..testset.images.len()).collect()
+    } else {
+        spread(testset.images.len(), config.max_images)
+    };
+    let count = selected.len();
+    let (height, width) = (testset.stored_height, testset.stored_width);
+    let out = ctx.output();
+    let image_dims = ["image", "height", "width", "rgb"];
+    let image_shape = [count as u64, height as u64, width as u64, 3];
+    let image_chunk = [1, height as u64, width as u64, 3];
+    let renders_array =
+        out.create_array::<u8>("renders", &image_dims, &image_shape, &image_chunk)?;
+    let errors_array =
+        out.create_array::<u8>("error_maps", &image_dims, &image_shape, &image_chunk)?;
+    let sheet_picks: Vec<usize> = spread(count, config.contact_sheet_rows);
+    let mut sheet_images = Vec::new();
+    let mut scores = Vec::with_capacity(count);
+    let mut render_seconds = Vec::with_capacity(count);
+    let progress = ctx.progress_bar(count as u64, "render and score test images");
+    for (slot, &pick) in selected.iter().enumerate() {
+        let test = testset.images[pick];
+        let camera = &testset.cameras[test.view];
+        let started = Instant::now();
+        let render = renderer.render(test.frame, camera).with_context(|| {
+            format!(
+                "rendering test image {} (view {}, frame {})",
+                test.index, test.view, test.frame
+            )
+        })?;
+        render_seconds.push(started.elapsed().as_secs_f64());
+        anyhow::ensure!(
+            render.width == camera.width as usize && render.height == camera.height as usize,
+            "the avatar rendered {} x {} for view {} of {} x {}",
+            render.width,
+            render.height,
+            test.view,
+            camera.width,
+            camera.height
+        );
+        let (truth, mask) = testset.load(ingest, &test)?;
+        let scored = score_image(&config.protocol, lpips, &render, &truth, &mask)
+            .with_context(|| format!("scoring test image {}", test.index))?;
+        let render_rgb = scored.pair.render.to_rgb_image();
+        let error_rgb = error_map(
+            &scored.pair.render,
+            &scored.pair.truth,
+            config.error_full_scale,
+        )?;
+        renders_array.write_chunk(
+            &[slot as u64, 0, 0, 0],
+            pad_to(&render_rgb, width as u32, height as u32).as_raw(),
+        )?;
+        errors_array.write_chunk(
+            &[slot as u64, 0, 0, 0],
+            pad_to(&error_rgb, width as u32, height as u32).as_raw(),
+        )?;
+        if sheet_picks.contains(&slot) {
+            sheet_images.push((scored.pair.truth.to_rgb_image(), render_rgb, error_rgb));
+        }
+        scores.push(scored.score);
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+
+    let column = |name: &str, values: &[f64]| -> anyhow::Result<()> {
+        out.write_array::<f64>(name, &["image"], &[count as u64], &[count as u64], values)
+    };
+    column("psnr", &scores.iter().map(|s| s.psnr).collect::<Vec<_>>())?;
+    column("ssim", &scores.iter().map(|s| s.ssim).collect::<Vec<_>>())?;
+    if lpips.vgg.is_some() {
+        let values: Vec<f64> = scores
+            .iter()
+            .map(|s| s.lpips_vgg.unwrap_or(f64::NAN))
+            .collect();
+        column("lpips_vgg", &values)?;
+    }
+    if lpips.alex.is_some() {
+        let values: Vec<f64> = scores
+            .iter()
+            .map(|s| s.lpips_alex.unwrap_or(f64::NAN))
+            .collect();
+        column("lpips_alex", &values)?;
+    }
+    column("render_seconds", &render_seconds)?;
+    let tests: Vec<_> = selected.iter().map(|&pick| testset.images[pick]).collect();
+    for (name, values) in [
+        (
+            "image_index",
+            tests.iter().map(|t| t.index as u32).collect::<Vec<_>>(),
+        ),
+        ("image_view", tests.iter().map(|t| t.view as u32).collect()),
+        (
+            "image_frame",
+            tests.iter().map(|t| t.frame as u32).collect(),
+        ),
+    ] {
+        out.write_array::<u32>(name, &["image"], &[count as u64], &[count as u64], &values)?;
+    }
+    let sheet = contact_sheet_rows(&sheet_images, width as u32, height as u32)?;
+    let (sheet_width, sheet_height) = sheet.dimensions();
+    out.write_array::<u8>(
+        "contact_sheet",
+        &["sheet_height", "sheet_width", "rgb"],
+        &[u64::from(sheet_height), u64::from(sheet_width), 3],
+        &[u64::from(sheet_height), u64::from(sheet_width), 3],
+        sheet.as_raw(),
+    )?;
+
+    // Rendering speed, the whole render path, on the first scored view.
+    let first = tests[0];
+    let frames: Vec<usize> = (0..config.speed_frames)
+        .map(|k| tests[k % tests.len()].frame)
+        .collect();
+    let mut speed: Vec<SpeedRow> = Vec::new();
+    for &scale in &config.speed_scales {
+        let camera = testset.cameras[first.view].rescaled(scale);
+        let row = measure_speed(renderer, &camera, &frames).with_context(|| {
+            format!("speed measurement at {} x {}", camera.width, camera.height)
+        })?;
+        ctx.log(&format!(
+            "speed: {} x {}: {:.2} FPS ({:.1} ms per frame, networks included)",
+            row.width,
+            row.height,
+            row.fps,
+            1000.0 / row.fps
+        ));
+        speed.push(row);
+    }
+    let resolutions = speed.len() as u64;
+    if resolutions > 0 {
+        for (name, values) in [
+            (
+                "speed_width",
+                speed.iter().map(|r| r.width).collect::<Vec<_>>(),
+            ),
+            ("speed_height", speed.iter().map(|r| r.height).collect()),
+        ] {
+            out.write_array::<u32>(
+                name,
+                &["resolution"],
+                &[resolutions],
+                &[resolutions],
+                &values,
+            )?;
+        }
+        out.write_array::<f64>(
+            "speed_fps",
+            &["resolution"],
+            &[resolutions],
+            &[resolutions],
+            &speed.iter().map(|r| r.fps).collect::<Vec<_>>(),
+        )?;
+    }
+
+    let means = mean_scores(&scores);
+    let sequence = sequence_name(ingest);
+    let table = markdown_table(&MEAN_TABLE_HEADERS, &[mean_table_row(&sequence, &means)])
+        .map_err(anyhow::Error::msg)?;
+    let nets: Vec<&str> = [("vgg", lpips.vgg.is_some()), ("alex", lpips.alex.is_some())]
+        .iter()
+        .filter(|(_, present)| *present)
+        .map(|(name, _)| *name)
+        .collect();
+    out.set_attribute(
+        SUMMARY_ATTRIBUTE,
+        serde_json::json!({
+            "sequence": sequence,
+            "means": means,
+            "lpips": if nets.is_empty() { "unavailable".to_owned() } else { nets.join(",") },
+            "backend": backend.describe(),
+        }),
+    )?;
+    out.set_attribute(SPEED_ATTRIBUTE, serde_json::to_value(&speed)?)?;
+    out.set_attribute("mean_table", serde_json::Value::String(table.clone()))?;
+    for line in table.lines() {
+        ctx.log(line);
+    }
+    Ok(())
+}
+
+/// Converts a render to the metrics' image type, naming the source in errors.
+pub fn render_image(
+    what: &str,
+    width: usize,
+    height: usize,
+    rgb: Vec<f32>,
+) -> anyhow::Result<ImageF32> {
+    ImageF32::from_f32(what, width, height, rgb).map_err(anyhow::Error::from)
+}

@@ -1,0 +1,375 @@
+//! The eval stage end to end on a tiny avatar trained through the real ingest, motion and
+//! train stages: metrics against the trainer's own held-out PSNR (an independent
+//! implementation of the protocol), LPIPS unavailable and available, mismatched cameras and
+//! body models, corrupt and partial avatar arrays, `pipeline render` on another sequence's
+//! poses and on a pose file, and the report of the run.
+
+use std::path::Path;
+
+use seqavatar_compute::backend::Backend;
+use seqavatar_engine::{
+    EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, StageReport, Store, run,
+};
+use seqavatar_eval::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
+use seqavatar_eval::avatar_render::AvatarRenderer;
+use seqavatar_eval::lpips::{LpipsNet, seeded};
+
+const INGEST: &str = "{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}";
+
+/// JSON, which is also a YAML flow mapping.
+const TRAIN: &str = r#"{"preset": "fast", "device": "cpu", "seed": 3, "iterations": 40, "motion_context": "none", "pose_refiner": false, "lbs_offsets": false, "checkpoint_every": 100, "resolution_scale": 1.0, "sh_degree": 1, "sh_degree_interval": 20, "learning_rates": {"position_initial": 0.0016, "position_final": 0.000016}}"#;
+
+fn pipeline_text(extra: &str) -> String {
+    format!(
+        r#"description: tiny eval test
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {INGEST}
+      past_frames: 0
+  - name: motion
+    kind: motion
+    inputs: [ingest]
+    config: {{scales: [1, 2], knn: 4}}
+  - name: train
+    kind: train
+    inputs: [ingest, motion]
+    config: {TRAIN}
+  - name: eval
+    kind: eval
+    inputs: [train, ingest, motion]
+    config: {{device: cpu, speed_scales: [1.0, 0.5], speed_frames: 2}}
+{extra}"#
+    )
+}
+
+fn registry() -> Registry {
+    let mut registry = Registry::new();
+    seqavatar_ingest::register(&mut registry);
+    seqavatar_fit::register(&mut registry);
+    seqavatar_motion::register(&mut registry);
+    seqavatar_train::register(&mut registry);
+    seqavatar_eval::register(&mut registry);
+    registry
+}
+
+fn run_text(cache: &Path, text: &str, until: Option<&str>) -> anyhow::Result<Vec<StageReport>> {
+    let registry = registry();
+    let store = LocalStore::open(cache)?;
+    let pipeline = Pipeline::parse(text, Path::new("test.yaml"), &registry, &[])?;
+    let options = RunOptions {
+        until: until.map(str::to_owned),
+        force: Vec::new(),
+    };
+    run(&pipeline, &registry, &store, &options)
+}
+
+fn entry(cache: &Path, reports: &[StageReport], name: &str) -> EntryReader {
+    let store = LocalStore::open(cache).unwrap();
+    let report = reports.iter().find(|r| r.name == name).unwrap();
+    store
+        .open_entry(&EntryId::new(&report.kind, &report.key))
+        .unwrap()
+}
+
+fn folder_of(cache: &Path, reports: &[StageReport], name: &str) -> std::path::PathBuf {
+    let report = reports.iter().find(|r| r.name == name).unwrap();
+    cache.join(&report.kind).join(&report.key)
+}
+
+/// One trained avatar shared by the checks below (training dominates the test time).
+#[test]
+fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let weights = dir.path().join("alex.safetensors");
+    seeded::seeded_weights(LpipsNet::Alex, 5)
+        .write_safetensors(&weights)
+        .unwrap();
+    let extra = format!(
+        r#"  - name: eval_lpips
+    kind: eval
+    inputs: [train, ingest, motion]
+    config: {{device: cpu, speed_scales: [], lpips_alex_weights: "{}"}}
+  - name: other_cameras
+    kind: ingest
+    config:
+      dataset: {{kind: synthetic, cameras: 4, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}}
+      past_frames: 0
+  - name: eval_other_cameras
+    kind: eval
+    inputs: [train, other_cameras]
+    config: {{device: cpu}}
+  - name: other_body
+    kind: ingest
+    config:
+      dataset: {{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.045}}
+      past_frames: 0
+  - name: eval_other_body
+    kind: eval
+    inputs: [train, other_body]
+    config: {{device: cpu}}
+"#,
+        weights.display()
+    );
+    let text = pipeline_text(&extra);
+    let mut reports = run_text(&cache, &text, Some("eval")).unwrap();
+    reports.extend(run_text(&cache, &text, Some("eval_lpips")).unwrap());
+    let train = entry(&cache, &reports, "train");
+    let ingest = entry(&cache, &reports, "ingest");
+    let eval = entry(&cache, &reports, "eval");
+
+    // The test split of the tiny scene: view 1, frames 0 and 2.
+    let psnr = eval.read::<f64>("psnr").unwrap().data;
+    let ssim = eval.read::<f64>("ssim").unwrap().data;
+    assert_eq!(psnr.len(), 2);
+    assert_eq!(eval.read::<u32>("image_view").unwrap().data, [1, 1]);
+    assert_eq!(eval.read::<u32>("image_frame").unwrap().data, [0, 2]);
+    assert!(ssim.iter().all(|s| *s > 0.0 && *s <= 1.0), "{ssim:?}");
+    // The trainer scores the same test images with its own protocol code in f64; ours
+    // renders the same avatar, rounds the render to f32 and applies metrics::Protocol.
+    let trainer_psnr = train.read::<f64>("test_psnr").unwrap().data;
+    assert_eq!(trainer_psnr.len(), psnr.len());
+    for (ours, theirs) in psnr.iter().zip(&trainer_psnr) {
+        assert!(
+            (ours - theirs).abs() < 1e-3,
+            "eval PSNR {ours} vs the trainer's held-out PSNR {theirs}"
+        );
+        assert!(
+            *ours > 12.0,
+            "a trained avatar should beat a blank image: {ours}"
+        );
+    }
+    // LPIPS without weights: no array and "unavailable", never a number.
+    assert!(
+        !eval
+            .array_names()
+            .iter()
+            .any(|name| name.starts_with("lpips"))
+    );
+    let summary = eval.attribute("summary").unwrap();
+    assert_eq!(summary["lpips"], "unavailable");
+    assert!(summary["means"]["lpips_vgg"].is_null());
+    let table = eval.attribute("mean_table").unwrap();
+    assert!(
+        table
+            .as_str()
+            .unwrap()
+            .contains("| unavailable | unavailable |"),
+        "{table}"
+    );
+    // Renders, error maps and the contact sheet (2 rows of 3 images of 40 x 40, 4 px gaps).
+    assert_eq!(eval.shape("renders").unwrap(), [2, 40, 40, 3]);
+    assert_eq!(eval.shape("error_maps").unwrap(), [2, 40, 40, 3]);
+    assert_eq!(
+        eval.shape("contact_sheet").unwrap(),
+        [2 * 40 + 3 * 4, 3 * 40 + 4 * 4, 3]
+    );
+    let renders = eval.read::<u8>("renders").unwrap().data;
+    assert!(renders.iter().any(|&v| v > 30), "renders are not blank");
+    // Speed at full and half resolution, the whole render path.
+    assert_eq!(eval.read::<u32>("speed_width").unwrap().data, [40, 20]);
+    let fps = eval.read::<f64>("speed_fps").unwrap().data;
+    assert!(fps.iter().all(|f| f.is_finite() && *f > 0.0), "{fps:?}");
+
+    // LPIPS with (seeded) AlexNet weights: a finite non-negative value per image, and the
+    // same value the LPIPS module gives on a fresh render of the same test image.
+    let eval_lpips = entry(&cache, &reports, "eval_lpips");
+    let lpips = eval_lpips.read::<f64>("lpips_alex").unwrap().data;
+    assert_eq!(lpips.len(), 2);
+    assert!(
+        lpips.iter().all(|v| v.is_finite() && *v >= 0.0),
+        "{lpips:?}"
+    );
+    assert_eq!(eval_lpips.attribute("summary").unwrap()["lpips"], "alex");
+    assert!(!eval_lpips.array_names().contains(&"lpips_vgg".to_owned()));
+    assert!(!eval_lpips.array_names().contains(&"speed_fps".to_owned()));
+    {
+        use seqavatar_eval::evaluate::ViewRenderer;
+        let mut renderer =
+            AvatarRenderer::open(&train, &ingest, &ingest, None, &Backend::Cpu).unwrap();
+        let testset = seqavatar_eval::testset::TestSet::read(&ingest).unwrap();
+        let test = testset.images[1];
+        let render = renderer
+            .render(test.frame, &testset.cameras[test.view])
+            .unwrap();
+        let (truth, mask) = testset.load(&ingest, &test).unwrap();
+        let pair = seqavatar_eval::metrics::Protocol::default()
+            .prepare(&render, &truth, &mask)
+            .unwrap();
+        let model = seqavatar_eval::lpips::Lpips::new(
+            seqavatar_eval::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
+            &Backend::Cpu,
+        )
+        .unwrap();
+        let direct = model.distances(&[(&pair.render, &pair.truth)]).unwrap()[0].total;
+        assert!((direct - lpips[1]).abs() < 1e-9, "{direct} vs {}", lpips[1]);
+        let direct_psnr = seqavatar_eval::metrics::psnr(&pair.render, &pair.truth).unwrap();
+        assert!((direct_psnr - psnr[1]).abs() < 1e-9);
+    }
+
+    // Another camera rig, another body model: clear errors naming both entries.
+    let error = run_text(&cache, &text, Some("eval_other_cameras"))
+        .unwrap_err()
+        .to_string();
+    let chain = format!("{error:#}");
+    assert!(
+        chain.contains("trained on the cameras of ingest entry") || error.contains("cameras"),
+        "{chain}"
+    );
+    let error = run_text(&cache, &text, Some("eval_other_body")).unwrap_err();
+    let chain = format!("{error:#}");
+    assert!(chain.contains("body model"), "{chain}");
+
+    // Report of the run: metrics table, contact sheet and renders, loss curves, timing.
+    let report_dir = dir.path().join("report");
+    let registry = registry();
+    let store = LocalStore::open(&cache).unwrap();
+    let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
+    let path = seqavatar_eval::pipeline_report::write_report_for(
+        &registry,
+        &pipeline,
+        &store,
+        &report_dir,
+    )
+    .unwrap();
+    let markdown = std::fs::read_to_string(&path).unwrap();
+    let row = format!(
+        "| eval | synthetic | 2 | {:.2} |",
+        (psnr[0] + psnr[1]) / 2.0
+    );
+    assert!(markdown.contains(&row), "missing {row} in\n{markdown}");
+    assert!(markdown.contains("unavailable"), "{markdown}");
+    assert!(markdown.contains("| 40 x 40 | 2 |"), "{markdown}");
+    assert!(
+        markdown.contains("## Trade-off"),
+        "two evals make a sweep table:\n{markdown}"
+    );
+    assert!(markdown.contains("| ingest | ingest |"), "{markdown}");
+    assert!(markdown.contains("train, eval, eval_lpips"), "{markdown}");
+    assert!(
+        markdown.contains("eval_other_cameras"),
+        "missing evals are listed:\n{markdown}"
+    );
+    for file in [
+        "eval/contact_sheet.png",
+        "eval/render_000_view1_frame0.png",
+        "eval/error_001_view1_frame2.png",
+        "loss_train.png",
+        "pareto_psnr_time.png",
+        "pareto_psnr_fps.png",
+    ] {
+        let png = report_dir.join(file);
+        assert!(png.is_file(), "{} missing", png.display());
+        image::open(&png).unwrap();
+    }
+
+    // `pipeline render`: the avatar driven by another sequence's poses, then by a pose file.
+    let out = dir.path().join("render_entry");
+    let other = folder_of(&cache, &reports, "ingest");
+    let options = RenderOptions {
+        avatar: train.key()[..10].to_owned(),
+        poses: PoseSource::Entry(other.display().to_string()),
+        camera: 1,
+        resolution_scale: 0.5,
+        out: out.clone(),
+        backend: Backend::Cpu,
+        fps: 10,
+        max_frames: 2,
+    };
+    let summary = render_poses(&cache, &options).unwrap();
+    assert_eq!(summary.frames.len(), 2);
+    let frame = image::open(&summary.frames[0]).unwrap().to_rgb8();
+    assert_eq!(frame.dimensions(), (20, 20));
+    assert!(frame.pixels().any(|p| p.0.iter().any(|&c| c > 30)));
+    assert!(summary.video.is_some() || summary.video_note.is_some());
+    let from_file = RenderOptions {
+        poses: PoseSource::parse(&fixture("swing.npz").display().to_string()),
+        out: dir.path().join("render_file"),
+        max_frames: 3,
+        ..options.clone()
+    };
+    let summary = render_poses(&cache, &from_file).unwrap();
+    assert_eq!(summary.frames.len(), 3);
+    let first = image::open(&summary.frames[0]).unwrap().to_rgb8();
+    let last = image::open(&summary.frames[2]).unwrap().to_rgb8();
+    assert_ne!(first, last, "the swing moves the legs between frames");
+
+    // Corrupt and partial avatar arrays: errors name the array, nothing is recomputed.
+    let train_folder = folder_of(&cache, &reports, "train");
+    let store = LocalStore::open(&cache).unwrap();
+    let chunk = train_folder.join("gaussian_opacity/c/0");
+    let original = std::fs::read(&chunk).unwrap();
+    let mut bytes = original.clone();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x55;
+    std::fs::write(&chunk, &bytes).unwrap();
+    let reader = resolve_entry(&store, "train", &train_folder.display().to_string()).unwrap();
+    let error = format!("{:#}", AvatarRenderer::load_avatar(&reader).err().unwrap());
+    assert!(error.contains("gaussian_opacity"), "{error}");
+    std::fs::write(&chunk, &bytes[..middle]).unwrap();
+    let error = format!("{:#}", AvatarRenderer::load_avatar(&reader).err().unwrap());
+    assert!(error.contains("gaussian_opacity"), "{error}");
+    std::fs::write(&chunk, &original).unwrap();
+    AvatarRenderer::load_avatar(&reader).unwrap();
+    std::fs::remove_dir_all(train_folder.join("gaussian_rotation")).unwrap();
+    let error = format!("{:#}", AvatarRenderer::load_avatar(&reader).err().unwrap());
+    assert!(error.contains("gaussian_rotation"), "{error}");
+    let error = format!(
+        "{:#}",
+        render_poses(&cache, &options).expect_err("corrupt avatar")
+    );
+    assert!(error.contains("gaussian_rotation"), "{error}");
+}
+
+fn fixture(name: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
+}
+
+/// Pose files in the dataset layout (tests/fixtures/make_poses.py); bad ones name the array.
+#[test]
+fn pose_files_are_read_and_checked() {
+    use seqavatar_eval::animate::read_pose_file;
+    let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5]).unwrap();
+    assert_eq!(params.len(), 3);
+    assert_eq!(params[2].world_translation.to_array(), [6.0, 7.0, 8.0]);
+    assert_eq!(params[0].pose[0].to_array(), [0.0; 3]);
+    assert_eq!(params[1].pose[23].to_array(), [0.1; 3]);
+    assert_eq!(params[0].betas, [1.0; 4]);
+    // (frames, joints, 3) layout; betas default to the avatar's.
+    let swing = read_pose_file(&fixture("swing.npz"), 24, &[0.5]).unwrap();
+    assert_eq!(swing.len(), 10);
+    assert_eq!(swing[0].betas, [0.5]);
+    let expected = 0.3 * (std::f64::consts::PI * 3.0 / 9.0).sin();
+    assert!((swing[3].pose[1].x - expected).abs() < 1e-12);
+    assert!((swing[3].pose[2].x + expected).abs() < 1e-12);
+    // More joints than the body model has.
+    let error = read_pose_file(&fixture("poses.npz"), 20, &[])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("body_pose") && error.contains("23 joints"),
+        "{error}"
+    );
+    let error = read_pose_file(&fixture("poses_nan.npz"), 24, &[])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("transl") && error.contains("non-finite"),
+        "{error}"
+    );
+    let error = read_pose_file(&fixture("poses_missing.npz"), 24, &[])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("poses_missing.npz") && error.contains("global_orient"),
+        "{error}"
+    );
+    let error = read_pose_file(&fixture("absent.npz"), 24, &[])
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("absent.npz"), "{error}");
+}
