@@ -35,7 +35,7 @@ use crate::model::{
     GaussianInputs, LbsOffsetsCache, NetworkConfig, Networks, NonRigidCache, PoseRefinerCache,
 };
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
-use crate::skinning::{GaussianParams, Skinned, skin_forward};
+use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
 use crate::splatting::{self, WorldGaussians};
 
 /// The per-Gaussian parameters of an avatar (flat, row-major).
@@ -340,6 +340,47 @@ pub fn deform(
     })
 }
 
+/// Backward of [`frame_pose`] and [`deform`] through the networks, from the skinning's
+/// gradients: accumulates the networks' parameter gradients and returns the gradient of the
+/// canonical centres through the non-rigid network (zeros without one; the direct path
+/// `x' = x + d_xyz` is the caller's). `params` are the frame's unrefined body parameters.
+pub fn deform_backward(
+    networks: &mut Networks<f64>,
+    rig: &BodyRig,
+    posed: &PosedFrame,
+    deformed: &Deformed,
+    params: &BodyParams,
+    skin: &SkinningGrads,
+) -> anyhow::Result<Vec<f64>> {
+    let mut through = vec![0.0; deformed.positions.len()];
+    if let Some(cache) = &deformed.non_rigid {
+        through = networks.non_rigid_backward(
+            cache,
+            &skin.positions,
+            &skin.d_rotations,
+            &skin.d_scales,
+        )?;
+    }
+    if let Some((_, cache)) = &deformed.weight_offsets {
+        networks.lbs_offsets_backward(cache, &skin.weight_offsets)?;
+    }
+    if let Some((cache, _)) = &posed.refiner {
+        let d_rotations =
+            rig.pose_backward(&posed.chain, &skin.target_joints, &skin.vertex_offsets);
+        // R'_j = R_j R_ref_j, so dL/dR_ref_j = R_j^T dL/dR'_j (non-root joints).
+        let mut flat = Vec::with_capacity(9 * (d_rotations.len() - 1));
+        for j in 1..d_rotations.len() {
+            let g = seqavatar_core::rotation::axis_angle_to_matrix(params.pose[j]).transpose()
+                * d_rotations[j];
+            for r in 0..3 {
+                flat.extend([g.x_axis[r], g.y_axis[r], g.z_axis[r]]);
+            }
+        }
+        networks.pose_refiner_backward(cache, &flat)?;
+    }
+    Ok(through)
+}
+
 /// Whether a configuration trains networks.
 pub fn needs_networks(config: &TrainConfig) -> bool {
     config.motion_context.has_non_rigid() || config.pose_refiner || config.lbs_offsets
@@ -585,5 +626,264 @@ impl TrainedAvatar {
         let mut avatar = Self::new(config, rig, gaussians, sh_degree, scales, networks);
         avatar.background = background;
         Ok(avatar)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{MotionContext, Preset};
+    use crate::model::Widths;
+    use crate::rng::Rng;
+    use crate::skinning::skin_backward;
+    use seqavatar_core::body::procedural::procedural_body;
+    use seqavatar_core::glam::DVec3;
+
+    struct Setup {
+        rig: BodyRig,
+        grid: KnnGrid,
+        config: TrainConfig,
+        gaussians: AvatarGaussians,
+        inputs: FrameInputs,
+        a: Vec<f64>,
+        b: Vec<f64>,
+    }
+
+    /// A smooth function of the skinned Gaussians: `sum a . centres + sum b . covariances`.
+    fn loss(s: &Setup, networks: &Networks<f64>, xyz: &[f64]) -> f64 {
+        let gaussians = AvatarGaussians {
+            xyz: xyz.to_vec(),
+            ..s.gaussians.clone()
+        };
+        let posed = frame_pose(&s.rig, Some(networks), &s.inputs.params).unwrap();
+        let d = deform(
+            &s.rig,
+            &s.grid,
+            Some(networks),
+            &gaussians,
+            &s.inputs,
+            &posed.pose,
+            &s.config,
+            0,
+        )
+        .unwrap();
+        let p: f64 = d
+            .skinned
+            .positions
+            .iter()
+            .zip(&s.a)
+            .map(|(x, y)| x * y)
+            .sum();
+        let c: f64 = d
+            .skinned
+            .covariances
+            .iter()
+            .zip(&s.b)
+            .map(|(x, y)| x * y)
+            .sum();
+        p + c
+    }
+
+    /// The whole deformation (pose refiner, non-rigid network with every motion input,
+    /// skinning) against central differences in f64, for parameters of each network and for
+    /// the canonical centres.
+    #[test]
+    fn deformation_gradients_match_finite_differences() {
+        check_deformation_gradients(MotionContext::Multiscale, false);
+    }
+
+    /// The same with the LBS weight offsets. Their input is detached (method.md), so the
+    /// centres and the non-rigid network, which move that input, are checked without them.
+    #[test]
+    fn lbs_offset_gradients_match_finite_differences() {
+        check_deformation_gradients(MotionContext::None, true);
+    }
+
+    fn check_deformation_gradients(context: MotionContext, lbs_offsets: bool) {
+        let model = procedural_body(0.05);
+        let rig = BodyRig::new(model.clone()).unwrap();
+        let grid = template_grid(&rig);
+        let mut rng = Rng::new(9);
+        let mut config = TrainConfig::preset(Preset::Fast);
+        config.motion_context = context;
+        config.lbs_offsets = lbs_offsets;
+        config.trunk_width = 16;
+        config.trunk_depth = 2;
+        config.tau = 2;
+        config.sequence_length = 2;
+        let (j, v, scales) = (rig.joint_count(), rig.vertex_count(), 2);
+        let n = 12;
+        let canonical = &rig.canonical_vertices;
+        let xyz: Vec<f64> = (0..n)
+            .flat_map(|i| {
+                let k = (i * 37) % v;
+                [canonical[3 * k], canonical[3 * k + 1], canonical[3 * k + 2]]
+            })
+            .map(|x| x + 0.01 * rng.normal())
+            .collect();
+        let gaussians = AvatarGaussians {
+            xyz,
+            sh: vec![0.0; n * 3 * SH_STORED],
+            opacity_logit: vec![0.0; n],
+            log_scale: (0..3 * n).map(|_| rng.uniform(-4.0, -3.0)).collect(),
+            rotation: (0..4 * n).map(|_| rng.uniform(-1.0, 1.0)).collect(),
+        };
+        let mut params = model.zero_params();
+        for p in params.pose.iter_mut() {
+            *p = DVec3::new(
+                rng.uniform(-0.3, 0.3),
+                rng.uniform(-0.3, 0.3),
+                rng.uniform(-0.3, 0.3),
+            );
+        }
+        params.world_translation = DVec3::new(0.1, 0.0, 2.0);
+        let inputs = FrameInputs {
+            params,
+            skeleton_motion: (0..2 * scales * j * 3)
+                .map(|_| rng.uniform(-0.5, 0.5) as f32)
+                .collect(),
+            vertex_velocity: (0..2 * scales * v * 3)
+                .map(|_| rng.uniform(-0.5, 0.5) as f32)
+                .collect(),
+        };
+        let mut net_config = NetworkConfig::from_train(&config, j, j, scales).unwrap();
+        net_config.widths = Widths {
+            encoding_frequencies: 2,
+            pose_encoder: 4,
+            seq_pose_frame: 4,
+            seq_pose: 4,
+            seq_xyz_velocity: 4,
+            seq_xyz_position: 4,
+            seq_xyz_frame: 4,
+            seq_xyz_hidden: 4,
+            seq_xyz: 4,
+            pose_refiner_hidden: 6,
+            lbs_hidden: 6,
+        };
+        let mut networks = Networks::<f64>::new(&net_config, 4).unwrap();
+        // Larger refiner and offset outputs than their near-zero initialisation, so that
+        // every path carries a visible gradient.
+        for param in networks.parameters_mut() {
+            if param.name.starts_with("pose_refiner.2") || param.name.starts_with("lbs_offsets.4") {
+                for x in param.values.iter_mut() {
+                    *x = rng.uniform(-0.1, 0.1);
+                }
+            }
+        }
+        let setup = Setup {
+            a: (0..3 * n).map(|_| rng.uniform(-1.0, 1.0)).collect(),
+            b: (0..6 * n).map(|_| rng.uniform(-100.0, 100.0)).collect(),
+            rig,
+            grid,
+            config,
+            gaussians,
+            inputs,
+        };
+        // Analytic gradients.
+        let posed = frame_pose(&setup.rig, Some(&networks), &setup.inputs.params).unwrap();
+        let deformed = deform(
+            &setup.rig,
+            &setup.grid,
+            Some(&networks),
+            &setup.gaussians,
+            &setup.inputs,
+            &posed.pose,
+            &setup.config,
+            0,
+        )
+        .unwrap();
+        let frame = setup
+            .rig
+            .frame(&posed.pose, setup.config.scale_min, setup.config.scale_max);
+        let skin = skin_backward(
+            &frame,
+            &GaussianParams {
+                positions: &deformed.positions,
+                log_scales: &setup.gaussians.log_scale,
+                d_scales: &deformed.d_scales,
+                rotations: &setup.gaussians.rotation,
+                d_rotations: &deformed.d_rotations,
+                weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
+                nearest: &deformed.nearest,
+            },
+            &setup.a,
+            &setup.b,
+        );
+        networks.zero_grad();
+        let through = deform_backward(
+            &mut networks,
+            &setup.rig,
+            &posed,
+            &deformed,
+            &setup.inputs.params,
+            &skin,
+        )
+        .unwrap();
+        let d_xyz: Vec<f64> = skin
+            .positions
+            .iter()
+            .zip(&through)
+            .map(|(x, y)| x + y)
+            .collect();
+        let eps = 1e-6;
+        let check = |name: &str, numeric: f64, analytic: f64| {
+            assert!(
+                (numeric - analytic).abs() <= 1e-5 * (1.0 + analytic.abs().max(numeric.abs())),
+                "{name}: numeric {numeric} analytic {analytic}"
+            );
+        };
+        let names: Vec<(String, usize)> = networks
+            .parameters()
+            .iter()
+            .map(|p| (p.name.clone(), p.values.len()))
+            .collect();
+        let mut checked = 0;
+        for (name, len) in &names {
+            let wanted = [
+                "pose_refiner.0.weight",
+                "pose_refiner.2.bias",
+                "lbs_offsets.4.weight",
+                "lbs_offsets.0.bias",
+            ];
+            let is_non_rigid =
+                !name.starts_with("pose_refiner") && !name.starts_with("lbs_offsets");
+            if !(wanted.contains(&name.as_str()) || is_non_rigid) {
+                continue;
+            }
+            let analytic_all: Vec<f64> = networks
+                .parameters()
+                .iter()
+                .find(|p| &p.name == name)
+                .unwrap()
+                .grads
+                .to_vec();
+            for k in [0, len / 2, len - 1] {
+                let eval = |delta: f64| {
+                    let mut moved = networks.clone();
+                    for p in moved.parameters_mut() {
+                        if &p.name == name {
+                            p.values[k] += delta;
+                        }
+                    }
+                    loss(&setup, &moved, &setup.gaussians.xyz)
+                };
+                let numeric = (eval(eps) - eval(-eps)) / (2.0 * eps);
+                check(&format!("{name}[{k}]"), numeric, analytic_all[k]);
+                checked += 1;
+            }
+        }
+        assert!(checked >= 12, "checked {checked} parameters");
+        if lbs_offsets {
+            return;
+        }
+        for i in [0, 7, 3 * n - 1] {
+            let eval = |delta: f64| {
+                let mut x = setup.gaussians.xyz.clone();
+                x[i] += delta;
+                loss(&setup, &networks, &x)
+            };
+            let numeric = (eval(eps) - eval(-eps)) / (2.0 * eps);
+            check(&format!("xyz[{i}]"), numeric, d_xyz[i]);
+        }
     }
 }

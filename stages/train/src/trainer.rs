@@ -16,8 +16,8 @@ use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
 use std::collections::BTreeMap;
 
 use crate::avatar::{
-    AvatarGaussians, PosedFrame, TrainedAvatar, deform, frame_pose, gather_frame_inputs,
-    needs_networks, template_grid,
+    AvatarGaussians, PosedFrame, TrainedAvatar, deform, deform_backward, frame_pose,
+    gather_frame_inputs, needs_networks, template_grid,
 };
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;
@@ -35,7 +35,6 @@ use crate::skinning::{
     GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
 };
 use crate::splatting;
-use seqavatar_core::rotation::axis_angle_to_matrix;
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -492,36 +491,16 @@ impl<'d> Trainer<'d> {
         }
         // Backward through the networks (their parameter gradients accumulate).
         if let Some(net) = self.networks.as_mut() {
-            if let Some(cache) = &deformed.non_rigid {
-                let through = net.non_rigid_backward(
-                    cache,
-                    &skin.positions,
-                    &skin.d_rotations,
-                    &skin.d_scales,
-                )?;
-                for (a, b) in d_xyz.iter_mut().zip(&through) {
-                    *a += b;
-                }
-            }
-            if let Some((_, cache)) = &deformed.weight_offsets {
-                net.lbs_offsets_backward(cache, &skin.weight_offsets)?;
-            }
-            if let Some((cache, _)) = &posed.refiner {
-                let d_rotations = self.data.rig.pose_backward(
-                    &posed.chain,
-                    &skin.target_joints,
-                    &skin.vertex_offsets,
-                );
-                // R'_j = R_j R_ref_j, so dL/dR_ref_j = R_j^T dL/dR'_j (non-root joints).
-                let params = &self.data.params[frame];
-                let mut flat = Vec::with_capacity(9 * (d_rotations.len() - 1));
-                for j in 1..d_rotations.len() {
-                    let g = axis_angle_to_matrix(params.pose[j]).transpose() * d_rotations[j];
-                    for r in 0..3 {
-                        flat.extend([g.x_axis[r], g.y_axis[r], g.z_axis[r]]);
-                    }
-                }
-                net.pose_refiner_backward(cache, &flat)?;
+            let through = deform_backward(
+                net,
+                &self.data.rig,
+                &posed,
+                &deformed,
+                &self.data.params[frame],
+                &skin,
+            )?;
+            for (a, b) in d_xyz.iter_mut().zip(&through) {
+                *a += b;
             }
         }
         let d_log_scale: Vec<f64> = skin

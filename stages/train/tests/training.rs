@@ -172,6 +172,40 @@ fn checkpoint_resume_is_exact() {
     assert!(Trainer::resume(other, &data, Backend::Cpu, &loaded).is_err());
 }
 
+/// With every network (multiscale context, pose refiner, LBS offsets): the network
+/// parameters and their Adam moments resume exactly too.
+#[test]
+fn checkpoint_resume_is_exact_with_networks() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 40);
+    config.motion_context = seqavatar_train::config::MotionContext::Multiscale;
+    config.pose_refiner = true;
+    config.lbs_offsets = true;
+    config.trunk_width = 16;
+    config.trunk_depth = 2;
+    let mut straight = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    for _ in 0..6 {
+        straight.step().unwrap();
+    }
+    let mut first = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    for _ in 0..3 {
+        first.step().unwrap();
+    }
+    let ckpt_dir = dir.path().join("ckpt");
+    checkpoint::save(&ckpt_dir, &first.checkpoint()).unwrap();
+    drop(first);
+    let loaded = checkpoint::load_latest(&ckpt_dir).unwrap().unwrap();
+    let mut resumed = Trainer::resume(config, &data, Backend::Cpu, &loaded).unwrap();
+    for _ in 0..3 {
+        resumed.step().unwrap();
+    }
+    assert_eq!(resumed.state, straight.state);
+    assert_eq!(resumed.curve, straight.curve);
+    assert!(resumed.networks.is_some());
+    assert!(resumed.networks == straight.networks, "network parameters differ");
+    assert!(resumed.checkpoint() == straight.checkpoint(), "Adam moments differ");
+}
+
 #[test]
 fn absurd_learning_rate_stops_with_iteration_and_tensor() {
     let dir = tempfile::tempdir().unwrap();
