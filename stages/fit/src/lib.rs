@@ -4,6 +4,7 @@
 
 pub mod banded;
 pub mod io;
+pub mod keypoints;
 pub mod plot;
 pub mod refine;
 pub mod smooth;

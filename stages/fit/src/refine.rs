@@ -108,21 +108,29 @@ pub fn refine_sequence(
     }
     output.world_translation = translation;
 
-    let b = input.num_betas;
-    if f > 0 && b > 0 {
-        let mut mean = vec![0.0; b];
-        for frame in input.betas.chunks_exact(b) {
-            for (m, x) in mean.iter_mut().zip(frame) {
-                *m += x / f as f64;
-            }
-        }
-        summary.betas_averaged = input
-            .betas
-            .chunks_exact(b)
-            .any(|frame| frame != mean.as_slice());
-        output.betas = mean.repeat(f);
-    }
+    summary.betas_averaged = shared_betas(&mut output);
     Ok((output, summary))
+}
+
+/// Replaces the per-frame betas by their mean, the least-squares shared shape; true when
+/// they differed.
+pub fn shared_betas(sequence: &mut BodySequence) -> bool {
+    let (f, b) = (sequence.num_frames, sequence.num_betas);
+    if f == 0 || b == 0 {
+        return false;
+    }
+    let mut mean = vec![0.0; b];
+    for frame in sequence.betas.chunks_exact(b) {
+        for (m, x) in mean.iter_mut().zip(frame) {
+            *m += x / f as f64;
+        }
+    }
+    let differed = sequence
+        .betas
+        .chunks_exact(b)
+        .any(|frame| frame != mean.as_slice());
+    sequence.betas = mean.repeat(f);
+    differed
 }
 
 /// World-space joint positions of one frame: forward kinematics only (no vertices).

@@ -100,7 +100,7 @@ impl SmoothingWeights {
 /// logarithmic above: a jump far beyond `c` costs almost the same whether it happens in one
 /// frame or is smeared over several, so the data term keeps it sharp. (Huber's linear tail
 /// prefers smearing a step over a few frames: its cost falls as `1/k`.)
-fn robust(s: f64, scale: f64) -> (f64, f64) {
+pub(crate) fn robust(s: f64, scale: f64) -> (f64, f64) {
     let ratio = s * s / (scale * scale);
     (scale * scale * ratio.ln_1p(), 1.0 / (1.0 + ratio))
 }
@@ -136,7 +136,7 @@ pub fn rotation_acceleration_jacobian(prev: DMat3, cur: DMat3, next: DMat3) -> [
     out
 }
 
-fn rotation_energy(track: &[DMat3], input: &[DMat3], w: &SmoothingWeights) -> f64 {
+pub(crate) fn rotation_energy(track: &[DMat3], input: &[DMat3], w: &SmoothingWeights) -> f64 {
     let data_scale = 1.0 / (2.0 * w.rotation_noise * w.rotation_noise);
     let accel_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_acceleration);
     let mut energy = 0.0;
@@ -151,25 +151,25 @@ fn rotation_energy(track: &[DMat3], input: &[DMat3], w: &SmoothingWeights) -> f6
     energy
 }
 
-/// Adds `weight * J^T J` and `weight * J^T r` of one residual block to the normal equations.
-/// `jac[f][i]` is the derivative (a 9-vector) with respect to component `i` of frame
-/// `frames[f]`.
-fn accumulate(
+/// Adds `weight * J^T J` and `weight * J^T r` of one residual block (a `D`-vector) to the
+/// normal equations. `jac[f][i]` is the derivative with respect to the unknown
+/// `bases[f] + i` (component `i` of the 3-vector of unknowns starting at `bases[f]`).
+pub(crate) fn accumulate<const D: usize>(
     h: &mut BandedMatrix,
     g: &mut [f64],
-    frames: &[usize],
-    jac: &[[[f64; 9]; 3]],
-    residual: &[f64; 9],
+    bases: &[usize],
+    jac: &[[[f64; D]; 3]],
+    residual: &[f64; D],
     weight: f64,
 ) {
-    for (fa, &ta) in frames.iter().enumerate() {
+    for (fa, &ba) in bases.iter().enumerate() {
         for ia in 0..3 {
-            let row = ta * 3 + ia;
+            let row = ba + ia;
             let ja = &jac[fa][ia];
             g[row] += weight * ja.iter().zip(residual).map(|(a, b)| a * b).sum::<f64>();
-            for (fb, &tb) in frames.iter().enumerate() {
+            for (fb, &bb) in bases.iter().enumerate() {
                 for (ib, jb) in jac[fb].iter().enumerate() {
-                    let col = tb * 3 + ib;
+                    let col = bb + ib;
                     if col > row {
                         continue;
                     }
@@ -181,19 +181,23 @@ fn accumulate(
     }
 }
 
-fn rotation_normal_equations(
+/// Visits every residual block of a rotation track's energy (the data term, then the
+/// acceleration terms) as `(frames, jac, residual, irls_weight)`: `jac[f][i]` is the
+/// derivative (a 9-vector) with respect to component `i` of the right perturbation of
+/// `track[frames[f]]`. The (iteratively reweighted) Gauss-Newton model of the energy is
+/// `sum irls_weight |residual + jac d|^2`.
+pub(crate) fn rotation_residuals(
     track: &[DMat3],
     input: &[DMat3],
     w: &SmoothingWeights,
-) -> (BandedMatrix, Vec<f64>) {
+    mut visit: impl FnMut(&[usize], &[[[f64; 9]; 3]], &[f64; 9], f64),
+) {
     let n = track.len();
-    let mut h = BandedMatrix::zeros(3 * n, 8);
-    let mut g = vec![0.0; 3 * n];
     let data_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_noise);
     for t in 0..n {
         let residual = mat_entries((track[t] - input[t]) * data_scale);
         let jac = [BASIS.map(|e| mat_entries(track[t] * skew(e) * data_scale))];
-        accumulate(&mut h, &mut g, &[t], &jac, &residual, 1.0);
+        visit(&[t], &jac, &residual, 1.0);
     }
     let accel_scale = 1.0 / (std::f64::consts::SQRT_2 * w.rotation_acceleration);
     for t in 1..n.saturating_sub(1) {
@@ -204,16 +208,34 @@ fn rotation_normal_equations(
         let weight = robust(s, w.robust_threshold).1;
         let d = rotation_acceleration_jacobian(p, c, x);
         let jac = d.map(|frame| frame.map(|m| mat_entries(m * accel_scale)));
-        accumulate(&mut h, &mut g, &[t - 1, t, t + 1], &jac, &residual, weight);
+        visit(&[t - 1, t, t + 1], &jac, &residual, weight);
     }
+}
+
+fn rotation_normal_equations(
+    track: &[DMat3],
+    input: &[DMat3],
+    w: &SmoothingWeights,
+) -> (BandedMatrix, Vec<f64>) {
+    let n = track.len();
+    let mut h = BandedMatrix::zeros(3 * n, 8);
+    let mut g = vec![0.0; 3 * n];
+    rotation_residuals(track, input, w, |frames, jac, residual, weight| {
+        let bases: Vec<usize> = frames.iter().map(|t| 3 * t).collect();
+        accumulate(&mut h, &mut g, &bases, jac, residual, weight);
+    });
     (h, g)
 }
 
+/// Relative energy decrease below which smoothing a track stops.
+const SMOOTH_TOLERANCE: f64 = 1e-12;
+
 /// Generic damped Gauss-Newton loop: `model` gives the (reweighted) normal equations at a
 /// state, `energy` the true robust energy, `retract` applies a step.
-fn levenberg_marquardt<S: Clone>(
+pub(crate) fn levenberg_marquardt<S: Clone>(
     start: S,
     max_iterations: usize,
+    relative_tolerance: f64,
     energy: impl Fn(&S) -> f64,
     model: impl Fn(&S) -> (BandedMatrix, Vec<f64>),
     retract: impl Fn(&S, &[f64]) -> S,
@@ -245,7 +267,7 @@ fn levenberg_marquardt<S: Clone>(
                 damping = (damping / 3.0).max(1e-12);
                 accepted = true;
                 let step_norm = step.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
-                if step_norm < 1e-10 || decrease <= 1e-12 * current.max(1e-300) {
+                if step_norm < 1e-10 || decrease <= relative_tolerance * current.max(1e-300) {
                     return Ok((
                         state,
                         TrackReport {
@@ -288,6 +310,7 @@ pub fn smooth_rotation_track(
     levenberg_marquardt(
         input.to_vec(),
         w.max_iterations,
+        SMOOTH_TOLERANCE,
         |track| rotation_energy(track, input, w),
         |track| rotation_normal_equations(track, input, w),
         |track, step| {
@@ -303,7 +326,7 @@ pub fn smooth_rotation_track(
     )
 }
 
-fn translation_energy(track: &[DVec3], input: &[DVec3], w: &SmoothingWeights) -> f64 {
+pub(crate) fn translation_energy(track: &[DVec3], input: &[DVec3], w: &SmoothingWeights) -> f64 {
     let mut energy = 0.0;
     for (x, q) in track.iter().zip(input) {
         energy += (*x - *q).length_squared() / (w.translation_noise * w.translation_noise);
@@ -315,6 +338,30 @@ fn translation_energy(track: &[DVec3], input: &[DVec3], w: &SmoothingWeights) ->
     energy
 }
 
+/// Visits every residual block of the translation track's energy, as
+/// [`rotation_residuals`] does (3-vector residuals; `jac[f][i]` is the derivative with
+/// respect to component `i` of `track[frames[f]]`).
+pub(crate) fn translation_residuals(
+    track: &[DVec3],
+    input: &[DVec3],
+    w: &SmoothingWeights,
+    mut visit: impl FnMut(&[usize], &[[[f64; 3]; 3]], &[f64; 3], f64),
+) {
+    let n = track.len();
+    let unit = |scale: f64| BASIS.map(|e| (e * scale).to_array());
+    for t in 0..n {
+        let r = (track[t] - input[t]) / w.translation_noise;
+        visit(&[t], &[unit(1.0 / w.translation_noise)], &r.to_array(), 1.0);
+    }
+    let coefficients = [1.0, -2.0, 1.0];
+    for t in 1..n.saturating_sub(1) {
+        let a = (track[t + 1] - 2.0 * track[t] + track[t - 1]) / w.translation_acceleration;
+        let irls = robust(a.length(), w.robust_threshold).1;
+        let jac = coefficients.map(|c| unit(c / w.translation_acceleration));
+        visit(&[t - 1, t, t + 1], &jac, &a.to_array(), irls);
+    }
+}
+
 fn translation_normal_equations(
     track: &[DVec3],
     input: &[DVec3],
@@ -323,32 +370,10 @@ fn translation_normal_equations(
     let n = track.len();
     let mut h = BandedMatrix::zeros(3 * n, 8);
     let mut g = vec![0.0; 3 * n];
-    let data_weight = 1.0 / (w.translation_noise * w.translation_noise);
-    for t in 0..n {
-        let r = track[t] - input[t];
-        for c in 0..3 {
-            h.add(3 * t + c, 3 * t + c, data_weight);
-            g[3 * t + c] += data_weight * r[c];
-        }
-    }
-    let accel_weight = 1.0 / (w.translation_acceleration * w.translation_acceleration);
-    let coefficients = [1.0, -2.0, 1.0];
-    for t in 1..n.saturating_sub(1) {
-        let a = track[t + 1] - 2.0 * track[t] + track[t - 1];
-        let irls = robust(a.length() / w.translation_acceleration, w.robust_threshold).1;
-        let frames = [t - 1, t, t + 1];
-        for (fa, &ta) in frames.iter().enumerate() {
-            for c in 0..3 {
-                g[3 * ta + c] += irls * accel_weight * coefficients[fa] * a[c];
-                for (fb, &tb) in frames.iter().enumerate() {
-                    if tb <= ta {
-                        let v = irls * accel_weight * coefficients[fa] * coefficients[fb];
-                        h.add(3 * ta + c, 3 * tb + c, v);
-                    }
-                }
-            }
-        }
-    }
+    translation_residuals(track, input, w, |frames, jac, residual, weight| {
+        let bases: Vec<usize> = frames.iter().map(|t| 3 * t).collect();
+        accumulate(&mut h, &mut g, &bases, jac, residual, weight);
+    });
     (h, g)
 }
 
@@ -364,6 +389,7 @@ pub fn smooth_translation_track(
     levenberg_marquardt(
         input.to_vec(),
         w.max_iterations,
+        SMOOTH_TOLERANCE,
         |track| translation_energy(track, input, w),
         |track| translation_normal_equations(track, input, w),
         |track, step| {

@@ -5,7 +5,9 @@
 //! input has it, `body_expression`; plus the report arrays `jitter_before` and
 //! `jitter_after` f64 `(frame)`: per-frame joint jitter (mean over joints of the second
 //! difference of world joint positions, metres per frame squared). Attributes:
-//! `mode`, `mean_jitter_before`, `mean_jitter_after`, and for the synthetic scene (input with
+//! `mode`, `mean_jitter_before`, `mean_jitter_after`; in keypoints mode
+//! `keypoint_distance_before`/`_after` (confidence-weighted mean distance between posed
+//! joints and 3D keypoints, metres); and for the synthetic scene (input with
 //! `gt_` arrays) `joint_error_before`/`_after` (mean joint position error against ground
 //! truth, metres) and `velocity_error_before`/`_after` (mean template vertex velocity error
 //! against ground truth, metres per frame).
@@ -18,12 +20,13 @@ use seqavatar_engine::{
 };
 
 use crate::io::BodySequence;
+use crate::keypoints::{KeypointObservations, KeypointWeights, refine_with_keypoints};
 use crate::plot;
 use crate::refine::{
     joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
 };
 use crate::smooth::SmoothingWeights;
-use seqavatar_ingest::read_body_model;
+use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
 
 /// What the stage does with the input fits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -34,6 +37,9 @@ pub enum FitMode {
     /// Data term (stay close to the input fit) plus temporal term, per track.
     #[default]
     Smooth,
+    /// Smooth mode's terms plus the ingest entry's 3D keypoints, solved jointly over all
+    /// frames ([`crate::keypoints`]).
+    Keypoints,
 }
 
 /// The `fit` stage configuration (all fields optional in the YAML).
@@ -52,8 +58,10 @@ pub struct FitConfig {
     /// Scale of the Cauchy kernel on acceleration residuals, in standard deviations: much
     /// larger jumps are treated as genuine (a flip, a teleport) and kept sharp.
     pub robust_threshold: f64,
-    /// Levenberg-Marquardt iteration limit per track.
+    /// Levenberg-Marquardt iteration limit per track (per sequence in keypoints mode).
     pub max_iterations: usize,
+    /// Expected error of a 3D keypoint position, metres (keypoints mode).
+    pub keypoint_noise_m: f64,
 }
 
 impl Default for FitConfig {
@@ -67,6 +75,7 @@ impl Default for FitConfig {
             translation_acceleration_m: w.translation_acceleration,
             robust_threshold: w.robust_threshold,
             max_iterations: w.max_iterations,
+            keypoint_noise_m: 0.02,
         }
     }
 }
@@ -85,11 +94,30 @@ impl FitConfig {
     }
 }
 
+/// The keypoints `mode: keypoints` uses, from what the ingest entry at `location` holds;
+/// errors name the entry and the modes that work without keypoints.
+pub fn keypoint_observations(
+    location: &str,
+    keypoints: Option<Keypoints3d>,
+    num_joints: usize,
+) -> anyhow::Result<KeypointObservations> {
+    let keypoints = keypoints.ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {location}: fit `mode: keypoints` needs 3D keypoints (arrays `keypoints_3d`, `keypoints_3d_confidence`) and this ingest entry has none; `mode: smooth` and `mode: off` work without them"
+        )
+    })?;
+    KeypointObservations::new(&keypoints, num_joints).map_err(|e| {
+        anyhow::anyhow!(
+            "entry {location}: 3D keypoints: {e}; `mode: smooth` and `mode: off` work without keypoints"
+        )
+    })
+}
+
 /// The stage kind.
 pub struct FitStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 impl StageKind for FitStage {
     fn kind(&self) -> &'static str {
@@ -108,6 +136,15 @@ impl StageKind for FitStage {
         let resolved = seqavatar_engine::resolve_typed::<FitConfig>(raw)?;
         let config: FitConfig = serde_json::from_value(resolved.clone())
             .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+        if !(config.keypoint_noise_m > 0.0 && config.keypoint_noise_m.is_finite()) {
+            return Err(ConfigError::at_key(
+                "keypoint_noise_m",
+                format!(
+                    "must be positive and finite, got {}",
+                    config.keypoint_noise_m
+                ),
+            ));
+        }
         if let Err(e) = config.weights().validate() {
             // Name the YAML field: the error names the solver's field.
             let field = match &e {
@@ -150,6 +187,53 @@ impl StageKind for FitStage {
                 if summary.betas_averaged {
                     ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
                 }
+                refined
+            }
+            FitMode::Keypoints => {
+                let observations = keypoint_observations(
+                    ingest.location(),
+                    read_keypoints_3d(&ingest)?,
+                    model.num_joints(),
+                )?;
+                let started = std::time::Instant::now();
+                let (refined, summary) = refine_with_keypoints(
+                    &model,
+                    &input,
+                    &observations,
+                    &config.weights(),
+                    &KeypointWeights {
+                        noise: config.keypoint_noise_m,
+                    },
+                )
+                .with_context(|| {
+                    format!(
+                        "entry {}: refining the body fits against 3D keypoints",
+                        ingest.location()
+                    )
+                })?;
+                ctx.log(&format!(
+                    "keypoint fit of {} frames x {} joints ({} keypoints per frame) in {:.2} s, {} iterations: energy {:.4e} -> {:.4e}, mean keypoint distance {:.2} -> {:.2} mm",
+                    input.num_frames,
+                    input.num_joints,
+                    summary.keypoints_used,
+                    started.elapsed().as_secs_f64(),
+                    summary.refine.max_iterations_used,
+                    summary.refine.energy_before,
+                    summary.refine.energy_after,
+                    summary.keypoint_distance_before * 1e3,
+                    summary.keypoint_distance_after * 1e3,
+                ));
+                if summary.refine.betas_averaged {
+                    ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
+                }
+                ctx.output().set_attribute(
+                    "keypoint_distance_before",
+                    summary.keypoint_distance_before.into(),
+                )?;
+                ctx.output().set_attribute(
+                    "keypoint_distance_after",
+                    summary.keypoint_distance_after.into(),
+                )?;
                 refined
             }
         };
@@ -245,5 +329,69 @@ impl StageKind for FitStage {
         let before = entry.read::<f64>("jitter_before")?.data;
         let after = entry.read::<f64>("jitter_after")?.data;
         Ok(plot::line_plot(width, height, &[before, after]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_core::glam::DVec3;
+
+    #[test]
+    fn keypoint_mode_errors_name_the_entry_and_the_modes_that_work() {
+        let message = keypoint_observations("cache/ingest/abc", None, 24)
+            .unwrap_err()
+            .to_string();
+        for part in [
+            "cache/ingest/abc",
+            "mode: keypoints",
+            "mode: smooth",
+            "mode: off",
+        ] {
+            assert!(message.contains(part), "{message}");
+        }
+        // Keypoints whose joint correspondence is unknown (DNA-Rendering).
+        let unmapped = Keypoints3d {
+            joints: vec![None; 3],
+            positions: vec![DVec3::ZERO; 6],
+            confidence: vec![1.0; 6],
+        };
+        let message = keypoint_observations("cache/ingest/abc", Some(unmapped), 24)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("cache/ingest/abc")
+                && message.contains("none of the 3 keypoints")
+                && message.contains("mode: smooth"),
+            "{message}"
+        );
+        // A NaN keypoint that claims confidence.
+        let mut bad = Keypoints3d {
+            joints: vec![Some(0), None, Some(2)],
+            positions: vec![DVec3::ONE; 6],
+            confidence: vec![1.0; 6],
+        };
+        bad.positions[5] = DVec3::new(0.0, f64::NAN, 0.0);
+        let message = keypoint_observations("e", Some(bad.clone()), 24)
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("frame 1 keypoint 2"), "{message}");
+        // ... is ignored with confidence 0 (documented in crate::keypoints).
+        bad.confidence[5] = 0.0;
+        let used = keypoint_observations("e", Some(bad), 24).unwrap();
+        assert_eq!(used.joints, vec![0, 2]);
+        assert_eq!(used.confidence, vec![1.0, 1.0, 1.0, 0.0]);
+    }
+
+    #[test]
+    fn config_rejects_a_bad_keypoint_noise() {
+        let error = FitStage
+            .resolve_config(&serde_json::json!({"mode": "keypoints", "keypoint_noise_m": 0.0}))
+            .unwrap_err();
+        assert!(error.to_string().contains("keypoint_noise_m"), "{error}");
+        let ok = FitStage
+            .resolve_config(&serde_json::json!({"mode": "keypoints"}))
+            .unwrap();
+        assert_eq!(ok["keypoint_noise_m"], serde_json::json!(0.02));
     }
 }

@@ -7,7 +7,8 @@
 //! Axes: `view` (ingested cameras), `frame` (the motion frame axis), `image` (ingested
 //! (view, frame) pairs), `height`/`width` (the largest rescaled image), `rgb` = 3,
 //! `row`/`col` = 3, `xyz` = 3, `hw` = 2, `coeff` = 5, `joint`, `vertex`, `face`, `corner` = 3,
-//! `beta`, `expression`, `pose_feature` = 9 (J - 1). Every array has these `dimension_names`.
+//! `beta`, `expression`, `pose_feature` = 9 (J - 1), `keypoint`. Every array has these
+//! `dimension_names`.
 //!
 //! Cameras (after undistortion and rescaling; the images are distortion free):
 //! - `camera_K` f64 `(view, row, col)`: intrinsics in the continuous pixel convention
@@ -46,6 +47,22 @@
 //! - Synthetic scene only: the same five arrays with the prefix `gt_` (`gt_body_pose`, ...)
 //!   hold the exact parameters the images were rendered with.
 //!
+//! 3D keypoints (only where the dataset has them), rows on the frame axis:
+//! - `keypoints_3d` f64 `(frame, keypoint, xyz)`: world space, metres.
+//! - `keypoints_3d_confidence` f64 `(frame, keypoint)`: finite, `>= 0`; 0 marks a missing
+//!   keypoint, whose position means nothing (it may be NaN: a source keypoint with a
+//!   non-finite position is stored with confidence 0).
+//! - Attribute `keypoints_3d_joints`: per keypoint, the index of the body-model joint it
+//!   measures (the posed joint position `k_j` of [`seqavatar_core::body`]), or -1 where the
+//!   dataset documents no correspondence.
+//!
+//! Sources: the synthetic scene writes every joint of the procedural body (keypoint `j` is
+//! joint `j`): the ground-truth joint positions plus seeded Gaussian noise of
+//! `dataset.jitter.keypoints_metres` per coordinate (a stream separate from the fit jitter),
+//! confidence 1. DNA-Rendering writes `Keypoints_3D/keypoints3d` of the annotation file
+//! (`(frames, K, 3)`, or `(frames, K, 4)` with a confidence column) as stored; its joint
+//! correspondence is not documented, so every keypoint has joint -1.
+//!
 //! Body model (the arrays of [`seqavatar_core::body::BodyModelArrays`]):
 //! - `body_model_template` f64 `(vertex, xyz)`, `body_model_faces` u32 `(face, corner)`,
 //!   `body_model_parents` i64 `(joint)` (-1 for the root), `body_model_weights` f64
@@ -65,7 +82,10 @@ pub mod formats;
 pub mod stage;
 pub mod synthetic;
 
-pub use stage::{DatasetReader, Ingest, IngestConfig, read_body_model, read_body_params};
+pub use stage::{
+    DatasetReader, Ingest, IngestConfig, Keypoints3d, read_body_model, read_body_params,
+    read_keypoints_3d,
+};
 
 /// Adds the `ingest` stage kind to the registry.
 pub fn register(registry: &mut seqavatar_engine::Registry) {

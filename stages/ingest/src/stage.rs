@@ -50,6 +50,32 @@ impl BodyModelKind {
     }
 }
 
+/// 3D keypoints of every frame of a dataset's frame list (`frame`-major), in world space,
+/// metres. A keypoint whose position is not finite is missing: [`write_keypoints_3d`] stores
+/// it with confidence 0.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Keypoints3d {
+    /// Per keypoint, the body joint it measures; `None` where the dataset does not document
+    /// the correspondence.
+    pub joints: Vec<Option<usize>>,
+    /// `(frame, keypoint)` positions.
+    pub positions: Vec<seqavatar_core::glam::DVec3>,
+    /// `(frame, keypoint)` confidence, finite and non-negative; 0 = missing.
+    pub confidence: Vec<f64>,
+}
+
+impl Keypoints3d {
+    /// Number of keypoints per frame.
+    pub fn num_keypoints(&self) -> usize {
+        self.joints.len()
+    }
+
+    /// Number of frames (rows).
+    pub fn num_frames(&self) -> usize {
+        self.positions.len() / self.num_keypoints().max(1)
+    }
+}
+
 /// A selection of frame-list indices: `start, start + step, ...` below `end`
 /// (`end: None` = up to the last frame).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -126,6 +152,10 @@ pub trait DatasetReader: Send + Sync {
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams>;
     /// Exact body parameters where known (synthetic data only).
     fn ground_truth_body_params(&self, _frame: usize) -> anyhow::Result<Option<BodyParams>> {
+        Ok(None)
+    }
+    /// 3D keypoints of every frame of the frame list, where the dataset has them.
+    fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
         Ok(None)
     }
     /// Image and mask of camera `view` at frame-list index `frame`, full resolution.
@@ -458,7 +488,7 @@ use seqavatar_engine::{
 pub struct Ingest;
 
 /// Implementation version: bump whenever the written arrays change for the same config.
-pub const INGEST_VERSION: u32 = 1;
+pub const INGEST_VERSION: u32 = 2;
 
 impl StageKind for Ingest {
     fn kind(&self) -> &'static str {
@@ -736,7 +766,155 @@ fn write_frames(
         let truth: Vec<BodyParams> = truth.into_iter().flatten().collect();
         write_body_params(out, "gt_body", &truth, model)?;
     }
+    if let Some(keypoints) = reader.keypoints_3d()? {
+        let describe = reader.describe();
+        let rows = keypoints.num_frames();
+        let k = keypoints.num_keypoints();
+        anyhow::ensure!(
+            keypoints.positions.len() == rows * k
+                && keypoints.confidence.len() == rows * k
+                && rows >= reader.num_frames(),
+            "{describe}: 3D keypoints have {} positions and {} confidences for {k} keypoints; expected {} frames x {k}",
+            keypoints.positions.len(),
+            keypoints.confidence.len(),
+            reader.num_frames()
+        );
+        let selected = Keypoints3d {
+            joints: keypoints.joints.clone(),
+            positions: plan
+                .frames
+                .iter()
+                .flat_map(|&f| keypoints.positions[f * k..(f + 1) * k].iter().copied())
+                .collect(),
+            confidence: plan
+                .frames
+                .iter()
+                .flat_map(|&f| keypoints.confidence[f * k..(f + 1) * k].iter().copied())
+                .collect(),
+        };
+        write_keypoints_3d(out, &selected, model)
+            .with_context(|| format!("{describe}: 3D keypoints"))?;
+    }
     Ok(())
+}
+
+/// Writes `keypoints_3d`, `keypoints_3d_confidence` and the `keypoints_3d_joints` attribute
+/// (lib.rs schema). A keypoint with a non-finite position gets confidence 0; a negative or
+/// non-finite confidence, or a joint the model does not have, is an error naming the frame
+/// (row) and keypoint.
+pub fn write_keypoints_3d(
+    out: &EntryWriter,
+    keypoints: &Keypoints3d,
+    model: &BodyModel,
+) -> anyhow::Result<()> {
+    let k = keypoints.num_keypoints();
+    let n = keypoints.num_frames();
+    anyhow::ensure!(k > 0, "no keypoints");
+    for (i, joint) in keypoints.joints.iter().enumerate() {
+        if let Some(j) = joint {
+            anyhow::ensure!(
+                *j < model.num_joints(),
+                "keypoint {i} names joint {j}; the body model has {} joints",
+                model.num_joints()
+            );
+        }
+    }
+    let mut confidence = keypoints.confidence.clone();
+    for (i, (c, p)) in confidence.iter_mut().zip(&keypoints.positions).enumerate() {
+        anyhow::ensure!(
+            c.is_finite() && *c >= 0.0,
+            "confidence {c} of frame {} keypoint {} is not a finite non-negative number",
+            i / k,
+            i % k
+        );
+        if !p.is_finite() {
+            *c = 0.0;
+        }
+    }
+    let positions: Vec<f64> = keypoints
+        .positions
+        .iter()
+        .flat_map(|p| p.to_array())
+        .collect();
+    let (n64, k64) = (n as u64, k as u64);
+    let chunk = n64.clamp(1, 1024);
+    out.write_array(
+        "keypoints_3d",
+        &["frame", "keypoint", "xyz"],
+        &[n64, k64, 3],
+        &[chunk, k64, 3],
+        &positions,
+    )?;
+    out.write_array(
+        "keypoints_3d_confidence",
+        &["frame", "keypoint"],
+        &[n64, k64],
+        &[chunk, k64],
+        &confidence,
+    )?;
+    let joints: Vec<i64> = keypoints
+        .joints
+        .iter()
+        .map(|j| j.map_or(-1, |j| j as i64))
+        .collect();
+    out.set_attribute("keypoints_3d_joints", serde_json::to_value(joints)?)?;
+    Ok(())
+}
+
+/// Reads the arrays written by [`write_keypoints_3d`]; `None` when the entry has none.
+/// Errors name the entry and the array or attribute.
+pub fn read_keypoints_3d(entry: &EntryReader) -> anyhow::Result<Option<Keypoints3d>> {
+    let names = entry.array_names();
+    if !names.iter().any(|n| n == "keypoints_3d") {
+        return Ok(None);
+    }
+    let location = entry.location();
+    let positions = entry.read::<f64>("keypoints_3d")?;
+    anyhow::ensure!(
+        positions.shape.len() == 3 && positions.shape[2] == 3,
+        "entry {location}: array keypoints_3d has shape {:?}, expected (frame, keypoint, 3)",
+        positions.shape
+    );
+    let (n, k) = (positions.shape[0], positions.shape[1]);
+    let confidence = entry.read::<f64>("keypoints_3d_confidence")?;
+    anyhow::ensure!(
+        confidence.shape == [n, k],
+        "entry {location}: array keypoints_3d_confidence has shape {:?}, expected ({n}, {k})",
+        confidence.shape
+    );
+    let joints = entry.attribute("keypoints_3d_joints").ok_or_else(|| {
+        anyhow::anyhow!("entry {location}: attribute keypoints_3d_joints is missing")
+    })?;
+    let joints: Vec<i64> = serde_json::from_value(joints).map_err(|e| {
+        anyhow::anyhow!(
+            "entry {location}: attribute keypoints_3d_joints is not a list of integers: {e}"
+        )
+    })?;
+    anyhow::ensure!(
+        joints.len() == k,
+        "entry {location}: attribute keypoints_3d_joints has {} entries for {k} keypoints",
+        joints.len()
+    );
+    let joints = joints
+        .into_iter()
+        .enumerate()
+        .map(|(i, j)| match j {
+            -1 => Ok(None),
+            j if j >= 0 => Ok(Some(j as usize)),
+            j => Err(anyhow::anyhow!(
+                "entry {location}: attribute keypoints_3d_joints[{i}] is {j} (a joint index or -1)"
+            )),
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Some(Keypoints3d {
+        joints,
+        positions: positions
+            .data
+            .chunks_exact(3)
+            .map(|c| DVec3::new(c[0], c[1], c[2]))
+            .collect(),
+        confidence: confidence.data,
+    }))
 }
 
 /// Writes `<prefix>_pose`, `_world_rotation`, `_world_translation`, `_betas` and (when the
@@ -1214,6 +1392,27 @@ mod stage_tests {
             .sum::<f64>()
             / 24.0;
         assert!(pose_error > 0.01 && pose_error < 0.2, "{pose_error}");
+
+        // 3D keypoints: keypoint j is joint j, the true joint position plus ~1 cm noise.
+        let keypoints = read_keypoints_3d(&entry)
+            .unwrap()
+            .expect("synthetic keypoints");
+        assert_eq!(entry.shape("keypoints_3d").unwrap(), vec![4, 24, 3]);
+        assert_eq!(keypoints.joints, (0..24).map(Some).collect::<Vec<_>>());
+        assert!(keypoints.confidence.iter().all(|c| *c == 1.0));
+        let mut squared = 0.0;
+        for (f, params) in truth.iter().enumerate() {
+            let joints = model.forward(params).unwrap().joints;
+            for (j, joint) in joints.iter().enumerate() {
+                squared += (keypoints.positions[f * 24 + j] - *joint).length_squared();
+            }
+        }
+        // Mean squared distance of 3 coordinates with sigma 1 cm: 3e-4 m^2.
+        let mean_squared = squared / 96.0;
+        assert!(
+            mean_squared > 1.5e-4 && mean_squared < 5e-4,
+            "{mean_squared}"
+        );
 
         // Camera convention: the true pelvis and a point on the torso surface project onto
         // the foreground of every image through the stored K, R, t.

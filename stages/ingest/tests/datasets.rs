@@ -358,6 +358,32 @@ fn dna_rendering_reads_smc_pairs() {
             "expression",
         );
     }
+    // 3D keypoints carried as stored, with the confidence column; the NaN keypoint
+    // (frame 1, keypoint 4) has confidence 0; no joint correspondence is documented.
+    let keypoints = reader
+        .keypoints_3d()
+        .unwrap()
+        .expect("fixture has Keypoints_3D");
+    assert_eq!(keypoints.joints, vec![None; 10]);
+    let positions: Vec<f64> = keypoints
+        .positions
+        .iter()
+        .map(|p| if p.is_finite() { *p } else { DVec3::ZERO })
+        .flat_map(|p| p.to_array())
+        .collect();
+    assert_close(
+        &positions,
+        &f64s(&expected["keypoints3d"]),
+        0.0,
+        "keypoints",
+    );
+    assert_close(
+        &keypoints.confidence,
+        &f64s(&expected["keypoints3d_confidence"]),
+        0.0,
+        "keypoint confidence",
+    );
+    assert_eq!(keypoints.confidence[14], 0.0);
     assert_eq!(reader.warnings.len(), 3, "{:?}", reader.warnings);
     assert!(
         reader

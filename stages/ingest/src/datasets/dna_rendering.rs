@@ -14,6 +14,12 @@
 //!   `expression` with a single row, or fewer rows than frames, are broadcast (the last row
 //!   repeats) with a warning; extra rows are dropped with a warning. `scale` other than 1 is
 //!   reported as a warning and not applied.
+//! - `Keypoints_3D/keypoints3d` (optional), `(frames, K, 3)` or `(frames, K, 4)` with a
+//!   confidence column (confidence 1 without one): carried as stored (world space, metres,
+//!   as the SMPL-X fits; the dataset's own reader leaves the coordinate frame as a TODO). A
+//!   keypoint with a non-finite coordinate or confidence gets confidence 0. Which body joint
+//!   each keypoint measures is not documented (`datasets.md`, the dataset's reader), so none
+//!   is mapped (every joint index is `None`): fit `mode: keypoints` refuses such an entry.
 
 use std::path::{Path, PathBuf};
 
@@ -27,7 +33,9 @@ use super::common::{
     check_finite, check_image_size, check_mask_size, decode_mask, decode_rgb, warn,
 };
 use crate::formats::npz;
-use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+use crate::stage::{
+    BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
+};
 
 /// The two camera groups of the main file.
 const CAMERA_GROUPS: [&str; 2] = ["Camera_5mp", "Camera_12mp"];
@@ -45,6 +53,8 @@ pub struct DnaRendering {
     body_model_path: Option<PathBuf>,
     /// SMPL-X mean hand pose (90 values), read from the body model file at open.
     hands_mean: Option<Vec<f64>>,
+    /// `Keypoints_3D/keypoints3d`, when the annotation file has it.
+    keypoints: Option<Keypoints3d>,
     pub gender: Option<String>,
     pub warnings: Vec<String>,
 }
@@ -159,6 +169,50 @@ fn npz_member(path: &Path, name: &str) -> anyhow::Result<Option<Vec<f64>>> {
         .to_f64_array()
         .with_context(|| format!("{}: member `{name}` is not numeric", path.display()))?;
     Ok(Some(values))
+}
+
+/// Parses `Keypoints_3D/keypoints3d` values of shape `shape` into the first `frames` rows
+/// (module docs); `what` names the file and dataset in errors.
+pub fn parse_keypoints(
+    shape: &[usize],
+    values: &[f64],
+    frames: usize,
+    what: &str,
+) -> anyhow::Result<Keypoints3d> {
+    let [rows, count, width] = shape[..] else {
+        bail!("{what} has shape {shape:?}; expected (frames, keypoints, 3 or 4)");
+    };
+    if count == 0 || !(width == 3 || width == 4) || values.len() != rows * count * width {
+        bail!("{what} has shape {shape:?}; expected (frames, keypoints, 3 or 4)");
+    }
+    if rows < frames {
+        bail!("{what} has {rows} frames but the main file has {frames}");
+    }
+    let mut positions = Vec::with_capacity(frames * count);
+    let mut confidence = Vec::with_capacity(frames * count);
+    for point in values.chunks_exact(width).take(frames * count) {
+        let p = DVec3::new(point[0], point[1], point[2]);
+        let c = if width == 4 { point[3] } else { 1.0 };
+        let i = positions.len();
+        if c.is_finite() && c < 0.0 {
+            bail!(
+                "{what}: frame {} keypoint {} has negative confidence {c}",
+                i / count,
+                i % count
+            );
+        }
+        positions.push(p);
+        confidence.push(if p.is_finite() && c.is_finite() {
+            c
+        } else {
+            0.0
+        });
+    }
+    Ok(Keypoints3d {
+        joints: vec![None; count],
+        positions,
+        confidence,
+    })
 }
 
 impl DnaRendering {
@@ -404,6 +458,29 @@ impl DnaRendering {
                 world_translation: DVec3::new(transl[3 * f], transl[3 * f + 1], transl[3 * f + 2]),
             })
             .collect();
+        let keypoints = if annot_file.link_exists("Keypoints_3D")
+            && annot_file
+                .group("Keypoints_3D")
+                .is_ok_and(|g| g.link_exists("keypoints3d"))
+        {
+            let dataset = annot_file
+                .dataset("Keypoints_3D/keypoints3d")
+                .with_context(|| h5_context(&annotations, "dataset `Keypoints_3D/keypoints3d`"))?;
+            let values: Vec<f64> = dataset.read_raw().with_context(|| {
+                h5_context(
+                    &annotations,
+                    "dataset `Keypoints_3D/keypoints3d` is not numeric",
+                )
+            })?;
+            Some(parse_keypoints(
+                &dataset.shape(),
+                &values,
+                num_frames,
+                &file_what("Keypoints_3D/keypoints3d"),
+            )?)
+        } else {
+            None
+        };
         let hands_mean = match body_model {
             Some(path) => {
                 let left = npz_member(path, "hands_meanl")?;
@@ -435,6 +512,7 @@ impl DnaRendering {
             params,
             body_model_path: body_model.map(Path::to_owned),
             hands_mean,
+            keypoints,
             gender,
             warnings,
         })
@@ -519,6 +597,10 @@ impl DatasetReader for DnaRendering {
         Ok(params)
     }
 
+    fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
+        Ok(self.keypoints.clone())
+    }
+
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
         let id = self.cameras[view].id;
         let main =
@@ -554,6 +636,58 @@ impl DatasetReader for DnaRendering {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn keypoints_parse_with_and_without_confidence() {
+        let values = [
+            1.0,
+            2.0,
+            3.0,
+            0.9, //
+            f64::NAN,
+            0.0,
+            0.0,
+            0.8, //
+            4.0,
+            5.0,
+            6.0,
+            f64::NAN, //
+            7.0,
+            8.0,
+            9.0,
+            0.5, //
+            0.0,
+            0.0,
+            0.0,
+            0.0, //
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        ];
+        let k = parse_keypoints(&[3, 2, 4], &values, 2, "f `K`").unwrap();
+        assert_eq!(k.joints, vec![None, None]);
+        assert_eq!(k.num_frames(), 2);
+        assert_eq!(k.confidence, vec![0.9, 0.0, 0.0, 0.5]);
+        assert_eq!(k.positions[3], DVec3::new(7.0, 8.0, 9.0));
+        let k = parse_keypoints(&[1, 1, 3], &[1.0, 2.0, 3.0], 1, "f").unwrap();
+        assert_eq!(k.confidence, vec![1.0]);
+        let e = parse_keypoints(&[1, 2, 5], &[0.0; 10], 1, "f `K`").unwrap_err();
+        assert!(e.to_string().contains("f `K` has shape [1, 2, 5]"), "{e}");
+        let e = parse_keypoints(&[1, 1, 3], &[0.0; 3], 2, "f").unwrap_err();
+        assert!(
+            e.to_string().contains("1 frames but the main file has 2"),
+            "{e}"
+        );
+        let e = parse_keypoints(
+            &[1, 2, 4],
+            &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0],
+            1,
+            "f",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("frame 0 keypoint 1"), "{e}");
+    }
 
     #[test]
     fn annotation_file_names() {

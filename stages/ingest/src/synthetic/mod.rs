@@ -30,6 +30,9 @@ pub struct JitterConfig {
     pub translation_metres: f64,
     /// Standard deviation added to the (per-subject) shape coefficients, once.
     pub betas: f64,
+    /// Standard deviation of each coordinate of the 3D keypoints (metres): the ground-truth
+    /// joint positions plus this noise, from a random stream separate from the fit jitter.
+    pub keypoints_metres: f64,
 }
 
 impl Default for JitterConfig {
@@ -38,6 +41,7 @@ impl Default for JitterConfig {
             pose_radians: 0.03,
             translation_metres: 0.01,
             betas: 0.05,
+            keypoints_metres: 0.01,
         }
     }
 }
@@ -128,9 +132,14 @@ impl SyntheticConfig {
         );
         let j = &self.jitter;
         anyhow::ensure!(
-            [j.pose_radians, j.translation_metres, j.betas]
-                .iter()
-                .all(|x| x.is_finite() && *x >= 0.0 && *x <= 1.0),
+            [
+                j.pose_radians,
+                j.translation_metres,
+                j.betas,
+                j.keypoints_metres
+            ]
+            .iter()
+            .all(|x| x.is_finite() && *x >= 0.0 && *x <= 1.0),
             "{} values must be within 0..1",
             field("jitter")
         );

@@ -23,12 +23,17 @@ use super::garment::{self, Skirt};
 use super::motion::sample_script;
 use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
-use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+use crate::stage::{
+    BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
+};
 
 /// Garment simulation rate (substeps per second).
 const SIMULATION_RATE: f64 = 240.0;
 /// Seconds simulated standing still before the first frame, so the skirt settles.
 const WARMUP_SECONDS: f64 = 2.0;
+/// Mixed into the seed for the keypoint noise, so adding keypoints leaves the fit jitter and
+/// the camera ring of a seed unchanged.
+const KEYPOINT_STREAM: u64 = 0x6b65_7970_6f69_6e74;
 /// Direction towards the light.
 const LIGHT: DVec3 = DVec3::new(0.35, 0.85, 0.4);
 
@@ -46,6 +51,8 @@ pub struct SyntheticScene {
     skirt_texture: Vec<DVec3>,
     /// Per body vertex: albedo region colour.
     body_colour: Vec<DVec3>,
+    /// `(frame, joint)` noisy ground-truth joint positions (the 3D keypoints).
+    keypoints: Vec<DVec3>,
 }
 
 /// The albedo region colour of a body vertex from its dominant joint.
@@ -196,6 +203,21 @@ impl SyntheticScene {
             .map(|p| jitter(p, &config.jitter, &mut rng, &fitted_betas))
             .collect();
 
+        // 3D keypoints: every joint's true world position plus Gaussian noise.
+        let mut keypoint_rng = Rng::new(config.seed ^ KEYPOINT_STREAM);
+        let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
+        for params in &ground_truth {
+            let posed = model.forward(params)?;
+            for joint in posed.joints {
+                let noise = DVec3::new(
+                    keypoint_rng.normal(),
+                    keypoint_rng.normal(),
+                    keypoint_rng.normal(),
+                );
+                keypoints.push(joint + noise * config.jitter.keypoints_metres);
+            }
+        }
+
         let body_colour = (0..model.num_vertices())
             .map(|v| {
                 let dominant = model
@@ -220,6 +242,7 @@ impl SyntheticScene {
             },
             skirt_texture: garment::texture_coordinates(),
             body_colour,
+            keypoints,
         };
         scene.cameras = scene.place_cameras(&mut rng)?;
         Ok(scene)
@@ -471,6 +494,15 @@ impl DatasetReader for SyntheticScene {
             .get(frame)
             .cloned()
             .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))
+    }
+
+    /// Keypoint `j` is joint `j`: the true joint position plus seeded noise, confidence 1.
+    fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
+        Ok(Some(Keypoints3d {
+            joints: (0..self.model.num_joints()).map(Some).collect(),
+            positions: self.keypoints.clone(),
+            confidence: vec![1.0; self.keypoints.len()],
+        }))
     }
 
     fn ground_truth_body_params(&self, frame: usize) -> anyhow::Result<Option<BodyParams>> {
