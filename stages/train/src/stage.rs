@@ -12,6 +12,8 @@
 //! Output: the trained avatar ([`crate::avatar`] lists its arrays and attributes), and
 //! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `aiap`, `psnr`
 //!   (train PSNR inside the bound box) and `gaussians` (count after the iteration);
+//! - `camera_K`, `camera_R`, `camera_t`, `camera_image_size`: the ingest entry's cameras
+//!   (ingest resolution; training rescales them by `resolution_scale`);
 //! - `test_psnr` f64 `(image)`: held-out PSNR per test image (method.md protocol), with
 //!   `test_image` u32 `(image)` the ingest image index;
 //! - attributes `wall_seconds`, `iterations_per_second` (of the last session when resumed),
@@ -232,6 +234,29 @@ impl StageKind for TrainStage {
                 values,
             )?;
         }
+        // The cameras of the ingest entry (its resolution), so that renders and checks of the
+        // avatar need only this entry.
+        for name in ["camera_K", "camera_R", "camera_t"] {
+            let a = ingest.read::<f64>(name)?;
+            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+            let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+            let dims: &[&str] = if name == "camera_t" {
+                &["view", "xyz"]
+            } else {
+                &["view", "row", "col"]
+            };
+            out.write_array(name, dims, &shape, &chunk, &a.data)?;
+        }
+        let sizes = ingest.read::<u32>("camera_image_size")?;
+        let shape: Vec<u64> = sizes.shape.iter().map(|&x| x as u64).collect();
+        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+        out.write_array(
+            "camera_image_size",
+            &["view", "hw"],
+            &shape,
+            &chunk,
+            &sizes.data,
+        )?;
         let t = test.len() as u64;
         out.write_array("test_psnr", &["image"], &[t], &[t.max(1)], &test_psnr)?;
         let indices: Vec<u32> = test.iter().map(|&i| i as u32).collect();

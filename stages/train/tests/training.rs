@@ -97,6 +97,12 @@ fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
     assert!(!test_psnr.is_empty() && test_psnr.iter().all(|p| p.is_finite()));
     let mean_attr = train.attribute("test_psnr_mean").unwrap().as_f64().unwrap();
     assert!((mean_attr - mean(&test_psnr)).abs() < 1e-9);
+    // The entry carries the ingest cameras.
+    let ingest = entry(dir.path(), &reports, "ingest");
+    assert_eq!(
+        seqavatar_train::data::read_cameras(&train).unwrap(),
+        seqavatar_train::data::read_cameras(&ingest).unwrap()
+    );
     // The stored avatar renders, and its pictures draw.
     let avatar = TrainedAvatar::load(&train).unwrap();
     assert_eq!(
@@ -202,8 +208,14 @@ fn checkpoint_resume_is_exact_with_networks() {
     assert_eq!(resumed.state, straight.state);
     assert_eq!(resumed.curve, straight.curve);
     assert!(resumed.networks.is_some());
-    assert!(resumed.networks == straight.networks, "network parameters differ");
-    assert!(resumed.checkpoint() == straight.checkpoint(), "Adam moments differ");
+    assert!(
+        resumed.networks == straight.networks,
+        "network parameters differ"
+    );
+    assert!(
+        resumed.checkpoint() == straight.checkpoint(),
+        "Adam moments differ"
+    );
 }
 
 #[test]
