@@ -24,8 +24,8 @@ use crate::stage::{EVAL_KIND, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE};
 pub struct EvalRow {
     pub eval_stage: String,
     pub train_stage: Option<String>,
-    /// `knob=value` settings of the train stage that distinguish sweep runs.
-    pub settings: String,
+    /// The train stage's trade-off knobs, `(knob, value)`.
+    pub settings: Vec<(String, String)>,
     pub sequence: String,
     pub means: MeanScores,
     /// Training wall time from the train entry's manifest.
@@ -46,7 +46,7 @@ const TRAIN_KNOBS: [&str; 7] = [
     "device",
 ];
 
-fn knob_summary(config: &serde_json::Value) -> String {
+fn knob_values(config: &serde_json::Value) -> Vec<(String, String)> {
     TRAIN_KNOBS
         .iter()
         .filter_map(|knob| {
@@ -55,10 +55,35 @@ fn knob_summary(config: &serde_json::Value) -> String {
                 serde_json::Value::String(text) => text.clone(),
                 other => other.to_string(),
             };
-            Some(format!("{knob}={text}"))
+            Some(((*knob).to_owned(), text))
         })
-        .collect::<Vec<_>>()
-        .join(", ")
+        .collect()
+}
+
+/// Per row, the `knob=value` settings that differ between rows (all of them for one row).
+pub fn varying_settings(rows: &[EvalRow]) -> Vec<String> {
+    let varies = |knob: &str| {
+        let values: Vec<Option<&String>> = rows
+            .iter()
+            .map(|row| row.settings.iter().find(|(k, _)| k == knob).map(|(_, v)| v))
+            .collect();
+        rows.len() < 2 || values.iter().any(|value| *value != values[0])
+    };
+    rows.iter()
+        .map(|row| {
+            let parts: Vec<String> = row
+                .settings
+                .iter()
+                .filter(|(knob, _)| varies(knob))
+                .map(|(knob, value)| format!("{knob}={value}"))
+                .collect();
+            if parts.is_empty() {
+                "-".to_owned()
+            } else {
+                parts.join(", ")
+            }
+        })
+        .collect()
 }
 
 /// Reads the eval summary written by the eval stage.
@@ -274,7 +299,7 @@ pub fn write_report_for(
             eval_stage: state.spec.name.clone(),
             train_stage: train_state.map(|train| train.spec.name.clone()),
             settings: train_state
-                .map(|train| knob_summary(&train.spec.config))
+                .map(|train| knob_values(&train.spec.config))
                 .unwrap_or_default(),
             sequence,
             means,
@@ -369,12 +394,14 @@ pub fn write_report_for(
     // Sweep: one row per eval stage with the knobs, and the Pareto plots.
     if rows.len() > 1 {
         text.push_str("## Trade-off\n\n");
+        let settings = varying_settings(&rows);
         let table: Vec<Vec<String>> = rows
             .iter()
-            .map(|row| {
+            .zip(&settings)
+            .map(|(row, settings)| {
                 vec![
                     row.train_stage.clone().unwrap_or_else(|| "-".to_owned()),
-                    row.settings.clone(),
+                    settings.clone(),
                     format_metric(Some(row.means.psnr), 2),
                     format_metric(Some(row.means.ssim), 4),
                     format_lpips_x1000(row.means.lpips_vgg),
@@ -389,7 +416,7 @@ pub fn write_report_for(
             &markdown_table(
                 &[
                     "train stage",
-                    "settings",
+                    "settings (those that differ)",
                     "PSNR",
                     "SSIM",
                     "LPIPS-VGG x1000",
@@ -457,51 +484,72 @@ pub fn write_report_for(
             continue;
         };
         let curves = loss_curves(entry)?;
-        if curves.is_empty() {
+        // Losses on a log axis; PSNR (dB) and counts (Gaussians) each on their own linear
+        // plot, since they share neither unit nor scale with the losses.
+        let (losses, others): (Vec<Curve>, Vec<Curve>) = curves
+            .into_iter()
+            .partition(|curve| !curve.name.contains("psnr") && !curve.name.contains("gaussians"));
+        let mut groups: Vec<(String, Vec<Curve>, bool)> = Vec::new();
+        if !losses.is_empty() {
+            groups.push(("loss".to_owned(), losses, true));
+        }
+        for curve in others {
+            let label = curve.name.trim_start_matches("loss_").to_owned();
+            groups.push((label, vec![curve], false));
+        }
+        if groups.is_empty() {
             continue;
         }
-        let series: Vec<Series> = curves
-            .iter()
-            .enumerate()
-            .map(|(index, curve)| Series {
-                name: curve.name.clone(),
-                points: curve.points.clone(),
-                color: palette(index),
-            })
-            .collect();
-        let plot = report::plot(
-            &series,
-            PlotOptions {
-                log_y: true,
-                ..PlotOptions::default()
-            },
-            &[],
-        );
-        let name = format!("loss_{}.png", state.spec.name);
-        save_png(&plot, &out.join(&name))?;
-        let legend: Vec<String> = curves
-            .iter()
-            .enumerate()
-            .map(|(index, curve)| {
-                let color = palette(index).0;
-                let last = curve.points.last().map(|point| point.1);
-                format!(
-                    "`{}` (#{:02x}{:02x}{:02x}, last {})",
-                    curve.name,
-                    color[0],
-                    color[1],
-                    color[2],
-                    format_metric(last, 5)
-                )
-            })
-            .collect();
         let _ = writeln!(
             curve_section,
-            "### {}\n\n![loss curves of {}]({name})\n\nLog scale against iteration: {}.\n",
-            state.spec.name,
-            state.spec.name,
-            legend.join(", ")
+            "### {}
+",
+            state.spec.name
         );
+        for (label, curves, log_y) in groups {
+            let series: Vec<Series> = curves
+                .iter()
+                .enumerate()
+                .map(|(index, curve)| Series {
+                    name: curve.name.clone(),
+                    points: curve.points.clone(),
+                    color: palette(index),
+                })
+                .collect();
+            let plot = report::plot(
+                &series,
+                PlotOptions {
+                    log_y,
+                    ..PlotOptions::default()
+                },
+                &[],
+            );
+            let name = format!("{label}_{}.png", state.spec.name);
+            save_png(&plot, &out.join(&name))?;
+            let legend: Vec<String> = curves
+                .iter()
+                .enumerate()
+                .map(|(index, curve)| {
+                    let color = palette(index).0;
+                    let last = curve.points.last().map(|point| point.1);
+                    format!(
+                        "`{}` (#{:02x}{:02x}{:02x}, last {})",
+                        curve.name,
+                        color[0],
+                        color[1],
+                        color[2],
+                        format_metric(last, 5)
+                    )
+                })
+                .collect();
+            let _ = writeln!(
+                curve_section,
+                "![{label} of {}]({name})\n\n{} scale against iteration: {}.\n",
+                state.spec.name,
+                if log_y { "Log" } else { "Linear" },
+                legend.join(", ")
+            );
+        }
     }
     if !curve_section.is_empty() {
         text.push_str("## Loss curves\n\n");
@@ -634,4 +682,69 @@ pub fn pareto_plot(points: &[(f64, f64)], front: &[usize]) -> image::RgbImage {
         },
         &highlight,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(settings: &[(&str, &str)]) -> EvalRow {
+        EvalRow {
+            eval_stage: "eval".to_owned(),
+            train_stage: Some("train".to_owned()),
+            settings: settings
+                .iter()
+                .map(|(knob, value)| ((*knob).to_owned(), (*value).to_owned()))
+                .collect(),
+            sequence: "synthetic".to_owned(),
+            means: MeanScores {
+                images: 1,
+                psnr: 20.0,
+                ssim: 0.9,
+                lpips_vgg: None,
+                lpips_alex: None,
+            },
+            train_seconds: Some(1.0),
+            fps: Some(2.0),
+            speed: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn sweep_tables_show_only_the_knobs_that_vary() {
+        let rows = [
+            row(&[
+                ("preset", "fast"),
+                ("iterations", "400"),
+                ("trunk_width", "64"),
+            ]),
+            row(&[
+                ("preset", "fast"),
+                ("iterations", "800"),
+                ("trunk_width", "64"),
+            ]),
+            row(&[
+                ("preset", "fast"),
+                ("iterations", "400"),
+                ("trunk_width", "128"),
+            ]),
+        ];
+        assert_eq!(
+            varying_settings(&rows),
+            [
+                "iterations=400, trunk_width=64",
+                "iterations=800, trunk_width=64",
+                "iterations=400, trunk_width=128"
+            ]
+        );
+        // A single run shows every knob; identical runs show none.
+        assert_eq!(
+            varying_settings(&rows[..1]),
+            ["preset=fast, iterations=400, trunk_width=64"]
+        );
+        assert_eq!(
+            varying_settings(&[rows[0].clone(), rows[0].clone()]),
+            ["-", "-"]
+        );
+    }
 }

@@ -257,6 +257,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         "eval/render_000_view1_frame0.png",
         "eval/error_001_view1_frame2.png",
         "loss_train.png",
+        "psnr_train.png",
         "pareto_psnr_time.png",
         "pareto_psnr_fps.png",
     ] {
