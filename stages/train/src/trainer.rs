@@ -882,9 +882,22 @@ fn build_networks(
         scale_count,
     )
     .context("network configuration")?;
-    Ok(Some(
-        Networks::new(&net_config, config.seed).context("network configuration")?,
-    ))
+    let mut networks = Networks::new(&net_config, config.seed).context("network configuration")?;
+    if config.non_rigid_head_init > 0.0 {
+        // Start at the identity deformation: small head weights, zero head biases.
+        let mut rng = Rng::new(config.seed ^ 0x6865_6164_735f_696e);
+        let bound = config.non_rigid_head_init;
+        for param in networks.parameters_mut() {
+            if param.name == "non_rigid.heads.weight" {
+                for w in param.values.iter_mut() {
+                    *w = rng.uniform(-bound, bound);
+                }
+            } else if param.name == "non_rigid.heads.bias" {
+                param.values.fill(0.0);
+            }
+        }
+    }
+    Ok(Some(networks))
 }
 
 /// `rect` grown by `pad` pixels on each side, clipped to the image.

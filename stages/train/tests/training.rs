@@ -218,6 +218,59 @@ fn checkpoint_resume_is_exact_with_networks() {
     );
 }
 
+/// Largest non-rigid centre and scale offsets of a fresh run's networks at frame 1.
+fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
+    use seqavatar_train::avatar::{deform, frame_pose, template_grid};
+    let trainer = Trainer::new(config.clone(), data, Backend::Cpu).unwrap();
+    let avatar = trainer.avatar().unwrap();
+    let inputs = avatar
+        .frame_inputs(&data.motion, &data.params[1], 1)
+        .unwrap();
+    let networks = avatar.networks.as_ref();
+    let posed = frame_pose(&avatar.rig, networks, &inputs.params).unwrap();
+    let grid = template_grid(&avatar.rig);
+    let d = deform(
+        &avatar.rig,
+        &grid,
+        networks,
+        &avatar.gaussians,
+        &inputs,
+        &posed.pose,
+        config,
+        0,
+    )
+    .unwrap();
+    let moved = d
+        .positions
+        .iter()
+        .zip(&avatar.gaussians.xyz)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    let scaled = d.d_scales.iter().map(|s| s.abs()).fold(0.0, f64::max);
+    (moved, scaled)
+}
+
+#[test]
+fn fresh_non_rigid_network_starts_at_the_identity() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 40);
+    config.motion_context = seqavatar_train::config::MotionContext::Multiscale;
+    config.trunk_width = 16;
+    config.trunk_depth = 2;
+    let (moved, scaled) = initial_offsets(&data, &config);
+    assert!(
+        moved < 1e-3 && scaled < 1e-3,
+        "offsets {moved} m, {scaled} m"
+    );
+    // The reference initialisation moves the Gaussians from the start.
+    config.non_rigid_head_init = 0.0;
+    let (moved, scaled) = initial_offsets(&data, &config);
+    assert!(
+        moved > 1e-2 || scaled > 1e-2,
+        "offsets {moved} m, {scaled} m"
+    );
+}
+
 #[test]
 fn absurd_learning_rate_stops_with_iteration_and_tensor() {
     let dir = tempfile::tempdir().unwrap();
