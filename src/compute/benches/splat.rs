@@ -4,7 +4,7 @@
 //! never fails on speed.
 //!
 //! Run: `cargo bench -p seqavatar-compute --bench splat` (optional arguments: repetitions,
-//! `--device cpu|gpu` to run one backend only).
+//! `--device cpu|gpu` to run one backend only, `--count N` to run one Gaussian count only).
 //! A backend adds one function with the signature of [`time_cpu`] to [`BACKENDS`].
 
 use std::time::Instant;
@@ -39,11 +39,31 @@ impl Prepared {
     }
 }
 
-/// Milliseconds of one forward and of one forward+backward (medians over `reps`), or
-/// `None` when the backend is unavailable here.
-type TimeFn = fn(&Prepared, usize) -> Option<(f64, f64)>;
+/// What a backend measured.
+struct Timing {
+    /// Median wall milliseconds of one forward.
+    forward_ms: f64,
+    /// Median wall milliseconds of one forward+backward.
+    total_ms: f64,
+    /// Mean CPU milliseconds (all threads) of the timed forwards alone, where the backend
+    /// runs on the host.
+    forward_cpu_ms: Option<f64>,
+}
 
-const BACKENDS: &[(&str, TimeFn)] = &[("cpu", time_cpu), ("gpu", splat_gpu::time_gpu)];
+/// A backend's timing of `reps` forward+backward runs, or `None` when it is unavailable
+/// here.
+type TimeFn = fn(&Prepared, usize) -> Option<Timing>;
+
+const BACKENDS: &[(&str, TimeFn)] = &[("cpu", time_cpu), ("gpu", time_gpu)];
+
+fn time_gpu(scene: &Prepared, reps: usize) -> Option<Timing> {
+    let (forward_ms, total_ms) = splat_gpu::time_gpu(scene, reps)?;
+    Some(Timing {
+        forward_ms,
+        total_ms,
+        forward_cpu_ms: None,
+    })
+}
 
 /// CPU time of the whole process (all threads) in milliseconds, from Linux
 /// `/proc/self/task/*/schedstat`; `None` elsewhere. On a shared machine this, divided by the
@@ -62,7 +82,7 @@ fn median(mut samples: Vec<f64>) -> f64 {
     samples[samples.len() / 2]
 }
 
-fn time_cpu(scene: &Prepared, reps: usize) -> Option<(f64, f64)> {
+fn time_cpu(scene: &Prepared, reps: usize) -> Option<Timing> {
     let cameras = std::slice::from_ref(&scene.camera);
     let options = RasterOptions::default();
     let view = scene.gaussians.view();
@@ -77,17 +97,27 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<(f64, f64)> {
     drop(warm);
     let mut forward_ms = Vec::with_capacity(reps);
     let mut total_ms = Vec::with_capacity(reps);
+    let mut forward_cpu_ms = Some(0.0);
     for _ in 0..reps {
+        let cpu_before = process_cpu_ms();
         let start = Instant::now();
         let fwd = cpu::forward(&view, cameras, &options).ok()?;
         let forward_done = start.elapsed();
+        forward_cpu_ms = match (forward_cpu_ms, cpu_before, process_cpu_ms()) {
+            (Some(sum), Some(before), Some(after)) => Some(sum + after - before),
+            _ => None,
+        };
         let grads = cpu::backward(&fwd, &view, &upstream).ok()?;
         let total = start.elapsed();
         std::hint::black_box(&grads);
         forward_ms.push(forward_done.as_secs_f64() * 1e3);
         total_ms.push(total.as_secs_f64() * 1e3);
     }
-    Some((median(forward_ms), median(total_ms)))
+    Some(Timing {
+        forward_ms: median(forward_ms),
+        total_ms: median(total_ms),
+        forward_cpu_ms: forward_cpu_ms.map(|sum| sum / reps as f64),
+    })
 }
 
 fn main() {
@@ -96,17 +126,25 @@ fn main() {
         .windows(2)
         .find(|pair| pair[0] == "--device")
         .map(|pair| pair[1].clone());
-    let reps = std::env::args()
+    // The first bare number (not the value of an option).
+    let reps = args
+        .iter()
+        .enumerate()
         .skip(1)
-        .find_map(|a| a.parse::<usize>().ok())
+        .filter(|(i, _)| !args[i - 1].starts_with("--"))
+        .find_map(|(_, a)| a.parse::<usize>().ok())
         .unwrap_or(5)
         .max(1);
+    let only_count = args
+        .windows(2)
+        .find(|pair| pair[0] == "--count")
+        .and_then(|pair| pair[1].parse::<usize>().ok());
     println!(
         "splat benchmark: standard scene (rasterizer.md), 512x512, seed {STANDARD_SEED}, {} rayon threads, median of {reps}",
         rayon::current_num_threads()
     );
     println!(
-        "{:<8} {:>9} {:>9} {:>9} {:>11} {:>11} {:>12} {:>10} {:>14}",
+        "{:<8} {:>9} {:>9} {:>9} {:>11} {:>11} {:>12} {:>12} {:>10} {:>14}",
         "backend",
         "gaussians",
         "visible",
@@ -114,10 +152,14 @@ fn main() {
         "forward ms",
         "fwd+bwd ms",
         "host cpu ms",
+        "fwd cpu ms",
         "fwd vs OS",
         "fwd+bwd vs OS"
     );
     for (i, &count) in COUNTS.iter().enumerate() {
+        if only_count.is_some_and(|only| only != count) {
+            continue;
+        }
         let scene = Prepared::new(&standard_scene(count, STANDARD_SEED));
         let stats = cpu::forward(
             &scene.gaussians.view(),
@@ -131,7 +173,7 @@ fn main() {
             .filter(|(name, _)| device.as_deref().is_none_or(|d| d == *name))
         {
             let cpu_before = process_cpu_ms();
-            let Some((forward_ms, total_ms)) = time(&scene, reps) else {
+            let Some(timing) = time(&scene, reps) else {
                 println!("{name:<8} {count:>9} unavailable");
                 continue;
             };
@@ -143,22 +185,24 @@ fn main() {
                 _ => f64::NAN,
             };
             println!(
-                "{:<8} {:>9} {:>9} {:>9.1} {:>11.1} {:>11.1} {:>12.1} {:>9.1}x {:>13.1}x",
+                "{:<8} {:>9} {:>9} {:>9.1} {:>11.1} {:>11.1} {:>12.1} {:>12.1} {:>9.1}x {:>13.1}x",
                 name,
                 count,
                 visible,
                 per_pixel,
-                forward_ms,
-                total_ms,
+                timing.forward_ms,
+                timing.total_ms,
                 cpu_ms,
-                OPENSPLAT_FORWARD_MS[i] / forward_ms,
-                OPENSPLAT_FORWARD_BACKWARD_MS[i] / total_ms
+                timing.forward_cpu_ms.unwrap_or(f64::NAN),
+                OPENSPLAT_FORWARD_MS[i] / timing.forward_ms,
+                OPENSPLAT_FORWARD_BACKWARD_MS[i] / timing.total_ms
             );
         }
     }
     println!(
         "host cpu ms = CPU time of all threads per forward+backward, warm-up included \
-         (about twice the wall time of an idle 2-core machine when both cores are busy)"
+         (about twice the wall time of an idle 2-core machine when both cores are busy); \
+         fwd cpu ms = the same for the timed forwards alone"
     );
     println!(
         "OS = OpenSplat CPU rasteriser, published in rasterizer.md: fwd {OPENSPLAT_FORWARD_MS:?} ms, fwd+bwd {OPENSPLAT_FORWARD_BACKWARD_MS:?} ms"
