@@ -167,25 +167,39 @@ pub(super) fn box_in_tile<S: Scalar>(splat: &Splat2d<S>, bounds: [u32; 4]) -> (u
 }
 
 /// Columns `[lo, hi)` within `[x0, x1)` of the row at `dy = mean_y - row centre` where the
-/// splat's power can reach `min_power`, with at least one pixel of margin either side.
-/// Columns outside would be skipped by [`splat_alpha`] anyway, so this only saves work.
+/// splat's power can reach `min_power`, with an eighth of a pixel of margin either side.
+/// Columns outside would be skipped by [`splat_alpha`] anyway, so this only saves work. The
+/// margin only absorbs `f64` rounding of the bounds: the composited pixels already lie
+/// strictly inside, since alpha `>= 1/255` needs a power `0.01` above `min_power`, far more
+/// than the `f32` rounding of the power (the blur bounds the conic by `1/0.3`).
 #[inline(always)]
 pub(super) fn row_span<S: Scalar>(splat: &Splat2d<S>, dy: S, x0: u32, x1: u32) -> (u32, u32) {
-    let [mean_x, slope, w0, w1] = splat.row_span;
-    let dy = dy.to_f64();
-    let half_width_sq = w0 - dy * dy * w1;
-    // NaN (a degenerate conic) also gives an empty span.
-    if half_width_sq.is_nan() || half_width_sq < 0.0 || x0 >= x1 {
+    if x0 >= x1 {
         return (x0, x0);
     }
-    let half_width = half_width_sq.sqrt();
-    // Column centre `col + 0.5 = mean_x - dx`; values are clamped to `[x0, x1]` (non-negative)
-    // before truncation, so `as` is a floor, and `hi` ends past `ceil(centre + w + 0.5)`.
+    let (lo, hi) = row_span_f64(&splat.row_span, dy.to_f64(), f64::from(x0), f64::from(x1));
+    // Both lie in `[x0, x1]` (non-negative), so `as` is a floor.
+    (lo as u32, hi as u32)
+}
+
+/// [`row_span`] on `f64` bounds `x0 < x1`, branch-free (so that a loop over rows
+/// vectorises): `(lo, hi)` with `x0 <= lo <= hi <= x1`, still to be floored.
+#[inline(always)]
+pub(super) fn row_span_f64(constants: &[f64; 4], dy: f64, x0: f64, x1: f64) -> (f64, f64) {
+    const MARGIN: f64 = 0.125;
+    let [mean_x, slope, w0, w1] = *constants;
+    let half_width_sq = w0 - dy * dy * w1;
+    // False for NaN too (a degenerate conic): then the span is empty.
+    let present = half_width_sq >= 0.0;
+    let half_width = half_width_sq.max(0.0).sqrt();
+    // Column `col` takes part when its centre `col + 0.5 = mean_x - dx` lies in
+    // `centre -+ half_width`: `col` in `[centre - half_width - 0.5, centre + half_width - 0.5]`,
+    // so `floor(hi)` is one past the last column. `max`/`min` (not `clamp`) also map a NaN
+    // bound into `[x0, x1]`.
     let centre = mean_x - slope * dy;
-    let (lo_f, hi_f) = (f64::from(x0), f64::from(x1));
-    let lo = (centre - half_width - 1.5).clamp(lo_f, hi_f) as u32;
-    let hi = (centre + half_width + 1.5).clamp(lo_f, hi_f) as u32;
-    (lo, hi.max(lo))
+    let lo = (centre - half_width - 0.5 - MARGIN).max(x0).min(x1);
+    let hi = (centre + half_width + 0.5 + MARGIN).max(lo).min(x1);
+    if present { (lo, hi) } else { (x0, x0) }
 }
 
 /// Per-camera outputs of the forward compositing (all `H x W`, colour `H x W x 3`).
@@ -423,6 +437,7 @@ pub(super) fn backward<S: Scalar>(
                     &mut row_slots[begin - row_base..end - row_base],
                     bounds,
                     smooth,
+                    upstream,
                 );
             }
             return;
