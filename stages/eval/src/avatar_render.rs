@@ -285,3 +285,41 @@ impl ViewRenderer for AvatarRenderer {
         .map_err(anyhow::Error::from)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_core::glam::DVec3;
+
+    fn camera() -> Camera {
+        Camera::look_at(
+            200,
+            100,
+            seqavatar_core::camera::Intrinsics {
+                fx: 120.0,
+                fy: 121.0,
+                cx: 100.5,
+                cy: 50.25,
+            },
+            DVec3::new(0.3, -1.0, 3.0),
+            DVec3::new(0.0, 0.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+        )
+    }
+
+    #[test]
+    fn a_rescaled_camera_is_the_same_camera_and_a_moved_one_is_not() {
+        let base = camera();
+        assert!(same_camera(&base, &base));
+        // Training at resolution_scale 0.5 keeps the camera.
+        assert!(same_camera(&base, &base.rescaled(0.5)));
+        let mut moved = base.clone();
+        moved.translation.x += 1e-3;
+        assert!(!same_camera(&base, &moved));
+        let mut zoomed = base.clone();
+        zoomed.intrinsics.fx *= 1.01;
+        assert!(!same_camera(&base, &zoomed));
+        // A different aspect ratio is a different sensor even with proportional intrinsics.
+        assert!(!same_camera(&base, &base.resized(200, 200)));
+    }
+}
