@@ -15,7 +15,7 @@
 
 use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, TILE_SIZE};
 use super::project::Splat2d;
-use super::raster::{PixelState, Slot, Upstream, box_in_tile, row_span_f64};
+use super::raster::{PixelState, TileSlots, Upstream, box_in_tile, row_span_f64};
 use crate::scalar::Scalar;
 
 /// Pixels per step (one AVX2 register of `f32`).
@@ -744,7 +744,7 @@ impl BackwardTile {
         splats: &[Splat2d<f32>],
         list: &[u32],
         count: u32,
-        slots: &mut [Slot<S>],
+        slots: &mut TileSlots<'_, S>,
         bounds: [u32; 4],
         smooth: bool,
         upstream: &Upstream<'_, S>,
@@ -763,7 +763,7 @@ impl BackwardTile {
                 splats: &[Splat2d<f32>],
                 list: &[u32],
                 count: u32,
-                slots: &mut [Slot<S>],
+                slots: &mut TileSlots<'_, S>,
                 bounds: [u32; 4],
                 variant: Variant,
             ) {
@@ -783,7 +783,7 @@ impl BackwardTile {
         splats: &[Splat2d<f32>],
         list: &[u32],
         count: u32,
-        slots: &mut [Slot<S>],
+        slots: &mut TileSlots<'_, S>,
         bounds: [u32; 4],
         variant: Variant,
     ) {
@@ -810,7 +810,7 @@ impl BackwardTile {
             &[Splat2d<f32>],
             &[u32],
             u32,
-            &mut [Slot<S>],
+            &mut TileSlots<'_, S>,
             [u32; 4],
         ),
     ) {
@@ -863,7 +863,7 @@ impl BackwardTile {
                 sum(SUM_COLOUR + 2),
                 sum(SUM_DEPTH),
             ];
-            slots[j] = grad.map(S::from_f64);
+            slots.put(j, grad.map(S::from_f64));
         }
     }
 

@@ -5,8 +5,9 @@
 //! (parallel over Gaussians), bin the visible ones into 16x16 tiles (one global depth sort,
 //! then a stable counting scatter), composite each tile front to back (parallel over tile
 //! rows). The backward pass walks the same lists back to front, writes one gradient per
-//! Gaussian-tile intersection, then reduces them per Gaussian (parallel over Gaussians, in a
-//! fixed order, so results are deterministic) and chains through the projection.
+//! Gaussian-tile intersection into a Gaussian-major slot, then reduces each Gaussian's
+//! contiguous slots (parallel over Gaussians, in a fixed order, so results are deterministic)
+//! and chains through the projection.
 //! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 when the CPU
 //! has it); `f64` runs (gradient checks) use the generic per-pixel loops of `raster.rs`.
 
@@ -245,8 +246,8 @@ fn accumulate_camera<S: Scalar>(
                 return 0;
             }
             let mut sum = [S::ZERO; 10];
-            for &position in &binning.intersection_positions[begin..end] {
-                for (acc, v) in sum.iter_mut().zip(&slots[position as usize]) {
+            for slot in &slots[begin..end] {
+                for (acc, v) in sum.iter_mut().zip(slot) {
                     *acc += *v;
                 }
             }

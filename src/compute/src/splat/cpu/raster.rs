@@ -29,10 +29,12 @@ pub(super) struct Binning {
     pub tile_gaussians: Vec<u32>,
     /// Gaussian index of each depth-order position.
     pub sorted: Vec<u32>,
-    /// `N + 1` offsets into `intersection_positions` (a Gaussian's intersections).
+    /// `N + 1` offsets of each Gaussian's intersections in Gaussian-major order (its tiles
+    /// row by row): the order of the backward pass's gradient slots.
     pub gaussian_offsets: Vec<u32>,
-    /// Position in `tile_gaussians` of each of a Gaussian's intersections.
-    pub intersection_positions: Vec<u32>,
+    /// The Gaussian-major slot of each intersection, by position in `tile_gaussians` (a
+    /// permutation of `0..intersections`).
+    pub position_slots: Vec<u32>,
 }
 
 /// Sorts the visible Gaussians' tile intersections.
@@ -68,46 +70,132 @@ pub(super) fn bin<S: Scalar>(
         .collect();
     order.par_sort_unstable();
 
-    let mut counts = vec![0_u32; tiles + 1];
-    for rect in rects {
-        for ty in rect.y0..rect.y1 {
-            let row = (ty * tiles_x) as usize;
-            for tx in rect.x0..rect.x1 {
-                counts[row + tx as usize + 1] += 1;
-            }
-        }
-    }
-    for t in 0..tiles {
-        counts[t + 1] += counts[t];
-    }
-    let tile_offsets = counts;
-    let mut cursor = tile_offsets[..tiles].to_vec();
-    let mut tile_gaussians = vec![0_u32; total as usize];
-    let mut intersection_positions = vec![0_u32; total as usize];
     let sorted: Vec<u32> = order.iter().map(|key| (key & 0xffff_ffff) as u32).collect();
-    for (rank, &g) in sorted.iter().enumerate() {
-        let g = g as usize;
-        let rect = rects[g];
-        let mut slot = gaussian_offsets[g] as usize;
-        for ty in rect.y0..rect.y1 {
-            let row = (ty * tiles_x) as usize;
-            for tx in rect.x0..rect.x1 {
-                let tile = row + tx as usize;
-                let position = cursor[tile];
-                cursor[tile] += 1;
-                tile_gaussians[position as usize] = rank as u32;
-                intersection_positions[slot] = position;
-                slot += 1;
+    drop(order);
+
+    // The stable counting scatter, in parallel over chunks of the depth order: each chunk
+    // counts its intersections per tile, and its cursor in a tile starts after those of the
+    // earlier chunks, so every tile gets its entries in depth order as a serial scatter would.
+    let chunk = sorted
+        .len()
+        .div_ceil(4 * rayon::current_num_threads())
+        .max(4096);
+    let mut cursors: Vec<Vec<u32>> = sorted
+        .par_chunks(chunk)
+        .map(|ranks| {
+            let mut counts = vec![0_u32; tiles];
+            for &g in ranks {
+                let rect = rects[g as usize];
+                for ty in rect.y0..rect.y1 {
+                    let row = (ty * tiles_x) as usize;
+                    for count in &mut counts[row + rect.x0 as usize..row + rect.x1 as usize] {
+                        *count += 1;
+                    }
+                }
             }
+            counts
+        })
+        .collect();
+    let mut tile_offsets = vec![0_u32; tiles + 1];
+    for t in 0..tiles {
+        // Below `total`, which fits in `u32` (checked above).
+        let mut running = tile_offsets[t];
+        for counts in &mut cursors {
+            let count = counts[t];
+            counts[t] = running;
+            running += count;
         }
+        tile_offsets[t + 1] = running;
+    }
+    let mut tile_gaussians = vec![0_u32; total as usize];
+    let mut position_slots = vec![0_u32; total as usize];
+    {
+        let tile_writer = DisjointWriter::new(&mut tile_gaussians);
+        let slot_writer = DisjointWriter::new(&mut position_slots);
+        sorted
+            .par_chunks(chunk)
+            .zip(cursors.par_iter_mut())
+            .enumerate()
+            .for_each(|(k, (ranks, cursor))| {
+                for (i, &g) in ranks.iter().enumerate() {
+                    let rank = (k * chunk + i) as u32;
+                    let rect = rects[g as usize];
+                    let mut slot = gaussian_offsets[g as usize];
+                    for ty in rect.y0..rect.y1 {
+                        let row = (ty * tiles_x) as usize;
+                        for tx in rect.x0..rect.x1 {
+                            let tile = row + tx as usize;
+                            let position = cursor[tile] as usize;
+                            cursor[tile] += 1;
+                            // SAFETY: positions are distinct: chunk `k`'s cursor in a tile
+                            // runs over its own count of places after the earlier chunks'.
+                            unsafe {
+                                tile_writer.write(position, rank);
+                                slot_writer.write(position, slot);
+                            }
+                            slot += 1;
+                        }
+                    }
+                }
+            });
     }
     Ok(Binning {
         tile_offsets,
         tile_gaussians,
         sorted,
         gaussian_offsets,
-        intersection_positions,
+        position_slots,
     })
+}
+
+/// Writes into a slice from several threads at indices that are distinct by construction.
+pub(super) struct DisjointWriter<'a, T> {
+    start: *mut T,
+    len: usize,
+    _slice: std::marker::PhantomData<&'a mut [T]>,
+}
+
+// SAFETY: the writer only hands out writes of `T: Send` values to distinct indices (the
+// contract of `write`), like splitting the slice into disjoint `&mut` parts.
+unsafe impl<T: Send> Sync for DisjointWriter<'_, T> {}
+unsafe impl<T: Send> Send for DisjointWriter<'_, T> {}
+
+impl<'a, T: Copy> DisjointWriter<'a, T> {
+    pub fn new(slice: &'a mut [T]) -> Self {
+        Self {
+            start: slice.as_mut_ptr(),
+            len: slice.len(),
+            _slice: std::marker::PhantomData,
+        }
+    }
+
+    /// Stores `value` at `index` (panics when out of bounds).
+    ///
+    /// # Safety
+    /// While the writer lives, no other call (from any thread) may use the same `index`.
+    #[inline(always)]
+    pub unsafe fn write(&self, index: usize, value: T) {
+        assert!(index < self.len, "index {index} of {}", self.len);
+        // SAFETY: in bounds, and no other access to this element (the caller's contract).
+        unsafe { self.start.add(index).write(value) }
+    }
+}
+
+/// Where one tile's backward walk puts its list entries' gradients: entry `j` goes to the
+/// Gaussian-major slot `indices[j]`.
+pub(super) struct TileSlots<'a, S> {
+    writer: &'a DisjointWriter<'a, Slot<S>>,
+    /// `Binning::position_slots` of the tile's positions.
+    indices: &'a [u32],
+}
+
+impl<S: Copy> TileSlots<'_, S> {
+    #[inline(always)]
+    pub fn put(&mut self, j: usize, gradient: Slot<S>) {
+        // SAFETY: `position_slots` is a permutation (see `bin`), tiles own disjoint position
+        // ranges, one task walks each tile, and a walk puts each entry once.
+        unsafe { self.writer.write(self.indices[j] as usize, gradient) }
+    }
 }
 
 /// The visible splats in depth order (the order `Binning::tile_gaussians` refers to).
@@ -405,18 +493,12 @@ pub(super) fn backward<S: Scalar>(
     let tiles_x = width.div_ceil(TILE_SIZE);
     let tiles_y = height.div_ceil(TILE_SIZE);
     let mut slots = vec![[S::ZERO; 10]; binning.tile_gaussians.len()];
-    // Split the slots by tile row so each task owns its rows' intersections.
-    let mut row_slots: Vec<(usize, &mut [Slot<S>])> = Vec::with_capacity(tiles_y as usize);
-    let mut rest: &mut [Slot<S>] = &mut slots;
-    for ty in 0..tiles_y {
-        let start = binning.tile_offsets[(ty * tiles_x) as usize] as usize;
-        let end = binning.tile_offsets[((ty + 1) * tiles_x) as usize] as usize;
-        let (head, tail) = rest.split_at_mut(end - start);
-        row_slots.push((ty as usize, head));
-        rest = tail;
-    }
-    row_slots.into_par_iter().for_each(|(ty, row_slots)| {
-        let row_base = binning.tile_offsets[ty * tiles_x as usize] as usize;
+    let writer = DisjointWriter::new(&mut slots);
+    let tile_slots = |begin: usize, end: usize| TileSlots {
+        writer: &writer,
+        indices: &binning.position_slots[begin..end],
+    };
+    (0..tiles_y as usize).into_par_iter().for_each(|ty| {
         let y_start = ty as u32 * TILE_SIZE;
         let y_end = (y_start + TILE_SIZE).min(height);
         if let Some(fast) = fast {
@@ -434,7 +516,7 @@ pub(super) fn backward<S: Scalar>(
                     fast,
                     &binning.tile_gaussians[begin..end],
                     count,
-                    &mut row_slots[begin - row_base..end - row_base],
+                    &mut tile_slots(begin, end),
                     bounds,
                     smooth,
                     upstream,
@@ -461,7 +543,7 @@ pub(super) fn backward<S: Scalar>(
             state.walk(
                 splats,
                 &binning.tile_gaussians[begin..end],
-                &mut row_slots[begin - row_base..end - row_base],
+                &mut tile_slots(begin, end),
                 [x_start, x_end, y_start, y_end],
                 smooth,
             );
@@ -533,7 +615,7 @@ impl<S: Scalar> BackwardState<S> {
         &mut self,
         splats: &[Splat2d<S>],
         list: &[u32],
-        slots: &mut [Slot<S>],
+        slots: &mut TileSlots<'_, S>,
         bounds: [u32; 4],
         smooth: bool,
     ) {
@@ -601,7 +683,7 @@ impl<S: Scalar> BackwardState<S> {
                     grad[1] -= (cb * dx + cc * dy) * d_power;
                 }
             }
-            slots[j] = grad;
+            slots.put(j, grad);
         }
     }
 }
@@ -610,6 +692,65 @@ impl<S: Scalar> BackwardState<S> {
 mod tests {
     use super::*;
     use crate::splat::scene::SplitMix64;
+
+    #[test]
+    fn parallel_binning_matches_a_per_tile_sort() {
+        // Enough Gaussians for several scatter chunks, with equal depths (ties by index),
+        // empty rectangles and rectangles at the grid's edges.
+        let mut rng = SplitMix64::new(9);
+        let (tiles_x, tiles_y) = (13_u32, 7_u32);
+        let n = 20_000;
+        let mut splats = vec![Splat2d::<f32>::default(); n];
+        let mut rects = vec![TileRect::default(); n];
+        for (splat, rect) in splats.iter_mut().zip(&mut rects) {
+            splat.depth = (1.0 + (rng.uniform() * 50.0).floor() * 0.25) as f32;
+            if rng.uniform() < 0.1 {
+                continue;
+            }
+            let x0 = (rng.uniform() * f64::from(tiles_x)) as u32;
+            let y0 = (rng.uniform() * f64::from(tiles_y)) as u32;
+            *rect = TileRect {
+                x0,
+                y0,
+                x1: (x0 + 1 + (rng.uniform() * 4.0) as u32).min(tiles_x),
+                y1: (y0 + 1 + (rng.uniform() * 3.0) as u32).min(tiles_y),
+            };
+        }
+        let tiles = (tiles_x * tiles_y) as usize;
+        let binning = bin(&splats, &rects, tiles, tiles_x).unwrap();
+        let mut seen = vec![false; binning.tile_gaussians.len()];
+        for ty in 0..tiles_y {
+            for tx in 0..tiles_x {
+                let tile = (ty * tiles_x + tx) as usize;
+                let mut expected: Vec<(u32, usize)> = (0..n)
+                    .filter(|&g| {
+                        let r = rects[g];
+                        (r.x0..r.x1).contains(&tx) && (r.y0..r.y1).contains(&ty)
+                    })
+                    .map(|g| (splats[g].depth.to_bits(), g))
+                    .collect();
+                expected.sort_unstable();
+                let range =
+                    binning.tile_offsets[tile] as usize..binning.tile_offsets[tile + 1] as usize;
+                let got: Vec<usize> = binning.tile_gaussians[range.clone()]
+                    .iter()
+                    .map(|&rank| binning.sorted[rank as usize] as usize)
+                    .collect();
+                let expected: Vec<usize> = expected.into_iter().map(|(_, g)| g).collect();
+                assert_eq!(got, expected, "tile ({tx}, {ty})");
+                for (position, &g) in range.zip(&got) {
+                    // The slot is this Gaussian's, at this tile's place in its row-by-row order.
+                    let r = rects[g];
+                    let k = (ty - r.y0) * (r.x1 - r.x0) + (tx - r.x0);
+                    let slot = binning.position_slots[position] as usize;
+                    assert_eq!(slot, (binning.gaussian_offsets[g] + k) as usize);
+                    assert!(!seen[slot]);
+                    seen[slot] = true;
+                }
+            }
+        }
+        assert!(seen.iter().all(|&s| s));
+    }
 
     #[test]
     fn row_spans_hold_every_pixel_the_contract_composites() {
