@@ -299,7 +299,12 @@ fn check_upstream<'a, S: Scalar>(
     let pixels = state.params.width as usize * state.params.height as usize;
     let check = |field: &'static str, values: &[S], expected: usize| {
         super::check_len(field, values.len(), expected)?;
-        match values.iter().position(|v| !v.is_finite()) {
+        // Parallel (a 512x512 colour gradient is 786k values); the first bad index wins.
+        match values
+            .par_iter()
+            .with_min_len(1 << 14)
+            .position_first(|v| !v.is_finite())
+        {
             Some(index) => Err(SplatError::NonFiniteGradient {
                 camera,
                 field,

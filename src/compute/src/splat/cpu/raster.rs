@@ -200,7 +200,12 @@ impl<S: Copy> TileSlots<'_, S> {
 
 /// The visible splats in depth order (the order `Binning::tile_gaussians` refers to).
 pub(super) fn sort_splats<S: Scalar>(splats: &[Splat2d<S>], binning: &Binning) -> Vec<Splat2d<S>> {
-    binning.sorted.iter().map(|&g| splats[g as usize]).collect()
+    binning
+        .sorted
+        .par_iter()
+        .with_min_len(1024)
+        .map(|&g| splats[g as usize])
+        .collect()
 }
 
 /// Alpha of a splat at a pixel centre offset `d = mean - q`, or `None` when skipped.
