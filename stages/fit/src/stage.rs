@@ -28,8 +28,9 @@ use crate::refine::{
 use crate::smooth::SmoothingWeights;
 use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
 
-/// What the stage does with the input fits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+/// What the stage does with the input fits. In YAML a bare `off` reads as the boolean
+/// `false`; that is accepted as `off` too.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum FitMode {
     /// Pass the fits through unchanged (no solve).
@@ -40,6 +41,31 @@ pub enum FitMode {
     /// Smooth mode's terms plus the ingest entry's 3D keypoints, solved jointly over all
     /// frames ([`crate::keypoints`]).
     Keypoints,
+}
+
+impl<'de> Deserialize<'de> for FitMode {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Name(String),
+            Flag(bool),
+        }
+        const MODES: &[&str] = &["off", "smooth", "keypoints"];
+        match Raw::deserialize(deserializer)? {
+            Raw::Flag(false) => Ok(Self::Off),
+            Raw::Flag(true) => Err(D::Error::custom(
+                "`true` is not a fit mode; expected one of off, smooth, keypoints",
+            )),
+            Raw::Name(name) => match name.as_str() {
+                "off" => Ok(Self::Off),
+                "smooth" => Ok(Self::Smooth),
+                "keypoints" => Ok(Self::Keypoints),
+                other => Err(D::Error::unknown_variant(other, MODES)),
+            },
+        }
+    }
 }
 
 /// The `fit` stage configuration (all fields optional in the YAML).
@@ -383,6 +409,67 @@ mod tests {
         assert_eq!(used.confidence, vec![1.0, 1.0, 1.0, 0.0]);
     }
 
+    /// The three modes through the engine on a tiny synthetic scene: `off` copies the fits,
+    /// `keypoints` reads the ingest entry's keypoint arrays and beats `smooth` against the
+    /// ground truth.
+    #[test]
+    fn modes_through_the_engine() {
+        use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
+        let text = r#"
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {kind: synthetic, cameras: 1, frames: 12, width: 16, height: 16, supersample: 1, garment: false, body_grid_spacing: 0.04}
+      past_frames: 0
+  - {name: unchanged, kind: fit, inputs: [ingest], config: {mode: off}}
+  - {name: smooth, kind: fit, inputs: [ingest], config: {mode: smooth}}
+  - {name: keypoints, kind: fit, inputs: [ingest], config: {mode: keypoints}}
+"#;
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let mut registry = Registry::new();
+        seqavatar_ingest::register(&mut registry);
+        crate::register(&mut registry);
+        let pipeline =
+            Pipeline::parse(text, std::path::Path::new("t.yaml"), &registry, &[]).unwrap();
+        let reports = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
+        let entry = |name: &str| {
+            let key = &reports.iter().find(|r| r.name == name).unwrap().key;
+            store
+                .open_entry(&EntryId::new(name_kind(name), key))
+                .unwrap()
+        };
+        fn name_kind(name: &str) -> &'static str {
+            if name == "ingest" { "ingest" } else { "fit" }
+        }
+        let attribute =
+            |name: &str, key: &str| entry(name).attribute(key).and_then(|v| v.as_f64()).unwrap();
+        let ingest = entry("ingest");
+        assert_eq!(
+            entry("unchanged").read::<f64>("body_pose").unwrap().data,
+            ingest.read::<f64>("body_pose").unwrap().data
+        );
+        let input = attribute("keypoints", "joint_error_before");
+        let smooth = attribute("smooth", "joint_error_after");
+        let keypoints = attribute("keypoints", "joint_error_after");
+        println!(
+            "12-frame scene through the engine: joint error input {:.2} mm, smooth {:.2} mm, keypoints {:.2} mm",
+            input * 1e3,
+            smooth * 1e3,
+            keypoints * 1e3
+        );
+        assert!(keypoints < smooth && smooth < input);
+        assert!(
+            attribute("keypoints", "keypoint_distance_after")
+                < attribute("keypoints", "keypoint_distance_before")
+        );
+        assert_eq!(
+            entry("keypoints").attribute("mode"),
+            Some("keypoints".into())
+        );
+    }
+
     #[test]
     fn config_rejects_a_bad_keypoint_noise() {
         let error = FitStage
@@ -393,5 +480,16 @@ mod tests {
             .resolve_config(&serde_json::json!({"mode": "keypoints"}))
             .unwrap();
         assert_eq!(ok["keypoint_noise_m"], serde_json::json!(0.02));
+        // YAML reads a bare `off` as `false`.
+        let off = FitStage
+            .resolve_config(&serde_json::json!({"mode": false}))
+            .unwrap();
+        assert_eq!(off["mode"], serde_json::json!("off"));
+        for bad in [serde_json::json!(true), serde_json::json!("fast")] {
+            let error = FitStage
+                .resolve_config(&serde_json::json!({ "mode": bad }))
+                .unwrap_err();
+            assert!(error.to_string().contains("smooth"), "{error}");
+        }
     }
 }

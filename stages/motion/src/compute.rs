@@ -10,6 +10,7 @@ use seqavatar_fit::io::BodySequence;
 
 use crate::context::{self, Scales, VelocityNormalisation};
 use crate::knn::{KnnGraph, knn_graph};
+use crate::pose::pose_sequence;
 
 /// Per-frame motion arrays, row-major, frame-major.
 #[derive(Clone, Debug, PartialEq)]
@@ -62,24 +63,11 @@ pub fn compute_motion(
         model.num_joints()
     );
     let mut posed_vertices = vec![0.0_f32; f * v * 3];
-    let mut rotations = vec![DMat3::IDENTITY; f * j];
-    posed_vertices
-        .par_chunks_mut((v * 3).max(1))
-        .zip(rotations.par_chunks_mut(j.max(1)))
-        .enumerate()
-        .try_for_each(|(t, (dst, rot))| -> anyhow::Result<()> {
-            let params = sequence.params(t);
-            let posed = model
-                .forward(&params)
-                .map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
-            for (d, p) in dst.chunks_exact_mut(3).zip(&posed.vertices) {
-                d[0] = p.x as f32;
-                d[1] = p.y as f32;
-                d[2] = p.z as f32;
-            }
-            rot.copy_from_slice(&motion_rotations(&params));
-            Ok(())
-        })?;
+    pose_sequence(model, sequence, &mut posed_vertices)?;
+    let rotations: Vec<DMat3> = (0..f)
+        .into_par_iter()
+        .flat_map_iter(|t| motion_rotations(&sequence.params(t)))
+        .collect();
     let skeleton_motion = context::skeleton_motion(&rotations, f, j, &scales.steps)?;
     let factors = scales.velocity_factors(normalisation);
     let vertex_velocity = context::vertex_velocity(&posed_vertices, f, v, &scales.steps, &factors)?;
@@ -119,4 +107,108 @@ pub fn canonical_template(
         .collect();
     let graph = knn_graph(&vertices, k)?;
     Ok((vertices, graph))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pose::tests::{test_model, test_params};
+    use seqavatar_core::glam::DVec3;
+    use std::f64::consts::PI;
+
+    fn velocity_at(m: &MotionArrays, scales: usize, t: usize, slot: usize, v: usize) -> DVec3 {
+        let at = ((t * scales + slot) * m.num_vertices + v) * 3;
+        let x = &m.vertex_velocity[at..at + 3];
+        DVec3::new(f64::from(x[0]), f64::from(x[1]), f64::from(x[2]))
+    }
+
+    fn skeleton_at(m: &MotionArrays, scales: usize, t: usize, slot: usize, j: usize) -> DVec3 {
+        let at = ((t * scales + slot) * m.num_joints + j) * 3;
+        let x = &m.skeleton_motion[at..at + 3];
+        DVec3::new(f64::from(x[0]), f64::from(x[1]), f64::from(x[2]))
+    }
+
+    /// A still body that teleports 3 m at frame 5 while joint 3 flips by 180 degrees and
+    /// joint 7 sits at a rotation of almost pi: every array stays finite, the teleport is
+    /// one velocity spike per scale (and no skeleton motion), the flip is a rotation of pi.
+    #[test]
+    fn teleport_and_flip_between_frames() {
+        let model = test_model(60);
+        let mut params = test_params(&model, 10);
+        let still = params[0].clone();
+        for (t, p) in params.iter_mut().enumerate() {
+            *p = still.clone();
+            p.pose[7] = DVec3::new(0.0, PI - 1e-7, 0.0);
+            if t >= 5 {
+                p.world_translation += DVec3::new(3.0, 0.0, 0.0);
+                p.pose[3] = DVec3::new(PI, 0.0, 0.0);
+            } else {
+                p.pose[3] = DVec3::ZERO;
+            }
+        }
+        let sequence = BodySequence::from_params(&params).unwrap();
+        let scales = Scales::new(&[2, 1], 1).unwrap();
+        let m =
+            compute_motion(&model, &sequence, &scales, VelocityNormalisation::PerScale).unwrap();
+        assert!(m.posed_vertices.iter().all(|x| x.is_finite()));
+        assert!(m.vertex_velocity.iter().all(|x| x.is_finite()));
+        assert!(m.skeleton_motion.iter().all(|x| x.is_finite()));
+        // Slots are largest scale first: slot 0 = 2 frames, slot 1 = 1 frame.
+        let posed = |t: usize, v: usize| {
+            let at = (t * 60 + v) * 3;
+            DVec3::new(
+                f64::from(m.posed_vertices[at]),
+                f64::from(m.posed_vertices[at + 1]),
+                f64::from(m.posed_vertices[at + 2]),
+            )
+        };
+        for v in [0, 30, 59] {
+            // The displacement over the scale, divided by the scale.
+            let jump = posed(5, v) - posed(4, v);
+            assert!((velocity_at(&m, 2, 5, 1, v) - jump).length() < 1e-5);
+            assert!((velocity_at(&m, 2, 6, 0, v) - jump / 2.0).length() < 1e-5);
+            assert!((velocity_at(&m, 2, 5, 0, v) - jump / 2.0).length() < 1e-5);
+            for t in [1, 2, 3, 4, 7, 8, 9] {
+                assert!(velocity_at(&m, 2, t, 1, v).length() < 1e-5, "t={t}");
+            }
+        }
+        for t in 0..10 {
+            for slot in 0..2 {
+                // Translation is not skeleton motion; the near-pi joint does not move.
+                assert!(skeleton_at(&m, 2, t, slot, 0).length() < 1e-6);
+                assert!(skeleton_at(&m, 2, t, slot, 7).length() < 1e-5);
+                let step = [2, 1][slot];
+                let crosses = t >= 5 && t.saturating_sub(step) < 5;
+                let flip = skeleton_at(&m, 2, t, slot, 3).length();
+                if crosses {
+                    assert!((flip - PI).abs() < 1e-5, "t={t} slot={slot} {flip}");
+                } else {
+                    assert!(flip < 1e-6, "t={t} slot={slot} {flip}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn one_frame_and_nan_pose() {
+        let model = test_model(40);
+        let params = test_params(&model, 3);
+        let scales = Scales::new(&[3, 1], 1).unwrap();
+        let one = BodySequence::from_params(&params[..1]).unwrap();
+        let m = compute_motion(&model, &one, &scales, VelocityNormalisation::PerScale).unwrap();
+        assert_eq!(m.num_frames, 1);
+        assert!(m.vertex_velocity.iter().all(|x| *x == 0.0));
+        assert!(m.skeleton_motion.iter().all(|x| *x == 0.0));
+        assert!(m.posed_vertices.iter().all(|x| x.is_finite()));
+        let mut bad = params.clone();
+        bad[2].pose[5].y = f64::NAN;
+        let sequence = BodySequence::from_params(&bad).unwrap();
+        let message = compute_motion(&model, &sequence, &scales, VelocityNormalisation::PerScale)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("body_pose") && message.contains("frame 2, joint 5"),
+            "{message}"
+        );
+    }
 }

@@ -6,6 +6,7 @@
 pub mod compute;
 pub mod context;
 pub mod knn;
+pub mod pose;
 pub mod stage;
 
 pub use context::{Scales, VelocityNormalisation, Window, window};

@@ -64,7 +64,7 @@ impl Default for MotionConfig {
 pub struct MotionStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
     let value = ingest.attribute("frame_interval").ok_or_else(|| {
