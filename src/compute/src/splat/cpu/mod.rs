@@ -5,9 +5,8 @@
 //! (parallel over Gaussians), bin the visible ones into 16x16 tiles (one global depth sort,
 //! then a stable counting scatter), composite each tile front to back (parallel over tile
 //! rows). The backward pass walks the same lists back to front, writes one gradient per
-//! Gaussian-tile intersection into a Gaussian-major slot, then reduces each Gaussian's
-//! contiguous slots (parallel over Gaussians, in a fixed order, so results are deterministic)
-//! and chains through the projection.
+//! Gaussian-tile intersection, then reduces them per Gaussian (parallel over Gaussians, in a
+//! fixed order, so results are deterministic) and chains through the projection.
 //! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 when the CPU
 //! has it); `f64` runs (gradient checks) use the generic per-pixel loops of `raster.rs`.
 
@@ -246,8 +245,8 @@ fn accumulate_camera<S: Scalar>(
                 return 0;
             }
             let mut sum = [S::ZERO; 10];
-            for slot in &slots[begin..end] {
-                for (acc, v) in sum.iter_mut().zip(slot) {
+            for &position in &binning.intersection_positions[begin..end] {
+                for (acc, v) in sum.iter_mut().zip(&slots[position as usize]) {
                     *acc += *v;
                 }
             }
@@ -299,12 +298,20 @@ fn check_upstream<'a, S: Scalar>(
     let pixels = state.params.width as usize * state.params.height as usize;
     let check = |field: &'static str, values: &[S], expected: usize| {
         super::check_len(field, values.len(), expected)?;
-        // Parallel (a 512x512 colour gradient is 786k values); the first bad index wins.
-        match values
-            .par_iter()
-            .with_min_len(1 << 14)
-            .position_first(|v| !v.is_finite())
-        {
+        // Parallel over chunks, each a branch-free (vectorised) test; the first bad index
+        // wins, so the error does not depend on the scheduling.
+        const CHUNK: usize = 1 << 14;
+        let first_bad = values
+            .par_chunks(CHUNK)
+            .position_first(|chunk| !chunk.iter().fold(true, |ok, v| ok & v.is_finite()))
+            .and_then(|k| {
+                let chunk = &values[k * CHUNK..values.len().min((k + 1) * CHUNK)];
+                chunk
+                    .iter()
+                    .position(|v| !v.is_finite())
+                    .map(|i| k * CHUNK + i)
+            });
+        match first_bad {
             Some(index) => Err(SplatError::NonFiniteGradient {
                 camera,
                 field,

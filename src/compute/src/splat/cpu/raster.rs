@@ -29,12 +29,11 @@ pub(super) struct Binning {
     pub tile_gaussians: Vec<u32>,
     /// Gaussian index of each depth-order position.
     pub sorted: Vec<u32>,
-    /// `N + 1` offsets of each Gaussian's intersections in Gaussian-major order (its tiles
-    /// row by row): the order of the backward pass's gradient slots.
+    /// `N + 1` offsets into `intersection_positions` (a Gaussian's intersections, its tiles
+    /// row by row).
     pub gaussian_offsets: Vec<u32>,
-    /// The Gaussian-major slot of each intersection, by position in `tile_gaussians` (a
-    /// permutation of `0..intersections`).
-    pub position_slots: Vec<u32>,
+    /// Position in `tile_gaussians` of each of a Gaussian's intersections.
+    pub intersection_positions: Vec<u32>,
 }
 
 /// Sorts the visible Gaussians' tile intersections.
@@ -108,10 +107,10 @@ pub(super) fn bin<S: Scalar>(
         tile_offsets[t + 1] = running;
     }
     let mut tile_gaussians = vec![0_u32; total as usize];
-    let mut position_slots = vec![0_u32; total as usize];
+    let mut intersection_positions = vec![0_u32; total as usize];
     {
         let tile_writer = DisjointWriter::new(&mut tile_gaussians);
-        let slot_writer = DisjointWriter::new(&mut position_slots);
+        let position_writer = DisjointWriter::new(&mut intersection_positions);
         sorted
             .par_chunks(chunk)
             .zip(cursors.par_iter_mut())
@@ -129,9 +128,11 @@ pub(super) fn bin<S: Scalar>(
                             cursor[tile] += 1;
                             // SAFETY: positions are distinct: chunk `k`'s cursor in a tile
                             // runs over its own count of places after the earlier chunks'.
+                            // Slots are distinct: each Gaussian is in one chunk, once, and
+                            // owns `gaussian_offsets[g]..gaussian_offsets[g + 1]`.
                             unsafe {
                                 tile_writer.write(position, rank);
-                                slot_writer.write(position, slot);
+                                position_writer.write(slot as usize, position as u32);
                             }
                             slot += 1;
                         }
@@ -144,7 +145,7 @@ pub(super) fn bin<S: Scalar>(
         tile_gaussians,
         sorted,
         gaussian_offsets,
-        position_slots,
+        intersection_positions,
     })
 }
 
@@ -181,20 +182,16 @@ impl<'a, T: Copy> DisjointWriter<'a, T> {
     }
 }
 
-/// Where one tile's backward walk puts its list entries' gradients: entry `j` goes to the
-/// Gaussian-major slot `indices[j]`.
+/// Where one tile's backward walk puts its list entries' gradients (entry `j` in slot `j`:
+/// slots are in tile order, so each tile row's task writes its own contiguous part).
 pub(super) struct TileSlots<'a, S> {
-    writer: &'a DisjointWriter<'a, Slot<S>>,
-    /// `Binning::position_slots` of the tile's positions.
-    indices: &'a [u32],
+    slots: &'a mut [Slot<S>],
 }
 
 impl<S: Copy> TileSlots<'_, S> {
     #[inline(always)]
     pub fn put(&mut self, j: usize, gradient: Slot<S>) {
-        // SAFETY: `position_slots` is a permutation (see `bin`), tiles own disjoint position
-        // ranges, one task walks each tile, and a walk puts each entry once.
-        unsafe { self.writer.write(self.indices[j] as usize, gradient) }
+        self.slots[j] = gradient;
     }
 }
 
@@ -498,12 +495,18 @@ pub(super) fn backward<S: Scalar>(
     let tiles_x = width.div_ceil(TILE_SIZE);
     let tiles_y = height.div_ceil(TILE_SIZE);
     let mut slots = vec![[S::ZERO; 10]; binning.tile_gaussians.len()];
-    let writer = DisjointWriter::new(&mut slots);
-    let tile_slots = |begin: usize, end: usize| TileSlots {
-        writer: &writer,
-        indices: &binning.position_slots[begin..end],
-    };
-    (0..tiles_y as usize).into_par_iter().for_each(|ty| {
+    // Split the slots by tile row so each task owns its rows' intersections.
+    let mut row_slots: Vec<(usize, &mut [Slot<S>])> = Vec::with_capacity(tiles_y as usize);
+    let mut rest: &mut [Slot<S>] = &mut slots;
+    for ty in 0..tiles_y {
+        let start = binning.tile_offsets[(ty * tiles_x) as usize] as usize;
+        let end = binning.tile_offsets[((ty + 1) * tiles_x) as usize] as usize;
+        let (head, tail) = rest.split_at_mut(end - start);
+        row_slots.push((ty as usize, head));
+        rest = tail;
+    }
+    row_slots.into_par_iter().for_each(|(ty, row_slots)| {
+        let row_base = binning.tile_offsets[ty * tiles_x as usize] as usize;
         let y_start = ty as u32 * TILE_SIZE;
         let y_end = (y_start + TILE_SIZE).min(height);
         if let Some(fast) = fast {
@@ -521,7 +524,9 @@ pub(super) fn backward<S: Scalar>(
                     fast,
                     &binning.tile_gaussians[begin..end],
                     count,
-                    &mut tile_slots(begin, end),
+                    &mut TileSlots {
+                        slots: &mut row_slots[begin - row_base..end - row_base],
+                    },
                     bounds,
                     smooth,
                     upstream,
@@ -548,7 +553,9 @@ pub(super) fn backward<S: Scalar>(
             state.walk(
                 splats,
                 &binning.tile_gaussians[begin..end],
-                &mut tile_slots(begin, end),
+                &mut TileSlots {
+                    slots: &mut row_slots[begin - row_base..end - row_base],
+                },
                 [x_start, x_end, y_start, y_end],
                 smooth,
             );
@@ -747,8 +754,8 @@ mod tests {
                     // The slot is this Gaussian's, at this tile's place in its row-by-row order.
                     let r = rects[g];
                     let k = (ty - r.y0) * (r.x1 - r.x0) + (tx - r.x0);
-                    let slot = binning.position_slots[position] as usize;
-                    assert_eq!(slot, (binning.gaussian_offsets[g] + k) as usize);
+                    let slot = (binning.gaussian_offsets[g] + k) as usize;
+                    assert_eq!(binning.intersection_positions[slot] as usize, position);
                     assert!(!seen[slot]);
                     seen[slot] = true;
                 }
