@@ -5,10 +5,12 @@
 //! The per-pixel math is the contract's (`SPLATTING.md`) in the same operation order as the
 //! generic path in `raster.rs`, with two differences that only change `f32` rounding: `exp`
 //! is a polynomial ([`fast_exp`], within 2 ulp of `expf` on the range the rasteriser uses),
-//! and the backward pass sums a Gaussian's per-pixel gradients per lane before adding the
-//! lanes. Lanes whose pixel does not take part are computed and discarded by selects, so a
-//! Gaussian costs one step per 8-pixel group its row spans touch. `f64` runs never come here:
-//! gradient checks keep the exact generic path.
+//! and the backward pass sums a Gaussian's per-pixel gradients per lane (its conic and mean
+//! gradients as five moment sums, see [`LaneSums`]) before adding the lanes. Lanes whose
+//! pixel does not take part are computed and then neutralised (alpha set to +0, masks), so a
+//! Gaussian costs one step per 8-pixel group of its row spans; groups start at the span, not
+//! at multiples of 8 ([`row_groups`]). `f64` runs never come here: gradient checks keep the
+//! exact generic path.
 
 // Index loops over lanes are what LLVM vectorises.
 #![allow(clippy::needless_range_loop)]
