@@ -1,5 +1,6 @@
 //! The dataset pipelines (`pipelines/{zju_mocap,i3d_human,dna_rendering}.yaml`) ingest tiny
-//! datasets written in each real layout by `tests/fixtures/write_datasets.py` (numpy, h5py),
+//! datasets written in each real layout (up to the motion stage; the training stages are
+//! validated but not run) by `tests/fixtures/write_datasets.py` (numpy, h5py),
 //! through the real binary and the committed YAML files, with the dataset roots given the
 //! way a user gives them: environment variables. `pipeline inspect` then draws the ingest
 //! contact sheet. The readers' numerics are checked in `stages/ingest/tests/datasets.rs`;
@@ -61,11 +62,31 @@ fn ingest_and_inspect(
     expected_images: usize,
 ) {
     let file = pipeline_file(yaml);
-    let mut run: Vec<&str> = vec!["run", &file, "--until", "ingest"];
+    let mut run: Vec<&str> = vec!["run", &file, "--until", "motion"];
     for set in sets {
         run.extend(["--set", set]);
     }
     ok_with_env(sandbox, vars, &run);
+    // The whole pipeline (fit, motion, train, eval) validates; the stages up to motion ran.
+    let mut status: Vec<&str> = vec!["status", &file];
+    for set in sets {
+        status.extend(["--set", set]);
+    }
+    let table = ok_with_env(sandbox, vars, &status);
+    let state_of = |stage: &str| -> String {
+        table
+            .lines()
+            .find(|line| line.split_whitespace().next() == Some(stage))
+            .and_then(|line| line.split_whitespace().nth(3))
+            .unwrap_or_else(|| panic!("{yaml}: no stage {stage} in:\n{table}"))
+            .to_string()
+    };
+    for stage in ["ingest", "fit", "motion"] {
+        assert_eq!(state_of(stage), "cached", "{yaml}: {stage}\n{table}");
+    }
+    for stage in ["train", "eval"] {
+        assert_eq!(state_of(stage), "missing", "{yaml}: {stage}\n{table}");
+    }
 
     let target = format!("{file}:ingest");
     let mut inspect: Vec<&str> = vec!["inspect", &target];
