@@ -31,8 +31,10 @@ use crate::data::MotionTrack;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::{SH, SH_STORED};
 use crate::knn::{KnnGrid, as_points};
+use crate::model::gpu::{GpuNetworks, GpuNonRigidCache};
 use crate::model::{
-    GaussianInputs, LbsOffsetsCache, NetworkConfig, Networks, NonRigidCache, PoseRefinerCache,
+    GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks, NonRigidCache,
+    NonRigidOutput, PoseRefinerCache,
 };
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
@@ -170,7 +172,7 @@ pub fn frame_pose(
 pub struct Deformed {
     /// Nearest template vertex of each (post-non-rigid) centre.
     pub nearest: Vec<u32>,
-    pub non_rigid: Option<NonRigidCache<f64>>,
+    pub non_rigid: Option<NonRigidPass>,
     /// LBS weight offsets `N x J` and their cache.
     pub weight_offsets: Option<(Vec<f64>, LbsOffsetsCache<f64>)>,
     /// Centres after the non-rigid offset (canonical space).
@@ -180,6 +182,22 @@ pub struct Deformed {
     pub d_rotations: Vec<f64>,
     pub skinned: Skinned,
     pub world: WorldGaussians,
+}
+
+/// The activations of the non-rigid network's forward pass, where it ran.
+pub enum NonRigidPass {
+    /// On `cpu`, in f64 (the parameter master).
+    Cpu(NonRigidCache<f64>),
+    /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
+    Gpu(GpuNonRigidCache),
+}
+
+fn narrow(values: &[f64]) -> Vec<f32> {
+    values.iter().map(|&v| v as f32).collect()
+}
+
+fn widen(values: &[f32]) -> Vec<f64> {
+    values.iter().map(|&v| f64::from(v)).collect()
 }
 
 /// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
@@ -211,12 +229,41 @@ pub fn knn_velocity(
 
 /// The forward pass shared by training and rendering: non-rigid offsets from the networks
 /// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
-/// skinning, activations.
+/// skinning, activations. Everything runs on `cpu` in f64 (see [`deform_on`]).
 #[allow(clippy::too_many_arguments)]
 pub fn deform(
     rig: &BodyRig,
     template_grid: &KnnGrid,
     networks: Option<&Networks<f64>>,
+    gaussians: &AvatarGaussians,
+    inputs: &FrameInputs,
+    pose: &FramePose,
+    config: &TrainConfig,
+    sh_degree: u32,
+) -> anyhow::Result<Deformed> {
+    deform_on(
+        rig,
+        template_grid,
+        networks,
+        None,
+        gaussians,
+        inputs,
+        pose,
+        config,
+        sh_degree,
+    )
+}
+
+/// [`deform`] with the non-rigid network evaluated on the gpu when `gpu_networks` is given
+/// (a copy of `networks`' parameters; inputs rounded to f32 once, outputs widened to f64).
+/// The pose refiner and the LBS offsets stay on `cpu`: they are per-frame or cheap next to
+/// the per-Gaussian non-rigid network.
+#[allow(clippy::too_many_arguments)]
+pub fn deform_on(
+    rig: &BodyRig,
+    template_grid: &KnnGrid,
+    networks: Option<&Networks<f64>>,
+    gpu_networks: Option<&GpuNetworks>,
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
@@ -257,16 +304,43 @@ pub fn deform(
                     None
                 };
                 let pose_values = local_pose(&inputs.params);
-                let (out, cache) = net.non_rigid_forward(
-                    &crate::model::FrameInputs {
-                        local_pose: &pose_values,
-                        skeleton_motion,
-                    },
-                    &GaussianInputs {
-                        xyz: &gaussians.xyz,
-                        knn_velocity: knn,
-                    },
-                )?;
+                let (out, cache) = match gpu_networks {
+                    None => {
+                        let (out, cache) = net.non_rigid_forward(
+                            &crate::model::FrameInputs {
+                                local_pose: &pose_values,
+                                skeleton_motion,
+                            },
+                            &GaussianInputs {
+                                xyz: &gaussians.xyz,
+                                knn_velocity: knn,
+                            },
+                        )?;
+                        (out, NonRigidPass::Cpu(cache))
+                    }
+                    Some(gpu) => {
+                        let pose32 = narrow(&pose_values);
+                        let knn32 = knn.map(narrow);
+                        let xyz32 = narrow(&gaussians.xyz);
+                        let skeleton32 = skeleton_motion.map(|_| inputs.skeleton_motion.as_slice());
+                        let (out, cache) = gpu.non_rigid_forward(
+                            &crate::model::FrameInputs {
+                                local_pose: &pose32,
+                                skeleton_motion: skeleton32,
+                            },
+                            &GaussianInputs {
+                                xyz: &xyz32,
+                                knn_velocity: knn32.as_deref(),
+                            },
+                        )?;
+                        let out = NonRigidOutput {
+                            d_xyz: widen(&out.d_xyz),
+                            d_rot: widen(&out.d_rot),
+                            d_scale: widen(&out.d_scale),
+                        };
+                        (out, NonRigidPass::Gpu(cache))
+                    }
+                };
                 let positions: Vec<f64> = gaussians
                     .xyz
                     .iter()
@@ -344,8 +418,12 @@ pub fn deform(
 /// gradients: accumulates the networks' parameter gradients and returns the gradient of the
 /// canonical centres through the non-rigid network (zeros without one; the direct path
 /// `x' = x + d_xyz` is the caller's). `params` are the frame's unrefined body parameters.
+/// A non-rigid pass that ran on the gpu runs its backward there too (`gpu_networks`, the
+/// copy it ran on): its parameter gradients are downloaded and added to `networks`'.
+#[allow(clippy::too_many_arguments)]
 pub fn deform_backward(
     networks: &mut Networks<f64>,
+    gpu_networks: Option<&GpuNetworks>,
     rig: &BodyRig,
     posed: &PosedFrame,
     deformed: &Deformed,
@@ -353,13 +431,34 @@ pub fn deform_backward(
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
     let mut through = vec![0.0; deformed.positions.len()];
-    if let Some(cache) = &deformed.non_rigid {
-        through = networks.non_rigid_backward(
-            cache,
-            &skin.positions,
-            &skin.d_rotations,
-            &skin.d_scales,
-        )?;
+    match &deformed.non_rigid {
+        None => {}
+        Some(NonRigidPass::Cpu(cache)) => {
+            through = networks.non_rigid_backward(
+                cache,
+                &skin.positions,
+                &skin.d_rotations,
+                &skin.d_scales,
+            )?;
+        }
+        Some(NonRigidPass::Gpu(cache)) => {
+            let gpu = gpu_networks.context(
+                "the non-rigid pass ran on the gpu, but its backward got no gpu networks",
+            )?;
+            // The device gradients accumulate across backwards; start from zero so the
+            // download holds exactly this pass's contribution.
+            gpu.zero_grad()?;
+            let d_canonical = gpu.non_rigid_backward(
+                cache,
+                &narrow(&skin.positions),
+                &narrow(&skin.d_rotations),
+                &narrow(&skin.d_scales),
+            )?;
+            gpu.add_group_gradients_into(networks, NetworkGroup::NonRigid)?;
+            if !d_canonical.is_empty() {
+                through = widen(&d_canonical);
+            }
+        }
     }
     if let Some((_, cache)) = &deformed.weight_offsets {
         networks.lbs_offsets_backward(cache, &skin.weight_offsets)?;
@@ -812,6 +911,7 @@ mod tests {
         networks.zero_grad();
         let through = deform_backward(
             &mut networks,
+            None,
             &setup.rig,
             &posed,
             &deformed,

@@ -16,7 +16,7 @@ use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
 use std::collections::BTreeMap;
 
 use crate::avatar::{
-    AvatarGaussians, PosedFrame, TrainedAvatar, deform, deform_backward, frame_pose,
+    AvatarGaussians, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
     gather_frame_inputs, needs_networks, template_grid,
 };
 use crate::checkpoint::{Checkpoint, Tensor};
@@ -28,6 +28,7 @@ use crate::densify::{
 use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
 use crate::knn::{KnnGrid, as_points, knn_brute_force};
 use crate::losses::{AiapInputs, ImageLossWeights, ImagePair, Rect, aiap_loss, image_loss};
+use crate::model::gpu::GpuNetworks;
 use crate::model::{NetworkConfig, NetworkGroup, Networks};
 use crate::rig::{FramePose, PoseChain};
 use crate::rng::Rng;
@@ -151,6 +152,9 @@ pub struct Trainer<'d> {
     /// The networks (when the configuration has any) and their Adam state by name.
     pub networks: Option<Networks<f64>>,
     network_adam: BTreeMap<String, AdamState<f64>>,
+    /// On the `gpu` backend, an f32 copy of the non-rigid network that evaluates it
+    /// (forward and backward); `networks` stays the parameter master.
+    gpu_networks: Option<GpuNetworks>,
     train_images: Vec<usize>,
     template_grid: KnnGrid,
     /// Unrefined skinning targets per frame, computed once.
@@ -249,7 +253,15 @@ impl<'d> Trainer<'d> {
             !train_images.is_empty(),
             "no training image has a non-empty foreground mask"
         );
+        let gpu_networks = match (&backend, networks.as_ref()) {
+            (Backend::Gpu(context), Some(net)) if net.has_non_rigid() => Some(
+                GpuNetworks::upload_f64(context.clone(), net)
+                    .context("uploading the networks to the gpu")?,
+            ),
+            _ => None,
+        };
         Ok(Self {
+            gpu_networks,
             template_grid: template_grid(&data.rig),
             poses: vec![None; data.params.len()],
             config,
@@ -323,6 +335,12 @@ impl<'d> Trainer<'d> {
         if let Some(net) = self.networks.as_mut() {
             net.zero_grad();
         }
+        // The master parameters change with every optimiser step (and `networks` is public):
+        // the gpu copy is refreshed before every forward pass.
+        if let (Some(gpu), Some(net)) = (&self.gpu_networks, &self.networks) {
+            gpu.upload_group_f64(net, NetworkGroup::NonRigid)
+                .context("uploading the non-rigid network to the gpu")?;
+        }
         let posed = self.posed_frame(frame)?;
         let pose = &posed.pose;
         let inputs = gather_frame_inputs(
@@ -334,10 +352,11 @@ impl<'d> Trainer<'d> {
         )?;
         let gaussians = self.avatar_gaussians()?;
         let n = gaussians.len();
-        let deformed = deform(
+        let deformed = deform_on(
             &self.data.rig,
             &self.template_grid,
             self.networks.as_ref(),
+            self.gpu_networks.as_ref(),
             &gaussians,
             &inputs,
             pose,
@@ -493,6 +512,7 @@ impl<'d> Trainer<'d> {
         if let Some(net) = self.networks.as_mut() {
             let through = deform_backward(
                 net,
+                self.gpu_networks.as_ref(),
                 &self.data.rig,
                 &posed,
                 &deformed,
@@ -680,6 +700,12 @@ impl<'d> Trainer<'d> {
         stats.gaussians = self.state.len();
         self.curve.push(&stats);
         Ok(stats)
+    }
+
+    /// Whether the non-rigid network runs on the gpu (the `gpu` backend with a motion
+    /// context that has one).
+    pub fn non_rigid_on_gpu(&self) -> bool {
+        self.gpu_networks.is_some()
     }
 
     /// The current avatar.

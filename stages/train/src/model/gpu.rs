@@ -281,6 +281,96 @@ impl GpuNetworks {
         Ok(())
     }
 
+    /// Uploads the f64 host networks (rounded to f32 once); the gpu twin of the `cpu`
+    /// parameter master a trainer keeps. Gradients start at zero.
+    pub fn upload_f64(
+        context: Arc<GpuContext>,
+        networks: &Networks<f64>,
+    ) -> Result<Self, ModelError> {
+        let mut narrow = Networks::<f32>::new(networks.config(), 0)?;
+        let values: HashMap<String, Vec<f32>> = networks
+            .parameters()
+            .iter()
+            .map(|p| (p.name.clone(), p.values.iter().map(|&v| v as f32).collect()))
+            .collect();
+        narrow.load_parameters(|name| values.get(name).cloned())?;
+        Self::upload(context, &narrow)
+    }
+
+    /// Overwrites the device parameters of the layers in `group` with those of the f64
+    /// host networks (rounded to f32; same configuration).
+    pub fn upload_group_f64(
+        &self,
+        networks: &Networks<f64>,
+        group: NetworkGroup,
+    ) -> Result<(), ModelError> {
+        if networks.config() != &self.config {
+            return Err(ModelError::Input {
+                field: "networks".into(),
+                message: "the cpu networks have another configuration".into(),
+            });
+        }
+        let narrow =
+            |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|&x| (x as f32).to_ne_bytes()).collect() };
+        let queue = self.context.queue();
+        for (gpu, cpu) in self.layers.iter().zip(networks.layers()) {
+            if gpu.group == group {
+                queue.write_buffer(&gpu.weight, 0, &narrow(&cpu.weight));
+                queue.write_buffer(&gpu.bias, 0, &narrow(&cpu.bias));
+            }
+        }
+        Ok(())
+    }
+
+    /// Downloads the device gradients of the layers in `group` and adds them (widened to
+    /// f64) to the gradients of the host networks (same configuration), which therefore
+    /// accumulate exactly as a `cpu` backward would.
+    pub fn add_group_gradients_into(
+        &self,
+        networks: &mut Networks<f64>,
+        group: NetworkGroup,
+    ) -> Result<(), ModelError> {
+        if networks.config() != &self.config {
+            return Err(ModelError::Input {
+                field: "networks".into(),
+                message: "the cpu networks have another configuration".into(),
+            });
+        }
+        let chosen: Vec<&GpuDense> = self.layers.iter().filter(|l| l.group == group).collect();
+        let mut sources = Vec::with_capacity(2 * chosen.len());
+        for layer in &chosen {
+            sources.push((&layer.d_weight, layer.shape.weight_len()));
+            sources.push((&layer.d_bias, layer.shape.out_features));
+        }
+        let mut encoder = self.context.encoder();
+        let mut pending = self
+            .context
+            .download_many::<f32>(&mut encoder, &sources)
+            .map_err(gpu_error)?;
+        self.context
+            .finish_downloads(encoder, &mut pending)
+            .map_err(gpu_error)?;
+        let mut arrays = pending.into_iter().map(|p| p.values);
+        for layer in networks
+            .layers_mut()
+            .into_iter()
+            .filter(|l| l.group == group)
+        {
+            let d_weight = arrays.next().ok_or_else(|| gpu_error("layer count"))?;
+            let d_bias = arrays.next().ok_or_else(|| gpu_error("layer count"))?;
+            if d_weight.len() != layer.d_weight.len() || d_bias.len() != layer.d_bias.len() {
+                return Err(gpu_error(format!("gradient length of `{}`", layer.name)));
+            }
+            for (a, b) in layer.d_weight.iter_mut().zip(&d_weight) {
+                *a += f64::from(*b);
+            }
+            for (a, b) in layer.d_bias.iter_mut().zip(&d_bias) {
+                *a += f64::from(*b);
+            }
+        }
+        Ok(())
+    }
+
     fn layer(&self, name: &str) -> Result<&GpuDense, ModelError> {
         self.index
             .get(name)

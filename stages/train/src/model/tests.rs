@@ -1027,3 +1027,121 @@ fn gpu_matches_cpu_at_every_level_and_the_extremes() {
     check_gpu_parity(&small_config(MotionContext::Velocity, 1, 1), 0);
     check_gpu_parity(&small_config(MotionContext::None, 1, 1), 7);
 }
+
+/// The trainer's f64 master <-> f32 device copy: uploads round once, the non-rigid
+/// gradients come back (widened) and add to the master's, other groups untouched.
+#[test]
+fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
+    use super::gpu::GpuNetworks;
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let mut config = small_config(MotionContext::Multiscale, 2, 3);
+    config.pose_refiner = true;
+    config.lbs_offsets = true;
+    let n = 9;
+    let master = Networks::<f64>::new(&config, 5).unwrap();
+    let gpu = GpuNetworks::upload_f64(context, &master).unwrap();
+    let mut narrowed = Networks::<f32>::new(&config, 77).unwrap();
+    gpu.download_into(&mut narrowed).unwrap();
+    for (m, d) in master.parameters().iter().zip(narrowed.parameters()) {
+        assert_eq!(to_f32(m.values), d.values, "{}", m.name);
+    }
+    // Another master: only the non-rigid group is uploaded.
+    let other = Networks::<f64>::new(&config, 6).unwrap();
+    gpu.upload_group_f64(&other, NetworkGroup::NonRigid)
+        .unwrap();
+    gpu.download_into(&mut narrowed).unwrap();
+    for ((m, o), d) in master
+        .parameters()
+        .iter()
+        .zip(other.parameters())
+        .zip(narrowed.parameters())
+    {
+        let expected = if m.group == NetworkGroup::NonRigid {
+            to_f32(o.values)
+        } else {
+            to_f32(m.values)
+        };
+        assert_eq!(expected, d.values, "{}", m.name);
+    }
+    gpu.upload_group_f64(&master, NetworkGroup::NonRigid)
+        .unwrap();
+
+    let mut rng = Rng::new(23);
+    let input = inputs(&config, n, &mut rng);
+    let probe: Vec<f64> = random(&mut rng, 10 * n, 1.0);
+    let (d_dxyz, rest) = probe.split_at(3 * n);
+    let (d_drot, d_dscale) = rest.split_at(4 * n);
+    let frame = FrameInputs {
+        local_pose: &input.pose,
+        skeleton_motion: input.skeleton.as_deref(),
+    };
+    let gaussians = GaussianInputs {
+        xyz: &input.xyz,
+        knn_velocity: input.velocity.as_deref(),
+    };
+    let (_, cache) = master.non_rigid_forward(&frame, &gaussians).unwrap();
+    let mut reference = master.clone();
+    reference
+        .non_rigid_backward(&cache, d_dxyz, d_drot, d_dscale)
+        .unwrap();
+
+    let (pose, xyz) = (to_f32(&input.pose), to_f32(&input.xyz));
+    let skeleton = input.skeleton.as_deref().map(to_f32);
+    let velocity = input.velocity.as_deref().map(to_f32);
+    let (_, gpu_cache) = gpu
+        .non_rigid_forward(
+            &FrameInputs {
+                local_pose: &pose,
+                skeleton_motion: skeleton.as_deref(),
+            },
+            &GaussianInputs {
+                xyz: &xyz,
+                knn_velocity: velocity.as_deref(),
+            },
+        )
+        .unwrap();
+    gpu.non_rigid_backward(
+        &gpu_cache,
+        &to_f32(d_dxyz),
+        &to_f32(d_drot),
+        &to_f32(d_dscale),
+    )
+    .unwrap();
+    // Pre-existing gradients on the master: the device's add to them.
+    let mut seeded = master.clone();
+    for param in seeded.layers_mut() {
+        param.d_weight.fill(0.5);
+        param.d_bias.fill(0.5);
+    }
+    gpu.add_group_gradients_into(&mut seeded, NetworkGroup::NonRigid)
+        .unwrap();
+    for (r, s) in reference.parameters().iter().zip(seeded.parameters()) {
+        let scale = r.grads.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+        for (i, (a, b)) in r.grads.iter().zip(s.grads).enumerate() {
+            let expected = if r.group == NetworkGroup::NonRigid {
+                a + 0.5
+            } else {
+                0.5
+            };
+            assert!(
+                (b - expected).abs() <= 1e-4 * scale,
+                "{}[{i}]: {b} vs {expected}",
+                r.name
+            );
+        }
+    }
+    // Another configuration is refused, naming the field.
+    let mut smaller = config.clone();
+    smaller.trunk_width = 5;
+    let mut wrong = Networks::<f64>::new(&smaller, 5).unwrap();
+    let error = gpu
+        .add_group_gradients_into(&mut wrong, NetworkGroup::NonRigid)
+        .unwrap_err();
+    assert!(error.to_string().contains("networks"), "{error}");
+    assert!(
+        gpu.upload_group_f64(&wrong, NetworkGroup::NonRigid)
+            .is_err()
+    );
+}
