@@ -1,10 +1,10 @@
-//! The dataset pipelines (`pipelines/{zju_mocap,i3d_human,dna_rendering}.yaml`) ingest tiny
-//! datasets written in each real layout (up to the motion stage; the training stages are
-//! validated but not run) by `tests/fixtures/write_datasets.py` (numpy, h5py),
+//! The dataset pipelines (`pipelines/{zju_mocap,i3d_human,dna_rendering}.yaml`) run on tiny
+//! datasets written in each real layout by `tests/fixtures/write_datasets.py` (numpy, h5py),
 //! through the real binary and the committed YAML files, with the dataset roots given the
-//! way a user gives them: environment variables. `pipeline inspect` then draws the ingest
-//! contact sheet. The readers' numerics are checked in `stages/ingest/tests/datasets.rs`;
-//! this checks the files users run.
+//! way a user gives them: environment variables. Every stage of each pipeline is validated;
+//! ingest, fit and motion run (training would take hours at the datasets' settings), and
+//! `pipeline inspect` draws the ingest contact sheet. The readers' numerics are checked in
+//! `stages/ingest/tests/datasets.rs`; this checks the files users run.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
