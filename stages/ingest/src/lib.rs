@@ -77,11 +77,13 @@
 //! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `num_train_images`,
 //! `num_test_images`, `background` (`[0, 0, 0]`).
 
+pub mod cameras;
 pub mod datasets;
 pub mod formats;
 pub mod stage;
 pub mod synthetic;
 
+pub use cameras::read_cameras;
 pub use stage::{
     DatasetReader, Ingest, IngestConfig, Keypoints3d, read_body_model, read_body_params,
     read_keypoints_3d,

@@ -24,8 +24,8 @@
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use seqavatar_core::camera::{Camera, Intrinsics};
-use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_core::camera::Camera;
+use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
@@ -355,38 +355,13 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
 }
 
 fn read_camera(entry: &EntryReader, view: usize) -> anyhow::Result<Camera> {
-    let k = entry.read::<f64>("camera_K")?;
-    let r = entry.read::<f64>("camera_R")?;
-    let t = entry.read::<f64>("camera_t")?;
-    let size = entry.read::<u32>("camera_image_size")?;
-    let views = k.shape[0];
+    let mut cameras = seqavatar_ingest::read_cameras(entry)?;
+    let views = cameras.len();
     anyhow::ensure!(
         view < views,
         "picture option view={view}: the entry has {views} views"
     );
-    let kk = &k.data[view * 9..view * 9 + 9];
-    let rr = &r.data[view * 9..view * 9 + 9];
-    let tt = &t.data[view * 3..view * 3 + 3];
-    let hw = &size.data[view * 2..view * 2 + 2];
-    let camera = Camera {
-        width: hw[1],
-        height: hw[0],
-        intrinsics: Intrinsics {
-            fx: kk[0],
-            fy: kk[4],
-            cx: kk[2],
-            cy: kk[5],
-        },
-        rotation: DMat3::from_cols_array(&[
-            rr[0], rr[3], rr[6], rr[1], rr[4], rr[7], rr[2], rr[5], rr[8],
-        ]),
-        translation: DVec3::new(tt[0], tt[1], tt[2]),
-        distortion: [0.0; 5],
-    };
-    camera
-        .validate()
-        .with_context(|| format!("entry {}: camera of view {view}", entry.location()))?;
-    Ok(camera)
+    Ok(cameras.swap_remove(view))
 }
 
 fn draw_skeleton_motion(
