@@ -3,6 +3,7 @@
 
 pub mod body;
 pub mod camera;
+pub mod rng;
 pub mod rotation;
 
 pub use glam;

@@ -32,42 +32,8 @@ pub const SCENE_SIZE: u32 = 512;
 /// The seed the benchmark uses.
 pub const STANDARD_SEED: u64 = 42;
 
-/// SplitMix64, the scene's documented generator.
-#[derive(Clone, Debug)]
-pub struct SplitMix64 {
-    state: u64,
-}
-
-impl SplitMix64 {
-    pub fn new(seed: u64) -> Self {
-        Self { state: seed }
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)` with 53 random bits.
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1_u64 << 53) as f64)
-    }
-
-    /// Uniform in `[lo, hi)`.
-    pub fn uniform_in(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.uniform()
-    }
-
-    /// Standard normal (Box-Muller, one value per two uniforms).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform();
-        let u2 = self.uniform();
-        (-2.0 * (1.0 - u1).ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-}
+/// SplitMix64, the scene's documented generator (the project's one, in `seqavatar_core`).
+pub use seqavatar_core::rng::SplitMix64;
 
 /// The standard scene: camera, Gaussians (with the scales and rotations they came from) and
 /// the upstream colour gradient of the backward benchmark.
@@ -110,18 +76,18 @@ pub fn standard_scene(count: usize, seed: u64) -> BenchmarkScene {
     let mut sh = Vec::with_capacity(count * 3);
     let (log_lo, log_hi) = (0.005_f64.ln(), 0.03_f64.ln());
     for _ in 0..count {
-        means.push(rng.uniform_in(-1.0, 1.0));
-        means.push(rng.uniform_in(-1.0, 1.0));
-        means.push(rng.uniform_in(2.0, 4.0));
+        means.push(rng.uniform(-1.0, 1.0));
+        means.push(rng.uniform(-1.0, 1.0));
+        means.push(rng.uniform(2.0, 4.0));
         for _ in 0..3 {
-            scales.push(rng.uniform_in(log_lo, log_hi).exp());
+            scales.push(rng.uniform(log_lo, log_hi).exp());
         }
         let q: [f64; 4] = std::array::from_fn(|_| rng.normal());
         let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
         rotations.extend(q.map(|v| v / norm));
-        opacities.push(rng.uniform_in(0.1, 0.9));
+        opacities.push(rng.uniform(0.1, 0.9));
         for _ in 0..3 {
-            sh.push((rng.uniform() - 0.5) / SH_C0);
+            sh.push((rng.next_f64() - 0.5) / SH_C0);
         }
     }
     let pixels = (SCENE_SIZE * SCENE_SIZE) as usize;
@@ -147,14 +113,6 @@ pub fn standard_scene(count: usize, seed: u64) -> BenchmarkScene {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn splitmix_matches_the_published_reference_values() {
-        // Reference outputs of SplitMix64 seeded with 1234567 (Vigna's splitmix64.c).
-        let mut rng = SplitMix64::new(1_234_567);
-        assert_eq!(rng.next_u64(), 6_457_827_717_110_365_317);
-        assert_eq!(rng.next_u64(), 3_203_168_211_198_807_973);
-    }
 
     #[test]
     fn scene_is_deterministic_and_in_range() {

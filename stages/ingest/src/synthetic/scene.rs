@@ -192,7 +192,7 @@ impl SyntheticScene {
             );
         }
 
-        let mut rng = Rng::new(config.seed);
+        let mut rng = super::rng::seeded(config.seed);
         let fitted_betas: Vec<f64> = config
             .betas
             .iter()
@@ -204,7 +204,7 @@ impl SyntheticScene {
             .collect();
 
         // 3D keypoints: every joint's true world position plus Gaussian noise.
-        let mut keypoint_rng = Rng::new(config.seed ^ KEYPOINT_STREAM);
+        let mut keypoint_rng = super::rng::seeded(config.seed ^ KEYPOINT_STREAM);
         let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
         for params in &ground_truth {
             let posed = model.forward(params)?;
@@ -275,15 +275,15 @@ impl SyntheticScene {
         let mut cameras = Vec::with_capacity(config.cameras);
         for index in 0..config.cameras {
             let azimuth = std::f64::consts::TAU * index as f64 / config.cameras as f64
-                + (rng.uniform() - 0.5) * 0.1;
-            let height = 1.3 + (rng.uniform() - 0.5) * 0.3;
+                + (rng.next_f64() - 0.5) * 0.1;
+            let height = 1.3 + (rng.next_f64() - 0.5) * 0.3;
             let eye = DVec3::new(
                 target.x + config.camera_distance * azimuth.sin(),
                 height,
                 target.z + config.camera_distance * azimuth.cos(),
             );
-            let offset = DVec2::new(rng.uniform() - 0.5, rng.uniform() - 0.5) * 4.0;
-            let aspect = 1.0 + (rng.uniform() - 0.5) * 0.004;
+            let offset = DVec2::new(rng.next_f64() - 0.5, rng.next_f64() - 0.5) * 4.0;
+            let aspect = 1.0 + (rng.next_f64() - 0.5) * 0.004;
             let unit = Intrinsics {
                 fx: 1.0,
                 fy: aspect,

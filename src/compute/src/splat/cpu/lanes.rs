@@ -1060,15 +1060,15 @@ mod tests {
         let mut rng = crate::splat::scene::SplitMix64::new(11);
         for _ in 0..500 {
             let mean = [
-                rng.uniform_in(-20.0, 60.0) as f32,
-                rng.uniform_in(-20.0, 60.0) as f32,
+                rng.uniform(-20.0, 60.0) as f32,
+                rng.uniform(-20.0, 60.0) as f32,
             ];
-            let (sx, sy) = (rng.uniform_in(0.6, 12.0), rng.uniform_in(0.6, 12.0));
-            let b = rng.uniform_in(-0.9, 0.9) * sx * sy;
+            let (sx, sy) = (rng.uniform(0.6, 12.0), rng.uniform(0.6, 12.0));
+            let b = rng.uniform(-0.9, 0.9) * sx * sy;
             let (a, c) = (sx * sx, sy * sy);
             let det = a * c - b * b;
             let conic = [(c / det) as f32, (-b / det) as f32, (a / det) as f32];
-            let opacity = rng.uniform_in(0.01, 1.0) as f32;
+            let opacity = rng.uniform(0.01, 1.0) as f32;
             let min_power = (THRESHOLD / opacity).ln() - 0.01;
             let radius = [3.33 * sx, 3.33 * sy];
             let range = |m: f32, r: f64| {

@@ -715,17 +715,17 @@ mod tests {
         let mut splats = vec![Splat2d::<f32>::default(); n];
         let mut rects = vec![TileRect::default(); n];
         for (splat, rect) in splats.iter_mut().zip(&mut rects) {
-            splat.depth = (1.0 + (rng.uniform() * 50.0).floor() * 0.25) as f32;
-            if rng.uniform() < 0.1 {
+            splat.depth = (1.0 + (rng.next_f64() * 50.0).floor() * 0.25) as f32;
+            if rng.next_f64() < 0.1 {
                 continue;
             }
-            let x0 = (rng.uniform() * f64::from(tiles_x)) as u32;
-            let y0 = (rng.uniform() * f64::from(tiles_y)) as u32;
+            let x0 = (rng.next_f64() * f64::from(tiles_x)) as u32;
+            let y0 = (rng.next_f64() * f64::from(tiles_y)) as u32;
             *rect = TileRect {
                 x0,
                 y0,
-                x1: (x0 + 1 + (rng.uniform() * 4.0) as u32).min(tiles_x),
-                y1: (y0 + 1 + (rng.uniform() * 3.0) as u32).min(tiles_y),
+                x1: (x0 + 1 + (rng.next_f64() * 4.0) as u32).min(tiles_x),
+                y1: (y0 + 1 + (rng.next_f64() * 3.0) as u32).min(tiles_y),
             };
         }
         let tiles = (tiles_x * tiles_y) as usize;
@@ -769,17 +769,17 @@ mod tests {
         let mut rng = SplitMix64::new(5);
         for _ in 0..300 {
             // A random 2D covariance (blur included) and opacity.
-            let (sx, sy) = (rng.uniform_in(0.1, 30.0), rng.uniform_in(0.1, 30.0));
-            let angle = rng.uniform_in(0.0, std::f64::consts::PI);
+            let (sx, sy) = (rng.uniform(0.1, 30.0), rng.uniform(0.1, 30.0));
+            let angle = rng.uniform(0.0, std::f64::consts::PI);
             let (cos, sin) = (angle.cos(), angle.sin());
             let a = cos * cos * sx * sx + sin * sin * sy * sy + 0.3;
             let b = cos * sin * (sx * sx - sy * sy);
             let c = sin * sin * sx * sx + cos * cos * sy * sy + 0.3;
             let det = a * c - b * b;
-            let opacity = rng.uniform_in(ALPHA_THRESHOLD, 1.0) as f32;
+            let opacity = rng.uniform(ALPHA_THRESHOLD, 1.0) as f32;
             let mean = [
-                rng.uniform_in(-5.0, 70.0) as f32,
-                rng.uniform_in(-5.0, 70.0) as f32,
+                rng.uniform(-5.0, 70.0) as f32,
+                rng.uniform(-5.0, 70.0) as f32,
             ];
             let conic = [(c / det) as f32, (-b / det) as f32, (a / det) as f32];
             let min_power = (ALPHA_THRESHOLD as f32 / opacity).ln() - 0.01;

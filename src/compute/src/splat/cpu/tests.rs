@@ -48,9 +48,9 @@ fn gaussians_from(
         for coefficient in 0..k {
             for _ in 0..3 {
                 sh.push(if coefficient == 0 {
-                    (rng.uniform_in(0.35, 0.85) - 0.5) / SH_C0
+                    (rng.uniform(0.35, 0.85) - 0.5) / SH_C0
                 } else {
-                    rng.uniform_in(-0.06, 0.06)
+                    rng.uniform(-0.06, 0.06)
                 });
             }
         }
@@ -77,18 +77,18 @@ fn gradient_scene() -> (GaussianBuffers<f64>, Vec<Camera>) {
     let mut opacities = Vec::new();
     for i in 0..n {
         means.extend([
-            rng.uniform_in(-0.35, 0.35),
-            rng.uniform_in(-0.25, 0.25),
-            -0.4 + 0.1 * i as f64 + rng.uniform_in(0.0, 0.02),
+            rng.uniform(-0.35, 0.35),
+            rng.uniform(-0.25, 0.25),
+            -0.4 + 0.1 * i as f64 + rng.uniform(0.0, 0.02),
         ]);
         scales.extend([
-            rng.uniform_in(0.08, 0.2),
-            rng.uniform_in(0.05, 0.15),
-            rng.uniform_in(0.03, 0.1),
+            rng.uniform(0.08, 0.2),
+            rng.uniform(0.05, 0.15),
+            rng.uniform(0.03, 0.1),
         ]);
         let q: [f64; 4] = std::array::from_fn(|_| rng.normal());
         rotations.extend(q);
-        opacities.push(rng.uniform_in(0.2, 0.6));
+        opacities.push(rng.uniform(0.2, 0.6));
     }
     // Camera 0 looks from -z; x/z = 1.05 is beyond its band (x limit about 0.8).
     means.extend([3.2, 0.0, 0.0]);
@@ -514,13 +514,13 @@ fn dense_scene(width: u32, height: u32) -> (GaussianBuffers<f64>, Camera) {
     let (mut means, mut scales, mut rotations, mut opacities) = (vec![], vec![], vec![], vec![]);
     for _ in 0..n {
         means.extend([
-            rng.uniform_in(-1.2, 1.2),
-            rng.uniform_in(-1.0, 1.0),
-            rng.uniform_in(-1.0, 1.0),
+            rng.uniform(-1.2, 1.2),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-1.0, 1.0),
         ]);
-        scales.extend((0..3).map(|_| rng.uniform_in(0.01, 0.25)));
+        scales.extend((0..3).map(|_| rng.uniform(0.01, 0.25)));
         rotations.extend((0..4).map(|_| rng.normal()));
-        opacities.push(rng.uniform_in(0.0, 1.0));
+        opacities.push(rng.uniform(0.0, 1.0));
     }
     // Below 1/255: culled by opacity.
     opacities[0] = 0.002;

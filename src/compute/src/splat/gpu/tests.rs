@@ -46,24 +46,24 @@ fn scene(n: usize, degree: u32, seed: u64) -> GaussianBuffers<f32> {
     let mut sh = Vec::new();
     for _ in 0..n {
         means.extend([
-            rng.uniform_in(-0.6, 0.6),
-            rng.uniform_in(-0.4, 0.4),
-            rng.uniform_in(-0.5, 0.5),
+            rng.uniform(-0.6, 0.6),
+            rng.uniform(-0.4, 0.4),
+            rng.uniform(-0.5, 0.5),
         ]);
         scales.extend([
-            rng.uniform_in(0.01, 0.12),
-            rng.uniform_in(0.01, 0.12),
-            rng.uniform_in(0.01, 0.12),
+            rng.uniform(0.01, 0.12),
+            rng.uniform(0.01, 0.12),
+            rng.uniform(0.01, 0.12),
         ]);
         let q: [f64; 4] = std::array::from_fn(|_| rng.normal());
         rotations.extend(q);
-        opacities.push(rng.uniform_in(0.05, 0.95));
+        opacities.push(rng.uniform(0.05, 0.95));
         for coefficient in 0..k {
             for _ in 0..3 {
                 sh.push(if coefficient == 0 {
-                    (rng.uniform_in(0.1, 0.9) - 0.5) / SH_C0
+                    (rng.uniform(0.1, 0.9) - 0.5) / SH_C0
                 } else {
-                    rng.uniform_in(-0.2, 0.2)
+                    rng.uniform(-0.2, 0.2)
                 });
             }
         }
