@@ -61,15 +61,21 @@ pub fn read(bytes: &[u8]) -> Result<Vec<(String, Value)>, NpzError> {
 }
 
 fn u16_at(b: &[u8], at: usize) -> Option<u16> {
-    Some(u16::from_le_bytes(b.get(at..at + 2)?.try_into().ok()?))
+    Some(u16::from_le_bytes(
+        b.get(at..at.checked_add(2)?)?.try_into().ok()?,
+    ))
 }
 
 fn u32_at(b: &[u8], at: usize) -> Option<u32> {
-    Some(u32::from_le_bytes(b.get(at..at + 4)?.try_into().ok()?))
+    Some(u32::from_le_bytes(
+        b.get(at..at.checked_add(4)?)?.try_into().ok()?,
+    ))
 }
 
 fn u64_at(b: &[u8], at: usize) -> Option<u64> {
-    Some(u64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?))
+    Some(u64::from_le_bytes(
+        b.get(at..at.checked_add(8)?)?.try_into().ok()?,
+    ))
 }
 
 fn corrupt(what: &str) -> NpzError {
@@ -277,6 +283,26 @@ pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by `cargo fuzz run npz`: a zip64 locator whose record offset is `u64::MAX`
+    /// made the field readers overflow `offset + width`.
+    #[test]
+    fn a_zip64_record_offset_at_the_end_of_the_address_space_is_an_error() {
+        let mut bytes = vec![0x8a_u8; 8];
+        // zip64 end-of-central-directory locator: signature, disk, record offset, disks.
+        bytes.extend_from_slice(&0x0706_4b50_u32.to_le_bytes());
+        bytes.extend_from_slice(&0_u32.to_le_bytes());
+        bytes.extend_from_slice(&u64::MAX.to_le_bytes());
+        bytes.extend_from_slice(&1_u32.to_le_bytes());
+        // End record with every field saturated, so the zip64 path is taken.
+        bytes.extend_from_slice(&0x0605_4b50_u32.to_le_bytes());
+        bytes.extend_from_slice(&[0xff; 18]);
+        assert!(
+            matches!(list(&bytes), Err(NpzError::Corrupt(_))),
+            "{:?}",
+            list(&bytes)
+        );
+    }
 
     #[test]
     fn rejects_non_zip_and_bad_directories() {
