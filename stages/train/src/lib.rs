@@ -6,7 +6,7 @@
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`knn`]: exact grid k-nearest neighbours (and the brute-force reference).
 //! - [`densify`]: per-Gaussian state and clone/split/prune.
-//! - [`gaussians`]: trainable Gaussian columns and one optimisation step through splatting.
+//! - [`gaussians`]: the trainable Gaussian columns, their initial state and schedules.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
 //! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
 //!   offsets) on `cpu` and `gpu`.
