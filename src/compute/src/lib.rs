@@ -11,8 +11,14 @@
 //!   sort, compositing, backward), the benchmark scene and the render-only entry point.
 //! - [`nn`]: dense layers (matrix products with fused bias and activation), their backward,
 //!   and Adam, for the SeqAvatar networks.
+//! - [`lpips`]: the LPIPS perceptual distance (VGG16, AlexNet trunks), used by evaluation as a
+//!   metric and by training as a loss; [`image`] is its float image, [`safetensors`] the
+//!   strict reader of its weights files.
 
 pub mod backend;
+pub mod image;
+pub mod lpips;
 pub mod nn;
+pub mod safetensors;
 pub mod scalar;
 pub mod splat;

@@ -8,20 +8,20 @@
 //! - [`avatar_render`]: the trained avatar as a renderer, and the avatar/entry checks.
 //! - [`animate`]: `pipeline render` (novel poses from another sequence or a pose file).
 //! - [`pipeline_report`]: `pipeline report`.
-//! - [`metrics`], [`lpips`], [`report`], [`image`], [`safetensors`], [`testset`]: building
-//!   blocks.
+//! - [`metrics`], [`report`], [`testset`]: building blocks.
+//! - [`lpips`], [`image`], [`safetensors`]: re-exported from `seqavatar_compute`, where LPIPS
+//!   lives so that training can use it as a loss too.
 
 pub mod animate;
 pub mod avatar_render;
 pub mod evaluate;
-pub mod image;
-pub mod lpips;
 pub mod metrics;
 pub mod pipeline_report;
 pub mod report;
-pub mod safetensors;
 pub mod stage;
 pub mod testset;
+
+pub use seqavatar_compute::{image, lpips, safetensors};
 
 /// Adds the `eval` stage kind to the registry.
 pub fn register(registry: &mut seqavatar_engine::Registry) {

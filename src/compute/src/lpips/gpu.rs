@@ -1,15 +1,15 @@
-//! The `gpu` LPIPS trunk: the kernels of `shaders/eval_lpips.wgsl` run through the shared
+//! The `gpu` LPIPS trunk: the kernels of `shaders/lpips_forward.wgsl` run through the shared
 //! [`GpuContext`]. Weights are uploaded once; a batch larger than the device's buffer limit is
 //! split into groups of pairs.
 
 use std::borrow::Cow;
 use std::sync::Arc;
 
-use seqavatar_compute::backend::{GpuBuffer, GpuContext, KernelSource};
+use crate::backend::{GpuBuffer, GpuContext, KernelSource};
 
 use super::{DistanceMaps, LpipsError, LpipsNet, LpipsWeights, Step, TrunkInput, steps};
 
-const WGSL: &str = include_str!("../../../../shaders/eval_lpips.wgsl");
+const WGSL: &str = include_str!("../../../../shaders/lpips_forward.wgsl");
 const WORKGROUP: u32 = 64;
 
 fn source(name: &'static str, entry_point: &'static str) -> KernelSource {
@@ -70,9 +70,9 @@ impl GpuLpips {
             .map(|(layer, lin)| context.upload(&format!("lin{layer}"), lin))
             .collect::<Result<_, _>>()?;
         for (name, entry) in [
-            ("eval_lpips_conv2d_relu", "conv2d_relu"),
-            ("eval_lpips_max_pool", "max_pool"),
-            ("eval_lpips_layer_distance", "layer_distance"),
+            ("lpips_conv2d_relu", "conv2d_relu"),
+            ("lpips_max_pool", "max_pool"),
+            ("lpips_layer_distance", "layer_distance"),
         ] {
             context.kernel(&source(name, entry))?;
         }
@@ -162,10 +162,10 @@ impl GpuLpips {
         width: usize,
     ) -> Result<DistanceMaps, LpipsError> {
         let context = &self.context;
-        let conv_kernel = context.kernel(&source("eval_lpips_conv2d_relu", "conv2d_relu"))?;
-        let pool_kernel = context.kernel(&source("eval_lpips_max_pool", "max_pool"))?;
+        let conv_kernel = context.kernel(&source("lpips_conv2d_relu", "conv2d_relu"))?;
+        let pool_kernel = context.kernel(&source("lpips_max_pool", "max_pool"))?;
         let distance_kernel =
-            context.kernel(&source("eval_lpips_layer_distance", "layer_distance"))?;
+            context.kernel(&source("lpips_layer_distance", "layer_distance"))?;
         let images = 2 * pairs;
         let mut encoder = context.encoder();
         let mut activation = context.upload("lpips input", data)?;

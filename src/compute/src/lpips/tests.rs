@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use seqavatar_compute::backend::{Backend, test_support::gpu_test_context};
+use crate::backend::{Backend, test_support::gpu_test_context};
 
 use super::*;
 use crate::safetensors::SafetensorsFile;

@@ -23,7 +23,7 @@ pub mod seeded;
 
 use std::path::Path;
 
-use seqavatar_compute::backend::{Backend, BackendError};
+use crate::backend::{Backend, BackendError};
 
 use crate::image::ImageF32;
 use crate::safetensors::{SafetensorsError, SafetensorsFile};
