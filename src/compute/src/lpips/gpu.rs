@@ -164,8 +164,7 @@ impl GpuLpips {
         let context = &self.context;
         let conv_kernel = context.kernel(&source("lpips_conv2d_relu", "conv2d_relu"))?;
         let pool_kernel = context.kernel(&source("lpips_max_pool", "max_pool"))?;
-        let distance_kernel =
-            context.kernel(&source("lpips_layer_distance", "layer_distance"))?;
+        let distance_kernel = context.kernel(&source("lpips_layer_distance", "layer_distance"))?;
         let images = 2 * pairs;
         let mut encoder = context.encoder();
         let mut activation = context.upload("lpips input", data)?;
