@@ -1,6 +1,8 @@
 //! Benchmark of the SeqAvatar networks on `cpu`: milliseconds per non-rigid forward +
 //! backward at the paper widths (trunk 512 x 3, L = 8, tau = 8, three scales, SMPL), for
-//! 10k and 50k Gaussians, and the GFLOP/s of the dominant layer (the 512 x 512 trunk layer).
+//! 10k and 50k Gaussians, and the GFLOP/s of the dominant layer (the 512 x 512 trunk layer);
+//! the LBS-offset network forward + backward at the demo's 5860 Gaussians (and the sizes
+//! given) and the per-frame pose refiner, in f64 on `cpu` as the trainer's master runs them.
 //!
 //! Run: `cargo bench -p seqavatar-train --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
@@ -137,6 +139,87 @@ fn bench_non_rigid(
     );
 }
 
+/// Median milliseconds of `run` over `repeats` after one warm-up.
+fn time_ms(repeats: usize, mut run: impl FnMut()) -> f64 {
+    let mut times = Vec::with_capacity(repeats);
+    for repeat in 0..=repeats {
+        let start = Instant::now();
+        run();
+        if repeat > 0 {
+            times.push(start.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    median(times)
+}
+
+/// The LBS-offset network (63 -> 128 x 3, skip, -> 24), forward + backward: `cpu` f64 (the
+/// trainer's master before the gpu path), `cpu` f32, and `GpuNetworks` (uploads and
+/// downloads included, as `deform_on` pays them).
+fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
+    let config = paper_config(MotionContext::None);
+    let mut rng = Rng::new(3);
+    let xyz = random(&mut rng, 3 * n);
+    let d_offsets = random(&mut rng, n * config.skinning_joints);
+    let mut f64_networks = Networks::<f64>::new(&config, 0).expect("paper config is valid");
+    let xyz64: Vec<f64> = xyz.iter().map(|&x| f64::from(x)).collect();
+    let d_offsets64: Vec<f64> = d_offsets.iter().map(|&x| f64::from(x)).collect();
+    let cpu64 = time_ms(repeats, || {
+        let (_, cache) = f64_networks.lbs_offsets_forward(&xyz64).expect("forward");
+        f64_networks
+            .lbs_offsets_backward(&cache, &d_offsets64)
+            .expect("backward");
+    });
+    let mut networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
+    let cpu32 = time_ms(repeats, || {
+        let (_, cache) = networks.lbs_offsets_forward(&xyz).expect("forward");
+        networks
+            .lbs_offsets_backward(&cache, &d_offsets)
+            .expect("backward");
+    });
+    print!("lbs offsets n = {n}: forward + backward cpu f64 {cpu64:.1} ms, cpu f32 {cpu32:.1} ms");
+    if let Some(gpu_context) = gpu_context {
+        let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+        let on_gpu = time_ms(repeats, || {
+            let (_, cache) = gpu.lbs_offsets_forward(&xyz).expect("gpu forward");
+            gpu.lbs_offsets_backward(&cache, &d_offsets)
+                .expect("gpu backward");
+        });
+        print!(", gpu {on_gpu:.1} ms");
+    }
+    println!();
+}
+
+/// The pose refiner (one row per frame), forward + backward: `cpu` f64 against the gpu
+/// round trips; the reason it stays on `cpu` (see `avatar::deform_on`).
+fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
+    let config = paper_config(MotionContext::None);
+    let mut rng = Rng::new(4);
+    let pose = random(&mut rng, config.pose_dim());
+    let d_rotations = random(&mut rng, 3 * config.pose_dim());
+    let pose64: Vec<f64> = pose.iter().map(|&x| f64::from(x)).collect();
+    let d_rotations64: Vec<f64> = d_rotations.iter().map(|&x| f64::from(x)).collect();
+    let mut f64_networks = Networks::<f64>::new(&config, 0).expect("paper config is valid");
+    let repeats = repeats.max(20);
+    let cpu = time_ms(repeats, || {
+        let (_, cache) = f64_networks.pose_refiner_forward(&pose64).expect("forward");
+        f64_networks
+            .pose_refiner_backward(&cache, &d_rotations64)
+            .expect("backward");
+    });
+    print!("pose refiner (one frame): forward + backward cpu f64 {cpu:.3} ms");
+    if let Some(gpu_context) = gpu_context {
+        let networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
+        let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+        let on_gpu = time_ms(repeats, || {
+            let (_, cache) = gpu.pose_refiner_forward(&pose).expect("gpu forward");
+            gpu.pose_refiner_backward(&cache, &d_rotations)
+                .expect("gpu backward");
+        });
+        print!(", gpu {on_gpu:.3} ms");
+    }
+    println!();
+}
+
 fn bench_trunk_layer(n: usize, repeats: usize) {
     let mut rng = Rng::new(2);
     let shape = LinearShape {
@@ -194,6 +277,12 @@ fn main() {
         rayon::current_num_threads()
     );
     let gpu_context = bench_gpu_context();
+    bench_pose_refiner(repeats, gpu_context.as_ref());
+    let mut lbs_sizes = vec![5860];
+    lbs_sizes.extend(sizes.iter().copied().filter(|&n| n != 5860));
+    for &n in &lbs_sizes {
+        bench_lbs_offsets(n, repeats, gpu_context.as_ref());
+    }
     for &n in &sizes {
         bench_trunk_layer(n, repeats);
         for context in [MotionContext::Pose, MotionContext::Multiscale] {

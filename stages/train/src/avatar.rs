@@ -18,8 +18,10 @@
 //! scales fed to the networks, largest first), `scale_steps`, `sequence_length`,
 //! `background`, `body_model_kind`, `extent`.
 
+use std::sync::Arc;
+
 use anyhow::Context;
-use seqavatar_compute::backend::Backend;
+use seqavatar_compute::backend::{Backend, GpuContext};
 use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_count};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
@@ -31,7 +33,7 @@ use crate::data::MotionTrack;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::{SH, SH_STORED};
 use crate::knn::{KnnGrid, as_points};
-use crate::model::gpu::{GpuNetworks, GpuNonRigidCache};
+use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
 use crate::model::{
     GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks, NonRigidCache,
     NonRigidOutput, PoseRefinerCache,
@@ -173,8 +175,8 @@ pub struct Deformed {
     /// Nearest template vertex of each (post-non-rigid) centre.
     pub nearest: Vec<u32>,
     pub non_rigid: Option<NonRigidPass>,
-    /// LBS weight offsets `N x J` and their cache.
-    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsCache<f64>)>,
+    /// LBS weight offsets `N x J` and the activations of the pass that made them.
+    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsPass)>,
     /// Centres after the non-rigid offset (canonical space).
     pub positions: Vec<f64>,
     /// Linear scale offsets `N x 3` and rotation offsets `N x 4`.
@@ -190,6 +192,14 @@ pub enum NonRigidPass {
     Cpu(NonRigidCache<f64>),
     /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
     Gpu(GpuNonRigidCache),
+}
+
+/// The activations of the LBS-offset network's forward pass, where it ran.
+pub enum LbsOffsetsPass {
+    /// On `cpu`, in f64 (the parameter master).
+    Cpu(LbsOffsetsCache<f64>),
+    /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
+    Gpu(GpuLbsOffsetsCache),
 }
 
 fn narrow(values: &[f64]) -> Vec<f32> {
@@ -254,10 +264,16 @@ pub fn deform(
     )
 }
 
-/// [`deform`] with the non-rigid network evaluated on the gpu when `gpu_networks` is given
-/// (a copy of `networks`' parameters; inputs rounded to f32 once, outputs widened to f64).
-/// The pose refiner and the LBS offsets stay on `cpu`: they are per-frame or cheap next to
-/// the per-Gaussian non-rigid network.
+/// [`deform`] with the per-Gaussian networks, non-rigid and LBS offsets, evaluated on the gpu
+/// when `gpu_networks` is given (a copy of `networks`' parameters, at least of
+/// [`GpuNetworks::DEFORM_GROUPS`]; inputs rounded to f32 once, outputs widened to f64).
+///
+/// The pose refiner ([`frame_pose`]) stays on `cpu` in f64 on purpose: it is one row per
+/// frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its output must be
+/// on the host before anything per Gaussian can start (it moves the joints), so a gpu pass
+/// would be a blocking round trip of its own. Measured with `cargo bench --bench networks`
+/// (forward + backward): cpu f64 0.03 ms against 0.5 ms for the gpu round trips on
+/// lavapipe; on any gpu the upload, submit, wait and download alone exceed the cpu time.
 #[allow(clippy::too_many_arguments)]
 pub fn deform_on(
     rig: &BodyRig,
@@ -359,9 +375,16 @@ pub fn deform_on(
     if let Some(bad) = positions.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite deformed centre", bad / 3);
     }
-    let weight_offsets = match networks.filter(|net| net.has_lbs_offsets()) {
-        Some(net) => Some(net.lbs_offsets_forward(&positions)?),
-        None => None,
+    let weight_offsets = match (networks.filter(|net| net.has_lbs_offsets()), gpu_networks) {
+        (None, _) => None,
+        (Some(net), None) => {
+            let (offsets, cache) = net.lbs_offsets_forward(&positions)?;
+            Some((offsets, LbsOffsetsPass::Cpu(cache)))
+        }
+        (Some(_), Some(gpu)) => {
+            let (offsets, cache) = gpu.lbs_offsets_forward(&narrow(&positions))?;
+            Some((widen(&offsets), LbsOffsetsPass::Gpu(cache)))
+        }
     };
     let nearest = template_grid.query_all(&as_points(&positions), 1);
     anyhow::ensure!(
@@ -418,8 +441,9 @@ pub fn deform_on(
 /// gradients: accumulates the networks' parameter gradients and returns the gradient of the
 /// canonical centres through the non-rigid network (zeros without one; the direct path
 /// `x' = x + d_xyz` is the caller's). `params` are the frame's unrefined body parameters.
-/// A non-rigid pass that ran on the gpu runs its backward there too (`gpu_networks`, the
-/// copy it ran on): its parameter gradients are downloaded and added to `networks`'.
+/// Passes that ran on the gpu run their backward there too (`gpu_networks`, the copy they
+/// ran on): the device gradients are zeroed first, and after both backwards the gradients of
+/// the groups that ran there are downloaded in one go and added to `networks`'.
 #[allow(clippy::too_many_arguments)]
 pub fn deform_backward(
     networks: &mut Networks<f64>,
@@ -430,6 +454,25 @@ pub fn deform_backward(
     params: &BodyParams,
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
+    let mut on_gpu: Vec<NetworkGroup> = Vec::new();
+    if matches!(deformed.non_rigid, Some(NonRigidPass::Gpu(_))) {
+        on_gpu.push(NetworkGroup::NonRigid);
+    }
+    if matches!(deformed.weight_offsets, Some((_, LbsOffsetsPass::Gpu(_)))) {
+        on_gpu.push(NetworkGroup::LbsOffsets);
+    }
+    let gpu = if on_gpu.is_empty() {
+        None
+    } else {
+        let gpu = gpu_networks.with_context(|| {
+            format!("the {on_gpu:?} passes ran on the gpu, but their backward got no gpu networks")
+        })?;
+        // The device gradients accumulate across backwards; start from zero so the download
+        // holds exactly this pass's contribution.
+        gpu.zero_grad()?;
+        Some(gpu)
+    };
+    let gpu_ran = "a pass ran on the gpu without gpu networks";
     let mut through = vec![0.0; deformed.positions.len()];
     match &deformed.non_rigid {
         None => {}
@@ -442,26 +485,29 @@ pub fn deform_backward(
             )?;
         }
         Some(NonRigidPass::Gpu(cache)) => {
-            let gpu = gpu_networks.context(
-                "the non-rigid pass ran on the gpu, but its backward got no gpu networks",
-            )?;
-            // The device gradients accumulate across backwards; start from zero so the
-            // download holds exactly this pass's contribution.
-            gpu.zero_grad()?;
-            let d_canonical = gpu.non_rigid_backward(
+            let d_canonical = gpu.context(gpu_ran)?.non_rigid_backward(
                 cache,
                 &narrow(&skin.positions),
                 &narrow(&skin.d_rotations),
                 &narrow(&skin.d_scales),
             )?;
-            gpu.add_group_gradients_into(networks, NetworkGroup::NonRigid)?;
             if !d_canonical.is_empty() {
                 through = widen(&d_canonical);
             }
         }
     }
-    if let Some((_, cache)) = &deformed.weight_offsets {
-        networks.lbs_offsets_backward(cache, &skin.weight_offsets)?;
+    match &deformed.weight_offsets {
+        None => {}
+        Some((_, LbsOffsetsPass::Cpu(cache))) => {
+            networks.lbs_offsets_backward(cache, &skin.weight_offsets)?;
+        }
+        Some((_, LbsOffsetsPass::Gpu(cache))) => {
+            gpu.context(gpu_ran)?
+                .lbs_offsets_backward(cache, &narrow(&skin.weight_offsets))?;
+        }
+    }
+    if let Some(gpu) = gpu {
+        gpu.add_groups_gradients_into(networks, &on_gpu)?;
     }
     if let Some((cache, _)) = &posed.refiner {
         let d_rotations =
@@ -503,6 +549,9 @@ pub struct TrainedAvatar {
     /// The networks (absent for motion context `none` without refiners).
     pub networks: Option<Networks<f64>>,
     template_grid: KnnGrid,
+    /// An f32 copy of `networks` on a gpu, made by [`TrainedAvatar::upload_networks`]; the
+    /// gpu render path evaluates the per-Gaussian networks with it.
+    gpu_networks: Option<GpuNetworks>,
 }
 
 impl TrainedAvatar {
@@ -524,7 +573,56 @@ impl TrainedAvatar {
             sh_degree,
             scales,
             template_grid,
+            gpu_networks: None,
         }
+    }
+
+    /// Uploads an f32 copy of the networks to `context`, so that [`TrainedAvatar::render`]
+    /// on the gpu backend evaluates the per-Gaussian networks there
+    /// ([`GpuNetworks::DEFORM_GROUPS`]; the pose refiner stays on `cpu`, see [`deform_on`]).
+    /// Returns whether a copy was made: there is none to make without a per-Gaussian
+    /// network. The copy is a snapshot: after changing `networks`, upload again.
+    pub fn upload_networks(&mut self, context: Arc<GpuContext>) -> anyhow::Result<bool> {
+        let Some(networks) = self
+            .networks
+            .as_ref()
+            .filter(|net| net.has_non_rigid() || net.has_lbs_offsets())
+        else {
+            self.gpu_networks = None;
+            return Ok(false);
+        };
+        self.gpu_networks = Some(
+            GpuNetworks::upload_f64(context, networks)
+                .context("uploading the avatar's networks to the gpu")?,
+        );
+        Ok(true)
+    }
+
+    /// Whether [`TrainedAvatar::upload_networks`] made a gpu copy of the networks.
+    pub fn has_gpu_networks(&self) -> bool {
+        self.gpu_networks.is_some()
+    }
+
+    /// The deformed Gaussians of one frame (pose refiner, networks, skinning), with the
+    /// per-Gaussian networks on the gpu copy when `backend` is the gpu and the avatar has
+    /// one ([`TrainedAvatar::upload_networks`]), on `cpu` in f64 otherwise.
+    pub fn deform(&self, inputs: &FrameInputs, backend: &Backend) -> anyhow::Result<Deformed> {
+        let gpu_networks = match backend {
+            Backend::Gpu(_) => self.gpu_networks.as_ref(),
+            Backend::Cpu => None,
+        };
+        let posed = frame_pose(&self.rig, self.networks.as_ref(), &inputs.params)?;
+        deform_on(
+            &self.rig,
+            &self.template_grid,
+            self.networks.as_ref(),
+            gpu_networks,
+            &self.gaussians,
+            inputs,
+            &posed.pose,
+            &self.config,
+            self.sh_degree,
+        )
     }
 
     /// The inputs of frame `frame` of a motion track with its body parameters.
@@ -538,23 +636,15 @@ impl TrainedAvatar {
     }
 
     /// Renders one frame from `camera` on `backend`: colour (background included) and alpha.
+    /// On the gpu backend the per-Gaussian networks run on the gpu copy when there is one
+    /// ([`TrainedAvatar::deform`]).
     pub fn render(
         &self,
         inputs: &FrameInputs,
         camera: &Camera,
         backend: &Backend,
     ) -> anyhow::Result<RenderedImage<f64>> {
-        let posed = frame_pose(&self.rig, self.networks.as_ref(), &inputs.params)?;
-        let deformed = deform(
-            &self.rig,
-            &self.template_grid,
-            self.networks.as_ref(),
-            &self.gaussians,
-            inputs,
-            &posed.pose,
-            &self.config,
-            self.sh_degree,
-        )?;
+        let deformed = self.deform(inputs, backend)?;
         let options = RasterOptions {
             background: self.background,
             smooth_cutoff: false,
@@ -798,7 +888,9 @@ mod tests {
         check_deformation_gradients(MotionContext::None, true);
     }
 
-    fn check_deformation_gradients(context: MotionContext, lbs_offsets: bool) {
+    /// A small deformation problem: `n` Gaussians near the template, a random pose, motion
+    /// inputs at two scales, every enabled network with outputs large enough to matter.
+    fn build(context: MotionContext, lbs_offsets: bool, n: usize) -> (Setup, Networks<f64>) {
         let model = procedural_body(0.05);
         let rig = BodyRig::new(model.clone()).unwrap();
         let grid = template_grid(&rig);
@@ -811,7 +903,6 @@ mod tests {
         config.tau = 2;
         config.sequence_length = 2;
         let (j, v, scales) = (rig.joint_count(), rig.vertex_count(), 2);
-        let n = 12;
         let canonical = &rig.canonical_vertices;
         let xyz: Vec<f64> = (0..n)
             .flat_map(|i| {
@@ -878,6 +969,12 @@ mod tests {
             gaussians,
             inputs,
         };
+        (setup, networks)
+    }
+
+    fn check_deformation_gradients(context: MotionContext, lbs_offsets: bool) {
+        let n = 12;
+        let (setup, mut networks) = build(context, lbs_offsets, n);
         // Analytic gradients.
         let posed = frame_pose(&setup.rig, Some(&networks), &setup.inputs.params).unwrap();
         let deformed = deform(
@@ -985,5 +1082,310 @@ mod tests {
             let numeric = (eval(eps) - eval(-eps)) / (2.0 * eps);
             check(&format!("xyz[{i}]"), numeric, d_xyz[i]);
         }
+    }
+
+    // -----------------------------------------------------------------------------------
+    // gpu networks (lavapipe in CI; skipped without an adapter unless CI is set).
+
+    /// `max |gpu - cpu| <= tolerance * max(1e-300, max |cpu|)` over an array: f32 networks
+    /// against the f64 master, so the tolerance is relative to the array's magnitude.
+    fn assert_close(what: &str, gpu: &[f64], cpu: &[f64], tolerance: f64) {
+        assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
+        let scale = cpu.iter().fold(1e-300f64, |m, x| m.max(x.abs()));
+        let worst = gpu
+            .iter()
+            .zip(cpu)
+            .map(|(g, c)| (g - c).abs())
+            .fold(0.0, f64::max);
+        eprintln!("{what}: worst |gpu - cpu| {worst:.3e} (scale {scale:.3e})");
+        for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+            assert!(
+                (g - c).abs() <= tolerance * scale,
+                "{what}[{i}]: gpu {g} vs cpu {c} (scale {scale})"
+            );
+        }
+    }
+
+    /// Every network on (multiscale motion context, LBS offsets, pose refiner), with
+    /// non-rigid heads far from their near-zero initialisation so every output moves.
+    fn gpu_setup(n: usize) -> (Setup, Networks<f64>) {
+        let (setup, mut networks) = build(MotionContext::Multiscale, true, n);
+        assert!(
+            networks.has_non_rigid() && networks.has_lbs_offsets() && networks.has_pose_refiner()
+        );
+        let mut rng = Rng::new(31);
+        for param in networks.parameters_mut() {
+            if param.name.starts_with("non_rigid.heads") {
+                for x in param.values.iter_mut() {
+                    *x = rng.uniform(-0.05, 0.05);
+                }
+            }
+        }
+        (setup, networks)
+    }
+
+    fn deform_with(s: &Setup, networks: &Networks<f64>, gpu: Option<&GpuNetworks>) -> Deformed {
+        let posed = frame_pose(&s.rig, Some(networks), &s.inputs.params).unwrap();
+        deform_on(
+            &s.rig,
+            &s.grid,
+            Some(networks),
+            gpu,
+            &s.gaussians,
+            &s.inputs,
+            &posed.pose,
+            &s.config,
+            0,
+        )
+        .unwrap()
+    }
+
+    /// The deformation with the per-Gaussian networks on the gpu (f32) matches the f64 `cpu`
+    /// deformation: every output to 1e-5 of its array's largest value (f32 has 6e-8
+    /// relative precision and the networks add a few roundings per layer; lavapipe measured
+    /// at most 1.4e-7).
+    #[test]
+    fn deform_with_gpu_networks_matches_cpu() {
+        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+            return;
+        };
+        let (s, networks) = gpu_setup(200);
+        let gpu = GpuNetworks::upload_f64(context, &networks).unwrap();
+        let cpu = deform_with(&s, &networks, None);
+        let on_gpu = deform_with(&s, &networks, Some(&gpu));
+        assert!(matches!(on_gpu.non_rigid, Some(NonRigidPass::Gpu(_))));
+        assert!(matches!(
+            on_gpu.weight_offsets,
+            Some((_, LbsOffsetsPass::Gpu(_)))
+        ));
+        assert!(matches!(cpu.non_rigid, Some(NonRigidPass::Cpu(_))));
+        // The networks do move things (so the comparison is not of zeros).
+        let moved = cpu
+            .positions
+            .iter()
+            .zip(&s.gaussians.xyz)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(moved > 1e-3, "largest non-rigid offset {moved}");
+        let offsets = |d: &Deformed| d.weight_offsets.as_ref().unwrap().0.clone();
+        assert!(offsets(&cpu).iter().any(|w| w.abs() > 1e-3));
+        assert_eq!(on_gpu.nearest, cpu.nearest);
+        assert_close("positions", &on_gpu.positions, &cpu.positions, 1e-5);
+        assert_close("d_scales", &on_gpu.d_scales, &cpu.d_scales, 1e-5);
+        assert_close("d_rotations", &on_gpu.d_rotations, &cpu.d_rotations, 1e-5);
+        assert_close("weight offsets", &offsets(&on_gpu), &offsets(&cpu), 1e-5);
+        assert_close("world means", &on_gpu.world.means, &cpu.world.means, 1e-5);
+        assert_close(
+            "world covariances",
+            &on_gpu.world.covariances,
+            &cpu.world.covariances,
+            1e-5,
+        );
+        assert_eq!(on_gpu.world.sh, cpu.world.sh);
+        assert_eq!(on_gpu.world.opacities, cpu.world.opacities);
+    }
+
+    /// `deform_backward` after a gpu deformation: the gradients of every group (non-rigid and
+    /// LBS offsets from the device, the pose refiner on `cpu`) accumulate in the master over
+    /// two backwards and match the all-`cpu` backward, as does the centre gradient through the
+    /// non-rigid network (1e-4 of each array's largest value: f32 forward and backward;
+    /// lavapipe measured at most 2.3e-6).
+    #[test]
+    fn deform_backward_with_gpu_networks_matches_cpu() {
+        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+            return;
+        };
+        let (s, networks) = gpu_setup(60);
+        let gpu = GpuNetworks::upload_f64(context, &networks).unwrap();
+        let run = |gpu: Option<&GpuNetworks>| {
+            let mut master = networks.clone();
+            let posed = frame_pose(&s.rig, Some(&master), &s.inputs.params).unwrap();
+            let deformed = deform_with(&s, &master, gpu);
+            let frame = s
+                .rig
+                .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
+            let skin = skin_backward(
+                &frame,
+                &GaussianParams {
+                    positions: &deformed.positions,
+                    log_scales: &s.gaussians.log_scale,
+                    d_scales: &deformed.d_scales,
+                    rotations: &s.gaussians.rotation,
+                    d_rotations: &deformed.d_rotations,
+                    weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
+                    nearest: &deformed.nearest,
+                },
+                &s.a,
+                &s.b,
+            );
+            // Twice: the second adds to the first's gradients (as a second camera's would),
+            // on the device too, which must not carry the first pass's gradients over.
+            let mut through = Vec::new();
+            for _ in 0..2 {
+                through = deform_backward(
+                    &mut master,
+                    gpu,
+                    &s.rig,
+                    &posed,
+                    &deformed,
+                    &s.inputs.params,
+                    &skin,
+                )
+                .unwrap();
+            }
+            (master, through)
+        };
+        let (cpu, cpu_through) = run(None);
+        let (on_gpu, gpu_through) = run(Some(&gpu));
+        assert_close("d canonical xyz", &gpu_through, &cpu_through, 1e-4);
+        let mut groups = std::collections::HashSet::new();
+        for (c, g) in cpu.parameters().iter().zip(on_gpu.parameters()) {
+            assert_eq!(c.name, g.name);
+            assert_eq!(
+                c.values, g.values,
+                "{}: the backward changed values",
+                c.name
+            );
+            assert!(
+                c.grads.iter().any(|x| x.abs() > 1e-9),
+                "{}: no gradient reached it",
+                c.name
+            );
+            assert_close(&format!("{} gradient", c.name), g.grads, c.grads, 1e-4);
+            groups.insert(format!("{:?}", c.group));
+        }
+        assert_eq!(groups.len(), 3, "groups checked: {groups:?}");
+        // A backward of a gpu pass without the gpu networks is an error, not a panic.
+        let posed = frame_pose(&s.rig, Some(&networks), &s.inputs.params).unwrap();
+        let deformed = deform_with(&s, &networks, Some(&gpu));
+        let skin = skin_zero(&s, &posed, &deformed);
+        let error = deform_backward(
+            &mut networks.clone(),
+            None,
+            &s.rig,
+            &posed,
+            &deformed,
+            &s.inputs.params,
+            &skin,
+        )
+        .expect_err("no gpu networks");
+        assert!(format!("{error:#}").contains("gpu"), "{error:#}");
+    }
+
+    /// Skinning gradients of a zero loss (for the error path).
+    fn skin_zero(s: &Setup, posed: &PosedFrame, deformed: &Deformed) -> SkinningGrads {
+        let frame = s
+            .rig
+            .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
+        let n = deformed.positions.len() / 3;
+        skin_backward(
+            &frame,
+            &GaussianParams {
+                positions: &deformed.positions,
+                log_scales: &s.gaussians.log_scale,
+                d_scales: &deformed.d_scales,
+                rotations: &s.gaussians.rotation,
+                d_rotations: &deformed.d_rotations,
+                weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
+                nearest: &deformed.nearest,
+            },
+            &vec![0.0; 3 * n],
+            &vec![0.0; 6 * n],
+        )
+    }
+
+    /// PSNR in dB of two images with values in `[0, 1]`.
+    fn psnr(a: &[f64], b: &[f64]) -> f64 {
+        let mse = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len() as f64;
+        10.0 * (1.0 / mse.max(1e-30)).log10()
+    }
+
+    /// A trained avatar renders the same image on the gpu backend (networks on its gpu copy,
+    /// gpu splatting) as on `cpu` (f64 networks, cpu splatting): PSNR above 50 dB.
+    #[test]
+    fn trained_avatar_renders_the_same_with_gpu_networks() {
+        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+            return;
+        };
+        let (s, networks) = gpu_setup(400);
+        let mut rng = Rng::new(5);
+        let mut gaussians = s.gaussians.clone();
+        for x in gaussians.sh.iter_mut() {
+            *x = rng.uniform(-0.5, 0.5);
+        }
+        for x in gaussians.opacity_logit.iter_mut() {
+            *x = rng.uniform(0.0, 3.0);
+        }
+        for x in gaussians.log_scale.iter_mut() {
+            *x = rng.uniform(-3.0, -2.0);
+        }
+        let without_networks = TrainedAvatar::new(
+            s.config.clone(),
+            s.rig.clone(),
+            gaussians.clone(),
+            1,
+            vec![2, 1],
+            None,
+        );
+        let mut avatar = TrainedAvatar::new(
+            s.config.clone(),
+            s.rig.clone(),
+            gaussians,
+            1,
+            vec![2, 1],
+            Some(networks),
+        );
+        let target = DVec3::new(0.1, 0.0, 2.0);
+        let camera = Camera::look_at(
+            48,
+            64,
+            seqavatar_core::camera::Intrinsics {
+                fx: 60.0,
+                fy: 60.0,
+                cx: 24.0,
+                cy: 32.0,
+            },
+            target + DVec3::new(0.0, 0.0, -2.2),
+            target,
+            DVec3::new(0.0, 1.0, 0.0),
+        );
+        let cpu = avatar.render(&s.inputs, &camera, &Backend::Cpu).unwrap();
+        assert!(!avatar.has_gpu_networks());
+        assert!(avatar.upload_networks(context.clone()).unwrap());
+        assert!(avatar.has_gpu_networks());
+        let backend = Backend::Gpu(context.clone());
+        let deformed = avatar.deform(&s.inputs, &backend).unwrap();
+        assert!(matches!(deformed.non_rigid, Some(NonRigidPass::Gpu(_))));
+        let gpu = avatar.render(&s.inputs, &camera, &backend).unwrap();
+        let covered = cpu.alpha.iter().filter(|&&a| a > 0.5).count();
+        assert!(
+            covered > cpu.alpha.len() / 50,
+            "the avatar covers {covered} of {} pixels",
+            cpu.alpha.len()
+        );
+        let db = psnr(&gpu.colour, &cpu.colour);
+        eprintln!("gpu networks + gpu splatting vs cpu: PSNR {db:.1} dB");
+        assert!(db > 50.0, "PSNR {db} dB");
+        // The networks change the image far more than that (the comparison is not vacuous).
+        let rigid = without_networks
+            .render(&s.inputs, &camera, &Backend::Cpu)
+            .unwrap();
+        let effect = psnr(&rigid.colour, &cpu.colour);
+        eprintln!("with vs without networks: PSNR {effect:.1} dB");
+        assert!(
+            effect < 40.0,
+            "the networks change the image by PSNR {effect} dB only"
+        );
+        // An avatar without per-Gaussian networks makes no copy.
+        let mut refiner_only = TrainedAvatar::new(
+            s.config.clone(),
+            s.rig.clone(),
+            s.gaussians.clone(),
+            0,
+            Vec::new(),
+            None,
+        );
+        assert!(!refiner_only.upload_networks(context).unwrap());
+        assert!(!refiner_only.has_gpu_networks());
     }
 }

@@ -152,8 +152,8 @@ pub struct Trainer<'d> {
     /// The networks (when the configuration has any) and their Adam state by name.
     pub networks: Option<Networks<f64>>,
     network_adam: BTreeMap<String, AdamState<f64>>,
-    /// On the `gpu` backend, an f32 copy of the non-rigid network that evaluates it
-    /// (forward and backward); `networks` stays the parameter master.
+    /// On the `gpu` backend, an f32 copy of the networks that evaluates the per-Gaussian ones
+    /// (non-rigid, LBS offsets; forward and backward); `networks` stays the parameter master.
     gpu_networks: Option<GpuNetworks>,
     train_images: Vec<usize>,
     template_grid: KnnGrid,
@@ -254,10 +254,12 @@ impl<'d> Trainer<'d> {
             "no training image has a non-empty foreground mask"
         );
         let gpu_networks = match (&backend, networks.as_ref()) {
-            (Backend::Gpu(context), Some(net)) if net.has_non_rigid() => Some(
-                GpuNetworks::upload_f64(context.clone(), net)
-                    .context("uploading the networks to the gpu")?,
-            ),
+            (Backend::Gpu(context), Some(net)) if net.has_non_rigid() || net.has_lbs_offsets() => {
+                Some(
+                    GpuNetworks::upload_f64(context.clone(), net)
+                        .context("uploading the networks to the gpu")?,
+                )
+            }
             _ => None,
         };
         Ok(Self {
@@ -338,8 +340,8 @@ impl<'d> Trainer<'d> {
         // The master parameters change with every optimiser step (and `networks` is public):
         // the gpu copy is refreshed before every forward pass.
         if let (Some(gpu), Some(net)) = (&self.gpu_networks, &self.networks) {
-            gpu.upload_group_f64(net, NetworkGroup::NonRigid)
-                .context("uploading the non-rigid network to the gpu")?;
+            gpu.upload_groups_f64(net, GpuNetworks::DEFORM_GROUPS)
+                .context("uploading the networks to the gpu")?;
         }
         let posed = self.posed_frame(frame)?;
         let pose = &posed.pose;
@@ -705,7 +707,7 @@ impl<'d> Trainer<'d> {
     /// Whether the non-rigid network runs on the gpu (the `gpu` backend with a motion
     /// context that has one).
     pub fn non_rigid_on_gpu(&self) -> bool {
-        self.gpu_networks.is_some()
+        self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.gpu_networks.is_some()
     }
 
     /// The current avatar.

@@ -297,6 +297,13 @@ impl GpuNetworks {
         Self::upload(context, &narrow)
     }
 
+    /// The groups that [`crate::avatar::deform_on`] evaluates on the gpu: the non-rigid
+    /// network and the LBS offsets (both per Gaussian). The pose refiner is one row per frame
+    /// and stays on `cpu` in f64 (a device round trip costs more than the whole network;
+    /// see `deform_on`).
+    pub const DEFORM_GROUPS: &'static [NetworkGroup] =
+        &[NetworkGroup::NonRigid, NetworkGroup::LbsOffsets];
+
     /// Overwrites the device parameters of the layers in `group` with those of the f64
     /// host networks (rounded to f32; same configuration).
     pub fn upload_group_f64(
@@ -304,20 +311,37 @@ impl GpuNetworks {
         networks: &Networks<f64>,
         group: NetworkGroup,
     ) -> Result<(), ModelError> {
-        if networks.config() != &self.config {
-            return Err(ModelError::Input {
-                field: "networks".into(),
-                message: "the cpu networks have another configuration".into(),
-            });
-        }
+        self.upload_groups_f64(networks, &[group])
+    }
+
+    /// Overwrites the device parameters of the layers in any of `groups` with those of the
+    /// f64 host networks (rounded to f32; same configuration). Layers of other groups are
+    /// neither converted nor written, so refreshing only what the gpu evaluates
+    /// ([`GpuNetworks::DEFORM_GROUPS`]) costs nothing for the rest.
+    pub fn upload_groups_f64(
+        &self,
+        networks: &Networks<f64>,
+        groups: &[NetworkGroup],
+    ) -> Result<(), ModelError> {
+        self.check_config(networks.config())?;
         let narrow =
             |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|&x| (x as f32).to_ne_bytes()).collect() };
         let queue = self.context.queue();
         for (gpu, cpu) in self.layers.iter().zip(networks.layers()) {
-            if gpu.group == group {
+            if groups.contains(&gpu.group) {
                 queue.write_buffer(&gpu.weight, 0, &narrow(&cpu.weight));
                 queue.write_buffer(&gpu.bias, 0, &narrow(&cpu.bias));
             }
+        }
+        Ok(())
+    }
+
+    fn check_config(&self, config: &NetworkConfig) -> Result<(), ModelError> {
+        if config != &self.config {
+            return Err(ModelError::Input {
+                field: "networks".into(),
+                message: "the cpu networks have another configuration".into(),
+            });
         }
         Ok(())
     }
@@ -330,13 +354,25 @@ impl GpuNetworks {
         networks: &mut Networks<f64>,
         group: NetworkGroup,
     ) -> Result<(), ModelError> {
-        if networks.config() != &self.config {
-            return Err(ModelError::Input {
-                field: "networks".into(),
-                message: "the cpu networks have another configuration".into(),
-            });
+        self.add_groups_gradients_into(networks, &[group])
+    }
+
+    /// [`GpuNetworks::add_group_gradients_into`] for every layer in any of `groups`, in one
+    /// download.
+    pub fn add_groups_gradients_into(
+        &self,
+        networks: &mut Networks<f64>,
+        groups: &[NetworkGroup],
+    ) -> Result<(), ModelError> {
+        self.check_config(networks.config())?;
+        let chosen: Vec<&GpuDense> = self
+            .layers
+            .iter()
+            .filter(|l| groups.contains(&l.group))
+            .collect();
+        if chosen.is_empty() {
+            return Ok(());
         }
-        let chosen: Vec<&GpuDense> = self.layers.iter().filter(|l| l.group == group).collect();
         let mut sources = Vec::with_capacity(2 * chosen.len());
         for layer in &chosen {
             sources.push((&layer.d_weight, layer.shape.weight_len()));
@@ -354,7 +390,7 @@ impl GpuNetworks {
         for layer in networks
             .layers_mut()
             .into_iter()
-            .filter(|l| l.group == group)
+            .filter(|l| groups.contains(&l.group))
         {
             let d_weight = arrays.next().ok_or_else(|| gpu_error("layer count"))?;
             let d_bias = arrays.next().ok_or_else(|| gpu_error("layer count"))?;

@@ -1145,3 +1145,84 @@ fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
             .is_err()
     );
 }
+
+/// Sets of groups in one call: [`GpuNetworks::DEFORM_GROUPS`] refreshes the non-rigid and
+/// LBS-offset layers and leaves the pose refiner's device copy alone; gradients of the chosen
+/// groups come back in one download and add to the master's, other groups untouched even
+/// where the device has gradients for them.
+#[test]
+fn gpu_group_sets_upload_and_add_gradients_together() {
+    use super::gpu::GpuNetworks;
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let config = small_config(MotionContext::Pose, 1, 1);
+    let master = Networks::<f64>::new(&config, 5).unwrap();
+    let gpu = GpuNetworks::upload_f64(context, &master).unwrap();
+    let other = Networks::<f64>::new(&config, 6).unwrap();
+    gpu.upload_groups_f64(&other, GpuNetworks::DEFORM_GROUPS)
+        .unwrap();
+    let mut narrowed = Networks::<f32>::new(&config, 77).unwrap();
+    gpu.download_into(&mut narrowed).unwrap();
+    let mut groups_seen = Vec::new();
+    for ((m, o), d) in master
+        .parameters()
+        .iter()
+        .zip(other.parameters())
+        .zip(narrowed.parameters())
+    {
+        let expected = if GpuNetworks::DEFORM_GROUPS.contains(&m.group) {
+            to_f32(o.values)
+        } else {
+            to_f32(m.values)
+        };
+        assert_eq!(expected, d.values, "{}", m.name);
+        if !groups_seen.contains(&m.group) {
+            groups_seen.push(m.group);
+        }
+    }
+    assert_eq!(groups_seen.len(), 3);
+
+    // Device gradients of the LBS offsets and the pose refiner; only the first come back.
+    let mut rng = Rng::new(41);
+    let n = 6;
+    let xyz = random(&mut rng, 3 * n, 1.0);
+    let pose = random(&mut rng, config.pose_dim(), 1.0);
+    let (offsets, cache) = other.lbs_offsets_forward(&xyz).unwrap();
+    let d_offsets = random(&mut rng, offsets.len(), 1.0);
+    let mut reference = other.clone();
+    reference.lbs_offsets_backward(&cache, &d_offsets).unwrap();
+    let (_, gpu_cache) = gpu.lbs_offsets_forward(&to_f32(&xyz)).unwrap();
+    gpu.lbs_offsets_backward(&gpu_cache, &to_f32(&d_offsets))
+        .unwrap();
+    let (rotations, refiner_cache) = gpu.pose_refiner_forward(&to_f32(&pose)).unwrap();
+    let d_rotations = vec![1.0f32; rotations.len()];
+    gpu.pose_refiner_backward(&refiner_cache, &d_rotations)
+        .unwrap();
+    let mut seeded = other.clone();
+    for param in seeded.layers_mut() {
+        param.d_weight.fill(0.5);
+        param.d_bias.fill(0.5);
+    }
+    gpu.add_groups_gradients_into(&mut seeded, &[NetworkGroup::LbsOffsets])
+        .unwrap();
+    for (r, s) in reference.parameters().iter().zip(seeded.parameters()) {
+        let scale = r.grads.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+        for (i, (a, b)) in r.grads.iter().zip(s.grads).enumerate() {
+            let expected = if r.group == NetworkGroup::LbsOffsets {
+                a + 0.5
+            } else {
+                0.5
+            };
+            assert!(
+                (b - expected).abs() <= 1e-4 * scale,
+                "{}[{i}]: {b} vs {expected}",
+                r.name
+            );
+        }
+    }
+    // No group: nothing downloaded, nothing changed.
+    let before = seeded.clone();
+    gpu.add_groups_gradients_into(&mut seeded, &[]).unwrap();
+    assert!(before == seeded);
+}
