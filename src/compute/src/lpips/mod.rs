@@ -16,6 +16,10 @@
 //! `scaling_layer.shift|scale`), written by `tests/lpips/convert_weights.py`. Steps 1, 2 and
 //! the spatial average run on the host in both backends; the trunk and step 4's per-pixel
 //! map run on the chosen backend ([`cpu`], [`gpu`]).
+//!
+//! For training, [`Lpips::distances_with_gradient`] also returns the gradient of each pair's
+//! distance with respect to its first image (the render); [`LpipsInput`] chooses how images
+//! in [0, 1] enter the network (the package's `2x - 1`, or the authors' unmapped quirk).
 
 pub mod cpu;
 pub mod gpu;
@@ -27,6 +31,7 @@ use crate::backend::{Backend, BackendError};
 
 use crate::image::ImageF32;
 use crate::safetensors::{SafetensorsError, SafetensorsFile};
+use crate::scalar::Scalar;
 
 /// The ScalingLayer constants of the `lpips` package (v0.1).
 pub const SCALING_SHIFT: [f32; 3] = [-0.030, -0.088, -0.188];
@@ -436,11 +441,89 @@ pub struct TrunkInput {
 /// Per tapped layer, the per-pixel distance maps of every pair, `(pairs, h, w)` row-major.
 pub type DistanceMaps = Vec<Vec<f32>>;
 
+/// How images in [0, 1] enter the network (the package expects [-1, 1]).
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum LpipsInput {
+    /// Mapped by `2x - 1`: the package's `normalize=True`, the paper's meaning.
+    #[default]
+    Unit,
+    /// Fed unchanged as if they were in [-1, 1]: the authors' training code (method.md,
+    /// "inputs in [0,1] without normalisation").
+    UnitAsSigned,
+}
+
+impl LpipsInput {
+    /// `d signed / d unit` of the mapping.
+    fn slope<S: Scalar>(self) -> S {
+        match self {
+            Self::Unit => S::from_f64(2.0),
+            Self::UnitAsSigned => S::ONE,
+        }
+    }
+
+    fn signed<S: Scalar>(self, unit: S) -> S {
+        match self {
+            Self::Unit => unit * S::from_f64(2.0) - S::ONE,
+            Self::UnitAsSigned => unit,
+        }
+    }
+}
+
+/// Writes one `(h, w, 3)` image in [0, 1] as trunk input planes `(3, h, w)`: the input
+/// mapping, then the scaling layer `(x - shift) / scale`.
+pub fn image_to_trunk<S: Scalar>(
+    weights: &LpipsWeights,
+    image: &[S],
+    input: LpipsInput,
+    planes: &mut [S],
+) {
+    let pixels = image.len() / 3;
+    for (pixel, rgb) in image.chunks_exact(3).enumerate() {
+        for channel in 0..3 {
+            let signed = input.signed(rgb[channel]);
+            planes[channel * pixels + pixel] = (signed
+                - S::from_f64(f64::from(weights.shift[channel])))
+                / S::from_f64(f64::from(weights.scale[channel]));
+        }
+    }
+}
+
+/// The adjoint of [`image_to_trunk`]: a gradient with respect to trunk input planes
+/// `(3, h, w)` as one with respect to the image `(h, w, 3)`.
+pub fn trunk_gradient_to_image<S: Scalar>(
+    weights: &LpipsWeights,
+    planes: &[S],
+    input: LpipsInput,
+) -> Vec<S> {
+    let pixels = planes.len() / 3;
+    let factors: [S; 3] = std::array::from_fn(|channel| {
+        input.slope::<S>() / S::from_f64(f64::from(weights.scale[channel]))
+    });
+    (0..pixels * 3)
+        .map(|index| {
+            let (pixel, channel) = (index / 3, index % 3);
+            planes[channel * pixels + pixel] * factors[channel]
+        })
+        .collect()
+}
+
 /// Stacks the pairs' first images, then their second images, mapped from [0, 1] to [-1, 1]
 /// and through the scaling layer (f32 arithmetic, as the package does).
 pub fn trunk_input(
     weights: &LpipsWeights,
     pairs: &[(&ImageF32, &ImageF32)],
+) -> Result<TrunkInput, LpipsError> {
+    trunk_input_mapped(weights, pairs, LpipsInput::Unit)
+}
+
+/// [`trunk_input`] with a choice of input mapping.
+pub fn trunk_input_mapped(
+    weights: &LpipsWeights,
+    pairs: &[(&ImageF32, &ImageF32)],
+    input: LpipsInput,
 ) -> Result<TrunkInput, LpipsError> {
     let Some((first, _)) = pairs.first() else {
         return Err(LpipsError::Input {
@@ -468,13 +551,7 @@ pub fn trunk_input(
         .chain(pairs.iter().map(|pair| pair.1));
     for (slot, image) in images.enumerate() {
         let planes = &mut data[slot * 3 * pixels..(slot + 1) * 3 * pixels];
-        for (pixel, rgb) in image.data.chunks_exact(3).enumerate() {
-            for channel in 0..3 {
-                let signed = rgb[channel] * 2.0 - 1.0;
-                planes[channel * pixels + pixel] =
-                    (signed - weights.shift[channel]) / weights.scale[channel];
-            }
-        }
+        image_to_trunk(weights, &image.data, input, planes);
     }
     Ok(TrunkInput {
         batch: 2 * pairs.len(),
@@ -548,6 +625,31 @@ impl Lpips {
             Some(gpu) => gpu.distance_maps(&input)?,
         };
         Ok(reduce_maps(&maps, pairs.len()))
+    }
+
+    /// LPIPS of each pair and the gradient of each pair's `total` with respect to its first
+    /// image, `(h, w, 3)` row-major like [`ImageF32::data`]; the second images are
+    /// constants. All images must have one size, at least the trunk's minimum
+    /// ([`tap_sizes`]).
+    pub fn distances_with_gradient(
+        &self,
+        pairs: &[(&ImageF32, &ImageF32)],
+        input: LpipsInput,
+    ) -> Result<(Vec<LpipsDistance>, Vec<Vec<f32>>), LpipsError> {
+        let Some((first, _)) = pairs.first() else {
+            return Ok((Vec::new(), Vec::new()));
+        };
+        tap_sizes(self.weights.net, first.height, first.width)?;
+        let trunk = trunk_input_mapped(&self.weights, pairs, input)?;
+        // The gpu backward (`gpu.rs`) plugs in here; until then the gpu backend runs the
+        // cpu gradient (the images are host data either way).
+        let (maps, gradient) = cpu::distance_gradient(&self.weights, &trunk)?;
+        let plane_values = 3 * first.height * first.width;
+        let gradients = gradient
+            .chunks_exact(plane_values)
+            .map(|planes| trunk_gradient_to_image(&self.weights, planes, input))
+            .collect();
+        Ok((reduce_maps(&maps, pairs.len()), gradients))
     }
 }
 

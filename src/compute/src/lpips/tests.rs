@@ -98,7 +98,7 @@ fn cpu_convolution_matches_the_definition() {
             conv.spec.output_extent(height).unwrap(),
             conv.spec.output_extent(width).unwrap(),
         );
-        let fast = cpu::conv2d_relu(&input, 2, [in_channels, height, width], &conv, [oh, ow]);
+        let fast = cpu::ops::conv2d_relu(&input, 2, [in_channels, height, width], &conv, [oh, ow]);
         let direct = conv_direct(&input, 2, [in_channels, height, width], &conv);
         assert_eq!(fast.len(), direct.len());
         for (index, (a, b)) in fast.iter().zip(&direct).enumerate() {
@@ -114,7 +114,7 @@ fn cpu_convolution_matches_the_definition() {
 fn cpu_max_pool_and_layer_distance_match_the_definitions() {
     // 1 plane of 5 x 7, 3x3 stride 2 -> 2 x 3 (floor mode drops the last row and column).
     let input: Vec<f32> = (0..35).map(|value| ((value * 17) % 35) as f32).collect();
-    let pooled = cpu::max_pool(&input, 1, [5, 7], 3, 2, [2, 3]);
+    let pooled = cpu::ops::max_pool(&input, 1, [5, 7], 3, 2, [2, 3]);
     for oy in 0..2 {
         for ox in 0..3 {
             let mut best = f32::MIN;
@@ -139,7 +139,7 @@ fn cpu_max_pool_and_layer_distance_match_the_definitions() {
     put(&mut features, 2, 1, [2.0, 2.0, 2.0]); // same direction: distance 0
     put(&mut features, 1, 0, [5.0, 0.0, 0.0]); // pair 1 pixel 0 against zeros
     let lin = [1.0, 2.0, 3.0];
-    let map = cpu::layer_distance_map(&features, 2, 3, 2, &lin);
+    let map = cpu::ops::layer_distance_map(&features, 2, 3, 2, &lin);
     let expected = [0.36 + 2.0 * 0.64 + 3.0, 0.0, 1.0, 0.0];
     for (value, expected) in map.iter().zip(expected) {
         assert!((value - expected).abs() < 1e-6, "{map:?}");
@@ -449,4 +449,433 @@ fn written_weights_load_back_identically() {
         weights.write_safetensors(&path).unwrap();
         assert_eq!(LpipsWeights::load(&path, net).unwrap(), weights);
     }
+}
+
+// ---------------------------------------------------------------------------------------
+// Gradient with respect to the first image.
+
+/// `(pairs * 2, 3, h, w)` trunk input in f64 with values like scaled images (about +-2).
+fn trunk_values_f64(images: usize, height: usize, width: usize, salt: u64) -> Vec<f64> {
+    values(images * 3 * height * width, salt)
+        .into_iter()
+        .map(|v| 2.0 * f64::from(v))
+        .collect()
+}
+
+/// Central differences of pair `pair`'s total along `direction` (first images only).
+fn directional_difference(
+    weights: &LpipsWeights,
+    data: &[f64],
+    shape: [usize; 3],
+    pair: usize,
+    direction: &[f64],
+    step: f64,
+) -> f64 {
+    let shifted = |sign: f64| {
+        let mut moved = data.to_vec();
+        for (value, d) in moved.iter_mut().zip(direction) {
+            *value += sign * step * d;
+        }
+        cpu::totals_in::<f64>(weights, &moved, shape).unwrap()[pair]
+    };
+    (shifted(1.0) - shifted(-1.0)) / (2.0 * step)
+}
+
+fn check_gradient_against_differences(net: LpipsNet, pairs: usize, height: usize, width: usize) {
+    let weights = seeded::seeded_weights(net, 21);
+    let shape = [2 * pairs, height, width];
+    let data = trunk_values_f64(2 * pairs, height, width, 31);
+    let (maps, gradient) = cpu::distance_gradient_in::<f64>(&weights, &data, shape).unwrap();
+    let per_image = 3 * height * width;
+    assert_eq!(gradient.len(), pairs * per_image);
+    assert_eq!(maps.len(), 5);
+    let totals = cpu::totals_in::<f64>(&weights, &data, shape).unwrap();
+    assert!(totals.iter().all(|t| *t > 0.0), "{totals:?}");
+    // A step of 1e-6 in f64: round-off ~1e-10, and crossing a ReLU kink is unlikely.
+    let step = 1e-6;
+    for pair in 0..pairs {
+        let own = &gradient[pair * per_image..(pair + 1) * per_image];
+        let scale = own.iter().fold(0.0_f64, |m, g| m.max(g.abs()));
+        assert!(scale > 0.0, "{net:?} pair {pair}: zero gradient");
+        // A random direction over the whole pair's first image (the other pairs' images and
+        // every second image stay put).
+        let mut direction = vec![0.0; data.len()];
+        let random = trunk_values_f64(1, height, width, 40 + pair as u64);
+        direction[pair * per_image..(pair + 1) * per_image].copy_from_slice(&random);
+        let analytic: f64 = own.iter().zip(&random).map(|(g, d)| g * d).sum();
+        let numeric = directional_difference(&weights, &data, shape, pair, &direction, step);
+        assert!(
+            (analytic - numeric).abs() <= 1e-6 * (1.0 + analytic.abs()),
+            "{net:?} pair {pair} direction: analytic {analytic} numeric {numeric}"
+        );
+        // Single coordinates: corners, borders, interior, each channel.
+        for (channel, y, x) in [
+            (0, 0, 0),
+            (1, height / 2, width / 3),
+            (2, height - 1, width - 1),
+            (0, height / 3, width - 1),
+            (2, 1, width / 2),
+        ] {
+            let index = (channel * height + y) * width + x;
+            let mut direction = vec![0.0; data.len()];
+            direction[pair * per_image + index] = 1.0;
+            let numeric = directional_difference(&weights, &data, shape, pair, &direction, step);
+            assert!(
+                (own[index] - numeric).abs() <= 1e-6 * scale + 1e-9,
+                "{net:?} pair {pair} channel {channel} ({y}, {x}): analytic {} numeric {numeric}",
+                own[index]
+            );
+        }
+        // The other pair's first image does not affect this pair's total.
+        if pairs > 1 {
+            let other = (pair + 1) % pairs;
+            let mut direction = vec![0.0; data.len()];
+            direction[other * per_image..(other + 1) * per_image].copy_from_slice(&random);
+            let numeric = directional_difference(&weights, &data, shape, pair, &direction, step);
+            assert!(numeric.abs() < 1e-9, "{numeric}");
+        }
+    }
+}
+
+#[test]
+fn vgg_gradient_matches_finite_differences_in_f64() {
+    check_gradient_against_differences(LpipsNet::Vgg, 1, 20, 20);
+}
+
+#[test]
+fn alex_gradient_matches_finite_differences_in_f64() {
+    // 70 x 70: conv1 -> 17, pool -> 8, pool -> 3; two pairs through overlapping pools.
+    check_gradient_against_differences(LpipsNet::Alex, 2, 70, 70);
+}
+
+#[test]
+fn f32_gradient_matches_the_f64_gradient() {
+    for (net, height, width) in [(LpipsNet::Vgg, 24, 18), (LpipsNet::Alex, 67, 75)] {
+        let weights = seeded::seeded_weights(net, 5);
+        let data64 = trunk_values_f64(4, height, width, 8);
+        let input = TrunkInput {
+            batch: 4,
+            height,
+            width,
+            data: data64.iter().map(|&v| v as f32).collect(),
+        };
+        // The f32 values widened exactly, so both paths see the same input.
+        let widened: Vec<f64> = input.data.iter().map(|&v| f64::from(v)).collect();
+        let (maps32, gradient32) = cpu::distance_gradient(&weights, &input).unwrap();
+        let (maps64, gradient64) =
+            cpu::distance_gradient_in::<f64>(&weights, &widened, [4, height, width]).unwrap();
+        assert_eq!(gradient32.len(), gradient64.len());
+        let scale = gradient64.iter().fold(0.0_f64, |m, g| m.max(g.abs()));
+        let worst = gradient32
+            .iter()
+            .zip(&gradient64)
+            .fold(0.0_f64, |m, (a, b)| m.max((f64::from(*a) - b).abs()));
+        assert!(worst <= 1e-4 * scale, "{net:?}: {worst} vs scale {scale}");
+        for (map32, map64) in maps32.iter().zip(&maps64) {
+            for (a, b) in map32.iter().zip(map64) {
+                assert!((f64::from(*a) - b).abs() <= 1e-5 * (1.0 + b.abs()));
+            }
+        }
+        // The forward-only entry point gives the same maps.
+        assert_eq!(cpu::distance_maps(&weights, &input).unwrap(), maps32);
+    }
+}
+
+/// A linear convolution (no bias, no ReLU) straight from the definition, in f64.
+fn conv_linear_direct(input: &[f64], [c, h, w]: [usize; 3], conv: &ConvWeights) -> Vec<f64> {
+    let spec = &conv.spec;
+    let (oh, ow) = (
+        spec.output_extent(h).unwrap(),
+        spec.output_extent(w).unwrap(),
+    );
+    let mut output = vec![0.0; spec.out_channels * oh * ow];
+    for oc in 0..spec.out_channels {
+        for oy in 0..oh {
+            for ox in 0..ow {
+                let mut sum = 0.0;
+                for ic in 0..c {
+                    for ky in 0..spec.kernel {
+                        for kx in 0..spec.kernel {
+                            let y = (oy * spec.stride + ky) as isize - spec.padding as isize;
+                            let x = (ox * spec.stride + kx) as isize - spec.padding as isize;
+                            if y < 0 || x < 0 || y >= h as isize || x >= w as isize {
+                                continue;
+                            }
+                            sum += input[(ic * h + y as usize) * w + x as usize]
+                                * f64::from(
+                                    conv.weight
+                                        [((oc * c + ic) * spec.kernel + ky) * spec.kernel + kx],
+                                );
+                        }
+                    }
+                }
+                output[(oc * oh + oy) * ow + ox] = sum;
+            }
+        }
+    }
+    output
+}
+
+#[test]
+fn convolution_data_gradient_is_the_adjoint_of_the_convolution() {
+    // <A x, y> = <x, A^T y> with A from the definition; AlexNet's first layer shape (the
+    // stride leaves input pixels no output reads), a 3x3 and a 5x5.
+    for (in_channels, out_channels, kernel, stride, padding, height, width) in [
+        (3, 5, 11, 4, 2, 23, 30),
+        (4, 6, 3, 1, 1, 7, 9),
+        (2, 3, 5, 1, 2, 5, 4),
+    ] {
+        let conv = conv_weights(in_channels, out_channels, kernel, stride, padding);
+        let (oh, ow) = (
+            conv.spec.output_extent(height).unwrap(),
+            conv.spec.output_extent(width).unwrap(),
+        );
+        let shape = [in_channels, height, width];
+        for image in 0..2 {
+            let x: Vec<f64> = values(in_channels * height * width, 50 + image)
+                .into_iter()
+                .map(f64::from)
+                .collect();
+            let y: Vec<f64> = values(out_channels * oh * ow, 60 + image)
+                .into_iter()
+                .map(f64::from)
+                .collect();
+            let ax = conv_linear_direct(&x, shape, &conv);
+            let mut both_y = vec![0.0; 2 * y.len()];
+            both_y[image as usize * y.len()..][..y.len()].copy_from_slice(&y);
+            let at_y = cpu::ops::conv_data_backward_f64(&both_y, 2, shape, &conv, [oh, ow]);
+            let own = &at_y[image as usize * x.len()..][..x.len()];
+            let other = &at_y[(1 - image as usize) * x.len()..][..x.len()];
+            assert!(other.iter().all(|v| *v == 0.0));
+            let left: f64 = ax.iter().zip(&y).map(|(a, b)| a * b).sum();
+            let right: f64 = x.iter().zip(own).map(|(a, b)| a * b).sum();
+            assert!(
+                (left - right).abs() < 1e-10 * (1.0 + left.abs()),
+                "kernel {kernel}: {left} vs {right}"
+            );
+        }
+    }
+}
+
+#[test]
+fn max_pool_gradient_goes_to_the_first_maximum_and_overlaps_add() {
+    // 3 x 5 plane, 3x3 windows with stride 2: output 1 x 2, windows share column 2.
+    #[rustfmt::skip]
+    let plane = [
+        1.0, 7.0, 9.0, 0.0, 9.0,
+        7.0, 2.0, 3.0, 4.0, 5.0,
+        9.0, 0.0, 1.0, 2.0, 3.0,
+    ];
+    let d_output = [10.0, 100.0];
+    let d_input = cpu::ops::max_pool_backward(&plane, &d_output, 1, [3, 5], 3, 2, [1, 2]);
+    // Window 0 (columns 0..3): 9 at (0, 2) comes before the 9 at (2, 0) in scan order.
+    // Window 1 (columns 2..5): 9 at (0, 2) again comes before the 9 at (0, 4).
+    let mut expected = [0.0; 15];
+    expected[2] = 110.0;
+    assert_eq!(d_input, expected);
+    assert_eq!(
+        cpu::ops::max_pool(&plane, 1, [3, 5], 3, 2, [1, 2]),
+        vec![9.0, 9.0]
+    );
+}
+
+#[test]
+fn unit_normalisation_gradient_matches_differences_including_tiny_and_zero_norms() {
+    // One pair, 3 channels, 4 pixels: a generic vector, a tiny one (norm 1e-4), a zero one,
+    // and one equal in direction to the target (zero distance, zero gradient).
+    let channels = 3;
+    let pixels = 4;
+    let mut features = vec![0.0_f64; 2 * channels * pixels];
+    let mut put = |image: usize, pixel: usize, vector: [f64; 3]| {
+        for (channel, value) in vector.into_iter().enumerate() {
+            features[(image * channels + channel) * pixels + pixel] = value;
+        }
+    };
+    put(0, 0, [0.3, 1.2, 0.5]);
+    put(1, 0, [1.0, 0.2, 0.7]);
+    put(0, 1, [1e-4, 0.0, 2e-5]);
+    put(1, 1, [0.1, 0.9, 0.3]);
+    put(0, 2, [0.0, 0.0, 0.0]);
+    put(1, 2, [0.5, 0.5, 0.1]);
+    put(0, 3, [0.2, 0.4, 0.6]);
+    put(1, 3, [0.4, 0.8, 1.2]);
+    let lin = [0.7, 1.3, 0.4];
+    let trunk_lin: Vec<f32> = lin.iter().map(|&v| v as f32).collect();
+    let map = |features: &[f64]| cpu::ops::layer_distance_map(features, 1, channels, pixels, &lin);
+    let gradient = cpu::ops::layer_distance_gradient(&features, channels, pixels, &trunk_lin);
+    assert!(gradient.iter().all(|g| g.is_finite()));
+    for pixel in 0..pixels {
+        for channel in 0..channels {
+            let index = channel * pixels + pixel;
+            // Near the zero vector the function is linear only within |h| << eps = 1e-10.
+            let step = if pixel == 2 { 1e-16 } else { 1e-9 };
+            let mut plus = features.clone();
+            plus[index] += step;
+            let mut minus = features.clone();
+            minus[index] -= step;
+            let numeric = (map(&plus)[pixel] - map(&minus)[pixel]) / (2.0 * step);
+            let analytic = gradient[index];
+            assert!(
+                (analytic - numeric).abs() <= 1e-5 * (1e-3 + analytic.abs()),
+                "pixel {pixel} channel {channel}: analytic {analytic} numeric {numeric}"
+            );
+        }
+    }
+    // Same direction as the target: the distance and its gradient vanish.
+    assert!(map(&features)[3].abs() < 1e-12);
+    for channel in 0..channels {
+        assert!(gradient[channel * pixels + 3].abs() < 1e-9);
+    }
+}
+
+fn test_image(height: usize, width: usize, salt: u64) -> ImageF32 {
+    let data = values(height * width * 3, salt)
+        .into_iter()
+        .map(|v| v * 0.5 + 0.5)
+        .collect();
+    ImageF32::from_f32("test", width, height, data).unwrap()
+}
+
+#[test]
+fn image_gradient_matches_differences_for_both_input_mappings() {
+    let (height, width) = (17, 22);
+    let weights = seeded::seeded_weights(LpipsNet::Vgg, 12);
+    let lpips = Lpips::new(weights.clone(), &Backend::Cpu).unwrap();
+    let render = test_image(height, width, 70);
+    let target = test_image(height, width, 71);
+    for input in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
+        let (distances, gradients) = lpips
+            .distances_with_gradient(&[(&render, &target)], input)
+            .unwrap();
+        assert_eq!(gradients.len(), 1);
+        assert_eq!(gradients[0].len(), render.data.len());
+        if input == LpipsInput::Unit {
+            assert_eq!(
+                distances,
+                lpips.distances(&[(&render, &target)]).unwrap(),
+                "the gradient entry point computes the same distances"
+            );
+        }
+        // The reference: the f64 chain image -> mapping -> scaling -> trunk -> total.
+        let total = |image: &[f64]| {
+            let mut data = vec![0.0; 2 * 3 * height * width];
+            let (first, second) = data.split_at_mut(3 * height * width);
+            image_to_trunk(&weights, image, input, first);
+            let target64: Vec<f64> = target.data.iter().map(|&v| f64::from(v)).collect();
+            image_to_trunk(&weights, &target64, input, second);
+            cpu::totals_in::<f64>(&weights, &data, [2, height, width]).unwrap()[0]
+        };
+        let base: Vec<f64> = render.data.iter().map(|&v| f64::from(v)).collect();
+        assert!((total(&base) - distances[0].total).abs() < 1e-5);
+        let gradient = &gradients[0];
+        let scale = gradient.iter().fold(0.0_f32, |m, g| m.max(g.abs()));
+        let step = 1e-6;
+        for index in [
+            0,
+            3 * (5 * width + 7) + 1,
+            3 * (height * width) - 1,
+            3 * 9 + 2,
+        ] {
+            let mut plus = base.clone();
+            plus[index] += step;
+            let mut minus = base.clone();
+            minus[index] -= step;
+            let numeric = (total(&plus) - total(&minus)) / (2.0 * step);
+            assert!(
+                (f64::from(gradient[index]) - numeric).abs() <= 1e-3 * f64::from(scale),
+                "{input:?} value {index}: analytic {} numeric {numeric}",
+                gradient[index]
+            );
+        }
+    }
+    // Without normalisation the network sees half the contrast: a different distance.
+    let unit = lpips
+        .distances_with_gradient(&[(&render, &target)], LpipsInput::Unit)
+        .unwrap()
+        .0[0]
+        .total;
+    let signed = lpips
+        .distances_with_gradient(&[(&render, &target)], LpipsInput::UnitAsSigned)
+        .unwrap()
+        .0[0]
+        .total;
+    assert!((unit - signed).abs() > 1e-4, "{unit} vs {signed}");
+}
+
+#[test]
+fn gradient_is_finite_at_the_extremes() {
+    let (height, width) = (16, 16);
+    let weights = seeded::seeded_weights(LpipsNet::Vgg, 3);
+    let lpips = Lpips::new(weights.clone(), &Backend::Cpu).unwrap();
+    let image = test_image(height, width, 80);
+    let black = ImageF32::black(width, height);
+    let white = ImageF32::from_f32("white", width, height, vec![1.0; height * width * 3]).unwrap();
+    for input in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
+        // Identical images: zero distance, exactly zero gradient.
+        for same in [&image, &black, &white] {
+            let (distances, gradients) = lpips
+                .distances_with_gradient(&[(same, same)], input)
+                .unwrap();
+            assert_eq!(distances[0].total, 0.0);
+            assert!(gradients[0].iter().all(|g| *g == 0.0), "{input:?}");
+        }
+        // Black and saturated renders against an image, and against each other.
+        for (render, target) in [
+            (&black, &image),
+            (&image, &black),
+            (&white, &image),
+            (&black, &white),
+            (&white, &black),
+        ] {
+            let (distances, gradients) = lpips
+                .distances_with_gradient(&[(render, target)], input)
+                .unwrap();
+            assert!(distances[0].total.is_finite() && distances[0].total > 0.0);
+            assert!(gradients[0].iter().all(|g| g.is_finite()), "{input:?}");
+            assert!(gradients[0].iter().any(|g| *g != 0.0), "{input:?}");
+        }
+    }
+    // A trunk whose first layer is dead everywhere (biases far below the inputs' reach):
+    // every tapped feature vector is zero, the distance is 0 and the gradient is exactly 0.
+    let mut dead = weights;
+    dead.convs[0].bias.iter_mut().for_each(|b| *b = -1e4);
+    let lpips = Lpips::new(dead, &Backend::Cpu).unwrap();
+    let (distances, gradients) = lpips
+        .distances_with_gradient(&[(&image, &black)], LpipsInput::Unit)
+        .unwrap();
+    assert_eq!(distances[0].layers[0], 0.0);
+    assert!(gradients[0].iter().all(|g| g.is_finite()));
+    // The first tap is dead, later ones see only the (dead) first layer: all zero.
+    assert!(gradients[0].iter().all(|g| *g == 0.0));
+}
+
+#[test]
+fn gradient_rejects_small_and_mismatched_images() {
+    let lpips = Lpips::new(seeded::seeded_weights(LpipsNet::Vgg, 1), &Backend::Cpu).unwrap();
+    let small = test_image(15, 40, 1);
+    let error = lpips
+        .distances_with_gradient(&[(&small, &small)], LpipsInput::Unit)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("15 x 40") && error.contains("vgg"),
+        "{error}"
+    );
+    let (a, b) = (test_image(16, 16, 2), test_image(16, 17, 3));
+    let error = lpips
+        .distances_with_gradient(&[(&a, &b)], LpipsInput::Unit)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("pair 0"), "{error}");
+    let (distances, gradients) = lpips
+        .distances_with_gradient(&[], LpipsInput::Unit)
+        .unwrap();
+    assert!(distances.is_empty() && gradients.is_empty());
+    let bad = TrunkInput {
+        batch: 3,
+        height: 16,
+        width: 16,
+        data: vec![0.0; 3 * 3 * 256],
+    };
+    assert!(cpu::distance_gradient(lpips.weights(), &bad).is_err());
 }
