@@ -352,13 +352,72 @@ impl SyntheticScene {
         self.skirt.get(frame).map_or(&[], |s| s.as_slice())
     }
 
+    /// The skirt the frame's pose alone determines: the rest skirt carried by the pose (no
+    /// velocity), left to settle for `seconds` while the body holds the pose. It starts from
+    /// the rest shape, not from the frame's skirt, because the settled shape depends on the
+    /// start (the skirt can come to rest in several folds around the legs), and that
+    /// dependence is history too. The difference to [`Self::skirt_positions`] is the
+    /// history-dependent part of the garment (swing, lag and fold from the motion before the
+    /// frame), what only a model with motion context can render.
+    pub fn static_drape(&self, frame: usize, seconds: f64) -> anyhow::Result<Vec<DVec3>> {
+        anyhow::ensure!(
+            self.config.garment && frame < self.skirt.len(),
+            "frame {frame}: the scene has no garment state for it"
+        );
+        let mut rest_params = self.model.zero_params();
+        rest_params.betas = self.config.betas.to_vec();
+        let shaped = self.model.shaped_vertices(&rest_params);
+        let rest_joints = self.model.regress_joints(&shaped);
+        let scale = 1.0 + procedural::HEIGHT_PER_BETA * self.config.betas[0];
+        let mut skirt = Skirt::new(&self.model, &shaped, scale);
+        let params = &self.ground_truth[frame];
+        let transforms = self.model.joint_transforms(&rest_joints, &params.pose);
+        let world = DAffine3::from_translation(params.world_translation);
+        skirt.reset(&transforms, world);
+        let dt = 1.0 / SIMULATION_RATE;
+        for _ in 0..(seconds / dt).ceil() as usize {
+            skirt.step(&transforms, world, dt);
+        }
+        Ok(skirt.positions().to_vec())
+    }
+
     /// Renders camera `view` at frame `frame`: supersampled visibility, shading, box filter.
     pub fn render(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        let (points, body_count) = self.frame_geometry(frame)?;
+        self.render_points(view, &points, body_count)
+    }
+
+    /// [`Self::render`] with the frame's skirt replaced by `skirt` (one position per
+    /// particle), e.g. its [`Self::static_drape`].
+    pub fn render_with_skirt(
+        &self,
+        view: usize,
+        frame: usize,
+        skirt: &[DVec3],
+    ) -> anyhow::Result<SourceImage> {
+        let (mut points, body_count) = self.frame_geometry(frame)?;
+        anyhow::ensure!(
+            points.len() - body_count == skirt.len(),
+            "{} skirt positions for {} particles",
+            skirt.len(),
+            points.len() - body_count
+        );
+        points.truncate(body_count);
+        points.extend_from_slice(skirt);
+        self.render_points(view, &points, body_count)
+    }
+
+    /// Renders body vertices `points[..body_count]` followed by the skirt particles.
+    fn render_points(
+        &self,
+        view: usize,
+        points: &[DVec3],
+        body_count: usize,
+    ) -> anyhow::Result<SourceImage> {
         let config = &self.config;
         let camera = &self.cameras[view].camera;
         let s = config.supersample as usize;
         let fine = camera.resized(camera.width * s as u32, camera.height * s as u32);
-        let (points, body_count) = self.frame_geometry(frame)?;
         let body_faces = self.model.faces();
         let mut triangles: Vec<[u32; 3]> = body_faces.to_vec();
         triangles.extend(
@@ -371,7 +430,7 @@ impl SyntheticScene {
             n.extend(vertex_normals(&points[body_count..], &self.skirt_triangles));
             n
         };
-        let buffer = rasterize(&fine, &points, &triangles);
+        let buffer = rasterize(&fine, points, &triangles);
         let light = LIGHT.normalize();
         let centre = camera.center();
         let num_body_faces = body_faces.len();
@@ -527,6 +586,54 @@ impl DatasetReader for SyntheticScene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn static_drape_removes_the_swing_and_renders_in_place_of_the_skirt() {
+        let config = SyntheticConfig {
+            cameras: 1,
+            frames: 30,
+            width: 48,
+            height: 48,
+            supersample: 1,
+            body_grid_spacing: 0.04,
+            ..Default::default()
+        };
+        let scene = SyntheticScene::generate(&config).unwrap();
+        // Frames 19 and 22 share one standing pose and place (see the test below) while the
+        // skirt still swings: their drapes are the same, their simulated skirts are not.
+        let largest = |a: &[DVec3], b: &[DVec3]| {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| (*x - *y).length())
+                .fold(0.0, f64::max)
+        };
+        let (drape_a, drape_b) = (
+            scene.static_drape(19, 6.0).unwrap(),
+            scene.static_drape(22, 6.0).unwrap(),
+        );
+        let simulated = largest(scene.skirt_positions(19), scene.skirt_positions(22));
+        let draped = largest(&drape_a, &drape_b);
+        assert!(
+            draped < 1e-9 && simulated > 0.005,
+            "drapes differ by {draped} m, simulated skirts by {simulated} m"
+        );
+        // The drape hangs: no particle is above the waist ring's lowest particle.
+        let waist = drape_a[..garment::AROUND]
+            .iter()
+            .map(|p| p.y)
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            drape_a[garment::AROUND..]
+                .iter()
+                .all(|p| p.y < waist + 1e-9)
+        );
+        // Rendering with the frame's own skirt reproduces the frame; a wrong count is an error.
+        let own = scene
+            .render_with_skirt(0, 19, scene.skirt_positions(19))
+            .unwrap();
+        assert_eq!(own.rgb, scene.render(0, 19).unwrap().rgb);
+        assert!(scene.render_with_skirt(0, 19, &drape_a[1..]).is_err());
+    }
 
     #[test]
     fn same_pose_different_garment_and_textured_images() {
