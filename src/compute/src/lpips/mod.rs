@@ -641,9 +641,10 @@ impl Lpips {
         };
         tap_sizes(self.weights.net, first.height, first.width)?;
         let trunk = trunk_input_mapped(&self.weights, pairs, input)?;
-        // The gpu backward (`gpu.rs`) plugs in here; until then the gpu backend runs the
-        // cpu gradient (the images are host data either way).
-        let (maps, gradient) = cpu::distance_gradient(&self.weights, &trunk)?;
+        let (maps, gradient) = match &self.gpu {
+            None => cpu::distance_gradient(&self.weights, &trunk)?,
+            Some(gpu) => gpu.distance_gradient(&trunk)?,
+        };
         let plane_values = 3 * first.height * first.width;
         let gradients = gradient
             .chunks_exact(plane_values)
@@ -655,3 +656,5 @@ impl Lpips {
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod gpu_tests;
