@@ -655,6 +655,6 @@ impl Lpips {
 }
 
 #[cfg(test)]
-mod tests;
-#[cfg(test)]
 mod gpu_tests;
+#[cfg(test)]
+mod tests;
