@@ -4,6 +4,9 @@
 //! The YAML names a `preset` (default `balanced`) and any fields to change; resolution fills
 //! every other field from the preset, so the stored config is always explicit.
 
+use std::path::PathBuf;
+
+use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use serde::{Deserialize, Serialize};
 
 /// The paper's ablation rows (a) to (e): which motion conditions feed the non-rigid network.
@@ -153,8 +156,17 @@ pub struct TrainConfig {
     pub sh_degree_interval: u32,
     pub mask_weight: f64,
     pub ssim_weight: f64,
-    /// LPIPS needs the evaluation stage's network; 0 until it exists (the run says so).
+    /// Weight of the LPIPS loss on the bound-box crop; 0 (every preset) turns it off and
+    /// nothing LPIPS loads or runs. Above 0 it needs `lpips_weights`.
     pub lpips_weight: f64,
+    /// The `lpips` package weights as written by `tests/lpips/convert_weights.py` (their
+    /// content enters the stage key when the loss is on).
+    pub lpips_weights: Option<PathBuf>,
+    /// The LPIPS trunk (`vgg` as in the paper, or `alex`).
+    pub lpips_net: LpipsNet,
+    /// Feed images in [0, 1] to LPIPS unmapped, as the authors' code does (method.md); the
+    /// default maps them to [-1, 1] as the package expects.
+    pub lpips_unnormalised_input: bool,
     pub aiap_centre_weight: f64,
     pub aiap_covariance_weight: f64,
     pub aiap_neighbours: usize,
@@ -200,6 +212,9 @@ impl TrainConfig {
             mask_weight: 0.1,
             ssim_weight: 0.1,
             lpips_weight: 0.0,
+            lpips_weights: None,
+            lpips_net: LpipsNet::Vgg,
+            lpips_unnormalised_input: false,
             aiap_centre_weight: 1.0,
             aiap_covariance_weight: 100.0,
             aiap_neighbours: 5,
@@ -338,16 +353,34 @@ impl TrainConfig {
                 return bad(name, format!("must be finite and >= 0, got {value}"));
             }
         }
-        if self.lpips_weight > 0.0 {
+        if self.lpips_weight > 0.0 && self.lpips_weights.is_none() {
             return bad(
-                "lpips_weight",
-                "LPIPS is not available yet (needs the eval stage's network); use 0".into(),
+                "lpips_weights",
+                format!(
+                    "lpips_weight {} needs the LPIPS weights file (converted by \
+                     tests/lpips/convert_weights.py); set lpips_weights or lpips_weight: 0",
+                    self.lpips_weight
+                ),
             );
         }
         if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             return bad("background", "components must be in [0, 1]".into());
         }
         Ok(())
+    }
+
+    /// Whether the LPIPS loss runs (a positive weight; validation ensures the weights file).
+    pub fn lpips_enabled(&self) -> bool {
+        self.lpips_weight > 0.0
+    }
+
+    /// How rendered and ground-truth images enter LPIPS.
+    pub fn lpips_input(&self) -> LpipsInput {
+        if self.lpips_unnormalised_input {
+            LpipsInput::UnitAsSigned
+        } else {
+            LpipsInput::Unit
+        }
     }
 
     /// Scales to feed the networks given those the motion entry holds (largest first).
@@ -456,7 +489,10 @@ mod tests {
             (json!({"learning_rates": {"typo": 1.0}}), "learning_rates"),
             (json!({"unknown_field": 1}), "unknown_field"),
             (json!({"sh_degree": 4}), "sh_degree"),
-            (json!({"lpips_weight": 0.1}), "lpips_weight"),
+            (json!({"lpips_weight": 0.1}), "lpips_weights"),
+            (json!({"lpips_weight": -0.1}), "lpips_weight"),
+            (json!({"lpips_net": "resnet"}), "lpips_net"),
+            (json!({"lpips_weights": 3}), "lpips_weights"),
             (json!({"preset": "slow"}), "preset"),
             (json!({"scale_min": 0.0}), "scale_min"),
         ];
@@ -468,6 +504,35 @@ mod tests {
             TrainConfig::resolve(&json!([1])),
             Err(ConfigError::NotAMapping)
         );
+    }
+
+    #[test]
+    fn lpips_fields_resolve_and_default_off() {
+        for preset in [Preset::Fast, Preset::Balanced, Preset::Paper] {
+            let c = TrainConfig::preset(preset);
+            assert!(!c.lpips_enabled() && c.lpips_weights.is_none());
+            assert_eq!(
+                (c.lpips_net, c.lpips_input()),
+                (LpipsNet::Vgg, LpipsInput::Unit)
+            );
+        }
+        let raw = json!({"lpips_weight": 0.1, "lpips_weights": "weights/lpips_alex.safetensors",
+                         "lpips_net": "alex", "lpips_unnormalised_input": true});
+        let c = TrainConfig::resolve(&raw).unwrap();
+        assert!(c.lpips_enabled());
+        assert_eq!(c.lpips_net, LpipsNet::Alex);
+        assert_eq!(c.lpips_input(), LpipsInput::UnitAsSigned);
+        assert_eq!(
+            c.lpips_weights.as_deref(),
+            Some(std::path::Path::new("weights/lpips_alex.safetensors"))
+        );
+        assert_eq!(
+            TrainConfig::resolve(&serde_json::to_value(&c).unwrap()).unwrap(),
+            c
+        );
+        // A weights file with weight 0 is allowed (and unused).
+        let c = TrainConfig::resolve(&json!({"lpips_weights": "absent.safetensors"})).unwrap();
+        assert!(!c.lpips_enabled());
     }
 
     #[test]

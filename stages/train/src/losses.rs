@@ -6,9 +6,14 @@
 //!   ("same" output), constants `C1 = 0.01^2`, `C2 = 0.03^2`, as 3DGS computes it.
 //! - As-isometric-as-possible: L1 between canonical and deformed distances of each Gaussian
 //!   to its canonical nearest neighbours, for centres and for covariances (6 upper entries).
+//! - LPIPS ([`LpipsLoss`]) on the bounding-box crop, grown where needed to the trunk's
+//!   minimum input size; the network runs in f32 (`seqavatar_compute::lpips`).
 //!
 //! Images are row-major `H x W x 3` (colour) and `H x W` (alpha, mask), values in `[0, 1]`,
 //! held in f64 so that the gradients can be checked against finite differences.
+
+use seqavatar_compute::image::ImageF32;
+use seqavatar_compute::lpips::{Lpips, LpipsError, LpipsInput, tap_sizes};
 
 /// Side of the SSIM window in pixels.
 pub const SSIM_WINDOW: usize = 11;
@@ -285,6 +290,128 @@ pub fn ssim_planes(
             .collect()
     });
     (total / (3.0 * n), grads)
+}
+
+/// The LPIPS loss on the bound-box crop (method.md "Losses": `w x LPIPS(render crop, target
+/// crop)`), with its gradient with respect to the rendered colour.
+pub struct LpipsLoss {
+    lpips: Lpips,
+    input: LpipsInput,
+    min_extent: usize,
+}
+
+impl LpipsLoss {
+    pub fn new(lpips: Lpips, input: LpipsInput) -> Self {
+        let net = lpips.weights().net;
+        // The smallest square input the trunk accepts (VGG: 16, AlexNet: 31); the trunk's
+        // size rules are per axis, so it is also the smallest extent along either axis.
+        let min_extent = (1..=4096)
+            .find(|&extent| tap_sizes(net, extent, extent).is_ok())
+            .expect("both trunks accept 4096 px");
+        Self {
+            lpips,
+            input,
+            min_extent,
+        }
+    }
+
+    /// The smallest crop side the trunk accepts.
+    pub fn min_extent(&self) -> usize {
+        self.min_extent
+    }
+
+    pub fn lpips(&self) -> &Lpips {
+        &self.lpips
+    }
+
+    /// Whether a `width x height` image can hold the trunk's smallest input; the error names
+    /// both sizes.
+    pub fn check_image(&self, width: usize, height: usize) -> Result<(), LpipsError> {
+        if width >= self.min_extent && height >= self.min_extent {
+            return Ok(());
+        }
+        Err(LpipsError::Input {
+            message: format!(
+                "the {} trunk needs images of at least {m} x {m} px; this one is {width} x {height}",
+                self.lpips.weights().net.name(),
+                m = self.min_extent
+            ),
+        })
+    }
+
+    /// The crop LPIPS sees: `rect`, grown symmetrically to at least [`Self::min_extent`] per
+    /// axis (shifted to stay inside the image). A bound box smaller than the trunk's input is
+    /// grown rather than skipped, so the loss never silently drops out; an image smaller
+    /// than that is an error naming both sizes ([`Self::check_image`]).
+    pub fn crop(&self, rect: Rect, width: usize, height: usize) -> Result<Rect, LpipsError> {
+        self.check_image(width, height)?;
+        let grow = |start: usize, end: usize, size: usize| -> (usize, usize) {
+            let extent = end - start;
+            if extent >= self.min_extent {
+                return (start, end);
+            }
+            let missing = self.min_extent - extent;
+            let start = start
+                .saturating_sub(missing / 2)
+                .min(size - self.min_extent);
+            (start, start + self.min_extent)
+        };
+        let (x0, x1) = grow(rect.x0, rect.x1, width);
+        let (y0, y1) = grow(rect.y0, rect.y1, height);
+        Ok(Rect { x0, y0, x1, y1 })
+    }
+
+    /// LPIPS between the crops of the rendered and the target colour (`H x W x 3`), and
+    /// `weight x` its gradient with respect to `colour` added into `gradient` (`H x W x 3`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_loss(
+        &self,
+        colour: &[f64],
+        target: &[f64],
+        width: usize,
+        height: usize,
+        rect: Rect,
+        weight: f64,
+        gradient: &mut [f64],
+    ) -> Result<f64, LpipsError> {
+        assert!(
+            colour.len() == width * height * 3
+                && target.len() == colour.len()
+                && gradient.len() == colour.len(),
+            "LPIPS loss: image sizes"
+        );
+        let crop = self.crop(rect, width, height)?;
+        let cut = |image: &[f64]| {
+            let mut values = Vec::with_capacity(crop.area() * 3);
+            for row in crop.y0..crop.y1 {
+                values.extend(
+                    image[3 * (row * width + crop.x0)..3 * (row * width + crop.x1)]
+                        .iter()
+                        .map(|&v| v as f32),
+                );
+            }
+            ImageF32::from_f32("LPIPS crop", crop.width(), crop.height(), values).map_err(|error| {
+                LpipsError::Input {
+                    message: error.to_string(),
+                }
+            })
+        };
+        let (render, truth) = (cut(colour)?, cut(target)?);
+        let (distances, gradients) = self
+            .lpips
+            .distances_with_gradient(&[(&render, &truth)], self.input)?;
+        let crop_gradient = &gradients[0];
+        for row in 0..crop.height() {
+            let line = &mut gradient[3 * ((crop.y0 + row) * width + crop.x0)..][..3 * crop.width()];
+            for (g, &d) in line
+                .iter_mut()
+                .zip(&crop_gradient[3 * row * crop.width()..][..3 * crop.width()])
+            {
+                *g += weight * f64::from(d);
+            }
+        }
+        Ok(distances[0].total)
+    }
 }
 
 /// Unweighted as-isometric-as-possible terms (means over all neighbour pairs).
@@ -650,6 +777,112 @@ mod tests {
             },
         );
         assert!(terms.total.abs() < 1e-12, "{terms:?}");
+    }
+
+    fn lpips_loss(net: seqavatar_compute::lpips::LpipsNet, input: LpipsInput) -> LpipsLoss {
+        use seqavatar_compute::backend::Backend;
+        use seqavatar_compute::lpips::seeded::seeded_weights;
+        LpipsLoss::new(
+            Lpips::new(seeded_weights(net, 7), &Backend::Cpu).unwrap(),
+            input,
+        )
+    }
+
+    #[test]
+    fn lpips_crop_grows_to_the_trunk_minimum_inside_the_image() {
+        use seqavatar_compute::lpips::LpipsNet;
+        let vgg = lpips_loss(LpipsNet::Vgg, LpipsInput::Unit);
+        let alex = lpips_loss(LpipsNet::Alex, LpipsInput::Unit);
+        assert_eq!((vgg.min_extent(), alex.min_extent()), (16, 31));
+        let rect = |x0, y0, x1, y1| Rect { x0, y0, x1, y1 };
+        // Large enough: unchanged.
+        assert_eq!(
+            vgg.crop(rect(3, 4, 30, 25), 40, 30).unwrap(),
+            rect(3, 4, 30, 25)
+        );
+        // 6 x 10 in the middle grows symmetrically to 16 x 16.
+        assert_eq!(
+            vgg.crop(rect(10, 10, 16, 20), 40, 30).unwrap(),
+            rect(5, 7, 21, 23)
+        );
+        // At the borders it shifts inwards.
+        assert_eq!(
+            vgg.crop(rect(0, 25, 4, 30), 40, 30).unwrap(),
+            rect(0, 14, 16, 30)
+        );
+        assert_eq!(
+            alex.crop(rect(0, 0, 5, 5), 31, 40).unwrap(),
+            rect(0, 0, 31, 31)
+        );
+        let error = alex.crop(rect(0, 0, 5, 5), 30, 40).unwrap_err().to_string();
+        assert!(
+            error.contains("31 x 31") && error.contains("30 x 40"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn lpips_loss_gradient_through_the_crop_matches_finite_differences() {
+        use seqavatar_compute::lpips::{LpipsNet, cpu::totals_in, image_to_trunk};
+        let mut rng = Rng::new(21);
+        let (w, h) = (26, 21);
+        let colour = random_vec(&mut rng, w * h * 3, 0.0, 1.0);
+        let target = random_vec(&mut rng, w * h * 3, 0.0, 1.0);
+        let rect = Rect {
+            x0: 3,
+            y0: 2,
+            x1: 22,
+            y1: 20,
+        };
+        for input in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
+            let loss = lpips_loss(LpipsNet::Vgg, input);
+            let weights = loss.lpips().weights();
+            let mut gradient = vec![0.5; w * h * 3];
+            let value = loss
+                .add_loss(&colour, &target, w, h, rect, 0.1, &mut gradient)
+                .unwrap();
+            // The reference: the f64 trunk on the f64 crop.
+            let total = |image: &[f64]| {
+                let pixels = rect.area();
+                let mut data = vec![0.0; 6 * pixels];
+                let (first, second) = data.split_at_mut(3 * pixels);
+                let crop = |image: &[f64]| -> Vec<f64> {
+                    (rect.y0..rect.y1)
+                        .flat_map(|row| {
+                            image[3 * (row * w + rect.x0)..3 * (row * w + rect.x1)].to_vec()
+                        })
+                        .collect()
+                };
+                image_to_trunk(weights, &crop(image), input, first);
+                image_to_trunk(weights, &crop(&target), input, second);
+                totals_in::<f64>(weights, &data, [2, rect.height(), rect.width()]).unwrap()[0]
+            };
+            assert!((value - total(&colour)).abs() < 1e-5, "{input:?}");
+            // Outside the crop the gradient buffer is untouched.
+            for index in [0, 3 * (w * h) - 1, 3 * (h - 1) * w, 3 * (2 * w + 22)] {
+                assert_eq!(gradient[index], 0.5);
+            }
+            let scale = gradient.iter().fold(0.0_f64, |m, g| m.max((g - 0.5).abs()));
+            let eps = 1e-6;
+            for index in [
+                3 * (2 * w + 3),
+                3 * (10 * w + 11) + 1,
+                3 * (19 * w + 21) + 2,
+                3 * (7 * w + 4) + 2,
+            ] {
+                let mut plus = colour.clone();
+                plus[index] += eps;
+                let mut minus = colour.clone();
+                minus[index] -= eps;
+                let numeric = 0.1 * (total(&plus) - total(&minus)) / (2.0 * eps);
+                let analytic = gradient[index] - 0.5;
+                // The LPIPS gradient is computed in f32.
+                assert!(
+                    (analytic - numeric).abs() <= 1e-3 * scale,
+                    "{input:?} value {index}: analytic {analytic} numeric {numeric}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -9,9 +9,13 @@
 //! the same key. Divergence stops it with an error naming the iteration and the tensor; the
 //! last good checkpoint stays.
 //!
+//! With `lpips_weight > 0` the LPIPS weights file (`lpips_weights`) is an external file: its
+//! content enters the key.
+//!
 //! Output: the trained avatar ([`crate::avatar`] lists its arrays and attributes), and
-//! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `aiap`, `psnr`
-//!   (train PSNR inside the bound box) and `gaussians` (count after the iteration);
+//! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `lpips`
+//!   (unweighted, 0 when the LPIPS loss is off), `aiap`, `psnr` (train PSNR inside the bound
+//!   box) and `gaussians` (count after the iteration);
 //! - `camera_K`, `camera_R`, `camera_t`, `camera_image_size`: the ingest entry's cameras
 //!   (ingest resolution; training rescales them by `resolution_scale`);
 //! - `test_psnr` f64 `(image)`: held-out PSNR per test image (method.md protocol), with
@@ -20,6 +24,7 @@
 //!   `resumed_from`, `final_train_psnr` (mean over the last tenth of the iterations),
 //!   `test_psnr_mean`, `backend`, `gaussians`.
 
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -41,7 +46,7 @@ use crate::trainer::{LossCurve, Trainer};
 pub struct TrainStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 
 /// Converts the config's device to the compute crate's choice.
 pub fn device_choice(device: Device) -> DeviceChoice {
@@ -114,6 +119,16 @@ impl StageKind for TrainStage {
         serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
     }
 
+    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
+        let config: TrainConfig =
+            serde_json::from_value(config.clone()).context("train config does not deserialize")?;
+        Ok(if config.lpips_enabled() {
+            config.lpips_weights.into_iter().collect()
+        } else {
+            Vec::new()
+        })
+    }
+
     fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let config: TrainConfig = ctx.config()?;
         let ingest = ctx.input("ingest")?.clone();
@@ -124,8 +139,25 @@ impl StageKind for TrainStage {
         let backend = Backend::select(device_choice(config.device))
             .with_context(|| format!("config `device: {:?}`", config.device))?;
         ctx.log(&format!("backend: {}", backend.describe()));
-        if config.lpips_weight == 0.0 {
-            ctx.log("LPIPS loss off: weights not provided");
+        if config.lpips_enabled() {
+            ctx.log(&format!(
+                "LPIPS loss on: weight {}, {} trunk from {}, inputs {}",
+                config.lpips_weight,
+                config.lpips_net.name(),
+                config
+                    .lpips_weights
+                    .as_ref()
+                    .map_or_else(String::new, |p| p.display().to_string()),
+                if config.lpips_unnormalised_input {
+                    "in [0, 1] unmapped (the authors' code)"
+                } else {
+                    "mapped to [-1, 1]"
+                }
+            ));
+        } else {
+            ctx.log(
+                "LPIPS loss off: lpips_weight is 0 (set lpips_weight and lpips_weights to enable it)",
+            );
         }
         let work = ctx.work_dir().join("checkpoints");
         let mut trainer = match checkpoint::load_latest(&work)? {
@@ -149,8 +181,13 @@ impl StageKind for TrainStage {
             let elapsed = started.elapsed().as_secs_f64();
             let rate = (trainer.iteration - resumed_from) as f64 / elapsed.max(1e-9);
             bar.set_position(trainer.iteration);
+            let lpips = if trainer.lpips_active() {
+                format!(", LPIPS {:.4}", stats.lpips)
+            } else {
+                String::new()
+            };
             bar.set_message(format!(
-                "{}: training, loss {:.4}, PSNR {:.2}, {} Gaussians, {:.2} it/s",
+                "{}: training, loss {:.4}{lpips}, PSNR {:.2}, {} Gaussians, {:.2} it/s",
                 ctx.stage_name(),
                 stats.total,
                 stats.psnr,

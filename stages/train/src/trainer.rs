@@ -1,7 +1,7 @@
 //! The training loop: per iteration a seeded choice of training image(s) of one frame, the
 //! avatar's forward pass ([`crate::avatar::deform`]), splatting on the chosen backend, the
-//! photometric and as-isometric-as-possible losses, the full backward, Adam with the
-//! method.md schedules, the SH degree schedule and density control.
+//! photometric, LPIPS (when configured) and as-isometric-as-possible losses, the full
+//! backward, Adam with the method.md schedules, the SH degree schedule and density control.
 //!
 //! A [`Trainer`] holds the complete resumable state; [`Trainer::checkpoint`] and
 //! [`Trainer::resume`] convert it to and from a [`Checkpoint`] exactly, so a resumed `cpu`
@@ -10,6 +10,7 @@
 
 use anyhow::Context;
 use seqavatar_compute::backend::Backend;
+use seqavatar_compute::lpips::{Lpips, LpipsWeights};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState, adam_update};
 use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
 
@@ -27,7 +28,9 @@ use crate::densify::{
 };
 use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
 use crate::knn::{KnnGrid, as_points, knn_brute_force};
-use crate::losses::{AiapInputs, ImageLossWeights, ImagePair, Rect, aiap_loss, image_loss};
+use crate::losses::{
+    AiapInputs, ImageLossWeights, ImagePair, LpipsLoss, Rect, aiap_loss, image_loss,
+};
 use crate::model::gpu::GpuNetworks;
 use crate::model::{NetworkConfig, NetworkGroup, Networks};
 use crate::rig::{FramePose, PoseChain};
@@ -45,6 +48,8 @@ pub struct IterationStats {
     pub l1: f64,
     pub mask_mse: f64,
     pub dssim: f64,
+    /// LPIPS on the crop (unweighted; 0 when the loss is off).
+    pub lpips: f64,
     pub aiap: f64,
     pub psnr: f64,
     pub gaussians: usize,
@@ -58,6 +63,7 @@ pub struct LossCurve {
     pub l1: Vec<f64>,
     pub mask_mse: Vec<f64>,
     pub dssim: Vec<f64>,
+    pub lpips: Vec<f64>,
     pub aiap: Vec<f64>,
     pub psnr: Vec<f64>,
     pub gaussians: Vec<f64>,
@@ -66,34 +72,37 @@ pub struct LossCurve {
 impl LossCurve {
     /// Names of the curves, as stored (`curve/<name>` in checkpoints, `loss_<name>` in the
     /// entry).
-    pub const NAMES: [&'static str; 7] = [
+    pub const NAMES: [&'static str; 8] = [
         "total",
         "l1",
         "mask_mse",
         "dssim",
+        "lpips",
         "aiap",
         "psnr",
         "gaussians",
     ];
 
-    fn columns(&self) -> [&Vec<f64>; 7] {
+    fn columns(&self) -> [&Vec<f64>; 8] {
         [
             &self.total,
             &self.l1,
             &self.mask_mse,
             &self.dssim,
+            &self.lpips,
             &self.aiap,
             &self.psnr,
             &self.gaussians,
         ]
     }
 
-    fn columns_mut(&mut self) -> [&mut Vec<f64>; 7] {
+    fn columns_mut(&mut self) -> [&mut Vec<f64>; 8] {
         [
             &mut self.total,
             &mut self.l1,
             &mut self.mask_mse,
             &mut self.dssim,
+            &mut self.lpips,
             &mut self.aiap,
             &mut self.psnr,
             &mut self.gaussians,
@@ -114,6 +123,7 @@ impl LossCurve {
             s.l1,
             s.mask_mse,
             s.dssim,
+            s.lpips,
             s.aiap,
             s.psnr,
             s.gaussians as f64,
@@ -156,6 +166,8 @@ pub struct Trainer<'d> {
     /// (non-rigid, LBS offsets; forward and backward); `networks` stays the parameter master.
     gpu_networks: Option<GpuNetworks>,
     train_images: Vec<usize>,
+    /// The LPIPS loss, loaded only when `lpips_weight > 0`.
+    lpips: Option<LpipsLoss>,
     template_grid: KnnGrid,
     /// Unrefined skinning targets per frame, computed once.
     poses: Vec<Option<(FramePose, PoseChain)>>,
@@ -262,8 +274,22 @@ impl<'d> Trainer<'d> {
             }
             _ => None,
         };
+        let lpips = load_lpips_loss(&config, &backend)?;
+        if let Some(loss) = &lpips {
+            for &index in &train_images {
+                let camera = &data.cameras[data.images[index].view];
+                loss.check_image(camera.width as usize, camera.height as usize)
+                    .with_context(|| {
+                        format!(
+                            "LPIPS loss: training camera {} (after resolution_scale {})",
+                            data.images[index].view, config.resolution_scale
+                        )
+                    })?;
+            }
+        }
         Ok(Self {
             gpu_networks,
+            lpips,
             template_grid: template_grid(&data.rig),
             poses: vec![None; data.params.len()],
             config,
@@ -398,7 +424,7 @@ impl<'d> Trainer<'d> {
             );
             let target_colour = record.colour_f64();
             let target_mask = record.mask_f64();
-            let (terms, grads) = image_loss(
+            let (terms, mut grads) = image_loss(
                 &ImagePair {
                     width: w,
                     height: h,
@@ -414,6 +440,23 @@ impl<'d> Trainer<'d> {
             stats.mask_mse += scale * terms.mask_mse;
             stats.dssim += scale * terms.dssim;
             stats.total += scale * terms.total;
+            if let Some(lpips) = &self.lpips {
+                // Its image gradient joins the colour gradient before the splatting backward.
+                let weight = self.config.lpips_weight;
+                let value = lpips
+                    .add_loss(
+                        &image.colour,
+                        &target_colour,
+                        w,
+                        h,
+                        bound,
+                        weight,
+                        &mut grads.colour,
+                    )
+                    .with_context(|| format!("iteration {iteration}: LPIPS loss"))?;
+                stats.lpips += scale * value;
+                stats.total += scale * weight * value;
+            }
             stats.psnr += scale * psnr(&image.colour, &target_colour, w, bound);
             upstream_colour.push(grads.colour.iter().map(|g| g * scale).collect::<Vec<f64>>());
             upstream_alpha.push(grads.alpha.iter().map(|g| g * scale).collect::<Vec<f64>>());
@@ -480,8 +523,8 @@ impl<'d> Trainer<'d> {
                 what: "loss",
                 tensor: "total".into(),
                 detail: format!(
-                    " (l1 {}, mask {}, dssim {}, aiap {})",
-                    stats.l1, stats.mask_mse, stats.dssim, stats.aiap
+                    " (l1 {}, mask {}, dssim {}, lpips {}, aiap {})",
+                    stats.l1, stats.mask_mse, stats.dssim, stats.lpips, stats.aiap
                 ),
             }
             .into());
@@ -710,6 +753,11 @@ impl<'d> Trainer<'d> {
         self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.gpu_networks.is_some()
     }
 
+    /// Whether the LPIPS loss runs.
+    pub fn lpips_active(&self) -> bool {
+        self.lpips.is_some()
+    }
+
     /// The current avatar.
     pub fn avatar(&self) -> anyhow::Result<TrainedAvatar> {
         Ok(TrainedAvatar::new(
@@ -926,6 +974,26 @@ fn build_networks(
         }
     }
     Ok(Some(networks))
+}
+
+/// The LPIPS loss of a configuration: `None` when its weight is 0 (nothing is loaded), else
+/// the configured trunk's weights on the run's backend; a missing or bad file is an error
+/// naming the file and the tensor.
+pub fn load_lpips_loss(
+    config: &TrainConfig,
+    backend: &Backend,
+) -> anyhow::Result<Option<LpipsLoss>> {
+    if !config.lpips_enabled() {
+        return Ok(None);
+    }
+    let path = config
+        .lpips_weights
+        .as_ref()
+        .context("train config field `lpips_weights`: needed when lpips_weight > 0")?;
+    let weights = LpipsWeights::load(path, config.lpips_net)
+        .with_context(|| format!("train config field `lpips_weights` ({})", path.display()))?;
+    let lpips = Lpips::new(weights, backend).context("LPIPS loss")?;
+    Ok(Some(LpipsLoss::new(lpips, config.lpips_input())))
 }
 
 /// `rect` grown by `pad` pixels on each side, clipped to the image.

@@ -584,3 +584,147 @@ fn killed_run_resumes_to_the_uninterrupted_result() {
         );
     }
 }
+
+/// Seeded VGG weights in the converted-weights format, at `path`.
+fn write_lpips_weights(path: &Path, seed: u64) {
+    use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
+    seeded_weights(LpipsNet::Vgg, seed)
+        .write_safetensors(path)
+        .unwrap();
+}
+
+#[test]
+fn lpips_loss_enters_the_total_and_the_gradient() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("lpips_vgg.safetensors");
+    write_lpips_weights(&weights, 5);
+    let (data, off) = tiny_data(dir.path(), 3);
+    let mut on = off.clone();
+    on.lpips_weight = 0.1;
+    on.lpips_weights = Some(weights.clone());
+    let mut without = Trainer::new(off.clone(), &data, Backend::Cpu).unwrap();
+    let mut with = Trainer::new(on.clone(), &data, Backend::Cpu).unwrap();
+    assert!(with.lpips_active() && !without.lpips_active());
+    let started = Instant::now();
+    let (a, b) = (without.step().unwrap(), with.step().unwrap());
+    eprintln!(
+        "one 40 x 40 step with the LPIPS loss: {:.2} s",
+        started.elapsed().as_secs_f64()
+    );
+    // Same state and image before the first step: the forward terms agree, and the total
+    // differs by exactly the weighted LPIPS term.
+    assert_eq!(
+        (a.l1, a.mask_mse, a.dssim, a.aiap),
+        (b.l1, b.mask_mse, b.dssim, b.aiap)
+    );
+    assert_eq!(a.lpips, 0.0);
+    assert!(b.lpips > 0.0 && b.lpips.is_finite(), "{b:?}");
+    assert!(
+        (b.total - a.total - 0.1 * b.lpips).abs() < 1e-12,
+        "{} vs {} + 0.1 x {}",
+        b.total,
+        a.total,
+        b.lpips
+    );
+    // Its gradient reaches the parameters.
+    let moved = |t: &Trainer<'_>| t.state.column("xyz").unwrap().values.clone();
+    assert_ne!(moved(&without), moved(&with));
+    for _ in 0..2 {
+        let stats = with.step().unwrap();
+        assert!(stats.lpips > 0.0 && stats.total.is_finite());
+    }
+    assert_eq!(with.curve.lpips.len(), 3);
+    assert!(with.curve.lpips.iter().all(|v| *v > 0.0));
+    assert!(without.curve.lpips.iter().all(|v| *v == 0.0));
+    // A checkpoint carries the curve and resumes.
+    let resumed = Trainer::resume(on, &data, Backend::Cpu, &with.checkpoint()).unwrap();
+    assert_eq!(resumed.curve, with.curve);
+}
+
+#[test]
+fn lpips_weights_file_errors_name_the_file_and_tensor() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 3);
+    config.lpips_weight = 0.1;
+    let absent = dir.path().join("absent.safetensors");
+    config.lpips_weights = Some(absent);
+    let error = format!(
+        "{:#}",
+        Trainer::new(config.clone(), &data, Backend::Cpu)
+            .err()
+            .unwrap()
+    );
+    assert!(error.contains("absent.safetensors"), "{error}");
+    // VGG weights read as AlexNet: the first AlexNet tensor has another shape.
+    let weights = dir.path().join("vgg.safetensors");
+    write_lpips_weights(&weights, 1);
+    config.lpips_weights = Some(weights);
+    config.lpips_net = seqavatar_compute::lpips::LpipsNet::Alex;
+    let error = format!(
+        "{:#}",
+        Trainer::new(config.clone(), &data, Backend::Cpu)
+            .err()
+            .unwrap()
+    );
+    assert!(
+        error.contains("vgg.safetensors") && error.contains("net.slice1.0.weight"),
+        "{error}"
+    );
+    // AlexNet needs 31 px: a 40 px image scaled by 0.5 is too small, and the run says so
+    // before training.
+    let dir2 = tempfile::tempdir().unwrap();
+    let alex = dir2.path().join("alex.safetensors");
+    seqavatar_compute::lpips::seeded::seeded_weights(seqavatar_compute::lpips::LpipsNet::Alex, 2)
+        .write_safetensors(&alex)
+        .unwrap();
+    let reports = run_pipeline(dir2.path(), UPSTREAM).unwrap();
+    let ingest = entry(dir2.path(), &reports, "ingest");
+    let motion = entry(dir2.path(), &reports, "motion");
+    let small = TrainingData::read(&ingest, &ingest, &motion, 0.5).unwrap();
+    config.resolution_scale = 0.5;
+    config.lpips_weights = Some(alex);
+    let error = format!(
+        "{:#}",
+        Trainer::new(config, &small, Backend::Cpu).err().unwrap()
+    );
+    assert!(
+        error.contains("31 x 31") && error.contains("20 x 20"),
+        "{error}"
+    );
+}
+
+#[test]
+fn lpips_weights_enter_the_key_only_when_the_loss_is_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("lpips_vgg.safetensors");
+    write_lpips_weights(&weights, 1);
+    let registry = registry();
+    let store = LocalStore::open(dir.path()).unwrap();
+    let key = |lpips_weight: f64| {
+        let config = TRAIN_CONFIG.replace("ITERATIONS", "3").replace(
+            "\"preset\": \"fast\"",
+            &format!(
+                "\"preset\": \"fast\", \"lpips_weight\": {lpips_weight}, \"lpips_weights\": \"{}\"",
+                weights.display()
+            ),
+        );
+        let text = format!(
+            "{UPSTREAM}  - name: train\n    kind: train\n    inputs: [ingest, motion]\n    config: {config}\n"
+        );
+        let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
+        let keys = seqavatar_engine::compute_keys(&pipeline, &registry, &store).unwrap();
+        (
+            keys["train"].key.clone(),
+            keys["train"].external_files.len(),
+        )
+    };
+    let (on_before, files) = key(0.1);
+    assert_eq!(files, 1);
+    let (off_before, files) = key(0.0);
+    assert_eq!(files, 0);
+    // New file content (same path, size and name): only the key with the loss on changes.
+    std::thread::sleep(Duration::from_millis(20));
+    write_lpips_weights(&weights, 2);
+    assert_ne!(key(0.1).0, on_before);
+    assert_eq!(key(0.0).0, off_before);
+}
