@@ -271,9 +271,10 @@ pub fn deform(
 /// The pose refiner ([`frame_pose`]) stays on `cpu` in f64 on purpose: it is one row per
 /// frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its output must be
 /// on the host before anything per Gaussian can start (it moves the joints), so a gpu pass
-/// would be a blocking round trip of its own. Measured with `cargo bench --bench networks`
-/// (forward + backward): cpu f64 0.03 ms against 0.5 ms for the gpu round trips on
-/// lavapipe; on any gpu the upload, submit, wait and download alone exceed the cpu time.
+/// would be a blocking round trip of its own (two with the backward). Measured with
+/// `benches/networks.rs` (forward + backward, paper widths): 0.054 ms on `cpu` in f64
+/// against 9.3 ms on lavapipe; on a hardware gpu the two submit-wait-download round trips
+/// alone (typically 0.1 ms or more each) exceed the whole `cpu` time.
 #[allow(clippy::too_many_arguments)]
 pub fn deform_on(
     rig: &BodyRig,
