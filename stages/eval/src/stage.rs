@@ -197,7 +197,8 @@ impl StageKind for EvalStage {
     }
 
     fn version(&self) -> u32 {
-        1
+        // 2: on the gpu backend the networks run on the gpu in f32 (GpuNetworks).
+        2
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
