@@ -1,5 +1,6 @@
-//! Prints the time of LPIPS (VGG16, AlexNet) per image pair and of SSIM per image at several
-//! resolutions, on the cpu and, when there is a hardware adapter, the gpu.
+//! Prints the time of LPIPS (VGG16, AlexNet) per image pair (on the gpu also forward+gradient,
+//! the training loss) and of SSIM per image at several resolutions, on the cpu and, when there
+//! is a hardware adapter, the gpu.
 //!
 //! `cargo bench -p seqavatar-eval --bench lpips`; `SEQAVATAR_BENCH_SIZES=256,512` picks the
 //! square sizes; `SEQAVATAR_BENCH_SOFTWARE_GPU=1` also times a software adapter (lavapipe).
@@ -8,7 +9,7 @@ use std::time::Instant;
 
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
 use seqavatar_eval::image::ImageF32;
-use seqavatar_eval::lpips::{Lpips, LpipsNet, seeded};
+use seqavatar_eval::lpips::{Lpips, LpipsInput, LpipsNet, seeded};
 use seqavatar_eval::metrics::ssim;
 
 fn test_image(size: usize, salt: u64) -> ImageF32 {
@@ -67,6 +68,25 @@ fn main() {
                     net.name(),
                     per_pair * 1e3
                 );
+                // The training loss: forward plus the gradient with respect to the first image
+                // (gpu row here; the backward kernels are in shaders/lpips_backward.wgsl).
+                if backend.gpu().is_some() {
+                    lpips
+                        .distances_with_gradient(&pairs, LpipsInput::Unit)
+                        .expect("lpips gradient");
+                    let start = Instant::now();
+                    for _ in 0..runs {
+                        lpips
+                            .distances_with_gradient(&pairs, LpipsInput::Unit)
+                            .expect("lpips gradient");
+                    }
+                    let per_pair = start.elapsed().as_secs_f64() / runs as f64;
+                    println!(
+                        "lpips {} {size}x{size} {name}: {:.1} ms/pair forward+gradient",
+                        net.name(),
+                        per_pair * 1e3
+                    );
+                }
             }
         }
     }
