@@ -398,6 +398,9 @@ fn gpu_steps_with_networks_match_cpu() {
     config.trunk_depth = 2;
     // Non-zero head weights so the network's outputs and gradients matter from step one.
     config.non_rigid_head_init = 0.0;
+    // Every network group: the LBS offsets run on the gpu too, the pose refiner on cpu.
+    config.lbs_offsets = true;
+    config.pose_refiner = true;
     let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
     let mut gpu = Trainer::new(config, &data, gpu).unwrap();
     assert!(!cpu.non_rigid_on_gpu());
