@@ -1,6 +1,11 @@
 //! Benchmark: training iterations per second at 512 x 512 with the `paper` preset (trunk
 //! 512 x 3, L = 8, tau = 8, all scales, pose refiner, LBS offsets) on each backend.
 //!
+//! Two rows per backend: without the LPIPS loss, and with it as method.md has it (VGG, weight
+//! 0.1, on the bound-box crop). The LPIPS row uses seeded VGG weights: the trained ones cannot
+//! be committed, and the cost depends only on the architecture (`SEQAVATAR_BENCH_LPIPS=0`
+//! skips the row).
+//!
 //! The scene is the built-in synthetic one (procedural body, two cameras, 512 x 512), run
 //! through the real ingest and motion stages into a temporary cache. Each backend runs
 //! `SEQAVATAR_BENCH_WARMUP` (default 2) untimed and `SEQAVATAR_BENCH_ITERATIONS` (default 10)
@@ -13,6 +18,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
+use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
@@ -75,22 +81,33 @@ fn main() -> anyhow::Result<()> {
         config.tau,
         data.motion.scales
     );
+    let mut variants = vec![("no LPIPS loss", config.clone())];
+    if std::env::var("SEQAVATAR_BENCH_LPIPS").map_or(true, |v| v != "0") {
+        let weights = dir.path().join("lpips_vgg_seeded.safetensors");
+        seeded_weights(LpipsNet::Vgg, 1).write_safetensors(&weights)?;
+        let mut with_lpips = config.clone();
+        with_lpips.lpips_weight = 0.1;
+        with_lpips.lpips_weights = Some(weights);
+        variants.push(("LPIPS loss (VGG, weight 0.1)", with_lpips));
+    }
     for (name, backend) in backends {
         let description = backend.describe();
-        let mut trainer = Trainer::new(config.clone(), &data, backend)?;
-        for _ in 0..warmup {
-            trainer.step()?;
+        for (variant, config) in &variants {
+            let mut trainer = Trainer::new(config.clone(), &data, backend.clone())?;
+            for _ in 0..warmup {
+                trainer.step()?;
+            }
+            let started = Instant::now();
+            for _ in 0..timed {
+                trainer.step()?;
+            }
+            let seconds = started.elapsed().as_secs_f64();
+            println!(
+                "{name}, {variant}: {:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
+                timed as f64 / seconds,
+                1e3 * seconds / timed as f64
+            );
         }
-        let started = Instant::now();
-        for _ in 0..timed {
-            trainer.step()?;
-        }
-        let seconds = started.elapsed().as_secs_f64();
-        println!(
-            "{name}: {:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
-            timed as f64 / seconds,
-            1e3 * seconds / timed as f64
-        );
     }
     Ok(())
 }
