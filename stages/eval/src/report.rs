@@ -1,8 +1,9 @@
 //! Report pieces: Markdown tables, error-map images, contact sheets (ground truth | render |
 //! error), line plots and Pareto scatter plots drawn on `image::RgbImage` (no plotting
-//! crate; tick labels use a built-in 3 x 5 pixel font).
+//! crate; pixels, text and tick labels come from `seqavatar_fit::plot`, the one pixel font).
 
 use image::{Rgb, RgbImage};
+use seqavatar_fit::plot::{label as tick_label, put, text_width};
 
 use crate::image::ImageF32;
 use crate::metrics::MetricError;
@@ -239,11 +240,12 @@ pub fn plot(series: &[Series], options: PlotOptions, highlight: &[(f64, f64)]) -
         draw_line(&mut image, (px, plot_top), (px, plot_bottom - 1.0), grey);
         draw_line(&mut image, (plot_left + 1.0, py), (plot_right, py), grey);
         let x_label = tick_label(x_value);
-        draw_text(
+        seqavatar_fit::plot::text(
             &mut image,
-            &x_label,
             px as i64 - text_width(&x_label) as i64 / 2,
             plot_bottom as i64 + 6,
+            &x_label,
+            1,
             axis,
         );
         let y_label = if options.log_y {
@@ -251,11 +253,12 @@ pub fn plot(series: &[Series], options: PlotOptions, highlight: &[(f64, f64)]) -
         } else {
             tick_label(y_value)
         };
-        draw_text(
+        seqavatar_fit::plot::text(
             &mut image,
-            &y_label,
             plot_left as i64 - 4 - text_width(&y_label) as i64,
             py as i64 - 4,
+            &y_label,
+            1,
             axis,
         );
     }
@@ -312,34 +315,6 @@ pub fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
     front
 }
 
-/// A short tick label: up to 4 significant digits, exponent form when very large or small.
-pub fn tick_label(value: f64) -> String {
-    if value == 0.0 || !value.is_finite() {
-        return if value.is_finite() {
-            "0".to_owned()
-        } else {
-            format!("{value}")
-        };
-    }
-    let magnitude = value.abs().log10().floor() as i32;
-    if !(-3..5).contains(&magnitude) {
-        return format!("{value:.1e}");
-    }
-    let decimals = (3 - magnitude).clamp(0, 6) as usize;
-    let text = format!("{value:.decimals$}");
-    if text.contains('.') {
-        text.trim_end_matches('0').trim_end_matches('.').to_owned()
-    } else {
-        text
-    }
-}
-
-fn put(image: &mut RgbImage, x: i64, y: i64, color: Rgb<u8>) {
-    if x >= 0 && y >= 0 && (x as u32) < image.width() && (y as u32) < image.height() {
-        image.put_pixel(x as u32, y as u32, color);
-    }
-}
-
 /// A line by sampling at one-pixel steps (clipped to the image).
 pub fn draw_line(image: &mut RgbImage, from: (f64, f64), to: (f64, f64), color: Rgb<u8>) {
     let steps = (to.0 - from.0)
@@ -360,53 +335,6 @@ fn draw_marker(image: &mut RgbImage, (x, y): (f64, f64), color: Rgb<u8>) {
         for dx in -2..=2_i64 {
             if dx * dx + dy * dy <= 5 {
                 put(image, x.round() as i64 + dx, y.round() as i64 + dy, color);
-            }
-        }
-    }
-}
-
-/// 3 x 5 glyphs, one row per 3-bit number, most significant bit left.
-fn glyph(character: char) -> Option<[u8; 5]> {
-    Some(match character {
-        '0' => [7, 5, 5, 5, 7],
-        '1' => [2, 6, 2, 2, 7],
-        '2' => [7, 1, 7, 4, 7],
-        '3' => [7, 1, 7, 1, 7],
-        '4' => [5, 5, 7, 1, 1],
-        '5' => [7, 4, 7, 1, 7],
-        '6' => [7, 4, 7, 5, 7],
-        '7' => [7, 1, 1, 1, 1],
-        '8' => [7, 5, 7, 5, 7],
-        '9' => [7, 5, 7, 1, 7],
-        '.' => [0, 0, 0, 0, 2],
-        '-' => [0, 0, 7, 0, 0],
-        '+' => [0, 2, 7, 2, 0],
-        'e' => [0, 7, 7, 4, 7],
-        'i' => [2, 0, 2, 2, 2],
-        'n' => [0, 6, 5, 5, 5],
-        'f' => [3, 4, 6, 4, 4],
-        'a' => [0, 7, 1, 7, 7],
-        _ => return None,
-    })
-}
-
-/// Width in pixels of `text` drawn by [`draw_text`].
-pub fn text_width(text: &str) -> u32 {
-    text.chars().count() as u32 * 4
-}
-
-/// Draws `text` (digits, `.`, `-`, `+`, `e`, `inf`, `nan`; other characters as blanks) with
-/// its top-left corner at (x, y).
-pub fn draw_text(image: &mut RgbImage, text: &str, x: i64, y: i64, color: Rgb<u8>) {
-    for (index, character) in text.chars().enumerate() {
-        let Some(rows) = glyph(character) else {
-            continue;
-        };
-        for (row, bits) in rows.iter().enumerate() {
-            for column in 0..3 {
-                if bits & (4 >> column) != 0 {
-                    put(image, x + index as i64 * 4 + column, y + row as i64, color);
-                }
             }
         }
     }
@@ -490,16 +418,6 @@ mod tests {
     }
 
     #[test]
-    fn tick_labels_are_short() {
-        assert_eq!(tick_label(0.0), "0");
-        assert_eq!(tick_label(1500.0), "1500");
-        assert_eq!(tick_label(0.0125), "0.0125");
-        assert_eq!(tick_label(31.25), "31.25");
-        assert_eq!(tick_label(123456.0), "1.2e5");
-        assert_eq!(tick_label(-2.5), "-2.5");
-    }
-
-    #[test]
     fn plot_draws_series_inside_the_axes() {
         let series = [Series {
             name: "loss".to_owned(),
@@ -531,17 +449,5 @@ mod tests {
         // Empty input still draws axes.
         let empty = plot(&[], PlotOptions::default(), &[]);
         assert_eq!(*empty.get_pixel(MARGIN_LEFT, 200), Rgb([0, 0, 0]));
-    }
-
-    #[test]
-    fn text_uses_the_glyphs() {
-        let mut image = RgbImage::from_pixel(12, 5, Rgb([255, 255, 255]));
-        draw_text(&mut image, "1-", 0, 0, Rgb([0, 0, 0]));
-        // '1' row 0 is 0b010: only the middle column.
-        assert_eq!(*image.get_pixel(1, 0), Rgb([0, 0, 0]));
-        assert_eq!(*image.get_pixel(0, 0), Rgb([255, 255, 255]));
-        // '-' starts at x = 4 and fills row 2.
-        assert!((4..7).all(|x| *image.get_pixel(x, 2) == Rgb([0, 0, 0])));
-        assert_eq!(text_width("1-"), 8);
     }
 }

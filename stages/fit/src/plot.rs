@@ -87,7 +87,8 @@ pub fn fill_rect(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, colour:
     }
 }
 
-/// 3x5 glyphs for the characters numbers need; each row is 3 bits, most significant left.
+/// 3x5 glyphs for the characters numbers need (`inf`, `nan` included); each row is 3 bits,
+/// most significant left. The one pixel font of every picture the stages and reports draw.
 fn glyph(c: char) -> Option<[u8; 5]> {
     Some(match c {
         '0' => [7, 5, 5, 5, 7],
@@ -102,40 +103,60 @@ fn glyph(c: char) -> Option<[u8; 5]> {
         '9' => [7, 5, 7, 1, 7],
         '.' => [0, 0, 0, 0, 2],
         '-' => [0, 0, 7, 0, 0],
+        '+' => [0, 2, 7, 2, 0],
         'e' => [0, 7, 7, 4, 7],
-        ' ' => [0, 0, 0, 0, 0],
+        'i' => [2, 0, 2, 2, 2],
+        'n' => [0, 6, 5, 5, 5],
+        'f' => [3, 4, 6, 4, 4],
+        'a' => [0, 7, 1, 7, 7],
         _ => return None,
     })
 }
 
-/// Writes `text` (digits, '.', '-', 'e', ' ') with its top-left corner at `(x, y)`, each font
-/// pixel drawn as a `scale x scale` block. Other characters are skipped.
+/// Writes `text` (digits, `.`, `-`, `+`, `e`, `inf`, `nan`; other characters as blanks) with
+/// its top-left corner at `(x, y)`, each font pixel drawn as a `scale x scale` block.
 pub fn text(img: &mut RgbImage, x: i64, y: i64, text: &str, scale: i64, colour: Rgb<u8>) {
-    let mut cursor = x;
-    for c in text.chars() {
-        if let Some(rows) = glyph(c) {
-            for (r, bits) in rows.iter().enumerate() {
-                for col in 0..3 {
-                    if bits & (4 >> col) != 0 {
-                        let px = cursor + col * scale;
-                        let py = y + r as i64 * scale;
-                        fill_rect(img, px, py, px + scale, py + scale, colour);
-                    }
+    for (index, c) in text.chars().enumerate() {
+        let Some(rows) = glyph(c) else {
+            continue;
+        };
+        let left = x + index as i64 * 4 * scale;
+        for (r, bits) in rows.iter().enumerate() {
+            for col in 0..3 {
+                if bits & (4 >> col) != 0 {
+                    let px = left + col * scale;
+                    let py = y + r as i64 * scale;
+                    fill_rect(img, px, py, px + scale, py + scale, colour);
                 }
             }
-            cursor += 4 * scale;
         }
     }
 }
 
-/// Formats a number compactly for an axis label.
+/// Width in pixels of `text` drawn by [`text`] at scale 1.
+pub fn text_width(text: &str) -> u32 {
+    text.chars().count() as u32 * 4
+}
+
+/// A short axis label: up to 4 significant digits, exponent form when very large or small.
 pub fn label(value: f64) -> String {
-    if value == 0.0 {
-        "0".to_string()
-    } else if value.abs() >= 1e-2 && value.abs() < 1e4 {
-        format!("{value:.3}")
+    if value == 0.0 || !value.is_finite() {
+        return if value.is_finite() {
+            "0".to_owned()
+        } else {
+            format!("{value}")
+        };
+    }
+    let magnitude = value.abs().log10().floor() as i32;
+    if !(-3..5).contains(&magnitude) {
+        return format!("{value:.1e}");
+    }
+    let decimals = (3 - magnitude).clamp(0, 6) as usize;
+    let text = format!("{value:.decimals$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_owned()
     } else {
-        format!("{value:.2e}")
+        text
     }
 }
 
@@ -294,8 +315,13 @@ mod tests {
     #[test]
     fn text_and_labels() {
         assert_eq!(label(0.0), "0");
-        assert_eq!(label(1.5), "1.500");
-        assert_eq!(label(1.5e-5), "1.50e-5");
+        assert_eq!(label(1.5), "1.5");
+        assert_eq!(label(1500.0), "1500");
+        assert_eq!(label(0.0125), "0.0125");
+        assert_eq!(label(31.25), "31.25");
+        assert_eq!(label(123456.0), "1.2e5");
+        assert_eq!(label(1.5e-5), "1.5e-5");
+        assert_eq!(label(-2.5), "-2.5");
         let mut img = RgbImage::from_pixel(20, 10, WHITE);
         text(&mut img, 0, 0, "1", 1, BLACK);
         // '1' = rows [2, 6, 2, 2, 7]: the middle column is set on every row.
@@ -303,5 +329,10 @@ mod tests {
             assert_eq!(*img.get_pixel(1, r), BLACK);
         }
         assert_eq!(*img.get_pixel(0, 0), WHITE);
+        // Unknown characters are blanks: '-' after '?' starts at x = 4 and fills row 2.
+        text(&mut img, 0, 5, "?-", 1, BLACK);
+        assert!((4..7).all(|x| *img.get_pixel(x, 7) == BLACK));
+        assert!((0..4).all(|x| *img.get_pixel(x, 7) == WHITE));
+        assert_eq!(text_width("?-"), 8);
     }
 }
