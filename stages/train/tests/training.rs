@@ -731,3 +731,39 @@ fn lpips_weights_enter_the_key_only_when_the_loss_is_on() {
     assert_ne!(key(0.1).0, on_before);
     assert_eq!(key(0.0).0, off_before);
 }
+
+#[test]
+fn gpu_steps_with_the_lpips_loss_match_cpu() {
+    // The LPIPS term runs on the trainer's backend (cpu gemm trunk vs the WGSL trunk and
+    // its gather backward): both runs see the same losses step after step.
+    let Some(gpu) = gpu_backend() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 40);
+    let weights = dir.path().join("lpips_vgg.safetensors");
+    write_lpips_weights(&weights, 3);
+    config.lpips_weight = 0.1;
+    config.lpips_weights = Some(weights);
+    config.motion_context = seqavatar_train::config::MotionContext::None;
+    let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut gpu = Trainer::new(config, &data, gpu).unwrap();
+    for step in 0..3 {
+        let (a, b) = (cpu.step().unwrap(), gpu.step().unwrap());
+        eprintln!(
+            "step {step}: lpips cpu {} gpu {}, total cpu {} gpu {}",
+            a.lpips, b.lpips, a.total, b.total
+        );
+        assert!(a.lpips > 0.0 && a.lpips.is_finite());
+        assert!(
+            (a.lpips - b.lpips).abs() <= 1e-3 * a.lpips,
+            "step {step}: lpips {} vs {}",
+            a.lpips,
+            b.lpips
+        );
+        assert!(
+            (a.total - b.total).abs() <= 1e-3 * a.total.abs(),
+            "step {step}: total {} vs {}",
+            a.total,
+            b.total
+        );
+    }
+}
