@@ -374,6 +374,12 @@ fn inspect_prints_arrays_and_exports_pictures() {
     assert!(stderr.contains("not image-like"), "{stderr}");
     let stderr = sandbox.fails(&["inspect", "p.yaml:b:nothing"]);
     assert!(stderr.contains("no array \"nothing\""), "{stderr}");
+    // An unknown picture names the ones the stage kind draws (from its `pictures()`).
+    let stderr = sandbox.fails(&["inspect", "p.yaml:b", "--picture", "bars", "--png", "x.png"]);
+    assert!(
+        stderr.contains("no picture named \"bars\" (it has: values)"),
+        "{stderr}"
+    );
 }
 
 /// Width and height from a PNG header.

@@ -180,10 +180,9 @@ impl StageKind for TestArrays {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        anyhow::ensure!(
-            picture == "values",
-            "stage kind test_arrays has no picture named \"{picture}\" (pictures: values)"
-        );
+        if picture != "values" {
+            return Err(crate::unknown_picture(self, picture));
+        }
         let height = options.get_u64("height", 32)?.clamp(1, 4096) as u32;
         let values = entry.read::<f64>("values")?;
         let maximum = values

@@ -64,11 +64,23 @@ pub trait StageKind: Send + Sync {
         picture: &str,
         _options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        anyhow::bail!(
-            "stage kind \"{}\" has no picture named \"{picture}\"",
-            self.kind()
-        )
+        Err(unknown_picture(self, picture))
     }
+}
+
+/// The error for a picture name a stage kind does not draw, listing the ones it does (taken
+/// from [`StageKind::pictures`], so the list cannot drift from the stage).
+pub fn unknown_picture<K: StageKind + ?Sized>(kind: &K, picture: &str) -> anyhow::Error {
+    let names: Vec<&str> = kind.pictures().iter().map(|p| p.name).collect();
+    let known = if names.is_empty() {
+        "it draws none".to_owned()
+    } else {
+        format!("it has: {}", names.join(", "))
+    };
+    anyhow::anyhow!(
+        "stage kind \"{}\" has no picture named \"{picture}\" ({known})",
+        kind.kind()
+    )
 }
 
 /// A picture a stage kind can draw for `inspect`.

@@ -290,9 +290,7 @@ impl StageKind for EvalStage {
                 };
                 read_rgb(entry, name, Some(index))
             }
-            other => anyhow::bail!(
-                "eval has no picture named \"{other}\" (known: contact_sheet, render, error_map)"
-            ),
+            other => Err(seqavatar_engine::unknown_picture(self, other)),
         }
     }
 }

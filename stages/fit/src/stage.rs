@@ -341,10 +341,9 @@ impl StageKind for FitStage {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        anyhow::ensure!(
-            picture == "jitter",
-            "stage kind \"fit\" has no picture named \"{picture}\" (it has: jitter)"
-        );
+        if picture != "jitter" {
+            return Err(seqavatar_engine::unknown_picture(self, picture));
+        }
         let unknown = options.unknown_keys(&["width", "height"]);
         anyhow::ensure!(
             unknown.is_empty(),

@@ -644,10 +644,9 @@ impl StageKind for Ingest {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        anyhow::ensure!(
-            picture == "contact_sheet",
-            "ingest has no picture named \"{picture}\" (known: contact_sheet)"
-        );
+        if picture != "contact_sheet" {
+            return Err(seqavatar_engine::unknown_picture(self, picture));
+        }
         contact_sheet(entry, options)
     }
 }

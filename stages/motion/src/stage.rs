@@ -272,9 +272,7 @@ impl StageKind for MotionStage {
         match picture {
             "speed" => draw_speed(entry, options),
             "skeleton_motion" => draw_skeleton_motion(entry, options),
-            _ => anyhow::bail!(
-                "stage kind \"motion\" has no picture named \"{picture}\" (it has: speed, skeleton_motion)"
-            ),
+            _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
     }
 }

@@ -330,9 +330,7 @@ impl StageKind for TrainStage {
     ) -> anyhow::Result<image::RgbImage> {
         match picture {
             "loss_curve" => draw_loss_curve(entry, options),
-            _ => anyhow::bail!(
-                "stage kind \"train\" has no picture named \"{picture}\" (it has: loss_curve)"
-            ),
+            _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
     }
 }
