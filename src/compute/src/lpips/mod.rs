@@ -259,13 +259,13 @@ impl LpipsWeights {
     /// Writes the weights as a safetensors file with the `lpips` package's state-dict names
     /// (what `tests/lpips/convert_weights.py` produces), e.g. for seeded test weights.
     pub fn write_safetensors(&self, path: &Path) -> std::io::Result<()> {
-        let bytes = |values: &[f32]| -> Vec<u8> {
-            values
-                .iter()
-                .flat_map(|value| value.to_le_bytes())
-                .collect()
-        };
-        let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+        write_f32_tensors(path, &self.state_dict())
+    }
+
+    /// The weights as `(name, shape, values)` in the package's state-dict layout: convs in
+    /// trunk order, then the five lin layers, then the scaling layer.
+    pub(crate) fn state_dict(&self) -> Vec<(String, Vec<usize>, &[f32])> {
+        let mut tensors: Vec<(String, Vec<usize>, &[f32])> = Vec::new();
         for conv in &self.convs {
             let spec = &conv.spec;
             tensors.push((
@@ -276,43 +276,32 @@ impl LpipsWeights {
                     spec.kernel,
                     spec.kernel,
                 ],
-                bytes(&conv.weight),
+                &conv.weight,
             ));
             tensors.push((
                 format!("{}.bias", spec.name),
                 vec![spec.out_channels],
-                bytes(&conv.bias),
+                &conv.bias,
             ));
         }
         for (layer, lin) in self.lins.iter().enumerate() {
             tensors.push((
                 format!("lin{layer}.model.1.weight"),
                 vec![1, lin.len(), 1, 1],
-                bytes(lin),
+                lin,
             ));
         }
         tensors.push((
             "scaling_layer.shift".to_owned(),
             vec![1, 3, 1, 1],
-            bytes(&self.shift),
+            &self.shift,
         ));
         tensors.push((
             "scaling_layer.scale".to_owned(),
             vec![1, 3, 1, 1],
-            bytes(&self.scale),
+            &self.scale,
         ));
-        let views: Vec<(&str, crate::safetensors::Dtype, &[usize], &[u8])> = tensors
-            .iter()
-            .map(|(name, shape, data)| {
-                (
-                    name.as_str(),
-                    crate::safetensors::Dtype::F32,
-                    shape.as_slice(),
-                    data.as_slice(),
-                )
-            })
-            .collect();
-        crate::safetensors::write(path, &views, &Default::default())
+        tensors
     }
 
     /// Reads `net`'s weights from an opened file; a missing or misshapen tensor is an error
@@ -420,6 +409,30 @@ impl LpipsWeights {
         }
         Ok(())
     }
+}
+
+/// Writes little-endian f32 tensors `(name, shape, values)` as a safetensors file.
+pub(crate) fn write_f32_tensors(
+    path: &Path,
+    tensors: &[(String, Vec<usize>, &[f32])],
+) -> std::io::Result<()> {
+    let bytes: Vec<Vec<u8>> = tensors
+        .iter()
+        .map(|(_, _, values)| values.iter().flat_map(|v| v.to_le_bytes()).collect())
+        .collect();
+    let views: Vec<(&str, crate::safetensors::Dtype, &[usize], &[u8])> = tensors
+        .iter()
+        .zip(&bytes)
+        .map(|((name, shape, _), data)| {
+            (
+                name.as_str(),
+                crate::safetensors::Dtype::F32,
+                shape.as_slice(),
+                data.as_slice(),
+            )
+        })
+        .collect();
+    crate::safetensors::write(path, &views, &Default::default())
 }
 
 /// An LPIPS value with its five per-layer terms (their sum is `total`).

@@ -170,51 +170,14 @@ fn loading_reports_the_file_and_the_tensor() {
     let folder = tempfile::tempdir().unwrap();
     let path = folder.path().join("alex.safetensors");
     let weights = seeded::seeded_weights(LpipsNet::Alex, 9);
-    let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
-    let bytes = |values: &[f32]| {
-        values
-            .iter()
-            .flat_map(|v| v.to_le_bytes())
-            .collect::<Vec<u8>>()
-    };
-    for conv in &weights.convs {
-        let spec = &conv.spec;
-        tensors.push((
-            format!("{}.weight", spec.name),
-            vec![
-                spec.out_channels,
-                spec.in_channels,
-                spec.kernel,
-                spec.kernel,
-            ],
-            bytes(&conv.weight),
-        ));
-        tensors.push((
-            format!("{}.bias", spec.name),
-            vec![spec.out_channels],
-            bytes(&conv.bias),
-        ));
-    }
-    for (layer, lin) in weights.lins.iter().enumerate() {
-        tensors.push((
-            format!("lin{layer}.model.1.weight"),
-            vec![1, lin.len(), 1, 1],
-            bytes(lin),
-        ));
-    }
-    let write = |tensors: &[(String, Vec<usize>, Vec<u8>)]| {
-        let views: Vec<(&str, crate::safetensors::Dtype, &[usize], &[u8])> = tensors
-            .iter()
-            .map(|(name, shape, data)| {
-                (
-                    name.as_str(),
-                    crate::safetensors::Dtype::F32,
-                    shape.as_slice(),
-                    data.as_slice(),
-                )
-            })
-            .collect();
-        crate::safetensors::write(&path, &views, &Default::default()).unwrap();
+    // Without the scaling layer: loading falls back to the package's constants.
+    let tensors: Vec<_> = weights
+        .state_dict()
+        .into_iter()
+        .filter(|(name, _, _)| !name.starts_with("scaling_layer."))
+        .collect();
+    let write = |tensors: &[(String, Vec<usize>, &[f32])]| {
+        super::write_f32_tensors(&path, tensors).unwrap();
     };
     write(&tensors);
     assert_eq!(LpipsWeights::load(&path, LpipsNet::Alex).unwrap(), weights);
