@@ -41,8 +41,8 @@ use crate::banded::BandedMatrix;
 use crate::io::BodySequence;
 use crate::refine::{RefineSummary, axis_angle_near, shared_betas};
 use crate::smooth::{
-    SmoothError, SmoothingWeights, accumulate, levenberg_marquardt, robust, rotation_energy,
-    rotation_residuals, translation_energy, translation_residuals,
+    SmoothError, SmoothingPlan, SmoothingWeights, accumulate, levenberg_marquardt, robust,
+    rotation_energy, rotation_residuals, translation_energy, translation_residuals,
 };
 
 /// Relative energy decrease below which the joint solve stops.
@@ -166,7 +166,8 @@ impl KeypointObservations {
         })
     }
 
-    fn per_frame(&self) -> usize {
+    /// Used keypoints per frame.
+    pub fn per_frame(&self) -> usize {
         self.joints.len()
     }
 }
@@ -205,7 +206,10 @@ struct Problem<'a> {
     observations: &'a KeypointObservations,
     input_rotations: Vec<Vec<DMat3>>,
     input_translations: Vec<DVec3>,
-    weights: SmoothingWeights,
+    /// Per rotation track, its smoothing weights (estimated from its input fits or fixed).
+    rotation_weights: Vec<SmoothingWeights>,
+    translation_weights: SmoothingWeights,
+    robust_threshold: f64,
     keypoint_noise: f64,
     num_frames: usize,
     num_joints: usize,
@@ -302,7 +306,7 @@ impl Problem<'_> {
             }
             let p = world * g[self.observations.joints[i]] + state.translations[frame];
             let d = (p - self.observations.positions[frame * k + i]).length();
-            energy += c * robust(d / self.keypoint_noise, self.weights.robust_threshold).0;
+            energy += c * robust(d / self.keypoint_noise, self.robust_threshold).0;
             distance += c * d;
             weight += c;
         }
@@ -319,13 +323,17 @@ impl Problem<'_> {
                 rotation_energy(
                     &self.track(state, k),
                     &self.input_rotations[k],
-                    &self.weights,
+                    &self.rotation_weights[k],
                 )
             })
             .sum();
         keypoints
             + rotations
-            + translation_energy(&state.translations, &self.input_translations, &self.weights)
+            + translation_energy(
+                &state.translations,
+                &self.input_translations,
+                &self.translation_weights,
+            )
     }
 
     fn mean_keypoint_distance(&self, state: &State) -> f64 {
@@ -357,7 +365,7 @@ impl Problem<'_> {
             let joint = self.observations.joints[i];
             let p = world * positions[joint] + state.translations[frame];
             let residual = (p - self.observations.positions[frame * k + i]) * scale;
-            let weight = c * robust(residual.length(), self.weights.robust_threshold).1;
+            let weight = c * robust(residual.length(), self.robust_threshold).1;
             let (local, world_jac) =
                 posed_joint_jacobian(joint, &self.ancestors[joint], &m, &positions, world);
             let mut columns: Vec<(usize, DMat3)> =
@@ -406,7 +414,7 @@ impl Problem<'_> {
             rotation_residuals(
                 &self.track(state, k),
                 &self.input_rotations[k],
-                &self.weights,
+                &self.rotation_weights[k],
                 |frames, jac, residual, weight| {
                     let bases: Vec<usize> = frames.iter().map(|t| t * n + 3 * k).collect();
                     accumulate(&mut h, &mut g, &bases, jac, residual, weight);
@@ -416,7 +424,7 @@ impl Problem<'_> {
         translation_residuals(
             &state.translations,
             &self.input_translations,
-            &self.weights,
+            &self.translation_weights,
             |frames, jac, residual, weight| {
                 let bases: Vec<usize> = frames.iter().map(|t| t * n + n - 3).collect();
                 accumulate(&mut h, &mut g, &bases, jac, residual, weight);
@@ -465,16 +473,17 @@ fn ancestors(model: &BodyModel) -> Vec<Vec<usize>> {
         .collect()
 }
 
-/// Refines `input` against 3D keypoints (module docs). The shape is the mean of the
+/// Refines `input` against 3D keypoints (module docs); every track's smoothing weights come
+/// from `plan` (estimated from its input fits unless fixed). The shape is the mean of the
 /// per-frame betas, as in smooth mode, and stays fixed.
 pub fn refine_with_keypoints(
     model: &BodyModel,
     input: &BodySequence,
     observations: &KeypointObservations,
-    weights: &SmoothingWeights,
+    plan: &SmoothingPlan,
     keypoint: &KeypointWeights,
 ) -> Result<(BodySequence, KeypointSummary), KeypointError> {
-    weights.validate()?;
+    plan.validate()?;
     if !(keypoint.noise > 0.0 && keypoint.noise.is_finite()) {
         return Err(KeypointError::BadNoise(keypoint.noise));
     }
@@ -550,9 +559,14 @@ pub fn refine_with_keypoints(
         model,
         rest_joints,
         observations,
+        rotation_weights: input_rotations
+            .iter()
+            .map(|track| plan.rotation_track_weights(track))
+            .collect(),
+        translation_weights: plan.translation_track_weights(&input.world_translation),
+        robust_threshold: plan.robust_threshold,
         input_rotations,
         input_translations: input.world_translation.clone(),
-        weights: *weights,
         keypoint_noise: keypoint.noise,
         num_frames: f,
         num_joints: j,
@@ -561,7 +575,7 @@ pub fn refine_with_keypoints(
     let distance_before = problem.mean_keypoint_distance(&start);
     let (state, report) = levenberg_marquardt(
         start,
-        weights.max_iterations,
+        plan.max_iterations,
         KEYPOINT_TOLERANCE,
         |s| problem.energy(s),
         |s| problem.normal_equations(s),
@@ -703,12 +717,7 @@ mod tests {
 
     fn small_problem_inputs(
         frames: usize,
-    ) -> (
-        BodyModel,
-        BodySequence,
-        KeypointObservations,
-        SmoothingWeights,
-    ) {
+    ) -> (BodyModel, BodySequence, KeypointObservations, SmoothingPlan) {
         let model = procedural_body(0.04);
         let mut seed = 5;
         let params: Vec<BodyParams> = (0..frames)
@@ -735,11 +744,17 @@ mod tests {
             confidence,
         };
         let observations = KeypointObservations::new(&keypoints, j).unwrap();
-        let weights = SmoothingWeights {
+        // Fixed weights (the short sequences give nothing to estimate from).
+        let fixed = SmoothingWeights::default();
+        let plan = SmoothingPlan {
+            rotation_noise: Some(fixed.rotation_noise),
+            rotation_acceleration: Some(fixed.rotation_acceleration),
+            translation_noise: Some(fixed.translation_noise),
+            translation_acceleration: Some(fixed.translation_acceleration),
             robust_threshold: 1.0, // residuals in both regimes of the kernel
-            ..SmoothingWeights::default()
+            max_iterations: fixed.max_iterations,
         };
-        (model, sequence, observations, weights)
+        (model, sequence, observations, plan)
     }
 
     /// The assembled gradient (`J^T W r` over every term: keypoints, rotation tracks,
@@ -778,7 +793,9 @@ mod tests {
                 })
                 .collect(),
             input_translations: sequence.world_translation.clone(),
-            weights,
+            rotation_weights: vec![weights.rotation_track_weights(&[]); tracks],
+            translation_weights: weights.translation_track_weights(&[]),
+            robust_threshold: weights.robust_threshold,
             keypoint_noise: 0.03,
             num_frames: frames,
             num_joints: j,
@@ -873,7 +890,7 @@ mod tests {
         let keypoints = scene.keypoints_3d().unwrap().unwrap();
         let observations = KeypointObservations::new(&keypoints, model.num_joints()).unwrap();
         let fit_config = crate::FitConfig::default();
-        let weights = fit_config.weights();
+        let weights = fit_config.plan();
         let started = std::time::Instant::now();
         let (smoothed, _) = refine_sequence(&input, &weights).unwrap();
         let smooth_seconds = started.elapsed().as_secs_f64();

@@ -3,6 +3,7 @@
 //! them.
 
 pub mod banded;
+pub mod evidence;
 pub mod io;
 pub mod keypoints;
 pub mod plot;

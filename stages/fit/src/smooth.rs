@@ -23,6 +23,29 @@
 //! residual touches three consecutive frames), so a step costs `O(F)`.
 //! Translations use the same energy with Euclidean residuals (a linear least-squares problem
 //! apart from the robust weights).
+//!
+//! # Weights from the data
+//!
+//! `sn` and `sa` are estimated per track ([`SmoothingPlan`], [`estimate_noise`], [`sure_lambda`])
+//! unless the configuration fixes them. The noise of an input fit is white; the motion is
+//! smooth, so the sixth difference `D6_t = sum_k c_k Q_{t+k}`, `c = (1, -6, 15, -20, 15, -6,
+//! 1)` (of the matrix entries, or of the translation) removes the motion up to its quintic
+//! part, and damps a motion of `w` radians per frame by `(2 sin(w / 2))^6` (a gait cycle in 8
+//! frames: 0.3), while it keeps the noise with `E|D6 N|^2 = 924 E|N|^2`. Both energy terms
+//! have the form `|X|^2 / (2 s^2)` with `s^2 = E|X|^2 / 3` (three degrees of freedom per
+//! frame), so
+//!
+//! ```text
+//! sn^2 = E|D6|^2 / 2772    from the median of |D6_t|^2 (robust to fast segments)
+//! ```
+//!
+//! (`|D6_t|^2` of a 3-dof Gaussian is `chi^2_3` distributed: mean = median x 3 / 2.366.)
+//! The balance `lambda = sn^2 / sa^2` is then chosen by Stein's unbiased risk estimate of the
+//! linear (small-step) version of the same smoother, with that noise ([`sure_lambda`]): the
+//! weight that minimises the expected error against the unknown true motion. A track fitted
+//! exactly has `sn` near zero, every smoothing only adds error, and the smallest weight wins,
+//! so the solution stays on the input; a jittered one gets the weight its jitter and its
+//! motion call for (the fixed weights matched one noise level and one speed).
 
 use crate::banded::{BandedError, BandedMatrix};
 use seqavatar_core::glam::{DMat3, DVec3};
@@ -43,6 +66,231 @@ pub struct SmoothingWeights {
     pub robust_threshold: f64,
     /// Levenberg-Marquardt iteration limit.
     pub max_iterations: usize,
+}
+
+/// Where each track's standard deviations come from: a fixed value, or (`None`) estimated
+/// from the track itself (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SmoothingPlan {
+    pub rotation_noise: Option<f64>,
+    pub rotation_acceleration: Option<f64>,
+    pub translation_noise: Option<f64>,
+    pub translation_acceleration: Option<f64>,
+    /// Scale of the Cauchy kernel on acceleration residuals, in standard deviations.
+    pub robust_threshold: f64,
+    /// Levenberg-Marquardt iteration limit.
+    pub max_iterations: usize,
+}
+
+impl Default for SmoothingPlan {
+    /// Every standard deviation estimated from the data.
+    fn default() -> Self {
+        let w = SmoothingWeights::default();
+        Self {
+            rotation_noise: None,
+            rotation_acceleration: None,
+            translation_noise: None,
+            translation_acceleration: None,
+            robust_threshold: w.robust_threshold,
+            max_iterations: w.max_iterations,
+        }
+    }
+}
+
+/// Smallest standard deviation an estimate may return (radians or metres): keeps the
+/// energy finite for a track that does not move at all.
+pub const MIN_STANDARD_DEVIATION: f64 = 1e-6;
+
+/// Mean over median of a chi-square variable with three degrees of freedom.
+const CHI2_3_MEAN_OVER_MEDIAN: f64 = 3.0 / 2.365_973_884_375_5;
+
+/// Binomial weights of the sixth difference, and their sum of squares.
+const SIXTH_DIFFERENCE: [f64; 7] = [1.0, -6.0, 15.0, -20.0, 15.0, -6.0, 1.0];
+const SIXTH_DIFFERENCE_GAIN: f64 = 924.0;
+
+/// Data-driven noise standard deviation of a track from the squared norms of its sixth
+/// differences (module docs); `None` when the track is too short to tell (fewer than seven
+/// frames).
+pub fn estimate_noise(sixth_differences_sq: &[f64]) -> Option<f64> {
+    if sixth_differences_sq.is_empty() {
+        return None;
+    }
+    let mut sorted = sixth_differences_sq.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let n = sorted.len();
+    let median = if n % 2 == 1 {
+        sorted[n / 2]
+    } else {
+        0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+    };
+    let noise_sq = CHI2_3_MEAN_OVER_MEDIAN * median / (3.0 * SIXTH_DIFFERENCE_GAIN);
+    Some(noise_sq.sqrt().max(MIN_STANDARD_DEVIATION))
+}
+
+/// The smoothing weights `lambda = sn^2 / sa^2` [`sure_lambda`] tries: 1e-3 to 1e8.
+fn lambda_grid() -> impl Iterator<Item = f64> {
+    (0..=22).map(|i| 10f64.powf(-3.0 + 0.5 * f64::from(i)))
+}
+
+/// Eigenvalues of the second-difference penalty `D2^T D2` of an `n`-frame track, in the
+/// cosine approximation `(2 - 2 cos(pi k / n))^2`.
+fn penalty_eigenvalues(n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|k| {
+            let c = 2.0 - 2.0 * (std::f64::consts::PI * k as f64 / n as f64).cos();
+            c * c
+        })
+        .collect()
+}
+
+/// The linear smoother `x = (I + lambda D2^T D2)^-1 y` of a track of `D`-vectors.
+pub fn whittaker_smooth<const D: usize>(
+    values: &[[f64; D]],
+    lambda: f64,
+) -> Result<Vec<[f64; D]>, BandedError> {
+    let n = values.len();
+    let mut h = BandedMatrix::zeros(D * n, 2 * D);
+    for i in 0..D * n {
+        h.add(i, i, 1.0);
+    }
+    let coefficients = [1.0, -2.0, 1.0];
+    for t in 1..n.saturating_sub(1) {
+        for (a, ca) in coefficients.iter().enumerate() {
+            for (b, cb) in coefficients.iter().enumerate().take(a + 1) {
+                for c in 0..D {
+                    h.add(D * (t - 1 + a) + c, D * (t - 1 + b) + c, lambda * ca * cb);
+                }
+            }
+        }
+    }
+    let rhs: Vec<f64> = values.iter().flatten().copied().collect();
+    let x = h.solve(&rhs)?;
+    Ok(x.chunks_exact(D)
+        .map(|chunk| std::array::from_fn(|c| chunk[c]))
+        .collect())
+}
+
+/// The smoothing weight `lambda` of the grid that minimises Stein's unbiased risk estimate
+/// `|x(lambda) - y|^2 + 2 s^2 tr H(lambda)` of [`whittaker_smooth`], for white noise of
+/// total variance `s^2 = noise_variance` per frame (`tr H` from [`penalty_eigenvalues`]).
+/// The penalty is the energy's acceleration term in the small-step limit, so
+/// `sa = sn / sqrt(lambda)`. Noise-free input chooses the smallest `lambda`.
+pub fn sure_lambda<const D: usize>(values: &[[f64; D]], noise_variance: f64) -> f64 {
+    let eigenvalues = penalty_eigenvalues(values.len());
+    let mut best = (f64::INFINITY, lambda_grid().next().unwrap_or(1.0));
+    for lambda in lambda_grid() {
+        let Ok(smoothed) = whittaker_smooth(values, lambda) else {
+            continue;
+        };
+        let rss: f64 = smoothed
+            .iter()
+            .zip(values)
+            .map(|(x, y)| x.iter().zip(y).map(|(a, b)| (a - b) * (a - b)).sum::<f64>())
+            .sum();
+        let trace: f64 = eigenvalues.iter().map(|m| 1.0 / (1.0 + lambda * m)).sum();
+        let risk = rss + 2.0 * noise_variance * trace;
+        if risk < best.0 {
+            best = (risk, lambda);
+        }
+    }
+    best.1
+}
+
+/// Applies the sixth-difference weights to seven consecutive values.
+fn sixth_difference<T>(window: &[T]) -> T
+where
+    T: Copy + std::ops::Mul<f64, Output = T> + std::ops::Add<Output = T>,
+{
+    let mut sum = window[0] * SIXTH_DIFFERENCE[0];
+    for (x, c) in window.iter().zip(SIXTH_DIFFERENCE).skip(1) {
+        sum = sum + *x * c;
+    }
+    sum
+}
+
+impl SmoothingPlan {
+    /// Checks every fixed standard deviation and the kernel scale are positive and finite.
+    pub fn validate(&self) -> Result<(), SmoothError> {
+        let placeholder = 1.0;
+        SmoothingWeights {
+            rotation_noise: self.rotation_noise.unwrap_or(placeholder),
+            rotation_acceleration: self.rotation_acceleration.unwrap_or(placeholder),
+            translation_noise: self.translation_noise.unwrap_or(placeholder),
+            translation_acceleration: self.translation_acceleration.unwrap_or(placeholder),
+            robust_threshold: self.robust_threshold,
+            max_iterations: self.max_iterations,
+        }
+        .validate()
+    }
+
+    /// The weights of one rotation track (input fits `track`): its rotation fields are the
+    /// fixed or estimated ones; the translation fields repeat them and are not used.
+    pub fn rotation_track_weights(&self, track: &[DMat3]) -> SmoothingWeights {
+        let sixth: Vec<f64> = track
+            .windows(7)
+            .map(|w| frobenius_sq(sixth_difference(w)))
+            .collect();
+        let estimate = estimate_noise(&sixth).map(|noise| {
+            let values: Vec<[f64; 9]> = track.iter().map(|m| m.to_cols_array()).collect();
+            let lambda = sure_lambda(&values, 3.0 * noise * noise);
+            (noise, noise / lambda.sqrt())
+        });
+        let (noise, acceleration) = resolve(
+            self.rotation_noise,
+            self.rotation_acceleration,
+            estimate,
+            SmoothingWeights::default().rotation_noise,
+        );
+        self.weights(noise, acceleration)
+    }
+
+    /// The weights of the translation track, likewise (the rotation fields repeat the
+    /// translation ones and are not used).
+    pub fn translation_track_weights(&self, track: &[DVec3]) -> SmoothingWeights {
+        let sixth: Vec<f64> = track
+            .windows(7)
+            .map(|w| sixth_difference(w).length_squared())
+            .collect();
+        let estimate = estimate_noise(&sixth).map(|noise| {
+            let values: Vec<[f64; 3]> = track.iter().map(|v| v.to_array()).collect();
+            let lambda = sure_lambda(&values, 3.0 * noise * noise);
+            (noise, noise / lambda.sqrt())
+        });
+        let (noise, acceleration) = resolve(
+            self.translation_noise,
+            self.translation_acceleration,
+            estimate,
+            SmoothingWeights::default().translation_noise,
+        );
+        self.weights(noise, acceleration)
+    }
+
+    fn weights(&self, noise: f64, acceleration: f64) -> SmoothingWeights {
+        SmoothingWeights {
+            rotation_noise: noise,
+            rotation_acceleration: acceleration,
+            translation_noise: noise,
+            translation_acceleration: acceleration,
+            robust_threshold: self.robust_threshold,
+            max_iterations: self.max_iterations,
+        }
+    }
+}
+
+/// Fixed values win; a track too short to estimate from (fewer than seven frames) is left
+/// as it is: the smallest noise against the default noise as acceleration scale.
+fn resolve(
+    noise: Option<f64>,
+    acceleration: Option<f64>,
+    estimate: Option<(f64, f64)>,
+    short_track_acceleration: f64,
+) -> (f64, f64) {
+    let (estimated_noise, estimated_acceleration) =
+        estimate.unwrap_or((MIN_STANDARD_DEVIATION, short_track_acceleration));
+    (
+        noise.unwrap_or(estimated_noise),
+        acceleration.unwrap_or(estimated_acceleration),
+    )
 }
 
 impl Default for SmoothingWeights {
@@ -248,14 +496,17 @@ pub(crate) fn levenberg_marquardt<S: Clone>(
     while iterations < max_iterations {
         iterations += 1;
         let (h, g) = model(&state);
-        let scale = (0..h.size())
-            .map(|i| h.get(i, i))
-            .fold(0.0, f64::max)
-            .max(1.0);
+        // Marquardt's scaling: each unknown is damped in proportion to its own curvature
+        // (floored at a tiny fraction of the largest), so tracks whose weights differ by
+        // orders of magnitude (data-driven weights) do not damp each other.
+        let diagonal: Vec<f64> = (0..h.size()).map(|i| h.get(i, i)).collect();
+        let floor = 1e-9 * diagonal.iter().copied().fold(0.0, f64::max).max(1.0);
         let mut accepted = false;
         for _attempt in 0..20 {
             let mut damped = h.clone();
-            damped.add_to_diagonal(damping * scale);
+            for (i, d) in diagonal.iter().enumerate() {
+                damped.add(i, i, damping * d.max(floor));
+            }
             let rhs: Vec<f64> = g.iter().map(|x| -x).collect();
             let step = damped.solve(&rhs)?;
             let candidate = retract(&state, &step);
@@ -632,6 +883,230 @@ mod tests {
             err(&noisy),
             err(&out)
         );
+    }
+
+    /// The noise estimate against the noise put in: a smooth translation path plus white
+    /// Gaussian noise of known standard deviation per component.
+    #[test]
+    fn estimated_noise_matches_the_jitter_put_in() {
+        let mut seed = 21;
+        let gaussian = |seed: &mut u64| {
+            // Box-Muller from two uniforms in (0, 1].
+            let u = 0.5 * (noise(seed) + 1.0) + 1e-12;
+            let v = 0.5 * (noise(seed) + 1.0);
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let n = 400;
+        let truth: Vec<DVec3> = (0..n)
+            .map(|t| {
+                let s = t as f64 / 15.0;
+                DVec3::new(0.8 * s, 0.9 + 0.02 * (4.0 * s).sin(), 0.3 * (0.5 * s).cos())
+            })
+            .collect();
+        for sigma in [0.002, 0.01, 0.03] {
+            let noisy: Vec<DVec3> = truth
+                .iter()
+                .map(|v| {
+                    *v + DVec3::new(
+                        gaussian(&mut seed),
+                        gaussian(&mut seed),
+                        gaussian(&mut seed),
+                    ) * sigma
+                })
+                .collect();
+            let w = SmoothingPlan::default().translation_track_weights(&noisy);
+            println!(
+                "translation noise {sigma}: estimated {:.5}, acceleration {:.2e}",
+                w.translation_noise, w.translation_acceleration
+            );
+            assert!(
+                (w.translation_noise / sigma - 1.0).abs() < 0.15,
+                "noise {sigma}: estimated {}",
+                w.translation_noise
+            );
+        }
+        // The exact path: noise far below any jitter, and smoothing leaves it in place.
+        let w = SmoothingPlan::default().translation_track_weights(&truth);
+        assert!(w.translation_noise < 1e-4, "{}", w.translation_noise);
+        let (out, _) = smooth_translation_track(&truth, &w).unwrap();
+        let moved = out
+            .iter()
+            .zip(&truth)
+            .map(|(a, b)| (*a - *b).length())
+            .fold(0.0, f64::max);
+        assert!(moved < 1e-6, "{moved}");
+        // Rotations: jitter of sigma per axis-angle component is a chordal noise of
+        // sqrt(2) sigma per degree of freedom.
+        let sigma = 0.03;
+        let rotations: Vec<DMat3> = (0..n)
+            .map(|t| {
+                let s = t as f64 / 15.0;
+                axis_angle_to_matrix(DVec3::new(0.5 * (3.0 * s).sin(), 0.2, 0.1 * s))
+                    * axis_angle_to_matrix(
+                        DVec3::new(
+                            gaussian(&mut seed),
+                            gaussian(&mut seed),
+                            gaussian(&mut seed),
+                        ) * sigma,
+                    )
+            })
+            .collect();
+        let w = SmoothingPlan::default().rotation_track_weights(&rotations);
+        let expected = std::f64::consts::SQRT_2 * sigma;
+        assert!(
+            (w.rotation_noise / expected - 1.0).abs() < 0.15,
+            "rotation noise {} vs {expected}",
+            w.rotation_noise
+        );
+        // Fixed values win over estimates; short tracks are left alone.
+        let fixed = SmoothingPlan {
+            rotation_noise: Some(0.5),
+            ..SmoothingPlan::default()
+        };
+        assert_eq!(fixed.rotation_track_weights(&rotations).rotation_noise, 0.5);
+        let short = SmoothingPlan::default().translation_track_weights(&truth[..6]);
+        assert_eq!(short.translation_noise, MIN_STANDARD_DEVIATION);
+    }
+
+    /// A fit with no noise stays where it is, even through motion far faster than the
+    /// fixed weights assume (the knee of a sprint: 1.5 rad swings in 6 frames), while the
+    /// same track jittered is still smoothed.
+    #[test]
+    fn estimated_weights_leave_exact_fast_tracks_alone_and_smooth_jittered_ones() {
+        let plan = SmoothingPlan::default();
+        let n = 90;
+        let truth: Vec<DMat3> = (0..n)
+            .map(|t| {
+                let phase = std::f64::consts::TAU * t as f64 / 12.0;
+                // Speed ramps up: slow walk, then sprint.
+                let amplitude = if t < 45 { 0.3 } else { 0.75 };
+                axis_angle_to_matrix(DVec3::new(amplitude * phase.sin(), 0.1, 0.05 * phase.cos()))
+            })
+            .collect();
+        let (out, _) = smooth_rotation_track(&truth, &plan.rotation_track_weights(&truth)).unwrap();
+        let moved = out
+            .iter()
+            .zip(&truth)
+            .map(|(a, b)| angle_between(*a, *b))
+            .fold(0.0_f64, f64::max);
+        // The fixed weights move it by degrees.
+        let (fixed, _) = smooth_rotation_track(&truth, &SmoothingWeights::default()).unwrap();
+        let moved_fixed = fixed
+            .iter()
+            .zip(&truth)
+            .map(|(a, b)| angle_between(*a, *b))
+            .fold(0.0_f64, f64::max);
+        println!(
+            "exact fast track: moved at most {:.4} deg (fixed weights {:.2} deg)",
+            moved.to_degrees(),
+            moved_fixed.to_degrees()
+        );
+        assert!(moved < 0.05_f64.to_radians(), "{}", moved.to_degrees());
+        let mut seed = 8;
+        let sigma = 2.0_f64.to_radians();
+        let noisy: Vec<DMat3> = truth
+            .iter()
+            .map(|r| {
+                *r * axis_angle_to_matrix(DVec3::new(
+                    sigma * noise(&mut seed),
+                    sigma * noise(&mut seed),
+                    sigma * noise(&mut seed),
+                ))
+            })
+            .collect();
+        let (out, _) = smooth_rotation_track(&noisy, &plan.rotation_track_weights(&noisy)).unwrap();
+        let err = |track: &[DMat3]| {
+            track
+                .iter()
+                .zip(&truth)
+                .map(|(a, b)| angle_between(*a, *b))
+                .sum::<f64>()
+                / n as f64
+        };
+        println!(
+            "jittered fast track: error {:.3} -> {:.3} deg",
+            err(&noisy).to_degrees(),
+            err(&out).to_degrees()
+        );
+        assert!(err(&out) < 0.85 * err(&noisy));
+    }
+
+    /// The Whittaker smoother against a dense solve of `(I + lambda D2^T D2) x = y` built
+    /// from the difference matrix itself, and the weight Stein's estimate picks against the
+    /// weight that is best in truth (known here).
+    #[test]
+    fn whittaker_smoother_and_sure_weight_against_independent_computations() {
+        let n = 9;
+        let lambda = 2.5;
+        let mut seed = 4;
+        let values: Vec<[f64; 2]> = (0..n)
+            .map(|_| [noise(&mut seed), noise(&mut seed)])
+            .collect();
+        // Dense A = I + lambda D^T D, D the (n - 2) x n second-difference matrix.
+        let mut d = vec![vec![0.0; n]; n - 2];
+        for (t, row) in d.iter_mut().enumerate() {
+            row[t] = 1.0;
+            row[t + 1] = -2.0;
+            row[t + 2] = 1.0;
+        }
+        let smoothed = whittaker_smooth(&values, lambda).unwrap();
+        for c in 0..2 {
+            let mut a: Vec<Vec<f64>> = (0..n)
+                .map(|i| {
+                    (0..n)
+                        .map(|j| {
+                            let dtd: f64 = d.iter().map(|row| row[i] * row[j]).sum();
+                            f64::from(u8::from(i == j)) + lambda * dtd
+                        })
+                        .collect()
+                })
+                .collect();
+            let mut b: Vec<f64> = values.iter().map(|v| v[c]).collect();
+            // Gauss-Jordan elimination (A is symmetric positive definite: no pivoting).
+            for k in 0..n {
+                let pivot = a[k][k];
+                for i in 0..n {
+                    if i != k {
+                        let f = a[i][k] / pivot;
+                        for j in 0..n {
+                            a[i][j] -= f * a[k][j];
+                        }
+                        b[i] -= f * b[k];
+                    }
+                }
+            }
+            for t in 0..n {
+                let x = b[t] / a[t][t];
+                assert!((x - smoothed[t][c]).abs() < 1e-12, "t={t} c={c}");
+            }
+        }
+        // A smooth signal plus noise of known variance: the weight Stein's estimate picks
+        // has a true error close to the best weight of the grid.
+        let n = 200;
+        let sigma = 0.05;
+        let truth: Vec<[f64; 1]> = (0..n).map(|t| [(t as f64 / 9.0).sin()]).collect();
+        let noisy: Vec<[f64; 1]> = truth
+            .iter()
+            .map(|v| [v[0] + sigma * 3f64.sqrt() * noise(&mut seed)])
+            .collect();
+        let true_error = |lambda: f64| -> f64 {
+            whittaker_smooth(&noisy, lambda)
+                .unwrap()
+                .iter()
+                .zip(&truth)
+                .map(|(x, y)| (x[0] - y[0]).powi(2))
+                .sum()
+        };
+        let chosen = sure_lambda(&noisy, sigma * sigma);
+        let best = lambda_grid().map(true_error).fold(f64::INFINITY, f64::min);
+        println!(
+            "Stein's weight {chosen:.3e}: error {:.4} (best of the grid {best:.4}, none {:.4})",
+            true_error(chosen),
+            n as f64 * sigma * sigma
+        );
+        assert!(true_error(chosen) < 1.5 * best);
+        // No noise: the smallest weight.
+        assert_eq!(sure_lambda(&truth, 0.0), lambda_grid().next().unwrap());
     }
 
     #[test]

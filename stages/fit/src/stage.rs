@@ -5,12 +5,23 @@
 //! input has it, `body_expression`; plus the report arrays `jitter_before` and
 //! `jitter_after` f64 `(frame)`: per-frame joint jitter (mean over joints of the second
 //! difference of world joint positions, metres per frame squared). Attributes:
-//! `mode`, `mean_jitter_before`, `mean_jitter_after`; in keypoints mode
-//! `keypoint_distance_before`/`_after` (confidence-weighted mean distance between posed
-//! joints and 3D keypoints, metres); and for the synthetic scene (input with
+//! `mode`, `mean_jitter_before`, `mean_jitter_after`; and for the synthetic scene (input with
 //! `gt_` arrays) `joint_error_before`/`_after` (mean joint position error against ground
 //! truth, metres) and `velocity_error_before`/`_after` (mean template vertex velocity error
 //! against ground truth, metres per frame).
+//!
+//! Evidence (modes `smooth` and `keypoints`; [`crate::evidence`]), each track judged in the
+//! context of the others and kept as input where refining it made the evidence worse:
+//! - `track_kept_input` u8 `(track)` (1 = the input fit was kept), `track_iou_change` and
+//!   `track_keypoint_change` f64 `(track)`: the change of the mean silhouette IoU and of the
+//!   mean keypoint distance (metres) that refining that track made. Tracks: the joints,
+//!   then the world rotation, then the translation. Attribute `tracks_kept_input`: their
+//!   names.
+//! - Where the ingest entry has images: `silhouette_iou_before`/`_after` f64 `(view)`, the
+//!   mean over that view's images of the IoU between the posed body's silhouette and the
+//!   mask; attributes `mean_silhouette_iou_before`/`_after` (over all images).
+//! - Where it has keypoints that name joints: attributes `keypoint_distance_before`/`_after`
+//!   (confidence-weighted mean distance between posed joints and 3D keypoints, metres).
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
@@ -19,13 +30,14 @@ use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
 
+use crate::evidence::{EvidenceSources, Silhouettes, choose_tracks, track_name};
 use crate::io::BodySequence;
 use crate::keypoints::{KeypointObservations, KeypointWeights, refine_with_keypoints};
 use crate::plot;
 use crate::refine::{
     joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
 };
-use crate::smooth::SmoothingWeights;
+use crate::smooth::SmoothingPlan;
 use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
 
 /// What the stage does with the input fits. In YAML a bare `off` reads as the boolean
@@ -73,14 +85,17 @@ impl<'de> Deserialize<'de> for FitMode {
 #[serde(deny_unknown_fields, default)]
 pub struct FitConfig {
     pub mode: FitMode,
-    /// Expected error of an input joint rotation, degrees.
-    pub rotation_noise_deg: f64,
-    /// Expected angular acceleration of a joint, degrees per frame squared.
-    pub rotation_acceleration_deg: f64,
-    /// Expected error of an input translation, metres.
-    pub translation_noise_m: f64,
-    /// Expected acceleration of the translation, metres per frame squared.
-    pub translation_acceleration_m: f64,
+    /// Expected error of an input joint rotation, degrees; `null` (the default): estimated
+    /// per track from the fits themselves ([`crate::smooth`], "Weights from the data").
+    pub rotation_noise_deg: Option<f64>,
+    /// Expected angular acceleration of a joint, degrees per frame squared; `null`:
+    /// estimated per track.
+    pub rotation_acceleration_deg: Option<f64>,
+    /// Expected error of an input translation, metres; `null`: estimated.
+    pub translation_noise_m: Option<f64>,
+    /// Expected acceleration of the translation, metres per frame squared; `null`:
+    /// estimated.
+    pub translation_acceleration_m: Option<f64>,
     /// Scale of the Cauchy kernel on acceleration residuals, in standard deviations: much
     /// larger jumps are treated as genuine (a flip, a teleport) and kept sharp.
     pub robust_threshold: f64,
@@ -92,13 +107,13 @@ pub struct FitConfig {
 
 impl Default for FitConfig {
     fn default() -> Self {
-        let w = SmoothingWeights::default();
+        let w = SmoothingPlan::default();
         Self {
             mode: FitMode::Smooth,
-            rotation_noise_deg: w.rotation_noise.to_degrees(),
-            rotation_acceleration_deg: w.rotation_acceleration.to_degrees(),
-            translation_noise_m: w.translation_noise,
-            translation_acceleration_m: w.translation_acceleration,
+            rotation_noise_deg: None,
+            rotation_acceleration_deg: None,
+            translation_noise_m: None,
+            translation_acceleration_m: None,
             robust_threshold: w.robust_threshold,
             max_iterations: w.max_iterations,
             keypoint_noise_m: 0.02,
@@ -107,11 +122,11 @@ impl Default for FitConfig {
 }
 
 impl FitConfig {
-    /// The solver weights in radians.
-    pub fn weights(&self) -> SmoothingWeights {
-        SmoothingWeights {
-            rotation_noise: self.rotation_noise_deg.to_radians(),
-            rotation_acceleration: self.rotation_acceleration_deg.to_radians(),
+    /// The solver's plan in radians (fixed values, or per-track estimates).
+    pub fn plan(&self) -> SmoothingPlan {
+        SmoothingPlan {
+            rotation_noise: self.rotation_noise_deg.map(f64::to_radians),
+            rotation_acceleration: self.rotation_acceleration_deg.map(f64::to_radians),
             translation_noise: self.translation_noise_m,
             translation_acceleration: self.translation_acceleration_m,
             robust_threshold: self.robust_threshold,
@@ -139,11 +154,140 @@ pub fn keypoint_observations(
     })
 }
 
+/// Judges the refined fit by the evidence of the ingest entry ([`crate::evidence`]): keeps
+/// the input fit of every track whose evidence got worse, records the evidence before and
+/// after and the per-track verdicts in the output entry, and says what it kept.
+fn judge_tracks(
+    ctx: &mut StageContext<'_>,
+    ingest: &EntryReader,
+    model: &seqavatar_core::body::BodyModel,
+    input: &BodySequence,
+    refined: &BodySequence,
+) -> anyhow::Result<BodySequence> {
+    let location = ingest.location();
+    let started = std::time::Instant::now();
+    let silhouettes = Silhouettes::read(ingest)?;
+    // Keypoints are evidence wherever they name joints; entries without them (or with
+    // unmapped ones) are judged by the silhouettes alone.
+    let keypoints = read_keypoints_3d(ingest)?
+        .and_then(|k| KeypointObservations::new(&k, model.num_joints()).ok())
+        .filter(|k| k.num_frames == input.num_frames);
+    let sources = EvidenceSources {
+        model,
+        silhouettes: silhouettes.as_ref(),
+        keypoints: keypoints.as_ref(),
+    };
+    if !sources.any() {
+        ctx.log(&format!(
+            "entry {location} has neither images nor joint keypoints: the refined fit is kept unjudged"
+        ));
+        return Ok(refined.clone());
+    }
+    let before = sources
+        .evidence(input)
+        .with_context(|| format!("entry {location}: evidence of the input fit"))?;
+    let (output, verdicts) = choose_tracks(&sources, input, refined)
+        .with_context(|| format!("entry {location}: judging the refined tracks"))?;
+    let after = sources
+        .evidence(&output)
+        .with_context(|| format!("entry {location}: evidence of the output fit"))?;
+    let j = input.num_joints;
+    let kept: Vec<String> = verdicts
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| v.kept_input)
+        .map(|(track, _)| track_name(track, j))
+        .collect();
+    let out = ctx.output();
+    let tracks = verdicts.len() as u64;
+    out.write_array(
+        "track_kept_input",
+        &["track"],
+        &[tracks],
+        &[tracks.max(1)],
+        &verdicts
+            .iter()
+            .map(|v| u8::from(v.kept_input))
+            .collect::<Vec<_>>(),
+    )?;
+    out.write_array(
+        "track_iou_change",
+        &["track"],
+        &[tracks],
+        &[tracks.max(1)],
+        &verdicts.iter().map(|v| v.iou_change).collect::<Vec<_>>(),
+    )?;
+    out.write_array(
+        "track_keypoint_change",
+        &["track"],
+        &[tracks],
+        &[tracks.max(1)],
+        &verdicts
+            .iter()
+            .map(|v| v.keypoint_change)
+            .collect::<Vec<_>>(),
+    )?;
+    out.set_attribute("tracks_kept_input", serde_json::to_value(&kept)?)?;
+    let mut message = String::from("evidence");
+    if let Some(s) = &silhouettes {
+        let views = s.cameras.len() as u64;
+        let per_view_before = s.per_view_mean(&before.iou);
+        let per_view_after = s.per_view_mean(&after.iou);
+        for (name, values) in [
+            ("silhouette_iou_before", &per_view_before),
+            ("silhouette_iou_after", &per_view_after),
+        ] {
+            out.write_array(name, &["view"], &[views], &[views.max(1)], values)?;
+        }
+        let (b, a) = (
+            before.mean_iou().unwrap_or(f64::NAN),
+            after.mean_iou().unwrap_or(f64::NAN),
+        );
+        out.set_attribute("mean_silhouette_iou_before", b.into())?;
+        out.set_attribute("mean_silhouette_iou_after", a.into())?;
+        message += &format!(
+            ": body silhouette vs masks IoU {b:.5} -> {a:.5} (mean of {} images; per view {})",
+            s.images.len(),
+            per_view_before
+                .iter()
+                .zip(&per_view_after)
+                .map(|(b, a)| format!("{b:.4}->{a:.4}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+    }
+    if let (Some(b), Some(a)) = (before.keypoint_error(), after.keypoint_error()) {
+        out.set_attribute("keypoint_distance_before", b.into())?;
+        out.set_attribute("keypoint_distance_after", a.into())?;
+        message += &format!(
+            "; mean keypoint distance {:.2} -> {:.2} mm",
+            b * 1e3,
+            a * 1e3
+        );
+    }
+    message += &format!(" ({:.2} s)", started.elapsed().as_secs_f64());
+    ctx.log(&message);
+    if kept.is_empty() {
+        ctx.log(&format!(
+            "every refined track did no harm to the evidence ({} tracks)",
+            verdicts.len()
+        ));
+    } else {
+        ctx.log(&format!(
+            "kept the input fit of {} of {} tracks, whose evidence got worse when refined: {}",
+            kept.len(),
+            verdicts.len(),
+            kept.join(", ")
+        ));
+    }
+    Ok(output)
+}
+
 /// The stage kind.
 pub struct FitStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 
 impl StageKind for FitStage {
     fn kind(&self) -> &'static str {
@@ -171,7 +315,7 @@ impl StageKind for FitStage {
                 ),
             ));
         }
-        if let Err(e) = config.weights().validate() {
+        if let Err(e) = config.plan().validate() {
             // Name the YAML field: the error names the solver's field.
             let field = match &e {
                 crate::smooth::SmoothError::BadWeight { name, .. } => match *name {
@@ -198,7 +342,7 @@ impl StageKind for FitStage {
             FitMode::Smooth => {
                 let started = std::time::Instant::now();
                 let (refined, summary) =
-                    refine_sequence(&input, &config.weights()).with_context(|| {
+                    refine_sequence(&input, &config.plan()).with_context(|| {
                         format!("entry {}: refining the body fits", ingest.location())
                     })?;
                 ctx.log(&format!(
@@ -226,7 +370,7 @@ impl StageKind for FitStage {
                     &model,
                     &input,
                     &observations,
-                    &config.weights(),
+                    &config.plan(),
                     &KeypointWeights {
                         noise: config.keypoint_noise_m,
                     },
@@ -252,16 +396,13 @@ impl StageKind for FitStage {
                 if summary.refine.betas_averaged {
                     ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
                 }
-                ctx.output().set_attribute(
-                    "keypoint_distance_before",
-                    summary.keypoint_distance_before.into(),
-                )?;
-                ctx.output().set_attribute(
-                    "keypoint_distance_after",
-                    summary.keypoint_distance_after.into(),
-                )?;
                 refined
             }
+        };
+        let output = if config.mode == FitMode::Off {
+            output
+        } else {
+            judge_tracks(ctx, &ingest, &model, &input, &output)?
         };
         output.write(ctx.output(), &model)?;
 
@@ -329,10 +470,16 @@ impl StageKind for FitStage {
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
-        vec![PictureKind {
-            name: "jitter",
-            description: "per-frame joint jitter before (blue) and after (orange) refinement; options: width, height",
-        }]
+        vec![
+            PictureKind {
+                name: "jitter",
+                description: "per-frame joint jitter before (blue) and after (orange) refinement; options: width, height",
+            },
+            PictureKind {
+                name: "evidence",
+                description: "per-view body silhouette vs masks IoU before (blue) and after (orange) refinement; options: width, height",
+            },
+        ]
     }
 
     fn draw_picture(
@@ -341,18 +488,26 @@ impl StageKind for FitStage {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        if picture != "jitter" {
-            return Err(seqavatar_engine::unknown_picture(self, picture));
-        }
+        let (before, after) = match picture {
+            "jitter" => ("jitter_before", "jitter_after"),
+            "evidence" => ("silhouette_iou_before", "silhouette_iou_after"),
+            _ => return Err(seqavatar_engine::unknown_picture(self, picture)),
+        };
         let unknown = options.unknown_keys(&["width", "height"]);
         anyhow::ensure!(
             unknown.is_empty(),
-            "picture jitter: unknown options {unknown:?} (known: width, height)"
+            "picture {picture}: unknown options {unknown:?} (known: width, height)"
         );
         let width = options.get_u64("width", 800)?.clamp(64, 8192) as u32;
         let height = options.get_u64("height", 300)?.clamp(48, 8192) as u32;
-        let before = entry.read::<f64>("jitter_before")?.data;
-        let after = entry.read::<f64>("jitter_after")?.data;
+        if !entry.array_names().iter().any(|n| n == before) {
+            anyhow::bail!(
+                "entry {}: picture {picture} needs array `{before}`, which this fit entry does not have (mode off, or an ingest entry without images)",
+                entry.location()
+            );
+        }
+        let before = entry.read::<f64>(before)?.data;
+        let after = entry.read::<f64>(after)?.data;
         Ok(plot::line_plot(width, height, &[before, after]))
     }
 }
@@ -424,6 +579,12 @@ stages:
   - {name: unchanged, kind: fit, inputs: [ingest], config: {mode: off}}
   - {name: smooth, kind: fit, inputs: [ingest], config: {mode: smooth}}
   - {name: keypoints, kind: fit, inputs: [ingest], config: {mode: keypoints}}
+  - name: exact
+    kind: ingest
+    config:
+      dataset: {kind: synthetic, cameras: 1, frames: 12, width: 16, height: 16, supersample: 1, garment: false, body_grid_spacing: 0.04, jitter: {pose_radians: 0.0, translation_metres: 0.0, betas: 0.0, keypoints_metres: 0.0}}
+      past_frames: 0
+  - {name: smooth_exact, kind: fit, inputs: [exact], config: {mode: smooth}}
 "#;
         let dir = tempfile::tempdir().unwrap();
         let store = LocalStore::open(dir.path()).unwrap();
@@ -440,7 +601,11 @@ stages:
                 .unwrap()
         };
         fn name_kind(name: &str) -> &'static str {
-            if name == "ingest" { "ingest" } else { "fit" }
+            if name == "ingest" || name == "exact" {
+                "ingest"
+            } else {
+                "fit"
+            }
         }
         let attribute =
             |name: &str, key: &str| entry(name).attribute(key).and_then(|v| v.as_f64()).unwrap();
@@ -467,6 +632,37 @@ stages:
             entry("keypoints").attribute("mode"),
             Some("keypoints".into())
         );
+        // Evidence in both refining modes, none when passing through.
+        for name in ["smooth", "keypoints"] {
+            let fit = entry(name);
+            assert_eq!(fit.read::<u8>("track_kept_input").unwrap().shape, [26]);
+            assert_eq!(fit.read::<f64>("silhouette_iou_after").unwrap().shape, [1]);
+            let (before, after) = (
+                attribute(name, "mean_silhouette_iou_before"),
+                attribute(name, "mean_silhouette_iou_after"),
+            );
+            println!("{name}: silhouette IoU {before:.4} -> {after:.4}");
+            assert!(before > 0.3 && before <= 1.0 && after > 0.3 && after <= 1.0);
+            assert!(fit.attribute("tracks_kept_input").unwrap().is_array());
+            // The synthetic scene's keypoints name joints: smooth mode is judged by them too.
+            assert!(
+                attribute(name, "keypoint_distance_after")
+                    <= attribute(name, "keypoint_distance_before")
+            );
+        }
+        assert!(
+            !entry("unchanged")
+                .array_names()
+                .contains(&"track_kept_input".to_string())
+        );
+        // Exact fits stay put: their joint error (zero before) stays far below a millimetre.
+        let moved = attribute("smooth_exact", "joint_error_after");
+        println!(
+            "exact fits through the stage: joints moved {:.4} mm",
+            moved * 1e3
+        );
+        assert_eq!(attribute("smooth_exact", "joint_error_before"), 0.0);
+        assert!(moved < 2e-4, "{moved}");
     }
 
     #[test]
