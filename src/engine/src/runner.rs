@@ -463,14 +463,25 @@ pub fn run(
                 Err(anyhow::anyhow!("panicked: {text}"))
             });
         spinner.finish_and_clear();
-        result.with_context(|| {
-            format!(
+        if let Err(error) = result {
+            // A stage that failed (rather than a run that was killed) discards its partial
+            // output now, so the next run has nothing to clean up and report as a killed
+            // run; the work folder stays for resume.
+            drop(context);
+            drop(writer);
+            if let Err(e) = std::fs::remove_dir_all(&staging.output_dir) {
+                progress.println(&format!(
+                    "cannot remove the partial output {}: {e}",
+                    staging.output_dir.display()
+                ));
+            }
+            return Err(error.context(format!(
                 "stage \"{}\" (kind {}, key {}) failed",
                 stage.name,
                 stage.kind,
                 &stage_key.key[..12]
-            )
-        })?;
+            )));
+        }
         let log = context.log.into_inner().expect("log poisoned");
         let warnings = context.warnings.into_inner().expect("warnings poisoned");
         let finished_at = SystemTime::now();
@@ -610,5 +621,30 @@ mod tests {
         assert_eq!(b.manifest().inputs[0].key, second[0].key);
         assert_eq!(b.manifest().log, ["backend: cpu"]);
         assert!(b.manifest().started_at.ends_with('Z'));
+    }
+
+    /// A stage that fails leaves no partial output for the next run to report as a killed
+    /// run's, and keeps its work folder, so the next run resumes.
+    #[test]
+    fn a_failed_stage_leaves_no_killed_run_leftovers() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let registry = Registry::new();
+        let text = "stages:\n  - {name: a, kind: test_arrays, config: {steps: 4, fail_at: 2}}\n";
+        let pipeline = Pipeline::parse(text, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
+        assert!(format!("{error:#}").contains("fail_at"), "{error:#}");
+        let key = &compute_keys(&pipeline, &registry, &store).unwrap()["a"].key;
+        let id = EntryId::new("test_arrays", key);
+        assert!(store.has_resumable_work(&id), "the work folder stays");
+        assert_eq!(store.clean_leftovers().unwrap(), Vec::<String>::new());
+        // A killed run (its partial output still there) is still reported as one.
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        std::fs::write(staging.output_dir.join("chunk"), b"partial").unwrap();
+        drop(lock);
+        let cleaned = store.clean_leftovers().unwrap();
+        assert_eq!(cleaned.len(), 1, "{cleaned:?}");
+        assert!(cleaned[0].contains("(killed run)"), "{cleaned:?}");
     }
 }
