@@ -90,9 +90,7 @@ impl GpuContext {
     /// Opens the best adapter allowed by `choice`, with the adapter's own limits and, when it
     /// has them, native f32 atomics.
     pub fn new(choice: AdapterChoice) -> Result<Self, BackendError> {
-        let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
-        descriptor.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL;
-        let instance = wgpu::Instance::new(descriptor);
+        let instance = compute_instance();
         let adapters = pollster::block_on(instance.enumerate_adapters(descriptor_backends()));
         let adapter = adapters
             .into_iter()
@@ -495,6 +493,60 @@ pub struct PendingDownload<T> {
     pub values: Vec<T>,
 }
 
+/// The wgpu instance adapters are enumerated from: Vulkan and Metal, no display handle.
+///
+/// Where a Vulkan instance would enable window-system surface extensions (Unix but macOS),
+/// it is created without them ([`headless_vulkan_instance`]); it falls back to wgpu's own
+/// instance when that fails.
+fn compute_instance() -> wgpu::Instance {
+    #[cfg(all(unix, not(target_os = "macos"), not(target_os = "ios")))]
+    if let Some(instance) = headless_vulkan_instance() {
+        return instance;
+    }
+    let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
+    descriptor.backends = descriptor_backends();
+    wgpu::Instance::new(descriptor)
+}
+
+/// Window-system surface extensions a compute-only Vulkan instance leaves out.
+#[cfg(all(unix, not(target_os = "macos"), not(target_os = "ios")))]
+const WINDOW_SYSTEM_EXTENSIONS: [&std::ffi::CStr; 3] = [
+    c"VK_KHR_wayland_surface",
+    c"VK_KHR_xlib_surface",
+    c"VK_KHR_xcb_surface",
+];
+
+/// A Vulkan instance without the window-system surface extensions: nothing here presents to
+/// a window, and with `VK_KHR_wayland_surface` enabled Mesa's device-select layer connects to
+/// a Wayland display while enumerating adapters, which prints `error: XDG_RUNTIME_DIR is
+/// invalid or not set in the environment.` on stderr of every headless run. `None` when no
+/// Vulkan loader or driver is there.
+#[cfg(all(unix, not(target_os = "macos"), not(target_os = "ios")))]
+fn headless_vulkan_instance() -> Option<wgpu::Instance> {
+    use wgpu::hal;
+    let defaults = wgpu::InstanceDescriptor::new_without_display_handle();
+    let descriptor = hal::InstanceDescriptor {
+        name: "seqavatar",
+        flags: defaults.flags,
+        memory_budget_thresholds: defaults.memory_budget_thresholds,
+        backend_options: defaults.backend_options,
+        telemetry: None,
+        display: None,
+    };
+    let callback: Box<hal::vulkan::CreateInstanceCallback<'static>> = Box::new(|args| {
+        args.extensions
+            .retain(|name| !WINDOW_SYSTEM_EXTENSIONS.contains(name));
+    });
+    // SAFETY: the callback only removes surface extensions, which wgpu-hal uses for nothing
+    // but creating window surfaces (it checks the enabled list first and reports the
+    // extension missing); this crate never creates a surface.
+    let instance =
+        unsafe { hal::vulkan::Instance::init_with_callback(&descriptor, Some(callback)) };
+    let instance = instance.ok()?;
+    // SAFETY: a valid instance just created; wgpu takes ownership of it.
+    Some(unsafe { wgpu::Instance::from_hal::<hal::api::Vulkan>(instance) })
+}
+
 fn descriptor_backends() -> wgpu::Backends {
     wgpu::Backends::VULKAN | wgpu::Backends::METAL
 }
@@ -533,5 +585,33 @@ mod tests {
             // No whole row of excess workgroups.
             assert!(u64::from(x) * u64::from(y - 1) < u64::from(count));
         }
+    }
+
+    /// The instance adapters come from enables no window-system surface extension (with
+    /// `VK_KHR_wayland_surface`, Mesa's device-select layer prints an `XDG_RUNTIME_DIR`
+    /// error on headless machines).
+    #[cfg(all(unix, not(target_os = "macos"), not(target_os = "ios")))]
+    #[test]
+    fn the_compute_instance_enables_no_window_system_extension() {
+        let Some(instance) = headless_vulkan_instance() else {
+            assert!(
+                std::env::var_os("CI").is_none(),
+                "CI is set but no Vulkan instance could be created"
+            );
+            eprintln!("skipped: no Vulkan loader");
+            return;
+        };
+        // SAFETY: the hal instance is only read.
+        let hal =
+            unsafe { instance.as_hal::<wgpu::hal::api::Vulkan>() }.expect("a Vulkan instance");
+        let enabled = hal.shared_instance().extensions();
+        println!("enabled instance extensions: {enabled:?}");
+        assert!(
+            enabled
+                .iter()
+                .all(|name| !WINDOW_SYSTEM_EXTENSIONS.contains(name)),
+            "{enabled:?}"
+        );
+        assert!(enabled.contains(&c"VK_KHR_get_physical_device_properties2"));
     }
 }
