@@ -237,7 +237,7 @@ pub fn vertex_velocity_error(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::smooth::SmoothingPlan;
+    use crate::smooth::{SmoothingPlan, SmoothingWeights};
     use seqavatar_ingest::DatasetReader;
     use seqavatar_ingest::synthetic::{SyntheticConfig, SyntheticScene};
     use std::f64::consts::PI;
@@ -321,14 +321,35 @@ mod tests {
                 .collect();
             let mean = moved.iter().sum::<f64>() / moved.len() as f64;
             let max = moved.iter().copied().fold(0.0, f64::max);
+            // The former fixed weights (2 degrees of noise, 1 degree per frame squared).
+            let fixed = SmoothingWeights::default();
+            let fixed_plan = SmoothingPlan {
+                rotation_noise: Some(fixed.rotation_noise),
+                rotation_acceleration: Some(fixed.rotation_acceleration),
+                translation_noise: Some(fixed.translation_noise),
+                translation_acceleration: Some(fixed.translation_acceleration),
+                ..SmoothingPlan::default()
+            };
+            let (damaged, _) = refine_sequence(&exact, &fixed_plan).unwrap();
+            let fixed_max = joint_positions(&model, &damaged)
+                .unwrap()
+                .iter()
+                .zip(&before)
+                .map(|(a, b)| (*a - *b).length())
+                .fold(0.0, f64::max);
             println!(
-                "exact fits at {fps} fps: joints moved {:.4} mm mean, {:.4} mm max",
+                "exact fits at {fps} fps: joints moved {:.4} mm mean, {:.4} mm max (fixed weights: {:.2} mm max)",
                 mean * 1e3,
-                max * 1e3
+                max * 1e3,
+                fixed_max * 1e3
             );
             assert!(
                 mean < 0.002 && max < 0.010,
                 "{fps} fps: mean {mean}, max {max}"
+            );
+            assert!(
+                fixed_max > 5.0 * max,
+                "the fixed weights did harm: {fixed_max}"
             );
         }
     }

@@ -1064,15 +1064,13 @@ mod tests {
             let mut b: Vec<f64> = values.iter().map(|v| v[c]).collect();
             // Gauss-Jordan elimination (A is symmetric positive definite: no pivoting).
             for k in 0..n {
-                let pivot = a[k][k];
-                for i in 0..n {
-                    if i != k {
-                        let f = a[i][k] / pivot;
-                        for j in 0..n {
-                            a[i][j] -= f * a[k][j];
-                        }
-                        b[i] -= f * b[k];
+                let pivot_row = a[k].clone();
+                for i in (0..n).filter(|&i| i != k) {
+                    let f = a[i][k] / pivot_row[k];
+                    for (x, p) in a[i].iter_mut().zip(&pivot_row) {
+                        *x -= f * p;
                     }
+                    b[i] -= f * b[k];
                 }
             }
             for t in 0..n {
