@@ -71,12 +71,16 @@ static ALLOCATOR: Counting = Counting;
 static MEASURING: Mutex<()> = Mutex::new(());
 
 /// Runs `read` and returns its result with the peak bytes it allocated beyond what was
-/// allocated before.
+/// allocated before (printed with the caller's line, for `--nocapture`).
+#[track_caller]
 fn peak_of<T>(read: impl FnOnce() -> T) -> (T, usize) {
+    let caller = std::panic::Location::caller();
     let base = CURRENT.load(Ordering::SeqCst);
     PEAK.store(base, Ordering::SeqCst);
     let out = read();
-    (out, PEAK.load(Ordering::SeqCst).saturating_sub(base))
+    let peak = PEAK.load(Ordering::SeqCst).saturating_sub(base);
+    eprintln!("bombs.rs:{}: peak {peak} bytes", caller.line());
+    (out, peak)
 }
 
 /// The documented peak limit of the pickle, `.npy` and `.npz` readers for a file.

@@ -211,6 +211,31 @@ mod tests {
         assert_eq!(trailing_number("x99999999999999999999"), None);
     }
 
+    /// Issue 12: PNG bytes named `.jpg` failed as "Format error decoding Jpeg"; issue 16:
+    /// a truncated image must be an error naming the file.
+    #[test]
+    fn images_are_read_by_content_and_errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("000000.jpg");
+        let rgb = RgbImage::from_fn(6, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 7]));
+        rgb.save_with_format(&path, image::ImageFormat::Png)
+            .unwrap();
+        assert_eq!(image_size(&path).unwrap(), (6, 4));
+        let bytes = read_bytes(&path).unwrap();
+        assert_eq!(decode_rgb(&bytes, "000000.jpg", (6, 4)).unwrap(), rgb);
+        let error =
+            decode_rgb(&bytes[..bytes.len() - 20], "Camera_B1/000000.jpg", (6, 4)).unwrap_err();
+        assert!(
+            format!("{error:#}").starts_with("Camera_B1/000000.jpg: cannot decode the image"),
+            "{error:#}"
+        );
+        let error = decode_mask(&bytes, "mask/000000.png", true, (8, 8)).unwrap_err();
+        assert!(
+            format!("{error:#}").contains("mask/000000.png"),
+            "{error:#}"
+        );
+    }
+
     #[test]
     fn relative_paths_stay_inside() {
         let root = Path::new("/data");
