@@ -174,3 +174,38 @@ mod tests {
         );
     }
 }
+
+/// The machine's physical memory in bytes (`MemTotal` of `/proc/meminfo`), for the
+/// memory estimates that stage configs check when the pipeline loads; `None` where the
+/// system does not say (the estimate is then not checked).
+pub fn machine_memory_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    parse_mem_total(&text)
+}
+
+fn parse_mem_total(meminfo: &str) -> Option<u64> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let mut words = line["MemTotal:".len()..].split_whitespace();
+    let value: u64 = words.next()?.parse().ok()?;
+    match words.next() {
+        Some("kB") => value.checked_mul(1024),
+        None => Some(value),
+        Some(_) => None,
+    }
+}
+
+#[cfg(test)]
+mod memory_tests {
+    use super::*;
+
+    #[test]
+    fn mem_total_parses() {
+        let text = "MemTotal:       16303940 kB\nMemFree:         1234 kB\n";
+        assert_eq!(parse_mem_total(text), Some(16_303_940 * 1024));
+        assert_eq!(parse_mem_total("MemFree: 1 kB\n"), None);
+        assert_eq!(parse_mem_total("MemTotal: x kB\n"), None);
+        if cfg!(target_os = "linux") {
+            assert!(machine_memory_bytes().is_some_and(|bytes| bytes > 1 << 26));
+        }
+    }
+}

@@ -27,7 +27,7 @@ use std::path::PathBuf;
 
 pub use array::{Element, NdArray};
 pub use builtin::TestArrays;
-pub use config::{ConfigError, ConfigPathSegment, resolve_typed};
+pub use config::{ConfigError, ConfigPathSegment, machine_memory_bytes, resolve_typed};
 pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray};
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
@@ -47,6 +47,17 @@ pub trait StageKind: Send + Sync {
     fn input_kinds(&self) -> &'static [&'static str];
     /// Validates the raw config and returns the effective config with all defaults explicit.
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError>;
+    /// Checks, when the pipeline loads, that the inputs give this stage everything its run
+    /// will need (before any upstream stage runs). `inputs` are the input stages with their
+    /// effective configs, in order; the error text is shown with the stage's name. The
+    /// default accepts any inputs of [`StageKind::input_kinds`].
+    fn check_inputs(
+        &self,
+        _config: &serde_json::Value,
+        _inputs: &[StageInput<'_>],
+    ) -> Result<(), String> {
+        Ok(())
+    }
     /// External files (raw dataset files) whose content the result depends on.
     fn external_files(&self, _config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
         Ok(vec![])
@@ -65,6 +76,54 @@ pub trait StageKind: Send + Sync {
         _options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
         Err(unknown_picture(self, picture))
+    }
+}
+
+/// An input stage as [`StageKind::check_inputs`] sees it.
+#[derive(Clone, Copy, Debug)]
+pub struct StageInput<'a> {
+    pub name: &'a str,
+    pub kind: &'a str,
+    /// The input stage's effective config.
+    pub config: &'a serde_json::Value,
+}
+
+/// For [`StageKind::check_inputs`]: an error unless exactly one input has each of `kinds`.
+pub fn require_one_input_of_each(inputs: &[StageInput<'_>], kinds: &[&str]) -> Result<(), String> {
+    for kind in kinds {
+        let matching: Vec<&str> = inputs
+            .iter()
+            .filter(|input| input.kind == *kind)
+            .map(|input| input.name)
+            .collect();
+        match matching.len() {
+            1 => {}
+            0 => {
+                return Err(format!(
+                    "needs an input of kind {kind}; {}",
+                    describe(inputs)
+                ));
+            }
+            _ => {
+                return Err(format!(
+                    "has several inputs of kind {kind} ({}); expected one",
+                    matching.join(", ")
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+fn describe(inputs: &[StageInput<'_>]) -> String {
+    if inputs.is_empty() {
+        "it has no inputs".to_owned()
+    } else {
+        let list: Vec<String> = inputs
+            .iter()
+            .map(|input| format!("{} ({})", input.name, input.kind))
+            .collect();
+        format!("its inputs are: {}", list.join(", "))
     }
 }
 

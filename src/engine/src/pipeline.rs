@@ -332,6 +332,34 @@ impl Pipeline {
             })?;
         }
 
+        // Each stage's inputs give it what its run needs (with their effective configs).
+        for (index, stage) in stages.iter().enumerate() {
+            let kind = registry.get(&stage.kind).expect("kind checked above");
+            let inputs: Vec<crate::StageInput<'_>> = stage
+                .inputs
+                .iter()
+                .map(|name| {
+                    let upstream = &stages[seen[name]];
+                    crate::StageInput {
+                        name,
+                        kind: &upstream.kind,
+                        config: &upstream.config,
+                    }
+                })
+                .collect();
+            kind.check_inputs(&stage.config, &inputs)
+                .map_err(|message| {
+                    loader.at(
+                        &[
+                            stages_path.as_slice(),
+                            &[ConfigPathSegment::Index(index), key("inputs")],
+                        ]
+                        .concat(),
+                        format!("stage \"{}\" (kind {}): {message}", stage.name, stage.kind),
+                    )
+                })?;
+        }
+
         Ok(Self {
             file: file.to_path_buf(),
             description,
@@ -771,6 +799,70 @@ mod tests {
             "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      size: 0\n",
             &[],
             "p.yaml:5: stage \"a\": config key \"size\": must be in 1..=4096",
+        );
+    }
+
+    /// A kind that needs one `test_arrays` input, to test the load-time input check.
+    struct NeedsArrays;
+
+    impl crate::StageKind for NeedsArrays {
+        fn kind(&self) -> &'static str {
+            "needs_arrays"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &["test_arrays"]
+        }
+        fn resolve_config(
+            &self,
+            _raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, crate::ConfigError> {
+            Ok(serde_json::json!({}))
+        }
+        fn check_inputs(
+            &self,
+            _config: &serde_json::Value,
+            inputs: &[crate::StageInput<'_>],
+        ) -> Result<(), String> {
+            crate::require_one_input_of_each(inputs, &["test_arrays"])
+        }
+        fn run(&self, _ctx: &mut crate::StageContext<'_>) -> anyhow::Result<()> {
+            anyhow::bail!("never run by these tests")
+        }
+    }
+
+    #[test]
+    fn missing_required_inputs_are_found_at_load() {
+        let mut registry = Registry::new();
+        registry.add(Box::new(NeedsArrays));
+        let load = |text: &str| {
+            Pipeline::parse(text, Path::new("p.yaml"), &registry, &[])
+                .map(|_| ())
+                .map_err(|error| error.to_string())
+        };
+        let a = "stages:\n  - name: a\n    kind: test_arrays\n";
+        let error = load(&format!("{a}  - name: needs\n    kind: needs_arrays\n")).unwrap_err();
+        assert!(
+            error.contains(
+                "stage \"needs\" (kind needs_arrays): needs an input of kind test_arrays; it has no \
+                 inputs"
+            ),
+            "{error}"
+        );
+        load(&format!(
+            "{a}  - name: needs\n    kind: needs_arrays\n    inputs: [a]\n"
+        ))
+        .unwrap();
+        let two = format!(
+            "{a}  - name: b\n    kind: test_arrays\n  - name: needs\n    kind: needs_arrays\n    \
+             inputs: [a, b]\n"
+        );
+        let error = load(&two).unwrap_err();
+        assert!(
+            error.contains("has several inputs of kind test_arrays (a, b)"),
+            "{error}"
         );
     }
 

@@ -205,6 +205,33 @@ impl StageKind for EvalStage {
         &["train", "ingest", "fit", "motion"]
     }
 
+    fn check_inputs(
+        &self,
+        _config: &serde_json::Value,
+        inputs: &[seqavatar_engine::StageInput<'_>],
+    ) -> Result<(), String> {
+        seqavatar_engine::require_one_input_of_each(inputs, &["train", "ingest"])?;
+        // An avatar with skeleton-motion context renders from the motion entry.
+        let train = inputs
+            .iter()
+            .find(|input| input.kind == "train")
+            .expect("checked above");
+        let context =
+            serde_json::from_value::<seqavatar_train::config::TrainConfig>(train.config.clone())
+                .map(|config| config.motion_context)
+                .map_err(|e| format!("input {}: unreadable train config: {e}", train.name))?;
+        if context.has_skeleton_motion() {
+            seqavatar_engine::require_one_input_of_each(inputs, &["motion"]).map_err(|e| {
+                format!(
+                    "{e} (input {} trains with motion context {context:?}, which renders \
+                     from the motion entry)",
+                    train.name
+                )
+            })?;
+        }
+        Ok(())
+    }
+
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
         let resolved = seqavatar_engine::resolve_typed::<EvalConfig>(raw)?;
         let config: EvalConfig = serde_json::from_value(resolved.clone())

@@ -54,6 +54,67 @@ fn registry() -> Registry {
     registry
 }
 
+/// Inputs a stage will need are checked when the pipeline loads: an eval of an avatar
+/// with skeleton-motion context but no motion input (it failed after train had run), a
+/// train without motion.
+#[test]
+fn missing_inputs_are_found_when_the_pipeline_loads() {
+    let registry = registry();
+    let parse = |text: &str| {
+        Pipeline::parse(text, Path::new("test.yaml"), &registry, &[])
+            .map(|_| ())
+            .map_err(|e| e.to_string())
+    };
+    let multiscale = pipeline_text("").replace(
+        r#""motion_context": "none""#,
+        r#""motion_context": "multiscale""#,
+    );
+    parse(&multiscale).unwrap();
+    let eval_inputs = "inputs: [train, ingest, motion]";
+    assert!(multiscale.contains(eval_inputs));
+    let error = parse(&multiscale.replace(eval_inputs, "inputs: [train, ingest]")).unwrap_err();
+    assert!(
+        error.contains("stage \"eval\" (kind eval): needs an input of kind motion")
+            && error.contains("Multiscale"),
+        "{error}"
+    );
+    // An avatar without skeleton motion renders without the motion entry.
+    parse(&pipeline_text("").replace(eval_inputs, "inputs: [train, ingest]")).unwrap();
+    let train_inputs = "kind: train\n    inputs: [ingest, motion]";
+    assert!(multiscale.contains(train_inputs));
+    let error =
+        parse(&multiscale.replace(train_inputs, "kind: train\n    inputs: [ingest]")).unwrap_err();
+    assert!(
+        error.contains("stage \"train\" (kind train): needs an input of kind motion"),
+        "{error}"
+    );
+    // Config ranges are checked at load too, naming the field.
+    for (from, to, field) in [
+        ("frames: 4", "frames: 1000000000", "dataset.frames"),
+        ("cameras: 3", "cameras: 100000000", "dataset.cameras"),
+        (
+            r#""iterations": 40"#,
+            r#""iterations": 40, "tau": 4000000000"#,
+            "tau",
+        ),
+        (
+            r#""iterations": 40"#,
+            r#""iterations": 40, "trunk_width": 100000000"#,
+            "trunk_width",
+        ),
+        (
+            r#""checkpoint_every": 100"#,
+            r#""checkpoint_every": 0"#,
+            "checkpoint_every",
+        ),
+    ] {
+        let text = pipeline_text("");
+        assert!(text.contains(from), "{from}");
+        let error = parse(&text.replacen(from, to, 1)).unwrap_err();
+        assert!(error.contains(field), "{to}: {error}");
+    }
+}
+
 fn run_text(cache: &Path, text: &str, until: Option<&str>) -> anyhow::Result<Vec<StageReport>> {
     let registry = registry();
     let store = LocalStore::open(cache)?;

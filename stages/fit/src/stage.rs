@@ -302,6 +302,14 @@ impl StageKind for FitStage {
         &["ingest"]
     }
 
+    fn check_inputs(
+        &self,
+        _config: &serde_json::Value,
+        inputs: &[seqavatar_engine::StageInput<'_>],
+    ) -> Result<(), String> {
+        seqavatar_engine::require_one_input_of_each(inputs, &["ingest"])
+    }
+
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
         let resolved = seqavatar_engine::resolve_typed::<FitConfig>(raw)?;
         let config: FitConfig = serde_json::from_value(resolved.clone())

@@ -255,6 +255,55 @@ impl Default for IngestConfig {
     }
 }
 
+/// The most cameras a synthetic scene may have (the datasets have 10 to 60).
+pub const MAX_SYNTHETIC_CAMERAS: usize = 1024;
+/// The most frames a synthetic scene, or `past_frames`, may ask for.
+pub const MAX_FRAMES: usize = 100_000;
+
+impl IngestConfig {
+    /// Checks ranges when the pipeline loads (before any stage runs); errors name the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let key = |names: &[&str]| -> Vec<ConfigPathSegment> {
+            names
+                .iter()
+                .map(|n| ConfigPathSegment::Key((*n).to_owned()))
+                .collect()
+        };
+        if !(self.resolution_scale.is_finite()
+            && self.resolution_scale > 0.0
+            && self.resolution_scale <= 4.0)
+        {
+            return Err(ConfigError::at_key(
+                "resolution_scale",
+                format!("must be within (0, 4], got {}", self.resolution_scale),
+            ));
+        }
+        if self.past_frames > MAX_FRAMES {
+            return Err(ConfigError::at_key(
+                "past_frames",
+                format!("must be at most {MAX_FRAMES}, got {}", self.past_frames),
+            ));
+        }
+        if let DatasetConfig::Synthetic(scene) = &self.dataset {
+            for (name, value, max) in [
+                ("cameras", scene.cameras, MAX_SYNTHETIC_CAMERAS),
+                ("frames", scene.frames, MAX_FRAMES),
+            ] {
+                if value > max {
+                    return Err(ConfigError::new(
+                        key(&["dataset", name]),
+                        format!("must be at most {max}, got {value}"),
+                    ));
+                }
+            }
+            scene
+                .validate()
+                .map_err(|e| ConfigError::new(key(&["dataset"]), e.to_string()))?;
+        }
+        Ok(())
+    }
+}
+
 /// What the stage will ingest: resolved from a reader's default split and the overrides.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct IngestPlan {
@@ -471,6 +520,45 @@ mod tests {
         let err = IngestPlan::new(&bad, 2, 12, 0).unwrap_err().to_string();
         assert!(err.contains("split.train_frames.end"), "{err}");
     }
+
+    /// Values that passed validation and then aborted the run (issue 16) are refused when
+    /// the config resolves, naming the field.
+    #[test]
+    fn config_ranges_are_checked_at_load() {
+        use seqavatar_engine::StageKind;
+        let resolve = |raw: serde_json::Value| {
+            Ingest
+                .resolve_config(&raw)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        resolve(serde_json::json!({})).unwrap();
+        for (raw, field) in [
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "frames": 1_000_000_000u64}}),
+                "dataset.frames",
+            ),
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "cameras": 100_000_000u64}}),
+                "dataset.cameras",
+            ),
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "fps": -1.0}}),
+                "dataset",
+            ),
+            (
+                serde_json::json!({"resolution_scale": 0.0}),
+                "resolution_scale",
+            ),
+            (
+                serde_json::json!({"past_frames": 1_000_000_000u64}),
+                "past_frames",
+            ),
+        ] {
+            let err = resolve(raw.clone()).unwrap_err();
+            assert!(err.contains(field), "{raw} gave `{err}`");
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -481,14 +569,17 @@ use rayon::prelude::*;
 use seqavatar_core::body::BodyModelArrays;
 use seqavatar_core::glam::{DVec2, DVec3};
 use seqavatar_engine::{
-    ConfigError, EntryReader, EntryWriter, PictureKind, PictureOptions, StageContext, StageKind,
+    ConfigError, ConfigPathSegment, EntryReader, EntryWriter, PictureKind, PictureOptions,
+    StageContext, StageKind,
 };
 
 /// The `ingest` stage kind.
 pub struct Ingest;
 
 /// Implementation version: bump whenever the written arrays change for the same config.
-pub const INGEST_VERSION: u32 = 2;
+/// 3: images and masks decode strictly (a truncated JPEG was accepted with grey rows), so
+/// entries made by the lenient decoder are not served again.
+pub const INGEST_VERSION: u32 = 3;
 
 impl StageKind for Ingest {
     fn kind(&self) -> &'static str {
@@ -504,7 +595,11 @@ impl StageKind for Ingest {
     }
 
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        seqavatar_engine::resolve_typed::<IngestConfig>(raw)
+        let resolved = seqavatar_engine::resolve_typed::<IngestConfig>(raw)?;
+        let config: IngestConfig = serde_json::from_value(resolved.clone())
+            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+        config.validate()?;
+        Ok(resolved)
     }
 
     fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
@@ -520,13 +615,7 @@ impl StageKind for Ingest {
 
     fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let config: IngestConfig = ctx.config()?;
-        anyhow::ensure!(
-            config.resolution_scale.is_finite()
-                && config.resolution_scale > 0.0
-                && config.resolution_scale <= 4.0,
-            "resolution_scale must be within (0, 4], got {}",
-            config.resolution_scale
-        );
+        // Ranges were checked when the pipeline loaded (resolve_config).
         let reader = open_reader(&config)?;
         ctx.log(&format!("reading {}", reader.describe()));
         let split = config.split.apply(reader.default_split());

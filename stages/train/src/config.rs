@@ -94,6 +94,57 @@ pub struct LearningRates {
     pub adam_eps: f64,
 }
 
+impl LearningRates {
+    /// Rates are finite and >= 0, the decays in (0, 1] with at least one step, Adam's
+    /// epsilon finite and > 0.
+    fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, message: String| {
+            Err(ConfigError::Field {
+                field: format!("learning_rates.{field}"),
+                message,
+            })
+        };
+        for (name, value) in [
+            ("position_initial", self.position_initial),
+            ("position_final", self.position_final),
+            ("sh_dc", self.sh_dc),
+            ("sh_rest", self.sh_rest),
+            ("opacity", self.opacity),
+            ("scaling", self.scaling),
+            ("rotation", self.rotation),
+            ("pose_refiner", self.pose_refiner),
+            ("lbs_offsets", self.lbs_offsets),
+            ("non_rigid", self.non_rigid),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(name, format!("must be finite and >= 0, got {value}"));
+            }
+        }
+        if self.position_initial > 0.0 && self.position_final <= 0.0 {
+            return bad(
+                "position_final",
+                "must be > 0 when position_initial is (the decay is exponential)".into(),
+            );
+        }
+        if self.position_decay_steps == 0 {
+            return bad("position_decay_steps", "must be at least 1".into());
+        }
+        if !(self.network_decay > 0.0 && self.network_decay <= 1.0) {
+            return bad(
+                "network_decay",
+                format!("must be in (0, 1], got {}", self.network_decay),
+            );
+        }
+        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
+            return bad(
+                "adam_eps",
+                format!("must be finite and > 0, got {}", self.adam_eps),
+            );
+        }
+        Ok(())
+    }
+}
+
 impl Default for LearningRates {
     fn default() -> Self {
         Self {
@@ -113,6 +164,17 @@ impl Default for LearningRates {
         }
     }
 }
+
+/// Upper bounds of the network and batch sizes (far above the paper's settings; larger
+/// values would abort on allocation or run for days).
+pub const MAX_TRUNK_WIDTH: usize = 4096;
+pub const MAX_TRUNK_DEPTH: usize = 32;
+pub const MAX_TAU: usize = 64;
+pub const MAX_SEQUENCE_LENGTH: usize = 64;
+pub const MAX_GAUSSIANS: usize = 10_000_000;
+pub const MAX_CAMERAS_PER_STEP: usize = 256;
+pub const MAX_AIAP_NEIGHBOURS: usize = 64;
+pub const MAX_BOUND_PADDING: usize = 4096;
 
 /// The effective configuration of one training run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -308,6 +370,25 @@ impl TrainConfig {
         if self.motion_context.has_skeleton_motion() && self.sequence_length == 0 {
             return bad("sequence_length", "must be at least 1".into());
         }
+        // Upper bounds: far above the paper's settings, below what aborts.
+        for (name, value, max) in [
+            ("trunk_width", self.trunk_width, MAX_TRUNK_WIDTH),
+            ("trunk_depth", self.trunk_depth, MAX_TRUNK_DEPTH),
+            ("tau", self.tau, MAX_TAU),
+            ("sequence_length", self.sequence_length, MAX_SEQUENCE_LENGTH),
+            ("max_gaussians", self.max_gaussians, MAX_GAUSSIANS),
+            (
+                "cameras_per_step",
+                self.cameras_per_step,
+                MAX_CAMERAS_PER_STEP,
+            ),
+            ("aiap_neighbours", self.aiap_neighbours, MAX_AIAP_NEIGHBOURS),
+            ("bound_padding", self.bound_padding, MAX_BOUND_PADDING),
+        ] {
+            if value > max {
+                return bad(name, format!("must be at most {max}, got {value}"));
+            }
+        }
         if self.scales.contains(&0) {
             return bad("scales", "a temporal scale must be at least 1 frame".into());
         }
@@ -323,9 +404,31 @@ impl TrainConfig {
                 format!("must be 0..=3, got {}", self.sh_degree),
             );
         }
-        if self.sh_degree_interval == 0 || self.densify_interval == 0 || self.checkpoint_every == 0
-        {
-            return bad("sh_degree_interval", "intervals must be at least 1".into());
+        for (name, value) in [
+            ("sh_degree_interval", self.sh_degree_interval),
+            ("densify_interval", self.densify_interval),
+            ("checkpoint_every", self.checkpoint_every),
+        ] {
+            if value == 0 {
+                return bad(
+                    name,
+                    "must be at least 1 (an interval in iterations)".into(),
+                );
+            }
+        }
+        for (name, value) in [
+            ("densify_grad_threshold", self.densify_grad_threshold),
+            ("percent_dense", self.percent_dense),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(name, format!("must be finite and > 0, got {value}"));
+            }
+        }
+        if !(0.0..1.0).contains(&self.prune_opacity) {
+            return bad(
+                "prune_opacity",
+                format!("must be in [0, 1), got {}", self.prune_opacity),
+            );
         }
         if self.aiap_neighbours < 2 {
             return bad(
@@ -339,7 +442,8 @@ impl TrainConfig {
                 format!("must be finite and >= 0, got {}", self.non_rigid_head_init),
             );
         }
-        if !(self.scale_min > 0.0 && self.scale_max > self.scale_min) {
+        if !(self.scale_min > 0.0 && self.scale_max > self.scale_min && self.scale_max.is_finite())
+        {
             return bad("scale_min", "need 0 < scale_min < scale_max".into());
         }
         for (name, value) in [
@@ -366,7 +470,49 @@ impl TrainConfig {
         if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
             return bad("background", "components must be in [0, 1]".into());
         }
+        self.learning_rates.validate()?;
+        if let Some(machine) = seqavatar_engine::machine_memory_bytes() {
+            let estimate = self.memory_estimate_bytes();
+            if estimate > machine {
+                return bad(
+                    "max_gaussians",
+                    format!(
+                        "training would need at least {:.1} GB (max_gaussians {} x trunk \
+                         {}x{}, tau {}, sequence_length {}), more than this machine's {:.1} GB",
+                        estimate as f64 / 1e9,
+                        self.max_gaussians,
+                        self.trunk_width,
+                        self.trunk_depth,
+                        self.tau,
+                        self.sequence_length,
+                        machine as f64 / 1e9
+                    ),
+                );
+            }
+        }
         Ok(())
+    }
+
+    /// A lower bound of the memory a run allocates, in bytes: the Gaussians' parameters
+    /// with their gradients and Adam moments (59 values of 8 bytes, four copies), the
+    /// trunk's activations for every Gaussian (forward and backward, f32), its weights (f64,
+    /// four copies) and the velocity context (`tau` neighbours over the sequence).
+    pub fn memory_estimate_bytes(&self) -> u64 {
+        let gaussians = self.max_gaussians as u64;
+        let width = self.trunk_width as u64;
+        let depth = self.trunk_depth as u64;
+        let per_gaussian = 59 * 8 * 4
+            + width.saturating_mul(depth).saturating_mul(4 * 2)
+            + (self.tau as u64)
+                .saturating_mul(self.sequence_length as u64)
+                .saturating_mul(3 * 8);
+        let weights = width
+            .saturating_mul(width)
+            .saturating_mul(depth)
+            .saturating_mul(8 * 4);
+        gaussians
+            .saturating_mul(per_gaussian)
+            .saturating_add(weights)
     }
 
     /// Whether the LPIPS loss runs (a positive weight; validation ensures the weights file).
@@ -495,6 +641,31 @@ mod tests {
             (json!({"lpips_weights": 3}), "lpips_weights"),
             (json!({"preset": "slow"}), "preset"),
             (json!({"scale_min": 0.0}), "scale_min"),
+            // Values that passed validation and then aborted (issue 16).
+            (json!({"sequence_length": 100_000}), "sequence_length"),
+            (json!({"tau": 4_000_000_000u64}), "tau"),
+            (json!({"trunk_width": 100_000_000}), "trunk_width"),
+            (json!({"max_gaussians": 1_000_000_000}), "max_gaussians"),
+            (json!({"checkpoint_every": 0}), "checkpoint_every"),
+            (json!({"densify_interval": 0}), "densify_interval"),
+            (json!({"sh_degree_interval": 0}), "sh_degree_interval"),
+            (json!({"prune_opacity": 1.5}), "prune_opacity"),
+            (
+                json!({"learning_rates": {"opacity": -0.05}}),
+                "learning_rates.opacity",
+            ),
+            (
+                json!({"learning_rates": {"non_rigid": -1e-3}}),
+                "learning_rates.non_rigid",
+            ),
+            (
+                json!({"learning_rates": {"network_decay": 0.0}}),
+                "learning_rates.network_decay",
+            ),
+            (
+                json!({"learning_rates": {"adam_eps": 0.0}}),
+                "learning_rates.adam_eps",
+            ),
         ];
         for (raw, field) in cases {
             let err = TrainConfig::resolve(&raw).unwrap_err().to_string();
@@ -504,6 +675,25 @@ mod tests {
             TrainConfig::resolve(&json!([1])),
             Err(ConfigError::NotAMapping)
         );
+    }
+
+    #[test]
+    fn memory_estimate_counts_the_gaussians_and_the_trunk() {
+        let mut c = TrainConfig::preset(Preset::Fast);
+        let (gaussians, width, depth) = (20_000u64, 64u64, 3u64);
+        let per_gaussian = 59 * 32 + width * depth * 8 + 4 * 2 * 24;
+        assert_eq!(
+            c.memory_estimate_bytes(),
+            gaussians * per_gaussian + width * width * depth * 32
+        );
+        // Within the bounds, the estimate against the machine catches what would not fit.
+        c.max_gaussians = MAX_GAUSSIANS;
+        c.trunk_width = MAX_TRUNK_WIDTH;
+        assert!(c.memory_estimate_bytes() > 1 << 39);
+        if seqavatar_engine::machine_memory_bytes().is_some_and(|m| m < 1 << 39) {
+            let err = c.validate().unwrap_err().to_string();
+            assert!(err.contains("max_gaussians") && err.contains("GB"), "{err}");
+        }
     }
 
     #[test]

@@ -104,6 +104,14 @@ impl StageKind for TrainStage {
         &["ingest", "fit", "motion"]
     }
 
+    fn check_inputs(
+        &self,
+        _config: &serde_json::Value,
+        inputs: &[seqavatar_engine::StageInput<'_>],
+    ) -> Result<(), String> {
+        seqavatar_engine::require_one_input_of_each(inputs, &["ingest", "motion"])
+    }
+
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
         let config = TrainConfig::resolve(raw).map_err(|e| match e {
             crate::config::ConfigError::Field { field, message } => {

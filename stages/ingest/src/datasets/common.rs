@@ -1,13 +1,13 @@
 //! Helpers shared by the dataset readers: reading pickled/npy files with the file named in
-//! every error, typed field access that names the field, and image/mask decoding with size
-//! checks.
+//! every error, typed field access that names the field, and image/mask decoding (through
+//! [`crate::formats::images`]) with size checks.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use image::{GrayImage, RgbImage};
 
-use crate::formats::{Value, npy, pickle};
+use crate::formats::{Value, images, npy, pickle};
 
 /// Reads a whole file, naming it in the error.
 pub fn read_bytes(path: &Path) -> anyhow::Result<Vec<u8>> {
@@ -128,67 +128,30 @@ pub fn check_finite(values: &[f64], what: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Decodes an RGB image (JPEG or PNG by content), naming the file on failure.
-pub fn decode_rgb(bytes: &[u8], source: &str) -> anyhow::Result<RgbImage> {
-    let image = image::load_from_memory(bytes)
-        .with_context(|| format!("{source}: cannot decode the image (truncated or corrupt?)"))?;
-    Ok(image.to_rgb8())
+/// Decodes an RGB image (JPEG or PNG, sniffed from the content) of the size its camera is
+/// calibrated for, `(width, height)`; the size is checked from the header before decoding.
+/// Errors name `source`.
+pub fn decode_rgb(bytes: &[u8], source: &str, size: (u32, u32)) -> anyhow::Result<RgbImage> {
+    images::decode_rgb(bytes, Some(size))
+        .with_context(|| format!("{source}: cannot decode the image"))
 }
 
-/// Decodes a mask image: the maximum over its channels, scaled to 0..255 when the file
-/// stores labels 0/1 (`binary` = any non-zero value is foreground).
-pub fn decode_mask(bytes: &[u8], source: &str, binary: bool) -> anyhow::Result<GrayImage> {
-    let image = image::load_from_memory(bytes)
-        .with_context(|| format!("{source}: cannot decode the mask (truncated or corrupt?)"))?;
-    let rgba = image.to_rgba8();
-    let has_colour = image.color().has_color();
-    let (w, h) = rgba.dimensions();
-    let mut out = GrayImage::new(w, h);
-    for (o, p) in out.pixels_mut().zip(rgba.pixels()) {
-        let value = if has_colour {
-            p.0[0].max(p.0[1]).max(p.0[2])
-        } else {
-            p.0[0]
-        };
-        o.0[0] = if binary && value != 0 { 255 } else { value };
-    }
-    Ok(out)
-}
-
-/// Checks that a mask has the image's size.
-pub fn check_mask_size(mask: &GrayImage, rgb: &RgbImage, mask_source: &str) -> anyhow::Result<()> {
-    if mask.dimensions() != rgb.dimensions() {
-        bail!(
-            "{mask_source}: mask is {}x{} but its image is {}x{}",
-            mask.width(),
-            mask.height(),
-            rgb.width(),
-            rgb.height()
-        );
-    }
-    Ok(())
-}
-
-/// Checks that an image has the size its camera was calibrated for.
-pub fn check_image_size(
-    rgb: &RgbImage,
-    width: u32,
-    height: u32,
+/// Decodes a mask of its image's size `(width, height)` (see [`images::decode_mask`]):
+/// the maximum over its channels, scaled to 0..255 when the file stores labels 0/1
+/// (`binary` = any non-zero value is foreground). Errors name `source`.
+pub fn decode_mask(
+    bytes: &[u8],
     source: &str,
-) -> anyhow::Result<()> {
-    if rgb.dimensions() != (width, height) {
-        bail!(
-            "{source}: image is {}x{} but its camera is calibrated for {width}x{height}",
-            rgb.width(),
-            rgb.height()
-        );
-    }
-    Ok(())
+    binary: bool,
+    size: (u32, u32),
+) -> anyhow::Result<GrayImage> {
+    images::decode_mask(bytes, Some(size), binary)
+        .with_context(|| format!("{source}: cannot decode the mask"))
 }
 
-/// Image width and height from the file header only.
+/// Image width and height from the file's header (format sniffed from the content).
 pub fn image_size(path: &Path) -> anyhow::Result<(u32, u32)> {
-    image::image_dimensions(path)
+    images::dimensions(&read_bytes(path)?)
         .with_context(|| format!("{}: cannot read the image size", path.display()))
 }
 
@@ -246,6 +209,31 @@ mod tests {
         assert_eq!(trailing_number("000123"), Some(123));
         assert_eq!(trailing_number("abc"), None);
         assert_eq!(trailing_number("x99999999999999999999"), None);
+    }
+
+    /// Issue 12: PNG bytes named `.jpg` failed as "Format error decoding Jpeg"; issue 16:
+    /// a truncated image must be an error naming the file.
+    #[test]
+    fn images_are_read_by_content_and_errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("000000.jpg");
+        let rgb = RgbImage::from_fn(6, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 7]));
+        rgb.save_with_format(&path, image::ImageFormat::Png)
+            .unwrap();
+        assert_eq!(image_size(&path).unwrap(), (6, 4));
+        let bytes = read_bytes(&path).unwrap();
+        assert_eq!(decode_rgb(&bytes, "000000.jpg", (6, 4)).unwrap(), rgb);
+        let error =
+            decode_rgb(&bytes[..bytes.len() - 20], "Camera_B1/000000.jpg", (6, 4)).unwrap_err();
+        assert!(
+            format!("{error:#}").starts_with("Camera_B1/000000.jpg: cannot decode the image"),
+            "{error:#}"
+        );
+        let error = decode_mask(&bytes, "mask/000000.png", true, (8, 8)).unwrap_err();
+        assert!(
+            format!("{error:#}").contains("mask/000000.png"),
+            "{error:#}"
+        );
     }
 
     #[test]

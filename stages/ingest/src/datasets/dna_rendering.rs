@@ -29,9 +29,7 @@ use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::{DMat3, DVec3};
 
 use super::body_model::{ComponentLimits, load_body_model_npz};
-use super::common::{
-    check_finite, check_image_size, check_mask_size, decode_mask, decode_rgb, warn,
-};
+use super::common::{check_finite, decode_mask, decode_rgb, warn};
 use crate::formats::npz;
 use crate::stage::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
@@ -612,9 +610,8 @@ impl DatasetReader for DnaRendering {
         let image_path = format!("{color_path}/{frame}");
         let bytes = read_bytes(&color, &frame.to_string(), &self.main, &image_path)?;
         let source = format!("{} dataset `{image_path}`", self.main.display());
-        let rgb = decode_rgb(&bytes, &source)?;
         let camera = &self.cameras[view].camera;
-        check_image_size(&rgb, camera.width, camera.height, &source)?;
+        let rgb = decode_rgb(&bytes, &source, (camera.width, camera.height))?;
         let annotations = hdf5::File::open(&self.annotations)
             .with_context(|| h5_context(&self.annotations, "cannot open"))?;
         let mask_group_path = format!("Mask/{id}/mask");
@@ -627,8 +624,7 @@ impl DatasetReader for DnaRendering {
         let mask_path = format!("{mask_group_path}/{frame}");
         let mask_bytes = read_bytes(&masks, &frame.to_string(), &self.annotations, &mask_path)?;
         let mask_source = format!("{} dataset `{mask_path}`", self.annotations.display());
-        let mask = decode_mask(&mask_bytes, &mask_source, false)?;
-        check_mask_size(&mask, &rgb, &mask_source)?;
+        let mask = decode_mask(&mask_bytes, &mask_source, false, rgb.dimensions())?;
         Ok(SourceImage { rgb, mask })
     }
 }

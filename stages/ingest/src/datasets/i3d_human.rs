@@ -26,10 +26,7 @@ use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::{DMat3, DVec3};
 
 use super::body_model::{ComponentLimits, load_body_model_npz};
-use super::common::{
-    Field, check_image_size, check_mask_size, decode_mask, decode_rgb, image_size, read_bytes,
-    read_pickle, warn,
-};
+use super::common::{Field, decode_mask, decode_rgb, image_size, read_bytes, read_pickle, warn};
 use crate::formats::Value;
 use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
@@ -473,16 +470,23 @@ impl DatasetReader for I3dHuman {
             .join("images")
             .join(format!("{}.png", image.name));
         let source = image_path.display().to_string();
-        let rgb = decode_rgb(&read_bytes(&image_path)?, &source)?;
         let camera = &self.cameras[view].camera;
-        check_image_size(&rgb, camera.width, camera.height, &source)?;
+        let rgb = decode_rgb(
+            &read_bytes(&image_path)?,
+            &source,
+            (camera.width, camera.height),
+        )?;
         let mask_path = image
             .folder
             .join("masks")
             .join(format!("{}.png", image.name));
         let mask_source = mask_path.display().to_string();
-        let mask = decode_mask(&read_bytes(&mask_path)?, &mask_source, true)?;
-        check_mask_size(&mask, &rgb, &mask_source)?;
+        let mask = decode_mask(
+            &read_bytes(&mask_path)?,
+            &mask_source,
+            true,
+            rgb.dimensions(),
+        )?;
         Ok(SourceImage { rgb, mask })
     }
 }

@@ -22,8 +22,8 @@ use seqavatar_core::glam::{DMat3, DVec3};
 
 use super::body_model::{ComponentLimits, load_body_model_npz};
 use super::common::{
-    Field, check_image_size, check_mask_size, decode_mask, decode_rgb, image_size, join_relative,
-    read_bytes, read_npy, trailing_number,
+    Field, decode_mask, decode_rgb, image_size, join_relative, read_bytes, read_npy,
+    trailing_number,
 };
 use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
@@ -318,19 +318,16 @@ impl DatasetReader for ZjuMocap {
         let relative = &self.images[frame][view];
         let annots = self.root.join("annots.npy");
         let image_path = join_relative(&self.root, relative, &annots, "ims")?;
-        let rgb = decode_rgb(&read_bytes(&image_path)?, &image_path.display().to_string())?;
         let camera = &self.cameras[view].camera;
-        check_image_size(
-            &rgb,
-            camera.width,
-            camera.height,
+        let rgb = decode_rgb(
+            &read_bytes(&image_path)?,
             &image_path.display().to_string(),
+            (camera.width, camera.height),
         )?;
         let mask_path =
             join_relative(&self.mask_dir, relative, &annots, "ims")?.with_extension("png");
         let source = mask_path.display().to_string();
-        let mask = decode_mask(&read_bytes(&mask_path)?, &source, true)?;
-        check_mask_size(&mask, &rgb, &source)?;
+        let mask = decode_mask(&read_bytes(&mask_path)?, &source, true, rgb.dimensions())?;
         Ok(SourceImage { rgb, mask })
     }
 }

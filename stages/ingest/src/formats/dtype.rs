@@ -92,6 +92,20 @@ impl DType {
         }
     }
 
+    /// Bytes that [`DType::decode`] allocates for `count` elements (the widened element, or
+    /// a `String`/`Vec<u8>` header plus its text per string), `None` on overflow.
+    pub fn decoded_bytes(&self, count: usize) -> Option<usize> {
+        let per_element = match (self.kind, self.itemsize) {
+            (Kind::Bool, _) | (Kind::UInt, 1) => 1,
+            (Kind::Float, 2 | 4) => 4,
+            (Kind::Int | Kind::UInt | Kind::Float, _) => 8,
+            (Kind::Unicode, n) => std::mem::size_of::<String>() + n,
+            (Kind::Bytes, n) => std::mem::size_of::<Vec<u8>>() + n,
+            (Kind::Object, _) => std::mem::size_of::<super::value::Value>(),
+        };
+        count.checked_mul(per_element)
+    }
+
     /// Decodes `bytes` (exactly `count * itemsize` long) into typed elements.
     pub fn decode(&self, bytes: &[u8], count: usize) -> Result<ArrayData, String> {
         if self.kind == Kind::Object {
@@ -252,6 +266,57 @@ mod tests {
         );
         assert!(f.decode(&[0; 7], 1).is_err());
         assert!(f.decode(&[], usize::MAX).is_err());
+    }
+
+    /// The estimate the readers charge before decoding is what decoding really takes.
+    #[test]
+    fn decoded_bytes_match_the_decoded_vectors() {
+        let count = 5;
+        for (descr, expected) in [
+            ("|b1", count),
+            ("|u1", count),
+            ("<i2", 8 * count),
+            ("<u8", 8 * count),
+            ("<f2", 4 * count),
+            ("<f4", 4 * count),
+            ("<f8", 8 * count),
+            ("<U3", count * (std::mem::size_of::<String>() + 12)),
+            ("|S2", count * (std::mem::size_of::<Vec<u8>>() + 2)),
+        ] {
+            let dtype = DType::parse(descr).unwrap();
+            assert_eq!(dtype.decoded_bytes(count), Some(expected), "{descr}");
+            // The vector of a decode of non-empty elements has exactly this footprint
+            // (strings: header plus at most itemsize bytes of UTF-8).
+            let bytes = vec![b'a'; count * dtype.itemsize];
+            let bytes: Vec<u8> = if dtype.kind == Kind::Unicode {
+                bytes
+                    .chunks(4)
+                    .flat_map(|_| (b'a' as u32).to_le_bytes())
+                    .collect()
+            } else {
+                bytes
+            };
+            let data = dtype.decode(&bytes, count).unwrap();
+            let footprint = match &data {
+                ArrayData::Bool(v) => v.len(),
+                ArrayData::U8(v) => v.len(),
+                ArrayData::I64(v) => 8 * v.len(),
+                ArrayData::U64(v) => 8 * v.len(),
+                ArrayData::F32(v) => 4 * v.len(),
+                ArrayData::F64(v) => 8 * v.len(),
+                ArrayData::Str(v) => v
+                    .iter()
+                    .map(|s| std::mem::size_of::<String>() + s.len())
+                    .sum(),
+                ArrayData::Bytes(v) => v
+                    .iter()
+                    .map(|b| std::mem::size_of::<Vec<u8>>() + b.len())
+                    .sum(),
+                ArrayData::Object(_) => unreachable!(),
+            };
+            assert!(footprint <= expected, "{descr}: {footprint} > {expected}");
+        }
+        assert_eq!(DType::parse("|S1").unwrap().decoded_bytes(usize::MAX), None);
     }
 
     #[test]

@@ -2,8 +2,9 @@
 //! is a pickle read by the safe [`super::pickle`] reader.
 
 use super::dtype::{DType, Kind};
-use super::pickle::{self, PickleError, checked_product, numeric_array};
+use super::pickle::{self, ArrayError, PickleError, checked_product, numeric_array};
 use super::value::{ArrayData, Value};
+use super::{Budget, OverBudget};
 
 /// Why an `.npy` byte string was rejected.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -20,6 +21,8 @@ pub enum NpyError {
     Dtype(String),
     #[error("object array data: {0}")]
     Pickle(#[from] PickleError),
+    #[error("{0}")]
+    TooLarge(OverBudget),
     #[error("object array pickle holds {found}, but the header says shape {shape:?}")]
     ObjectMismatch { found: String, shape: Vec<usize> },
 }
@@ -36,11 +39,18 @@ pub struct NpyHeader {
 
 /// Reads an `.npy` file's bytes: a numeric array as [`Value::Array`], an object array as the
 /// array the pickle holds (use [`Value::unwrap_object_scalar`] for `np.save` of a dict).
+/// Decoded values may take [`super::decode_budget`] of the file's size.
 pub fn read(bytes: &[u8]) -> Result<Value, NpyError> {
+    read_within(bytes, &mut Budget::for_input(bytes.len()))
+}
+
+/// [`read`] with the decoded values charged to `budget` before they are allocated (an
+/// `.npz` archive shares one budget among its members).
+pub fn read_within(bytes: &[u8], budget: &mut Budget) -> Result<Value, NpyError> {
     let header = read_header(bytes)?;
     let data = &bytes[header.data_offset..];
     if header.dtype.kind == Kind::Object {
-        let value = pickle::load(data)?;
+        let (value, _) = pickle::load_prefix_within(data, budget)?;
         let matches = match &value {
             Value::Array(a) => a.shape == header.shape && matches!(a.data, ArrayData::Object(_)),
             _ => false,
@@ -72,8 +82,12 @@ pub fn read(bytes: &[u8]) -> Result<Value, NpyError> {
         header.shape,
         header.fortran_order,
         &data[..needed],
+        budget,
     )
-    .map_err(NpyError::Dtype)?;
+    .map_err(|e| match e {
+        ArrayError::Invalid(message) => NpyError::Dtype(message),
+        ArrayError::OverBudget(e) => NpyError::TooLarge(e),
+    })?;
     Ok(Value::Array(array))
 }
 

@@ -4,12 +4,17 @@
 //! The zip reader is ours (a few hundred lines) so it can be fuzzed with the rest: sizes come
 //! from the central directory and are checked against the archive length before any
 //! allocation; deflated members are inflated with a bound on the output and their CRC-32 is
-//! verified.
+//! verified. Members may not overlap, and what the archive inflates to and decodes to is
+//! charged to one [`Budget`] of the archive's size before it is allocated (limits: the
+//! [`super`] module docs).
 
+use std::borrow::Cow;
 use std::io::Read;
+use std::ops::Range;
 
 use super::npy::{self, NpyError};
 use super::value::Value;
+use super::{Budget, OverBudget};
 
 /// Why an `.npz` archive was rejected.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -20,6 +25,12 @@ pub enum NpzError {
     Corrupt(String),
     #[error("unsupported zip feature in member '{member}': {what}")]
     Unsupported { member: String, what: String },
+    #[error("member '{member}': {source}")]
+    TooLarge {
+        member: String,
+        #[source]
+        source: OverBudget,
+    },
     #[error("member '{member}': {source}")]
     Member {
         member: String,
@@ -41,12 +52,16 @@ pub struct ZipEntry {
 }
 
 /// Reads every array of an `.npz` archive, in archive order, named without the `.npy` suffix.
+/// The inflated members and their decoded arrays share one [`Budget`] of the archive's size
+/// (see [`super`]), and members may not overlap (one compressed stream listed many times).
 pub fn read(bytes: &[u8]) -> Result<Vec<(String, Value)>, NpzError> {
     let entries = list(bytes)?;
+    check_disjoint(bytes, &entries)?;
+    let mut budget = Budget::for_input(bytes.len());
     let mut out = Vec::with_capacity(entries.len());
     for entry in &entries {
-        let data = extract(bytes, entry)?;
-        let value = npy::read(&data).map_err(|source| NpzError::Member {
+        let data = extract_within(bytes, entry, &mut budget)?;
+        let value = npy::read_within(&data, &mut budget).map_err(|source| NpzError::Member {
             member: entry.name.clone(),
             source,
         })?;
@@ -192,16 +207,9 @@ pub fn list(bytes: &[u8]) -> Result<Vec<ZipEntry>, NpzError> {
     Ok(entries)
 }
 
-/// The uncompressed bytes of one member, with its CRC-32 checked.
-pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
+/// Where a member lies in the archive: its local header's offset and its data's range.
+fn member_span(bytes: &[u8], entry: &ZipEntry) -> Result<(usize, Range<usize>), NpzError> {
     const LOCAL: u32 = 0x0403_4b50;
-    let member = || entry.name.clone();
-    if entry.flags & 1 != 0 {
-        return Err(NpzError::Unsupported {
-            member: member(),
-            what: "encryption".into(),
-        });
-    }
     let local =
         usize::try_from(entry.local_header_offset).map_err(|_| corrupt("local header offset"))?;
     if u32_at(bytes, local) != Some(LOCAL) {
@@ -213,16 +221,60 @@ pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
     let name_len = usize::from(u16_at(bytes, local + 26).ok_or_else(|| corrupt("local header"))?);
     let extra_len = usize::from(u16_at(bytes, local + 28).ok_or_else(|| corrupt("local header"))?);
     let data_start = local + 30 + name_len + extra_len;
-    let compressed = usize::try_from(entry.compressed_size)
+    let data_end = usize::try_from(entry.compressed_size)
         .ok()
         .and_then(|n| data_start.checked_add(n))
-        .and_then(|end| bytes.get(data_start..end))
+        .filter(|&end| end <= bytes.len())
         .ok_or_else(|| {
             NpzError::Corrupt(format!(
                 "member '{}': {} compressed bytes run past the end of the archive",
                 entry.name, entry.compressed_size
             ))
         })?;
+    Ok((local, data_start..data_end))
+}
+
+/// Refuses archives whose members share bytes: a valid zip stores each member once, and
+/// a directory that lists one stream many times multiplies what inflating costs.
+fn check_disjoint(bytes: &[u8], entries: &[ZipEntry]) -> Result<(), NpzError> {
+    let mut spans = entries
+        .iter()
+        .map(|entry| Ok((member_span(bytes, entry)?, entry.name.as_str())))
+        .collect::<Result<Vec<_>, NpzError>>()?;
+    spans.sort_by_key(|((local, _), _)| *local);
+    for pair in spans.windows(2) {
+        let (((_, first), first_name), ((second_start, _), second_name)) = (&pair[0], &pair[1]);
+        if *second_start < first.end {
+            return Err(NpzError::Corrupt(format!(
+                "members '{first_name}' and '{second_name}' overlap"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The uncompressed bytes of one member, with its CRC-32 checked; inflating may take
+/// [`super::decode_budget`] of the archive's size.
+pub fn extract<'a>(bytes: &'a [u8], entry: &ZipEntry) -> Result<Cow<'a, [u8]>, NpzError> {
+    extract_within(bytes, entry, &mut Budget::for_input(bytes.len()))
+}
+
+/// [`extract`] with the inflated bytes charged to `budget` before they are allocated
+/// (stored members are borrowed, not copied).
+pub fn extract_within<'a>(
+    bytes: &'a [u8],
+    entry: &ZipEntry,
+    budget: &mut Budget,
+) -> Result<Cow<'a, [u8]>, NpzError> {
+    let member = || entry.name.clone();
+    if entry.flags & 1 != 0 {
+        return Err(NpzError::Unsupported {
+            member: member(),
+            what: "encryption".into(),
+        });
+    }
+    let (_, range) = member_span(bytes, entry)?;
+    let compressed = &bytes[range];
     let data = match entry.method {
         0 => {
             if entry.uncompressed_size != entry.compressed_size {
@@ -231,7 +283,7 @@ pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
                     entry.name
                 )));
             }
-            compressed.to_vec()
+            Cow::Borrowed(compressed)
         }
         8 => {
             // Deflate expands at most about 1032 times: a larger claim is corrupt, and the
@@ -248,6 +300,10 @@ pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
                 )));
             }
             let expected = entry.uncompressed_size as usize;
+            budget.charge(expected).map_err(|e| NpzError::TooLarge {
+                member: member(),
+                source: e,
+            })?;
             let mut out = Vec::with_capacity(expected.min(compressed.len().saturating_mul(8)));
             flate2::read::DeflateDecoder::new(compressed)
                 .take(entry.uncompressed_size + 1)
@@ -261,7 +317,7 @@ pub fn extract(bytes: &[u8], entry: &ZipEntry) -> Result<Vec<u8>, NpzError> {
                     expected
                 )));
             }
-            out
+            Cow::Owned(out)
         }
         other => {
             return Err(NpzError::Unsupported {

@@ -17,6 +17,7 @@ use std::collections::HashMap;
 
 use super::dtype::{DType, Kind};
 use super::value::{ArrayData, NpArray, Value};
+use super::{Budget, OverBudget};
 
 /// Why a pickle was rejected. Offsets are byte positions in the pickle stream.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -60,19 +61,27 @@ pub fn load(bytes: &[u8]) -> Result<Value, PickleError> {
 }
 
 /// Decodes one pickle from the start of `bytes`; also returns how many bytes it used.
+/// Decoded values may take [`super::decode_budget`] of the input's size.
 pub fn load_prefix(bytes: &[u8]) -> Result<(Value, usize), PickleError> {
-    let mut machine = Machine::new(bytes);
+    load_prefix_within(bytes, &mut Budget::for_input(bytes.len()))
+}
+
+/// [`load_prefix`] with the decoded values (the machine's arrays and the final tree) charged
+/// to `budget`, which an enclosing file (an `.npy` object array) shares.
+pub fn load_prefix_within(
+    bytes: &[u8],
+    budget: &mut Budget,
+) -> Result<(Value, usize), PickleError> {
+    let mut machine = Machine::new(bytes, budget.clone());
     let root = machine.run()?;
     let used = machine.pos;
-    // Budget: a legitimate pickle decodes to roughly its own size; allow generous sharing.
-    let limit = bytes.len().saturating_mul(64).saturating_add(1 << 20);
     let mut builder = Builder {
         arena: &machine.arena,
-        budget: limit,
-        limit,
+        budget: machine.budget.clone(),
         in_progress: vec![false; machine.arena.len()],
     };
     let value = builder.build(root, 0)?;
+    *budget = builder.budget;
     Ok((value, used))
 }
 
@@ -130,10 +139,12 @@ struct Machine<'a> {
     /// memoised large list passed to many calls would otherwise multiply memory.
     work_left: usize,
     work_limit: usize,
+    /// Bytes the machine's decoded arrays may take.
+    budget: Budget,
 }
 
 impl<'a> Machine<'a> {
-    fn new(input: &'a [u8]) -> Self {
+    fn new(input: &'a [u8], budget: Budget) -> Self {
         let work_limit = input.len().saturating_mul(64).saturating_add(1 << 20);
         Self {
             input,
@@ -145,6 +156,7 @@ impl<'a> Machine<'a> {
             memo: HashMap::new(),
             work_left: work_limit,
             work_limit,
+            budget,
         }
     }
 
@@ -223,6 +235,21 @@ impl<'a> Machine<'a> {
     fn text_line(&mut self, what: &'static str) -> Result<&'a str, PickleError> {
         let line = self.line(what)?;
         std::str::from_utf8(line).map_err(|_| self.malformed(format!("{what} is not text")))
+    }
+
+    /// The machine's own vectors (objects, stack, memo) may take half the budget: with
+    /// the decoded values (charged to the budget) the peak stays within twice the budget.
+    fn check_scratch(&self) -> Result<(), PickleError> {
+        use std::mem::size_of;
+        let scratch = self.arena.capacity() * size_of::<Obj>()
+            + (self.stack.capacity() + self.marks.capacity()) * size_of::<Id>()
+            + self.memo.capacity() * (size_of::<u64>() + size_of::<Id>());
+        if scratch > self.budget.limit() / 2 {
+            return Err(PickleError::TooLarge {
+                limit: self.budget.limit(),
+            });
+        }
+        Ok(())
     }
 
     fn alloc(&mut self, obj: Obj) -> Id {
@@ -304,6 +331,7 @@ impl<'a> Machine<'a> {
 
     fn run(&mut self) -> Result<Id, PickleError> {
         loop {
+            self.check_scratch()?;
             self.op_start = self.pos;
             let Some(&opcode) = self.input.get(self.pos) else {
                 return Err(PickleError::NoStop);
@@ -934,25 +962,46 @@ impl<'a> Machine<'a> {
     }
 
     fn numeric_array(
-        &self,
+        &mut self,
         dtype: &DType,
         shape: Vec<usize>,
         fortran: bool,
         bytes: &[u8],
     ) -> Result<NpArray, PickleError> {
-        numeric_array(dtype, shape, fortran, bytes).map_err(|m| self.malformed(m))
+        match numeric_array(dtype, shape, fortran, bytes, &mut self.budget) {
+            Ok(array) => Ok(array),
+            Err(ArrayError::OverBudget(OverBudget { limit })) => {
+                Err(PickleError::TooLarge { limit })
+            }
+            Err(ArrayError::Invalid(message)) => Err(self.malformed(message)),
+        }
     }
 }
 
-/// Builds a numeric array from raw bytes, checking the size before decoding.
+/// Why [`numeric_array`] refused.
+pub(crate) enum ArrayError {
+    Invalid(String),
+    OverBudget(OverBudget),
+}
+
+/// Builds a numeric array from raw bytes, checking the size and charging the decoded bytes
+/// (twice for a Fortran-order reorder, which copies) to `budget` before decoding.
 pub(crate) fn numeric_array(
     dtype: &DType,
     shape: Vec<usize>,
     fortran: bool,
     bytes: &[u8],
-) -> Result<NpArray, String> {
-    let count = checked_product(&shape).ok_or("array shape overflows")?;
-    let data = dtype.decode(bytes, count)?;
+    budget: &mut Budget,
+) -> Result<NpArray, ArrayError> {
+    let invalid = |m: &str| ArrayError::Invalid(m.to_owned());
+    let count = checked_product(&shape).ok_or_else(|| invalid("array shape overflows"))?;
+    let copies = if fortran && shape.len() > 1 { 2 } else { 1 };
+    let decoded = dtype
+        .decoded_bytes(count)
+        .and_then(|n| n.checked_mul(copies))
+        .ok_or_else(|| invalid("array shape overflows"))?;
+    budget.charge(decoded).map_err(ArrayError::OverBudget)?;
+    let data = dtype.decode(bytes, count).map_err(ArrayError::Invalid)?;
     let data = if fortran && shape.len() > 1 {
         reorder_fortran(data, &shape)
     } else {
@@ -1134,18 +1183,15 @@ enum KeyRepr {
 /// Turns arena objects into an owned [`Value`] tree within a size budget.
 struct Builder<'a> {
     arena: &'a [Obj],
-    budget: usize,
-    limit: usize,
+    budget: Budget,
     in_progress: Vec<bool>,
 }
 
 impl Builder<'_> {
     fn charge(&mut self, bytes: usize) -> Result<(), PickleError> {
-        self.budget = self
-            .budget
-            .checked_sub(bytes.max(1))
-            .ok_or(PickleError::TooLarge { limit: self.limit })?;
-        Ok(())
+        self.budget
+            .charge(bytes.max(1))
+            .map_err(|OverBudget { limit }| PickleError::TooLarge { limit })
     }
 
     fn build(&mut self, id: Id, depth: usize) -> Result<Value, PickleError> {
@@ -1199,12 +1245,7 @@ impl Builder<'_> {
                 Value::Dict(out)
             }
             Obj::NumArray(array) => {
-                let element = match &array.data {
-                    ArrayData::Bool(_) | ArrayData::U8(_) => 1,
-                    ArrayData::F32(_) => 4,
-                    _ => 8,
-                };
-                self.charge(array.len().saturating_mul(element))?;
+                self.charge(array.data.footprint())?;
                 Value::Array(array.clone())
             }
             Obj::ObjectArray { shape, items } => Value::Array(NpArray {

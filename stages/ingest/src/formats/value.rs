@@ -68,6 +68,23 @@ impl ArrayData {
         self.len() == 0
     }
 
+    /// Bytes the elements occupy (vector storage, and each string's header and text), what
+    /// a copy allocates; object elements count their `Value` headers only.
+    pub fn footprint(&self) -> usize {
+        use std::mem::size_of;
+        match self {
+            ArrayData::Bool(v) => v.len(),
+            ArrayData::U8(v) => v.len(),
+            ArrayData::I64(v) => 8 * v.len(),
+            ArrayData::U64(v) => 8 * v.len(),
+            ArrayData::F32(v) => 4 * v.len(),
+            ArrayData::F64(v) => 8 * v.len(),
+            ArrayData::Str(v) => v.iter().map(|s| size_of::<String>() + s.len()).sum(),
+            ArrayData::Bytes(v) => v.iter().map(|b| size_of::<Vec<u8>>() + b.len()).sum(),
+            ArrayData::Object(v) => size_of::<Value>() * v.len(),
+        }
+    }
+
     /// Elements as `f64` when the kind is numeric or boolean.
     pub fn to_f64(&self) -> Option<Vec<f64>> {
         Some(match self {
