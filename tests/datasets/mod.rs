@@ -1,5 +1,6 @@
 //! The dataset pipelines (`pipelines/{zju_mocap,i3d_human,dna_rendering}.yaml`) run on tiny
-//! datasets written in each real layout by `tests/fixtures/write_datasets.py` (numpy, h5py),
+//! datasets written in each real layout by `tests/fixtures/write_datasets.py` (numpy, h5py;
+//! committed in `tests/fixtures/data`),
 //! through the real binary and the committed YAML files, with the dataset roots given the
 //! way a user gives them: environment variables. Every stage of each pipeline is validated;
 //! ingest, fit and motion run (training would take hours at the datasets' settings), and
@@ -7,25 +8,32 @@
 //! `stages/ingest/tests/datasets.rs`; this checks the files users run.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use crate::support::Sandbox;
 
-/// Runs the fixture writer for `kind` into `out`.
+/// Copies the committed fixture `kind` (written by `tests/fixtures/write_datasets.py`, see
+/// `tests/fixtures/regenerate.py`) into `out`.
 fn write_fixture(kind: &str, out: &Path) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/write_datasets.py");
-    let output = Command::new("python3")
-        .arg(&script)
-        .arg(kind)
-        .arg(out)
-        .output()
-        .unwrap_or_else(|e| panic!("python3 {} ({e}): install Python 3", script.display()));
-    assert!(
-        output.status.success(),
-        "{} {kind} failed (it needs `pip install numpy h5py pillow`):\n{}",
-        script.display(),
-        String::from_utf8_lossy(&output.stderr)
+    copy_dir(
+        &Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/fixtures/data")
+            .join(kind),
+        out,
     );
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap_or_else(|e| panic!("{}: {e}", to.display()));
+    for entry in std::fs::read_dir(from).unwrap_or_else(|e| panic!("{}: {e}", from.display())) {
+        let entry = entry.expect("directory entry");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target)
+                .unwrap_or_else(|e| panic!("{}: {e}", entry.path().display()));
+        }
+    }
 }
 
 fn pipeline_file(name: &str) -> String {

@@ -1,6 +1,10 @@
 //! Shared remote cache tests: the real `pipeline` binary against a real S3-compatible server
 //! (moto, `python3 -m pip install 'moto[server]'`) on 127.0.0.1. Each test starts its own
 //! server on a free port and gives every simulated machine its own local cache folder.
+//!
+//! Without moto the tests print `skipped: no S3 test server` and pass, except under CI (`CI`
+//! set), where a missing moto is a failure: CI installs it and always runs them (the rule the
+//! gpu tests follow for a Vulkan adapter).
 
 use std::fs;
 use std::io::{Read as _, Write as _};
@@ -19,15 +23,23 @@ struct Moto {
 }
 
 impl Moto {
-    fn start() -> Self {
+    /// Starts a server, or `None` (after printing why) when moto is not installed and `CI`
+    /// is unset (module docs).
+    fn start() -> Option<Self> {
         let probe = Command::new("python3")
             .args(["-c", "import moto.server"])
             .output();
         match probe {
             Ok(output) if output.status.success() => {}
-            _ => panic!(
-                "the remote cache tests need moto's S3 server: python3 -m pip install 'moto[server]'"
+            _ if std::env::var_os("CI").is_some() => panic!(
+                "CI is set but moto's S3 server is missing: python3 -m pip install 'moto[server]'"
             ),
+            _ => {
+                eprintln!(
+                    "skipped: no S3 test server (python3 -m pip install 'moto[server]' runs these)"
+                );
+                return None;
+            }
         }
         let port = TcpListener::bind("127.0.0.1:0")
             .and_then(|listener| listener.local_addr())
@@ -60,7 +72,7 @@ impl Moto {
             );
             std::thread::sleep(Duration::from_millis(200));
         }
-        moto
+        Some(moto)
     }
 
     fn endpoint(&self) -> String {
@@ -186,13 +198,14 @@ struct Cluster {
 }
 
 impl Cluster {
-    fn new(lease_timeout_s: f64) -> Self {
-        Self {
+    /// `None` when the test is skipped ([`Moto::start`]).
+    fn new(lease_timeout_s: f64) -> Option<Self> {
+        Some(Self {
             dir: tempfile::tempdir().expect("temporary folder"),
-            moto: Moto::start(),
+            moto: Moto::start()?,
             lease_timeout_s,
             extra_env: vec![],
-        }
+        })
     }
 
     fn path(&self) -> &Path {
@@ -314,7 +327,9 @@ fn two_stages(sleep_ms: u64) -> String {
 
 #[test]
 fn two_machines_compute_each_stage_once_then_status_inspect_gc() {
-    let cluster = Cluster::new(10.0);
+    let Some(cluster) = Cluster::new(10.0) else {
+        return;
+    };
     cluster.write("p.yaml", &two_stages(1500));
     let first = cluster.spawn("m1", &["run", "p.yaml"]);
     let second = cluster.spawn("m2", &["run", "p.yaml"]);
@@ -389,7 +404,9 @@ fn two_machines_compute_each_stage_once_then_status_inspect_gc() {
 
 #[test]
 fn killed_lease_holder_is_taken_over_after_the_timeout() {
-    let cluster = Cluster::new(1.5);
+    let Some(cluster) = Cluster::new(1.5) else {
+        return;
+    };
     cluster.write("p.yaml", &two_stages(3000));
     let mut holder = cluster.spawn("m1", &["run", "p.yaml", "--until", "a"]);
     cluster.wait_for_lines("count.txt", 1);
@@ -411,7 +428,9 @@ fn killed_lease_holder_is_taken_over_after_the_timeout() {
 
 #[test]
 fn entry_without_completion_marker_is_never_read() {
-    let cluster = Cluster::new(5.0);
+    let Some(cluster) = Cluster::new(5.0) else {
+        return;
+    };
     cluster.write("p.yaml", &two_stages(0));
     cluster.ok("m1", &["run", "p.yaml", "--until", "a"]);
     assert_eq!(cluster.count_lines("count.txt"), 1);
@@ -431,7 +450,9 @@ fn entry_without_completion_marker_is_never_read() {
 
 #[test]
 fn wrong_checksum_in_a_remote_chunk_is_detected() {
-    let cluster = Cluster::new(5.0);
+    let Some(cluster) = Cluster::new(5.0) else {
+        return;
+    };
     cluster.write("p.yaml", &two_stages(0));
     cluster.ok("m1", &["run", "p.yaml", "--until", "a"]);
     let key = cluster.key_of("p.yaml", "a");
@@ -457,7 +478,9 @@ fn wrong_checksum_in_a_remote_chunk_is_detected() {
 
 #[test]
 fn server_stopped_mid_run_gives_a_clear_error_then_the_upload_is_retried() {
-    let mut cluster = Cluster::new(2.0);
+    let Some(mut cluster) = Cluster::new(2.0) else {
+        return;
+    };
     cluster.extra_env = vec![
         ("SEQAVATAR_S3_TIMEOUT_S".into(), "1".into()),
         ("SEQAVATAR_S3_RETRY_TIMEOUT_S".into(), "2".into()),

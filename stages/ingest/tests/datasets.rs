@@ -12,6 +12,7 @@ use seqavatar_core::glam::DVec3;
 use seqavatar_ingest::datasets::body_model::{ComponentLimits, load_body_model_npz};
 use seqavatar_ingest::datasets::dna_rendering::DnaRendering;
 use seqavatar_ingest::datasets::i3d_human::I3dHuman;
+use seqavatar_ingest::datasets::smc::SmcFile;
 use seqavatar_ingest::datasets::zju_mocap::ZjuMocap;
 use seqavatar_ingest::formats::{ArrayData, Value, npy};
 use seqavatar_ingest::stage::{BodyModelKind, DatasetReader, SourceCamera};
@@ -165,7 +166,7 @@ fn zju_mocap_reads_cameras_images_masks_and_fits() {
             npy::read(&std::fs::read(root.join(format!("new_vertices/{frame}.npy"))).unwrap())
                 .unwrap();
         let (shape, want) = vertices.to_f64_array().unwrap();
-        assert_eq!(shape, vec![30, 3]);
+        assert_eq!(shape, vec![8, 3]);
         let got: Vec<f64> = posed.vertices.iter().flat_map(|v| v.to_array()).collect();
         assert_close(&got, &want, 1e-9, "world vertices");
     }
@@ -483,4 +484,111 @@ fn body_model_npz_loads_smpl_and_smplx() {
             &format!("{kind} vertices"),
         );
     }
+}
+
+/// Every file under `dir` (recursively), as `/`-separated paths relative to `root`.
+fn files_under(root: &Path, dir: &Path, out: &mut Vec<String>) {
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let entry = entry.unwrap();
+        if entry.file_type().unwrap().is_dir() {
+            files_under(root, &entry.path(), out);
+        } else {
+            let relative = entry.path().strip_prefix(root).unwrap().to_owned();
+            let parts: Vec<String> = relative
+                .components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect();
+            out.push(parts.join("/"));
+        }
+    }
+}
+
+/// The committed fixtures are exactly what `tests/fixtures/regenerate.py` wrote: the same
+/// files, each with the recorded size and blake3 digest, every `.npy` with the recorded
+/// shape and dtype, every `.smc` with the recorded datasets (shape and dtype, read with our
+/// HDF5 reader). Regenerate with `python3 tests/fixtures/regenerate.py`.
+#[test]
+fn fixture_manifest() {
+    let root = support::fixture_data_dir();
+    let manifest = read_json(&root.join("MANIFEST.json"));
+    let entries = manifest["files"].as_array().expect("files");
+    let mut listed: Vec<String> = entries
+        .iter()
+        .map(|e| e["path"].as_str().unwrap().to_owned())
+        .collect();
+    let mut present = Vec::new();
+    files_under(&root, &root, &mut present);
+    present.retain(|p| p != "MANIFEST.json");
+    listed.sort();
+    present.sort();
+    assert_eq!(
+        present, listed,
+        "tests/fixtures/data differs from MANIFEST.json: run `python3 tests/fixtures/regenerate.py`"
+    );
+    let mut total = 0;
+    for entry in entries {
+        let path = entry["path"].as_str().unwrap();
+        let bytes = std::fs::read(root.join(path)).unwrap();
+        total += bytes.len() as u64;
+        assert_eq!(
+            bytes.len() as u64,
+            entry["bytes"].as_u64().unwrap(),
+            "{path}: size"
+        );
+        assert_eq!(
+            blake3::hash(&bytes).to_hex().as_str(),
+            entry["blake3"].as_str().unwrap(),
+            "{path}: digest (edited by hand? regenerate with `python3 tests/fixtures/regenerate.py`)"
+        );
+        if path.ends_with(".npy") {
+            let header = npy::read_header(&bytes).unwrap_or_else(|e| panic!("{path}: {e}"));
+            let shape: Vec<usize> = entry["shape"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|d| d.as_u64().unwrap() as usize)
+                .collect();
+            assert_eq!(header.shape, shape, "{path}: shape");
+            assert_eq!(
+                header.dtype.descr(),
+                entry["dtype"].as_str().unwrap(),
+                "{path}: dtype"
+            );
+        }
+        if path.ends_with(".smc") {
+            let file = SmcFile::open(&root.join(path)).unwrap();
+            let want = entry["datasets"].as_object().unwrap();
+            let mut got = Vec::new();
+            file.walk(
+                |_| Ok(()),
+                |dataset| {
+                    got.push(dataset.to_owned());
+                    Ok(())
+                },
+            )
+            .unwrap();
+            got.sort();
+            let mut names: Vec<String> = want.keys().cloned().collect();
+            names.sort();
+            assert_eq!(got, names, "{path}: datasets");
+            for (dataset, info) in want {
+                let (shape, dtype) = file.dataset_info(dataset).unwrap();
+                let want_shape: Vec<u64> = info[0]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|d| d.as_u64().unwrap())
+                    .collect();
+                assert_eq!(shape, want_shape, "{path} `{dataset}`: shape");
+                assert_eq!(
+                    dtype,
+                    info[1].as_str().unwrap(),
+                    "{path} `{dataset}`: dtype"
+                );
+            }
+        }
+    }
+    assert_eq!(total, manifest["total_bytes"].as_u64().unwrap());
+    // Small enough to commit: well under 1 MB in all.
+    assert!(total < 800_000, "fixtures total {total} bytes");
 }

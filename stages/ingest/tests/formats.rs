@@ -141,10 +141,9 @@ fn decode(path: &Path) -> Value {
     }
 }
 
+/// The committed cases written by `tests/fixtures/write_format_cases.py`.
 fn write_cases() -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
-    support::run_python("write_format_cases.py", &[dir.path().to_str().unwrap()]);
-    dir
+    support::dataset_fixture("formats")
 }
 
 #[test]

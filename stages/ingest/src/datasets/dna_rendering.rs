@@ -1,5 +1,6 @@
 //! DNA-Rendering takes: a main `.smc` (HDF5) with JPEG-encoded images and an annotation
-//! `.smc` with cameras, masks and SMPL-X fits (layout in `datasets.md`).
+//! `.smc` with cameras, masks and SMPL-X fits (layout in `datasets.md`), read with the
+//! pure-Rust [`super::smc`] reader (size limits, strict UTF-8: see there).
 //!
 //! Conventions converted here:
 //! - `Camera_Parameter/<NN>/RT` is camera-to-world: the world-to-camera rotation is `R^T`
@@ -30,6 +31,7 @@ use seqavatar_core::glam::{DMat3, DVec3};
 
 use super::body_model::{ComponentLimits, load_body_model_npz};
 use super::common::{check_finite, decode_mask, decode_rgb, warn};
+use super::smc::SmcFile;
 use crate::formats::npz;
 use crate::stage::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
@@ -42,6 +44,8 @@ const CAMERA_GROUPS: [&str; 2] = ["Camera_5mp", "Camera_12mp"];
 pub struct DnaRendering {
     main: PathBuf,
     annotations: PathBuf,
+    main_file: SmcFile,
+    annot_file: SmcFile,
     cameras: Vec<SourceCamera>,
     /// Per camera: the main-file group holding its images.
     camera_groups: Vec<&'static str>,
@@ -78,40 +82,11 @@ fn h5_context(file: &Path, what: &str) -> String {
     format!("{}: {what}", file.display())
 }
 
-fn read_f64s(
-    group: &hdf5::Group,
-    name: &str,
-    file: &Path,
-    path: &str,
-) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
-    let dataset = group
-        .dataset(name)
-        .with_context(|| h5_context(file, &format!("missing dataset `{path}`")))?;
-    let values: Vec<f64> = dataset
-        .read_raw()
-        .with_context(|| h5_context(file, &format!("dataset `{path}` is not numeric")))?;
-    check_finite(&values, &h5_context(file, &format!("dataset `{path}`")))?;
-    Ok((dataset.shape(), values))
-}
-
-fn read_bytes(group: &hdf5::Group, name: &str, file: &Path, path: &str) -> anyhow::Result<Vec<u8>> {
-    let dataset = group
-        .dataset(name)
-        .with_context(|| h5_context(file, &format!("missing dataset `{path}`")))?;
-    dataset
-        .read_raw::<u8>()
-        .with_context(|| h5_context(file, &format!("dataset `{path}` is not a byte array")))
-}
-
-fn read_string_attr(location: &hdf5::Location, name: &str) -> Option<String> {
-    let attr = location.attr(name).ok()?;
-    if let Ok(s) = attr.read_scalar::<hdf5::types::VarLenUnicode>() {
-        return Some(s.as_str().to_owned());
-    }
-    if let Ok(s) = attr.read_scalar::<hdf5::types::VarLenAscii>() {
-        return Some(s.as_str().to_owned());
-    }
-    None
+/// A numeric dataset, checked finite.
+fn read_f64s(file: &SmcFile, path: &str) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+    let (shape, values) = file.read_f64s(path)?;
+    check_finite(&values, &file.context(&format!("dataset `{path}`")))?;
+    Ok((shape, values))
 }
 
 /// Rows of a per-frame array: `rows` values each, broadcast or truncated to `frames` rows.
@@ -240,19 +215,13 @@ impl DnaRendering {
                 })?
             }
         };
-        let main_file = hdf5::File::open(main)
-            .with_context(|| h5_context(main, "cannot open as HDF5 (.smc)"))?;
-        let annot_file = hdf5::File::open(&annotations)
-            .with_context(|| h5_context(&annotations, "cannot open as HDF5 (.smc)"))?;
-        let gender = read_string_attr(&main_file, "gender");
+        let main_file = SmcFile::open(main)?;
+        let annot_file = SmcFile::open(&annotations)?;
+        let gender = main_file.string_attr("", "gender")?;
 
         // Cameras: every calibrated camera that has images in the main file.
-        let parameters = annot_file
-            .group("Camera_Parameter")
-            .with_context(|| h5_context(&annotations, "missing group `Camera_Parameter`"))?;
-        let mut ids: Vec<(i64, String)> = parameters
-            .member_names()
-            .with_context(|| h5_context(&annotations, "cannot list `Camera_Parameter`"))?
+        let mut ids: Vec<(i64, String)> = annot_file
+            .members("Camera_Parameter")?
             .into_iter()
             .filter_map(|name| name.parse::<i64>().ok().map(|id| (id, name)))
             .collect();
@@ -261,12 +230,14 @@ impl DnaRendering {
         let mut camera_groups = Vec::new();
         let mut num_frames: Option<usize> = None;
         for (id, key) in ids {
-            let Some(group_name) = CAMERA_GROUPS.into_iter().find(|g| {
-                main_file
-                    .group(g)
-                    .map(|group| group.link_exists(&id.to_string()))
-                    .unwrap_or(false)
-            }) else {
+            let mut found = None;
+            for group_name in CAMERA_GROUPS {
+                if main_file.has_group(&format!("{group_name}/{id}"))? {
+                    found = Some(group_name);
+                    break;
+                }
+            }
+            let Some(group_name) = found else {
                 warn(
                     &mut warnings,
                     format!(
@@ -277,14 +248,12 @@ impl DnaRendering {
                 );
                 continue;
             };
-            let group = main_file.group(group_name)?;
-            let resolution: Vec<i64> = group
-                .attr("resolution")
-                .and_then(|a| a.read_raw())
+            let resolution = main_file
+                .f64s_attr(group_name, "resolution")?
                 .with_context(|| {
                     h5_context(
                         main,
-                        &format!("group `{group_name}` attribute `resolution`"),
+                        &format!("group `{group_name}` has no attribute `resolution`"),
                     )
                 })?;
             let [height, width] = resolution[..] else {
@@ -298,28 +267,29 @@ impl DnaRendering {
                     )
                 );
             };
-            let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
+            let pixels = |v: f64| {
+                (v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v)).then_some(v as u32)
+            };
+            let (Some(width), Some(height)) = (pixels(width), pixels(height)) else {
                 bail!(
                     "{}",
                     h5_context(
                         main,
-                        &format!("group `{group_name}` attribute `resolution` is negative")
+                        &format!(
+                            "group `{group_name}` attribute `resolution` {resolution:?} is not \
+                             two pixel counts"
+                        )
                     )
                 );
             };
-            let frames = group
-                .group(&format!("{id}/color"))
-                .and_then(|g| g.member_names())
-                .with_context(|| {
-                    h5_context(main, &format!("missing group `{group_name}/{id}/color`"))
-                })?
+            let frames = main_file
+                .members(&format!("{group_name}/{id}/color"))?
                 .len();
             num_frames = Some(num_frames.map_or(frames, |n| n.min(frames)));
-            let camera_group = parameters.group(&key)?;
             let prefix = format!("Camera_Parameter/{key}");
-            let (_, k) = read_f64s(&camera_group, "K", &annotations, &format!("{prefix}/K"))?;
-            let (_, d) = read_f64s(&camera_group, "D", &annotations, &format!("{prefix}/D"))?;
-            let (_, rt) = read_f64s(&camera_group, "RT", &annotations, &format!("{prefix}/RT"))?;
+            let (_, k) = read_f64s(&annot_file, &format!("{prefix}/K"))?;
+            let (_, d) = read_f64s(&annot_file, &format!("{prefix}/D"))?;
+            let (_, rt) = read_f64s(&annot_file, &format!("{prefix}/RT"))?;
             if k.len() != 9 || rt.len() != 16 || d.len() < 4 || d.len() > 5 {
                 bail!(
                     "{}",
@@ -364,13 +334,16 @@ impl DnaRendering {
         }
 
         // SMPL-X fits.
-        let smplx = annot_file.group("SMPLx").with_context(|| {
-            h5_context(
-                &annotations,
-                "missing group `SMPLx` (fits exist for parts 1 and 2 only)",
-            )
-        })?;
-        let (pose_shape, fullpose) = read_f64s(&smplx, "fullpose", &annotations, "SMPLx/fullpose")?;
+        if !annot_file.has_group("SMPLx")? {
+            bail!(
+                "{}",
+                h5_context(
+                    &annotations,
+                    "missing group `SMPLx` (fits exist for parts 1 and 2 only)",
+                )
+            );
+        }
+        let (pose_shape, fullpose) = read_f64s(&annot_file, "SMPLx/fullpose")?;
         if fullpose.len() % 165 != 0 {
             bail!(
                 "{}",
@@ -395,7 +368,7 @@ impl DnaRendering {
             );
         }
         let file_what = |path: &str| format!("{} dataset `{path}`", annotations.display());
-        let (transl_shape, transl) = read_f64s(&smplx, "transl", &annotations, "SMPLx/transl")?;
+        let (transl_shape, transl) = read_f64s(&annot_file, "SMPLx/transl")?;
         if transl.len() / 3 < num_frames || transl.len() % 3 != 0 {
             bail!(
                 "{}",
@@ -407,7 +380,7 @@ impl DnaRendering {
                 )
             );
         }
-        let (betas_shape, betas) = read_f64s(&smplx, "betas", &annotations, "SMPLx/betas")?;
+        let (betas_shape, betas) = read_f64s(&annot_file, "SMPLx/betas")?;
         let beta_width = *betas_shape.last().unwrap_or(&0);
         let betas = per_frame(
             betas,
@@ -417,9 +390,8 @@ impl DnaRendering {
             &file_what("SMPLx/betas"),
             &mut warnings,
         )?;
-        let expression = if smplx.link_exists("expression") {
-            let (shape, values) =
-                read_f64s(&smplx, "expression", &annotations, "SMPLx/expression")?;
+        let expression = if annot_file.has_dataset("SMPLx/expression")? {
+            let (shape, values) = read_f64s(&annot_file, "SMPLx/expression")?;
             let width = *shape.last().unwrap_or(&0);
             per_frame(
                 values,
@@ -432,8 +404,8 @@ impl DnaRendering {
         } else {
             vec![Vec::new(); num_frames]
         };
-        if smplx.link_exists("scale") {
-            let (_, scale) = read_f64s(&smplx, "scale", &annotations, "SMPLx/scale")?;
+        if annot_file.has_dataset("SMPLx/scale")? {
+            let (_, scale) = read_f64s(&annot_file, "SMPLx/scale")?;
             if scale.iter().any(|s| (s - 1.0).abs() > 1e-6) {
                 warn(
                     &mut warnings,
@@ -456,22 +428,11 @@ impl DnaRendering {
                 world_translation: DVec3::new(transl[3 * f], transl[3 * f + 1], transl[3 * f + 2]),
             })
             .collect();
-        let keypoints = if annot_file.link_exists("Keypoints_3D")
-            && annot_file
-                .group("Keypoints_3D")
-                .is_ok_and(|g| g.link_exists("keypoints3d"))
-        {
-            let dataset = annot_file
-                .dataset("Keypoints_3D/keypoints3d")
-                .with_context(|| h5_context(&annotations, "dataset `Keypoints_3D/keypoints3d`"))?;
-            let values: Vec<f64> = dataset.read_raw().with_context(|| {
-                h5_context(
-                    &annotations,
-                    "dataset `Keypoints_3D/keypoints3d` is not numeric",
-                )
-            })?;
+        let keypoints = if annot_file.has_dataset("Keypoints_3D/keypoints3d")? {
+            // Not checked finite: a missing keypoint is NaN (module docs).
+            let (shape, values) = annot_file.read_f64s("Keypoints_3D/keypoints3d")?;
             Some(parse_keypoints(
-                &dataset.shape(),
+                &shape,
                 &values,
                 num_frames,
                 &file_what("Keypoints_3D/keypoints3d"),
@@ -504,6 +465,8 @@ impl DnaRendering {
         Ok(Self {
             main: main.to_owned(),
             annotations,
+            main_file,
+            annot_file,
             cameras,
             camera_groups,
             num_frames,
@@ -601,28 +564,13 @@ impl DatasetReader for DnaRendering {
 
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
         let id = self.cameras[view].id;
-        let main =
-            hdf5::File::open(&self.main).with_context(|| h5_context(&self.main, "cannot open"))?;
-        let color_path = format!("{}/{id}/color", self.camera_groups[view]);
-        let color = main
-            .group(&color_path)
-            .with_context(|| h5_context(&self.main, &format!("missing group `{color_path}`")))?;
-        let image_path = format!("{color_path}/{frame}");
-        let bytes = read_bytes(&color, &frame.to_string(), &self.main, &image_path)?;
+        let image_path = format!("{}/{id}/color/{frame}", self.camera_groups[view]);
+        let bytes = self.main_file.read_bytes(&image_path)?;
         let source = format!("{} dataset `{image_path}`", self.main.display());
         let camera = &self.cameras[view].camera;
         let rgb = decode_rgb(&bytes, &source, (camera.width, camera.height))?;
-        let annotations = hdf5::File::open(&self.annotations)
-            .with_context(|| h5_context(&self.annotations, "cannot open"))?;
-        let mask_group_path = format!("Mask/{id}/mask");
-        let masks = annotations.group(&mask_group_path).with_context(|| {
-            h5_context(
-                &self.annotations,
-                &format!("missing group `{mask_group_path}`"),
-            )
-        })?;
-        let mask_path = format!("{mask_group_path}/{frame}");
-        let mask_bytes = read_bytes(&masks, &frame.to_string(), &self.annotations, &mask_path)?;
+        let mask_path = format!("Mask/{id}/mask/{frame}");
+        let mask_bytes = self.annot_file.read_bytes(&mask_path)?;
         let mask_source = format!("{} dataset `{mask_path}`", self.annotations.display());
         let mask = decode_mask(&mask_bytes, &mask_source, false, rgb.dimensions())?;
         Ok(SourceImage { rgb, mask })

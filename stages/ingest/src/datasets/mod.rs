@@ -7,6 +7,7 @@ pub mod body_model;
 pub mod common;
 pub mod dna_rendering;
 pub mod i3d_human;
+pub mod smc;
 pub mod zju_mocap;
 
 use crate::stage::{DatasetConfig, DatasetReader, IngestConfig};

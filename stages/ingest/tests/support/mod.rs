@@ -1,50 +1,41 @@
-//! Shared helpers of the ingest tests: running the Python fixture writers and reading their
-//! expectations.
+//! Shared helpers of the ingest tests: copies of the committed fixtures (written once by the
+//! real writers, `python3 tests/fixtures/regenerate.py`; the tests never run Python) and
+//! their expectations.
 
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 /// The repository's `tests/fixtures` folder.
 pub fn fixtures_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures")
 }
 
-/// Runs `python3 tests/fixtures/<script> <args...>`; fails the test with an install hint when
-/// Python or one of its packages is missing.
-pub fn run_python(script: &str, args: &[&str]) {
-    let script_path = fixtures_dir().join(script);
-    let output = Command::new("python3")
-        .arg(&script_path)
-        .args(args)
-        .output()
-        .unwrap_or_else(|e| {
-            panic!(
-                "these tests write their fixtures with python3 ({e}); install Python 3 with \
-                 `pip install numpy h5py pillow`"
-            )
-        });
-    if !output.status.success() {
-        let stderr = String::from_utf8_lossy(&output.stderr);
-        if stderr.contains("ModuleNotFoundError") || stderr.contains("ImportError") {
-            panic!(
-                "the fixture writer {} needs numpy, h5py and pillow: `pip install numpy h5py \
-                 pillow`\n{stderr}",
-                script_path.display()
-            );
+/// The committed fixtures, `tests/fixtures/data`.
+pub fn fixture_data_dir() -> PathBuf {
+    fixtures_dir().join("data")
+}
+
+/// Copies the folder `from` into `to` (created), recursively.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap_or_else(|e| panic!("{}: {e}", to.display()));
+    for entry in std::fs::read_dir(from).unwrap_or_else(|e| panic!("{}: {e}", from.display())) {
+        let entry = entry.expect("directory entry");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target)
+                .unwrap_or_else(|e| panic!("{}: {e}", entry.path().display()));
         }
-        panic!("fixture writer {} failed:\n{stderr}", script_path.display());
     }
 }
 
-/// Writes a dataset fixture (`zju`, `i3d`, `dna`, `smpl`, `smplx`) into a fresh temp dir.
+/// A fresh temp dir holding a copy of the committed fixture `kind` (`zju`, `i3d`, `dna`,
+/// `smpl`, `smplx`, `formats`), so tests may swap files in.
 pub fn dataset_fixture(kind: &str) -> tempfile::TempDir {
     let dir = tempfile::tempdir().expect("temp dir");
-    run_python(
-        "write_datasets.py",
-        &[kind, dir.path().to_str().expect("utf-8 temp path")],
-    );
+    copy_dir(&fixture_data_dir().join(kind), dir.path());
     dir
 }
 
