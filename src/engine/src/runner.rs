@@ -643,6 +643,59 @@ mod tests {
         assert!(format!("{error:#}").contains("changed while the stage ran"));
     }
 
+    /// Counts its attempts in its work folder, then fails.
+    struct Flaky;
+
+    impl StageKind for Flaky {
+        fn kind(&self) -> &'static str {
+            "flaky"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &[]
+        }
+        fn resolve_config(
+            &self,
+            _raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            Ok(serde_json::json!({}))
+        }
+        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            let path = ctx.work_dir().join("attempts");
+            let attempts = std::fs::read_to_string(&path).unwrap_or_default() + "x";
+            std::fs::write(&path, &attempts)?;
+            anyhow::bail!("failed after {} attempts", attempts.len())
+        }
+    }
+
+    #[test]
+    fn force_starts_over_without_the_work_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let mut registry = Registry::new();
+        registry.add(Box::new(Flaky));
+        let text = "stages:\n  - name: f\n    kind: flaky\n";
+        let pipeline = Pipeline::parse(text, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let attempt = |force: bool| {
+            let options = RunOptions {
+                until: None,
+                force: if force { vec!["f".to_string()] } else { vec![] },
+            };
+            format!(
+                "{:#}",
+                run(&pipeline, &registry, &store, &options).unwrap_err()
+            )
+        };
+        assert!(attempt(false).contains("failed after 1 attempts"));
+        // The work folder is kept for a resume...
+        assert!(attempt(false).contains("failed after 2 attempts"));
+        // ...and `--force` deletes it.
+        let forced = attempt(true);
+        assert!(forced.contains("failed after 1 attempts"), "{forced}");
+    }
+
     const TEXT: &str = "stages:\n  - name: a\n    kind: test_arrays\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n";
 
     fn keys(registry: &Registry, store: &LocalStore) -> (String, String) {
