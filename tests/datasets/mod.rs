@@ -181,7 +181,8 @@ fn zju_mocap_yaml_ingests_the_fixture() {
     let vars: [(&str, &Path); 2] = [("ZJU_MOCAP_ROOT", &data), ("SMPL_NEUTRAL_NPZ", &model_npz)];
     // The ingest ran, so it is cached until a file changes.
     for file in ["Camera_B1/000000.jpg", "annots.npy"] {
-        edit_changes_ingest_key(&sandbox, "zju_mocap.yaml", &vars, &[], &data.join(file));
+        let path = data.join("CoreView_377").join(file);
+        edit_changes_ingest_key(&sandbox, "zju_mocap.yaml", &vars, &[], &path);
     }
 }
 
