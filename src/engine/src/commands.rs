@@ -712,8 +712,8 @@ mod tests {
         let report = gc(&registry, std::slice::from_ref(&kept_file), false, &cache).unwrap();
         assert_eq!(report.kept, 1, "{report:?}");
         assert!(report.removed.is_empty(), "{report:?}");
-        assert_eq!(report.skipped, [other_id.clone()]);
-        assert_eq!(report.work_folders, [orphan.clone()]);
+        assert_eq!(report.skipped, std::slice::from_ref(&other_id));
+        assert_eq!(report.work_folders, std::slice::from_ref(&orphan));
         assert!(!staging.work_dir.exists());
         assert_eq!(store.entry_state(&other_id).unwrap(), EntryState::Complete);
 
@@ -721,7 +721,7 @@ mod tests {
         drop(lease);
         let report = gc(&registry, &[kept_file], false, &cache).unwrap();
         assert_eq!((report.kept, report.removed.len()), (1, 1), "{report:?}");
-        assert_eq!(report.removed, [other_id.clone()]);
+        assert_eq!(report.removed, std::slice::from_ref(&other_id));
         assert_eq!(store.entry_state(&other_id).unwrap(), EntryState::Missing);
     }
 
