@@ -40,6 +40,9 @@ enum Command {
     Status {
         /// Pipeline YAML file.
         file: PathBuf,
+        /// Re-check every cached entry against its manifest digests (reads every file).
+        #[arg(long)]
+        verify: bool,
         /// Override a config value: stage.key=value.
         #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
         sets: Vec<String>,
@@ -145,7 +148,9 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             let options = RunOptions { until, force };
             commands::run(&registry, &file, &sets, &options, &cache)?;
         }
-        Command::Status { file, sets } => commands::status(&registry, &file, &sets, &cache)?,
+        Command::Status { file, verify, sets } => {
+            commands::status(&registry, &file, &sets, verify, &cache)?
+        }
         Command::Inspect {
             target,
             array,
@@ -165,7 +170,9 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             };
             commands::inspect(&registry, &target, &options, &cache)?;
         }
-        Command::Gc { keep, dry_run } => commands::gc(&registry, &keep, dry_run, &cache)?,
+        Command::Gc { keep, dry_run } => {
+            commands::gc(&registry, &keep, dry_run, &cache)?;
+        }
         Command::Render {
             avatar,
             poses,

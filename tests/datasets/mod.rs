@@ -119,6 +119,53 @@ fn ingest_and_inspect(
     assert!(picture.width() > 0 && picture.height() > 0);
 }
 
+/// Flips one byte of `file` (same size, modification time set back, as a careless copy
+/// would leave it) and checks that the pipeline's ingest key changes (so the ingest is no
+/// longer "cached"): every file a dataset reader reads is part of the ingest key.
+fn edit_changes_ingest_key(
+    sandbox: &Sandbox,
+    yaml: &str,
+    vars: &[(&str, &Path)],
+    sets: &[&str],
+    file: &Path,
+) {
+    let pipeline = pipeline_file(yaml);
+    let mut status: Vec<&str> = vec!["status", &pipeline];
+    for set in sets {
+        status.extend(["--set", set]);
+    }
+    let ingest_row = || -> Vec<String> {
+        let table = ok_with_env(sandbox, vars, &status);
+        table
+            .lines()
+            .find(|line| line.split_whitespace().next() == Some("ingest"))
+            .unwrap_or_else(|| panic!("{yaml}: no ingest stage in:\n{table}"))
+            .split_whitespace()
+            .map(str::to_owned)
+            .collect()
+    };
+    let before = ingest_row();
+    let modified = std::fs::metadata(file).unwrap().modified().unwrap();
+    let mut bytes = std::fs::read(file).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0x55;
+    std::fs::write(file, &bytes).unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(file)
+        .unwrap()
+        .set_modified(modified)
+        .unwrap();
+    let after = ingest_row();
+    assert_ne!(
+        before[2],
+        after[2],
+        "{yaml}: editing {} must change the ingest key",
+        file.display()
+    );
+    assert_eq!(after[3], "missing", "{yaml}: {after:?}");
+}
+
 #[test]
 fn zju_mocap_yaml_ingests_the_fixture() {
     let sandbox = Sandbox::new();
@@ -138,6 +185,13 @@ fn zju_mocap_yaml_ingests_the_fixture() {
         &[],
         4 + 2,
     );
+    let model_npz = model.join("model.npz");
+    let vars: [(&str, &Path); 2] = [("ZJU_MOCAP_ROOT", &data), ("SMPL_NEUTRAL_NPZ", &model_npz)];
+    // The ingest ran, so it is cached until a file changes.
+    for file in ["Camera_B1/000000.jpg", "annots.npy"] {
+        let path = data.join("CoreView_377").join(file);
+        edit_changes_ingest_key(&sandbox, "zju_mocap.yaml", &vars, &[], &path);
+    }
 }
 
 #[test]
@@ -157,6 +211,16 @@ fn i3d_human_yaml_ingests_the_fixture() {
         &["ingest.dataset.sequence=ID2_1"],
         // ID2_1 (interval 3): train views 1 and 3, test view 2, each on frames 0, 3, 6.
         2 * 3 + 3,
+    );
+    edit_changes_ingest_key(
+        &sandbox,
+        "i3d_human.yaml",
+        &[
+            ("I3D_HUMAN_ROOT", &data),
+            ("SMPL_NEUTRAL_NPZ", &model.join("model.npz")),
+        ],
+        &["ingest.dataset.sequence=ID2_1"],
+        &data.join("ID2_1-train/masks/frame_000000_view_01.png"),
     );
 }
 

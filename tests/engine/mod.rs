@@ -412,3 +412,97 @@ fn gc_keeps_only_listed_pipelines() {
     assert_eq!(sandbox.state_of("keep.yaml", "a"), "cached");
     assert_eq!(sandbox.state_of("keep.yaml", "b"), "cached");
 }
+
+#[test]
+fn gc_skips_entries_a_running_pipeline_reads_until_it_dies() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("", "sleep_ms: 60000, steps: 600"));
+    let mut child = sandbox.spawn(&["run", "p.yaml"]);
+    let staging = sandbox.cache().join(".staging").join("test_arrays");
+    wait_for("a step of b", Duration::from_secs(60), || {
+        fs::read_dir(&staging)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|entry| entry.path().join("work").join("steps_done").exists())
+    });
+    let a = sandbox.key_of("p.yaml", "a");
+    let b = sandbox.key_of("p.yaml", "b");
+    // b is running with a as its input: gc (keeping nothing) must leave a alone.
+    let report = sandbox.ok(&["gc"]);
+    assert!(
+        report.contains(&format!(
+            "skipped test_arrays/{a}: a running pipeline reads it"
+        )),
+        "{report}"
+    );
+    assert!(report.contains("skipped 1 in use"), "{report}");
+    assert_eq!(sandbox.state_of("p.yaml", "a"), "cached");
+    // A killed reader leaves no lock behind; its orphaned work folder goes too.
+    child.kill().expect("kill the run");
+    child.wait().expect("wait for the killed run");
+    let report = sandbox.ok(&["gc"]);
+    assert!(
+        report.contains(&format!("removed test_arrays/{a}")),
+        "{report}"
+    );
+    assert!(
+        report.contains(&format!("removed the work folder of test_arrays/{b}")),
+        "{report}"
+    );
+    assert_eq!(sandbox.state_of("p.yaml", "a"), "missing");
+    assert_eq!(sandbox.state_of("p.yaml", "b"), "missing");
+}
+
+#[test]
+fn edited_attributes_and_missing_chunks_are_never_served() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("", ""));
+    sandbox.ok(&["run", "p.yaml"]);
+    let key = sandbox.key_of("p.yaml", "a");
+    let folder = sandbox.cache().join("test_arrays").join(&key);
+    let folder_arg = folder.to_str().expect("utf-8 temp path").to_string();
+    let verified = sandbox.ok(&["status", "--verify", "p.yaml"]);
+    assert_eq!(verified.matches(" cached").count(), 2, "{verified}");
+
+    // A deleted chunk: inspect names the entry and the array instead of printing zeros.
+    let chunk = folder.join("values/c/1");
+    let bytes = fs::read(&chunk).unwrap();
+    fs::remove_file(&chunk).unwrap();
+    let error = sandbox.fails(&["inspect", &folder_arg]);
+    assert!(
+        error.contains(&format!("entry a ({folder_arg})"))
+            && error.contains(
+                "array \"values\": chunk file values/c/1 is listed in the manifest but missing from the store"
+            ),
+        "{error}"
+    );
+    let error = sandbox.fails(&["status", "--verify", "p.yaml"]);
+    assert!(
+        error.contains("cached entries fail verification"),
+        "{error}"
+    );
+    fs::write(&chunk, bytes).unwrap();
+    sandbox.ok(&["inspect", &folder_arg]);
+
+    // An edited stage attribute in the group zarr.json.
+    let group = folder.join("zarr.json");
+    let mut document: serde_json::Value =
+        serde_json::from_slice(&fs::read(&group).unwrap()).unwrap();
+    assert_eq!(document["attributes"]["sum"], serde_json::json!(120.0));
+    document["attributes"]["sum"] = serde_json::json!(121.0);
+    fs::write(&group, serde_json::to_vec_pretty(&document).unwrap()).unwrap();
+    let output = sandbox.run(&["status", "--verify", "p.yaml"]);
+    assert!(!output.status.success());
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains("corrupt a: ")
+            && stdout.contains("zarr.json (group attributes) does not match its digest"),
+        "{stdout}"
+    );
+    // The next run recomputes it; b (same key, computed from the right data) stays cached.
+    let rerun = results(&sandbox.ok(&["run", "p.yaml"]));
+    assert_eq!(rerun[0], ("a".to_string(), "ran".to_string()));
+    assert_eq!(rerun[1], ("b".to_string(), "cached".to_string()));
+    sandbox.ok(&["status", "--verify", "p.yaml"]);
+}

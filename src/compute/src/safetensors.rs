@@ -61,11 +61,11 @@ impl Dtype {
 /// Why a safetensors file could not be read; every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum SafetensorsError {
-    #[error("{path}: cannot read: {source}")]
+    // The cause is in the message, so it is not also a `source` (chains would repeat it).
+    #[error("{path}: cannot read: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{path}: not a safetensors file: {message}")]
     Header { path: PathBuf, message: String },
@@ -101,9 +101,9 @@ pub struct SafetensorsFile {
 impl SafetensorsFile {
     /// Reads and validates `path`.
     pub fn read(path: &Path) -> Result<Self, SafetensorsError> {
-        let bytes = std::fs::read(path).map_err(|source| SafetensorsError::Io {
+        let bytes = std::fs::read(path).map_err(|error| SafetensorsError::Io {
             path: path.to_owned(),
-            source,
+            error,
         })?;
         Self::parse(path, bytes)
     }

@@ -1,5 +1,6 @@
 //! The built-in `test_arrays` stage kind: small but real computations over real arrays, used
-//! by the engine tests (kill mid-stage, concurrency, corruption, resume).
+//! by the engine tests (kill mid-stage, concurrency, corruption, resume). Compiled only for
+//! tests (feature `test-stages`): its `count_file` appends to any path it is given.
 
 use std::fs::OpenOptions;
 use std::io::Write as _;

@@ -107,10 +107,13 @@ fn format_table(rows: &[Vec<String>]) -> String {
 }
 
 /// `pipeline status`: cached, partial (resumable) or missing for each stage, with its key.
+/// With `verify`, cached entries are re-checked against their manifest digests and reported
+/// `corrupt` (with the problems below the table) when they fail.
 pub fn status(
     registry: &Registry,
     file: &Path,
     sets: &[String],
+    verify: bool,
     cache: &Path,
 ) -> anyhow::Result<()> {
     let pipeline = Pipeline::load(file, registry, sets)?;
@@ -122,10 +125,21 @@ pub fn status(
         "key".to_string(),
         "state".to_string(),
     ]];
+    let mut problems = Vec::new();
     for &index in pipeline.order() {
         let stage = &pipeline.stages[index];
         let id = EntryId::new(&stage.kind, &keys[&stage.name].key);
         let state = match store.entry_state(&id)? {
+            EntryState::Complete if verify => {
+                let _lease = store.read_lease(&id)?;
+                match runner::open_verified(store.as_ref(), &id) {
+                    Ok(_) => "cached",
+                    Err(problem) => {
+                        problems.push(format!("{}: {id}: {problem}", stage.name));
+                        "corrupt"
+                    }
+                }
+            }
             EntryState::Complete => "cached",
             _ if store.has_resumable_work(&id) => "partial",
             _ => "missing",
@@ -138,6 +152,14 @@ pub fn status(
         ]);
     }
     print!("{}", format_table(&rows));
+    for problem in &problems {
+        println!("corrupt {problem}");
+    }
+    anyhow::ensure!(
+        problems.is_empty(),
+        "{} cached entries fail verification (the next run recomputes them)",
+        problems.len()
+    );
     Ok(())
 }
 
@@ -330,11 +352,7 @@ fn describe_entry(
         serde_json::to_string(&manifest.config).unwrap_or_default()
     ));
     for (key, value) in entry.attributes() {
-        let mut shown = value.to_string();
-        if shown.len() > 200 {
-            shown.truncate(200);
-            shown.push_str("...");
-        }
+        let shown = shorten(&value.to_string(), 200);
         text.push_str(&format!("attribute {key} = {shown}\n"));
     }
     for line in &manifest.log {
@@ -386,6 +404,15 @@ fn describe_entry(
         }
     }
     Ok(text)
+}
+
+/// `text` cut to at most `limit` characters (never inside a multibyte character), with
+/// `...` when something was cut.
+fn shorten(text: &str, limit: usize) -> String {
+    match text.char_indices().nth(limit) {
+        Some((cut, _)) => format!("{}...", &text[..cut]),
+        None => text.to_string(),
+    }
 }
 
 /// Running min / max / mean / NaN count.
@@ -495,13 +522,28 @@ fn format_bytes(bytes: u64) -> String {
     }
 }
 
-/// `pipeline gc`: removes entries that none of `keep` references.
+/// What `pipeline gc` did (or would do, in a dry run).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GcReport {
+    /// Entries removed.
+    pub removed: Vec<EntryId>,
+    /// Cached entries that a `--keep` pipeline references.
+    pub kept: usize,
+    /// Unreferenced entries left alone because a running pipeline computes or reads them.
+    pub skipped: Vec<EntryId>,
+    /// Work folders (checkpoints) of unreferenced runs removed.
+    pub work_folders: Vec<EntryId>,
+    pub freed: u64,
+}
+
+/// `pipeline gc`: removes entries that none of `keep` references and that no running
+/// pipeline reads, and the work folders (checkpoints) of unreferenced interrupted runs.
 pub fn gc(
     registry: &Registry,
     keep: &[PathBuf],
     dry_run: bool,
     cache: &Path,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<GcReport> {
     let store = open_store(cache)?;
     let mut referenced: BTreeSet<EntryId> = BTreeSet::new();
     for file in keep {
@@ -512,27 +554,48 @@ pub fn gc(
         }
     }
     let verb = if dry_run { "would remove" } else { "removed" };
-    let mut freed = 0u64;
-    let mut count = 0usize;
+    let mut report = GcReport::default();
     for id in store.list()? {
         if referenced.contains(&id) {
-            continue;
-        }
-        if dry_run {
-            let bytes = store.entry_bytes(&id);
-            println!("{verb} {id} ({})", format_bytes(bytes));
-            freed += bytes;
-            count += 1;
+            report.kept += 1;
             continue;
         }
         let Some(lock) = store.try_lock(&id)? else {
-            println!("skipped {id}: a running pipeline holds it");
+            println!("skipped {id}: a running pipeline is computing it");
+            report.skipped.push(id);
             continue;
         };
-        let bytes = store.remove(lock.as_ref())?;
+        // Exclusive against the shared leases of runs reading the entry; held while deleting
+        // so that a run starting to read it waits, then finds it gone.
+        let Some(_readers) = store.try_exclusive_read_lease(&id)? else {
+            println!("skipped {id}: a running pipeline reads it");
+            report.skipped.push(id);
+            continue;
+        };
+        let bytes = if dry_run {
+            store.entry_bytes(&id)
+        } else {
+            store.remove(lock.as_ref())?
+        };
         println!("{verb} {id} ({})", format_bytes(bytes));
-        freed += bytes;
-        count += 1;
+        report.freed += bytes;
+        report.removed.push(id);
+    }
+    for id in store.staged()? {
+        if referenced.contains(&id) {
+            continue; // Its work folder resumes a run of a kept pipeline.
+        }
+        let Some(lock) = store.try_lock(&id)? else {
+            continue; // A live run owns it.
+        };
+        if dry_run {
+            println!("{verb} the work folder of {id}");
+        } else {
+            let bytes = store.remove_staging(lock.as_ref())?;
+            println!("{verb} the work folder of {id} ({})", format_bytes(bytes));
+            report.freed += bytes;
+        }
+        report.work_folders.push(id);
     }
     if !dry_run {
         for line in store.clean_leftovers()? {
@@ -542,14 +605,16 @@ pub fn gc(
     let trash = store.empty_trash(dry_run)?;
     if trash > 0 {
         println!("{verb} quarantined entries ({})", format_bytes(trash));
-        freed += trash;
+        report.freed += trash;
     }
     println!(
-        "{verb} {count} entries, {} freed; {} entries kept",
-        format_bytes(freed),
-        referenced.len()
+        "{verb} {} entries, {} freed; kept {} referenced entries; skipped {} in use",
+        report.removed.len(),
+        format_bytes(report.freed),
+        report.kept,
+        report.skipped.len()
     );
-    Ok(())
+    Ok(report)
 }
 
 #[cfg(test)]
@@ -563,6 +628,101 @@ mod tests {
             vec!["longer".to_string(), "b".to_string(), "y".to_string()],
         ];
         assert_eq!(format_table(&rows), "a       long  x\nlonger  b     y\n");
+    }
+
+    #[test]
+    fn shorten_never_cuts_a_character() {
+        assert_eq!(shorten("abc", 3), "abc");
+        assert_eq!(shorten("abcd", 3), "abc...");
+        // 'é' is two bytes: a byte-based cut at 3 would split it.
+        assert_eq!(shorten("aaé€x", 3), "aaé...");
+        assert_eq!(shorten("ééé", 3), "ééé");
+    }
+
+    #[test]
+    fn inspect_shows_long_multibyte_attributes() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = crate::entry::EntryWriter::create(dir.path()).unwrap();
+        writer
+            .write_array::<u8>("a", &["i"], &[1], &[1], &[7])
+            .unwrap();
+        // 199 ASCII bytes then multibyte characters: byte 200 falls inside one.
+        let value = format!("{}{}", "x".repeat(198), "é".repeat(50));
+        writer
+            .set_attribute("note", serde_json::json!(value))
+            .unwrap();
+        writer
+            .finish(&mut crate::entry::Manifest {
+                kind: "k".into(),
+                version: 1,
+                stage_name: "s".into(),
+                key: "key".into(),
+                config: serde_json::json!({}),
+                inputs: vec![],
+                external_files: vec![],
+                tool_version: "0".into(),
+                metadata_digest: String::new(),
+                arrays: Default::default(),
+                wall_time_s: 0.0,
+                started_at: String::new(),
+                finished_at: String::new(),
+                log: vec![],
+                warnings: vec![],
+            })
+            .unwrap();
+        let entry = open_entry_folder(dir.path()).unwrap();
+        let text = describe_entry(&entry, None, &Registry::new()).unwrap();
+        assert!(text.contains("attribute note = \"xxx"), "{text}");
+        assert!(text.contains("é..."), "{text}");
+    }
+
+    fn write_pipeline(dir: &Path, name: &str, seed: i64) -> PathBuf {
+        let file = dir.join(name);
+        std::fs::write(
+            &file,
+            format!("stages:\n  - name: a\n    kind: test_arrays\n    config: {{seed: {seed}}}\n"),
+        )
+        .unwrap();
+        file
+    }
+
+    #[test]
+    fn gc_respects_readers_and_reports_what_it_keeps() {
+        use crate::store::{LocalStore, Store as _};
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("cache");
+        let registry = Registry::new();
+        let kept_file = write_pipeline(dir.path(), "kept.yaml", 1);
+        let other_file = write_pipeline(dir.path(), "other.yaml", 2);
+        run(&registry, &kept_file, &[], &RunOptions::default(), &cache).unwrap();
+        let other = run(&registry, &other_file, &[], &RunOptions::default(), &cache).unwrap();
+        let other_id = EntryId::new("test_arrays", &other[0].key);
+        let store = LocalStore::open(&cache).unwrap();
+        // The work folder of an interrupted run nobody keeps.
+        let orphan = EntryId::new("test_arrays", "0123abcd");
+        let staging = {
+            let lock = store.try_lock(&orphan).unwrap().unwrap();
+            let staging = store.begin_staging(lock.as_ref()).unwrap();
+            std::fs::write(staging.work_dir.join("checkpoint"), b"1234").unwrap();
+            staging
+        };
+
+        // A run reading `other` holds a shared lease: gc leaves it.
+        let lease = store.read_lease(&other_id).unwrap();
+        let report = gc(&registry, std::slice::from_ref(&kept_file), false, &cache).unwrap();
+        assert_eq!(report.kept, 1, "{report:?}");
+        assert!(report.removed.is_empty(), "{report:?}");
+        assert_eq!(report.skipped, std::slice::from_ref(&other_id));
+        assert_eq!(report.work_folders, std::slice::from_ref(&orphan));
+        assert!(!staging.work_dir.exists());
+        assert_eq!(store.entry_state(&other_id).unwrap(), EntryState::Complete);
+
+        // Once the reader is gone (a dead process releases its lock too), gc removes it.
+        drop(lease);
+        let report = gc(&registry, &[kept_file], false, &cache).unwrap();
+        assert_eq!((report.kept, report.removed.len()), (1, 1), "{report:?}");
+        assert_eq!(report.removed, std::slice::from_ref(&other_id));
+        assert_eq!(store.entry_state(&other_id).unwrap(), EntryState::Missing);
     }
 
     #[test]

@@ -33,6 +33,12 @@ pub struct Manifest {
     pub inputs: Vec<ManifestInput>,
     pub external_files: Vec<ManifestExternalFile>,
     pub tool_version: String,
+    /// blake3 of the entry's group metadata document (`zarr.json`: node type and the stage
+    /// attributes) without the manifest itself, in canonical JSON ([`metadata_digest`]).
+    /// Array metadata documents are digested with their chunks in `arrays`. Empty in entries
+    /// written before it existed, which then fail verification.
+    #[serde(default)]
+    pub metadata_digest: String,
     pub arrays: BTreeMap<String, ManifestArray>,
     pub wall_time_s: f64,
     pub started_at: String,
@@ -54,6 +60,34 @@ pub struct ManifestInput {
 pub struct ManifestExternalFile {
     pub path: String,
     pub digest: String,
+}
+
+/// The store key of the entry's group metadata document.
+const GROUP_METADATA_KEY: &str = "zarr.json";
+
+/// blake3 of a group metadata document (`zarr.json` bytes) with the `manifest` attribute
+/// left out, over canonical JSON: what [`Manifest::metadata_digest`] records.
+pub fn metadata_digest(document: &[u8]) -> anyhow::Result<String> {
+    let mut value: serde_json::Value =
+        serde_json::from_slice(document).context("the group zarr.json is not JSON")?;
+    if let Some(document) = value.as_object_mut() {
+        if let Some(attributes) = document
+            .get_mut("attributes")
+            .and_then(serde_json::Value::as_object_mut)
+        {
+            attributes.remove(MANIFEST_ATTRIBUTE);
+        }
+        // Without attributes, Zarr leaves the field out: absent and empty are the same.
+        if document
+            .get("attributes")
+            .and_then(serde_json::Value::as_object)
+            .is_some_and(serde_json::Map::is_empty)
+        {
+            document.remove("attributes");
+        }
+    }
+    let text = crate::key::canonical_json(&value);
+    Ok(blake3::hash(text.as_bytes()).to_hex().to_string())
 }
 
 /// One array of an entry and the blake3 digests of its stored files.
@@ -280,13 +314,24 @@ impl EntryWriter {
             .lock()
             .expect("attribute table poisoned")
             .clone();
+        let mut group = GroupBuilder::new()
+            .build(self.store.clone(), "/")
+            .context("cannot rebuild the entry group")?;
+        // The group document without the manifest is written and digested first, so the
+        // digest is taken over exactly what a reader will find.
+        *group.attributes_mut() = attributes.clone();
+        group
+            .store_metadata()
+            .context("cannot write the entry group metadata")?;
+        let document = storage
+            .get(&group_metadata_key())
+            .context("cannot read back the entry group metadata")?
+            .ok_or_else(|| anyhow::anyhow!("the entry group metadata vanished"))?;
+        manifest.metadata_digest = metadata_digest(&document)?;
         attributes.insert(
             MANIFEST_ATTRIBUTE.to_string(),
             serde_json::to_value(&*manifest).context("cannot serialize manifest")?,
         );
-        let mut group = GroupBuilder::new()
-            .build(self.store.clone(), "/")
-            .context("cannot rebuild the entry group")?;
         *group.attributes_mut() = attributes;
         group
             .store_metadata()
@@ -317,6 +362,10 @@ fn digest_array_files(
         );
     }
     Ok(files)
+}
+
+fn group_metadata_key() -> StoreKey {
+    StoreKey::new(GROUP_METADATA_KEY).expect("zarr.json is a valid store key")
 }
 
 fn combined_digest(files: &BTreeMap<String, String>) -> String {
@@ -562,9 +611,13 @@ impl EntryReader {
     pub fn read<T: Element>(&self, name: &str) -> anyhow::Result<NdArray<T>> {
         let array = self.checked_array::<T>(name)?;
         let shape = array.shape().to_vec();
+        let subset = array.subset_all();
+        self.check_chunks(name, &array, &subset)?;
         let data: Vec<T> = array
-            .retrieve_array_subset(&array.subset_all())
+            .retrieve_array_subset(&subset)
             .with_context(|| format!("entry {}: cannot read array \"{name}\"", self.location))?;
+        // A chunk removed while it was read would have come back as the fill value.
+        self.check_chunks(name, &array, &subset)?;
         NdArray::new(to_usize_shape(&shape)?, data)
     }
 
@@ -578,13 +631,73 @@ impl EntryReader {
         let array = self.checked_array::<T>(name)?;
         let ranges = region_ranges(name, array.shape(), start, shape)?;
         let subset = ArraySubset::new_with_ranges(&ranges);
+        self.check_chunks(name, &array, &subset)?;
         let data: Vec<T> = array.retrieve_array_subset(&subset).with_context(|| {
             format!(
                 "entry {}: cannot read a region of array \"{name}\"",
                 self.location
             )
         })?;
+        self.check_chunks(name, &array, &subset)?;
         NdArray::new(to_usize_shape(shape)?, data)
+    }
+
+    /// Checks that the stored chunk files under `subset` are exactly those the manifest
+    /// lists: a listed chunk the store lacks is an error (zarrs would read it as the fill
+    /// value), and so is a stored chunk the manifest does not list.
+    fn check_chunks(
+        &self,
+        name: &str,
+        array: &Array<dyn zarrs::storage::ReadableListableStorageTraits>,
+        subset: &ArraySubset,
+    ) -> anyhow::Result<()> {
+        let record = self
+            .manifest
+            .arrays
+            .get(name)
+            .ok_or_else(|| anyhow::anyhow!("entry {}: no array \"{name}\"", self.location))?;
+        let chunks = array
+            .chunks_in_array_subset(subset)
+            .ok()
+            .flatten()
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "entry {}: array \"{name}\": cannot list the chunks of a region",
+                    self.location
+                )
+            })?;
+        for indices in &chunks.indices() {
+            let key = array.chunk_key(&indices);
+            let listed = record.files.contains_key(key.as_str());
+            let present = self
+                .storage
+                .size_key(&key)
+                .with_context(|| {
+                    format!(
+                        "entry {}: array \"{name}\": cannot read chunk file {}",
+                        self.location,
+                        key.as_str()
+                    )
+                })?
+                .is_some();
+            if listed && !present {
+                anyhow::bail!(
+                    "entry {} ({}): array \"{name}\": chunk file {} is listed in the manifest but missing from the store",
+                    self.manifest.stage_name,
+                    self.location,
+                    key.as_str()
+                );
+            }
+            if present && !listed {
+                anyhow::bail!(
+                    "entry {} ({}): array \"{name}\": chunk file {} is stored but not listed in the manifest",
+                    self.manifest.stage_name,
+                    self.location,
+                    key.as_str()
+                );
+            }
+        }
+        Ok(())
     }
 
     /// A stage-level attribute.
@@ -619,7 +732,42 @@ impl EntryReader {
     /// naming the array and the file.
     pub fn verify(&self) -> Vec<String> {
         let mut problems = Vec::new();
+        if self.manifest.metadata_digest.is_empty() {
+            problems.push(
+                "the manifest has no digest of the group metadata (written by an older version)"
+                    .to_string(),
+            );
+        } else {
+            match self.storage.get(&group_metadata_key()) {
+                Ok(Some(bytes)) => match metadata_digest(&bytes) {
+                    Ok(digest) if digest == self.manifest.metadata_digest => {}
+                    Ok(_) => problems
+                        .push("zarr.json (group attributes) does not match its digest".to_string()),
+                    Err(error) => problems.push(format!("zarr.json: {error:#}")),
+                },
+                Ok(None) => problems.push("zarr.json (group metadata) is missing".to_string()),
+                Err(error) => problems.push(format!("zarr.json unreadable: {error}")),
+            }
+        }
         for (name, record) in &self.manifest.arrays {
+            match StorePrefix::new(format!("{name}/"))
+                .map(|prefix| self.storage.list_prefix(&prefix))
+            {
+                Ok(Ok(stored)) => {
+                    for key in stored {
+                        if !record.files.contains_key(key.as_str()) {
+                            problems.push(format!(
+                                "array \"{name}\": file {} is not in the manifest",
+                                key.as_str()
+                            ));
+                        }
+                    }
+                }
+                Ok(Err(error)) => {
+                    problems.push(format!("array \"{name}\": cannot list its files: {error}"))
+                }
+                Err(_) => problems.push(format!("array \"{name}\": invalid array name")),
+            }
             for (key, expected) in &record.files {
                 let store_key = match StoreKey::new(key.clone()) {
                     Ok(store_key) => store_key,
@@ -673,6 +821,7 @@ mod tests {
             inputs: vec![],
             external_files: vec![],
             tool_version: "0".into(),
+            metadata_digest: String::new(),
             arrays: BTreeMap::new(),
             wall_time_s: 0.0,
             started_at: String::new(),
@@ -807,6 +956,110 @@ mod tests {
         assert_eq!(
             reader.verify(),
             ["array \"values\": file values/c/1 is missing"]
+        );
+    }
+
+    #[test]
+    fn missing_or_unlisted_chunks_are_errors_not_fill_values() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = EntryWriter::create(dir.path()).unwrap();
+        let data: Vec<f64> = (1..=8).map(f64::from).collect();
+        writer
+            .write_array::<f64>("values", &["index"], &[8], &[4], &data)
+            .unwrap();
+        // Chunk 1 is never written: it reads as the fill value, legitimately.
+        let sparse = writer
+            .create_array::<f64>("sparse", &["index"], &[8], &[4])
+            .unwrap();
+        sparse.write_chunk(&[0], &[1.0; 4]).unwrap();
+        writer.finish(&mut manifest()).unwrap();
+        let reader = reopen(dir.path());
+        assert_eq!(
+            reader.read::<f64>("sparse").unwrap().data,
+            [1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+        );
+
+        let chunk = dir.path().join("values/c/1");
+        let bytes = std::fs::read(&chunk).unwrap();
+        std::fs::remove_file(&chunk).unwrap();
+        let expected = "array \"values\": chunk file values/c/1 is listed in the manifest but missing from the store";
+        let error = reader.read::<f64>("values").unwrap_err().to_string();
+        assert!(
+            error.contains(expected) && error.contains("entry s ("),
+            "{error}"
+        );
+        let error = reader
+            .read_region::<f64>("values", &[5], &[2])
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains(expected), "{error}");
+        // A region that does not touch the missing chunk still reads.
+        assert_eq!(
+            reader
+                .read_region::<f64>("values", &[0], &[3])
+                .unwrap()
+                .data,
+            [1.0, 2.0, 3.0]
+        );
+        std::fs::write(&chunk, bytes).unwrap();
+        assert_eq!(reader.read::<f64>("values").unwrap().data, data);
+
+        // A chunk file the manifest does not list is not read either.
+        std::fs::copy(dir.path().join("sparse/c/0"), dir.path().join("sparse/c/1")).unwrap();
+        let error = reader.read::<f64>("sparse").unwrap_err().to_string();
+        assert!(
+            error.contains("chunk file sparse/c/1 is stored but not listed in the manifest"),
+            "{error}"
+        );
+        assert_eq!(
+            reader.verify(),
+            ["array \"sparse\": file sparse/c/1 is not in the manifest"]
+        );
+    }
+
+    #[test]
+    fn manifest_covers_group_and_array_metadata() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = EntryWriter::create(dir.path()).unwrap();
+        writer
+            .write_array::<f64>("values", &["index"], &[2], &[2], &[1.0, 2.0])
+            .unwrap();
+        writer
+            .set_array_attribute("values", "units", serde_json::json!("m"))
+            .unwrap();
+        writer
+            .set_attribute("background", serde_json::json!(0.0))
+            .unwrap();
+        writer.finish(&mut manifest()).unwrap();
+        let reader = reopen(dir.path());
+        assert!(reader.verify().is_empty(), "{:?}", reader.verify());
+        assert_eq!(reader.manifest().metadata_digest.len(), 64);
+
+        // The stage attribute `background` edited in the group zarr.json.
+        let group = dir.path().join("zarr.json");
+        let original = std::fs::read_to_string(&group).unwrap();
+        assert!(original.contains("\"background\": 0.0"), "{original}");
+        std::fs::write(
+            &group,
+            original.replace("\"background\": 0.0", "\"background\": 1.0"),
+        )
+        .unwrap();
+        assert_eq!(
+            reopen(dir.path()).verify(),
+            ["zarr.json (group attributes) does not match its digest"]
+        );
+        // Reformatting the document (same content) is not a change.
+        let value: serde_json::Value = serde_json::from_str(&original).unwrap();
+        std::fs::write(&group, serde_json::to_string(&value).unwrap()).unwrap();
+        assert!(reopen(dir.path()).verify().is_empty());
+
+        // An array attribute edited in the array's zarr.json.
+        let array = dir.path().join("values/zarr.json");
+        let text = std::fs::read_to_string(&array).unwrap();
+        std::fs::write(&array, text.replace("\"m\"", "\"km\"")).unwrap();
+        assert_eq!(
+            reopen(dir.path()).verify(),
+            ["array \"values\": file values/zarr.json does not match its digest"]
         );
     }
 }

@@ -1,5 +1,5 @@
 //! Key derivation: the one place where cache keys are hashed, plus digests of external files
-//! (memoised by path, size and modification time).
+//! (memoised by path, size, modification time, inode and change time).
 //!
 //! If you change anything that goes into a key, bump [`KEY_FORMAT_VERSION`].
 
@@ -87,20 +87,61 @@ fn write_canonical(value: &serde_json::Value, text: &mut String) {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-struct MemoRecord {
+/// What the memo compares before it trusts a remembered digest. The change time and the
+/// inode catch an edit of the same size whose modification time was set back (`touch -d`,
+/// `cp -p`, an editor restoring it): the kernel sets `ctime` on every write and rename.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+struct FileStamp {
     size: u64,
     mtime_ns: u128,
+    device: u64,
+    inode: u64,
+    ctime_ns: i128,
+}
+
+impl FileStamp {
+    fn of(metadata: &fs::Metadata) -> Self {
+        let mtime_ns = metadata
+            .modified()
+            .ok()
+            .and_then(|time| time.duration_since(std::time::UNIX_EPOCH).ok())
+            .map(|duration| duration.as_nanos())
+            .unwrap_or(0);
+        #[cfg(unix)]
+        let (device, inode, ctime_ns) = {
+            use std::os::unix::fs::MetadataExt as _;
+            (
+                metadata.dev(),
+                metadata.ino(),
+                i128::from(metadata.ctime()) * 1_000_000_000 + i128::from(metadata.ctime_nsec()),
+            )
+        };
+        #[cfg(not(unix))]
+        let (device, inode, ctime_ns) = (0, 0, 0);
+        Self {
+            size: metadata.len(),
+            mtime_ns,
+            device,
+            inode,
+            ctime_ns,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+struct MemoRecord {
+    stamp: FileStamp,
     digest: String,
 }
 
-/// Digests of external files, remembered by (path, size, mtime) in a JSON file so raw
-/// dataset files are hashed once.
+/// Digests of external files, remembered by (path, size, mtime, device, inode, ctime) in a
+/// JSON file so raw dataset files are hashed once, not on every run.
 #[derive(Debug)]
 pub struct FileDigests {
     memo_path: PathBuf,
     memo: BTreeMap<String, MemoRecord>,
     changed: bool,
+    hashed: usize,
 }
 
 impl FileDigests {
@@ -114,7 +155,13 @@ impl FileDigests {
             memo_path: memo_path.to_path_buf(),
             memo,
             changed: false,
+            hashed: 0,
         }
+    }
+
+    /// How many files were read and hashed (not answered from the memo) since loading.
+    pub fn files_hashed(&self) -> usize {
+        self.hashed
     }
 
     /// Digest of a file, or of a folder (every file under it, by relative path).
@@ -138,28 +185,29 @@ impl FileDigests {
         let canonical = fs::canonicalize(path)
             .with_context(|| format!("external input {} cannot be resolved", path.display()))?;
         let memo_key = canonical.display().to_string();
-        let mtime_ns = metadata
-            .modified()
-            .ok()
-            .and_then(|time| time.duration_since(std::time::UNIX_EPOCH).ok())
-            .map(|duration| duration.as_nanos())
-            .unwrap_or(0);
+        let stamp = FileStamp::of(&metadata);
         if let Some(record) = self.memo.get(&memo_key)
-            && record.size == metadata.len()
-            && record.mtime_ns == mtime_ns
+            && record.stamp == stamp
         {
             return Ok(record.digest.clone());
         }
         let digest = hash_file(&canonical)?;
-        self.memo.insert(
-            memo_key,
-            MemoRecord {
-                size: metadata.len(),
-                mtime_ns,
-                digest: digest.clone(),
-            },
-        );
-        self.changed = true;
+        self.hashed += 1;
+        // A file written while it was hashed gets a new stamp: remember nothing then, so the
+        // next run hashes it again instead of pairing the new stamp with old content.
+        let after = fs::metadata(&canonical)
+            .map(|metadata| FileStamp::of(&metadata))
+            .ok();
+        if after == Some(stamp) {
+            self.memo.insert(
+                memo_key,
+                MemoRecord {
+                    stamp,
+                    digest: digest.clone(),
+                },
+            );
+            self.changed = true;
+        }
         Ok(digest)
     }
 
@@ -300,5 +348,44 @@ mod tests {
         assert!(folder_digest.starts_with("dir:"));
         let missing = reloaded.digest(&dir.path().join("nope")).unwrap_err();
         assert!(missing.to_string().contains("nope"));
+    }
+
+    #[test]
+    fn same_size_edit_with_restored_mtime_is_rehashed() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = dir.path().join("dataset");
+        fs::create_dir_all(folder.join("Camera_B1")).unwrap();
+        let image = folder.join("Camera_B1/000000.jpg");
+        fs::write(&image, b"first image").unwrap();
+        fs::write(folder.join("annots.npy"), b"annotations").unwrap();
+        let memo_path = dir.path().join("memo.json");
+        let mut digests = FileDigests::load(&memo_path);
+        let original = digests.digest(&folder).unwrap();
+        assert_eq!(digests.files_hashed(), 2);
+        digests.save().unwrap();
+
+        // Nothing changed: answered from the memo, no file read.
+        let mut unchanged = FileDigests::load(&memo_path);
+        assert_eq!(unchanged.digest(&folder).unwrap(), original);
+        assert_eq!(unchanged.files_hashed(), 0);
+
+        // Same size, modification time set back: the change time still moves.
+        let modified = fs::metadata(&image).unwrap().modified().unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        fs::write(&image, b"other image").unwrap();
+        fs::File::options()
+            .write(true)
+            .open(&image)
+            .unwrap()
+            .set_modified(modified)
+            .unwrap();
+        assert_eq!(fs::metadata(&image).unwrap().modified().unwrap(), modified);
+        let mut edited = FileDigests::load(&memo_path);
+        let after_edit = edited.digest(&folder).unwrap();
+        assert_ne!(
+            after_edit, original,
+            "a same-size edit must change the digest"
+        );
+        assert_eq!(edited.files_hashed(), 1, "only the edited file is read");
     }
 }

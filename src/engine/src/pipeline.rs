@@ -12,12 +12,9 @@ use crate::yaml_lines::LineMap;
 /// A pipeline file that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
-    #[error("{file}: cannot read: {source}")]
-    Read {
-        file: String,
-        #[source]
-        source: std::io::Error,
-    },
+    // The cause is in the message, so it is not also a `source` (chains would repeat it).
+    #[error("{file}: cannot read: {error}")]
+    Read { file: String, error: std::io::Error },
     #[error("{file}:{line}: {message}")]
     At {
         file: String,
@@ -107,9 +104,9 @@ impl Pipeline {
         registry: &Registry,
         overrides: &[String],
     ) -> Result<Self, PipelineError> {
-        let text = std::fs::read_to_string(file).map_err(|source| PipelineError::Read {
+        let text = std::fs::read_to_string(file).map_err(|error| PipelineError::Read {
             file: file.display().to_string(),
-            source,
+            error,
         })?;
         Self::parse(&text, file, registry, overrides)
     }

@@ -17,7 +17,7 @@ use crate::Registry;
 use crate::entry::{EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput};
 use crate::key::{FileDigests, KeyMaterial, stage_key};
 use crate::pipeline::{Pipeline, StageSpec};
-use crate::store::{EntryId, EntryState, Store};
+use crate::store::{EntryId, EntryState, ReadLease, Store};
 
 /// The file (in the store's local state folder) remembering external file digests.
 const FILE_DIGEST_MEMO: &str = ".file-digests.json";
@@ -351,6 +351,9 @@ pub fn run(
     let keys = compute_keys(pipeline, registry, store)?;
     let stages = selected_stages(pipeline, options.until.as_deref())?;
     let mut readers: HashMap<String, EntryReader> = HashMap::new();
+    // Shared read leases on every entry this run uses, held until it returns: `gc` skips
+    // entries that a run reads.
+    let mut leases: Vec<Box<dyn ReadLease>> = Vec::new();
     let mut reports = Vec::new();
     for stage in stages {
         let kind = registry
@@ -363,6 +366,7 @@ pub fn run(
         let mut recompute_reason: Option<String> = forced.then(|| "forced".to_string());
 
         let mut cached = None;
+        leases.push(store.read_lease(&id)?);
         if !forced && store.entry_state(&id)? == EntryState::Complete {
             match open_verified(store, &id) {
                 Ok(reader) => cached = Some(reader),
@@ -427,6 +431,14 @@ pub fn run(
             .iter()
             .map(|input| readers[input].clone())
             .collect();
+        if forced && store.has_resumable_work(&id) {
+            // `--force` starts over: the work folder (checkpoints) of an earlier run goes too.
+            store.remove_staging(lock.as_ref())?;
+            progress.println(&format!(
+                "[{}] forced: removed the work folder of an earlier run",
+                stage.name
+            ));
+        }
         let staging = store.begin_staging(lock.as_ref())?;
         let resumed = std::fs::read_dir(&staging.work_dir)
             .map(|mut read| read.next().is_some())
@@ -482,6 +494,21 @@ pub fn run(
                 &stage_key.key[..12]
             )));
         }
+        // Inputs that changed while the stage read them (a chunk deleted or rewritten) must
+        // not produce a published entry; the partial output goes as for a failed stage.
+        for input in &inputs {
+            let problems = input.verify();
+            if !problems.is_empty() {
+                let _ = std::fs::remove_dir_all(&staging.output_dir);
+                anyhow::bail!(
+                    "stage \"{}\": input {} ({}) changed while the stage ran, nothing was published: {}",
+                    stage.name,
+                    input.stage_name(),
+                    input.location(),
+                    problems.join("; ")
+                );
+            }
+        }
         let log = context.log.into_inner().expect("log poisoned");
         let warnings = context.warnings.into_inner().expect("warnings poisoned");
         let finished_at = SystemTime::now();
@@ -501,6 +528,8 @@ pub fn run(
                 .collect(),
             external_files: stage_key.external_files.clone(),
             tool_version: crate::TOOL_VERSION.to_string(),
+            // Filled in by `finish`, with the array digests.
+            metadata_digest: String::new(),
             arrays: BTreeMap::new(),
             wall_time_s: started.elapsed().as_secs_f64(),
             started_at: crate::timefmt::rfc3339(started_at),
@@ -571,6 +600,113 @@ mod tests {
         fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
             TestArrays.run(ctx)
         }
+    }
+
+    /// Reads its input, then deletes one of the input's chunks (as a careless `rm` or a `gc`
+    /// without reader locks would) before writing its own array.
+    struct Vandal;
+
+    impl StageKind for Vandal {
+        fn kind(&self) -> &'static str {
+            "vandal"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &["test_arrays"]
+        }
+        fn resolve_config(
+            &self,
+            _raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            Ok(serde_json::json!({}))
+        }
+        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            let input = ctx.input("test_arrays")?;
+            let values = input.read::<f64>("values")?;
+            std::fs::remove_file(Path::new(input.location()).join("values/c/0"))?;
+            ctx.output()
+                .write_array::<f64>("copy", &["index"], &[16], &[16], &values.data)
+        }
+    }
+
+    #[test]
+    fn inputs_changed_during_a_stage_are_not_published() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let mut registry = Registry::new();
+        registry.add(Box::new(Vandal));
+        let text = "stages:\n  - name: a\n    kind: test_arrays\n  - name: v\n    kind: vandal\n    inputs: [a]\n";
+        let pipeline = Pipeline::parse(text, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
+        let message = format!("{error:#}");
+        assert!(
+            message.contains("input a (")
+                && message.contains("changed while the stage ran, nothing was published")
+                && message.contains("values/c/0 is missing"),
+            "{message}"
+        );
+        let keys = compute_keys(&pipeline, &registry, &store).unwrap();
+        let vandal = EntryId::new("vandal", &keys["v"].key);
+        assert_eq!(store.entry_state(&vandal).unwrap(), EntryState::Missing);
+        // The damaged input is found and recomputed by the next run; the chunk is deleted
+        // again, so the stage fails again rather than publishing.
+        let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
+        assert!(format!("{error:#}").contains("changed while the stage ran"));
+    }
+
+    /// Counts its attempts in its work folder, then fails.
+    struct Flaky;
+
+    impl StageKind for Flaky {
+        fn kind(&self) -> &'static str {
+            "flaky"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &[]
+        }
+        fn resolve_config(
+            &self,
+            _raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            Ok(serde_json::json!({}))
+        }
+        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            let path = ctx.work_dir().join("attempts");
+            let attempts = std::fs::read_to_string(&path).unwrap_or_default() + "x";
+            std::fs::write(&path, &attempts)?;
+            anyhow::bail!("failed after {} attempts", attempts.len())
+        }
+    }
+
+    #[test]
+    fn force_starts_over_without_the_work_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let mut registry = Registry::new();
+        registry.add(Box::new(Flaky));
+        let text = "stages:\n  - name: f\n    kind: flaky\n";
+        let pipeline = Pipeline::parse(text, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let attempt = |force: bool| {
+            let options = RunOptions {
+                until: None,
+                force: if force { vec!["f".to_string()] } else { vec![] },
+            };
+            format!(
+                "{:#}",
+                run(&pipeline, &registry, &store, &options).unwrap_err()
+            )
+        };
+        assert!(attempt(false).contains("failed after 1 attempts"));
+        // The work folder is kept for a resume...
+        assert!(attempt(false).contains("failed after 2 attempts"));
+        // ...and `--force` deletes it.
+        let forced = attempt(true);
+        assert!(forced.contains("failed after 1 attempts"), "{forced}");
     }
 
     const TEXT: &str = "stages:\n  - name: a\n    kind: test_arrays\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n";

@@ -61,6 +61,11 @@ pub trait KeyLock: Send {
     fn id(&self) -> &EntryId;
 }
 
+/// A hold on a published entry: shared while a run reads it, exclusive while `gc` deletes it.
+/// Released on drop (and by the kernel when the process dies, so a killed reader never
+/// blocks `gc`).
+pub trait ReadLease: Send {}
+
 /// Local directories where a stage computes its entry before publishing.
 #[derive(Debug, Clone)]
 pub struct Staging {
@@ -84,6 +89,12 @@ pub trait Store: Send + Sync {
         let (storage, location) = self.reader_storage(id)?;
         EntryReader::open(storage, &location)
     }
+    /// Takes a shared read lease on an entry (waiting while `gc` is deleting it); the caller
+    /// checks afterwards that the entry still exists.
+    fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>>;
+    /// Takes the read lease exclusively if no reader holds it (for `gc`); `None` while some
+    /// run reads the entry.
+    fn try_exclusive_read_lease(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn ReadLease>>>;
     /// Takes the per-key lock, waiting for another holder; `on_wait` is called once before
     /// waiting.
     fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>>;
@@ -91,6 +102,12 @@ pub trait Store: Send + Sync {
     fn try_lock(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn KeyLock>>>;
     /// Prepares the staging area: an empty output directory and the kept work directory.
     fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging>;
+    /// Entries with a staging area (a run in progress, or the work folder of an interrupted
+    /// one).
+    fn staged(&self) -> anyhow::Result<Vec<EntryId>>;
+    /// Deletes the staging area of an entry, work folder (checkpoints) included; returns the
+    /// bytes freed.
+    fn remove_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<u64>;
     /// Whether a staging work directory with content exists (a resumable partial run).
     fn has_resumable_work(&self, id: &EntryId) -> bool;
     /// Makes the staged output the published entry and removes the staging area.
@@ -115,7 +132,8 @@ pub trait Store: Send + Sync {
 }
 
 /// A cache in a local folder: `<root>/<kind>/<key>/` entries, `<root>/.staging/<kind>/<key>/`
-/// staging areas, `<root>/.locks/<kind>/<key>.lock` lock files.
+/// staging areas, `<root>/.locks/<kind>/<key>.lock` lock files and `<key>.read` reader lock
+/// files (shared `flock` by readers, exclusive by `gc`).
 #[derive(Debug, Clone)]
 pub struct LocalStore {
     root: PathBuf,
@@ -131,6 +149,13 @@ impl KeyLock for LocalLock {
         &self.id
     }
 }
+
+/// A locked reader lock file (`flock`, shared or exclusive).
+struct LocalReadLease {
+    _file: File,
+}
+
+impl ReadLease for LocalReadLease {}
 
 /// Checks that a kind or key is a plain folder name.
 pub(crate) fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
@@ -175,10 +200,20 @@ impl LocalStore {
             .join(format!("{}.lock", id.key))
     }
 
+    fn read_lock_path(&self, id: &EntryId) -> PathBuf {
+        self.root
+            .join(LOCKS_DIR)
+            .join(&id.kind)
+            .join(format!("{}.read", id.key))
+    }
+
     fn open_lock_file(&self, id: &EntryId) -> anyhow::Result<File> {
+        self.open_lock_file_at(id, self.lock_path(id))
+    }
+
+    fn open_lock_file_at(&self, id: &EntryId, path: PathBuf) -> anyhow::Result<File> {
         check_component("stage kind", &id.kind)?;
         check_component("key", &id.key)?;
-        let path = self.lock_path(id);
         if let Some(parent) = path.parent() {
             fs::create_dir_all(parent)
                 .with_context(|| format!("cannot create {}", parent.display()))?;
@@ -248,6 +283,26 @@ impl Store for LocalStore {
         Ok((Arc::new(store), dir.display().to_string()))
     }
 
+    fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
+        let path = self.read_lock_path(id);
+        let file = self.open_lock_file_at(id, path.clone())?;
+        file.lock_shared()
+            .with_context(|| format!("cannot lock {} (shared)", path.display()))?;
+        Ok(Box::new(LocalReadLease { _file: file }))
+    }
+
+    fn try_exclusive_read_lease(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn ReadLease>>> {
+        let path = self.read_lock_path(id);
+        let file = self.open_lock_file_at(id, path.clone())?;
+        match file.try_lock() {
+            Ok(()) => Ok(Some(Box::new(LocalReadLease { _file: file }))),
+            Err(fs::TryLockError::WouldBlock) => Ok(None),
+            Err(fs::TryLockError::Error(error)) => {
+                Err(error).with_context(|| format!("cannot lock {}", path.display()))
+            }
+        }
+    }
+
     fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>> {
         let file = self.open_lock_file(id)?;
         match file.try_lock() {
@@ -299,6 +354,24 @@ impl Store for LocalStore {
             output_dir,
             work_dir,
         })
+    }
+
+    fn staged(&self) -> anyhow::Result<Vec<EntryId>> {
+        let staging_root = self.root.join(STAGING_DIR);
+        let mut ids = Vec::new();
+        for kind in Self::plain_subdirs(&staging_root) {
+            for key in Self::plain_subdirs(&staging_root.join(&kind)) {
+                ids.push(EntryId::new(&kind, &key));
+            }
+        }
+        Ok(ids)
+    }
+
+    fn remove_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<u64> {
+        let dir = self.staging_dir(lock.id());
+        let bytes = tree_bytes(&dir);
+        remove_dir_if_present(&dir)?;
+        Ok(bytes)
     }
 
     fn has_resumable_work(&self, id: &EntryId) -> bool {

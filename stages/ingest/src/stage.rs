@@ -605,11 +605,7 @@ impl StageKind for Ingest {
     fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
         let config: IngestConfig = serde_json::from_value(config.clone())?;
         let mut files: Vec<PathBuf> = config.body_model.iter().cloned().collect();
-        // Dataset readers list their raw files here once they exist (crate::datasets).
-        if let DatasetConfig::DnaRendering(dna) = &config.dataset {
-            files.push(dna.main_file.clone());
-            files.extend(dna.annotations_file.iter().cloned());
-        }
+        files.extend(crate::datasets::source_files(&config));
         Ok(files)
     }
 

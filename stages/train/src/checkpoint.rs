@@ -3,8 +3,10 @@
 //! generator state and free-form metadata as group attributes.
 //!
 //! Crash safety: a checkpoint is written into `ckpt-<iteration>.partial/`, its files are
-//! synced, the directory is renamed to `ckpt-<iteration>/` and only then are older
-//! checkpoints deleted, so a killed run always leaves the last complete checkpoint behind.
+//! synced, the directory is renamed to `ckpt-<iteration>/` and only then are checkpoints
+//! older than the previous one deleted, so a killed run always leaves the last complete
+//! checkpoint behind, and a damaged newest checkpoint has a previous one to fall back to
+//! ([`resume_newest_good`]).
 //! f32 values survive the f64 round trip exactly, so a resumed `cpu` run is bit-identical.
 
 use std::fs;
@@ -42,11 +44,11 @@ pub struct Checkpoint {
 pub enum CheckpointError {
     #[error("checkpoint {path}: {message}")]
     Invalid { path: PathBuf, message: String },
-    #[error("checkpoint {path}: {source}")]
+    // The cause is in the message, so it is not also a `source` (chains would repeat it).
+    #[error("checkpoint {path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }
 
@@ -58,17 +60,20 @@ fn invalid(path: &Path, message: impl std::fmt::Display) -> CheckpointError {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
-    move |source| CheckpointError::Io {
+    move |error| CheckpointError::Io {
         path: path.to_owned(),
-        source,
+        error,
     }
 }
 
 const PREFIX: &str = "ckpt-";
 const PARTIAL: &str = ".partial";
 const FORMAT: u64 = 1;
+/// Complete checkpoints kept: the newest and the one before it.
+const KEEP: usize = 2;
 
-/// Writes `checkpoint` under `dir` and removes older checkpoints; returns its directory.
+/// Writes `checkpoint` under `dir` and removes all but the [`KEEP`] newest; returns its
+/// directory.
 pub fn save(dir: &Path, checkpoint: &Checkpoint) -> Result<PathBuf, CheckpointError> {
     fs::create_dir_all(dir).map_err(io(dir))?;
     let final_dir = dir.join(format!("{PREFIX}{:010}", checkpoint.iteration));
@@ -86,10 +91,9 @@ pub fn save(dir: &Path, checkpoint: &Checkpoint) -> Result<PathBuf, CheckpointEr
         // Persist the rename (directory fsync; not supported everywhere, hence best effort).
         let _ = handle.sync_all();
     }
-    for (_, old) in list(dir)? {
-        if old != final_dir {
-            fs::remove_dir_all(&old).map_err(io(&old))?;
-        }
+    let complete = list(dir)?;
+    for (_, old) in &complete[..complete.len().saturating_sub(KEEP)] {
+        fs::remove_dir_all(old).map_err(io(old))?;
     }
     Ok(final_dir)
 }
@@ -125,6 +129,32 @@ pub fn load_latest(dir: &Path) -> Result<Option<Checkpoint>, CheckpointError> {
         Some((_, path)) => read_group(&path).map(Some),
         None => Ok(None),
     }
+}
+
+/// Resumes from the newest checkpoint under `dir` that can be read and that `resume`
+/// accepts. A checkpoint that fails either is deleted (so no later run trips over it again)
+/// and the next older one is tried; each failure is described in the returned notes.
+/// `None` when no usable checkpoint is left: the caller starts over.
+pub fn resume_newest_good<T>(
+    dir: &Path,
+    mut resume: impl FnMut(Checkpoint) -> anyhow::Result<T>,
+) -> Result<(Option<T>, Vec<String>), CheckpointError> {
+    let mut notes = Vec::new();
+    for (_, path) in list(dir)?.into_iter().rev() {
+        let failure = match read_group(&path) {
+            Ok(checkpoint) => match resume(checkpoint) {
+                Ok(resumed) => return Ok((Some(resumed), notes)),
+                Err(error) => format!("{error:#}"),
+            },
+            Err(error) => error.to_string(),
+        };
+        fs::remove_dir_all(&path).map_err(io(&path))?;
+        notes.push(format!(
+            "checkpoint {} is unusable and was deleted ({failure})",
+            path.display()
+        ));
+    }
+    Ok((None, notes))
 }
 
 fn sync_tree(path: &Path) -> Result<(), CheckpointError> {
@@ -278,6 +308,16 @@ fn read_group(path: &Path) -> Result<Checkpoint, CheckpointError> {
         let values: Vec<f64> = if shape.iter().product::<usize>() == 0 {
             Vec::new()
         } else {
+            // Every tensor is one chunk; a missing one would read as zeros.
+            let chunk = array.chunk_key(&vec![0u64; shape.len()]);
+            let stored = zarrs::storage::ReadableStorageTraits::size_key(&*store, &chunk)
+                .map_err(|e| invalid(path, format!("array {name}: {e}")))?;
+            if stored.is_none() {
+                return Err(invalid(
+                    path,
+                    format!("array {name}: chunk {} is missing", chunk.as_str()),
+                ));
+            }
             array
                 .retrieve_array_subset(&subset)
                 .map_err(|e| invalid(path, format!("array {name}: {e}")))?
@@ -330,7 +370,7 @@ mod tests {
     }
 
     #[test]
-    fn round_trip_is_exact_and_keeps_only_the_newest() {
+    fn round_trip_is_exact_and_keeps_the_two_newest() {
         let dir = tempfile::tempdir().unwrap();
         assert!(load_latest(dir.path()).unwrap().is_none());
         save(dir.path(), &sample(10)).unwrap();
@@ -347,8 +387,61 @@ mod tests {
             let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&a.values), bits(&b.values));
         }
-        let entries: Vec<_> = fs::read_dir(dir.path()).unwrap().collect();
-        assert_eq!(entries.len(), 1);
+        save(dir.path(), &sample(30)).unwrap();
+        let mut entries: Vec<String> = fs::read_dir(dir.path())
+            .unwrap()
+            .map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        entries.sort();
+        assert_eq!(entries, ["ckpt-0000000020", "ckpt-0000000030"]);
+    }
+
+    /// Flips a byte of the first chunk of `gaussians/xyz` in the checkpoint of `iteration`.
+    fn damage(dir: &Path, iteration: u64) {
+        let chunk = dir.join(format!("ckpt-{iteration:010}/gaussians/xyz/c/0/0"));
+        let mut bytes = fs::read(&chunk).unwrap();
+        bytes[0] ^= 1;
+        fs::write(&chunk, bytes).unwrap();
+    }
+
+    #[test]
+    fn a_damaged_checkpoint_falls_back_to_the_previous_one_then_to_none() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(10)).unwrap();
+        save(dir.path(), &sample(20)).unwrap();
+        damage(dir.path(), 20);
+        assert!(load_latest(dir.path()).is_err(), "the damage is detected");
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, Some(10));
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert!(
+            notes[0].contains("ckpt-0000000020") && notes[0].contains("deleted"),
+            "{notes:?}"
+        );
+        // The damaged one is gone: the next run resumes from 10 without a note.
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!((resumed, notes.len()), (Some(10), 0));
+
+        // A checkpoint the trainer rejects is skipped the same way; with none left the
+        // caller starts over. A deleted chunk is an error, never zeros.
+        let chunk = dir
+            .path()
+            .join("ckpt-0000000010/networks/trunk.0.weight/c/0");
+        fs::remove_file(&chunk).unwrap();
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, None);
+        assert!(notes[0].contains("is missing"), "{notes:?}");
+        save(dir.path(), &sample(30)).unwrap();
+        let (resumed, notes) = resume_newest_good(dir.path(), |_| -> anyhow::Result<u64> {
+            anyhow::bail!("the Gaussian count does not match")
+        })
+        .unwrap();
+        assert_eq!(resumed, None);
+        assert!(notes[0].contains("does not match"), "{notes:?}");
+        assert!(list(dir.path()).unwrap().is_empty());
     }
 
     #[test]

@@ -168,16 +168,25 @@ impl StageKind for TrainStage {
             );
         }
         let work = ctx.work_dir().join("checkpoints");
-        let mut trainer = match checkpoint::load_latest(&work)? {
-            Some(ckpt) => {
-                let t = Trainer::resume(config.clone(), &data, backend.clone(), &ckpt)
-                    .with_context(|| {
-                        format!("resuming from the checkpoint in {}", work.display())
-                    })?;
+        // A damaged checkpoint is deleted and the previous one used (or training restarts),
+        // so one bad file never blocks the stage.
+        let (resumed, notes) = checkpoint::resume_newest_good(&work, |ckpt| {
+            Trainer::resume(config.clone(), &data, backend.clone(), &ckpt)
+        })?;
+        for note in &notes {
+            ctx.warn(note);
+        }
+        let mut trainer = match resumed {
+            Some(t) => {
                 ctx.log(&format!("resumed from iteration {}", t.iteration));
                 t
             }
-            None => Trainer::new(config.clone(), &data, backend.clone())?,
+            None => {
+                if !notes.is_empty() {
+                    ctx.warn("no usable checkpoint left: training starts over");
+                }
+                Trainer::new(config.clone(), &data, backend.clone())?
+            }
         };
         let resumed_from = trainer.iteration;
         let total = u64::from(config.iterations);

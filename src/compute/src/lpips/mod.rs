@@ -225,8 +225,15 @@ pub enum LpipsError {
     },
     #[error("LPIPS input: {message}")]
     Input { message: String },
+    /// The cause is in the message, so it is not also a `source` (chains would repeat it).
     #[error("LPIPS on the gpu: {0}")]
-    Gpu(#[from] BackendError),
+    Gpu(BackendError),
+}
+
+impl From<BackendError> for LpipsError {
+    fn from(error: BackendError) -> Self {
+        Self::Gpu(error)
+    }
 }
 
 /// One convolution's parameters: weight `(out, in, k, k)` row-major, bias `(out)`.

@@ -265,12 +265,9 @@ pub enum SplatError {
     TooManyIntersections { count: usize },
     #[error("no cameras given")]
     NoCameras,
-    #[error("camera {index} is invalid: {source}")]
-    Camera {
-        index: usize,
-        #[source]
-        source: CameraError,
-    },
+    // Causes are in the messages, so they are not also `source`s (chains would repeat them).
+    #[error("camera {index} is invalid: {error}")]
+    Camera { index: usize, error: CameraError },
     #[error("image of camera {index} is too large ({width}x{height})")]
     ImageTooLarge {
         index: usize,
@@ -291,11 +288,10 @@ pub enum SplatError {
         "the Gaussians passed to backward ({actual}) are not those of the forward pass ({expected})"
     )]
     GaussiansChanged { expected: usize, actual: usize },
-    #[error("writing {path}: {source}")]
+    #[error("writing {path}: {error}")]
     Png {
         path: std::path::PathBuf,
-        #[source]
-        source: image::ImageError,
+        error: image::ImageError,
     },
 }
 
@@ -307,7 +303,7 @@ pub(crate) fn validate_call(cameras: &[Camera], options: &RasterOptions) -> Resu
     for (index, camera) in cameras.iter().enumerate() {
         camera
             .validate()
-            .map_err(|source| SplatError::Camera { index, source })?;
+            .map_err(|error| SplatError::Camera { index, error })?;
         // Pixel indices are u32 and tile keys hold the tile index in 32 bits.
         let pixels = u64::from(camera.width) * u64::from(camera.height);
         if pixels > u64::from(u32::MAX / 4) {

@@ -36,9 +36,9 @@ pub fn render_png<S: Scalar>(
     let (image, diagnostics) = render_rgb8(gaussians, camera, options)?;
     image
         .save_with_format(path, image::ImageFormat::Png)
-        .map_err(|source| SplatError::Png {
+        .map_err(|error| SplatError::Png {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
     Ok(diagnostics)
 }

@@ -31,8 +31,8 @@ use lease::{Acquired, Lease, LeaseSettings, unique_name};
 
 use crate::entry::EntryReader;
 use crate::store::{
-    COMPLETION_MARKER, EntryId, EntryState, KeyLock, LocalStore, Staging, Store, check_component,
-    fsync_tree, remove_dir_if_present,
+    COMPLETION_MARKER, EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store,
+    check_component, fsync_tree, remove_dir_if_present,
 };
 
 /// Local folder (inside the local front) of downloads in progress.
@@ -491,6 +491,16 @@ impl Store for RemoteStore {
         self.local.reader_storage(id)
     }
 
+    fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
+        Self::check_id(id)?;
+        self.local.read_lease(id)
+    }
+
+    fn try_exclusive_read_lease(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn ReadLease>>> {
+        Self::check_id(id)?;
+        self.local.try_exclusive_read_lease(id)
+    }
+
     fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>> {
         Self::check_id(id)?;
         let mut waited = false;
@@ -556,6 +566,14 @@ impl Store for RemoteStore {
 
     fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging> {
         self.local.begin_staging(lock)
+    }
+
+    fn staged(&self) -> anyhow::Result<Vec<EntryId>> {
+        self.local.staged()
+    }
+
+    fn remove_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<u64> {
+        self.local.remove_staging(lock)
     }
 
     fn has_resumable_work(&self, id: &EntryId) -> bool {

@@ -41,6 +41,17 @@ const SPLITS: [(&str, &[i64], &[i64], usize); 4] = [
 /// The sub-folders of a sequence, in the order the reader looks for an image.
 const PARTS: [&str; 3] = ["train", "novelview", "novelpose"];
 
+/// The existing sub-folders of sequence `sequence` under `root` with their index in
+/// [`PARTS`]: every file the reader reads lies in one of them.
+pub fn sequence_folders(root: &Path, sequence: &str) -> Vec<(usize, PathBuf)> {
+    PARTS
+        .iter()
+        .enumerate()
+        .map(|(i, part)| (i, root.join(format!("{sequence}-{part}"))))
+        .filter(|(_, p)| p.is_dir())
+        .collect()
+}
+
 /// Where one image lives.
 #[derive(Clone, Debug)]
 struct ImageRef {
@@ -196,12 +207,7 @@ impl I3dHuman {
     /// Opens sequence `sequence` (e.g. `ID1_1`) under `root`.
     pub fn open(root: &Path, sequence: &str, body_model: Option<&Path>) -> anyhow::Result<Self> {
         let mut warnings = Vec::new();
-        let folders: Vec<(usize, PathBuf)> = PARTS
-            .iter()
-            .enumerate()
-            .map(|(i, part)| (i, root.join(format!("{sequence}-{part}"))))
-            .filter(|(_, p)| p.is_dir())
-            .collect();
+        let folders = sequence_folders(root, sequence);
         if folders.is_empty() {
             bail!(
                 "I3D-Human: no folder {0}-train, {0}-novelview or {0}-novelpose under {1}",
