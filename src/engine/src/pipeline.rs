@@ -879,6 +879,21 @@ mod tests {
     }
 
     #[test]
+    fn unreadable_file_error_names_its_cause_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing.yaml");
+        let error = Pipeline::load(&missing, &Registry::new(), &[]).unwrap_err();
+        // The binary prints the whole chain (`{:#}`): the cause must not appear twice.
+        let chain = format!("{:#}", anyhow::Error::from(error));
+        assert!(chain.contains("missing.yaml: cannot read: "), "{chain}");
+        assert_eq!(
+            chain.matches("No such file or directory").count(),
+            1,
+            "{chain}"
+        );
+    }
+
+    #[test]
     fn variables_expand_in_strings() {
         // SAFETY of the test: the variable name is unique to this test.
         unsafe { std::env::set_var("SEQAVATAR_ENGINE_TEST_ROOT", "/data/root") };

@@ -767,3 +767,36 @@ fn gpu_steps_with_the_lpips_loss_match_cpu() {
         );
     }
 }
+
+#[test]
+fn a_corrupt_checkpoint_restarts_training_and_says_so() {
+    let iterations = 20u32;
+    let dir = tempfile::tempdir().unwrap();
+    let text = pipeline_text(iterations);
+    let registry = registry();
+    let store = LocalStore::open(dir.path()).unwrap();
+    let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
+    let keys = seqavatar_engine::compute_keys(&pipeline, &registry, &store).unwrap();
+    // The only checkpoint of an interrupted run is damaged: it used to fail every run.
+    let damaged = dir
+        .path()
+        .join(".staging/train")
+        .join(&keys["train"].key)
+        .join("work/checkpoints/ckpt-0000000010");
+    std::fs::create_dir_all(&damaged).unwrap();
+    std::fs::write(damaged.join("zarr.json"), b"{not json").unwrap();
+    let reports = run_pipeline(dir.path(), &text).unwrap();
+    let train = entry(dir.path(), &reports, "train");
+    assert_eq!(train.attribute("resumed_from").unwrap().as_u64(), Some(0));
+    let warnings = &train.manifest().warnings;
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("ckpt-0000000010") && w.contains("unusable and was deleted")),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings.iter().any(|w| w.contains("starts over")),
+        "{warnings:?}"
+    );
+}
