@@ -546,6 +546,8 @@ pub struct TrainedAvatar {
     pub sh_degree: u32,
     /// Raw temporal scales the networks were trained with (largest first).
     pub scales: Vec<u32>,
+    /// The colour [`TrainedAvatar::render`] composites behind the Gaussians: the training
+    /// background's [`crate::config::Background::render_colour`]; eval sets its protocol's.
     pub background: [f64; 3],
     /// The networks (absent for motion context `none` without refiners).
     pub networks: Option<Networks<f64>>,
@@ -566,7 +568,7 @@ impl TrainedAvatar {
     ) -> Self {
         let template_grid = template_grid(&rig);
         Self {
-            background: config.background,
+            background: config.background.render_colour(),
             networks,
             config,
             rig,
