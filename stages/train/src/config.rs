@@ -97,8 +97,9 @@ impl Background {
         }
     }
 
-    /// The colour a trained avatar renders on outside training (held-out PSNR, `pipeline
-    /// render`): the fixed colour; black for `random` (the evaluation protocol's colour).
+    /// The colour a trained avatar renders on by default (`pipeline render`): the fixed
+    /// colour; black for `random`. (The held-out PSNR and eval render on the evaluation
+    /// protocol's background.)
     pub fn render_colour(self) -> [f64; 3] {
         match self {
             Self::Black | Self::Random => [0.0; 3],
