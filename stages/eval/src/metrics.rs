@@ -182,7 +182,7 @@ pub struct Protocol {
 impl Default for Protocol {
     fn default() -> Self {
         Self {
-            background: [0.0; 3],
+            background: seqavatar_train::stage::PROTOCOL_BACKGROUND.map(|c| c as f32),
             bound_padding: 5,
             crop_ssim_lpips_to_bound_box: false,
         }

@@ -198,7 +198,8 @@ impl StageKind for EvalStage {
 
     fn version(&self) -> u32 {
         // 2: on the gpu backend the networks run on the gpu in f32 (GpuNetworks).
-        2
+        // 3: the avatar renders on the protocol's background (not its training background).
+        3
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -275,6 +276,9 @@ impl StageKind for EvalStage {
             motion.as_ref(),
             &backend,
         )?;
+        // The avatar is rendered on the protocol's background, the colour the ground truth
+        // outside its mask is set to, whatever background it was trained on.
+        renderer.avatar.background = config.protocol.background.map(f64::from);
         evaluate_entry(ctx, &config, &ingest, &mut renderer, &lpips, &backend)
     }
 

@@ -171,12 +171,37 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     kind: eval
     inputs: [train, other_body]
     config: {{device: cpu}}
+  - name: train_white
+    kind: train
+    inputs: [ingest, motion]
+    config: {}
+  - name: eval_white
+    kind: eval
+    inputs: [train_white, ingest, motion]
+    config: {{device: cpu, speed_scales: []}}
 "#,
-        weights.display()
+        weights.display(),
+        TRAIN.replace(r#""seed": 3,"#, r#""seed": 3, "background": "white","#)
     );
     let text = pipeline_text(&extra);
     let mut reports = run_text(&cache, &text, Some("eval")).unwrap();
     reports.extend(run_text(&cache, &text, Some("eval_lpips")).unwrap());
+    // An avatar trained on white is rendered on the protocol's black, like its truth: eval
+    // and the trainer's held-out PSNR (also on the protocol's background) agree.
+    reports.extend(run_text(&cache, &text, Some("eval_white")).unwrap());
+    let white = entry(&cache, &reports, "train_white");
+    assert_eq!(white.attribute("config").unwrap()["background"], "white");
+    let white_psnr = entry(&cache, &reports, "eval_white")
+        .read::<f64>("psnr")
+        .unwrap()
+        .data;
+    let white_trainer = white.read::<f64>("test_psnr").unwrap().data;
+    for (ours, theirs) in white_psnr.iter().zip(&white_trainer) {
+        assert!(
+            (ours - theirs).abs() < 1e-3 && *ours > 12.0,
+            "white-trained avatar: eval PSNR {ours} vs the trainer's held-out PSNR {theirs}"
+        );
+    }
     let train = entry(&cache, &reports, "train");
     let ingest = entry(&cache, &reports, "ingest");
     let eval = entry(&cache, &reports, "eval");

@@ -546,6 +546,9 @@ pub struct TrainedAvatar {
     pub sh_degree: u32,
     /// Raw temporal scales the networks were trained with (largest first).
     pub scales: Vec<u32>,
+    /// The colour [`TrainedAvatar::render`] composites behind the Gaussians: the training
+    /// background's [`crate::config::Background::render_colour`] (`pipeline render` uses
+    /// it); the held-out PSNR and eval render on the protocol's background instead.
     pub background: [f64; 3],
     /// The networks (absent for motion context `none` without refiners).
     pub networks: Option<Networks<f64>>,
@@ -566,7 +569,7 @@ impl TrainedAvatar {
     ) -> Self {
         let template_grid = template_grid(&rig);
         Self {
-            background: config.background,
+            background: config.background.render_colour(),
             networks,
             config,
             rig,
@@ -645,9 +648,20 @@ impl TrainedAvatar {
         camera: &Camera,
         backend: &Backend,
     ) -> anyhow::Result<RenderedImage<f64>> {
+        self.render_on(inputs, camera, backend, self.background)
+    }
+
+    /// [`TrainedAvatar::render`] on `background` instead of the avatar's own colour.
+    pub fn render_on(
+        &self,
+        inputs: &FrameInputs,
+        camera: &Camera,
+        backend: &Backend,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>> {
         let deformed = self.deform(inputs, backend)?;
         let options = RasterOptions {
-            background: self.background,
+            background,
             smooth_cutoff: false,
         };
         let mut pass = splatting::forward(

@@ -72,6 +72,42 @@ pub enum Device {
     Gpu,
 }
 
+/// The colour the avatar is rendered on during training, and the training targets composited
+/// onto (the ground truth is the person over its mask, on this background).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Background {
+    /// Black, as method.md trains every dataset.
+    Black,
+    /// White.
+    White,
+    /// A uniformly random colour per iteration (the same for the render and the target of
+    /// that iteration), the usual remedy against the model painting the background.
+    Random,
+}
+
+impl Background {
+    /// The colour of one training iteration: the fixed colour, or for `random` three
+    /// uniform draws from `rng` (the only background that draws, so black and white runs
+    /// keep their random streams).
+    pub fn draw(self, rng: &mut crate::rng::Rng) -> [f64; 3] {
+        match self {
+            Self::Random => [rng.next_f64(), rng.next_f64(), rng.next_f64()],
+            fixed => fixed.render_colour(),
+        }
+    }
+
+    /// The colour a trained avatar renders on by default (`pipeline render`): the fixed
+    /// colour; black for `random`. (The held-out PSNR and eval render on the evaluation
+    /// protocol's background.)
+    pub fn render_colour(self) -> [f64; 3] {
+        match self {
+            Self::Black | Self::Random => [0.0; 3],
+            Self::White => [1.0; 3],
+        }
+    }
+}
+
 /// Learning rates (method.md, "Optimisation").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -238,8 +274,8 @@ pub struct TrainConfig {
     pub scale_max: f64,
     pub learning_rates: LearningRates,
     pub checkpoint_every: u32,
-    /// Background colour (the datasets use black).
-    pub background: [f64; 3],
+    /// The background renders and targets are composited on (`black`, `white`, `random`).
+    pub background: Background,
 }
 
 impl TrainConfig {
@@ -285,7 +321,7 @@ impl TrainConfig {
             scale_max: 0.5,
             learning_rates: LearningRates::default(),
             checkpoint_every: 500,
-            background: [0.0; 3],
+            background: Background::Black,
         };
         match preset {
             Preset::Balanced => base,
@@ -466,9 +502,6 @@ impl TrainConfig {
                     self.lpips_weight
                 ),
             );
-        }
-        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
-            return bad("background", "components must be in [0, 1]".into());
         }
         self.learning_rates.validate()?;
         if let Some(machine) = seqavatar_engine::machine_memory_bytes() {
@@ -666,6 +699,9 @@ mod tests {
                 json!({"learning_rates": {"adam_eps": 0.0}}),
                 "learning_rates.adam_eps",
             ),
+            (json!({"background": "green"}), "background"),
+            (json!({"background": [0.0, 0.0, 0.0]}), "background"),
+            (json!({"background": null}), "background"),
         ];
         for (raw, field) in cases {
             let err = TrainConfig::resolve(&raw).unwrap_err().to_string();
@@ -723,6 +759,41 @@ mod tests {
         // A weights file with weight 0 is allowed (and unused).
         let c = TrainConfig::resolve(&json!({"lpips_weights": "absent.safetensors"})).unwrap();
         assert!(!c.lpips_enabled());
+    }
+
+    #[test]
+    fn background_options_resolve_and_draw() {
+        for preset in [Preset::Fast, Preset::Balanced, Preset::Paper] {
+            assert_eq!(TrainConfig::preset(preset).background, Background::Black);
+        }
+        for (name, background) in [
+            ("black", Background::Black),
+            ("white", Background::White),
+            ("random", Background::Random),
+        ] {
+            let c = TrainConfig::resolve(&json!({ "background": name })).unwrap();
+            assert_eq!(c.background, background);
+            assert_eq!(serde_json::to_value(&c).unwrap()["background"], json!(name));
+        }
+        // Fixed colours draw nothing from the stream; random draws three uniforms from it.
+        let mut rng = crate::rng::Rng::new(5);
+        assert_eq!(Background::Black.draw(&mut rng), [0.0; 3]);
+        assert_eq!(Background::White.draw(&mut rng), [1.0; 3]);
+        assert_eq!(rng.state(), crate::rng::Rng::new(5).state());
+        let mut expected = crate::rng::Rng::new(5);
+        let first = Background::Random.draw(&mut rng);
+        assert_eq!(
+            first,
+            [
+                expected.next_f64(),
+                expected.next_f64(),
+                expected.next_f64()
+            ]
+        );
+        let second = Background::Random.draw(&mut rng);
+        assert_ne!(first, second);
+        assert!(first.iter().chain(&second).all(|c| (0.0..1.0).contains(c)));
+        assert_eq!(Background::Random.render_colour(), [0.0; 3]);
     }
 
     #[test]

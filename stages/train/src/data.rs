@@ -30,9 +30,19 @@ pub struct ImageRecord {
 }
 
 impl ImageRecord {
-    /// Colour in `[0, 1]` as f64.
-    pub fn colour_f64(&self) -> Vec<f64> {
-        self.rgb.iter().map(|&b| f64::from(b) / 255.0).collect()
+    /// The training target: the image composited with its mask onto `background`,
+    /// `m c + (1 - m) b` per channel with `c = rgb / 255` and `m = mask / 255`, so that
+    /// whatever the camera saw behind the person is replaced by the colour the avatar is
+    /// rendered on.
+    pub fn colour_on(&self, background: [f64; 3]) -> Vec<f64> {
+        self.rgb
+            .chunks_exact(3)
+            .zip(&self.mask)
+            .flat_map(|(pixel, &mask)| {
+                let m = f64::from(mask) / 255.0;
+                [0, 1, 2].map(|c| m * (f64::from(pixel[c]) / 255.0) + (1.0 - m) * background[c])
+            })
+            .collect()
     }
 
     /// Mask in `[0, 1]` as f64.
@@ -324,6 +334,38 @@ pub fn camera_extent<'a>(cameras: impl Iterator<Item = &'a Camera>) -> f64 {
 mod tests {
     use super::*;
     use seqavatar_core::camera::Intrinsics;
+
+    #[test]
+    fn targets_are_composited_with_their_mask() {
+        // Four pixels: foreground, background, 20 % and 60 % coverage; values worked out
+        // by hand (m c + (1 - m) b).
+        let record = ImageRecord {
+            view: 0,
+            frame: 0,
+            split: 0,
+            rgb: vec![255, 0, 51, 90, 180, 12, 255, 255, 255, 0, 102, 255],
+            mask: vec![255, 0, 51, 153],
+            bound: None,
+        };
+        let background = [0.0, 0.5, 1.0];
+        let expected = [
+            [1.0, 0.0, 0.2],
+            [0.0, 0.5, 1.0],
+            [0.2, 0.6, 1.0],
+            [0.0, 0.44, 1.0],
+        ];
+        let got = record.colour_on(background);
+        assert_eq!(got.len(), 12);
+        for (pixel, want) in got.chunks_exact(3).zip(expected) {
+            for (g, w) in pixel.iter().zip(want) {
+                assert!((g - w).abs() < 1e-12, "{pixel:?} vs {want:?}");
+            }
+        }
+        // On black, the foreground keeps its colour premultiplied by the mask.
+        let black = record.colour_on([0.0; 3]);
+        assert_eq!(&black[3..6], &[0.0; 3]);
+        assert!((black[9 + 1] - 0.6 * 0.4).abs() < 1e-12);
+    }
 
     #[test]
     fn extent_of_a_ring_is_its_radius_times_1_1() {

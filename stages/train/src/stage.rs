@@ -46,7 +46,7 @@ use crate::trainer::{LossCurve, Trainer};
 pub struct TrainStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 3;
+const VERSION: u32 = 4;
 
 /// Converts the config's device to the compute crate's choice.
 pub fn device_choice(device: Device) -> DeviceChoice {
@@ -57,9 +57,14 @@ pub fn device_choice(device: Device) -> DeviceChoice {
     }
 }
 
+/// The evaluation protocol's background (method.md: black for every dataset). The held-out
+/// PSNR renders the avatar on it and sets the truth outside the mask to it, whatever the
+/// training background, so it is the number eval reports with its default protocol.
+pub const PROTOCOL_BACKGROUND: [f64; 3] = [0.0; 3];
+
 /// Held-out PSNR of one rendered image by the evaluation protocol of method.md: rendered
-/// pixels outside the bound box set to the background, ground-truth colour with non-mask
-/// pixels zeroed, PSNR over the whole image.
+/// pixels outside the bound box set to the background, ground-truth pixels outside the mask
+/// set to the background (the colour the image was rendered on), PSNR over the whole image.
 pub fn protocol_psnr(
     colour: &[f64],
     target: &[u8],
@@ -81,7 +86,7 @@ pub fn protocol_psnr(
                 let truth = if foreground {
                     f64::from(target[i]) / 255.0
                 } else {
-                    0.0
+                    background[c]
                 };
                 sum += (rendered - truth).powi(2);
             }
@@ -239,7 +244,7 @@ impl StageKind for TrainStage {
             let inputs =
                 avatar.frame_inputs(&data.motion, &data.params[record.frame], record.frame)?;
             let camera = &data.cameras[record.view];
-            let image = avatar.render(&inputs, camera, &backend)?;
+            let image = avatar.render_on(&inputs, camera, &backend, PROTOCOL_BACKGROUND)?;
             let bound = record.bound.map(|b| {
                 crate::trainer::pad_rect(
                     b,
@@ -255,7 +260,7 @@ impl StageKind for TrainStage {
                 camera.width as usize,
                 camera.height as usize,
                 bound,
-                config.background,
+                PROTOCOL_BACKGROUND,
             ));
         }
         let test_mean = if test_psnr.is_empty() {
@@ -419,6 +424,23 @@ mod tests {
         });
         let p = protocol_psnr(&colour, &target, &mask, 2, 2, bound, [0.0; 3]);
         let expected = -10.0 * (0.01f64 * 3.0 / 12.0).log10();
+        assert!((p - expected).abs() < 1e-9, "{p} vs {expected}");
+        // On white: the render's pixels outside the bound box and the truth's pixels outside
+        // the mask are both white, so the error is unchanged; a render that leaves the
+        // background black inside the bound box would not be.
+        for c in 3..12 {
+            colour[c] = 0.7;
+        }
+        let p = protocol_psnr(&colour, &target, &mask, 2, 2, bound, [1.0; 3]);
+        assert!((p - expected).abs() < 1e-9, "{p} vs {expected}");
+        let wide = Some(crate::losses::Rect {
+            x0: 0,
+            y0: 0,
+            x1: 2,
+            y1: 1,
+        });
+        let p = protocol_psnr(&colour, &target, &mask, 2, 2, wide, [1.0; 3]);
+        let expected = -10.0 * ((0.01f64 * 3.0 + 0.09 * 3.0) / 12.0).log10();
         assert!((p - expected).abs() < 1e-9, "{p} vs {expected}");
     }
 

@@ -1,7 +1,10 @@
 //! The training loop: per iteration a seeded choice of training image(s) of one frame, the
-//! avatar's forward pass ([`crate::avatar::deform`]), splatting on the chosen backend, the
-//! photometric, LPIPS (when configured) and as-isometric-as-possible losses, the full
-//! backward, Adam with the method.md schedules, the SH degree schedule and density control.
+//! avatar's forward pass ([`crate::avatar::deform`]), splatting on the chosen backend onto
+//! the iteration's background ([`crate::config::Background`]), the photometric and LPIPS
+//! (when configured) losses against the ground truth composited with its mask onto that same
+//! background ([`crate::data::ImageRecord::colour_on`]), the as-isometric-as-possible loss,
+//! the full backward, Adam with the method.md schedules, the SH degree schedule and density
+//! control.
 //!
 //! A [`Trainer`] holds the complete resumable state; [`Trainer::checkpoint`] and
 //! [`Trainer::resume`] convert it to and from a [`Checkpoint`] exactly, so a resumed `cpu`
@@ -395,8 +398,11 @@ impl<'d> Trainer<'d> {
             .iter()
             .map(|&i| self.data.cameras[self.data.images[i].view].clone())
             .collect();
+        // The avatar is rendered on this iteration's background, and every image loss compares
+        // it with the ground truth composited onto the same colour.
+        let background = self.config.background.draw(&mut self.rng);
         let options = RasterOptions {
-            background: self.config.background,
+            background,
             smooth_cutoff: false,
         };
         let pass = splatting::forward(&self.backend, &deformed.world, &cameras, &options)?;
@@ -422,7 +428,7 @@ impl<'d> Trainer<'d> {
                 w,
                 h,
             );
-            let target_colour = record.colour_f64();
+            let target_colour = record.colour_on(background);
             let target_mask = record.mask_f64();
             let (terms, mut grads) = image_loss(
                 &ImagePair {

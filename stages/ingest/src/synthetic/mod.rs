@@ -6,7 +6,8 @@
 //! - [`motion`]: the scripted motion (pose, heading and path over time).
 //! - [`garment`]: the skirt and its damped mass-spring simulation (position based).
 //! - [`raster`]: the z-buffered, perspective-correct triangle rasterizer.
-//! - [`scene`]: the whole scene: cameras, textures, shading, the [`DatasetReader`] impl.
+//! - [`scene`]: the whole scene: cameras, textures, shading, the per-camera backdrops, the
+//!   [`DatasetReader`] impl.
 //!
 //! [`DatasetReader`]: crate::stage::DatasetReader
 
@@ -46,6 +47,17 @@ impl Default for JitterConfig {
     }
 }
 
+/// What the cameras see behind the person.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SyntheticBackground {
+    /// A textured backdrop per camera (seeded): colour gradient, tiles and stripes, as real
+    /// captures have a background that training must not learn.
+    Textured,
+    /// Black (the images are then the person premultiplied by its coverage).
+    Black,
+}
+
 /// Sizes and settings of the synthetic scene (`dataset: {kind: synthetic, ...}`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -69,6 +81,9 @@ pub struct SyntheticConfig {
     pub body_grid_spacing: f64,
     /// Whether the subject wears the simulated skirt.
     pub garment: bool,
+    /// The backdrop behind the person (`textured` or `black`); masks are the person's
+    /// coverage either way.
+    pub background: SyntheticBackground,
     pub jitter: JitterConfig,
     /// Seed of the jitter and of the camera ring's irregularities.
     pub seed: u64,
@@ -87,6 +102,7 @@ impl Default for SyntheticConfig {
             betas: [0.3, -0.2],
             body_grid_spacing: seqavatar_core::body::procedural::DEFAULT_GRID_SPACING,
             garment: true,
+            background: SyntheticBackground::Textured,
             jitter: JitterConfig::default(),
             seed: 7,
         }

@@ -11,6 +11,11 @@
 //! surface point, so the texture moves with the skin and has detail at the pixel scale; the
 //! skirt has stripes and bands in its own coordinates. Shading is Lambertian with one
 //! directional light plus ambient; both sides of the skirt are lit.
+//!
+//! Background: each camera sees its own textured backdrop ([`Backdrop`], seeded per camera)
+//! behind the person, or black (`background: black`). The masks are the person's coverage
+//! of each pixel either way, so a pixel is `m F + (1 - m) B` for foreground colour `F`,
+//! backdrop colour `B` and mask `m`.
 
 use rayon::prelude::*;
 use seqavatar_core::body::procedural::{self, procedural_body};
@@ -18,11 +23,11 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DAffine3, DVec2, DVec3};
 
-use super::SyntheticConfig;
 use super::garment::{self, Skirt};
 use super::motion::sample_script;
 use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
+use super::{SyntheticBackground, SyntheticConfig};
 use crate::stage::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
 };
@@ -34,6 +39,8 @@ const WARMUP_SECONDS: f64 = 2.0;
 /// Mixed into the seed for the keypoint noise, so adding keypoints leaves the fit jitter and
 /// the camera ring of a seed unchanged.
 const KEYPOINT_STREAM: u64 = 0x6b65_7970_6f69_6e74;
+/// Mixed into the seed for the backdrops, so they leave the other streams of a seed unchanged.
+const BACKDROP_STREAM: u64 = 0x6261_636b_6472_6f70;
 /// Direction towards the light.
 const LIGHT: DVec3 = DVec3::new(0.35, 0.85, 0.4);
 
@@ -53,6 +60,76 @@ pub struct SyntheticScene {
     body_colour: Vec<DVec3>,
     /// `(frame, joint)` noisy ground-truth joint positions (the 3D keypoints).
     keypoints: Vec<DVec3>,
+    /// One per camera with a textured background; empty for a black one.
+    backdrops: Vec<Backdrop>,
+}
+
+/// What one camera sees behind the person, in image coordinates: a vertical gradient between
+/// two colours, tiles of a random size and orientation tinted in a third, and faint stripes.
+/// Every parameter is drawn per camera, so no two cameras share a background.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Backdrop {
+    height: f64,
+    top: DVec3,
+    bottom: DVec3,
+    /// Factor on the gradient colour of every other tile.
+    tint: DVec3,
+    /// Tile side, pixels.
+    cell: f64,
+    /// Tile grid direction (unit) and offset in cells.
+    direction: DVec2,
+    offset: DVec2,
+    /// Stripe wave vector (radians per pixel) and amplitude.
+    stripes: DVec2,
+    stripe_amplitude: f64,
+}
+
+impl Backdrop {
+    /// A backdrop for a `width x height` image drawn from `rng`.
+    pub fn new(rng: &mut Rng, width: u32, height: u32) -> Self {
+        let mut colour = |lo: f64, hi: f64| {
+            DVec3::new(
+                rng.uniform(lo, hi),
+                rng.uniform(lo, hi),
+                rng.uniform(lo, hi),
+            )
+        };
+        let top = colour(0.15, 0.9);
+        let bottom = colour(0.1, 0.8);
+        let tint = colour(0.45, 0.8);
+        let size = f64::from(width.min(height));
+        let cell = size * rng.uniform(0.04, 0.1);
+        let angle = rng.uniform(0.0, std::f64::consts::FRAC_PI_2);
+        let offset = DVec2::new(rng.next_f64(), rng.next_f64());
+        let stripe_angle = rng.uniform(0.0, std::f64::consts::PI);
+        let period = size * rng.uniform(0.02, 0.05);
+        Self {
+            height: f64::from(height),
+            top,
+            bottom,
+            tint,
+            cell,
+            direction: DVec2::new(angle.cos(), angle.sin()),
+            offset,
+            stripes: DVec2::new(stripe_angle.cos(), stripe_angle.sin()) * std::f64::consts::TAU
+                / period,
+            stripe_amplitude: rng.uniform(0.03, 0.08),
+        }
+    }
+
+    /// Linear colour in `[0, 1]` at the continuous image point `(x, y)` (pixels).
+    pub fn colour(&self, x: f64, y: f64) -> DVec3 {
+        let point = DVec2::new(x, y);
+        let gradient = self
+            .top
+            .lerp(self.bottom, (y / self.height).clamp(0.0, 1.0));
+        let along = point.dot(self.direction) / self.cell + self.offset.x;
+        let across = point.perp_dot(self.direction) / self.cell + self.offset.y;
+        let odd = (along.floor() + across.floor()).rem_euclid(2.0) == 1.0;
+        let tiled = if odd { gradient * self.tint } else { gradient };
+        let stripe = self.stripe_amplitude * point.dot(self.stripes).sin();
+        (tiled + DVec3::splat(stripe)).clamp(DVec3::ZERO, DVec3::ONE)
+    }
 }
 
 /// The albedo region colour of a body vertex from its dominant joint.
@@ -228,6 +305,15 @@ impl SyntheticScene {
             })
             .collect();
 
+        let backdrops = match config.background {
+            SyntheticBackground::Black => Vec::new(),
+            SyntheticBackground::Textured => {
+                let mut backdrop_rng = super::rng::seeded(config.seed ^ BACKDROP_STREAM);
+                (0..config.cameras)
+                    .map(|_| Backdrop::new(&mut backdrop_rng, config.width, config.height))
+                    .collect()
+            }
+        };
         let mut scene = Self {
             config: config.clone(),
             model,
@@ -243,6 +329,7 @@ impl SyntheticScene {
             skirt_texture: garment::texture_coordinates(),
             body_colour,
             keypoints,
+            backdrops,
         };
         scene.cameras = scene.place_cameras(&mut rng)?;
         Ok(scene)
@@ -345,6 +432,11 @@ impl SyntheticScene {
     /// The exact body parameters of every frame.
     pub fn ground_truth(&self) -> &[BodyParams] {
         &self.ground_truth
+    }
+
+    /// The backdrop camera `view` sees (`None` with a black background).
+    pub fn backdrop(&self, view: usize) -> Option<&Backdrop> {
+        self.backdrops.get(view)
     }
 
     /// Skirt particle positions of a frame (empty without a garment).
@@ -464,6 +556,7 @@ impl SyntheticScene {
         let mut rgb = image::RgbImage::new(camera.width, camera.height);
         let mut mask = image::GrayImage::new(camera.width, camera.height);
         let samples_per_pixel = (s * s) as f64;
+        let backdrop = self.backdrops.get(view);
         for row in 0..height {
             for col in 0..width {
                 let mut colour = DVec3::ZERO;
@@ -474,6 +567,11 @@ impl SyntheticScene {
                         if let Some(c) = shade(sample) {
                             colour += c;
                             covered += 1;
+                        } else if let Some(backdrop) = backdrop {
+                            // The sample's centre in image pixels.
+                            let x = col as f64 + (dx as f64 + 0.5) / s as f64;
+                            let y = row as f64 + (dy as f64 + 0.5) / s as f64;
+                            colour += backdrop.colour(x, y);
                         }
                     }
                 }
@@ -664,7 +762,7 @@ mod tests {
             .map(|(x, y)| (*x - *y).length())
             .fold(0.0, f64::max);
         assert!(skirt_change > 0.005, "skirt moved only {skirt_change} m");
-        // Images: a foreground with texture contrast, black background.
+        // Images: a foreground with texture contrast.
         let image = scene.render(0, 10).unwrap();
         let foreground: Vec<u8> = image
             .rgb
@@ -682,13 +780,109 @@ mod tests {
             .iter()
             .fold((255, 0), |(l, h), &g| (l.min(g), h.max(g)));
         assert!(hi - lo > 80, "texture contrast {lo}..{hi}");
-        assert!(
-            image
+    }
+
+    #[test]
+    fn backdrops_are_textured_per_camera_and_masks_stay_exact() {
+        let config = SyntheticConfig {
+            cameras: 3,
+            frames: 4,
+            width: 48,
+            height: 40,
+            supersample: 2,
+            body_grid_spacing: 0.05,
+            ..Default::default()
+        };
+        assert_eq!(config.background, SyntheticBackground::Textured);
+        let textured = SyntheticScene::generate(&config).unwrap();
+        let black = SyntheticScene::generate(&SyntheticConfig {
+            background: SyntheticBackground::Black,
+            ..config.clone()
+        })
+        .unwrap();
+        // The backdrop changes nothing else: cameras and bodies are those of the black scene,
+        // and generation is deterministic.
+        assert_eq!(textured.cameras, black.cameras);
+        assert_eq!(textured.jittered, black.jittered);
+        assert!(black.backdrop(0).is_none());
+        let again = SyntheticScene::generate(&config).unwrap();
+        assert_eq!(again.backdrop(2), textured.backdrop(2));
+        let mut backgrounds = Vec::new();
+        for view in 0..3 {
+            let (a, b) = (
+                textured.render(view, 1).unwrap(),
+                black.render(view, 1).unwrap(),
+            );
+            // Exact masks: the coverage of the person, whatever is behind it.
+            assert_eq!(a.mask, b.mask, "view {view}");
+            let backdrop = textured.backdrop(view).unwrap();
+            let mut seen = Vec::new();
+            for (index, ((pa, pb), m)) in a
                 .rgb
                 .pixels()
-                .zip(image.mask.pixels())
-                .all(|(p, m)| m.0[0] > 0 || p.0 == [0, 0, 0])
-        );
+                .zip(b.rgb.pixels())
+                .zip(a.mask.pixels())
+                .enumerate()
+            {
+                let (col, row) = ((index % 48) as f64, (index / 48) as f64);
+                // The backdrop at the pixel's 2 x 2 sample centres.
+                let samples: Vec<DVec3> = [0.25, 0.75]
+                    .iter()
+                    .flat_map(|dy| [0.25, 0.75].map(|dx| backdrop.colour(col + dx, row + dy)))
+                    .collect();
+                // The exact coverage (the stored mask is it rounded to a byte).
+                let m = (f64::from(m.0[0]) / 255.0 * 4.0).round() / 4.0;
+                for c in 0..3 {
+                    // The black image is m F; the textured one adds (1 - m) times the mean
+                    // backdrop of the uncovered samples, which lies between their extremes
+                    // (each image rounded to a byte once).
+                    let lo = samples.iter().map(|b| b[c]).fold(f64::INFINITY, f64::min);
+                    let hi = samples.iter().map(|b| b[c]).fold(0.0, f64::max);
+                    let added = f64::from(pa.0[c]) - f64::from(pb.0[c]);
+                    let (low, high) = ((1.0 - m) * lo * 255.0, (1.0 - m) * hi * 255.0);
+                    assert!(
+                        added >= low - 1.0 && added <= high + 1.0,
+                        "view {view} pixel {index} channel {c}: added {added}, not in \
+                         [{low}, {high}] (mask {m})"
+                    );
+                    if m == 0.0 {
+                        let mean = samples.iter().map(|b| b[c]).sum::<f64>() / 4.0 * 255.0;
+                        assert!((added - mean).abs() <= 0.5 + 1e-9, "{added} vs {mean}");
+                    }
+                }
+                if m == 0.0 {
+                    assert_eq!(pb.0, [0, 0, 0]);
+                    seen.push(pa.0);
+                }
+            }
+            assert!(seen.len() > 500, "{} background pixels", seen.len());
+            // Textured, not uniform: a wide spread of values in every channel.
+            let spreads = [0, 1, 2].map(|c| {
+                let values: Vec<f64> = seen.iter().map(|p| f64::from(p[c])).collect();
+                let mean = values.iter().sum::<f64>() / values.len() as f64;
+                (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / values.len() as f64)
+                    .sqrt()
+            });
+            eprintln!("view {view}: background spread per channel {spreads:.1?}");
+            assert!(
+                spreads.iter().all(|s| *s > 5.0) && spreads.iter().any(|s| *s > 12.0),
+                "view {view}: spreads {spreads:?}"
+            );
+            backgrounds.push(a.rgb);
+        }
+        // Each camera its own backdrop: the corners (background in every view) differ.
+        for (i, j) in [(0, 1), (0, 2), (1, 2)] {
+            let differing = backgrounds[i]
+                .pixels()
+                .zip(backgrounds[j].pixels())
+                .take(48 * 4)
+                .filter(|(p, q)| p.0 != q.0)
+                .count();
+            assert!(
+                differing > 150,
+                "views {i} and {j}: {differing} of 192 differ"
+            );
+        }
     }
 
     /// Timing of the demo's default scene (`SEQAVATAR_SLOW_TESTS=1`).
