@@ -806,10 +806,53 @@ fn to_usize_shape(shape: &[u64]) -> anyhow::Result<Vec<usize>> {
         .collect()
 }
 
+/// Opens a finished but not yet published entry the way every later reader will (the group
+/// document, the manifest, each array's metadata and shape) and fails if any of it cannot be
+/// read back, so an entry that cannot be opened is never marked complete.
+pub(crate) fn validate_staged(output_dir: &Path, location: &str) -> anyhow::Result<()> {
+    let store = FilesystemStore::new(output_dir)
+        .with_context(|| format!("{location}: cannot open the staged entry"))?;
+    let reader = EntryReader::open(Arc::new(store), location)?;
+    for (name, record) in &reader.manifest.arrays {
+        let shape = reader.shape(name)?;
+        anyhow::ensure!(
+            shape == record.shape,
+            "{location}: array \"{name}\" reads back with shape {shape:?}, the manifest says {:?}",
+            record.shape
+        );
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use rayon::prelude::*;
+
+    #[test]
+    fn staged_entries_that_cannot_be_read_back_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let writer = EntryWriter::create(dir.path()).unwrap();
+        writer
+            .write_array::<u8>("mask", &["y", "x"], &[2, 2], &[2, 2], &[0, 1, 254, 255])
+            .unwrap();
+        let mut record = manifest();
+        writer.finish(&mut record).unwrap();
+        validate_staged(dir.path(), "staged").unwrap();
+        // Array metadata that does not parse (as invalid UTF-8 from a dataset string once
+        // produced) is found before the entry is published.
+        std::fs::write(
+            dir.path().join("mask/zarr.json"),
+            b"{\"zarr_format\": 3, \xff}",
+        )
+        .unwrap();
+        let error = format!("{:#}", validate_staged(dir.path(), "staged").unwrap_err());
+        assert!(error.contains("mask"), "{error}");
+        // So is a group document that does not parse.
+        std::fs::write(dir.path().join("zarr.json"), b"\xfe\xff").unwrap();
+        let error = format!("{:#}", validate_staged(dir.path(), "staged").unwrap_err());
+        assert!(error.contains("staged"), "{error}");
+    }
 
     fn manifest() -> Manifest {
         Manifest {

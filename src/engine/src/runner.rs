@@ -541,6 +541,16 @@ pub fn run(
             .finish(&mut manifest)
             .with_context(|| format!("stage \"{}\": cannot finish its entry", stage.name))?;
         drop(writer);
+        crate::entry::validate_staged(
+            &staging.output_dir,
+            &format!("stage \"{}\" ({id})", stage.name),
+        )
+        .with_context(|| {
+            format!(
+                "stage \"{}\": its entry cannot be read back, nothing was published",
+                stage.name
+            )
+        })?;
         store
             .publish(lock.as_ref(), &staging)
             .with_context(|| format!("stage \"{}\": cannot publish {id}", stage.name))?;

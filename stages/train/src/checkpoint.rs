@@ -208,8 +208,11 @@ fn write_group(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointErr
         array.store_metadata().map_err(|e| invalid(path, e))?;
         if !tensor.values.is_empty() {
             let zeros = vec![0u64; tensor.shape.len()];
+            // Stored even when every value is the fill value (zarrs skips such chunks by
+            // default): the reader treats a missing chunk as damage, never as zeros.
+            let options = zarrs::array::CodecOptions::default().with_store_empty_chunks(true);
             array
-                .store_chunk(&zeros, tensor.values.as_slice())
+                .store_chunk_opt(&zeros, tensor.values.as_slice(), &options)
                 .map_err(|e| invalid(path, format!("array {}: {e}", tensor.name)))?;
         }
     }
@@ -358,6 +361,14 @@ mod tests {
                     shape: vec![0, 4],
                     dimension_names: vec!["gaussian_empty".into(), "wxyz".into()],
                     values: vec![],
+                },
+                // All fill value: its chunk must still be stored (a loss curve of a loss
+                // that is off is all zeros).
+                Tensor {
+                    name: "curve/zeros".into(),
+                    shape: vec![3],
+                    dimension_names: vec!["iteration".into()],
+                    values: vec![0.0; 3],
                 },
                 Tensor {
                     name: "networks/trunk.0.weight".into(),
