@@ -196,16 +196,28 @@ pub fn sure_lambda<const D: usize>(values: &[[f64; D]], noise_variance: f64) -> 
     best.1
 }
 
-/// Applies the sixth-difference weights to seven consecutive values.
-fn sixth_difference<T>(window: &[T]) -> T
-where
-    T: Copy + std::ops::Mul<f64, Output = T> + std::ops::Add<Output = T>,
-{
-    let mut sum = window[0] * SIXTH_DIFFERENCE[0];
-    for (x, c) in window.iter().zip(SIXTH_DIFFERENCE).skip(1) {
-        sum = sum + *x * c;
-    }
-    sum
+/// The estimated (noise, acceleration) standard deviations of one track of `D`-component
+/// values: the noise from the median of its squared sixth differences, the smoothing weight
+/// by SURE; `None` for a track too short to estimate from (fewer than seven frames).
+fn estimate_track<const D: usize>(values: &[[f64; D]]) -> Option<(f64, f64)> {
+    let sixth: Vec<f64> = values
+        .windows(7)
+        .map(|window| {
+            (0..D)
+                .map(|component| {
+                    let mut sum = window[0][component] * SIXTH_DIFFERENCE[0];
+                    for (x, c) in window.iter().zip(SIXTH_DIFFERENCE).skip(1) {
+                        sum += x[component] * c;
+                    }
+                    sum * sum
+                })
+                .sum::<f64>()
+        })
+        .collect();
+    estimate_noise(&sixth).map(|noise| {
+        let lambda = sure_lambda(values, 3.0 * noise * noise);
+        (noise, noise / lambda.sqrt())
+    })
 }
 
 impl SmoothingPlan {
@@ -226,15 +238,8 @@ impl SmoothingPlan {
     /// The weights of one rotation track (input fits `track`): its rotation fields are the
     /// fixed or estimated ones; the translation fields repeat them and are not used.
     pub fn rotation_track_weights(&self, track: &[DMat3]) -> SmoothingWeights {
-        let sixth: Vec<f64> = track
-            .windows(7)
-            .map(|w| frobenius_sq(sixth_difference(w)))
-            .collect();
-        let estimate = estimate_noise(&sixth).map(|noise| {
-            let values: Vec<[f64; 9]> = track.iter().map(|m| m.to_cols_array()).collect();
-            let lambda = sure_lambda(&values, 3.0 * noise * noise);
-            (noise, noise / lambda.sqrt())
-        });
+        let values: Vec<[f64; 9]> = track.iter().map(|&m| mat_entries(m)).collect();
+        let estimate = estimate_track(&values);
         let (noise, acceleration) = resolve(
             self.rotation_noise,
             self.rotation_acceleration,
@@ -247,15 +252,8 @@ impl SmoothingPlan {
     /// The weights of the translation track, likewise (the rotation fields repeat the
     /// translation ones and are not used).
     pub fn translation_track_weights(&self, track: &[DVec3]) -> SmoothingWeights {
-        let sixth: Vec<f64> = track
-            .windows(7)
-            .map(|w| sixth_difference(w).length_squared())
-            .collect();
-        let estimate = estimate_noise(&sixth).map(|noise| {
-            let values: Vec<[f64; 3]> = track.iter().map(|v| v.to_array()).collect();
-            let lambda = sure_lambda(&values, 3.0 * noise * noise);
-            (noise, noise / lambda.sqrt())
-        });
+        let values: Vec<[f64; 3]> = track.iter().map(|v| v.to_array()).collect();
+        let estimate = estimate_track(&values);
         let (noise, acceleration) = resolve(
             self.translation_noise,
             self.translation_acceleration,
