@@ -297,23 +297,7 @@ mod tests {
                 bytes
             };
             let data = dtype.decode(&bytes, count).unwrap();
-            let footprint = match &data {
-                ArrayData::Bool(v) => v.len(),
-                ArrayData::U8(v) => v.len(),
-                ArrayData::I64(v) => 8 * v.len(),
-                ArrayData::U64(v) => 8 * v.len(),
-                ArrayData::F32(v) => 4 * v.len(),
-                ArrayData::F64(v) => 8 * v.len(),
-                ArrayData::Str(v) => v
-                    .iter()
-                    .map(|s| std::mem::size_of::<String>() + s.len())
-                    .sum(),
-                ArrayData::Bytes(v) => v
-                    .iter()
-                    .map(|b| std::mem::size_of::<Vec<u8>>() + b.len())
-                    .sum(),
-                ArrayData::Object(_) => unreachable!(),
-            };
+            let footprint = data.footprint();
             assert!(footprint <= expected, "{descr}: {footprint} > {expected}");
         }
         assert_eq!(DType::parse("|S1").unwrap().decoded_bytes(usize::MAX), None);
