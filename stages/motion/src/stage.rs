@@ -26,11 +26,11 @@ use serde::{Deserialize, Serialize};
 
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
+use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
 use seqavatar_fit::io::BodySequence;
-use seqavatar_fit::plot;
 use seqavatar_ingest::read_body_model;
 
 use crate::compute::{canonical_template, compute_motion};
@@ -343,7 +343,7 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
     let max = options.get_f64("max", auto_max)?.max(1e-12);
     let camera = read_camera(entry, view)?;
     let bar = 70;
-    let mut img = image::RgbImage::from_pixel(camera.width + bar, camera.height, plot::WHITE);
+    let mut img = image::RgbImage::from_pixel(camera.width + bar, camera.height, picture::WHITE);
     let points: Vec<(f64, f64, f64, image::Rgb<u8>)> = posed
         .chunks_exact(3)
         .zip(&speeds)
@@ -351,12 +351,12 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
             let world = DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             let pixel = camera.project(world)?;
             let depth = camera.world_to_camera(world).z;
-            Some((pixel.x, pixel.y, depth, plot::colour_map(speed / max)))
+            Some((pixel.x, pixel.y, depth, picture::colour_map(speed / max)))
         })
         .collect();
-    plot::splat_points(&mut img, &points, radius);
+    picture::splat_points(&mut img, &points, radius);
     let (w, h) = (i64::from(camera.width), i64::from(camera.height));
-    plot::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
+    picture::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
     Ok(img)
 }
 
@@ -397,7 +397,7 @@ fn draw_skeleton_motion(
         .collect();
     let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
     let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
-    Ok(plot::line_plot(width, height, &series))
+    Ok(picture::line_plot(width, height, &series))
 }
 
 #[cfg(test)]

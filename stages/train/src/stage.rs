@@ -31,10 +31,10 @@ use anyhow::Context;
 use serde_json::json;
 
 use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
-use seqavatar_fit::plot;
 
 use crate::avatar::TrainedAvatar;
 use crate::checkpoint;
@@ -390,7 +390,7 @@ pub fn draw_loss_curve(
     let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
     let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
     let psnr_scaled: Vec<f64> = smooth(&psnr, window).iter().map(|p| p / 10.0).collect();
-    Ok(plot::line_plot(
+    Ok(picture::line_plot(
         width,
         height,
         &[smooth(&total, window), psnr_scaled],
