@@ -243,7 +243,8 @@ mod tests {
     #[test]
     fn validation_names_the_field() {
         config().validate().unwrap();
-        let cases: [(fn(&mut AvatarConfig), &str); 6] = [
+        type Change = fn(&mut AvatarConfig);
+        let cases: [(Change, &str); 6] = [
             (|c| c.trunk_depth = 0, "trunk_width"),
             (|c| c.tau = 0, "tau"),
             (
