@@ -1,5 +1,5 @@
 //! The training loop: per iteration a seeded choice of training image(s) of one frame, the
-//! avatar's forward pass ([`crate::avatar::deform`]), splatting on the chosen backend onto
+//! avatar's forward pass ([`seqavatar_avatar::avatar::deform`]), splatting on the chosen backend onto
 //! the iteration's background ([`crate::config::Background`]), the photometric and LPIPS
 //! (when configured) losses against the ground truth composited with its mask onto that same
 //! background ([`crate::data::ImageRecord::colour_on`]), the as-isometric-as-possible loss,
@@ -19,29 +19,32 @@ use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
 
 use std::collections::BTreeMap;
 
-use crate::avatar::{
+use seqavatar_avatar::avatar::{
     AvatarGaussians, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
     gather_frame_inputs, needs_networks, template_grid,
 };
+use seqavatar_avatar::model::gpu::GpuNetworks;
+use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
+use seqavatar_avatar::rig::{FramePose, PoseChain};
+use seqavatar_avatar::skinning::{
+    GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
+};
+use seqavatar_avatar::splatting;
+use seqavatar_motion::knn::{KnnGrid, as_points, knn_brute_force};
+
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::densify::{
     DensifyReport, DensifySettings, GaussianState, Growth, densify_and_prune, names,
 };
-use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
-use crate::knn::{KnnGrid, as_points, knn_brute_force};
+use crate::gaussians::{
+    SH, SH_STORED, TRAINABLE, avatar_gaussians, exponential_lr, initial_state, psnr,
+};
 use crate::losses::{
     AiapInputs, ImageLossWeights, ImagePair, LpipsLoss, Rect, aiap_loss, image_loss,
 };
-use crate::model::gpu::GpuNetworks;
-use crate::model::{NetworkConfig, NetworkGroup, Networks};
-use crate::rig::{FramePose, PoseChain};
 use crate::rng::Rng;
-use crate::skinning::{
-    GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
-};
-use crate::splatting;
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -354,7 +357,7 @@ impl<'d> Trainer<'d> {
     }
 
     fn avatar_gaussians(&self) -> anyhow::Result<AvatarGaussians> {
-        AvatarGaussians::from_state(&self.state)
+        avatar_gaussians(&self.state)
     }
 
     /// One training iteration.
@@ -374,8 +377,9 @@ impl<'d> Trainer<'d> {
         }
         let posed = self.posed_frame(frame)?;
         let pose = &posed.pose;
+        let avatar_config = self.config.avatar();
         let inputs = gather_frame_inputs(
-            &self.config,
+            &avatar_config,
             &self.scales,
             &self.data.motion,
             &self.data.params[frame],
@@ -391,7 +395,7 @@ impl<'d> Trainer<'d> {
             &gaussians,
             &inputs,
             pose,
-            &self.config,
+            &avatar_config,
             sh_degree,
         )?;
         let cameras: Vec<_> = chosen
@@ -767,7 +771,7 @@ impl<'d> Trainer<'d> {
     /// The current avatar.
     pub fn avatar(&self) -> anyhow::Result<TrainedAvatar> {
         Ok(TrainedAvatar::new(
-            self.config.clone(),
+            self.config.avatar(),
             self.data.rig.clone(),
             self.avatar_gaussians()?,
             sh_degree_at(&self.config, self.iteration.max(1)),
@@ -954,11 +958,12 @@ fn build_networks(
     data: &TrainingData,
     scale_count: usize,
 ) -> anyhow::Result<Option<Networks<f64>>> {
-    if !needs_networks(config) {
+    let avatar_config = config.avatar();
+    if !needs_networks(&avatar_config) {
         return Ok(None);
     }
-    let net_config = NetworkConfig::from_train(
-        config,
+    let net_config = NetworkConfig::from_avatar(
+        &avatar_config,
         data.rig.joint_count(),
         data.motion.num_joints,
         scale_count,
