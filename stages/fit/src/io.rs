@@ -1,13 +1,10 @@
-//! Per-frame body parameters as flat tracks (what the solver works on), read and written with
-//! the ingest stage's array readers and writers (`stages/ingest/src/lib.rs`, "Body parameters
-//! per frame"). The fit stage writes the same parameter arrays as ingest, so a later stage
-//! reads a fit entry and an ingest entry the same way.
+//! Per-frame body parameters as flat tracks (what the solver works on). They are read from
+//! and written to an entry's arrays in [`crate::schema`] (`BodySequence::read`, `write`), with
+//! the ingest stage's array readers and writers: the fit stage writes the same parameter
+//! arrays as ingest, so a later stage reads a fit entry and an ingest entry the same way.
 
-use seqavatar_core::body::{BodyModel, BodyParams};
+use seqavatar_core::body::BodyParams;
 use seqavatar_core::glam::DVec3;
-use seqavatar_engine::{EntryReader, EntryWriter};
-use seqavatar_ingest::read_body_params;
-use seqavatar_ingest::stage::write_body_params;
 
 /// Body parameters of every frame of a sequence, flat and frame-major.
 #[derive(Clone, Debug, PartialEq)]
@@ -29,18 +26,6 @@ pub struct BodySequence {
 }
 
 impl BodySequence {
-    /// Reads the parameter arrays `{prefix}_pose`, ... (`prefix` = `body` or `gt_body`) of an
-    /// ingest or fit entry with the ingest stage's reader, and checks every value is finite.
-    pub fn read(entry: &EntryReader, prefix: &str) -> anyhow::Result<Self> {
-        let params = read_body_params(entry, prefix)?;
-        let sequence = Self::from_params(&params)
-            .map_err(|message| anyhow::anyhow!("entry {}: {message}", entry.location()))?;
-        sequence
-            .check_finite(prefix)
-            .map_err(|message| anyhow::anyhow!("entry {}: {message}", entry.location()))?;
-        Ok(sequence)
-    }
-
     /// Packs per-frame parameters; every frame must have the same counts.
     pub fn from_params(params: &[BodyParams]) -> Result<Self, String> {
         let first = params.first();
@@ -131,11 +116,6 @@ impl BodySequence {
             world_rotation: self.world_rotation[frame],
             world_translation: self.world_translation[frame],
         }
-    }
-
-    /// Writes the parameter arrays `body_*` with the ingest stage's writer.
-    pub fn write(&self, out: &EntryWriter, model: &BodyModel) -> anyhow::Result<()> {
-        write_body_params(out, "body", &self.to_params(), model)
     }
 }
 

@@ -7,6 +7,7 @@ pub mod evidence;
 pub mod io;
 pub mod keypoints;
 pub mod refine;
+pub mod schema;
 pub mod smooth;
 pub mod stage;
 

@@ -1,27 +1,6 @@
 //! The `fit` stage kind: configuration, run, and its picture.
 //!
-//! Output arrays (same names and layout as the ingest stage's parameter arrays):
-//! `body_pose`, `body_world_rotation`, `body_world_translation`, `body_betas` and, when the
-//! input has it, `body_expression`; plus the report arrays `jitter_before` and
-//! `jitter_after` f64 `(frame)`: per-frame joint jitter (mean over joints of the second
-//! difference of world joint positions, metres per frame squared). Attributes:
-//! `mode`, `mean_jitter_before`, `mean_jitter_after`; and for the synthetic scene (input with
-//! `gt_` arrays) `joint_error_before`/`_after` (mean joint position error against ground
-//! truth, metres) and `velocity_error_before`/`_after` (mean template vertex velocity error
-//! against ground truth, metres per frame).
-//!
-//! Evidence (modes `smooth` and `keypoints`; [`crate::evidence`]), each track judged in the
-//! context of the others and kept as input where refining it made the evidence worse:
-//! - `track_kept_input` u8 `(track)` (1 = the input fit was kept), `track_iou_change` and
-//!   `track_keypoint_change` f64 `(track)`: the change of the mean silhouette IoU and of the
-//!   mean keypoint distance (metres) that refining that track made. Tracks: the joints,
-//!   then the world rotation, then the translation. Attribute `tracks_kept_input`: their
-//!   names.
-//! - Where the ingest entry has images: `silhouette_iou_before`/`_after` f64 `(view)`, the
-//!   mean over that view's images of the IoU between the posed body's silhouette and the
-//!   mask; attributes `mean_silhouette_iou_before`/`_after` (over all images).
-//! - Where it has keypoints that name joints: attributes `keypoint_distance_before`/`_after`
-//!   (confidence-weighted mean distance between posed joints and 3D keypoints, metres).
+//! Output arrays and attributes: [`crate::schema`], where they are written and read.
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
@@ -36,6 +15,7 @@ use crate::keypoints::{KeypointObservations, KeypointWeights, refine_with_keypoi
 use crate::refine::{
     joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
 };
+use crate::schema::{Jitter, SilhouetteIou, TrackVerdicts};
 use crate::smooth::SmoothingPlan;
 use seqavatar_engine::picture;
 use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
@@ -188,57 +168,28 @@ fn judge_tracks(
         .with_context(|| format!("entry {location}: evidence of the input fit"))?;
     let (output, verdicts) = choose_tracks(&sources, input, refined)
         .with_context(|| format!("entry {location}: judging the refined tracks"))?;
+    let verdicts = TrackVerdicts(verdicts);
     let after = sources
         .evidence(&output)
         .with_context(|| format!("entry {location}: evidence of the output fit"))?;
     let j = input.num_joints;
     let kept: Vec<String> = verdicts
+        .0
         .iter()
         .enumerate()
         .filter(|(_, v)| v.kept_input)
         .map(|(track, _)| track_name(track, j))
         .collect();
     let out = ctx.output();
-    let tracks = verdicts.len() as u64;
-    out.write_array(
-        "track_kept_input",
-        &["track"],
-        &[tracks],
-        &[tracks.max(1)],
-        &verdicts
-            .iter()
-            .map(|v| u8::from(v.kept_input))
-            .collect::<Vec<_>>(),
-    )?;
-    out.write_array(
-        "track_iou_change",
-        &["track"],
-        &[tracks],
-        &[tracks.max(1)],
-        &verdicts.iter().map(|v| v.iou_change).collect::<Vec<_>>(),
-    )?;
-    out.write_array(
-        "track_keypoint_change",
-        &["track"],
-        &[tracks],
-        &[tracks.max(1)],
-        &verdicts
-            .iter()
-            .map(|v| v.keypoint_change)
-            .collect::<Vec<_>>(),
-    )?;
+    verdicts.write(out)?;
     out.set_attribute("tracks_kept_input", serde_json::to_value(&kept)?)?;
     let mut message = String::from("evidence");
     if let Some(s) = &silhouettes {
-        let views = s.cameras.len() as u64;
-        let per_view_before = s.per_view_mean(&before.iou);
-        let per_view_after = s.per_view_mean(&after.iou);
-        for (name, values) in [
-            ("silhouette_iou_before", &per_view_before),
-            ("silhouette_iou_after", &per_view_after),
-        ] {
-            out.write_array(name, &["view"], &[views], &[views.max(1)], values)?;
-        }
+        let per_view = SilhouetteIou {
+            before: s.per_view_mean(&before.iou),
+            after: s.per_view_mean(&after.iou),
+        };
+        per_view.write(out)?;
         let (b, a) = (
             before.mean_iou().unwrap_or(f64::NAN),
             after.mean_iou().unwrap_or(f64::NAN),
@@ -248,9 +199,10 @@ fn judge_tracks(
         message += &format!(
             ": body silhouette vs masks IoU {b:.5} -> {a:.5} (mean of {} images; per view {})",
             s.images.len(),
-            per_view_before
+            per_view
+                .before
                 .iter()
-                .zip(&per_view_after)
+                .zip(&per_view.after)
                 .map(|(b, a)| format!("{b:.4}->{a:.4}"))
                 .collect::<Vec<_>>()
                 .join(" ")
@@ -270,13 +222,13 @@ fn judge_tracks(
     if kept.is_empty() {
         ctx.log(&format!(
             "every refined track did no harm to the evidence ({} tracks)",
-            verdicts.len()
+            verdicts.0.len()
         ));
     } else {
         ctx.log(&format!(
             "kept the input fit of {} of {} tracks, whose evidence got worse when refined: {}",
             kept.len(),
-            verdicts.len(),
+            verdicts.0.len(),
             kept.join(", ")
         ));
     }
@@ -417,24 +369,12 @@ impl StageKind for FitStage {
         let (f, j) = (input.num_frames, input.num_joints);
         let joints_before = joint_positions(&model, &input)?;
         let joints_after = joint_positions(&model, &output)?;
-        let jitter_before = joint_jitter(&joints_before, f, j);
-        let jitter_after = joint_jitter(&joints_after, f, j);
-        let chunk = f.clamp(1, 1024) as u64;
         let out = ctx.output();
-        out.write_array(
-            "jitter_before",
-            &["frame"],
-            &[f as u64],
-            &[chunk],
-            &jitter_before,
-        )?;
-        out.write_array(
-            "jitter_after",
-            &["frame"],
-            &[f as u64],
-            &[chunk],
-            &jitter_after,
-        )?;
+        let jitter = Jitter {
+            before: joint_jitter(&joints_before, f, j),
+            after: joint_jitter(&joints_after, f, j),
+        };
+        jitter.write(out)?;
         let mean = |v: &[f64]| {
             if v.is_empty() {
                 0.0
@@ -442,7 +382,7 @@ impl StageKind for FitStage {
                 v.iter().sum::<f64>() / v.len() as f64
             }
         };
-        let (mb, ma) = (mean(&jitter_before), mean(&jitter_after));
+        let (mb, ma) = (mean(&jitter.before), mean(&jitter.after));
         out.set_attribute("mode", serde_json::to_value(config.mode)?)?;
         out.set_attribute("mean_jitter_before", mb.into())?;
         out.set_attribute("mean_jitter_after", ma.into())?;
@@ -496,11 +436,9 @@ impl StageKind for FitStage {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        let (before, after) = match picture {
-            "jitter" => ("jitter_before", "jitter_after"),
-            "evidence" => ("silhouette_iou_before", "silhouette_iou_after"),
-            _ => return Err(seqavatar_engine::unknown_picture(self, picture)),
-        };
+        if !matches!(picture, "jitter" | "evidence") {
+            return Err(seqavatar_engine::unknown_picture(self, picture));
+        }
         let unknown = options.unknown_keys(&["width", "height"]);
         anyhow::ensure!(
             unknown.is_empty(),
@@ -508,14 +446,18 @@ impl StageKind for FitStage {
         );
         let width = options.get_u64("width", 800)?.clamp(64, 8192) as u32;
         let height = options.get_u64("height", 300)?.clamp(48, 8192) as u32;
-        if !entry.array_names().iter().any(|n| n == before) {
-            anyhow::bail!(
-                "entry {}: picture {picture} needs array `{before}`, which this fit entry does not have (mode off, or an ingest entry without images)",
-                entry.location()
-            );
-        }
-        let before = entry.read::<f64>(before)?.data;
-        let after = entry.read::<f64>(after)?.data;
+        let (before, after) = if picture == "jitter" {
+            let jitter = Jitter::read(entry)?;
+            (jitter.before, jitter.after)
+        } else {
+            let iou = SilhouetteIou::read(entry)?.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "entry {}: picture {picture} needs array `silhouette_iou_before`, which this fit entry does not have (mode off, or an ingest entry without images)",
+                    entry.location()
+                )
+            })?;
+            (iou.before, iou.after)
+        };
         Ok(picture::line_plot(width, height, &[before, after]))
     }
 }
@@ -643,8 +585,24 @@ stages:
         // Evidence in both refining modes, none when passing through.
         for name in ["smooth", "keypoints"] {
             let fit = entry(name);
-            assert_eq!(fit.read::<u8>("track_kept_input").unwrap().shape, [26]);
-            assert_eq!(fit.read::<f64>("silhouette_iou_after").unwrap().shape, [1]);
+            // Read back through the schema: 24 joints + rotation + translation, one view,
+            // and the kept tracks' names match the verdicts.
+            let verdicts = TrackVerdicts::read(&fit).unwrap().unwrap();
+            assert_eq!(verdicts.0.len(), 26);
+            let kept: Vec<String> = verdicts
+                .0
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| v.kept_input)
+                .map(|(track, _)| track_name(track, 24))
+                .collect();
+            assert_eq!(
+                fit.attribute("tracks_kept_input"),
+                Some(serde_json::to_value(&kept).unwrap())
+            );
+            let iou = SilhouetteIou::read(&fit).unwrap().unwrap();
+            assert_eq!((iou.before.len(), iou.after.len()), (1, 1));
+            assert!((iou.after[0] - attribute(name, "mean_silhouette_iou_after")).abs() < 1e-12);
             let (before, after) = (
                 attribute(name, "mean_silhouette_iou_before"),
                 attribute(name, "mean_silhouette_iou_after"),
@@ -658,10 +616,23 @@ stages:
                     <= attribute(name, "keypoint_distance_before")
             );
         }
-        assert!(
-            !entry("unchanged")
-                .array_names()
-                .contains(&"track_kept_input".to_string())
+        let unchanged = entry("unchanged");
+        assert_eq!(TrackVerdicts::read(&unchanged).unwrap(), None);
+        assert_eq!(SilhouetteIou::read(&unchanged).unwrap(), None);
+        assert_eq!(
+            BodySequence::read(&unchanged, "body").unwrap(),
+            BodySequence::read(&ingest, "body").unwrap()
+        );
+        // Jitter of every frame; its mean is the attribute.
+        for name in ["unchanged", "smooth", "keypoints"] {
+            let jitter = Jitter::read(&entry(name)).unwrap();
+            assert_eq!(jitter.before.len(), 12);
+            let mean = jitter.after.iter().sum::<f64>() / 12.0;
+            assert!((mean - attribute(name, "mean_jitter_after")).abs() <= 1e-12 * mean.abs());
+        }
+        assert_eq!(
+            Jitter::read(&entry("unchanged")).unwrap().before,
+            Jitter::read(&entry("unchanged")).unwrap().after
         );
         // Exact fits stay put: their joint error (zero before) stays far below a millimetre.
         let moved = attribute("smooth_exact", "joint_error_after");
