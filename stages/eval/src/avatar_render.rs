@@ -251,6 +251,27 @@ impl AvatarRenderer {
         )
     }
 
+    /// The first frame whose motion window lies inside the poses' frame axis: 0 unless the
+    /// avatar gathers windows and the axis does not start its recording (then the frames
+    /// before it cannot be drawn: their windows reach frames the source does not hold).
+    pub fn first_frame(&self) -> usize {
+        match &self.motion {
+            Some(track) if !track.axis.starts_recording => track
+                .slots(&self.avatar.scales)
+                .map(|slots| track.reach(self.avatar.config.sequence_length, &slots))
+                .unwrap_or(0),
+            _ => 0,
+        }
+    }
+
+    /// The deformed Gaussians of frame `frame` (what [`ViewRenderer::render`] splats).
+    pub fn deform(&self, frame: usize) -> anyhow::Result<seqavatar_avatar::avatar::Deformed> {
+        let inputs = self.frame_inputs(frame)?;
+        self.avatar
+            .deform(&inputs, &self.backend)
+            .with_context(|| format!("avatar {}: frame {frame}", self.location))
+    }
+
     /// Number of frames this renderer can draw.
     pub fn num_frames(&self) -> usize {
         self.params.len()
