@@ -48,11 +48,11 @@ fn write_file(path: &Path, cloud: &SplatCloud) -> anyhow::Result<()> {
 /// `pipeline export`.
 pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<ExportSummary> {
     let store = open_store(cache)?;
-    std::fs::create_dir_all(&options.out)
-        .with_context(|| format!("cannot create {}", options.out.display()))?;
     let started = std::time::Instant::now();
     let train = resolve_entry(store.as_ref(), "train", &options.avatar)?;
     let avatar = AvatarRenderer::load_avatar(&train)?;
+    std::fs::create_dir_all(&options.out)
+        .with_context(|| format!("cannot create {}", options.out.display()))?;
     let canonical = options.out.join("canonical.ply");
     let cloud = SplatCloud::canonical(&avatar.gaussians, avatar.sh_degree)
         .with_context(|| format!("the avatar of entry {}", train.location()))?;
