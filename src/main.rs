@@ -99,6 +99,27 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         max_frames: usize,
     },
+    /// Export a trained avatar's Gaussians as standard 3D Gaussian Splatting PLY files:
+    /// canonical.ply, and with --poses one frame_NNNNN.ply per frame, posed as `render` poses
+    /// them (they open in the common splat viewers and editors).
+    Export {
+        /// The train entry: its cache folder, its key or a unique key prefix.
+        #[arg(long)]
+        avatar: String,
+        /// An ingest entry (folder, key or key prefix) or a pose file (.npz with body_pose,
+        /// global_orient, transl and optionally betas); without it, canonical.ply only.
+        #[arg(long)]
+        poses: Option<String>,
+        /// Output folder for canonical.ply and frame_NNNNN.ply.
+        #[arg(long)]
+        out: PathBuf,
+        /// Backend of the networks: auto, cpu or gpu.
+        #[arg(long, default_value = "auto")]
+        device: String,
+        /// Export at most this many frames (0 = all).
+        #[arg(long, default_value_t = 0)]
+        max_frames: usize,
+    },
     /// Write a Markdown report with PNG plots (metrics, loss curves, stage timing, cache
     /// reuse, trade-off and Pareto plots for sweeps) from a pipeline's cached entries.
     Report {
@@ -202,10 +223,51 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 options.out.display(),
                 summary.seconds
             );
+            if summary.skipped > 0 {
+                println!(
+                    "skipped frames 0..{}: their motion windows reach before the first frame of the pose entry",
+                    summary.skipped
+                );
+            }
             match (&summary.video, &summary.video_note) {
                 (Some(video), _) => println!("video: {}", video.display()),
                 (None, Some(note)) => println!("{note}"),
                 (None, None) => {}
+            }
+        }
+        Command::Export {
+            avatar,
+            poses,
+            out,
+            device,
+            max_frames,
+        } => {
+            let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
+            let backend = seqavatar_compute::backend::Backend::select(choice)?;
+            let options = seqavatar_eval::export::ExportOptions {
+                avatar,
+                poses: poses
+                    .as_deref()
+                    .map(seqavatar_eval::animate::PoseSource::parse),
+                out,
+                backend,
+                max_frames,
+                progress: std::io::IsTerminal::is_terminal(&std::io::stderr()),
+            };
+            let summary = seqavatar_eval::export::export_avatar(&cache, &options)?;
+            println!(
+                "wrote {} ({} Gaussians) and {} posed frames into {} in {:.2} s",
+                summary.canonical.display(),
+                summary.gaussians,
+                summary.frames.len(),
+                options.out.display(),
+                summary.seconds
+            );
+            if summary.skipped > 0 {
+                println!(
+                    "skipped frames 0..{}: their motion windows reach before the first frame of the pose entry",
+                    summary.skipped
+                );
             }
         }
         Command::Report { file, out, sets } => {

@@ -96,7 +96,7 @@ pub fn gather_frame_inputs(
     let context = config.motion_context;
     let (skeleton_motion, vertex_velocity) = if context.has_skeleton_motion() {
         let slots = motion.slots(scales)?;
-        let (s, v) = motion.gather(frame, config.sequence_length, &slots);
+        let (s, v) = motion.gather(frame, config.sequence_length, &slots)?;
         (
             s,
             if context.has_velocity() {

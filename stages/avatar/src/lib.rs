@@ -10,6 +10,8 @@
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
+//! - [`ply`]: Gaussians as standard 3D Gaussian Splatting PLY files (writer and strict
+//!   reader), for `pipeline export`.
 
 // Numeric kernels index several parallel arrays with one loop variable; iterator chains
 // would hide the maths.
@@ -18,6 +20,7 @@
 pub mod avatar;
 pub mod config;
 pub mod model;
+pub mod ply;
 pub mod rig;
 pub mod skinning;
 pub mod splatting;

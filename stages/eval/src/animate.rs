@@ -15,7 +15,7 @@ use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryId, EntryReader, EntryState, LocalStore, Store, open_store};
 use seqavatar_fit::io::BodySequence;
 use seqavatar_ingest::formats::npz;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_motion::schema::{FrameAxis, MotionTrack};
 use seqavatar_motion::{Scales, VelocityNormalisation};
 
 use crate::avatar_render::AvatarRenderer;
@@ -63,6 +63,9 @@ pub struct RenderOptions {
 #[derive(Clone, Debug, PartialEq)]
 pub struct RenderSummary {
     pub frames: Vec<PathBuf>,
+    /// Leading frames not rendered: their motion windows reach before the first frame of a
+    /// pose entry that does not start its recording.
+    pub skipped: usize,
     /// The MP4, when ffmpeg was found and succeeded.
     pub video: Option<PathBuf>,
     /// Why no MP4 was written, when none was.
@@ -224,13 +227,15 @@ pub fn read_pose_file(
 }
 
 /// The motion track of `params` posed with `model`, at the raw `scales` of the motion entry
-/// and its velocity normalisation (the motion crate's computation).
+/// and its velocity normalisation (the motion crate's computation), on the frame `axis` of
+/// the poses' source.
 pub fn motion_track_for(
     model: &BodyModel,
     params: &[BodyParams],
     raw_scales: &[u32],
     interval: u32,
     normalisation: VelocityNormalisation,
+    axis: FrameAxis,
 ) -> anyhow::Result<MotionTrack> {
     let scales = Scales::new(raw_scales, interval)?;
     let sequence = BodySequence::from_params(params).map_err(anyhow::Error::msg)?;
@@ -244,6 +249,7 @@ pub fn motion_track_for(
         scale_steps: scales.steps.clone(),
         skeleton_motion: arrays.skeleton_motion,
         vertex_velocity: arrays.vertex_velocity,
+        axis,
     })
 }
 
@@ -255,42 +261,43 @@ pub fn on_path(program: &str) -> Option<PathBuf> {
         .find(|candidate| candidate.is_file())
 }
 
-/// `pipeline render`.
-pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<RenderSummary> {
-    anyhow::ensure!(
-        options.resolution_scale.is_finite()
-            && options.resolution_scale > 0.0
-            && options.resolution_scale <= 4.0,
-        "--resolution-scale {} must be in (0, 4]",
-        options.resolution_scale
-    );
-    anyhow::ensure!(options.fps > 0, "--fps must be positive");
-    let store = open_store(cache)?;
-    let train = resolve_entry(store.as_ref(), "train", &options.avatar)?;
+/// A trained avatar driven by a pose source: what `pipeline render` and `pipeline export`
+/// share.
+pub struct DrivenAvatar {
+    /// The avatar's train entry.
+    pub train: EntryReader,
+    /// The ingest entry the avatar was trained on (its cameras).
+    pub trained_ingest: EntryReader,
+    /// The avatar with the source's body parameters and motion windows.
+    pub renderer: AvatarRenderer,
+}
+
+/// Opens the avatar `avatar` (a train entry: folder, key or key prefix) of the cache in
+/// `store` and drives it with `poses` on `backend`: the source's poses with the avatar's
+/// shape, and (for motion contexts with skeleton motion) motion windows computed from them
+/// at the scales and velocity normalisation of the avatar's motion entry.
+pub fn drive_avatar(
+    store: &dyn Store,
+    avatar: &str,
+    poses: &PoseSource,
+    backend: &Backend,
+) -> anyhow::Result<DrivenAvatar> {
+    let train = resolve_entry(store, "train", avatar)?;
     let avatar = AvatarRenderer::load_avatar(&train)?;
-    let trained_ingest = upstream(store.as_ref(), &train, "ingest")?;
-    let cameras = seqavatar_ingest::read_cameras(&trained_ingest)?;
-    let camera = cameras
-        .get(options.camera)
-        .ok_or_else(|| {
-            anyhow::anyhow!(
-                "--camera {}: the avatar's ingest entry has {} cameras (0..{})",
-                options.camera,
-                cameras.len(),
-                cameras.len().saturating_sub(1)
-            )
-        })?
-        .rescaled(options.resolution_scale);
+    let trained_ingest = upstream(store, &train, "ingest")?;
     let model = avatar.rig.model.clone();
     let trained_params = seqavatar_ingest::read_body_params(&trained_ingest, "body")?;
     let default_betas = trained_params
         .first()
         .map(|params| params.betas.clone())
         .unwrap_or_default();
-    let params = match &options.poses {
-        PoseSource::File(path) => read_pose_file(path, model.num_joints(), &default_betas)?,
+    let (params, axis) = match poses {
+        PoseSource::File(path) => (
+            read_pose_file(path, model.num_joints(), &default_betas)?,
+            FrameAxis::FROM_START,
+        ),
         PoseSource::Entry(spec) => {
-            let entry = resolve_entry(store.as_ref(), "ingest", spec)?;
+            let entry = resolve_entry(store, "ingest", spec)?;
             let source_model = seqavatar_ingest::read_body_model(&entry)?;
             anyhow::ensure!(
                 source_model.num_joints() == model.num_joints(),
@@ -300,14 +307,15 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
                 model.num_joints()
             );
             // The subject's shape is the avatar's: keep the poses and world transform only.
-            seqavatar_ingest::read_body_params(&entry, "body")?
+            let params = seqavatar_ingest::read_body_params(&entry, "body")?
                 .into_iter()
                 .map(|mut frame| {
                     frame.betas = default_betas.clone();
                     frame.expression.clear();
                     frame
                 })
-                .collect()
+                .collect();
+            (params, FrameAxis::of_ingest(&entry)?)
         }
     };
     for (frame, frame_params) in params.iter().enumerate() {
@@ -316,7 +324,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             .with_context(|| format!("poses, frame {frame}"))?;
     }
     let motion = if avatar.config.motion_context.has_skeleton_motion() {
-        let motion_entry = upstream(store.as_ref(), &train, "motion")?;
+        let motion_entry = upstream(store, &train, "motion")?;
         let raw_scales = motion_entry.read::<u32>("scales")?.data;
         let normalisation: VelocityNormalisation = serde_json::from_value(
             motion_entry
@@ -341,27 +349,78 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             &raw_scales,
             interval,
             normalisation,
+            axis,
         )?)
     } else {
         None
     };
-    let count = if options.max_frames == 0 {
-        params.len()
-    } else {
-        options.max_frames.min(params.len())
-    };
-    let mut renderer = AvatarRenderer::new(
+    let renderer = AvatarRenderer::new(
         avatar,
         params,
         motion,
-        options.backend.clone(),
+        backend.clone(),
         train.location().to_owned(),
     )?;
+    Ok(DrivenAvatar {
+        train,
+        trained_ingest,
+        renderer,
+    })
+}
+
+/// The frames of a driven avatar to draw: from its first frame with a complete motion
+/// window, at most `max_frames` of them (0 = all).
+pub fn frames_to_draw(renderer: &AvatarRenderer, max_frames: usize) -> std::ops::Range<usize> {
+    let first = renderer.first_frame().min(renderer.num_frames());
+    let count = renderer.num_frames() - first;
+    let count = if max_frames == 0 {
+        count
+    } else {
+        max_frames.min(count)
+    };
+    first..first + count
+}
+
+/// `pipeline render`.
+pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<RenderSummary> {
+    anyhow::ensure!(
+        options.resolution_scale.is_finite()
+            && options.resolution_scale > 0.0
+            && options.resolution_scale <= 4.0,
+        "--resolution-scale {} must be in (0, 4]",
+        options.resolution_scale
+    );
+    anyhow::ensure!(options.fps > 0, "--fps must be positive");
+    let store = open_store(cache)?;
+    let DrivenAvatar {
+        trained_ingest,
+        mut renderer,
+        ..
+    } = drive_avatar(
+        store.as_ref(),
+        &options.avatar,
+        &options.poses,
+        &options.backend,
+    )?;
+    let cameras = seqavatar_ingest::read_cameras(&trained_ingest)?;
+    let camera = cameras
+        .get(options.camera)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "--camera {}: the avatar's ingest entry has {} cameras (0..{})",
+                options.camera,
+                cameras.len(),
+                cameras.len().saturating_sub(1)
+            )
+        })?
+        .rescaled(options.resolution_scale);
+    let range = frames_to_draw(&renderer, options.max_frames);
+    let skipped = range.start;
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("cannot create {}", options.out.display()))?;
     let started = std::time::Instant::now();
-    let mut frames = Vec::with_capacity(count);
-    for frame in 0..count {
+    let mut frames = Vec::with_capacity(range.len());
+    for frame in range {
         let image = renderer.render(frame, &camera)?;
         let path = options.out.join(format!("frame_{frame:05}.png"));
         image
@@ -381,6 +440,8 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             let output = Command::new(ffmpeg)
                 .args(["-y", "-loglevel", "error", "-framerate"])
                 .arg(options.fps.to_string())
+                .arg("-start_number")
+                .arg(skipped.to_string())
                 .arg("-i")
                 .arg(options.out.join("frame_%05d.png"))
                 .args([
@@ -408,6 +469,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
     };
     Ok(RenderSummary {
         frames,
+        skipped,
         video,
         video_note,
         seconds,

@@ -251,6 +251,27 @@ impl AvatarRenderer {
         )
     }
 
+    /// The first frame whose motion window lies inside the poses' frame axis: 0 unless the
+    /// avatar gathers windows and the axis does not start its recording (then the frames
+    /// before it cannot be drawn: their windows reach frames the source does not hold).
+    pub fn first_frame(&self) -> usize {
+        match &self.motion {
+            Some(track) if !track.axis.starts_recording => track
+                .slots(&self.avatar.scales)
+                .map(|slots| track.reach(self.avatar.config.sequence_length, &slots))
+                .unwrap_or(0),
+            _ => 0,
+        }
+    }
+
+    /// The deformed Gaussians of frame `frame` (what [`ViewRenderer::render`] splats).
+    pub fn deform(&self, frame: usize) -> anyhow::Result<seqavatar_avatar::avatar::Deformed> {
+        let inputs = self.frame_inputs(frame)?;
+        self.avatar
+            .deform(&inputs, &self.backend)
+            .with_context(|| format!("avatar {}: frame {frame}", self.location))
+    }
+
     /// Number of frames this renderer can draw.
     pub fn num_frames(&self) -> usize {
         self.params.len()
@@ -425,5 +446,82 @@ mod tests {
         let db = crate::metrics::psnr(&b, &a).unwrap();
         eprintln!("eval render, gpu vs cpu: PSNR {db:.1} dB");
         assert!(db > 50.0, "PSNR {db} dB");
+    }
+
+    /// `pipeline render`'s rule at the first frames of a pose source: an avatar with skeleton
+    /// motion (window 2 x step 2 = 4 frames) draws every frame of a source that starts its
+    /// recording (windows clamp at frame 0), and only frames 4.. of one whose recording starts
+    /// earlier (the earlier frames' windows reach frames the source does not hold: gathering
+    /// them is an error, never a clamp).
+    #[test]
+    fn render_frames_follow_the_recording_start() {
+        use crate::animate::frames_to_draw;
+        use seqavatar_avatar::avatar::AvatarGaussians;
+        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
+        use seqavatar_avatar::rig::BodyRig;
+        use seqavatar_core::body::procedural::procedural_body;
+        use seqavatar_motion::schema::FrameAxis;
+
+        let model = procedural_body(0.05);
+        let (j, v, frames) = (model.num_joints(), model.num_vertices(), 6);
+        let config = AvatarConfig {
+            motion_context: MotionContext::Skeleton,
+            trunk_width: 8,
+            trunk_depth: 1,
+            tau: 1,
+            sequence_length: 2,
+            pose_refiner: false,
+            lbs_offsets: false,
+            sh_degree: 0,
+            scale_min: 1e-5,
+            scale_max: 0.5,
+            background: Background::Black,
+        };
+        let renderer = |axis: FrameAxis| {
+            let rig = BodyRig::new(model.clone()).unwrap();
+            let gaussians = AvatarGaussians {
+                xyz: rig.canonical_vertices[..3].to_vec(),
+                sh: vec![0.0; 48],
+                opacity_logit: vec![0.0],
+                log_scale: vec![-3.0; 3],
+                rotation: vec![1.0, 0.0, 0.0, 0.0],
+            };
+            let avatar = TrainedAvatar::new(config.clone(), rig, gaussians, 0, vec![2], None);
+            let track = MotionTrack {
+                num_frames: frames,
+                num_joints: j,
+                num_vertices: v,
+                scales: vec![2],
+                scale_steps: vec![2],
+                skeleton_motion: vec![0.0; frames * j * 3],
+                vertex_velocity: vec![0.0; frames * v * 3],
+                axis,
+            };
+            AvatarRenderer::new(
+                avatar,
+                vec![model.zero_params(); frames],
+                Some(track),
+                Backend::Cpu,
+                "test".into(),
+            )
+            .unwrap()
+        };
+        let from_start = renderer(FrameAxis::FROM_START);
+        assert_eq!(from_start.first_frame(), 0);
+        assert_eq!(frames_to_draw(&from_start, 0), 0..6);
+        from_start.frame_inputs(0).unwrap();
+        let late = renderer(FrameAxis {
+            past_frames: 2,
+            starts_recording: false,
+        });
+        assert_eq!(late.first_frame(), 4);
+        assert_eq!(frames_to_draw(&late, 0), 4..6);
+        assert_eq!(frames_to_draw(&late, 1), 4..5);
+        let error = format!("{:#}", late.frame_inputs(3).unwrap_err());
+        assert!(
+            error.contains("frame 3") && error.contains("past_frames = 2"),
+            "{error}"
+        );
+        late.frame_inputs(4).unwrap();
     }
 }

@@ -15,6 +15,7 @@
 pub mod animate;
 pub mod avatar_render;
 pub mod evaluate;
+pub mod export;
 pub mod metrics;
 pub mod pipeline_report;
 pub mod report;

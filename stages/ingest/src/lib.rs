@@ -22,8 +22,11 @@
 //!
 //! Frames: the frame axis is an arithmetic sequence of dataset frames with step
 //! `frame_interval` (attribute), from `past_frames` steps before the first used frame
-//! (clamped at the sequence start) to the last used frame. The motion stage indexes it
-//! directly: "frame t - l s" is position `t - l s` (clamped at 0).
+//! (clamped at the sequence start) to the last used frame; attribute `first_frame_index` is
+//! the dataset frame-list index of position 0, so position 0 is the recording's first frame
+//! (on this axis) exactly when it is below `frame_interval`. The motion stage indexes the
+//! axis directly: "frame t - l s" is position `t - l s`, clamped at 0 only when position 0 is
+//! the recording's first frame (`seqavatar_motion::schema::FrameAxis`).
 //! - `frame_source_id` i64 `(frame)`: the dataset's frame number.
 //! - `frame_split` u8 `(frame)`: bit 0 = a training image uses it, bit 1 = a test image
 //!   does; 0 = only the motion windows use it (no image ingested).
@@ -74,7 +77,8 @@
 //! [`read_body_model`] and [`read_body_params`] read the body arrays back.
 //!
 //! Group attributes: `dataset` (the dataset kind), `body_model_kind` (`smpl`, `smplx` or
-//! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `num_train_images`,
+//! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `first_frame_index`,
+//! `num_train_images`,
 //! `num_test_images`, `background` (`[0, 0, 0]`).
 
 pub mod cameras;

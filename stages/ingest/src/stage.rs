@@ -579,7 +579,8 @@ pub struct Ingest;
 /// Implementation version: bump whenever the written arrays change for the same config.
 /// 3: images and masks decode strictly (a truncated JPEG was accepted with grey rows), so
 /// entries made by the lenient decoder are not served again.
-pub const INGEST_VERSION: u32 = 3;
+/// 4: attribute `first_frame_index` (where the frame axis starts in the recording).
+pub const INGEST_VERSION: u32 = 4;
 
 impl StageKind for Ingest {
     fn kind(&self) -> &'static str {
@@ -709,6 +710,9 @@ impl StageKind for Ingest {
         out.set_attribute("frame_interval", plan.frame_interval.into())?;
         out.set_attribute("resolution_scale", config.resolution_scale.into())?;
         out.set_attribute("past_frames", config.past_frames.into())?;
+        // Where the frame axis starts in the recording, so that motion windows clamp only at
+        // the recording's true start (`seqavatar_motion::schema::FrameAxis`).
+        out.set_attribute("first_frame_index", plan.frames[0].into())?;
         let train = image_split.iter().filter(|s| **s == 0).count();
         out.set_attribute("num_train_images", train.into())?;
         out.set_attribute("num_test_images", (image_split.len() - train).into())?;

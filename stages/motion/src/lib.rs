@@ -11,7 +11,7 @@ pub mod schema;
 pub mod stage;
 
 pub use context::{Scales, VelocityNormalisation, Window, window};
-pub use schema::MotionTrack;
+pub use schema::{FrameAxis, MotionTrack};
 pub use stage::{MotionConfig, MotionStage};
 
 /// Adds this crate's stage kinds to the registry.

@@ -19,7 +19,7 @@ use seqavatar_ingest::read_body_model;
 
 use crate::compute::{canonical_template, compute_motion};
 use crate::context::{Scales, VelocityNormalisation};
-use crate::schema::{MotionEntry, write_entry};
+use crate::schema::{FrameAxis, MotionEntry, write_entry};
 
 /// The `motion` stage configuration: only what changes the motion templates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -49,7 +49,8 @@ impl Default for MotionConfig {
 pub struct MotionStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 2;
+/// 3: attributes `past_frames` and `starts_recording` (the ingest entry's frame axis).
+const VERSION: u32 = 3;
 
 fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
     let value = ingest.attribute("frame_interval").ok_or_else(|| {
@@ -148,6 +149,7 @@ impl StageKind for MotionStage {
                 graph: &graph,
                 frame_interval: interval,
                 velocity: config.velocity,
+                axis: FrameAxis::of_ingest(&ingest)?,
             },
         )?;
         Ok(())

@@ -51,6 +51,22 @@ const VERSION: u32 = 5;
 
 pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;
 
+/// Checks that the config's motion window (`sequence_length` x the largest scale it uses)
+/// stays inside what the ingest entry holds ([`MotionTrack::check_window`]); motion contexts
+/// without skeleton motion gather no window.
+///
+/// [`MotionTrack::check_window`]: seqavatar_motion::schema::MotionTrack::check_window
+pub fn check_motion_window(config: &TrainConfig, data: &TrainingData) -> anyhow::Result<()> {
+    if !config.motion_context.has_skeleton_motion() {
+        return Ok(());
+    }
+    let scales = config
+        .effective_scales(&data.motion.scales)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let slots = data.motion.slots(&scales)?;
+    data.motion.check_window(config.sequence_length, &slots)
+}
+
 /// Held-out PSNR of one rendered image by the evaluation protocol of method.md: rendered
 /// pixels outside the bound box set to the background, ground-truth pixels outside the mask
 /// set to the background (the colour the image was rendered on), PSNR over the whole image.
@@ -138,6 +154,13 @@ impl StageKind for TrainStage {
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
         let params_entry = fit.as_ref().unwrap_or(&ingest);
         let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
+        check_motion_window(&config, &data).with_context(|| {
+            format!(
+                "train config against ingest entry {} (via motion entry {})",
+                ingest.location(),
+                motion.location()
+            )
+        })?;
         let backend = Backend::select(device_choice(config.device))
             .with_context(|| format!("config `device: {:?}`", config.device))?;
         ctx.log(&format!("backend: {}", backend.describe()));

@@ -41,6 +41,70 @@ fn pipeline_text(iterations: u32) -> String {
     )
 }
 
+/// A synthetic recording whose used frames start at frame 3, with `past_frames` before them.
+fn late_start_upstream(past_frames: usize) -> String {
+    format!(
+        r#"
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {{kind: synthetic, cameras: 2, frames: 6, width: 24, height: 24, supersample: 1, garment: false, body_grid_spacing: 0.05}}
+      split: {{train_frames: {{start: 3, step: 1}}, test_frames: {{start: 3, step: 2}}}}
+      past_frames: {past_frames}
+  - name: motion
+    kind: motion
+    inputs: [ingest]
+    config: {{scales: [1, 2], knn: 4}}
+"#
+    )
+}
+
+/// A train config whose motion window (sequence_length 2 x the `skeleton` context's smallest
+/// scale 1 = 2 frames) reaches further back than the ingest entry holds (past_frames 1, and
+/// the recording starts before it) fails before training with an error naming both values;
+/// with past_frames 2 it fits, and with past_frames 4 ingest reaches the recording's first
+/// frame (windows clamp there).
+#[test]
+fn a_window_reaching_past_the_ingested_frames_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let train = TRAIN_CONFIG.replace("ITERATIONS", "2").replace(
+        r#""motion_context": "none""#,
+        r#""motion_context": "skeleton", "sequence_length": 2"#,
+    );
+    let text = format!(
+        "{}  - name: train\n    kind: train\n    inputs: [ingest, motion]\n    config: {train}\n",
+        late_start_upstream(1)
+    );
+    let error = format!(
+        "{:#}",
+        run_pipeline(&cache, &text).expect_err("window too long")
+    );
+    assert!(
+        error.contains("reaches 2 frames back") && error.contains("past_frames = 1"),
+        "{error}"
+    );
+    assert!(error.contains("sequence_length 2"), "{error}");
+    let config = TrainConfig::resolve(&serde_json::from_str(&train).unwrap()).unwrap();
+    for (past_frames, starts_recording, fits) in
+        [(1, false, false), (2, false, true), (4, true, true)]
+    {
+        let reports = run_pipeline(&cache, &late_start_upstream(past_frames)).unwrap();
+        let ingest = entry(&cache, &reports, "ingest");
+        let motion = entry(&cache, &reports, "motion");
+        let data = TrainingData::read(&ingest, &ingest, &motion, 1.0).unwrap();
+        assert_eq!(data.motion.axis.starts_recording, starts_recording);
+        assert_eq!(data.motion.axis.past_frames, past_frames);
+        let checked = seqavatar_train::stage::check_motion_window(&config, &data);
+        assert_eq!(
+            checked.is_ok(),
+            fits,
+            "past_frames {past_frames}: {checked:?}"
+        );
+    }
+}
+
 fn registry() -> Registry {
     let mut registry = Registry::new();
     seqavatar_ingest::register(&mut registry);
