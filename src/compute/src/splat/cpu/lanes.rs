@@ -420,23 +420,24 @@ const SKIP_MASKS: [[f32; LANES]; LANES + 1] = {
 // A tile row is covered by at most two groups.
 const _: () = assert!(TS <= 2 * LANES && TS >= LANES);
 
-/// Visits the 8-pixel groups that cover tile-local columns `[lo, hi)` of a tile row
-/// (`lo < hi <= 16`), as `(first column, lanes to skip)`: one group starting at `lo` (moved
-/// left to fit in the row), and when the span is wider than 8, a second one ending at `hi`
-/// whose first `skip` lanes the first group already covered. Groups start anywhere, not at
-/// multiples of 8, so a span of up to 8 columns costs one group wherever it lies. Lanes of
-/// the first group outside `[lo, hi)` are harmless: the per-pixel contract decides whether
-/// they are composited, exactly as for any other pixel. (Straight-line calls rather than an
-/// iterator: the chained iterator's state machine cost about a third of a group's
-/// instructions.)
+/// The 8-pixel groups that cover tile-local columns `[lo, hi)` of a tile row
+/// (`lo < hi <= 16`), as `(first column, lanes to skip)`, and how many there are (the first
+/// `count` entries): one group starting at `lo` (moved left to fit in the row), and when the
+/// span is wider than 8, a second one ending at `hi` whose first `skip` lanes the first group
+/// already covered. Groups start anywhere, not at multiples of 8, so a span of up to 8
+/// columns costs one group wherever it lies. Lanes of the first group outside `[lo, hi)` are
+/// harmless: the per-pixel contract decides whether they are composited, exactly as for any
+/// other pixel. (A fixed array rather than an iterator: the chained iterator's state machine
+/// cost about a third of a group's instructions. Not a closure either: closures do not
+/// inherit the loops' `target_feature`s, so the lane intrinsics would not inline into them.)
 #[inline(always)]
-fn row_groups(lo: usize, hi: usize, mut visit: impl FnMut(usize, usize)) {
+fn row_groups(lo: usize, hi: usize) -> ([(usize, usize); 2], usize) {
     debug_assert!(lo < hi && hi <= TS);
     let first = lo.min(TS - LANES);
-    visit(first, 0);
-    if hi > first + LANES {
-        visit(hi - LANES, first + LANES - (hi - LANES));
-    }
+    // Meaningful only when there is a second group (then `hi > first + 8 >= 8`).
+    let second_start = hi.max(LANES) - LANES;
+    let second = (second_start, (first + LANES).saturating_sub(second_start));
+    ([(first, 0), second], 1 + usize::from(hi > first + LANES))
 }
 
 /// The tile rows a splat's box covers, and on each its tile-local column span `[lo, hi)`
@@ -674,18 +675,18 @@ impl ForwardTile {
                     continue;
                 }
                 let row = r * TS;
-                let mut stops = 0;
-                row_groups(lo as usize, hi as usize, |start, skip| {
+                let (groups, count) = row_groups(lo as usize, hi as usize);
+                for &(start, skip) in &groups[..count] {
                     let column = (x_start as usize + start) as f32;
                     let base = row + start;
-                    stops += if smooth {
+                    let stops = if smooth {
                         self.group::<V, true>(base, splat, column, dy, skip, j as u32 + 1)
                     } else {
                         self.group::<V, false>(base, splat, column, dy, skip, j as u32 + 1)
                     };
-                });
-                self.row_active[r] -= stops;
-                active -= stops;
+                    self.row_active[r] -= stops;
+                    active -= stops;
+                }
             }
         }
     }
@@ -953,7 +954,8 @@ impl BackwardTile {
                     continue;
                 }
                 let row = r * TS;
-                row_groups(lo as usize, hi as usize, |start, skip| {
+                let (groups, count) = row_groups(lo as usize, hi as usize);
+                for &(start, skip) in &groups[..count] {
                     let column = (x_start as usize + start) as f32;
                     self.group::<V, SMOOTH, ALPHA, DEPTH>(
                         row + start,
@@ -964,7 +966,7 @@ impl BackwardTile {
                         j as u32,
                         &mut acc,
                     );
-                });
+                }
             }
             let sum = |k: usize| {
                 let mut lanes = [0.0; LANES];
@@ -1156,15 +1158,14 @@ mod tests {
         for lo in 0..TS {
             for hi in lo + 1..=TS {
                 let mut covered = [0; TS];
-                let mut groups = 0;
-                row_groups(lo, hi, |start, skip| {
+                let (groups, count) = row_groups(lo, hi);
+                for &(start, skip) in &groups[..count] {
                     assert!(start + LANES <= TS, "{lo}..{hi}: group at {start}");
                     assert!(skip < LANES);
                     for column in start + skip..start + LANES {
                         covered[column] += 1;
                     }
-                    groups += 1;
-                });
+                }
                 for (column, &count) in covered.iter().enumerate() {
                     let expected = usize::from((lo..hi).contains(&column));
                     // Columns outside the span may be visited once (the contract decides).
@@ -1173,7 +1174,7 @@ mod tests {
                         "{lo}..{hi}: column {column} visited {count} times"
                     );
                 }
-                assert!(groups <= (hi - lo).div_ceil(LANES).max(1));
+                assert!(count <= (hi - lo).div_ceil(LANES).max(1));
             }
         }
     }
