@@ -360,9 +360,23 @@ pub(super) enum Isa {
     Portable,
 }
 
-/// The best [`Isa`] this CPU runs (the feature tests are cached by the standard library).
-#[inline(always)]
+/// The best [`Isa`] this CPU runs, or a lesser one named by the environment variable
+/// `SEQAVATAR_SPLAT_ISA` (`avx2` or `portable`; for comparing them in the bench). Decided
+/// once per process.
 pub(super) fn isa() -> Isa {
+    static CHOSEN: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+    *CHOSEN.get_or_init(|| {
+        let best = best_isa();
+        match std::env::var("SEQAVATAR_SPLAT_ISA").as_deref() {
+            Ok("portable") => Isa::Portable,
+            Ok("avx2") if best != Isa::Portable => Isa::Avx2,
+            _ => best,
+        }
+    })
+}
+
+/// The best [`Isa`] this CPU runs.
+fn best_isa() -> Isa {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::is_x86_feature_detected as has;
@@ -379,7 +393,7 @@ pub(super) fn isa() -> Isa {
 /// Whether the AVX2 lanes can run here.
 #[cfg(test)]
 fn has_avx2() -> bool {
-    isa() != Isa::Portable
+    best_isa() != Isa::Portable
 }
 
 /// Every [`Isa`] this CPU runs.
@@ -387,7 +401,7 @@ fn has_avx2() -> bool {
 pub(super) fn available_isas() -> Vec<Isa> {
     [Isa::Avx512, Isa::Avx2, Isa::Portable]
         .into_iter()
-        .filter(|&candidate| match isa() {
+        .filter(|&candidate| match best_isa() {
             Isa::Avx512 => true,
             Isa::Avx2 => candidate != Isa::Avx512,
             Isa::Portable => candidate == Isa::Portable,
@@ -486,6 +500,17 @@ impl TileSpans {
         let (lo, hi) = row_span_f64(&self.constants, f64::from(dy), self.lo_x, self.hi_x);
         // In `[0, 16]`, so the conversions are floors.
         (dy, lo as i32, hi as i32)
+    }
+
+    /// [`Self::row`] of every row at once (for loops that visit most rows: the square roots
+    /// of independent rows overlap instead of each delaying its row's groups).
+    #[inline(always)]
+    fn all_rows(&self) -> [(f32, i32, i32); TS] {
+        let mut rows = [(0.0, 0, 0); TS];
+        for r in self.rows.clone() {
+            rows[r] = self.row(r);
+        }
+        rows
     }
 }
 
@@ -945,12 +970,10 @@ impl BackwardTile {
             let splat = &splats[list[j] as usize];
             let spans = TileSpans::new(splat, bounds);
             let mut acc: LaneSums<V> = [V::splat(0.0); 10];
+            let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                if j as u32 >= self.row_contributors[r] {
-                    continue;
-                }
-                let (dy, lo, hi) = spans.row(r);
-                if lo >= hi {
+                let (dy, lo, hi) = rows[r];
+                if j as u32 >= self.row_contributors[r] || lo >= hi {
                     continue;
                 }
                 let row = r * TS;
@@ -1339,7 +1362,7 @@ mod tests {
             let portable = run::<Portable>(&a, &b);
             // SAFETY: AVX2 is available (checked above).
             let mut fast = vec![("avx2", unsafe { run_avx2(&a, &b) })];
-            if isa() == Isa::Avx512 {
+            if best_isa() == Isa::Avx512 {
                 // SAFETY: AVX-512VL is available (checked just above).
                 fast.push(("avx512", unsafe { run_avx512(&a, &b) }));
             }
