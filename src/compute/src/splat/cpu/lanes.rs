@@ -691,12 +691,10 @@ impl ForwardTile {
             }
             let splat = &splats[g as usize];
             let spans = TileSpans::new(splat, bounds);
+            let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                if self.row_active[r] == 0 {
-                    continue;
-                }
-                let (dy, lo, hi) = spans.row(r);
-                if lo >= hi {
+                let (dy, lo, hi) = rows[r];
+                if self.row_active[r] == 0 || lo >= hi {
                     continue;
                 }
                 let row = r * TS;
