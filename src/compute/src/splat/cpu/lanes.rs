@@ -502,16 +502,32 @@ impl TileSpans {
         (dy, lo as i32, hi as i32)
     }
 
-    /// [`Self::row`] of every row at once (for loops that visit most rows: the square roots
-    /// of independent rows overlap instead of each delaying its row's groups).
+    /// [`Self::row`] of all 16 tile rows at once, those outside [`Self::rows`] included
+    /// (meaningless there): a fixed-length branch-free loop that vectorises, and whose
+    /// square roots overlap instead of each delaying its row's groups (the loops are bound
+    /// by latency, not throughput).
     #[inline(always)]
-    fn all_rows(&self) -> [(f32, i32, i32); TS] {
-        let mut rows = [(0.0, 0, 0); TS];
-        for r in self.rows.clone() {
-            rows[r] = self.row(r);
+    fn all_rows(&self) -> RowSpans {
+        let mut spans = RowSpans {
+            dy: [0.0; TS],
+            lo: [0; TS],
+            hi: [0; TS],
+        };
+        for r in 0..TS {
+            let (dy, lo, hi) = self.row(r);
+            spans.dy[r] = dy;
+            spans.lo[r] = lo;
+            spans.hi[r] = hi;
         }
-        rows
+        spans
     }
+}
+
+/// [`TileSpans::row`] of every tile row, one array per quantity.
+struct RowSpans {
+    dy: [f32; TS],
+    lo: [i32; TS],
+    hi: [i32; TS],
 }
 
 /// `f32` lanes of `values[base..base + 8]`.
@@ -693,7 +709,7 @@ impl ForwardTile {
             let spans = TileSpans::new(splat, bounds);
             let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                let (dy, lo, hi) = rows[r];
+                let (dy, lo, hi) = (rows.dy[r], rows.lo[r], rows.hi[r]);
                 if self.row_active[r] == 0 || lo >= hi {
                     continue;
                 }
@@ -970,7 +986,7 @@ impl BackwardTile {
             let mut acc: LaneSums<V> = [V::splat(0.0); 10];
             let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                let (dy, lo, hi) = rows[r];
+                let (dy, lo, hi) = (rows.dy[r], rows.lo[r], rows.hi[r]);
                 if j as u32 >= self.row_contributors[r] || lo >= hi {
                     continue;
                 }
@@ -1249,6 +1265,8 @@ mod tests {
                     let (lo, hi) = row_span(&splat, mean[1] - (py as f32 + 0.5), x0, x1);
                     let (lo, hi) = (lo - tx, hi - tx);
                     let (dy, span_lo, span_hi) = spans.row(r);
+                    let all = spans.all_rows();
+                    assert_eq!((all.dy[r], all.lo[r], all.hi[r]), (dy, span_lo, span_hi));
                     assert_eq!(dy, mean[1] - (py as f32 + 0.5));
                     if lo < hi {
                         assert_eq!((span_lo, span_hi), (lo as i32, hi as i32));
