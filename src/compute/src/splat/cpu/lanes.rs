@@ -1,6 +1,7 @@
 //! The `f32` speed path of tile compositing and its backward pass: eight pixels of a tile row
-//! per step, written as fixed-width lane loops that LLVM vectorises (AVX2 when the CPU has
-//! it, chosen at run time; SSE2 otherwise, with bitwise-identical results).
+//! per step, written as fixed-width lane loops that LLVM vectorises (AVX2, or the same code
+//! with AVX-512VL's 32 registers and masks, when the CPU has it, chosen at run time ([`Isa`]);
+//! SSE2 otherwise, with bitwise-identical results).
 //!
 //! The per-pixel math is the contract's (`SPLATTING.md`) in the same operation order as the
 //! generic path in `raster.rs`, with two differences that only change `f32` rounding: `exp`
@@ -9,8 +10,10 @@
 //! gradients as five moment sums, see [`LaneSums`]) before adding the lanes. Lanes whose
 //! pixel does not take part are computed and then neutralised (alpha set to +0, masks), so a
 //! Gaussian costs one step per 8-pixel group of its row spans; groups start at the span, not
-//! at multiples of 8 ([`row_groups`]). `f64` runs never come here: gradient checks keep the
-//! exact generic path.
+//! at multiples of 8 ([`row_groups`]). The loops are bound by latency more than by
+//! arithmetic: a splat's row spans (square roots) are computed for all rows at once, and the
+//! control flow around a group is kept to straight-line code. `f64` runs never come here:
+//! gradient checks keep the exact generic path.
 
 // Index loops over lanes are what LLVM vectorises.
 #![allow(clippy::needless_range_loop)]

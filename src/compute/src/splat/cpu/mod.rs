@@ -7,8 +7,9 @@
 //! rows). The backward pass walks the same lists back to front, writes one gradient per
 //! Gaussian-tile intersection, then reduces them per Gaussian (parallel over Gaussians, in a
 //! fixed order, so results are deterministic) and chains through the projection.
-//! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 when the CPU
-//! has it); `f64` runs (gradient checks) use the generic per-pixel loops of `raster.rs`.
+//! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 or AVX-512VL
+//! when the CPU has it); `f64` runs (gradient checks) use the generic per-pixel loops of
+//! `raster.rs`. [`ForwardPhases`] and [`BackwardPhases`] time the phases.
 
 mod lanes;
 mod project;
