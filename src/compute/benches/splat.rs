@@ -1,7 +1,8 @@
 //! Splatting benchmark on the standard scene of `rasterizer.md` (see `splat::scene`):
-//! forward and forward+backward milliseconds per 512x512 image for 10k / 50k / 200k
-//! Gaussians, and the speed-up over the published OpenSplat CPU figures. Prints a table and
-//! never fails on speed.
+//! forward and forward+backward wall milliseconds per 512x512 image for 10k / 50k / 200k
+//! Gaussians (medians), the speed-up over the published OpenSplat CPU figures computed from
+//! those wall times, and for the cpu backend the median wall time of each phase. Prints
+//! tables and never fails on speed.
 //!
 //! Run: `cargo bench -p seqavatar-compute --bench splat` (optional arguments: repetitions,
 //! `--device cpu|gpu` to run one backend only, `--count N` to run one Gaussian count only).
@@ -48,6 +49,8 @@ struct Timing {
     /// Mean CPU milliseconds (all threads) of the timed forwards alone, where the backend
     /// runs on the host.
     forward_cpu_ms: Option<f64>,
+    /// Median wall milliseconds of each phase, where the backend reports them.
+    phases: Vec<(&'static str, f64)>,
 }
 
 /// A backend's timing of `reps` forward+backward runs, or `None` when it is unavailable
@@ -62,6 +65,7 @@ fn time_gpu(scene: &Prepared, reps: usize) -> Option<Timing> {
         forward_ms,
         total_ms,
         forward_cpu_ms: None,
+        phases: Vec::new(),
     })
 }
 
@@ -98,6 +102,17 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<Timing> {
     let mut forward_ms = Vec::with_capacity(reps);
     let mut total_ms = Vec::with_capacity(reps);
     let mut forward_cpu_ms = Some(0.0);
+    let mut phases: Vec<(&'static str, Vec<f64>)> = [
+        "project",
+        "sort+bin",
+        "composite",
+        "check",
+        "walk",
+        "reduce+proj.bwd",
+    ]
+    .into_iter()
+    .map(|name| (name, Vec::with_capacity(reps)))
+    .collect();
     for _ in 0..reps {
         let cpu_before = process_cpu_ms();
         let start = Instant::now();
@@ -107,9 +122,21 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<Timing> {
             (Some(sum), Some(before), Some(after)) => Some(sum + after - before),
             _ => None,
         };
-        let grads = cpu::backward(&fwd, &view, &upstream).ok()?;
+        let (grads, backward_phases) = cpu::backward_with_phases(&fwd, &view, &upstream).ok()?;
         let total = start.elapsed();
         std::hint::black_box(&grads);
+        let f = fwd.phases;
+        let b = backward_phases;
+        for ((_, samples), ms) in phases.iter_mut().zip([
+            f.project_ms,
+            f.bin_ms,
+            f.composite_ms,
+            b.check_ms,
+            b.walk_ms,
+            b.reduce_ms,
+        ]) {
+            samples.push(ms);
+        }
         forward_ms.push(forward_done.as_secs_f64() * 1e3);
         total_ms.push(total.as_secs_f64() * 1e3);
     }
@@ -117,6 +144,10 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<Timing> {
         forward_ms: median(forward_ms),
         total_ms: median(total_ms),
         forward_cpu_ms: forward_cpu_ms.map(|sum| sum / reps as f64),
+        phases: phases
+            .into_iter()
+            .map(|(name, samples)| (name, median(samples)))
+            .collect(),
     })
 }
 
@@ -144,18 +175,19 @@ fn main() {
         rayon::current_num_threads()
     );
     println!(
-        "{:<8} {:>9} {:>9} {:>9} {:>11} {:>11} {:>12} {:>12} {:>10} {:>14}",
+        "{:<8} {:>9} {:>9} {:>9} {:>11} {:>11} {:>10} {:>14} {:>12} {:>12}",
         "backend",
         "gaussians",
         "visible",
         "list/tile",
-        "forward ms",
-        "fwd+bwd ms",
-        "host cpu ms",
-        "fwd cpu ms",
+        "fwd wall ms",
+        "f+b wall ms",
         "fwd vs OS",
-        "fwd+bwd vs OS"
+        "fwd+bwd vs OS",
+        "host cpu ms",
+        "fwd cpu ms"
     );
+    let mut phase_rows = Vec::new();
     for (i, &count) in COUNTS.iter().enumerate() {
         if only_count.is_some_and(|only| only != count) {
             continue;
@@ -185,25 +217,45 @@ fn main() {
                 _ => f64::NAN,
             };
             println!(
-                "{:<8} {:>9} {:>9} {:>9.1} {:>11.1} {:>11.1} {:>12.1} {:>12.1} {:>9.1}x {:>13.1}x",
+                "{:<8} {:>9} {:>9} {:>9.1} {:>11.1} {:>11.1} {:>9.1}x {:>13.1}x {:>12.1} {:>12.1}",
                 name,
                 count,
                 visible,
                 per_pixel,
                 timing.forward_ms,
                 timing.total_ms,
-                cpu_ms,
-                timing.forward_cpu_ms.unwrap_or(f64::NAN),
                 OPENSPLAT_FORWARD_MS[i] / timing.forward_ms,
-                OPENSPLAT_FORWARD_BACKWARD_MS[i] / timing.total_ms
+                OPENSPLAT_FORWARD_BACKWARD_MS[i] / timing.total_ms,
+                cpu_ms,
+                timing.forward_cpu_ms.unwrap_or(f64::NAN)
             );
+            if !timing.phases.is_empty() {
+                phase_rows.push((*name, count, timing.phases));
+            }
         }
     }
     println!(
-        "host cpu ms = CPU time of all threads per forward+backward, warm-up included \
-         (about twice the wall time of an idle 2-core machine when both cores are busy); \
+        "wall ms = median wall time (the headline; vs OS = OpenSplat's time / this wall time); \
+         host cpu ms = CPU time of all threads per forward+backward, warm-up included; \
          fwd cpu ms = the same for the timed forwards alone"
     );
+    if let Some((_, _, first)) = phase_rows.first() {
+        print!(
+            "\nphases (median wall ms)\n{:<8} {:>9}",
+            "backend", "gaussians"
+        );
+        for (phase, _) in first {
+            print!(" {phase:>15}");
+        }
+        println!();
+        for (name, count, phases) in &phase_rows {
+            print!("{name:<8} {count:>9}");
+            for (_, ms) in phases {
+                print!(" {ms:>15.1}");
+            }
+            println!();
+        }
+    }
     println!(
         "OS = OpenSplat CPU rasteriser, published in rasterizer.md: fwd {OPENSPLAT_FORWARD_MS:?} ms, fwd+bwd {OPENSPLAT_FORWARD_BACKWARD_MS:?} ms"
     );

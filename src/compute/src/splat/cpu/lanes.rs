@@ -1,6 +1,7 @@
 //! The `f32` speed path of tile compositing and its backward pass: eight pixels of a tile row
-//! per step, written as fixed-width lane loops that LLVM vectorises (AVX2 when the CPU has
-//! it, chosen at run time; SSE2 otherwise, with bitwise-identical results).
+//! per step, written as fixed-width lane loops that LLVM vectorises (AVX2, or the same code
+//! with AVX-512VL's 32 registers and masks, when the CPU has it, chosen at run time ([`Isa`]);
+//! SSE2 otherwise, with bitwise-identical results).
 //!
 //! The per-pixel math is the contract's (`SPLATTING.md`) in the same operation order as the
 //! generic path in `raster.rs`, with two differences that only change `f32` rounding: `exp`
@@ -9,8 +10,10 @@
 //! gradients as five moment sums, see [`LaneSums`]) before adding the lanes. Lanes whose
 //! pixel does not take part are computed and then neutralised (alpha set to +0, masks), so a
 //! Gaussian costs one step per 8-pixel group of its row spans; groups start at the span, not
-//! at multiples of 8 ([`row_groups`]). `f64` runs never come here: gradient checks keep the
-//! exact generic path.
+//! at multiples of 8 ([`row_groups`]). The loops are bound by latency more than by
+//! arithmetic: a splat's row spans (square roots) are computed for all rows at once, and the
+//! control flow around a group is kept to straight-line code. `f64` runs never come here:
+//! gradient checks keep the exact generic path.
 
 // Index loops over lanes are what LLVM vectorises.
 #![allow(clippy::needless_range_loop)]
@@ -90,6 +93,8 @@ trait Lanes: Copy {
     fn greater_equal(self, other: Self) -> Self;
     /// Lanes read as `u32` bit patterns below `2^31`: `self < other`.
     fn less_u32(self, other: Self) -> Self;
+    /// Lanes read as `u32` bit patterns: the larger of `self` and `other`.
+    fn max_u32(self, other: Self) -> Self;
     fn and(self, other: Self) -> Self;
     fn or(self, other: Self) -> Self;
     /// `self & !other`.
@@ -179,6 +184,10 @@ impl Lanes for Portable {
         self.bitwise(other, |a, b| if a < b { u32::MAX } else { 0 })
     }
     #[inline(always)]
+    fn max_u32(self, other: Self) -> Self {
+        self.bitwise(other, u32::max)
+    }
+    #[inline(always)]
     fn and(self, other: Self) -> Self {
         self.bitwise(other, |a, b| a & b)
     }
@@ -214,9 +223,9 @@ mod avx2 {
     //! [`Lanes`] on AVX2 registers.
     //!
     //! SAFETY (for every `unsafe` block below): [`Avx2`] values are only created inside
-    //! functions compiled with `#[target_feature(enable = "avx2,fma")]`, which are only
-    //! called after [`super::has_avx2`]; these `#[inline(always)]` methods are inlined
-    //! into them.
+    //! functions compiled with `#[target_feature(enable = "avx2,fma,...")]`, which are only
+    //! called after [`super::isa`] found those features; these `#[inline(always)]` methods
+    //! are inlined into them.
     #![allow(
         clippy::undocumented_unsafe_blocks,
         reason = "one SAFETY note above covers every intrinsic call of this module"
@@ -281,6 +290,15 @@ mod avx2 {
             })
         }
         #[inline(always)]
+        fn max_u32(self, other: Self) -> Self {
+            Self(unsafe {
+                _mm256_castsi256_ps(_mm256_max_epu32(
+                    _mm256_castps_si256(self.0),
+                    _mm256_castps_si256(other.0),
+                ))
+            })
+        }
+        #[inline(always)]
         fn and(self, other: Self) -> Self {
             Self(unsafe { _mm256_and_ps(self.0, other.0) })
         }
@@ -335,18 +353,74 @@ mod avx2 {
     }
 }
 
-/// Whether the AVX2 lanes (which also use FMA in `exp`) can run here (cached by the standard
-/// library).
-#[inline(always)]
-fn has_avx2() -> bool {
+/// The instruction sets the lane loops are compiled for, best first. All give bitwise
+/// identical results.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Isa {
+    /// The [`avx2::Avx2`] lanes compiled with AVX-512VL as well: the same 8-lane operations,
+    /// but 32 vector registers (no reloading of constants) and mask registers (cheap masked
+    /// stores and selects).
+    Avx512,
+    /// The [`avx2::Avx2`] lanes (AVX2, FMA in `exp`, POPCNT).
+    Avx2,
+    /// [`Portable`] lanes.
+    Portable,
+}
+
+/// The best [`Isa`] this CPU runs, or a lesser one named by the environment variable
+/// `SEQAVATAR_SPLAT_ISA` (`avx2` or `portable`; for comparing them in the bench). Decided
+/// once per process.
+pub(super) fn isa() -> Isa {
+    static CHOSEN: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+    *CHOSEN.get_or_init(|| {
+        let best = best_isa();
+        match std::env::var("SEQAVATAR_SPLAT_ISA").as_deref() {
+            Ok("portable") => Isa::Portable,
+            Ok("avx2") if best != Isa::Portable => Isa::Avx2,
+            _ => best,
+        }
+    })
+}
+
+/// The best [`Isa`] this CPU runs.
+fn best_isa() -> Isa {
     #[cfg(target_arch = "x86_64")]
     {
-        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        use std::arch::is_x86_feature_detected as has;
+        if has!("avx2") && has!("fma") && has!("popcnt") {
+            if has!("avx512f") && has!("avx512vl") {
+                return Isa::Avx512;
+            }
+            return Isa::Avx2;
+        }
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    Isa::Portable
+}
+
+/// Whether the AVX2 lanes can run here.
+#[cfg(test)]
+fn has_avx2() -> bool {
+    best_isa() != Isa::Portable
+}
+
+/// Every [`Isa`] this CPU runs.
+#[cfg(test)]
+pub(super) fn available_isas() -> Vec<Isa> {
+    [Isa::Avx512, Isa::Avx2, Isa::Portable]
+        .into_iter()
+        .filter(|&candidate| match best_isa() {
+            Isa::Avx512 => true,
+            Isa::Avx2 => candidate != Isa::Avx512,
+            Isa::Portable => candidate == Isa::Portable,
+        })
+        .collect()
+}
+
+/// The splats in depth order as `f32` and the instruction set to composite them with.
+#[derive(Clone, Copy)]
+pub(super) struct LanePath<'a> {
+    pub splats: &'a [Splat2d<f32>],
+    pub isa: Isa,
 }
 
 /// `SKIP_MASKS[k]`: the first `k` lanes set (all-ones bits), the others zero.
@@ -368,27 +442,38 @@ const SKIP_MASKS: [[f32; LANES]; LANES + 1] = {
 const _: () = assert!(TS <= 2 * LANES && TS >= LANES);
 
 /// The 8-pixel groups that cover tile-local columns `[lo, hi)` of a tile row
-/// (`lo < hi <= 16`), as `(first column, lanes to skip)`: one group starting at `lo` (moved
-/// left to fit in the row), and when the span is wider than 8, a second one ending at `hi`
-/// whose first `skip` lanes the first group already covered. Groups start anywhere, not at
-/// multiples of 8, so a span of up to 8 columns costs one group wherever it lies. Lanes of
-/// the first group outside `[lo, hi)` are harmless: the per-pixel contract decides whether
-/// they are composited, exactly as for any other pixel.
+/// (`lo < hi <= 16`), as `(first column, lanes to skip)`, and how many there are (the first
+/// `count` entries): one group starting at `lo` (moved left to fit in the row), and when the
+/// span is wider than 8, a second one ending at `hi` whose first `skip` lanes the first group
+/// already covered. Groups start anywhere, not at multiples of 8, so a span of up to 8
+/// columns costs one group wherever it lies. Lanes of the first group outside `[lo, hi)` are
+/// harmless: the per-pixel contract decides whether they are composited, exactly as for any
+/// other pixel. (A fixed array rather than an iterator: the chained iterator's state machine
+/// cost about a third of a group's instructions. Not a closure either: closures do not
+/// inherit the loops' `target_feature`s, so the lane intrinsics would not inline into them.)
 #[inline(always)]
-fn row_groups(lo: usize, hi: usize) -> impl Iterator<Item = (usize, usize)> {
+fn row_groups(lo: usize, hi: usize) -> ([(usize, usize); 2], usize) {
     debug_assert!(lo < hi && hi <= TS);
     let first = lo.min(TS - LANES);
-    let second = (hi > first + LANES).then(|| (hi - LANES, first + LANES - (hi - LANES)));
-    std::iter::once((first, 0)).chain(second)
+    // Meaningful only when there is a second group (then `hi > first + 8 >= 8`).
+    let second_start = hi.max(LANES) - LANES;
+    let second = (second_start, (first + LANES).saturating_sub(second_start));
+    ([(first, 0), second], 1 + usize::from(hi > first + LANES))
 }
 
-/// Tile-local column spans `[lo, hi)` of a splat on the tile rows its box covers (the
-/// spans of `raster::row_span`, moved to the tile's first column), and that range of rows.
-/// Computed for all the rows at once so that the square roots vectorise.
+/// The tile rows a splat's box covers, and on each its tile-local column span `[lo, hi)`
+/// (the span of `raster::row_span`, moved to the tile's first column). Spans are computed
+/// per row on demand ([`Self::row`]), so rows the loops skip (finished in the forward pass,
+/// past their last contributor in the backward pass) cost nothing.
 struct TileSpans {
     rows: std::ops::Range<usize>,
-    lo: [i32; TS],
-    hi: [i32; TS],
+    /// `Splat2d::row_span` with the mean moved to the tile's first column.
+    constants: [f64; 4],
+    /// The box's tile-local columns.
+    lo_x: f64,
+    hi_x: f64,
+    mean_y: f32,
+    y_start: u32,
 }
 
 impl TileSpans {
@@ -396,30 +481,60 @@ impl TileSpans {
     fn new(splat: &Splat2d<f32>, bounds: [u32; 4]) -> Self {
         let [x_start, _, y_start, _] = bounds;
         let (x0, x1, y0, y1) = box_in_tile(splat, bounds);
-        let mut spans = Self {
-            rows: 0..0,
-            lo: [0; TS],
-            hi: [0; TS],
-        };
-        if x0 >= x1 || y0 >= y1 {
-            return spans;
-        }
         // Exact: the mean is an `f32` and the tile start a small integer.
         let mut constants = splat.row_span;
         constants[0] -= f64::from(x_start);
-        let (lo_x, hi_x) = (f64::from(x0 - x_start), f64::from(x1 - x_start));
-        let rows = (y0 - y_start) as usize..((y1 - y_start) as usize).min(TS);
-        for r in rows.clone() {
-            // The same `dy` as the lanes use.
-            let dy = splat.mean[1] - ((y_start + r as u32) as f32 + 0.5);
-            let (lo, hi) = row_span_f64(&constants, f64::from(dy), lo_x, hi_x);
-            // In `[0, 16]`, so the conversions are floors.
-            spans.lo[r] = lo as i32;
-            spans.hi[r] = hi as i32;
+        let rows = if x0 >= x1 || y0 >= y1 {
+            0..0
+        } else {
+            (y0 - y_start) as usize..((y1 - y_start) as usize).min(TS)
+        };
+        Self {
+            rows,
+            constants,
+            lo_x: f64::from(x0.saturating_sub(x_start)),
+            hi_x: f64::from(x1.saturating_sub(x_start)),
+            mean_y: splat.mean[1],
+            y_start,
         }
-        spans.rows = rows;
+    }
+
+    /// `(dy, lo, hi)` of tile row `r` (one of [`Self::rows`]): `dy = mean_y - row centre` as
+    /// the lanes use it, and the span, empty when `lo >= hi`.
+    #[inline(always)]
+    fn row(&self, r: usize) -> (f32, i32, i32) {
+        let dy = self.mean_y - ((self.y_start + r as u32) as f32 + 0.5);
+        let (lo, hi) = row_span_f64(&self.constants, f64::from(dy), self.lo_x, self.hi_x);
+        // In `[0, 16]`, so the conversions are floors.
+        (dy, lo as i32, hi as i32)
+    }
+
+    /// [`Self::row`] of all 16 tile rows at once, those outside [`Self::rows`] included
+    /// (meaningless there): a fixed-length branch-free loop that vectorises, and whose
+    /// square roots overlap instead of each delaying its row's groups (the loops are bound
+    /// by latency, not throughput).
+    #[inline(always)]
+    fn all_rows(&self) -> RowSpans {
+        let mut spans = RowSpans {
+            dy: [0.0; TS],
+            lo: [0; TS],
+            hi: [0; TS],
+        };
+        for r in 0..TS {
+            let (dy, lo, hi) = self.row(r);
+            spans.dy[r] = dy;
+            spans.lo[r] = lo;
+            spans.hi[r] = hi;
+        }
         spans
     }
+}
+
+/// [`TileSpans::row`] of every tile row, one array per quantity.
+struct RowSpans {
+    dy: [f32; TS],
+    lo: [i32; TS],
+    hi: [i32; TS],
 }
 
 /// `f32` lanes of `values[base..base + 8]`.
@@ -495,7 +610,7 @@ impl ForwardTile {
     #[allow(clippy::too_many_arguments)]
     pub fn composite<S: Scalar>(
         &mut self,
-        splats: &[Splat2d<f32>],
+        lanes: LanePath<'_>,
         list: &[u32],
         bounds: [u32; 4],
         smooth: bool,
@@ -504,9 +619,9 @@ impl ForwardTile {
         out: ForwardRows<'_, S>,
     ) {
         if smooth {
-            self.run::<true>(splats, list, bounds);
+            self.run::<true>(lanes, list, bounds);
         } else {
-            self.run::<false>(splats, list, bounds);
+            self.run::<false>(lanes, list, bounds);
         }
         let [x_start, x_end, y_start, y_end] = bounds;
         for py in y_start..y_end {
@@ -526,11 +641,12 @@ impl ForwardTile {
         }
     }
 
-    fn run<const SMOOTH: bool>(&mut self, splats: &[Splat2d<f32>], list: &[u32], bounds: [u32; 4]) {
+    fn run<const SMOOTH: bool>(&mut self, lanes: LanePath<'_>, list: &[u32], bounds: [u32; 4]) {
+        let splats = lanes.splats;
         #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
+        {
             /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma")]
+            #[target_feature(enable = "avx2,fma,popcnt")]
             fn run_avx2(
                 tile: &mut ForwardTile,
                 splats: &[Splat2d<f32>],
@@ -540,9 +656,24 @@ impl ForwardTile {
             ) {
                 tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
             }
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            unsafe { run_avx2(self, splats, list, bounds, SMOOTH) };
-            return;
+            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
+            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
+            fn run_avx512(
+                tile: &mut ForwardTile,
+                splats: &[Splat2d<f32>],
+                list: &[u32],
+                bounds: [u32; 4],
+                smooth: bool,
+            ) {
+                tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
+            }
+            match lanes.isa {
+                // SAFETY: the CPU has the features (`isa` found them).
+                Isa::Avx512 => return unsafe { run_avx512(self, splats, list, bounds, SMOOTH) },
+                // SAFETY: as above.
+                Isa::Avx2 => return unsafe { run_avx2(self, splats, list, bounds, SMOOTH) },
+                Isa::Portable => {}
+            }
         }
         self.run_lanes::<Portable>(splats, list, bounds, SMOOTH);
     }
@@ -583,14 +714,15 @@ impl ForwardTile {
             }
             let splat = &splats[g as usize];
             let spans = TileSpans::new(splat, bounds);
+            let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                let (lo, hi) = (spans.lo[r], spans.hi[r]);
+                let (dy, lo, hi) = (rows.dy[r], rows.lo[r], rows.hi[r]);
                 if self.row_active[r] == 0 || lo >= hi {
                     continue;
                 }
-                let dy = splat.mean[1] - ((y_start + r as u32) as f32 + 0.5);
                 let row = r * TS;
-                for (start, skip) in row_groups(lo as usize, hi as usize) {
+                let (groups, count) = row_groups(lo as usize, hi as usize);
+                for &(start, skip) in &groups[..count] {
                     let column = (x_start as usize + start) as f32;
                     let base = row + start;
                     let stops = if smooth {
@@ -635,13 +767,17 @@ impl ForwardTile {
         };
         let t_lanes = lanes_of(&mut self.transmittance, base);
         let t = V::load(t_lanes);
-        let t_next = t.mul(V::splat(1.0).sub(alpha));
+        let one = V::splat(1.0);
+        let t_next = t.mul(one.sub(alpha));
         let stop = valid.and(t_next.less_equal(V::splat(T_MIN)));
         let take = valid.and_not(stop);
         // Zero (+0) in lanes that do not take this Gaussian: adding it leaves their colour and
-        // depth (finite, non-negative) bit for bit unchanged, so those stores need no select.
-        let weight = take.and(alpha.mul(t));
-        V::select(take, t_next, t).store(t_lanes);
+        // depth (finite, non-negative) bit for bit unchanged, and `t (1 - 0)` is `t`, so the
+        // stores need no select (a select of the loaded value compiles to an AVX2 masked
+        // store, which AMD CPUs microcode).
+        let alpha = take.and(alpha);
+        let weight = alpha.mul(t);
+        t.mul(one.sub(alpha)).store(t_lanes);
         for ch in 0..3 {
             let lanes = lanes_of(&mut self.colour[ch], base);
             let value = V::load(lanes);
@@ -654,9 +790,12 @@ impl ForwardTile {
         depth
             .add(weight.mul(V::splat(splat.depth)))
             .store(depth_lanes);
+        // Ranks grow along the list, so a taking lane's new rank is the larger one.
         let contributor_lanes = lanes_of(&mut self.contributors, base);
         let contributors = V::load(contributor_lanes);
-        V::select(take, V::splat(f32::from_bits(rank)), contributors).store(contributor_lanes);
+        take.and(V::splat(f32::from_bits(rank)))
+            .max_u32(contributors)
+            .store(contributor_lanes);
         V::load(done_lanes).or(stop).store(done_lanes);
         stop.mask_bits().count_ones()
     }
@@ -747,7 +886,7 @@ impl BackwardTile {
     #[allow(clippy::too_many_arguments)]
     pub fn walk<S: Scalar>(
         &mut self,
-        splats: &[Splat2d<f32>],
+        lanes: LanePath<'_>,
         list: &[u32],
         count: u32,
         slots: &mut TileSlots<'_, S>,
@@ -760,10 +899,11 @@ impl BackwardTile {
             alpha: upstream.alpha.is_some(),
             depth: upstream.depth.is_some(),
         };
+        let splats = lanes.splats;
         #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
+        {
             /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma")]
+            #[target_feature(enable = "avx2,fma,popcnt")]
             fn walk_avx2<S: Scalar>(
                 tile: &mut BackwardTile,
                 splats: &[Splat2d<f32>],
@@ -775,9 +915,32 @@ impl BackwardTile {
             ) {
                 tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
             }
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            unsafe { walk_avx2(self, splats, list, count, slots, bounds, variant) };
-            return;
+            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
+            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
+            fn walk_avx512<S: Scalar>(
+                tile: &mut BackwardTile,
+                splats: &[Splat2d<f32>],
+                list: &[u32],
+                count: u32,
+                slots: &mut TileSlots<'_, S>,
+                bounds: [u32; 4],
+                variant: Variant,
+            ) {
+                tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
+            }
+            match lanes.isa {
+                // SAFETY: the CPU has the features (`isa` found them).
+                Isa::Avx512 => {
+                    return unsafe {
+                        walk_avx512(self, splats, list, count, slots, bounds, variant)
+                    };
+                }
+                // SAFETY: as above.
+                Isa::Avx2 => {
+                    return unsafe { walk_avx2(self, splats, list, count, slots, bounds, variant) };
+                }
+                Isa::Portable => {}
+            }
         }
         self.walk_variant::<Portable, S>(splats, list, count, slots, bounds, variant);
     }
@@ -820,7 +983,7 @@ impl BackwardTile {
             [u32; 4],
         ),
     ) {
-        let [x_start, _, y_start, _] = bounds;
+        let x_start = bounds[0];
         for j in (0..count as usize).rev() {
             if let Some(ahead) = j.checked_sub(PREFETCH_DISTANCE) {
                 V::prefetch(&splats[list[ahead] as usize]);
@@ -828,14 +991,15 @@ impl BackwardTile {
             let splat = &splats[list[j] as usize];
             let spans = TileSpans::new(splat, bounds);
             let mut acc: LaneSums<V> = [V::splat(0.0); 10];
+            let rows = spans.all_rows();
             for r in spans.rows.clone() {
-                let (lo, hi) = (spans.lo[r], spans.hi[r]);
+                let (dy, lo, hi) = (rows.dy[r], rows.lo[r], rows.hi[r]);
                 if j as u32 >= self.row_contributors[r] || lo >= hi {
                     continue;
                 }
-                let dy = splat.mean[1] - ((y_start + r as u32) as f32 + 0.5);
                 let row = r * TS;
-                for (start, skip) in row_groups(lo as usize, hi as usize) {
+                let (groups, count) = row_groups(lo as usize, hi as usize);
+                for &(start, skip) in &groups[..count] {
                     let column = (x_start as usize + start) as f32;
                     self.group::<V, SMOOTH, ALPHA, DEPTH>(
                         row + start,
@@ -1038,7 +1202,8 @@ mod tests {
         for lo in 0..TS {
             for hi in lo + 1..=TS {
                 let mut covered = [0; TS];
-                for (start, skip) in row_groups(lo, hi) {
+                let (groups, count) = row_groups(lo, hi);
+                for &(start, skip) in &groups[..count] {
                     assert!(start + LANES <= TS, "{lo}..{hi}: group at {start}");
                     assert!(skip < LANES);
                     for column in start + skip..start + LANES {
@@ -1053,7 +1218,7 @@ mod tests {
                         "{lo}..{hi}: column {column} visited {count} times"
                     );
                 }
-                assert!(row_groups(lo, hi).count() <= (hi - lo).div_ceil(LANES).max(1));
+                assert!(count <= (hi - lo).div_ceil(LANES).max(1));
             }
         }
     }
@@ -1106,10 +1271,14 @@ mod tests {
                     let r = (py - ty) as usize;
                     let (lo, hi) = row_span(&splat, mean[1] - (py as f32 + 0.5), x0, x1);
                     let (lo, hi) = (lo - tx, hi - tx);
+                    let (dy, span_lo, span_hi) = spans.row(r);
+                    let all = spans.all_rows();
+                    assert_eq!((all.dy[r], all.lo[r], all.hi[r]), (dy, span_lo, span_hi));
+                    assert_eq!(dy, mean[1] - (py as f32 + 0.5));
                     if lo < hi {
-                        assert_eq!((spans.lo[r], spans.hi[r]), (lo as i32, hi as i32));
+                        assert_eq!((span_lo, span_hi), (lo as i32, hi as i32));
                     } else {
-                        assert!(spans.lo[r] >= spans.hi[r]);
+                        assert!(span_lo >= span_hi);
                     }
                 }
             }
@@ -1178,6 +1347,7 @@ mod tests {
                 x.less_equal(y),
                 x.greater_equal(y),
                 x.less_u32(y),
+                x.max_u32(y),
                 x.and(y),
                 x.or(y),
                 x.and_not(y),
@@ -1195,8 +1365,12 @@ mod tests {
                 .chain([[x.less(y).mask_bits(); LANES]])
                 .collect()
         }
-        #[target_feature(enable = "avx2,fma")]
+        #[target_feature(enable = "avx2,fma,popcnt")]
         fn run_avx2(a: &[f32; LANES], b: &[f32; LANES]) -> Vec<[u32; LANES]> {
+            run::<avx2::Avx2>(a, b)
+        }
+        #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
+        fn run_avx512(a: &[f32; LANES], b: &[f32; LANES]) -> Vec<[u32; LANES]> {
             run::<avx2::Avx2>(a, b)
         }
         let values = awkward_values();
@@ -1208,15 +1382,21 @@ mod tests {
                 a = a.map(f32::abs);
                 b = b.map(f32::abs);
             }
-            // SAFETY: AVX2 is available (checked above).
-            let fast = unsafe { run_avx2(&a, &b) };
             let portable = run::<Portable>(&a, &b);
-            for (op, (f, p)) in fast.iter().zip(&portable).enumerate() {
-                // less_u32 (op 7) only for non-negative patterns.
-                if op == 7 && k % 2 == 1 {
-                    continue;
+            // SAFETY: AVX2 is available (checked above).
+            let mut fast = vec![("avx2", unsafe { run_avx2(&a, &b) })];
+            if best_isa() == Isa::Avx512 {
+                // SAFETY: AVX-512VL is available (checked just above).
+                fast.push(("avx512", unsafe { run_avx512(&a, &b) }));
+            }
+            for (isa, fast) in fast {
+                for (op, (f, p)) in fast.iter().zip(&portable).enumerate() {
+                    // less_u32 (op 7) only for non-negative patterns.
+                    if op == 7 && k % 2 == 1 {
+                        continue;
+                    }
+                    assert_eq!(f, p, "{isa} op {op}: {a:?} {b:?}");
                 }
-                assert_eq!(f, p, "op {op}: {a:?} {b:?}");
             }
         }
     }

@@ -7,8 +7,9 @@
 //! rows). The backward pass walks the same lists back to front, writes one gradient per
 //! Gaussian-tile intersection, then reduces them per Gaussian (parallel over Gaussians, in a
 //! fixed order, so results are deterministic) and chains through the projection.
-//! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 when the CPU
-//! has it); `f64` runs (gradient checks) use the generic per-pixel loops of `raster.rs`.
+//! `f32` runs composite and walk tiles eight pixels at a time (`lanes.rs`, AVX2 or AVX-512VL
+//! when the CPU has it); `f64` runs (gradient checks) use the generic per-pixel loops of
+//! `raster.rs`. [`ForwardPhases`] and [`BackwardPhases`] time the phases.
 
 mod lanes;
 mod project;
@@ -16,6 +17,8 @@ mod raster;
 
 #[cfg(test)]
 mod tests;
+
+use std::time::Instant;
 
 use rayon::prelude::*;
 use seqavatar_core::camera::Camera;
@@ -45,9 +48,43 @@ pub struct CpuForward<S> {
     /// One per camera.
     pub diagnostics: Vec<SplatDiagnostics>,
     states: Vec<CameraState<S>>,
+    /// Wall time of each phase, summed over the cameras.
+    pub phases: ForwardPhases,
     options: RasterOptions,
     gaussian_count: usize,
     sh_degree: u32,
+}
+
+/// Wall milliseconds of the phases of one [`forward`] call, summed over its cameras (for
+/// profiling: `cargo bench -p seqavatar-compute --bench splat` prints them).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ForwardPhases {
+    /// Projecting every Gaussian (parallel over Gaussians).
+    pub project_ms: f64,
+    /// The depth sort, the tile binning and the permutation of the splats.
+    pub bin_ms: f64,
+    /// Compositing the tiles (parallel over tile rows), image buffers included.
+    pub composite_ms: f64,
+}
+
+/// Wall milliseconds of the phases of one [`backward_with_phases`] call, summed over the
+/// cameras.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BackwardPhases {
+    /// Validating the upstream gradients and allocating the outputs.
+    pub check_ms: f64,
+    /// The back-to-front walk of the tiles (one gradient per intersection).
+    pub walk_ms: f64,
+    /// Summing each Gaussian's intersection gradients and the projection's backward.
+    pub reduce_ms: f64,
+}
+
+/// Milliseconds since `start`, and restarts it.
+fn lap(start: &mut Instant) -> f64 {
+    let now = Instant::now();
+    let ms = (now - *start).as_secs_f64() * 1e3;
+    *start = now;
+    ms
 }
 
 /// Renders the Gaussians from every camera.
@@ -62,12 +99,16 @@ pub fn forward<S: Scalar>(
     let mut images = Vec::with_capacity(cameras.len());
     let mut diagnostics = Vec::with_capacity(cameras.len());
     let mut states = Vec::with_capacity(cameras.len());
+    let mut phases = ForwardPhases::default();
     for camera in cameras {
+        let mut clock = Instant::now();
         let params = CameraParams::<S>::new(camera);
         let (splats, rects, diag) = project_all(&params, gaussians);
+        phases.project_ms += lap(&mut clock);
         let tiles = (params.tiles_x * params.tiles_y) as usize;
         let binning = raster::bin(&splats, &rects, tiles, params.tiles_x)?;
         let splats = raster::sort_splats(&splats, &binning);
+        phases.bin_ms += lap(&mut clock);
         let buffers = raster::forward(
             &splats,
             fast_splats(&splats),
@@ -77,6 +118,7 @@ pub fn forward<S: Scalar>(
             background,
             options.smooth_cutoff,
         );
+        phases.composite_ms += lap(&mut clock);
         images.push(RenderedImage {
             width: params.width,
             height: params.height,
@@ -99,20 +141,24 @@ pub fn forward<S: Scalar>(
         images,
         diagnostics,
         states,
+        phases,
         options: options.clone(),
         gaussian_count: gaussians.len(),
         sh_degree: gaussians.sh_degree,
     })
 }
 
-/// The splats as `f32` when the scalar type is `f32` (the speed path), `None` for `f64` (the
-/// exact path gradient checks use). Takes the `Vec` because the type test needs a `'static`
-/// sized type to downcast.
+/// The splats as `f32` when the scalar type is `f32` (the speed path, on the best lanes
+/// this CPU has), `None` for `f64` (the exact path gradient checks use). Takes the `Vec`
+/// because the type test needs a `'static` sized type to downcast.
 #[allow(clippy::ptr_arg)]
-fn fast_splats<S: Scalar>(splats: &Vec<Splat2d<S>>) -> Option<&[Splat2d<f32>]> {
+fn fast_splats<S: Scalar>(splats: &Vec<Splat2d<S>>) -> Option<lanes::LanePath<'_>> {
     (splats as &dyn std::any::Any)
         .downcast_ref::<Vec<Splat2d<f32>>>()
-        .map(Vec::as_slice)
+        .map(|splats| lanes::LanePath {
+            splats,
+            isa: lanes::isa(),
+        })
 }
 
 /// Projects every Gaussian; culled ones get an empty tile rectangle.
@@ -176,6 +222,17 @@ pub fn backward<S: Scalar>(
     gaussians: &GaussianSet<'_, S>,
     upstream: &[ImageGradient<'_, S>],
 ) -> Result<SplatGradients<S>, SplatError> {
+    backward_with_phases(forward, gaussians, upstream).map(|(gradients, _)| gradients)
+}
+
+/// [`backward`], also returning the wall time of its phases.
+pub fn backward_with_phases<S: Scalar>(
+    forward: &CpuForward<S>,
+    gaussians: &GaussianSet<'_, S>,
+    upstream: &[ImageGradient<'_, S>],
+) -> Result<(SplatGradients<S>, BackwardPhases), SplatError> {
+    let mut clock = Instant::now();
+    let mut phases = BackwardPhases::default();
     gaussians.validate()?;
     if gaussians.len() != forward.gaussian_count || gaussians.sh_degree != forward.sh_degree {
         return Err(SplatError::GaussiansChanged {
@@ -200,6 +257,7 @@ pub fn backward<S: Scalar>(
     let k = gaussians.sh_coefficients();
     let mut out = SplatGradients::zeros(n, k);
     let background = forward.options.background.map(S::from_f64);
+    phases.check_ms += lap(&mut clock);
     for (state, up) in forward.states.iter().zip(&checked) {
         let slots = raster::backward(
             &state.splats,
@@ -212,10 +270,13 @@ pub fn backward<S: Scalar>(
             background,
             forward.options.smooth_cutoff,
         );
+        phases.walk_ms += lap(&mut clock);
         let dropped = accumulate_camera(state, gaussians, &slots, &mut out);
+        drop(slots);
         out.non_finite_gradients += dropped;
+        phases.reduce_ms += lap(&mut clock);
     }
-    Ok(out)
+    Ok((out, phases))
 }
 
 /// Reduces one camera's intersection gradients per Gaussian, chains them through the

@@ -11,7 +11,7 @@
 use rayon::prelude::*;
 
 use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, SplatError, TILE_SIZE};
-use super::lanes::{BackwardTile, ForwardRows, ForwardTile};
+use super::lanes::{BackwardTile, ForwardRows, ForwardTile, LanePath};
 use super::project::{Splat2d, TileRect};
 use crate::scalar::Scalar;
 
@@ -309,12 +309,12 @@ pub(super) struct PixelState<S> {
     pub contributors: Vec<u32>,
 }
 
-/// Composites every tile front to back. `fast` is `splats` itself when `S` is `f32`: then
+/// Composites every tile front to back. `fast` holds `splats` itself when `S` is `f32`: then
 /// the lane-parallel path of `lanes.rs` runs instead of the generic one.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn forward<S: Scalar>(
     splats: &[Splat2d<S>],
-    fast: Option<&[Splat2d<f32>]>,
+    fast: Option<LanePath<'_>>,
     binning: &Binning,
     width: u32,
     height: u32,
@@ -484,7 +484,7 @@ pub(super) type Slot<S> = [S; 10];
 #[allow(clippy::too_many_arguments)]
 pub(super) fn backward<S: Scalar>(
     splats: &[Splat2d<S>],
-    fast: Option<&[Splat2d<f32>]>,
+    fast: Option<LanePath<'_>>,
     binning: &Binning,
     buffers: &PixelState<S>,
     upstream: &Upstream<'_, S>,

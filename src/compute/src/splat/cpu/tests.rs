@@ -7,6 +7,7 @@
 use glam::{DMat3, DVec3};
 use seqavatar_core::camera::{Camera, Intrinsics};
 
+use super::lanes::{LanePath, available_isas};
 use super::project::{CameraParams, Splat2d};
 use super::raster;
 use super::*;
@@ -944,18 +945,74 @@ fn extent_constants_agree_with_the_alpha_threshold() {
     assert!((1.0 * (-0.5 * full * full).exp() - ALPHA_THRESHOLD).abs() < 1e-15);
 }
 
-/// The `f32` lane path (`lanes.rs`) against the generic path run in `f32` on the same
-/// binned splats: images to `f32` rounding (its `exp` differs by at most 2 ulp), the same
-/// contributor counts, and every intersection's gradient, with and without the smooth cutoff,
-/// with and without upstream alpha and depth gradients (the lane walk is specialised for
-/// each), on an image with partial tiles and saturated pixels.
+/// A scene of awkward cases for the lane path, seen by [`front_camera`] (camera `z` = world
+/// `z + 2`): 250 random anisotropic Gaussians (scales from 0.1 mm to 0.5 m) spilling past
+/// every image edge, plus one just beyond the near plane (it covers the image), a huge one
+/// (covering everything), a sub-pixel one, thin needles crossing tile borders, one far
+/// off-screen, one behind the camera and a stack of opaque ones saturating pixels.
+fn awkward_scene(width: u32, height: u32) -> (GaussianBuffers<f64>, Camera) {
+    let mut rng = SplitMix64::new(17);
+    let (mut means, mut scales, mut rotations, mut opacities) = (vec![], vec![], vec![], vec![]);
+    let mut push = |mean: [f64; 3], scale: [f64; 3], opacity: f64, rng: &mut SplitMix64| {
+        means.extend(mean);
+        scales.extend(scale);
+        rotations.extend((0..4).map(|_| rng.normal()));
+        opacities.push(opacity);
+    };
+    for _ in 0..250 {
+        let mean = [
+            rng.uniform(-1.6, 1.6),
+            rng.uniform(-1.2, 1.2),
+            rng.uniform(-1.0, 1.0),
+        ];
+        let scale = [0; 3].map(|_| (rng.uniform(1e-4_f64.ln(), 0.5_f64.ln())).exp());
+        let opacity = rng.uniform(0.0, 1.0);
+        push(mean, scale, opacity, &mut rng);
+    }
+    push([0.0, 0.0, -1.9899], [0.01; 3], 0.5, &mut rng); // near plane
+    push([0.1, -0.1, 0.5], [1e3; 3], 0.3, &mut rng); // huge
+    push([0.2, 0.1, -0.5], [1e-7; 3], 0.9, &mut rng); // sub-pixel
+    push([-0.3, 0.05, 0.1], [0.8, 1e-4, 1e-4], 0.8, &mut rng); // needles
+    push([0.25, -0.2, 0.2], [1e-4, 0.6, 1e-4], 0.8, &mut rng);
+    push([50.0, 0.0, 0.0], [0.1; 3], 0.5, &mut rng); // far off-screen
+    push([0.0, 0.0, -3.0], [0.1; 3], 0.5, &mut rng); // behind
+    for k in 0..6 {
+        push(
+            [0.05, 0.05, -0.5 + 0.01 * f64::from(k)],
+            [0.2; 3],
+            0.99,
+            &mut rng,
+        );
+    }
+    let gaussians = gaussians_from(means, &scales, &rotations, opacities, 1, &mut rng);
+    (gaussians, front_camera(width, height))
+}
+
+/// The `f32` lane path (`lanes.rs`) on every instruction set this CPU has against the
+/// generic path run in `f32` on the same binned splats: the instruction sets agree bit for
+/// bit; against the generic path, images to `f32` rounding (its `exp` differs by at most 2
+/// ulp), the same contributor counts, and every intersection's gradient, with and without
+/// the smooth cutoff, with and without upstream alpha and depth gradients (the lane walk is
+/// specialised for each), on images with partial tiles and saturated pixels: a dense scene
+/// and [`awkward_scene`].
 #[test]
 fn lane_path_matches_the_generic_f32_path() {
     let (width, height) = (70, 45);
-    let (gaussians, camera) = dense_scene(width, height);
+    let (dense, dense_camera) = dense_scene(width, height);
+    let (awkward, awkward_camera) = awkward_scene(width, height);
+    for (scene, (gaussians, camera)) in [
+        ("dense", (dense, dense_camera)),
+        ("awkward", (awkward, awkward_camera)),
+    ] {
+        compare_lane_path_with_generic(scene, &gaussians, &camera);
+    }
+}
+
+fn compare_lane_path_with_generic(scene: &str, gaussians: &GaussianBuffers<f64>, camera: &Camera) {
+    let (width, height) = (camera.width, camera.height);
     let single = gaussians.convert::<f32>();
     let view = single.view();
-    let params = CameraParams::<f32>::new(&camera);
+    let params = CameraParams::<f32>::new(camera);
     let (splats, rects, _) = project_all(&params, &view);
     let tiles = (params.tiles_x * params.tiles_y) as usize;
     let binning = raster::bin(&splats, &rects, tiles, params.tiles_x).unwrap();
@@ -974,7 +1031,7 @@ fn lane_path_matches_the_generic_f32_path() {
             alpha: with_alpha.then_some(d_alpha.as_slice()),
             depth: with_depth.then_some(d_depth.as_slice()),
         };
-        let run = |fast: Option<&[Splat2d<f32>]>| {
+        let run = |fast: Option<LanePath<'_>>| {
             let buffers =
                 raster::forward(&sorted, fast, &binning, width, height, background, smooth);
             let slots = raster::backward(
@@ -991,12 +1048,33 @@ fn lane_path_matches_the_generic_f32_path() {
             (buffers, slots)
         };
         let (generic, generic_slots) = run(None);
-        let (lanes, lane_slots) = run(Some(&sorted));
+        let isas = available_isas();
+        let (lanes, lane_slots) = run(Some(LanePath {
+            splats: &sorted,
+            isa: isas[0],
+        }));
+        let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        for &isa in &isas[1..] {
+            let (other, other_slots) = run(Some(LanePath {
+                splats: &sorted,
+                isa,
+            }));
+            let what = format!("{scene} {isa:?} vs {:?} smooth {smooth}", isas[0]);
+            assert_eq!(bits(&other.colour), bits(&lanes.colour), "{what}");
+            assert_eq!(bits(&other.alpha), bits(&lanes.alpha), "{what}");
+            assert_eq!(bits(&other.depth), bits(&lanes.depth), "{what}");
+            assert_eq!(
+                other.pixels.contributors, lanes.pixels.contributors,
+                "{what}"
+            );
+            let flat = |slots: &[[f32; 10]]| bits(slots.as_flattened());
+            assert_eq!(flat(&other_slots), flat(&lane_slots), "{what}");
+        }
         let close = |what: &str, a: &[f32], b: &[f32], tolerance: f32| {
             for (i, (x, y)) in a.iter().zip(b).enumerate() {
                 assert!(
                     (x - y).abs() <= tolerance,
-                    "{what}[{i}] smooth {smooth}: {x} vs {y}"
+                    "{scene} {what}[{i}] smooth {smooth}: {x} vs {y}"
                 );
             }
         };
@@ -1010,7 +1088,10 @@ fn lane_path_matches_the_generic_f32_path() {
             2e-6,
         );
         assert_eq!(lanes.pixels.contributors, generic.pixels.contributors);
-        assert!(generic.alpha.iter().any(|&a| a > 0.999), "no saturation");
+        assert!(
+            generic.alpha.iter().any(|&a| a > 0.999),
+            "{scene}: no saturation"
+        );
         assert_eq!(lane_slots.len(), generic_slots.len());
         for k in 0..10 {
             let scale = generic_slots
@@ -1022,11 +1103,11 @@ fn lane_path_matches_the_generic_f32_path() {
                 assert!(lane_slots.iter().all(|slot| slot[9] == 0.0));
                 continue;
             }
-            assert!(scale > 0.0, "component {k} never has a gradient");
+            assert!(scale > 0.0, "{scene}: component {k} never has a gradient");
             for (i, (a, b)) in lane_slots.iter().zip(&generic_slots).enumerate() {
                 assert!(
                     (a[k] - b[k]).abs() <= 2e-5 * scale,
-                    "slot {i} component {k} smooth {smooth} alpha {with_alpha} depth \
+                    "{scene} slot {i} component {k} smooth {smooth} alpha {with_alpha} depth \
                      {with_depth}: {} vs {} (scale {scale})",
                     a[k],
                     b[k]
