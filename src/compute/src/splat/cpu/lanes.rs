@@ -929,14 +929,14 @@ impl BackwardTile {
                 tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
             }
             match lanes.isa {
-                // SAFETY: the CPU has the features (`isa` found them).
                 Isa::Avx512 => {
+                    // SAFETY: the CPU has the features (`isa` found them).
                     return unsafe {
                         walk_avx512(self, splats, list, count, slots, bounds, variant)
                     };
                 }
-                // SAFETY: as above.
                 Isa::Avx2 => {
+                    // SAFETY: the CPU has the features (`isa` found them).
                     return unsafe { walk_avx2(self, splats, list, count, slots, bounds, variant) };
                 }
                 Isa::Portable => {}
