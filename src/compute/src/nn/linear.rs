@@ -610,11 +610,11 @@ fn backward_block<T: NnScalar>(
                 .chunks_exact_mut(out)
                 .zip(task.output.chunks_exact(out))
             {
+                // An unconditional store (of `d` or 0) lets the loop vectorise.
                 for ((sum, d), &y) in sums.iter_mut().zip(d_row).zip(y_row) {
-                    if y <= T::ZERO {
-                        *d = T::ZERO;
-                    }
-                    *sum += *d;
+                    let masked = if y > T::ZERO { *d } else { T::ZERO };
+                    *d = masked;
+                    *sum += masked;
                 }
             }
         }
