@@ -109,6 +109,10 @@ const WEIGHT_CHUNK_ROWS: usize = 2048;
 /// Most weight-gradient partial products (row chunks) of one call.
 const MAX_WEIGHT_CHUNKS: usize = 8;
 
+/// The weight-gradient tasks of one call are a multiple of this many (divisible by 2, 4
+/// and 8 threads), so equal tasks keep every thread equally busy.
+const WEIGHT_TASKS: usize = 8;
+
 /// Entries per task when the weight-gradient partials are added up.
 const REDUCE_BLOCK: usize = 1 << 14;
 
@@ -117,7 +121,7 @@ const MIN_WEIGHT_TILE: usize = 16;
 
 /// The row blocks of one call: every block has `size` rows but the last. They depend on the
 /// shape, the row count and the scalar only, never on the thread count, so the bias
-/// gradient (summed per block, then over blocks in order) is the same on every machine.
+/// gradient (summed per block, then over blocks in order) is the same for any thread count.
 #[derive(Clone, Copy, Debug)]
 struct RowBlocks {
     size: usize,
@@ -144,8 +148,6 @@ struct Plan {
     across_tasks: bool,
     /// The parallelism inside each `gemm` call.
     inside_gemm: gemm::Parallelism,
-    /// Threads the work is spread over.
-    threads: usize,
 }
 
 impl Plan {
@@ -158,19 +160,16 @@ impl Plan {
             Plan {
                 across_tasks: false,
                 inside_gemm: gemm::Parallelism::None,
-                threads: 1,
             }
         } else if blocks >= threads {
             Plan {
                 across_tasks: true,
                 inside_gemm: gemm::Parallelism::None,
-                threads,
             }
         } else {
             Plan {
                 across_tasks: false,
                 inside_gemm: gemm::Parallelism::Rayon(threads),
-                threads,
             }
         }
     }
@@ -317,7 +316,7 @@ pub fn linear_forward<T: NnScalar>(
     check_len("linear output", rows * shape.out_features, output.len())?;
     let out = shape.out_features;
     let blocks = RowBlocks::new::<T>(shape, rows);
-    let plan = Plan::new(rows * shape.weight_len(), blocks.count);
+    let plan = Plan::new(rows.saturating_mul(shape.weight_len()), blocks.count);
     let tasks: Vec<(usize, &mut [T])> = output.chunks_mut(blocks.size * out).enumerate().collect();
     plan.run(tasks, |(index, block)| {
         let first_row = index * blocks.size;
@@ -411,7 +410,8 @@ fn gcd(mut a: usize, mut b: usize) -> usize {
 /// [`MAX_WEIGHT_CHUNKS`] chunks (a function of `rows` only, so the sum order never depends
 /// on the thread count), the first chunk's product accumulated straight into the weight
 /// gradient by `gemm`, the others into partials added after in chunk order; each chunk's
-/// product is split over weight rows where the chunks alone would leave threads idle.
+/// product is split over weight rows into tiles so that there are a multiple of
+/// [`WEIGHT_TASKS`] equal tasks. Chunks and tiles depend on the shape and `rows` only.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_backward<T: NnScalar>(
     shape: LinearShape,
@@ -457,7 +457,7 @@ pub fn linear_backward<T: NnScalar>(
     }
 
     let blocks = RowBlocks::new::<T>(shape, rows);
-    let plan = Plan::new(rows * shape.weight_len(), blocks.count);
+    let plan = Plan::new(rows.saturating_mul(shape.weight_len()), blocks.count);
 
     // Phase 1: per row block, mask + bias sums, then the input gradients.
     let mut d_input_blocks: Vec<std::vec::IntoIter<BlockInputGrad<'_, T>>> = d_inputs
@@ -507,12 +507,9 @@ pub fn linear_backward<T: NnScalar>(
     let d_pre: &[T] = d_output;
     let chunks = (rows / WEIGHT_CHUNK_ROWS).clamp(1, MAX_WEIGHT_CHUNKS);
     let chunk_rows = rows.div_ceil(chunks);
-    // Tasks = chunks x tiles, a multiple of the thread count; tiles do not change any sum.
-    let tiles = if plan.across_tasks {
-        plan.threads / gcd(chunks, plan.threads)
-    } else {
-        1
-    };
+    // Tasks = chunks x tiles, a multiple of WEIGHT_TASKS. The tiles, too, depend on the
+    // shape and the row count only: a tile's width can change how `gemm` blocks its sums.
+    let tiles = WEIGHT_TASKS / gcd(chunks, WEIGHT_TASKS);
     let mut partials: Vec<Vec<T>> = (1..chunks)
         .map(|_| vec![T::ZERO; shape.weight_len()])
         .collect();
@@ -904,9 +901,10 @@ mod tests {
     /// transposed for `dW`. The results must also be bitwise the same for every thread count.
     #[test]
     fn backward_matches_naive_products_on_every_plan() {
-        // (rows, part widths, out): 6200 rows give 3 weight chunks of 2 blocks each
-        // (tiles on 2 threads); 4 rows stay serial; 70 rows of 200 x 150 are one block
-        // large enough for gemm's own threads.
+        // (rows, part widths, out): 6200 rows are 2 blocks and 3 weight chunks (the wider
+        // part in 2 tiles), tasks on 2 threads, gemm's own threads on 3; 4 rows stay
+        // serial; 70 rows of 200 x 150 are one block and one chunk in 12 tiles, large
+        // enough for gemm's own threads.
         let cases: [(usize, &[usize], usize); 3] = [
             (6200, &[40, 13], 24),
             (4, &[3, 2], 5),
