@@ -7,8 +7,8 @@
 //! skips that column with a note.
 //!
 //! The cpu and numpy timings are interleaved (cpu, then numpy, for each product in each
-//! repetition, numpy kept running in one process) and the medians reported, so a busy
-//! machine slows both sides alike; the load average is printed before and after. numpy
+//! repetition, numpy kept running in one process, a 200 ms pause before each run) and the
+//! medians reported, so a busy machine slows both sides alike; the load average is printed before and after. numpy
 //! writes into preallocated outputs (`out=`) as the cpu layer does. Per shape, three rows:
 //! `forward` (`X W + b`, ReLU; numpy `X W`), `backward` (ReLU mask, `db`, `dX = dY' W^T`,
 //! `dW += X^T dY'`; numpy the two products) and `dW only` (the backward of a layer whose
@@ -284,6 +284,10 @@ impl CpuLayer {
     }
 }
 
+/// The pause before each timed run, so that neither side's idle threads still hold a core
+/// when the other side starts (OpenBLAS workers spin for a while after each product).
+const SETTLE: std::time::Duration = std::time::Duration::from_millis(200);
+
 /// Median cpu and numpy seconds per product, interleaved over `reps` repetitions after
 /// one untimed warm-up repetition; numpy `Err` says why it was skipped.
 fn interleaved(
@@ -304,7 +308,9 @@ fn interleaved(
     let mut numpy_times = vec![Vec::new(); Product::ALL.len()];
     for rep in 0..=reps {
         for (index, &product) in Product::ALL.iter().enumerate() {
+            std::thread::sleep(SETTLE);
             let cpu = layer.time(product);
+            std::thread::sleep(SETTLE);
             let other = match numpy.as_mut() {
                 Some(worker) => match worker.time(product) {
                     Ok(seconds) => Some(seconds),
