@@ -407,11 +407,11 @@ fn gcd(mut a: usize, mut b: usize) -> usize {
 /// Two phases, each a set of parallel tasks. Per row block: the ReLU mask and the bias
 /// column sums in one pass, then `dX_part (+)= dY' W_part^T` (one `gemm`, the weight read
 /// through swapped strides). Then `dW_part += X_part^T dY'`: the rows are cut into at most
-/// [`MAX_WEIGHT_CHUNKS`] chunks (a function of `rows` only, so the sum order never depends
+/// `MAX_WEIGHT_CHUNKS` chunks (a function of `rows` only, so the sum order never depends
 /// on the thread count), the first chunk's product accumulated straight into the weight
 /// gradient by `gemm`, the others into partials added after in chunk order; each chunk's
 /// product is split over weight rows into tiles so that there are a multiple of
-/// [`WEIGHT_TASKS`] equal tasks. Chunks and tiles depend on the shape and `rows` only.
+/// `WEIGHT_TASKS` equal tasks. Chunks and tiles depend on the shape and `rows` only.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_backward<T: NnScalar>(
     shape: LinearShape,
