@@ -2,10 +2,20 @@
 //! next to the machine's OpenBLAS figure through numpy for the same products.
 //!
 //! Run with `cargo bench -p seqavatar-compute --bench nn`. `SEQAVATAR_BENCH_ROWS` changes
-//! the row count (default 50 000, the Gaussian count of a mid-training SeqAvatar model).
-//! numpy missing, or no hardware GPU, skips that column with a note.
+//! the row count (default 50 000, the Gaussian count of a mid-training SeqAvatar model) and
+//! `SEQAVATAR_BENCH_REPS` the repetitions (default 7). numpy missing, or no hardware GPU,
+//! skips that column with a note.
+//!
+//! The cpu and numpy timings are interleaved (cpu, then numpy, for each product in each
+//! repetition, numpy kept running in one process, a 200 ms pause before each run) and the
+//! medians reported, so a busy machine slows both sides alike; the load average is printed before and after. numpy
+//! writes into preallocated outputs (`out=`) as the cpu layer does. Per shape, three rows:
+//! `forward` (`X W + b`, ReLU; numpy `X W`), `backward` (ReLU mask, `db`, `dX = dY' W^T`,
+//! `dW += X^T dY'`; numpy the two products) and `dW only` (the backward of a layer whose
+//! input needs no gradient, the first layer's case; numpy `X^T dY`).
 
-use std::process::Command;
+use std::io::{BufRead, BufReader, Write};
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::Instant;
 
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
@@ -18,12 +28,20 @@ use seqavatar_compute::nn::{Activation, InputPart, LinearShape, linear_backward,
 fn best_seconds(repeats: usize, mut work: impl FnMut()) -> f64 {
     work();
     (0..repeats)
-        .map(|_| {
-            let start = Instant::now();
-            work();
-            start.elapsed().as_secs_f64()
-        })
+        .map(|_| seconds(&mut work))
         .fold(f64::INFINITY, f64::min)
+}
+
+/// Wall time of one run of `work`, in seconds.
+fn seconds(mut work: impl FnMut()) -> f64 {
+    let start = Instant::now();
+    work();
+    start.elapsed().as_secs_f64()
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
@@ -32,85 +50,303 @@ fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
     values
 }
 
-/// numpy's forward and backward GFLOP/s for `rows x n_in x n_out` (f32, best of 3), or why not.
-fn numpy_gflops(rows: usize, n_in: usize, n_out: usize) -> Result<(f64, f64), String> {
-    let script = format!(
-        "import time, numpy as np\n\
-         r, i, o = {rows}, {n_in}, {n_out}\n\
-         rng = np.random.default_rng(0)\n\
-         x = rng.standard_normal((r, i), dtype=np.float32)\n\
-         w = rng.standard_normal((i, o), dtype=np.float32)\n\
-         dy = rng.standard_normal((r, o), dtype=np.float32)\n\
-         def best(f):\n\
-         \x20   f()\n\
-         \x20   t = []\n\
-         \x20   for _ in range(3):\n\
-         \x20       s = time.perf_counter(); f(); t.append(time.perf_counter() - s)\n\
-         \x20   return min(t)\n\
-         fwd = best(lambda: x @ w)\n\
-         bwd = best(lambda: (dy @ w.T, x.T @ dy))\n\
-         flops = 2.0 * r * i * o\n\
-         print(flops / fwd / 1e9, 2 * flops / bwd / 1e9)\n"
-    );
-    let output = Command::new("python3")
-        .args(["-c", &script])
-        .output()
-        .map_err(|error| format!("python3 not runnable: {error}"))?;
-    if !output.status.success() {
-        return Err(format!(
-            "numpy failed: {}",
-            String::from_utf8_lossy(&output.stderr).trim()
-        ));
+/// The 1, 5 and 15 minute load averages, or `unknown` where `/proc/loadavg` is missing.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|text| {
+            text.split_whitespace()
+                .take(3)
+                .collect::<Vec<_>>()
+                .join(" ")
+        })
+        .unwrap_or_else(|_| "unknown".into())
+}
+
+/// The products each row of the table times.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Product {
+    Forward,
+    Backward,
+    WeightOnly,
+}
+
+impl Product {
+    const ALL: [Product; 3] = [Product::Forward, Product::Backward, Product::WeightOnly];
+
+    fn label(self) -> &'static str {
+        match self {
+            Product::Forward => "forward",
+            Product::Backward => "backward",
+            Product::WeightOnly => "dW only",
+        }
     }
-    let text = String::from_utf8_lossy(&output.stdout);
-    let values: Vec<f64> = text
-        .split_whitespace()
-        .filter_map(|word| word.parse().ok())
-        .collect();
-    match values[..] {
-        [forward, backward] => Ok((forward, backward)),
-        _ => Err(format!("unexpected numpy output {text:?}")),
+
+    /// The worker's command for the same products.
+    fn numpy_command(self) -> &'static str {
+        match self {
+            Product::Forward => "forward",
+            Product::Backward => "backward",
+            Product::WeightOnly => "weight",
+        }
+    }
+
+    /// Multiples of one forward product's flops.
+    fn flop_factor(self) -> f64 {
+        match self {
+            Product::Forward | Product::WeightOnly => 1.0,
+            Product::Backward => 2.0,
+        }
     }
 }
 
-/// cpu forward and backward GFLOP/s of one `Linear(n_in, n_out) + ReLU` over `rows` rows.
-fn cpu_gflops(rows: usize, shape: LinearShape) -> (f64, f64) {
-    let mut rng = Rng::new(1);
-    let x = random(&mut rng, rows * shape.in_features);
-    let weight = random(&mut rng, shape.weight_len());
-    let bias = random(&mut rng, shape.out_features);
-    let d_y = random(&mut rng, rows * shape.out_features);
-    let mut y = vec![0.0f32; rows * shape.out_features];
-    let parts = [InputPart {
-        data: &x[..],
-        cols: shape.in_features,
-    }];
-    let forward = best_seconds(3, || {
-        linear_forward(shape, &weight, &bias, &parts, rows, &mut y).expect("forward");
-    });
-    let mut d_weight = vec![0.0f32; shape.weight_len()];
-    let mut d_bias = vec![0.0f32; shape.out_features];
-    let mut d_x = vec![0.0f32; x.len()];
-    let mut d_pre = d_y.clone();
-    let backward = best_seconds(3, || {
-        d_pre.copy_from_slice(&d_y);
-        linear_backward(
+/// numpy/OpenBLAS in one long-lived python process, timing one product per request.
+struct Numpy {
+    child: Child,
+    stdin: ChildStdin,
+    stdout: BufReader<ChildStdout>,
+}
+
+const NUMPY_WORKER: &str = "\
+import sys, time
+import numpy as np
+rng = np.random.default_rng(0)
+ops = {}
+def shape(r, i, o):
+    x = rng.standard_normal((r, i), dtype=np.float32)
+    w = rng.standard_normal((i, o), dtype=np.float32)
+    dy = rng.standard_normal((r, o), dtype=np.float32)
+    y = np.empty((r, o), dtype=np.float32)
+    dx = np.empty((r, i), dtype=np.float32)
+    dw = np.empty((i, o), dtype=np.float32)
+    def backward():
+        np.matmul(dy, w.T, out=dx)
+        np.matmul(x.T, dy, out=dw)
+    return {
+        'forward': lambda: np.matmul(x, w, out=y),
+        'backward': backward,
+        'weight': lambda: np.matmul(x.T, dy, out=dw),
+    }
+print('ready', flush=True)
+for line in sys.stdin:
+    words = line.split()
+    if words[0] == 'shape':
+        ops = shape(*map(int, words[1:]))
+        print('ok', flush=True)
+    else:
+        start = time.perf_counter()
+        ops[words[0]]()
+        print(time.perf_counter() - start, flush=True)
+";
+
+impl Numpy {
+    fn start() -> Result<Numpy, String> {
+        let mut child = Command::new("python3")
+            .args(["-c", NUMPY_WORKER])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|error| format!("python3 not runnable: {error}"))?;
+        let stdin = child.stdin.take().ok_or("python3 stdin")?;
+        let stdout = BufReader::new(child.stdout.take().ok_or("python3 stdout")?);
+        let mut numpy = Numpy {
+            child,
+            stdin,
+            stdout,
+        };
+        numpy.expect_line("ready")?;
+        Ok(numpy)
+    }
+
+    fn reply(&mut self) -> Result<String, String> {
+        let mut line = String::new();
+        let read = self
+            .stdout
+            .read_line(&mut line)
+            .map_err(|error| format!("numpy worker: {error}"))?;
+        if read == 0 {
+            let mut message = String::new();
+            if let Some(stderr) = self.child.stderr.as_mut() {
+                let _ = std::io::Read::read_to_string(stderr, &mut message);
+            }
+            return Err(format!("numpy worker exited: {}", message.trim()));
+        }
+        Ok(line.trim().to_string())
+    }
+
+    fn expect_line(&mut self, expected: &str) -> Result<(), String> {
+        match self.reply()? {
+            line if line == expected => Ok(()),
+            line => Err(format!("numpy worker: expected {expected:?}, got {line:?}")),
+        }
+    }
+
+    fn send(&mut self, command: &str) -> Result<(), String> {
+        writeln!(self.stdin, "{command}").map_err(|error| format!("numpy worker: {error}"))
+    }
+
+    fn set_shape(&mut self, rows: usize, n_in: usize, n_out: usize) -> Result<(), String> {
+        self.send(&format!("shape {rows} {n_in} {n_out}"))?;
+        self.expect_line("ok")
+    }
+
+    /// Seconds of one run of `product`.
+    fn time(&mut self, product: Product) -> Result<f64, String> {
+        self.send(product.numpy_command())?;
+        let line = self.reply()?;
+        line.parse()
+            .map_err(|_| format!("numpy worker: unexpected reply {line:?}"))
+    }
+}
+
+impl Drop for Numpy {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The buffers of one cpu `Linear(n_in, n_out) + ReLU` over `rows` rows.
+struct CpuLayer {
+    shape: LinearShape,
+    rows: usize,
+    x: Vec<f32>,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    d_y: Vec<f32>,
+    y: Vec<f32>,
+    d_pre: Vec<f32>,
+    d_x: Vec<f32>,
+    d_weight: Vec<f32>,
+    d_bias: Vec<f32>,
+}
+
+impl CpuLayer {
+    fn new(rows: usize, shape: LinearShape) -> Self {
+        let mut rng = Rng::new(1);
+        CpuLayer {
             shape,
-            &weight,
-            &parts,
             rows,
-            &y,
-            &mut d_pre,
-            LinearGrads {
-                weight: &mut d_weight,
-                bias: &mut d_bias,
-            },
-            &mut [InputGrad::Write(&mut d_x)],
-        )
-        .expect("backward");
-    });
+            x: random(&mut rng, rows * shape.in_features),
+            weight: random(&mut rng, shape.weight_len()),
+            bias: random(&mut rng, shape.out_features),
+            d_y: random(&mut rng, rows * shape.out_features),
+            y: vec![0.0; rows * shape.out_features],
+            d_pre: vec![0.0; rows * shape.out_features],
+            d_x: vec![0.0; rows * shape.in_features],
+            d_weight: vec![0.0; shape.weight_len()],
+            d_bias: vec![0.0; shape.out_features],
+        }
+    }
+
+    /// Seconds of one run of `product` (the backward's `dL/dY` copy is not timed).
+    fn time(&mut self, product: Product) -> f64 {
+        let parts = [InputPart {
+            data: &self.x[..],
+            cols: self.shape.in_features,
+        }];
+        if product == Product::Forward {
+            return seconds(|| {
+                linear_forward(
+                    self.shape,
+                    &self.weight,
+                    &self.bias,
+                    &parts,
+                    self.rows,
+                    &mut self.y,
+                )
+                .expect("forward");
+            });
+        }
+        self.d_pre.copy_from_slice(&self.d_y);
+        let d_input = if product == Product::Backward {
+            InputGrad::Write(&mut self.d_x[..])
+        } else {
+            InputGrad::Skip
+        };
+        let mut d_inputs = [d_input];
+        seconds(|| {
+            linear_backward(
+                self.shape,
+                &self.weight,
+                &parts,
+                self.rows,
+                &self.y,
+                &mut self.d_pre,
+                LinearGrads {
+                    weight: &mut self.d_weight,
+                    bias: &mut self.d_bias,
+                },
+                &mut d_inputs,
+            )
+            .expect("backward");
+        })
+    }
+}
+
+/// The pause before each timed run, so that neither side's idle threads still hold a core
+/// when the other side starts (OpenBLAS workers spin for a while after each product).
+const SETTLE: std::time::Duration = std::time::Duration::from_millis(200);
+
+/// Median cpu and numpy seconds per product, interleaved over `reps` repetitions after
+/// one untimed warm-up repetition; numpy `Err` says why it was skipped.
+fn interleaved(
+    rows: usize,
+    shape: LinearShape,
+    reps: usize,
+    numpy: &mut Option<Numpy>,
+) -> (Vec<f64>, Result<Vec<f64>, String>) {
+    let mut layer = CpuLayer::new(rows, shape);
+    let mut numpy_error = None;
+    if let Some(worker) = numpy.as_mut()
+        && let Err(error) = worker.set_shape(rows, shape.in_features, shape.out_features)
+    {
+        numpy_error = Some(error);
+        *numpy = None;
+    }
+    let mut cpu_times = vec![Vec::new(); Product::ALL.len()];
+    let mut numpy_times = vec![Vec::new(); Product::ALL.len()];
+    for rep in 0..=reps {
+        for (index, &product) in Product::ALL.iter().enumerate() {
+            std::thread::sleep(SETTLE);
+            let cpu = layer.time(product);
+            std::thread::sleep(SETTLE);
+            let other = match numpy.as_mut() {
+                Some(worker) => match worker.time(product) {
+                    Ok(seconds) => Some(seconds),
+                    Err(error) => {
+                        numpy_error = Some(error);
+                        *numpy = None;
+                        None
+                    }
+                },
+                None => None,
+            };
+            if rep > 0 {
+                cpu_times[index].push(cpu);
+                numpy_times[index].extend(other);
+            }
+        }
+    }
     let flops = shape.forward_flops(rows);
-    (flops / forward / 1e9, 2.0 * flops / backward / 1e9)
+    let gflops = |times: &mut Vec<f64>, product: Product| {
+        product.flop_factor() * flops / median(times) / 1e9
+    };
+    let cpu = Product::ALL
+        .iter()
+        .zip(&mut cpu_times)
+        .map(|(&product, times)| gflops(times, product))
+        .collect();
+    let numpy_result = match numpy_error {
+        Some(error) => Err(error),
+        None if numpy.is_none() => Err("numpy worker not running".into()),
+        None => Ok(Product::ALL
+            .iter()
+            .zip(&mut numpy_times)
+            .map(|(&product, times)| gflops(times, product))
+            .collect()),
+    };
+    (cpu, numpy_result)
 }
 
 /// gpu forward and backward GFLOP/s (10 layers per submission, best of 3 submissions).
@@ -187,10 +423,18 @@ fn main() {
         .ok()
         .and_then(|text| text.parse().ok())
         .unwrap_or(50_000);
+    let reps: usize = std::env::var("SEQAVATAR_BENCH_REPS")
+        .ok()
+        .and_then(|text| text.parse().ok())
+        .filter(|&reps| reps > 0)
+        .unwrap_or(7);
     let shapes = [(223, 512), (512, 512), (512, 10), (63, 128)];
     println!(
-        "nn: Linear + ReLU over {rows} rows, f32, GFLOP/s (backward = dX + dW + db, 2x forward flops); cpu: {} rayon threads",
-        rayon::current_num_threads()
+        "nn: Linear + ReLU over {rows} rows, f32, GFLOP/s, median of {reps} interleaved \
+         repetitions (backward = dX + dW + db, 2x forward flops); cpu: {} rayon threads; \
+         load average before: {}",
+        rayon::current_num_threads(),
+        load_average()
     );
     let gpu = match GpuContext::new(AdapterChoice::Hardware) {
         Ok(context) => match NnGpu::new(context.device()) {
@@ -208,17 +452,16 @@ fn main() {
             None
         }
     };
+    let mut numpy = match Numpy::start() {
+        Ok(worker) => Some(worker),
+        Err(error) => {
+            println!("numpy: {error}, skipped");
+            None
+        }
+    };
     println!(
-        "{:>14} | {:>9} {:>9} | {:>9} {:>9} | {:>13} {:>13} | {:>9} {:>9}",
-        "in x out",
-        "cpu fwd",
-        "cpu bwd",
-        "numpy fwd",
-        "numpy bwd",
-        "cpu/numpy fwd",
-        "cpu/numpy bwd",
-        "gpu fwd",
-        "gpu bwd"
+        "{:>11} | {:>9} | {:>8} {:>8} {:>9} | {:>8}",
+        "in x out", "product", "cpu", "numpy", "cpu/numpy", "gpu"
     );
     for (n_in, n_out) in shapes {
         let shape = LinearShape {
@@ -226,28 +469,42 @@ fn main() {
             out_features: n_out,
             activation: Activation::Relu,
         };
-        let (cpu_forward, cpu_backward) = cpu_gflops(rows, shape);
-        let numpy = match numpy_gflops(rows, n_in, n_out) {
-            Ok((forward, backward)) => format!(
-                "{forward:>9.1} {backward:>9.1} | {:>13.2} {:>13.2}",
-                cpu_forward / forward,
-                cpu_backward / backward
-            ),
-            Err(reason) => {
-                eprintln!("numpy skipped: {reason}");
-                format!("{:>9} {:>9} | {:>13} {:>13}", "-", "-", "-", "-")
-            }
-        };
-        let gpu_column = match &gpu {
+        let (cpu, numpy_result) = interleaved(rows, shape, reps, &mut numpy);
+        if let Err(reason) = &numpy_result {
+            eprintln!("numpy skipped for {n_in} x {n_out}: {reason}");
+        }
+        let gpu_figures = match &gpu {
             Some((context, nn)) => match gpu_gflops(context, nn, rows, shape) {
-                Ok((forward, backward)) => format!("{forward:>9.1} {backward:>9.1}"),
-                Err(error) => format!("failed: {error}"),
+                Ok((forward, backward)) => [Some(forward), Some(backward), None],
+                Err(error) => {
+                    eprintln!("gpu failed for {n_in} x {n_out}: {error}");
+                    [None; 3]
+                }
             },
-            None => format!("{:>9} {:>9}", "-", "-"),
+            None => [None; 3],
         };
-        println!(
-            "{:>14} | {cpu_forward:>9.1} {cpu_backward:>9.1} | {numpy} | {gpu_column}",
-            format!("{n_in} x {n_out}")
-        );
+        for (index, product) in Product::ALL.iter().enumerate() {
+            let (numpy_column, ratio_column) = match &numpy_result {
+                Ok(figures) => (
+                    format!("{:>8.1}", figures[index]),
+                    format!("{:>9.2}", cpu[index] / figures[index]),
+                ),
+                Err(_) => (format!("{:>8}", "-"), format!("{:>9}", "-")),
+            };
+            let gpu_column = gpu_figures[index]
+                .map(|value| format!("{value:>8.1}"))
+                .unwrap_or_else(|| format!("{:>8}", "-"));
+            println!(
+                "{:>11} | {:>9} | {:>8.1} {numpy_column} {ratio_column} | {gpu_column}",
+                if index == 0 {
+                    format!("{n_in} x {n_out}")
+                } else {
+                    String::new()
+                },
+                product.label(),
+                cpu[index]
+            );
+        }
     }
+    println!("load average after: {}", load_average());
 }

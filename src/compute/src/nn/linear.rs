@@ -87,23 +87,106 @@ pub struct LinearGrads<'a, T> {
     pub bias: &'a mut [T],
 }
 
-/// Rows per parallel work item in the element-wise passes; fixed so sums are deterministic.
-const ROW_BLOCK: usize = 256;
+/// Bytes of input and output one row block spans (`rows * (in + out)` values): about an L2
+/// cache, so the masked output gradient a block writes is still cached when its input
+/// gradient product reads it, and `gemm` packs each weight panel once per several hundred
+/// rows. 512 rows of a 512 x 512 f32 layer; measured best of 64-4096 rows on the target CPU.
+const ROW_BLOCK_BYTES: usize = 2 << 20;
 
-/// Below this many multiply-adds a product runs on the calling thread.
-const PARALLEL_THRESHOLD: usize = 1 << 18;
+/// Fewest rows per block (smaller products leave `gemm` below its peak).
+const MIN_BLOCK_ROWS: usize = 64;
 
-fn parallelism(m: usize, n: usize, k: usize) -> gemm::Parallelism {
-    let threads = rayon::current_num_threads();
-    if threads <= 1 || m.saturating_mul(n).saturating_mul(k) < PARALLEL_THRESHOLD {
-        gemm::Parallelism::None
-    } else {
-        gemm::Parallelism::Rayon(threads)
+/// Most rows per block.
+const MAX_BLOCK_ROWS: usize = 4096;
+
+/// Below this many multiply-adds a call runs on the calling thread.
+const PARALLEL_THRESHOLD: usize = 1 << 20;
+
+/// Fewest rows one weight-gradient partial product sums over: a partial costs one extra
+/// `in x out` addition, negligible next to `2 * rows * in * out` flops from this many rows.
+const WEIGHT_CHUNK_ROWS: usize = 2048;
+
+/// Most weight-gradient partial products (row chunks) of one call.
+const MAX_WEIGHT_CHUNKS: usize = 8;
+
+/// The weight-gradient tasks of one call are a multiple of this many (divisible by 2, 4
+/// and 8 threads), so equal tasks keep every thread equally busy.
+const WEIGHT_TASKS: usize = 8;
+
+/// Entries per task when the weight-gradient partials are added up.
+const REDUCE_BLOCK: usize = 1 << 14;
+
+/// Fewest weight rows (input features) one weight-gradient task covers.
+const MIN_WEIGHT_TILE: usize = 16;
+
+/// The row blocks of one call: every block has `size` rows but the last. They depend on the
+/// shape, the row count and the scalar only, never on the thread count, so the bias
+/// gradient (summed per block, then over blocks in order) is the same for any thread count.
+#[derive(Clone, Copy, Debug)]
+struct RowBlocks {
+    size: usize,
+    count: usize,
+}
+
+impl RowBlocks {
+    fn new<T>(shape: LinearShape, rows: usize) -> Self {
+        let row_bytes = (shape.in_features + shape.out_features) * std::mem::size_of::<T>();
+        let target = (ROW_BLOCK_BYTES / row_bytes).clamp(MIN_BLOCK_ROWS, MAX_BLOCK_ROWS);
+        // Equal blocks rather than full blocks and a short tail, for an even split.
+        let size = rows.div_ceil(rows.div_ceil(target).max(1)).max(1);
+        RowBlocks {
+            size,
+            count: rows.div_ceil(size),
+        }
+    }
+}
+
+/// How one call spreads over the rayon threads, chosen from its size.
+#[derive(Clone, Copy, Debug)]
+struct Plan {
+    /// Row blocks (and weight-gradient tasks) are parallel tasks.
+    across_tasks: bool,
+    /// The parallelism inside each `gemm` call.
+    inside_gemm: gemm::Parallelism,
+}
+
+impl Plan {
+    /// Small products run on the calling thread; large ones run their row blocks as tasks
+    /// (one `gemm` per block, no synchronisation inside) when there are enough blocks to
+    /// keep every thread busy, and otherwise one block at a time with `gemm`'s own threads.
+    fn new(multiply_adds: usize, blocks: usize) -> Self {
+        let threads = rayon::current_num_threads();
+        if threads <= 1 || multiply_adds < PARALLEL_THRESHOLD {
+            Plan {
+                across_tasks: false,
+                inside_gemm: gemm::Parallelism::None,
+            }
+        } else if blocks >= threads {
+            Plan {
+                across_tasks: true,
+                inside_gemm: gemm::Parallelism::None,
+            }
+        } else {
+            Plan {
+                across_tasks: false,
+                inside_gemm: gemm::Parallelism::Rayon(threads),
+            }
+        }
+    }
+
+    /// Runs `work` on every task, in parallel or in order; results come back in task order.
+    fn run<I: Send, R: Send>(self, tasks: Vec<I>, work: impl Fn(I) -> R + Sync + Send) -> Vec<R> {
+        if self.across_tasks {
+            tasks.into_par_iter().map(work).collect()
+        } else {
+            tasks.into_iter().map(work).collect()
+        }
     }
 }
 
 /// A strided read-only matrix view for `gemm`: element `(i, j)` is at
-/// `data[offset + i * row_stride + j * col_stride]`.
+/// `data[offset + i * row_stride + j * col_stride]`. A transposed operand is the same
+/// buffer with the strides swapped; `gemm` packs from any strides.
 struct View<'a, T> {
     data: &'a [T],
     offset: usize,
@@ -121,7 +204,8 @@ impl<T> View<'_, T> {
     }
 }
 
-/// `dst (m x n, row-major with row stride dst_stride) (+)= lhs (m x k) * rhs (k x n)`.
+/// `dst (m x n, row-major with row stride dst_stride) (+)= lhs (m x k) * rhs (k x n)`,
+/// accumulating through `gemm`'s own `dst = alpha dst + beta lhs rhs` (alpha = beta = 1).
 ///
 /// Panics only on a violated internal invariant (views not covering their shape), which the
 /// public functions rule out by validating every length first.
@@ -131,18 +215,18 @@ fn gemm_into<T: NnScalar>(
     n: usize,
     k: usize,
     dst: &mut [T],
-    dst_offset: usize,
     dst_stride: usize,
     accumulate: bool,
     lhs: View<'_, T>,
     rhs: View<'_, T>,
+    parallelism: gemm::Parallelism,
 ) {
     if m == 0 || n == 0 {
         return;
     }
     let dst_view = View {
         data: &*dst,
-        offset: dst_offset,
+        offset: 0,
         row_stride: dst_stride,
         col_stride: 1,
     };
@@ -158,7 +242,7 @@ fn gemm_into<T: NnScalar>(
             m,
             n,
             k,
-            dst.as_mut_ptr().add(dst_offset),
+            dst.as_mut_ptr(),
             1,
             dst_stride as isize,
             accumulate,
@@ -173,7 +257,7 @@ fn gemm_into<T: NnScalar>(
             false,
             false,
             false,
-            parallelism(m, n, k),
+            parallelism,
         );
     }
 }
@@ -216,6 +300,9 @@ fn check_shape<T>(
 }
 
 /// Forward: `output = act(concat(inputs) W + b)`, `output` is `rows x out` and overwritten.
+///
+/// Each row block is one `gemm` per input part into its output rows, then the bias and the
+/// activation in one pass over those rows while they are still cached.
 pub fn linear_forward<T: NnScalar>(
     shape: LinearShape,
     weight: &[T],
@@ -228,40 +315,86 @@ pub fn linear_forward<T: NnScalar>(
     check_len("linear bias", shape.out_features, bias.len())?;
     check_len("linear output", rows * shape.out_features, output.len())?;
     let out = shape.out_features;
-    let mut weight_row = 0;
-    for (index, part) in inputs.iter().enumerate() {
-        gemm_into(
-            rows,
-            out,
-            part.cols,
-            output,
-            0,
-            out,
-            index > 0,
-            View {
-                data: part.data,
-                offset: 0,
-                row_stride: part.cols,
-                col_stride: 1,
-            },
-            View {
-                data: weight,
-                offset: weight_row * out,
-                row_stride: out,
-                col_stride: 1,
-            },
-        );
-        weight_row += part.cols;
-    }
-    let activation = shape.activation;
-    output.par_chunks_mut(ROW_BLOCK * out).for_each(|block| {
-        for row in block.chunks_exact_mut(out) {
-            for (value, &b) in row.iter_mut().zip(bias) {
-                *value = activation.apply(*value + b);
+    let blocks = RowBlocks::new::<T>(shape, rows);
+    let plan = Plan::new(rows.saturating_mul(shape.weight_len()), blocks.count);
+    let tasks: Vec<(usize, &mut [T])> = output.chunks_mut(blocks.size * out).enumerate().collect();
+    plan.run(tasks, |(index, block)| {
+        let first_row = index * blocks.size;
+        let block_rows = block.len() / out;
+        let mut weight_row = 0;
+        for (part_index, part) in inputs.iter().enumerate() {
+            gemm_into(
+                block_rows,
+                out,
+                part.cols,
+                block,
+                out,
+                part_index > 0,
+                View {
+                    data: part.data,
+                    offset: first_row * part.cols,
+                    row_stride: part.cols,
+                    col_stride: 1,
+                },
+                View {
+                    data: weight,
+                    offset: weight_row * out,
+                    row_stride: out,
+                    col_stride: 1,
+                },
+                plan.inside_gemm,
+            );
+            weight_row += part.cols;
+        }
+        match shape.activation {
+            Activation::Identity => {
+                for row in block.chunks_exact_mut(out) {
+                    for (value, &b) in row.iter_mut().zip(bias) {
+                        *value += b;
+                    }
+                }
+            }
+            Activation::Relu => {
+                for row in block.chunks_exact_mut(out) {
+                    for (value, &b) in row.iter_mut().zip(bias) {
+                        *value = Activation::Relu.apply(*value + b);
+                    }
+                }
             }
         }
     });
     Ok(())
+}
+
+/// One input part's rows of one block: its gradient rows and whether to add into them.
+type BlockInputGrad<'a, T> = Option<(&'a mut [T], bool)>;
+
+/// One row block of the backward's first phase.
+struct BackwardBlock<'a, T> {
+    /// `dL/dY` of the block's rows, masked in place.
+    d_output: &'a mut [T],
+    /// The forward output of the block's rows.
+    output: &'a [T],
+    /// Per input part: the block's rows of its gradient and whether to add into them.
+    d_inputs: Vec<BlockInputGrad<'a, T>>,
+}
+
+/// One weight-gradient task: `dst (+)= X_part[rows, cols]^T dY'[rows, :]`.
+struct WeightTask<'a, T> {
+    first_row: usize,
+    rows: usize,
+    part: usize,
+    first_col: usize,
+    /// `cols x out`, row-major: the task's rows of the weight gradient or of a partial.
+    dst: &'a mut [T],
+    accumulate: bool,
+}
+
+fn gcd(mut a: usize, mut b: usize) -> usize {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
 }
 
 /// Backward of [`linear_forward`].
@@ -270,6 +403,15 @@ pub fn linear_forward<T: NnScalar>(
 /// and `dL/d(pre-activation)` on return (masked in place to avoid a `rows x out` copy).
 /// Weight and bias gradients are accumulated into `grads`; `d_inputs` has one entry per
 /// input part.
+///
+/// Two phases, each a set of parallel tasks. Per row block: the ReLU mask and the bias
+/// column sums in one pass, then `dX_part (+)= dY' W_part^T` (one `gemm`, the weight read
+/// through swapped strides). Then `dW_part += X_part^T dY'`: the rows are cut into at most
+/// `MAX_WEIGHT_CHUNKS` chunks (a function of `rows` only, so the sum order never depends
+/// on the thread count), the first chunk's product accumulated straight into the weight
+/// gradient by `gemm`, the others into partials added after in chunk order; each chunk's
+/// product is split over weight rows into tiles so that there are a multiple of
+/// `WEIGHT_TASKS` equal tasks. Chunks and tiles depend on the shape and `rows` only.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_backward<T: NnScalar>(
     shape: LinearShape,
@@ -310,79 +452,182 @@ pub fn linear_backward<T: NnScalar>(
             )?;
         }
     }
-
-    if shape.activation == Activation::Relu {
-        d_output
-            .par_chunks_mut(ROW_BLOCK * out)
-            .zip(output.par_chunks(ROW_BLOCK * out))
-            .for_each(|(d_block, y_block)| {
-                for (d, &y) in d_block.iter_mut().zip(y_block) {
-                    if y <= T::ZERO {
-                        *d = T::ZERO;
-                    }
-                }
-            });
+    if rows == 0 {
+        return Ok(());
     }
-    let d_pre: &[T] = d_output;
 
-    // Bias gradient: column sums, by fixed row blocks then in order, so it is deterministic.
-    let partial_sums: Vec<Vec<T>> = d_pre
-        .par_chunks(ROW_BLOCK * out)
-        .map(|block| {
-            let mut sums = vec![T::ZERO; out];
-            for row in block.chunks_exact(out) {
-                for (sum, &d) in sums.iter_mut().zip(row) {
-                    *sum += d;
+    let blocks = RowBlocks::new::<T>(shape, rows);
+    let plan = Plan::new(rows.saturating_mul(shape.weight_len()), blocks.count);
+
+    // Phase 1: per row block, mask + bias sums, then the input gradients.
+    let mut d_input_blocks: Vec<std::vec::IntoIter<BlockInputGrad<'_, T>>> = d_inputs
+        .iter_mut()
+        .zip(inputs)
+        .map(|(grad, part)| {
+            let (buffer, accumulate) = match grad {
+                InputGrad::Skip => {
+                    return (0..blocks.count)
+                        .map(|_| None)
+                        .collect::<Vec<_>>()
+                        .into_iter();
                 }
-            }
-            sums
+                InputGrad::Write(buffer) => (&mut **buffer, false),
+                InputGrad::Accumulate(buffer) => (&mut **buffer, true),
+            };
+            buffer
+                .chunks_mut(blocks.size * part.cols)
+                .map(|block| Some((block, accumulate)))
+                .collect::<Vec<_>>()
+                .into_iter()
         })
         .collect();
-    for sums in &partial_sums {
+    let block_tasks: Vec<BackwardBlock<'_, T>> = d_output
+        .chunks_mut(blocks.size * out)
+        .zip(output.chunks(blocks.size * out))
+        .map(|(d_block, y_block)| BackwardBlock {
+            d_output: d_block,
+            output: y_block,
+            d_inputs: d_input_blocks
+                .iter_mut()
+                .map(|blocks| blocks.next().flatten())
+                .collect(),
+        })
+        .collect();
+    let column_sums = plan.run(block_tasks, |task| {
+        backward_block(shape, weight, inputs, task, plan.inside_gemm)
+    });
+    // Bias gradient: column sums per block, then over blocks in order (deterministic).
+    for sums in &column_sums {
         for (g, &s) in grads.bias.iter_mut().zip(sums) {
             *g += s;
         }
     }
 
-    let mut weight_row = 0;
-    for (part, d_input) in inputs.iter().zip(d_inputs.iter_mut()) {
-        let cols = part.cols;
-        // dW_part += X_part^T dY': (cols x rows) (rows x out).
+    // Phase 2: the weight gradient.
+    let d_pre: &[T] = d_output;
+    let chunks = (rows / WEIGHT_CHUNK_ROWS).clamp(1, MAX_WEIGHT_CHUNKS);
+    let chunk_rows = rows.div_ceil(chunks);
+    // Tasks = chunks x tiles, a multiple of WEIGHT_TASKS. The tiles, too, depend on the
+    // shape and the row count only: a tile's width can change how `gemm` blocks its sums.
+    let tiles = WEIGHT_TASKS / gcd(chunks, WEIGHT_TASKS);
+    let mut partials: Vec<Vec<T>> = (1..chunks)
+        .map(|_| vec![T::ZERO; shape.weight_len()])
+        .collect();
+    let mut weight_tasks: Vec<WeightTask<'_, T>> = Vec::new();
+    let destinations =
+        std::iter::once(&mut *grads.weight).chain(partials.iter_mut().map(Vec::as_mut_slice));
+    for (chunk, mut rest) in destinations.enumerate() {
+        let first_row = chunk * chunk_rows;
+        let chunk_len = chunk_rows.min(rows - first_row);
+        for (part_index, part) in inputs.iter().enumerate() {
+            let part_tiles = tiles.min(part.cols / MIN_WEIGHT_TILE).max(1);
+            let tile_cols = part.cols.div_ceil(part_tiles);
+            let mut first_col = 0;
+            while first_col < part.cols {
+                let cols = tile_cols.min(part.cols - first_col);
+                let (dst, tail) = rest.split_at_mut(cols * out);
+                rest = tail;
+                weight_tasks.push(WeightTask {
+                    first_row,
+                    rows: chunk_len,
+                    part: part_index,
+                    first_col,
+                    dst,
+                    accumulate: chunk == 0,
+                });
+                first_col += cols;
+            }
+        }
+    }
+    plan.run(weight_tasks, |task| {
+        let part = &inputs[task.part];
         gemm_into(
-            cols,
+            task.dst.len() / out,
             out,
-            rows,
-            grads.weight,
-            weight_row * out,
+            task.rows,
+            task.dst,
             out,
-            true,
+            task.accumulate,
             View {
                 data: part.data,
-                offset: 0,
+                offset: task.first_row * part.cols + task.first_col,
                 row_stride: 1,
-                col_stride: cols,
+                col_stride: part.cols,
             },
             View {
                 data: d_pre,
-                offset: 0,
+                offset: task.first_row * out,
                 row_stride: out,
                 col_stride: 1,
             },
+            plan.inside_gemm,
         );
-        // dX_part (+)= dY' W_part^T: (rows x out) (out x cols).
-        let (buffer, accumulate) = match d_input {
-            InputGrad::Skip => (None, false),
-            InputGrad::Write(buffer) => (Some(&mut **buffer), false),
-            InputGrad::Accumulate(buffer) => (Some(&mut **buffer), true),
+    });
+    if !partials.is_empty() {
+        // In chunk order for every entry, so the sum does not depend on the threads.
+        let block = REDUCE_BLOCK;
+        let add = |(index, dst): (usize, &mut [T])| {
+            let start = index * block;
+            for partial in &partials {
+                for (g, &p) in dst.iter_mut().zip(&partial[start..]) {
+                    *g += p;
+                }
+            }
         };
-        if let Some(buffer) = buffer {
+        if plan.across_tasks {
+            grads.weight.par_chunks_mut(block).enumerate().for_each(add);
+        } else {
+            grads.weight.chunks_mut(block).enumerate().for_each(add);
+        }
+    }
+    Ok(())
+}
+
+/// Phase 1 of [`linear_backward`] on one row block; returns the block's bias column sums.
+fn backward_block<T: NnScalar>(
+    shape: LinearShape,
+    weight: &[T],
+    inputs: &[InputPart<'_, T>],
+    task: BackwardBlock<'_, T>,
+    parallelism: gemm::Parallelism,
+) -> Vec<T> {
+    let out = shape.out_features;
+    let mut sums = vec![T::ZERO; out];
+    match shape.activation {
+        Activation::Identity => {
+            for d_row in task.d_output.chunks_exact(out) {
+                for (sum, &d) in sums.iter_mut().zip(d_row) {
+                    *sum += d;
+                }
+            }
+        }
+        Activation::Relu => {
+            for (d_row, y_row) in task
+                .d_output
+                .chunks_exact_mut(out)
+                .zip(task.output.chunks_exact(out))
+            {
+                // An unconditional store (of `d` or 0) lets the loop vectorise.
+                for ((sum, d), &y) in sums.iter_mut().zip(d_row).zip(y_row) {
+                    let masked = if y > T::ZERO { *d } else { T::ZERO };
+                    *d = masked;
+                    *sum += masked;
+                }
+            }
+        }
+    }
+    let block_rows = task.d_output.len() / out;
+    let d_pre: &[T] = task.d_output;
+    let mut weight_row = 0;
+    for (part, d_input) in inputs.iter().zip(task.d_inputs) {
+        if let Some((buffer, accumulate)) = d_input {
+            // dX_part (+)= dY' W_part^T: (block x out) (out x cols), W read transposed.
             gemm_into(
-                rows,
-                cols,
+                block_rows,
+                part.cols,
                 out,
                 buffer,
-                0,
-                cols,
+                part.cols,
                 accumulate,
                 View {
                     data: d_pre,
@@ -396,11 +641,12 @@ pub fn linear_backward<T: NnScalar>(
                     row_stride: 1,
                     col_stride: out,
                 },
+                parallelism,
             );
         }
-        weight_row += cols;
+        weight_row += part.cols;
     }
-    Ok(())
+    sums
 }
 
 #[cfg(test)]
@@ -609,6 +855,154 @@ mod tests {
                         "dX{p}[{i}] {} vs {fd}",
                         grad[i]
                     );
+                }
+            }
+        }
+    }
+
+    /// The backward by naive loops over the concatenated input: `(dW, db, dX)` for
+    /// `dL/dY = d_output`, independent of `gemm`, the row blocks and the threads.
+    fn naive_backward(
+        shape: LinearShape,
+        weight: &[f64],
+        input: &[f64],
+        rows: usize,
+        output: &[f64],
+        d_output: &[f64],
+    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let (n_in, n_out) = (shape.in_features, shape.out_features);
+        let d_pre: Vec<f64> = d_output
+            .iter()
+            .zip(output)
+            .map(|(&d, &y)| match shape.activation {
+                Activation::Relu if y <= 0.0 => 0.0,
+                _ => d,
+            })
+            .collect();
+        let mut d_weight = vec![0.0; n_in * n_out];
+        let mut d_bias = vec![0.0; n_out];
+        let mut d_input = vec![0.0; rows * n_in];
+        for r in 0..rows {
+            for j in 0..n_out {
+                let d = d_pre[r * n_out + j];
+                d_bias[j] += d;
+                for i in 0..n_in {
+                    d_weight[i * n_out + j] += input[r * n_in + i] * d;
+                    d_input[r * n_in + i] += d * weight[i * n_out + j];
+                }
+            }
+        }
+        (d_weight, d_bias, d_input)
+    }
+
+    /// Every way a call spreads over threads (serial; row blocks and weight-gradient chunks
+    /// and tiles as tasks; one block with `gemm`'s own threads) against the naive product,
+    /// with several input parts, the weight read transposed for `dX` and the input read
+    /// transposed for `dW`. The results must also be bitwise the same for every thread count.
+    #[test]
+    fn backward_matches_naive_products_on_every_plan() {
+        // (rows, part widths, out): 6200 rows are 2 blocks and 3 weight chunks (the wider
+        // part in 2 tiles), tasks on 2 threads, gemm's own threads on 3; 4 rows stay
+        // serial; 70 rows of 200 x 150 are one block and one chunk in 12 tiles, large
+        // enough for gemm's own threads.
+        let cases: [(usize, &[usize], usize); 3] = [
+            (6200, &[40, 13], 24),
+            (4, &[3, 2], 5),
+            (70, &[120, 80], 150),
+        ];
+        for (rows, widths, out) in cases {
+            let mut rng = Rng::new(5);
+            let n_in: usize = widths.iter().sum();
+            for activation in [Activation::Relu, Activation::Identity] {
+                let shape = LinearShape {
+                    in_features: n_in,
+                    out_features: out,
+                    activation,
+                };
+                let weight = random_vec(&mut rng, n_in * out);
+                let bias = random_vec(&mut rng, out);
+                let input = random_vec(&mut rng, rows * n_in);
+                let d_output = random_vec(&mut rng, rows * out);
+                let blocks = split_columns(&input, rows, widths);
+                let parts: Vec<_> = blocks
+                    .iter()
+                    .zip(widths)
+                    .map(|(data, &cols)| InputPart {
+                        data: data.as_slice(),
+                        cols,
+                    })
+                    .collect();
+                let output = naive_forward(shape, &weight, &bias, &input, rows);
+                let (d_weight, d_bias, d_input) =
+                    naive_backward(shape, &weight, &input, rows, &output, &d_output);
+                let d_input_blocks = split_columns(&d_input, rows, widths);
+                let mut first: Option<Vec<Vec<f64>>> = None;
+                for threads in [1, 2, 3] {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(threads)
+                        .build()
+                        .unwrap();
+                    let results = pool.install(|| {
+                        let mut forward = vec![f64::NAN; rows * out];
+                        linear_forward(shape, &weight, &bias, &parts, rows, &mut forward).unwrap();
+                        // Parameter gradients start non-zero (they accumulate); part 0 is
+                        // written over NaN, part 1 added to 1.
+                        let mut grad_weight = vec![0.5; n_in * out];
+                        let mut grad_bias = vec![-0.25; out];
+                        let mut grad_input0 = vec![f64::NAN; rows * widths[0]];
+                        let mut grad_input1 = vec![1.0; rows * widths[1]];
+                        let mut d_pre = d_output.clone();
+                        linear_backward(
+                            shape,
+                            &weight,
+                            &parts,
+                            rows,
+                            &forward,
+                            &mut d_pre,
+                            LinearGrads {
+                                weight: &mut grad_weight,
+                                bias: &mut grad_bias,
+                            },
+                            &mut [
+                                InputGrad::Write(&mut grad_input0),
+                                InputGrad::Accumulate(&mut grad_input1),
+                            ],
+                        )
+                        .unwrap();
+                        vec![forward, grad_weight, grad_bias, grad_input0, grad_input1]
+                    });
+                    let expected: [(&[f64], f64); 5] = [
+                        (&output, 0.0),
+                        (&d_weight, 0.5),
+                        (&d_bias, -0.25),
+                        (&d_input_blocks[0], 0.0),
+                        (&d_input_blocks[1], 1.0),
+                    ];
+                    for (name, (got, (want, offset))) in ["Y", "dW", "db", "dX0", "dX1"]
+                        .iter()
+                        .zip(results.iter().zip(expected))
+                    {
+                        assert_eq!(got.len(), want.len());
+                        for (index, (a, b)) in got.iter().zip(want).enumerate() {
+                            let b = b + offset;
+                            assert!(
+                                (a - b).abs() <= 1e-10 * (1.0 + b.abs()),
+                                "{rows} rows, {threads} threads, {activation:?}: \
+                                 {name}[{index}] {a} vs {b}"
+                            );
+                        }
+                    }
+                    match &first {
+                        None => first = Some(results),
+                        Some(first) => assert!(
+                            first
+                                .iter()
+                                .flatten()
+                                .zip(results.iter().flatten())
+                                .all(|(a, b)| a.to_bits() == b.to_bits()),
+                            "{rows} rows: {threads} threads differ bitwise from 1 thread"
+                        ),
+                    }
                 }
             }
         }
