@@ -9,22 +9,9 @@
 // `(workgroup.x + workgroup.y * groups.x) * 64 + local`, since GpuContext::dispatch lays
 // large dispatches out in 2D; threads past `params.total` return.
 
-struct Params {
-    images: u32,
-    in_channels: u32,
-    in_height: u32,
-    in_width: u32,
-    out_channels: u32,
-    out_height: u32,
-    out_width: u32,
-    kernel: u32,
-    stride: u32,
-    padding: u32,
-    total: u32,
-    _pad: u32,
-}
+//#include "lpips_types.wgsl"
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<uniform> params: LpipsParams;
 // What the forward computed: tapped features, ReLU outputs or max-pool inputs.
 @group(0) @binding(1) var<storage, read> forward_values: array<f32>;
 // The lin layer or the convolution weights `(out, in, k, k)` row-major.

@@ -1,27 +1,14 @@
-// The LPIPS trunk on the gpu (stages/eval/src/lpips/gpu.rs): convolution + bias + ReLU, max
+// The LPIPS trunk on the gpu (src/compute/src/lpips/gpu.rs): convolution + bias + ReLU, max
 // pool, and the per-pixel layer distance. Tensors are NCHW f32 in storage buffers; the cpu
-// twin is stages/eval/src/lpips/cpu.rs and a parity test compares the two.
+// twin is src/compute/src/lpips/cpu.rs and a parity test compares the two.
 //
 // Every entry point runs 64 threads per workgroup over a linear index
 // `(workgroup.x + workgroup.y * groups.x) * 64 + local`, since GpuContext::dispatch lays
 // large dispatches out in 2D; threads past `params.total` return.
 
-struct Params {
-    images: u32,
-    in_channels: u32,
-    in_height: u32,
-    in_width: u32,
-    out_channels: u32,
-    out_height: u32,
-    out_width: u32,
-    kernel: u32,
-    stride: u32,
-    padding: u32,
-    total: u32,
-    _pad: u32,
-}
+//#include "lpips_types.wgsl"
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<uniform> params: LpipsParams;
 @group(0) @binding(1) var<storage, read> input: array<f32>;
 @group(0) @binding(2) var<storage, read> weight: array<f32>;
 @group(0) @binding(3) var<storage, read> bias: array<f32>;

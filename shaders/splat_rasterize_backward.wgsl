@@ -5,20 +5,7 @@
 // Gaussian) is added atomically; the atomic add is native f32 or a compare-exchange loop
 // (the region below is swapped by the host, see backend/shaders.rs).
 
-struct SplatCamera {
-    rotation0: vec4<f32>,
-    rotation1: vec4<f32>,
-    rotation2: vec4<f32>,
-    intrinsics: vec4<f32>,
-    center: vec4<f32>,
-    background: vec4<f32>,
-    // width, height, tiles_x, tiles_y.
-    image: vec4<u32>,
-    // gaussians, sh coefficients per channel, first tile row, end tile row (exclusive).
-    counts: vec4<u32>,
-    // smooth cutoff (0/1), alpha gradient given (0/1), depth gradient given (0/1), unused.
-    flags: vec4<u32>,
-}
+//#include "splat_types.wgsl"
 
 const TILE: u32 = 16u;
 const BATCH: u32 = 256u;

@@ -2,5 +2,6 @@
 
 mod datasets;
 mod engine;
+mod eval;
 mod remote;
 mod support;

@@ -14,6 +14,7 @@
 //! - [`lpips`]: the LPIPS perceptual distance (VGG16, AlexNet trunks), used by evaluation as a
 //!   metric and by training as a loss; [`image`] is its float image, [`safetensors`] the
 //!   strict reader of its weights files.
+//! - [`ssim`]: SSIM with its exact gradient (f64), the training loss's and eval's metric.
 
 pub mod backend;
 pub mod image;
@@ -22,3 +23,4 @@ pub mod nn;
 pub mod safetensors;
 pub mod scalar;
 pub mod splat;
+pub mod ssim;

@@ -11,7 +11,7 @@ pub mod commands;
 mod config;
 mod entry;
 pub mod key;
-mod picture;
+pub mod picture;
 mod pipeline;
 #[cfg(feature = "remote")]
 pub mod remote;

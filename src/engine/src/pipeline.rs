@@ -895,7 +895,7 @@ mod tests {
 
     #[test]
     fn variables_expand_in_strings() {
-        // SAFETY of the test: the variable name is unique to this test.
+        // SAFETY: the variable name is unique to this test; nothing else reads or writes it.
         unsafe { std::env::set_var("SEQAVATAR_ENGINE_TEST_ROOT", "/data/root") };
         let text = "stages:\n  - name: a\n    kind: test_arrays\n    config:\n      count_file: ${SEQAVATAR_ENGINE_TEST_ROOT}/count$$1\n";
         let pipeline = parse(text, &[]).unwrap();

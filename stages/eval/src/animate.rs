@@ -15,8 +15,8 @@ use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryId, EntryReader, EntryState, LocalStore, Store, open_store};
 use seqavatar_fit::io::BodySequence;
 use seqavatar_ingest::formats::npz;
+use seqavatar_motion::schema::MotionTrack;
 use seqavatar_motion::{Scales, VelocityNormalisation};
-use seqavatar_train::data::MotionTrack;
 
 use crate::avatar_render::AvatarRenderer;
 use crate::evaluate::ViewRenderer;
@@ -269,7 +269,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
     let train = resolve_entry(store.as_ref(), "train", &options.avatar)?;
     let avatar = AvatarRenderer::load_avatar(&train)?;
     let trained_ingest = upstream(store.as_ref(), &train, "ingest")?;
-    let cameras = seqavatar_train::data::read_cameras(&trained_ingest)?;
+    let cameras = seqavatar_ingest::read_cameras(&trained_ingest)?;
     let camera = cameras
         .get(options.camera)
         .ok_or_else(|| {

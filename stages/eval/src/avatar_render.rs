@@ -1,14 +1,14 @@
-//! The trained avatar as a [`ViewRenderer`]: `seqavatar_train::avatar::TrainedAvatar` driven
+//! The trained avatar as a [`ViewRenderer`]: `seqavatar_avatar::avatar::TrainedAvatar` driven
 //! by per-frame body parameters and motion windows, plus the checks that an avatar and the
 //! entry it is evaluated on belong together (same body model, same cameras).
 
 use anyhow::Context as _;
+use seqavatar_avatar::avatar::{FrameInputs, TrainedAvatar};
 use seqavatar_compute::backend::Backend;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_engine::EntryReader;
-use seqavatar_train::avatar::{FrameInputs, TrainedAvatar};
-use seqavatar_train::data::MotionTrack;
+use seqavatar_motion::schema::MotionTrack;
 
 use crate::evaluate::ViewRenderer;
 use crate::image::ImageF32;
@@ -126,8 +126,8 @@ pub fn check_cameras(train: &EntryReader, ingest: &EntryReader) -> anyhow::Resul
         detail,
     };
     if train.manifest().arrays.contains_key("camera_K") {
-        let trained = seqavatar_train::data::read_cameras(train)?;
-        let evaluated = seqavatar_train::data::read_cameras(ingest)?;
+        let trained = seqavatar_ingest::read_cameras(train)?;
+        let evaluated = seqavatar_ingest::read_cameras(ingest)?;
         if trained.len() != evaluated.len() {
             return Err(mismatch(format!(
                 "{} cameras in the avatar, {} in the ingest entry",
@@ -335,22 +335,29 @@ mod tests {
     /// against f64 networks and cpu splatting).
     #[test]
     fn a_gpu_renderer_uses_gpu_networks_and_matches_cpu() {
+        use seqavatar_avatar::avatar::AvatarGaussians;
+        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
+        use seqavatar_avatar::model::{NetworkConfig, Networks};
+        use seqavatar_avatar::rig::BodyRig;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_core::rng::SplitMix64 as Rng;
-        use seqavatar_train::avatar::AvatarGaussians;
-        use seqavatar_train::config::{MotionContext, Preset, TrainConfig};
-        use seqavatar_train::model::{NetworkConfig, Networks};
-        use seqavatar_train::rig::BodyRig;
         let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
             return;
         };
         let model = procedural_body(0.05);
-        let mut config = TrainConfig::preset(Preset::Fast);
-        config.motion_context = MotionContext::Pose;
-        config.lbs_offsets = true;
-        config.pose_refiner = true;
-        config.trunk_width = 16;
-        config.trunk_depth = 2;
+        let config = AvatarConfig {
+            motion_context: MotionContext::Pose,
+            trunk_width: 16,
+            trunk_depth: 2,
+            tau: 4,
+            sequence_length: 2,
+            pose_refiner: true,
+            lbs_offsets: true,
+            sh_degree: 1,
+            scale_min: 1e-5,
+            scale_max: 0.5,
+            background: Background::Black,
+        };
         let mut params = model.zero_params();
         params.pose[1] = DVec3::new(0.3, 0.0, 0.1);
         params.pose[16] = DVec3::new(0.0, 0.0, -0.8);
@@ -358,7 +365,7 @@ mod tests {
         let build = |backend: Backend| {
             let rig = BodyRig::new(model.clone()).unwrap();
             let j = rig.joint_count();
-            let net_config = NetworkConfig::from_train(&config, j, j, 1).unwrap();
+            let net_config = NetworkConfig::from_avatar(&config, j, j, 1).unwrap();
             let mut networks = Networks::<f64>::new(&net_config, 3).unwrap();
             let mut rng = Rng::new(8);
             // Outputs well away from the near-zero initialisation of the heads.

@@ -9,7 +9,7 @@
 //! implementation for the loss and the metric); the tests here check it independently against
 //! a direct 2D window and against torch.
 
-use seqavatar_train::losses::ssim_planes;
+use seqavatar_compute::ssim::ssim_planes;
 
 use crate::image::{ImageF32, Rect};
 
@@ -92,7 +92,7 @@ fn planes(image: &ImageF32) -> [Vec<f64>; 3] {
 }
 
 /// Mean SSIM over pixels and channels: the one SSIM of the workspace,
-/// `seqavatar_train::losses::ssim_planes` (the training loss uses it with its gradient).
+/// `seqavatar_compute::ssim::ssim_planes` (the training loss uses it with its gradient).
 pub fn ssim(render: &ImageF32, truth: &ImageF32) -> Result<f64, MetricError> {
     check_same_size("ssim", render, truth)?;
     let (value, _) = ssim_planes(&planes(render), &planes(truth), render.width, render.height);
@@ -182,7 +182,7 @@ pub struct Protocol {
 impl Default for Protocol {
     fn default() -> Self {
         Self {
-            background: seqavatar_train::stage::PROTOCOL_BACKGROUND.map(|c| c as f32),
+            background: seqavatar_avatar::config::PROTOCOL_BACKGROUND.map(|c| c as f32),
             bound_padding: 5,
             crop_ssim_lpips_to_bound_box: false,
         }

@@ -1,9 +1,9 @@
 //! Report pieces: Markdown tables, error-map images, contact sheets (ground truth | render |
 //! error), line plots and Pareto scatter plots drawn on `image::RgbImage` (no plotting
-//! crate; pixels, text and tick labels come from `seqavatar_fit::plot`, the one pixel font).
+//! crate; pixels, text and tick labels come from `seqavatar_engine::picture`, the one pixel font).
 
 use image::{Rgb, RgbImage};
-use seqavatar_fit::plot::{label as tick_label, put, text_width};
+use seqavatar_engine::picture::{label as tick_label, put, text_width};
 
 use crate::image::ImageF32;
 use crate::metrics::MetricError;
@@ -240,7 +240,7 @@ pub fn plot(series: &[Series], options: PlotOptions, highlight: &[(f64, f64)]) -
         draw_line(&mut image, (px, plot_top), (px, plot_bottom - 1.0), grey);
         draw_line(&mut image, (plot_left + 1.0, py), (plot_right, py), grey);
         let x_label = tick_label(x_value);
-        seqavatar_fit::plot::text(
+        seqavatar_engine::picture::text(
             &mut image,
             px as i64 - text_width(&x_label) as i64 / 2,
             plot_bottom as i64 + 6,
@@ -253,7 +253,7 @@ pub fn plot(series: &[Series], options: PlotOptions, highlight: &[(f64, f64)]) -
         } else {
             tick_label(y_value)
         };
-        seqavatar_fit::plot::text(
+        seqavatar_engine::picture::text(
             &mut image,
             plot_left as i64 - 4 - text_width(&y_label) as i64,
             py as i64 - 4,

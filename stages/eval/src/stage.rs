@@ -28,12 +28,12 @@ use std::time::Instant;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 
-use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_avatar::config::{Device, MotionContext, device_choice};
+use seqavatar_compute::backend::Backend;
 use seqavatar_engine::{
     BACKEND_LOG_PREFIX, ConfigError, EntryReader, PictureKind, PictureOptions, StageContext,
     StageKind,
 };
-use seqavatar_train::config::Device;
 
 use crate::evaluate::{
     LpipsModels, MEAN_TABLE_HEADERS, SpeedRow, ViewRenderer, contact_sheet_rows, mean_scores,
@@ -139,15 +139,6 @@ impl EvalConfig {
     }
 }
 
-/// Maps the config's device to the compute backend choice.
-pub fn device_choice(device: Device) -> DeviceChoice {
-    match device {
-        Device::Auto => DeviceChoice::Auto,
-        Device::Cpu => DeviceChoice::Cpu,
-        Device::Gpu => DeviceChoice::Gpu,
-    }
-}
-
 /// The sequence name of an ingest entry for tables: the dataset kind and its sequence id or
 /// folder name.
 pub fn sequence_name(ingest: &EntryReader) -> String {
@@ -199,7 +190,8 @@ impl StageKind for EvalStage {
     fn version(&self) -> u32 {
         // 2: on the gpu backend the networks run on the gpu in f32 (GpuNetworks).
         // 3: the avatar renders on the protocol's background (not its training background).
-        3
+        // 4: reads the avatar config (attribute `avatar`) of train entries of version 5.
+        4
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -217,10 +209,19 @@ impl StageKind for EvalStage {
             .iter()
             .find(|input| input.kind == "train")
             .expect("checked above");
-        let context =
-            serde_json::from_value::<seqavatar_train::config::TrainConfig>(train.config.clone())
-                .map(|config| config.motion_context)
-                .map_err(|e| format!("input {}: unreadable train config: {e}", train.name))?;
+        // The train stage's resolved config names every field; eval needs only this one.
+        let context = train
+            .config
+            .get("motion_context")
+            .ok_or_else(|| format!("input {}: train config has no `motion_context`", train.name))
+            .and_then(|value| {
+                serde_json::from_value::<MotionContext>(value.clone()).map_err(|e| {
+                    format!(
+                        "input {}: train config field `motion_context`: {e}",
+                        train.name
+                    )
+                })
+            })?;
         if context.has_skeleton_motion() {
             seqavatar_engine::require_one_input_of_each(inputs, &["motion"]).map_err(|e| {
                 format!(

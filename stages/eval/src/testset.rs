@@ -68,7 +68,7 @@ fn describe_shape(expected: &[Option<usize>]) -> String {
 impl TestSet {
     /// Reads the cameras and the test split of an ingest entry.
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
-        let cameras = seqavatar_train::data::read_cameras(entry)?;
+        let cameras = seqavatar_ingest::read_cameras(entry)?;
         let views = cameras.len();
         let camera_source_ids = entry.read::<i64>("camera_source_id")?;
         check_shape(

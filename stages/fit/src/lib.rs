@@ -6,7 +6,6 @@ pub mod banded;
 pub mod evidence;
 pub mod io;
 pub mod keypoints;
-pub mod plot;
 pub mod refine;
 pub mod smooth;
 pub mod stage;

@@ -33,11 +33,11 @@ use seqavatar_engine::{
 use crate::evidence::{EvidenceSources, Silhouettes, choose_tracks, track_name};
 use crate::io::BodySequence;
 use crate::keypoints::{KeypointObservations, KeypointWeights, refine_with_keypoints};
-use crate::plot;
 use crate::refine::{
     joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
 };
 use crate::smooth::SmoothingPlan;
+use seqavatar_engine::picture;
 use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
 
 /// What the stage does with the input fits. In YAML a bare `off` reads as the boolean
@@ -516,7 +516,7 @@ impl StageKind for FitStage {
         }
         let before = entry.read::<f64>(before)?.data;
         let after = entry.read::<f64>(after)?.data;
-        Ok(plot::line_plot(width, height, &[before, after]))
+        Ok(picture::line_plot(width, height, &[before, after]))
     }
 }
 

@@ -1,11 +1,215 @@
-//! Exact k-nearest-neighbour graph of a point set on a uniform grid.
+//! Exact k-nearest-neighbour search in 3D on the CPU: a uniform grid searched in growing
+//! shells, parallel over queries (rayon), and the brute-force reference it is tested against.
+//! The project's one grid KNN: the motion stage's canonical template graph ([`knn_graph`]),
+//! the avatar's nearest template vertices and training's AIAP neighbours all use it.
 //!
-//! Used for the canonical template's vertex graph. Each point's list starts with the point
-//! itself (distance 0), because training gathers the velocities of the `tau` template
-//! vertices nearest to a Gaussian, and Gaussians start on the template vertices.
-//! Ties are broken by the smaller index, so the graph is deterministic.
+//! Results are sorted by (squared distance, index), so ties resolve the same way in both
+//! searches and on every run.
 
 use rayon::prelude::*;
+
+/// A uniform grid over reference points for repeated k-nearest queries.
+pub struct KnnGrid {
+    points: Vec<[f64; 3]>,
+    origin: [f64; 3],
+    cell: f64,
+    dims: [usize; 3],
+    /// Start of each cell's run in `order` (length cells + 1).
+    cell_start: Vec<usize>,
+    /// Point indices sorted by cell.
+    order: Vec<u32>,
+}
+
+impl KnnGrid {
+    /// Builds the grid with about `points_per_cell` points per occupied cell. Non-finite
+    /// points are never returned as neighbours.
+    pub fn new(points: &[[f64; 3]], points_per_cell: f64) -> Self {
+        let finite: Vec<&[f64; 3]> = points
+            .iter()
+            .filter(|p| p.iter().all(|v| v.is_finite()))
+            .collect();
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in &finite {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+        if finite.is_empty() {
+            lo = [0.0; 3];
+            hi = [0.0; 3];
+        }
+        let extent: Vec<f64> = (0..3).map(|a| (hi[a] - lo[a]).max(1e-9)).collect();
+        let volume = extent.iter().product::<f64>();
+        let count = finite.len().max(1) as f64;
+        let mut cell = (volume * points_per_cell / count).cbrt();
+        // Flat clouds give a tiny volume: never let one axis need more than 256 cells.
+        let max_extent = extent.iter().cloned().fold(0.0, f64::max);
+        cell = cell.max(max_extent / 256.0).max(1e-9);
+        let dims: [usize; 3] =
+            std::array::from_fn(|a| ((extent[a] / cell).floor() as usize + 1).max(1));
+        let cells = dims[0] * dims[1] * dims[2];
+        let mut grid = Self {
+            points: points.to_vec(),
+            origin: lo,
+            cell,
+            dims,
+            cell_start: vec![0; cells + 1],
+            order: Vec::with_capacity(finite.len()),
+        };
+        let cell_of: Vec<Option<usize>> = points
+            .iter()
+            .map(|p| {
+                p.iter()
+                    .all(|v| v.is_finite())
+                    .then(|| grid.flat(grid.cell_coords(p)))
+            })
+            .collect();
+        for c in cell_of.iter().flatten() {
+            grid.cell_start[c + 1] += 1;
+        }
+        for c in 0..cells {
+            grid.cell_start[c + 1] += grid.cell_start[c];
+        }
+        let mut cursor = grid.cell_start.clone();
+        grid.order = vec![0; grid.cell_start[cells]];
+        for (i, c) in cell_of.iter().enumerate() {
+            if let Some(c) = c {
+                grid.order[cursor[*c]] = i as u32;
+                cursor[*c] += 1;
+            }
+        }
+        grid
+    }
+
+    fn cell_coords(&self, p: &[f64; 3]) -> [usize; 3] {
+        std::array::from_fn(|a| {
+            let v = ((p[a] - self.origin[a]) / self.cell).floor();
+            if v.is_nan() || v < 0.0 {
+                0
+            } else {
+                (v as usize).min(self.dims[a] - 1)
+            }
+        })
+    }
+
+    fn flat(&self, c: [usize; 3]) -> usize {
+        (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0]
+    }
+
+    /// The `k` nearest reference points of `query` (fewer when there are fewer points),
+    /// nearest first.
+    pub fn query(&self, query: &[f64; 3], k: usize) -> Vec<u32> {
+        let mut best: Vec<(f64, u32)> = Vec::with_capacity(k + 1);
+        if k == 0 || self.order.is_empty() || !query.iter().all(|v| v.is_finite()) {
+            return Vec::new();
+        }
+        let centre = self.cell_coords(query);
+        let max_radius = self.dims.iter().copied().max().unwrap_or(1);
+        for radius in 0..=max_radius {
+            let lo: [isize; 3] = std::array::from_fn(|a| centre[a] as isize - radius as isize);
+            let hi: [isize; 3] = std::array::from_fn(|a| centre[a] as isize + radius as isize);
+            for z in lo[2].max(0)..=hi[2].min(self.dims[2] as isize - 1) {
+                for y in lo[1].max(0)..=hi[1].min(self.dims[1] as isize - 1) {
+                    for x in lo[0].max(0)..=hi[0].min(self.dims[0] as isize - 1) {
+                        let on_shell = [x, y, z]
+                            .iter()
+                            .zip(lo.iter().zip(hi.iter()))
+                            .any(|(v, (l, h))| v == l || v == h);
+                        if !on_shell {
+                            continue;
+                        }
+                        let c = self.flat([x as usize, y as usize, z as usize]);
+                        for &i in &self.order[self.cell_start[c]..self.cell_start[c + 1]] {
+                            let d = dist2(query, &self.points[i as usize]);
+                            insert_sorted(&mut best, (d, i), k);
+                        }
+                    }
+                }
+            }
+            if best.len() == k {
+                // Any point outside the searched cube is at least this far away.
+                let mut clearance = f64::INFINITY;
+                for a in 0..3 {
+                    let cube_lo = self.origin[a] + lo[a] as f64 * self.cell;
+                    let cube_hi = self.origin[a] + (hi[a] + 1) as f64 * self.cell;
+                    // Cells beyond the grid hold nothing, so those sides never limit.
+                    if lo[a] > 0 {
+                        clearance = clearance.min(query[a] - cube_lo);
+                    }
+                    if hi[a] < self.dims[a] as isize - 1 {
+                        clearance = clearance.min(cube_hi - query[a]);
+                    }
+                }
+                if clearance.is_infinite()
+                    || (clearance > 0.0 && best[k - 1].0 < clearance * clearance)
+                {
+                    break;
+                }
+            }
+        }
+        best.into_iter().map(|(_, i)| i).collect()
+    }
+
+    /// `k` nearest neighbours of every query, flattened `queries x k` (parallel).
+    /// Panics if fewer than `k` finite reference points exist; see [`Self::reference_count`].
+    pub fn query_all(&self, queries: &[[f64; 3]], k: usize) -> Vec<u32> {
+        assert!(
+            self.order.len() >= k,
+            "k = {k} exceeds the {} reference points",
+            self.order.len()
+        );
+        queries
+            .par_iter()
+            .flat_map_iter(|q| {
+                let mut row = self.query(q, k);
+                // A non-finite query gets the first reference point repeated: its result is
+                // defined and it cannot index out of range.
+                row.resize(k, self.order[0]);
+                row
+            })
+            .collect()
+    }
+
+    /// Number of finite reference points.
+    pub fn reference_count(&self) -> usize {
+        self.order.len()
+    }
+}
+
+fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)
+}
+
+fn insert_sorted(best: &mut Vec<(f64, u32)>, item: (f64, u32), k: usize) {
+    if best.len() == k && !less(item, best[k - 1]) {
+        return;
+    }
+    let pos = best.partition_point(|&b| less(b, item));
+    best.insert(pos, item);
+    best.truncate(k);
+}
+
+fn less(a: (f64, u32), b: (f64, u32)) -> bool {
+    a.0 < b.0 || (a.0 == b.0 && a.1 < b.1)
+}
+
+/// Brute-force reference: `k` nearest of each query, flattened, same ordering rules.
+pub fn knn_brute_force(points: &[[f64; 3]], queries: &[[f64; 3]], k: usize) -> Vec<u32> {
+    queries
+        .par_iter()
+        .flat_map_iter(|q| {
+            let mut best = Vec::with_capacity(k + 1);
+            for (i, p) in points.iter().enumerate() {
+                if p.iter().all(|v| v.is_finite()) {
+                    insert_sorted(&mut best, (dist2(q, p), i as u32), k);
+                }
+            }
+            best.into_iter().map(|(_, i)| i)
+        })
+        .collect()
+}
 
 /// Neighbour indices and Euclidean distances, `(n_points, k)` each, row-major, nearest first.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,72 +230,11 @@ pub enum KnnError {
     NotFinite { index: usize },
 }
 
-struct Grid {
-    origin: [f64; 3],
-    cell: f64,
-    dims: [usize; 3],
-    /// Start of each cell's run in `order`; `starts[n_cells]` is the end.
-    starts: Vec<usize>,
-    order: Vec<u32>,
-}
-
-impl Grid {
-    fn new(points: &[[f32; 3]], k: usize) -> Self {
-        let mut lo = [f64::INFINITY; 3];
-        let mut hi = [f64::NEG_INFINITY; 3];
-        for p in points {
-            for c in 0..3 {
-                lo[c] = lo[c].min(f64::from(p[c]));
-                hi[c] = hi[c].max(f64::from(p[c]));
-            }
-        }
-        let extent: Vec<f64> = (0..3).map(|c| (hi[c] - lo[c]).max(1e-9)).collect();
-        let volume = extent[0] * extent[1] * extent[2];
-        // About 2k points per occupied cell for a surface-like set; the cube root rule is a
-        // starting point, capped so the grid stays small.
-        let target_cells = (points.len() as f64 / (2.0 * k as f64)).clamp(1.0, 1.0e6);
-        let mut cell = (volume / target_cells).cbrt();
-        let max_extent = extent.iter().cloned().fold(0.0, f64::max);
-        cell = cell.max(max_extent / 128.0).max(1e-9);
-        // extent / cell <= 128, so every point lies inside its own cell (no clamping).
-        let dims = [0, 1, 2].map(|c| (extent[c] / cell).floor() as usize + 1);
-        let n_cells = dims[0] * dims[1] * dims[2];
-        let mut grid = Self {
-            origin: lo,
-            cell,
-            dims,
-            starts: vec![0; n_cells + 1],
-            order: vec![0; points.len()],
-        };
-        let cell_of: Vec<usize> = points.iter().map(|p| grid.cell_index(p)).collect();
-        for &c in &cell_of {
-            grid.starts[c + 1] += 1;
-        }
-        for c in 0..n_cells {
-            grid.starts[c + 1] += grid.starts[c];
-        }
-        let mut fill = grid.starts.clone();
-        for (i, &c) in cell_of.iter().enumerate() {
-            grid.order[fill[c]] = i as u32;
-            fill[c] += 1;
-        }
-        grid
-    }
-
-    fn coords(&self, p: &[f32; 3]) -> [usize; 3] {
-        [0, 1, 2].map(|c| {
-            let x = ((f64::from(p[c]) - self.origin[c]) / self.cell).floor();
-            (x.max(0.0) as usize).min(self.dims[c] - 1)
-        })
-    }
-
-    fn cell_index(&self, p: &[f32; 3]) -> usize {
-        let [x, y, z] = self.coords(p);
-        (z * self.dims[1] + y) * self.dims[0] + x
-    }
-}
-
-/// Builds the exact `k`-nearest-neighbour graph (self included) of `points`.
+/// The exact `k`-nearest-neighbour graph of `points` among themselves (the canonical
+/// template's vertex graph). Each point's list starts with the point itself (distance 0)
+/// unless an identical point has a smaller index, because training gathers the velocities of
+/// the `tau` template vertices nearest to a Gaussian, and Gaussians start on the template
+/// vertices. Distances are computed in f64 and rounded to f32.
 pub fn knn_graph(points: &[[f32; 3]], k: usize) -> Result<KnnGraph, KnnError> {
     if k == 0 {
         return Err(KnnError::ZeroK);
@@ -105,17 +248,16 @@ pub fn knn_graph(points: &[[f32; 3]], k: usize) -> Result<KnnGraph, KnnError> {
     if let Some(index) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
         return Err(KnnError::NotFinite { index });
     }
-    let grid = Grid::new(points, k);
-    let rows: Vec<(Vec<u32>, Vec<f32>)> = (0..points.len())
-        .into_par_iter()
-        .map(|i| query(&grid, points, i, k))
+    let wide: Vec<[f64; 3]> = points.iter().map(|p| p.map(f64::from)).collect();
+    let indices = KnnGrid::new(&wide, 2.0 * k as f64).query_all(&wide, k);
+    let distances = indices
+        .par_chunks(k)
+        .zip(wide.par_iter())
+        .flat_map_iter(|(row, p)| {
+            row.iter()
+                .map(|&j| dist2(p, &wide[j as usize]).sqrt() as f32)
+        })
         .collect();
-    let mut indices = Vec::with_capacity(points.len() * k);
-    let mut distances = Vec::with_capacity(points.len() * k);
-    for (idx, dist) in rows {
-        indices.extend(idx);
-        distances.extend(dist);
-    }
     Ok(KnnGraph {
         k,
         indices,
@@ -123,102 +265,83 @@ pub fn knn_graph(points: &[[f32; 3]], k: usize) -> Result<KnnGraph, KnnError> {
     })
 }
 
-fn squared_distance(a: &[f32; 3], b: &[f32; 3]) -> f64 {
-    (0..3)
-        .map(|c| {
-            let d = f64::from(a[c]) - f64::from(b[c]);
-            d * d
-        })
-        .sum()
-}
-
-/// Searches shells of cells of growing Chebyshev radius around the query's cell until the
-/// k-th best distance is closer than anything an unvisited cell could hold.
-fn query(grid: &Grid, points: &[[f32; 3]], i: usize, k: usize) -> (Vec<u32>, Vec<f32>) {
-    let p = &points[i];
-    let centre = grid.coords(p);
-    // Sorted best list of (squared distance, index).
-    let mut best: Vec<(f64, u32)> = Vec::with_capacity(k + 1);
-    let max_radius = grid.dims.iter().copied().max().unwrap_or(1);
-    for radius in 0..=max_radius {
-        let lo = centre.map(|c| c as isize - radius as isize);
-        let hi = centre.map(|c| c as isize + radius as isize);
-        for z in lo[2]..=hi[2] {
-            for y in lo[1]..=hi[1] {
-                for x in lo[0]..=hi[0] {
-                    let on_shell = [x, y, z]
-                        .iter()
-                        .zip(lo.iter().zip(&hi))
-                        .any(|(&v, (&l, &h))| v == l || v == h);
-                    if !on_shell {
-                        continue;
-                    }
-                    if x < 0 || y < 0 || z < 0 {
-                        continue;
-                    }
-                    let (x, y, z) = (x as usize, y as usize, z as usize);
-                    if x >= grid.dims[0] || y >= grid.dims[1] || z >= grid.dims[2] {
-                        continue;
-                    }
-                    let cell = (z * grid.dims[1] + y) * grid.dims[0] + x;
-                    for &j in &grid.order[grid.starts[cell]..grid.starts[cell + 1]] {
-                        let d = squared_distance(p, &points[j as usize]);
-                        let candidate = (d, j);
-                        if best.len() == k && candidate >= best[k - 1] {
-                            continue;
-                        }
-                        let at = best.partition_point(|b| *b < candidate);
-                        best.insert(at, candidate);
-                        best.truncate(k);
-                    }
-                }
-            }
-        }
-        // Everything outside the visited cube is at least `radius * cell` away from `p`
-        // (p lies inside the centre cell).
-        if best.len() == k {
-            let reach = radius as f64 * grid.cell;
-            if best[k - 1].0 <= reach * reach {
-                break;
-            }
-        }
-    }
-    (
-        best.iter().map(|b| b.1).collect(),
-        best.iter().map(|b| b.0.sqrt() as f32).collect(),
-    )
+/// Points of an `N x 3` flat slice as arrays.
+pub fn as_points(flat: &[f64]) -> Vec<[f64; 3]> {
+    flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use seqavatar_core::rng::SplitMix64 as Rng;
 
-    fn brute_force(points: &[[f32; 3]], k: usize) -> Vec<u32> {
-        let mut out = Vec::new();
-        for p in points {
-            let mut all: Vec<(f64, u32)> = points
-                .iter()
-                .enumerate()
-                .map(|(j, q)| (squared_distance(p, q), j as u32))
-                .collect();
-            all.sort_by(|a, b| a.partial_cmp(b).unwrap());
-            out.extend(all[..k].iter().map(|x| x.1));
-        }
-        out
+    fn check(points: &[[f64; 3]], queries: &[[f64; 3]], k: usize, per_cell: f64) {
+        let grid = KnnGrid::new(points, per_cell);
+        let fast = grid.query_all(queries, k);
+        let slow = knn_brute_force(points, queries, k);
+        assert_eq!(fast, slow);
     }
 
-    /// Deterministic pseudo-random points (a 64-bit LCG), on a shell like a body surface.
+    #[test]
+    fn grid_matches_brute_force_on_clouds() {
+        let mut rng = Rng::new(7);
+        // A body-like anisotropic cloud, queries inside and far outside.
+        let points: Vec<[f64; 3]> = (0..3000)
+            .map(|_| {
+                [
+                    rng.uniform(-0.3, 0.3),
+                    rng.uniform(-0.9, 0.9),
+                    rng.uniform(-0.1, 0.1),
+                ]
+            })
+            .collect();
+        let mut queries: Vec<[f64; 3]> = (0..500)
+            .map(|_| {
+                [
+                    rng.uniform(-0.4, 0.4),
+                    rng.uniform(-1.0, 1.0),
+                    rng.uniform(-0.2, 0.2),
+                ]
+            })
+            .collect();
+        queries.push([5.0, -7.0, 3.0]);
+        queries.extend_from_slice(&points[..20]);
+        for (k, per_cell) in [(1, 2.0), (5, 2.0), (8, 0.5), (8, 20.0)] {
+            check(&points, &queries, k, per_cell);
+        }
+        // Self query: the point itself comes first.
+        let grid = KnnGrid::new(&points, 2.0);
+        assert_eq!(grid.query(&points[17], 5)[0], 17);
+    }
+
+    #[test]
+    fn degenerate_clouds() {
+        // All points equal (ties broken by index), a flat plane, and a line.
+        let same = vec![[1.0, 2.0, 3.0]; 10];
+        check(&same, &[[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]], 4, 2.0);
+        let mut rng = Rng::new(1);
+        let plane: Vec<[f64; 3]> = (0..400)
+            .map(|_| [rng.uniform(0.0, 1.0), rng.uniform(0.0, 1.0), 0.0])
+            .collect();
+        check(&plane, &plane[..50], 5, 2.0);
+        let line: Vec<[f64; 3]> = (0..100).map(|i| [i as f64 * 0.01, 0.0, 0.0]).collect();
+        check(&line, &[[0.5, 0.3, 0.0], [-1.0, 0.0, 0.0]], 6, 1.0);
+        // Non-finite points are skipped, non-finite queries give a defined row.
+        let mut with_nan = line.clone();
+        with_nan[3] = [f64::NAN, 0.0, 0.0];
+        let grid = KnnGrid::new(&with_nan, 2.0);
+        let row = grid.query(&[0.03, 0.0, 0.0], 2);
+        assert!(!row.contains(&3));
+        assert_eq!(grid.query_all(&[[f64::NAN, 0.0, 0.0]], 2).len(), 2);
+        assert_eq!(grid.reference_count(), 99);
+    }
+
+    /// Deterministic pseudo-random points on a shell like a body surface.
     fn shell_points(n: usize) -> Vec<[f32; 3]> {
-        let mut state = 0x9E37_79B9_7F4A_7C15_u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((state >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-        };
+        let mut rng = Rng::new(11);
         (0..n)
             .map(|_| {
-                let v = [next(), next(), next()];
+                let v = [0, 1, 2].map(|_| rng.uniform(-1.0, 1.0));
                 let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
                 [
                     (v[0] / n * 0.3) as f32,
@@ -230,24 +353,31 @@ mod tests {
     }
 
     #[test]
-    fn matches_brute_force() {
+    fn graph_matches_brute_force_self_first() {
         let points = shell_points(700);
+        let wide: Vec<[f64; 3]> = points.iter().map(|p| p.map(f64::from)).collect();
         for k in [1, 6, 8] {
             let graph = knn_graph(&points, k).unwrap();
-            assert_eq!(graph.indices, brute_force(&points, k), "k={k}");
+            assert_eq!(graph.indices, knn_brute_force(&wide, &wide, k), "k={k}");
             for i in 0..points.len() {
                 assert_eq!(graph.indices[i * k], i as u32, "self first");
                 assert_eq!(graph.distances[i * k], 0.0);
+                for n in 0..k {
+                    let j = graph.indices[i * k + n] as usize;
+                    let d = dist2(&wide[i], &wide[j]).sqrt() as f32;
+                    assert_eq!(graph.distances[i * k + n], d);
+                }
             }
         }
     }
 
     #[test]
-    fn degenerate_sets() {
+    fn graph_errors_and_degenerate_sets() {
         // All points on a line, duplicates included.
         let points: Vec<[f32; 3]> = (0..50).map(|i| [(i / 2) as f32 * 0.01, 0.0, 0.0]).collect();
+        let wide: Vec<[f64; 3]> = points.iter().map(|p| p.map(f64::from)).collect();
         let graph = knn_graph(&points, 3).unwrap();
-        assert_eq!(graph.indices, brute_force(&points, 3));
+        assert_eq!(graph.indices, knn_brute_force(&wide, &wide, 3));
         assert_eq!(
             knn_graph(&points[..2], 3),
             Err(KnnError::TooFewPoints { k: 3, points: 2 })

@@ -7,9 +7,11 @@ pub mod compute;
 pub mod context;
 pub mod knn;
 pub mod pose;
+pub mod schema;
 pub mod stage;
 
 pub use context::{Scales, VelocityNormalisation, Window, window};
+pub use schema::MotionTrack;
 pub use stage::{MotionConfig, MotionStage};
 
 /// Adds this crate's stage kinds to the registry.

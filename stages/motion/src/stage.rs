@@ -3,38 +3,23 @@
 //! Inputs: an `ingest` entry (body model, cameras, frame axis) and optionally a `fit` entry
 //! (refined parameters; without one the ingest fits are used).
 //!
-//! Output arrays (per-frame arrays are chunked one frame per chunk, so a run reads only the
-//! frames its windows touch; scale slots are ordered largest scale first):
-//! - `posed_vertices` f32 `(frame, vertex, xyz)`: world-space posed template.
-//! - `joint_rotations` f32 `(frame, joint, row, col)`: root world orientation, then local
-//!   joint rotations.
-//! - `skeleton_motion` f32 `(frame, scale, joint, xyz)`: axis-angle of `R_t R_{t-s}^-1`.
-//! - `vertex_velocity` f32 `(frame, scale, vertex, xyz)`.
-//! - `scales` u32 `(scale)` raw frames; `scale_steps` u32 `(scale)` frames on the frame axis.
-//! - `frame_source_id` i64 `(frame)` (copied from ingest).
-//! - `canonical_vertices` f32 `(vertex, xyz)`; `canonical_knn` u32 and
-//!   `canonical_knn_distance` f32 `(vertex, neighbour)`, nearest first, self first.
-//! - `camera_K`, `camera_R` f64 `(view, row, col)`, `camera_t` f64 `(view, xyz)`,
-//!   `camera_image_size` u32 `(view, hw)` (copied from ingest, for pictures).
-//!
-//! A training window `(t, L, S)` is [`crate::window`]`(t, L, scale_steps)`: a gather of rows of
-//! `skeleton_motion` and `vertex_velocity`. `L` is not part of this stage's config, so the
-//! entry is shared by every training run.
+//! Output: the arrays and attributes of [`crate::schema`] (its writer, beside their reader).
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
+use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
 use seqavatar_fit::io::BodySequence;
-use seqavatar_fit::plot;
 use seqavatar_ingest::read_body_model;
 
 use crate::compute::{canonical_template, compute_motion};
 use crate::context::{Scales, VelocityNormalisation};
+use crate::schema::{MotionEntry, write_entry};
 
 /// The `motion` stage configuration: only what changes the motion templates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -153,108 +138,18 @@ impl StageKind for MotionStage {
             1e3 * seconds / motion.num_frames.max(1) as f64
         ));
 
-        let out = ctx.output();
-        let (f, v, j, s) = (
-            motion.num_frames as u64,
-            motion.num_vertices as u64,
-            motion.num_joints as u64,
-            scales.len() as u64,
-        );
-        out.write_array(
-            "posed_vertices",
-            &["frame", "vertex", "xyz"],
-            &[f, v, 3],
-            &[1, v, 3],
-            &motion.posed_vertices,
+        write_entry(
+            ctx.output(),
+            &ingest,
+            &MotionEntry {
+                motion: &motion,
+                scales: &scales,
+                canonical: &canonical,
+                graph: &graph,
+                frame_interval: interval,
+                velocity: config.velocity,
+            },
         )?;
-        out.write_array(
-            "joint_rotations",
-            &["frame", "joint", "row", "col"],
-            &[f, j, 3, 3],
-            &[1, j, 3, 3],
-            &motion.joint_rotations,
-        )?;
-        out.write_array(
-            "skeleton_motion",
-            &["frame", "scale", "joint", "xyz"],
-            &[f, s, j, 3],
-            &[1, s, j, 3],
-            &motion.skeleton_motion,
-        )?;
-        out.write_array(
-            "vertex_velocity",
-            &["frame", "scale", "vertex", "xyz"],
-            &[f, s, v, 3],
-            &[1, s, v, 3],
-            &motion.vertex_velocity,
-        )?;
-        out.write_array("scales", &["scale"], &[s], &[s], &scales.raw)?;
-        let steps: Vec<u32> = scales.steps.iter().map(|&k| k as u32).collect();
-        out.write_array("scale_steps", &["scale"], &[s], &[s], &steps)?;
-        let flat: Vec<f32> = canonical.iter().flatten().copied().collect();
-        out.write_array(
-            "canonical_vertices",
-            &["vertex", "xyz"],
-            &[v, 3],
-            &[v, 3],
-            &flat,
-        )?;
-        let k = graph.k as u64;
-        out.write_array(
-            "canonical_knn",
-            &["vertex", "neighbour"],
-            &[v, k],
-            &[v, k],
-            &graph.indices,
-        )?;
-        out.write_array(
-            "canonical_knn_distance",
-            &["vertex", "neighbour"],
-            &[v, k],
-            &[v, k],
-            &graph.distances,
-        )?;
-        let names = ingest.array_names();
-        if names.iter().any(|n| n == "frame_source_id") {
-            let ids = ingest.read::<i64>("frame_source_id")?;
-            anyhow::ensure!(
-                ids.len() as u64 == f,
-                "entry {}: `frame_source_id` has {} frames, the body parameters {f}",
-                ingest.location(),
-                ids.len()
-            );
-            out.write_array("frame_source_id", &["frame"], &[f], &[f.max(1)], &ids.data)?;
-        }
-        for (name, dims) in [
-            ("camera_K", &["view", "row", "col"][..]),
-            ("camera_R", &["view", "row", "col"][..]),
-            ("camera_t", &["view", "xyz"][..]),
-        ] {
-            if names.iter().any(|n| n == name) {
-                let a = ingest.read::<f64>(name)?;
-                let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-                out.write_array(
-                    name,
-                    dims,
-                    &shape,
-                    &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-                    &a.data,
-                )?;
-            }
-        }
-        if names.iter().any(|n| n == "camera_image_size") {
-            let a = ingest.read::<u32>("camera_image_size")?;
-            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-            out.write_array(
-                "camera_image_size",
-                &["view", "hw"],
-                &shape,
-                &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-                &a.data,
-            )?;
-        }
-        out.set_attribute("frame_interval", interval.into())?;
-        out.set_attribute("velocity", serde_json::to_value(config.velocity)?)?;
         Ok(())
     }
 
@@ -343,7 +238,7 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
     let max = options.get_f64("max", auto_max)?.max(1e-12);
     let camera = read_camera(entry, view)?;
     let bar = 70;
-    let mut img = image::RgbImage::from_pixel(camera.width + bar, camera.height, plot::WHITE);
+    let mut img = image::RgbImage::from_pixel(camera.width + bar, camera.height, picture::WHITE);
     let points: Vec<(f64, f64, f64, image::Rgb<u8>)> = posed
         .chunks_exact(3)
         .zip(&speeds)
@@ -351,12 +246,12 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
             let world = DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             let pixel = camera.project(world)?;
             let depth = camera.world_to_camera(world).z;
-            Some((pixel.x, pixel.y, depth, plot::colour_map(speed / max)))
+            Some((pixel.x, pixel.y, depth, picture::colour_map(speed / max)))
         })
         .collect();
-    plot::splat_points(&mut img, &points, radius);
+    picture::splat_points(&mut img, &points, radius);
     let (w, h) = (i64::from(camera.width), i64::from(camera.height));
-    plot::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
+    picture::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
     Ok(img)
 }
 
@@ -397,7 +292,7 @@ fn draw_skeleton_motion(
         .collect();
     let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
     let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
-    Ok(plot::line_plot(width, height, &series))
+    Ok(picture::line_plot(width, height, &series))
 }
 
 #[cfg(test)]

@@ -26,13 +26,13 @@
 use std::path::Path;
 use std::time::Instant;
 
+use seqavatar_avatar::model::{HEAD_WIDTH, NetworkConfig};
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
-use seqavatar_train::model::{HEAD_WIDTH, NetworkConfig};
 use seqavatar_train::trainer::{Phase, Trainer};
 
 const UPSTREAM: &str = r#"

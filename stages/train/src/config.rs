@@ -9,47 +9,10 @@ use std::path::PathBuf;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use serde::{Deserialize, Serialize};
 
-/// The paper's ablation rows (a) to (e): which motion conditions feed the non-rigid network.
-/// Each level includes the previous ones; a disabled condition's encoder is not built at all.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, PartialOrd, Ord)]
-#[serde(rename_all = "snake_case")]
-pub enum MotionContext {
-    /// (a) No non-rigid deformation: skinning only.
-    None,
-    /// (b) Non-rigid network on position and current pose.
-    Pose,
-    /// (c) Plus the skeleton motion sequence (Delta P).
-    Skeleton,
-    /// (d) Plus KNN vertex velocities at the single smallest scale.
-    Velocity,
-    /// (e) Plus all scales.
-    Multiscale,
-}
-
-impl MotionContext {
-    pub fn has_non_rigid(self) -> bool {
-        self >= Self::Pose
-    }
-    pub fn has_skeleton_motion(self) -> bool {
-        self >= Self::Skeleton
-    }
-    pub fn has_velocity(self) -> bool {
-        self >= Self::Velocity
-    }
-    pub fn is_multiscale(self) -> bool {
-        self == Self::Multiscale
-    }
-    /// The ablation row letter.
-    pub fn row(self) -> char {
-        match self {
-            Self::None => 'a',
-            Self::Pose => 'b',
-            Self::Skeleton => 'c',
-            Self::Velocity => 'd',
-            Self::Multiscale => 'e',
-        }
-    }
-}
+pub use seqavatar_avatar::config::{
+    AvatarConfig, Background, Device, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH,
+    MAX_TRUNK_WIDTH, MotionContext,
+};
 
 /// Named starting points trading speed for accuracy.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -61,51 +24,6 @@ pub enum Preset {
     Balanced,
     /// The paper's I3D-Human settings.
     Paper,
-}
-
-/// Where the numeric work runs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Device {
-    Auto,
-    Cpu,
-    Gpu,
-}
-
-/// The colour the avatar is rendered on during training, and the training targets composited
-/// onto (the ground truth is the person over its mask, on this background).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Background {
-    /// Black, as method.md trains every dataset.
-    Black,
-    /// White.
-    White,
-    /// A uniformly random colour per iteration (the same for the render and the target of
-    /// that iteration), the usual remedy against the model painting the background.
-    Random,
-}
-
-impl Background {
-    /// The colour of one training iteration: the fixed colour, or for `random` three
-    /// uniform draws from `rng` (the only background that draws, so black and white runs
-    /// keep their random streams).
-    pub fn draw(self, rng: &mut crate::rng::Rng) -> [f64; 3] {
-        match self {
-            Self::Random => [rng.next_f64(), rng.next_f64(), rng.next_f64()],
-            fixed => fixed.render_colour(),
-        }
-    }
-
-    /// The colour a trained avatar renders on by default (`pipeline render`): the fixed
-    /// colour; black for `random`. (The held-out PSNR and eval render on the evaluation
-    /// protocol's background.)
-    pub fn render_colour(self) -> [f64; 3] {
-        match self {
-            Self::Black | Self::Random => [0.0; 3],
-            Self::White => [1.0; 3],
-        }
-    }
 }
 
 /// Learning rates (method.md, "Optimisation").
@@ -201,12 +119,8 @@ impl Default for LearningRates {
     }
 }
 
-/// Upper bounds of the network and batch sizes (far above the paper's settings; larger
-/// values would abort on allocation or run for days).
-pub const MAX_TRUNK_WIDTH: usize = 4096;
-pub const MAX_TRUNK_DEPTH: usize = 32;
-pub const MAX_TAU: usize = 64;
-pub const MAX_SEQUENCE_LENGTH: usize = 64;
+/// Upper bounds of the batch sizes (far above the paper's settings; larger values would
+/// abort on allocation or run for days; the network bounds are the avatar config's).
 pub const MAX_GAUSSIANS: usize = 10_000_000;
 pub const MAX_CAMERAS_PER_STEP: usize = 256;
 pub const MAX_AIAP_NEIGHBOURS: usize = 64;
@@ -394,24 +308,13 @@ impl TrainConfig {
                 format!("must be in (0, 4], got {}", self.resolution_scale),
             );
         }
-        if self.motion_context.has_non_rigid() && (self.trunk_width == 0 || self.trunk_depth == 0) {
-            return bad(
-                "trunk_width",
-                "the non-rigid trunk needs width and depth >= 1".into(),
-            );
-        }
-        if self.motion_context.has_velocity() && self.tau == 0 {
-            return bad("tau", "velocity context needs tau >= 1".into());
-        }
-        if self.motion_context.has_skeleton_motion() && self.sequence_length == 0 {
-            return bad("sequence_length", "must be at least 1".into());
-        }
+        // The fields the avatar keeps (network sizes, window, SH degree, scale bounds).
+        self.avatar().validate().map_err(|e| ConfigError::Field {
+            field: e.field,
+            message: e.message,
+        })?;
         // Upper bounds: far above the paper's settings, below what aborts.
         for (name, value, max) in [
-            ("trunk_width", self.trunk_width, MAX_TRUNK_WIDTH),
-            ("trunk_depth", self.trunk_depth, MAX_TRUNK_DEPTH),
-            ("tau", self.tau, MAX_TAU),
-            ("sequence_length", self.sequence_length, MAX_SEQUENCE_LENGTH),
             ("max_gaussians", self.max_gaussians, MAX_GAUSSIANS),
             (
                 "cameras_per_step",
@@ -433,12 +336,6 @@ impl TrainConfig {
         }
         if self.cameras_per_step == 0 {
             return bad("cameras_per_step", "must be at least 1".into());
-        }
-        if self.sh_degree > 3 {
-            return bad(
-                "sh_degree",
-                format!("must be 0..=3, got {}", self.sh_degree),
-            );
         }
         for (name, value) in [
             ("sh_degree_interval", self.sh_degree_interval),
@@ -477,10 +374,6 @@ impl TrainConfig {
                 "non_rigid_head_init",
                 format!("must be finite and >= 0, got {}", self.non_rigid_head_init),
             );
-        }
-        if !(self.scale_min > 0.0 && self.scale_max > self.scale_min && self.scale_max.is_finite())
-        {
-            return bad("scale_min", "need 0 < scale_min < scale_max".into());
         }
         for (name, value) in [
             ("mask_weight", self.mask_weight),
@@ -546,6 +439,24 @@ impl TrainConfig {
         gaussians
             .saturating_mul(per_gaussian)
             .saturating_add(weights)
+    }
+
+    /// What rendering the trained avatar needs of this configuration (written into the
+    /// train entry, read by eval and `pipeline render`).
+    pub fn avatar(&self) -> AvatarConfig {
+        AvatarConfig {
+            motion_context: self.motion_context,
+            trunk_width: self.trunk_width,
+            trunk_depth: self.trunk_depth,
+            tau: self.tau,
+            sequence_length: self.sequence_length,
+            pose_refiner: self.pose_refiner,
+            lbs_offsets: self.lbs_offsets,
+            sh_degree: self.sh_degree,
+            scale_min: self.scale_min,
+            scale_max: self.scale_max,
+            background: self.background,
+        }
     }
 
     /// Whether the LPIPS loss runs (a positive weight; validation ensures the weights file).

@@ -11,8 +11,10 @@ use seqavatar_engine::EntryReader;
 use seqavatar_ingest::stage::{SourceImage, resample};
 use seqavatar_ingest::{read_body_model, read_body_params};
 
+use seqavatar_avatar::rig::BodyRig;
+use seqavatar_motion::schema::MotionTrack;
+
 use crate::losses::{Rect, bound_box};
-use crate::rig::BodyRig;
 
 /// One ingested image, resampled to the training resolution.
 #[derive(Clone, Debug)]
@@ -53,102 +55,6 @@ impl ImageRecord {
 
 /// The cameras of an entry (the ingest schema's reader, re-exported for this crate's users).
 pub use seqavatar_ingest::read_cameras;
-
-/// The motion entry's arrays a window gathers from.
-#[derive(Clone, Debug)]
-pub struct MotionTrack {
-    pub num_frames: usize,
-    pub num_joints: usize,
-    pub num_vertices: usize,
-    /// Raw scales, largest first.
-    pub scales: Vec<u32>,
-    /// The same scales in steps on the frame axis.
-    pub scale_steps: Vec<usize>,
-    /// `(frame, scale, joint, 3)`.
-    pub skeleton_motion: Vec<f32>,
-    /// `(frame, scale, vertex, 3)`.
-    pub vertex_velocity: Vec<f32>,
-}
-
-impl MotionTrack {
-    pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
-        let location = entry.location();
-        let scales = entry.read::<u32>("scales")?.data;
-        let steps = entry.read::<u32>("scale_steps")?.data;
-        anyhow::ensure!(
-            !scales.is_empty() && steps.len() == scales.len(),
-            "entry {location}: `scales` ({}) and `scale_steps` ({}) must be non-empty and equally long",
-            scales.len(),
-            steps.len()
-        );
-        let skeleton = entry.read::<f32>("skeleton_motion")?;
-        let velocity = entry.read::<f32>("vertex_velocity")?;
-        let s = scales.len();
-        anyhow::ensure!(
-            skeleton.shape.len() == 4 && skeleton.shape[1] == s && skeleton.shape[3] == 3,
-            "entry {location}: array `skeleton_motion` has shape {:?}, expected (frame, {s}, joint, 3)",
-            skeleton.shape
-        );
-        let (f, j) = (skeleton.shape[0], skeleton.shape[2]);
-        anyhow::ensure!(
-            velocity.shape.len() == 4
-                && velocity.shape[0] == f
-                && velocity.shape[1] == s
-                && velocity.shape[3] == 3,
-            "entry {location}: array `vertex_velocity` has shape {:?}, expected ({f}, {s}, vertex, 3)",
-            velocity.shape
-        );
-        for (name, data) in [
-            ("skeleton_motion", &skeleton.data),
-            ("vertex_velocity", &velocity.data),
-        ] {
-            if let Some(bad) = data.iter().position(|v| !v.is_finite()) {
-                anyhow::bail!("entry {location}: array `{name}` has a non-finite value at {bad}");
-            }
-        }
-        Ok(Self {
-            num_frames: f,
-            num_joints: j,
-            num_vertices: velocity.shape[2],
-            scales,
-            scale_steps: steps.iter().map(|&k| k as usize).collect(),
-            skeleton_motion: skeleton.data,
-            vertex_velocity: velocity.data,
-        })
-    }
-
-    /// Slots (indices into `scales`) of the wanted raw scales, in the order given.
-    pub fn slots(&self, wanted: &[u32]) -> anyhow::Result<Vec<usize>> {
-        wanted
-            .iter()
-            .map(|w| {
-                self.scales.iter().position(|s| s == w).ok_or_else(|| {
-                    anyhow::anyhow!("scale {w} is not in the motion entry ({:?})", self.scales)
-                })
-            })
-            .collect()
-    }
-
-    /// The gathered window of frame `frame`: skeleton motion `(L, S', J, 3)` and vertex
-    /// velocity `(L, S', V, 3)` for the scale slots `slots`, `l = 0` the most recent delta.
-    pub fn gather(&self, frame: usize, length: usize, slots: &[usize]) -> (Vec<f32>, Vec<f32>) {
-        let steps: Vec<usize> = slots.iter().map(|&s| self.scale_steps[s]).collect();
-        let window = seqavatar_motion::window(frame, length, &steps);
-        let (s_all, j, v) = (self.scales.len(), self.num_joints, self.num_vertices);
-        let mut skeleton = Vec::with_capacity(length * slots.len() * j * 3);
-        let mut velocity = Vec::with_capacity(length * slots.len() * v * 3);
-        for l in 0..length {
-            for (k, &slot) in slots.iter().enumerate() {
-                let row = window.frame(l, k).min(self.num_frames.saturating_sub(1));
-                let at = (row * s_all + slot) * j * 3;
-                skeleton.extend_from_slice(&self.skeleton_motion[at..at + j * 3]);
-                let at = (row * s_all + slot) * v * 3;
-                velocity.extend_from_slice(&self.vertex_velocity[at..at + v * 3]);
-            }
-        }
-        (skeleton, velocity)
-    }
-}
 
 /// Everything a run reads, in memory.
 #[derive(Clone, Debug)]

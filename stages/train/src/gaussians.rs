@@ -8,14 +8,13 @@
 //! moments, and the densification statistics `grad_accum`, `grad_count`.
 
 use anyhow::bail;
+use seqavatar_avatar::avatar::AvatarGaussians;
 
 use crate::densify::{GaussianState, Growth, names};
 use crate::losses::Rect;
 
-/// Spherical-harmonics DC constant (3DGS `C0`).
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
-/// Coefficients stored per colour channel (degree 3).
-pub const SH_STORED: usize = 16;
+pub use seqavatar_avatar::avatar::{SH_C0, SH_STORED};
+
 /// Column of the SH coefficients.
 pub const SH: &str = "sh";
 
@@ -80,6 +79,17 @@ pub fn initial_state(
     state.add(names::GRAD_ACCUM, 1, Growth::Zero, vec![0.0; n])?;
     state.add(names::GRAD_COUNT, 1, Growth::Zero, vec![0.0; n])?;
     Ok(state)
+}
+
+/// The avatar's Gaussians: the trainable columns of a training state.
+pub fn avatar_gaussians(state: &GaussianState) -> anyhow::Result<AvatarGaussians> {
+    Ok(AvatarGaussians {
+        xyz: state.values(names::POSITION)?.to_vec(),
+        sh: state.values(SH)?.to_vec(),
+        opacity_logit: state.values(names::OPACITY_LOGIT)?.to_vec(),
+        log_scale: state.values(names::LOG_SCALE)?.to_vec(),
+        rotation: state.values(names::ROTATION)?.to_vec(),
+    })
 }
 
 /// 3DGS's exponential (log-linear) decay from `initial` to `final_` over `steps`.

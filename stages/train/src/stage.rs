@@ -12,7 +12,8 @@
 //! With `lpips_weight > 0` the LPIPS weights file (`lpips_weights`) is an external file: its
 //! content enters the key.
 //!
-//! Output: the trained avatar ([`crate::avatar`] lists its arrays and attributes), and
+//! Output: the trained avatar ([`seqavatar_avatar::avatar`] lists its arrays and
+//! attributes), the attribute `config` (the resolved train config), and
 //! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `lpips`
 //!   (unweighted, 0 when the LPIPS loss is off), `aiap`, `psnr` (train PSNR inside the bound
 //!   box) and `gaussians` (count after the iteration);
@@ -30,15 +31,15 @@ use std::time::Instant;
 use anyhow::Context;
 use serde_json::json;
 
-use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_avatar::config::device_choice;
+use seqavatar_compute::backend::Backend;
+use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
-use seqavatar_fit::plot;
 
-use crate::avatar::TrainedAvatar;
 use crate::checkpoint;
-use crate::config::{Device, TrainConfig};
+use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::trainer::{LossCurve, Trainer};
 
@@ -46,21 +47,9 @@ use crate::trainer::{LossCurve, Trainer};
 pub struct TrainStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 4;
+const VERSION: u32 = 5;
 
-/// Converts the config's device to the compute crate's choice.
-pub fn device_choice(device: Device) -> DeviceChoice {
-    match device {
-        Device::Auto => DeviceChoice::Auto,
-        Device::Cpu => DeviceChoice::Cpu,
-        Device::Gpu => DeviceChoice::Gpu,
-    }
-}
-
-/// The evaluation protocol's background (method.md: black for every dataset). The held-out
-/// PSNR renders the avatar on it and sets the truth outside the mask to it, whatever the
-/// training background, so it is the number eval reports with its default protocol.
-pub const PROTOCOL_BACKGROUND: [f64; 3] = [0.0; 3];
+pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;
 
 /// Held-out PSNR of one rendered image by the evaluation protocol of method.md: rendered
 /// pixels outside the bound box set to the background, ground-truth pixels outside the mask
@@ -282,6 +271,7 @@ impl StageKind for TrainStage {
 
         let out = ctx.output();
         avatar.write(out, data.extent, &data.body_model_kind)?;
+        out.set_attribute("config", serde_json::to_value(&config)?)?;
         let iterations = trainer.curve.total.len() as u64;
         for name in LossCurve::NAMES {
             let values = trainer.curve.get(name).expect("known curve");
@@ -390,16 +380,11 @@ pub fn draw_loss_curve(
     let width = options.get_u64("width", 900)?.clamp(64, 8192) as u32;
     let height = options.get_u64("height", 400)?.clamp(48, 8192) as u32;
     let psnr_scaled: Vec<f64> = smooth(&psnr, window).iter().map(|p| p / 10.0).collect();
-    Ok(plot::line_plot(
+    Ok(picture::line_plot(
         width,
         height,
         &[smooth(&total, window), psnr_scaled],
     ))
-}
-
-/// Reads a trained avatar (for callers that have only the entry).
-pub fn load_avatar(entry: &EntryReader) -> anyhow::Result<TrainedAvatar> {
-    TrainedAvatar::load(entry)
 }
 
 #[cfg(test)]

@@ -1,6 +1,6 @@
 //! The training loop. [`Trainer::step`] runs one iteration as named phases ([`Phase`], each
 //! timed into [`Trainer::phase_times`]): `deform` (a seeded choice of training image(s) of
-//! one frame and the avatar's forward pass, [`crate::avatar::deform`]), `splat` (on the
+//! one frame and the avatar's forward pass, [`seqavatar_avatar::avatar::deform`]), `splat` (on the
 //! chosen backend onto the iteration's background, [`crate::config::Background`]), `losses`
 //! (photometric and, when configured, LPIPS against the ground truth composited with its mask
 //! onto that same background, [`crate::data::ImageRecord::colour_on`], and the
@@ -23,28 +23,31 @@ use seqavatar_core::camera::Camera;
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use crate::avatar::{
+use seqavatar_avatar::avatar::{
     AvatarGaussians, Deformed, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
     gather_frame_inputs, needs_networks, template_grid,
 };
+use seqavatar_avatar::model::gpu::GpuNetworks;
+use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
+use seqavatar_avatar::rig::{FramePose, PoseChain};
+use seqavatar_motion::knn::{KnnGrid, as_points, knn_brute_force};
+
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::densify::{
     DensifyReport, DensifySettings, GaussianState, Growth, densify_and_prune, names,
 };
-use crate::gaussians::{SH, SH_STORED, TRAINABLE, exponential_lr, initial_state, psnr};
-use crate::knn::{KnnGrid, as_points, knn_brute_force};
+use crate::gaussians::{
+    SH, SH_STORED, TRAINABLE, avatar_gaussians, exponential_lr, initial_state, psnr,
+};
 use crate::losses::{
     AiapGaussianGrads, AiapGaussians, AiapWeights, ImageLossWeights, ImagePair, LpipsLoss, Rect,
     aiap_gaussians, image_loss,
 };
-use crate::model::gpu::GpuNetworks;
-use crate::model::{NetworkConfig, NetworkGroup, Networks};
-use crate::rig::{FramePose, PoseChain};
 use crate::rng::Rng;
-use crate::skinning::{GaussianParams, skin_backward};
-use crate::splatting::{self, SplatPass};
+use seqavatar_avatar::skinning::{GaussianParams, skin_backward};
+use seqavatar_avatar::splatting::{self, SplatPass};
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -494,7 +497,7 @@ impl<'d> Trainer<'d> {
     }
 
     fn avatar_gaussians(&self) -> anyhow::Result<AvatarGaussians> {
-        AvatarGaussians::from_state(&self.state)
+        avatar_gaussians(&self.state)
     }
 
     /// One training iteration: the phases of [`Phase`] in order, each timed into
@@ -538,8 +541,9 @@ impl<'d> Trainer<'d> {
                 .context("uploading the networks to the gpu")?;
         }
         let posed = self.posed_frame(frame)?;
+        let avatar_config = self.config.avatar();
         let inputs = gather_frame_inputs(
-            &self.config,
+            &avatar_config,
             &self.scales,
             &self.data.motion,
             &self.data.params[frame],
@@ -554,7 +558,7 @@ impl<'d> Trainer<'d> {
             &gaussians,
             &inputs,
             &posed.pose,
-            &self.config,
+            &avatar_config,
             sh_degree,
         )?;
         Ok(Forward {
@@ -984,7 +988,7 @@ impl<'d> Trainer<'d> {
     /// The current avatar.
     pub fn avatar(&self) -> anyhow::Result<TrainedAvatar> {
         Ok(TrainedAvatar::new(
-            self.config.clone(),
+            self.config.avatar(),
             self.data.rig.clone(),
             self.avatar_gaussians()?,
             sh_degree_at(&self.config, self.iteration.max(1)),
@@ -1171,11 +1175,12 @@ fn build_networks(
     data: &TrainingData,
     scale_count: usize,
 ) -> anyhow::Result<Option<Networks<f64>>> {
-    if !needs_networks(config) {
+    let avatar_config = config.avatar();
+    if !needs_networks(&avatar_config) {
         return Ok(None);
     }
-    let net_config = NetworkConfig::from_train(
-        config,
+    let net_config = NetworkConfig::from_avatar(
+        &avatar_config,
         data.rig.joint_count(),
         data.motion.num_joints,
         scale_count,

@@ -6,16 +6,17 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use seqavatar_avatar::TrainedAvatar;
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
 use seqavatar_compute::lpips::LpipsNet;
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
 };
+use seqavatar_train::TrainStage;
 use seqavatar_train::checkpoint;
 use seqavatar_train::config::{Background, TrainConfig};
 use seqavatar_train::data::TrainingData;
 use seqavatar_train::trainer::{Divergence, Trainer};
-use seqavatar_train::{TrainStage, TrainedAvatar};
 
 const UPSTREAM: &str = r#"
 stages:
@@ -101,8 +102,8 @@ fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
     // The entry carries the ingest cameras.
     let ingest = entry(dir.path(), &reports, "ingest");
     assert_eq!(
-        seqavatar_train::data::read_cameras(&train).unwrap(),
-        seqavatar_train::data::read_cameras(&ingest).unwrap()
+        seqavatar_ingest::read_cameras(&train).unwrap(),
+        seqavatar_ingest::read_cameras(&ingest).unwrap()
     );
     // The stored avatar renders, and its pictures draw.
     let avatar = TrainedAvatar::load(&train).unwrap();
@@ -221,7 +222,7 @@ fn checkpoint_resume_is_exact_with_networks() {
 
 /// Largest non-rigid centre and scale offsets of a fresh run's networks at frame 1.
 fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
-    use seqavatar_train::avatar::{deform, frame_pose, template_grid};
+    use seqavatar_avatar::avatar::{deform, frame_pose, template_grid};
     let trainer = Trainer::new(config.clone(), data, Backend::Cpu).unwrap();
     let avatar = trainer.avatar().unwrap();
     let inputs = avatar
@@ -237,7 +238,7 @@ fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
         &avatar.gaussians,
         &inputs,
         &posed.pose,
-        config,
+        &config.avatar(),
         0,
     )
     .unwrap();

@@ -200,7 +200,8 @@ impl GpuContext {
             .min(self.limits.max_buffer_size)
     }
 
-    /// Compiles (once) and returns the pipeline for `source`.
+    /// Compiles (once, after [`super::shaders::expand_includes`]) and returns the pipeline
+    /// for `source`.
     pub fn kernel(&self, source: &KernelSource) -> Result<Arc<Kernel>, BackendError> {
         let mut kernels = self.kernels.lock().map_err(|_| BackendError::Gpu {
             message: "kernel cache lock poisoned".to_owned(),
@@ -208,12 +209,13 @@ impl GpuContext {
         if let Some(kernel) = kernels.get(source.name) {
             return Ok(kernel.clone());
         }
+        let wgsl = super::shaders::expand_includes(source.name, &source.wgsl)?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = self
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(source.name),
-                source: wgpu::ShaderSource::Wgsl(source.wgsl.clone()),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
             });
         let pipeline = self
             .device

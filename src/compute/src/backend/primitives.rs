@@ -20,20 +20,42 @@ fn source(name: &'static str, wgsl: &'static str, entry_point: &'static str) -> 
     }
 }
 
+/// `ScanParams` in `scan_exclusive.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct ScanParams {
+pub(crate) struct ScanParams {
     count: u32,
     pad: [u32; 3],
 }
 
+/// `SortParams` in `sort_radix.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct SortParams {
+pub(crate) struct SortParams {
     count: u32,
     shift: u32,
     blocks: u32,
     pad: u32,
+}
+
+/// This module's uniform structs for the layout test in [`super::shaders`].
+#[cfg(test)]
+pub(crate) fn wgsl_twins() -> Vec<super::shaders::WgslTwin> {
+    use super::shaders::wgsl_twin;
+    vec![
+        wgsl_twin!(ScanParams as "ScanParams" in ["scan_exclusive.wgsl"] {
+            "count" => count,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+        wgsl_twin!(SortParams as "SortParams" in ["sort_radix.wgsl"] {
+            "count" => count,
+            "shift" => shift,
+            "blocks" => blocks,
+            "_pad" => pad,
+        }),
+    ]
 }
 
 /// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a

@@ -1,15 +1,197 @@
-//! Shader text helpers: the f32 atomic-add variants of gradient kernels, and (in tests) the
-//! naga validation of every `shaders/*.wgsl`.
+//! Shader text helpers: the include step every kernel goes through before it is compiled,
+//! the f32 atomic-add variants of gradient kernels, and (in tests) the naga validation of
+//! every `shaders/*.wgsl` and the layout check of every uniform and storage struct against
+//! its Rust `#[repr(C)]` twin.
+//!
+//! WGSL has no `#include`. A struct several kernels share is declared once in a header in
+//! `shaders/` ([`HEADERS`]) and a kernel names it on a line of its own,
+//! `//#include "splat_types.wgsl"`, which [`expand_includes`] replaces by the header's text.
+//! The step is strict: an unknown header, a malformed include line, a header included twice
+//! or an include inside a header are errors naming the kernel.
 //!
 //! Kernels that accumulate gradients carry the portable compare-exchange `gradient_add`
 //! (the code of `shaders/atomic_add_cas.wgsl`) between `// @atomic-add-begin` and
-//! `// @atomic-add-end`, so each file is valid WGSL on its own; [`with_atomic_add`] swaps in
-//! the native `atomic<f32>` version when the adapter has it.
+//! `// @atomic-add-end`; [`with_atomic_add`] swaps in the native `atomic<f32>` version when
+//! the adapter has it.
 
 use super::BackendError;
 
 pub const ATOMIC_ADD_FLOAT_WGSL: &str = include_str!("../../../../shaders/atomic_add_float.wgsl");
 pub const ATOMIC_ADD_CAS_WGSL: &str = include_str!("../../../../shaders/atomic_add_cas.wgsl");
+
+/// The shared headers kernels may include, by file name (each is a file in `shaders/`).
+pub const HEADERS: &[(&str, &str)] = &[
+    (
+        "splat_types.wgsl",
+        include_str!("../../../../shaders/splat_types.wgsl"),
+    ),
+    (
+        "lpips_types.wgsl",
+        include_str!("../../../../shaders/lpips_types.wgsl"),
+    ),
+];
+
+const INCLUDE: &str = "//#include";
+
+/// `wgsl` with every `//#include "NAME"` line replaced by the text of the header `NAME` of
+/// [`HEADERS`]. One level only: a header that includes is an error, as are an unknown name,
+/// a line that starts with `//#include` but is not exactly `//#include "NAME"`, and a header
+/// included twice. `name` is the kernel's, for the error.
+pub fn expand_includes(name: &str, wgsl: &str) -> Result<String, BackendError> {
+    expand_with(name, wgsl, HEADERS)
+}
+
+fn expand_with(name: &str, wgsl: &str, headers: &[(&str, &str)]) -> Result<String, BackendError> {
+    let error = |message: String| BackendError::Shader {
+        name: name.to_owned(),
+        message,
+    };
+    let mut expanded = String::with_capacity(wgsl.len());
+    let mut included: Vec<&str> = Vec::new();
+    for (index, line) in wgsl.split_inclusive('\n').enumerate() {
+        let text = line.trim();
+        let Some(rest) = text.strip_prefix(INCLUDE) else {
+            expanded.push_str(line);
+            continue;
+        };
+        let header = rest
+            .strip_prefix(' ')
+            .and_then(|quoted| quoted.strip_prefix('"'))
+            .and_then(|quoted| quoted.strip_suffix('"'))
+            .filter(|header| !header.is_empty() && !header.contains('"'))
+            .ok_or_else(|| {
+                error(format!(
+                    "line {}: `{text}` is not of the form `{INCLUDE} \"NAME\"`",
+                    index + 1
+                ))
+            })?;
+        let (header, text_of_header) = headers
+            .iter()
+            .find(|(known, _)| *known == header)
+            .copied()
+            .ok_or_else(|| {
+                let known: Vec<&str> = headers.iter().map(|(known, _)| *known).collect();
+                error(format!(
+                    "line {}: unknown header \"{header}\" (known: {})",
+                    index + 1,
+                    known.join(", ")
+                ))
+            })?;
+        if included.contains(&header) {
+            return Err(error(format!(
+                "line {}: header \"{header}\" is included twice",
+                index + 1
+            )));
+        }
+        if text_of_header
+            .lines()
+            .any(|line| line.trim().starts_with(INCLUDE))
+        {
+            return Err(error(format!(
+                "line {}: header \"{header}\" includes another header (one level only)",
+                index + 1
+            )));
+        }
+        included.push(header);
+        expanded.push_str(text_of_header);
+        if !text_of_header.ends_with('\n') {
+            expanded.push('\n');
+        }
+    }
+    Ok(expanded)
+}
+
+/// A WGSL uniform or storage struct and its Rust `#[repr(C)]` twin, as the layout test
+/// compares them: each module that uploads such a struct lists its twins next to it
+/// (`wgsl_twins()`, built with [`wgsl_twin!`]).
+#[cfg(test)]
+pub(crate) struct WgslTwin {
+    /// The kernel files (in `shaders/`) whose struct this is.
+    pub kernels: &'static [&'static str],
+    pub wgsl_struct: &'static str,
+    pub rust_struct: &'static str,
+    pub size: usize,
+    /// The Rust places of the WGSL members, in the WGSL order.
+    pub fields: Vec<TwinField>,
+}
+
+/// Where the Rust twin keeps one WGSL member.
+#[cfg(test)]
+pub(crate) struct TwinField {
+    pub wgsl: &'static str,
+    pub offset: usize,
+    pub size: usize,
+    pub kind: naga::ScalarKind,
+}
+
+/// The scalar kind of a Rust field's elements, to compare with the WGSL member's.
+#[cfg(test)]
+pub(crate) trait TwinScalar {
+    const KIND: naga::ScalarKind;
+}
+
+#[cfg(test)]
+impl TwinScalar for u32 {
+    const KIND: naga::ScalarKind = naga::ScalarKind::Uint;
+}
+
+#[cfg(test)]
+impl TwinScalar for i32 {
+    const KIND: naga::ScalarKind = naga::ScalarKind::Sint;
+}
+
+#[cfg(test)]
+impl TwinScalar for f32 {
+    const KIND: naga::ScalarKind = naga::ScalarKind::Float;
+}
+
+#[cfg(test)]
+impl<T: TwinScalar, const N: usize> TwinScalar for [T; N] {
+    const KIND: naga::ScalarKind = T::KIND;
+}
+
+#[cfg(test)]
+impl TwinField {
+    /// The place `field` inside `value` (a reference into it) holding the WGSL member `wgsl`.
+    pub fn of<T, F: TwinScalar>(wgsl: &'static str, value: &T, field: &F) -> Self {
+        let start = std::ptr::from_ref(value).addr();
+        let at = std::ptr::from_ref(field).addr();
+        assert!(
+            at >= start && at + size_of::<F>() <= start + size_of::<T>(),
+            "{wgsl}: the place given is not inside the value"
+        );
+        Self {
+            wgsl,
+            offset: at - start,
+            size: size_of::<F>(),
+            kind: F::KIND,
+        }
+    }
+}
+
+/// Describes a Rust twin of a WGSL struct for the layout test:
+/// `wgsl_twin!(CameraUniform as "SplatCamera" in ["splat_project.wgsl"] { "rotation0" =>
+/// rotation[0], "intrinsics" => intrinsics, ... })`, one entry per WGSL member in order,
+/// each naming the Rust field (and array index) that holds it.
+#[cfg(test)]
+macro_rules! wgsl_twin {
+    ($rust:ty as $wgsl:literal in [$($kernel:literal),+ $(,)?] {
+        $($member:literal => $field:ident $([$index:literal])?),+ $(,)?
+    }) => {{
+        let value: $rust = bytemuck::Zeroable::zeroed();
+        $crate::backend::shaders::WgslTwin {
+            kernels: &[$($kernel),+],
+            wgsl_struct: $wgsl,
+            rust_struct: stringify!($rust),
+            size: size_of::<$rust>(),
+            fields: vec![$(
+                $crate::backend::shaders::TwinField::of($member, &value, &value.$field $([$index])?)
+            ),+],
+        }
+    }};
+}
+#[cfg(test)]
+pub(crate) use wgsl_twin;
 
 const BEGIN: &str = "// @atomic-add-begin";
 const END: &str = "// @atomic-add-end";
@@ -74,7 +256,7 @@ pub fn with_atomic_add(name: &str, wgsl: &str, mode: AtomicAdd) -> Result<String
 mod tests {
     use super::*;
 
-    fn validate(name: &str, wgsl: &str) {
+    fn validate(name: &str, wgsl: &str) -> naga::Module {
         let module = naga::front::wgsl::parse_str(wgsl)
             .unwrap_or_else(|error| panic!("{name}: {}", error.emit_to_string(wgsl)));
         naga::valid::Validator::new(
@@ -83,15 +265,21 @@ mod tests {
         )
         .validate(&module)
         .unwrap_or_else(|error| panic!("{name}: {}", error.emit_to_string(wgsl)));
+        module
     }
 
-    #[test]
-    fn every_shader_parses_and_validates() {
+    /// Every `shaders/*.wgsl` as (file name, text), sorted; at least a few, so a wrong
+    /// folder cannot make the tests check nothing.
+    fn shader_files() -> Vec<(String, String)> {
         let folder = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders");
         let mut files: Vec<_> = std::fs::read_dir(&folder)
             .unwrap_or_else(|error| panic!("reading {}: {error}", folder.display()))
             .map(|entry| entry.unwrap().path())
             .filter(|path| path.extension().is_some_and(|ext| ext == "wgsl"))
+            .map(|path| {
+                let name = path.file_name().unwrap().to_string_lossy().into_owned();
+                (name, std::fs::read_to_string(&path).unwrap())
+            })
             .collect();
         files.sort();
         assert!(
@@ -100,11 +288,16 @@ mod tests {
             files.len(),
             folder.display()
         );
+        files
+    }
+
+    #[test]
+    fn every_shader_parses_and_validates() {
+        let files = shader_files();
         let mut variants = 0;
-        for path in &files {
-            let name = path.display().to_string();
-            let wgsl = std::fs::read_to_string(path).unwrap();
-            validate(&name, &wgsl);
+        for (name, raw) in &files {
+            let wgsl = expand_includes(name, raw).unwrap();
+            validate(name, &wgsl);
             if let Some((begin, end)) = region(&wgsl) {
                 // The inline fallback must be exactly the shared snippet.
                 assert_eq!(
@@ -115,7 +308,7 @@ mod tests {
                 for mode in [AtomicAdd::NativeFloat, AtomicAdd::CompareExchange] {
                     validate(
                         &format!("{name} ({mode:?})"),
-                        &with_atomic_add(&name, &wgsl, mode).unwrap(),
+                        &with_atomic_add(name, &wgsl, mode).unwrap(),
                     );
                     variants += 1;
                 }
@@ -131,5 +324,233 @@ mod tests {
     fn a_shader_without_a_region_is_an_error() {
         let error = with_atomic_add("plain.wgsl", "fn f() {}", AtomicAdd::NativeFloat).unwrap_err();
         assert!(error.to_string().contains("plain.wgsl"), "{error}");
+    }
+
+    #[test]
+    fn includes_expand_strictly() {
+        let headers = [
+            ("a.wgsl", "struct A { x: u32, }"),
+            (
+                "nested.wgsl",
+                "//#include \"a.wgsl\"\nstruct B { y: u32, }\n",
+            ),
+        ];
+        let expanded = expand_with(
+            "k.wgsl",
+            "// top\n  //#include \"a.wgsl\"  \nfn f() {}",
+            &headers,
+        )
+        .unwrap();
+        assert_eq!(expanded, "// top\nstruct A { x: u32, }\nfn f() {}");
+        // Comments may mention the directive mid-line.
+        let plain = "// see //#include \"b.wgsl\"\n";
+        assert_eq!(expand_with("k.wgsl", plain, &headers).unwrap(), plain);
+        for (text, expected) in [
+            (
+                "//#include \"zzz.wgsl\"\n",
+                "unknown header \"zzz.wgsl\" (known: a.wgsl, nested.wgsl)",
+            ),
+            (
+                "//#include a.wgsl\n",
+                "line 1: `//#include a.wgsl` is not of the form",
+            ),
+            ("//#include \"\"\n", "is not of the form"),
+            ("//#include\"a.wgsl\"\n", "is not of the form"),
+            (
+                "//#include \"a.wgsl\"\n//#include \"a.wgsl\"\n",
+                "line 2: header \"a.wgsl\" is included twice",
+            ),
+            (
+                "//#include \"nested.wgsl\"\n",
+                "header \"nested.wgsl\" includes another header",
+            ),
+        ] {
+            let error = expand_with("k.wgsl", text, &headers)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.contains("k.wgsl") && error.contains(expected),
+                "{text:?}: {error}"
+            );
+        }
+        // The real headers include nothing and are included by some kernel each.
+        let files = shader_files();
+        for (header, text) in HEADERS {
+            expand_includes(header, text).unwrap();
+            assert!(
+                files
+                    .iter()
+                    .any(|(name, raw)| name == header && raw == text),
+                "{header} is not a file of shaders/"
+            );
+            let directive = format!("//#include \"{header}\"");
+            assert!(
+                files
+                    .iter()
+                    .any(|(_, raw)| raw.lines().any(|line| line.trim() == directive)),
+                "no kernel includes {header}"
+            );
+        }
+    }
+
+    /// A struct of a shared header is declared there only: no kernel declares its own copy.
+    #[test]
+    fn header_structs_are_declared_once() {
+        let files = shader_files();
+        let mut structs = 0;
+        for (header, text) in HEADERS {
+            for line in text.lines() {
+                let Some(rest) = line.strip_prefix("struct ") else {
+                    continue;
+                };
+                let declaration = format!("struct {}", rest.trim_end_matches([' ', '{']));
+                structs += 1;
+                for (name, raw) in &files {
+                    if name != header {
+                        assert!(
+                            !raw.lines()
+                                .any(|line| line.trim_end_matches([' ', '{']) == declaration),
+                            "{name} declares `{declaration}` again; include {header} instead"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(structs >= HEADERS.len());
+    }
+
+    /// The scalar kind of a naga type's elements (`None` for structs and opaque types).
+    fn scalar_kind(
+        module: &naga::Module,
+        ty: naga::Handle<naga::Type>,
+    ) -> Option<naga::ScalarKind> {
+        match module.types[ty].inner {
+            naga::TypeInner::Scalar(scalar) | naga::TypeInner::Atomic(scalar) => Some(scalar.kind),
+            naga::TypeInner::Vector { scalar, .. } | naga::TypeInner::Matrix { scalar, .. } => {
+                Some(scalar.kind)
+            }
+            naga::TypeInner::Array { base, .. } => scalar_kind(module, base),
+            _ => None,
+        }
+    }
+
+    /// Every difference between a WGSL struct (as naga lays it out) and its Rust twin.
+    fn layout_differences(
+        file: &str,
+        module: &naga::Module,
+        layouter: &naga::proc::Layouter,
+        ty: naga::Handle<naga::Type>,
+        twin: &WgslTwin,
+    ) -> Vec<String> {
+        let naga::TypeInner::Struct { members, span } = &module.types[ty].inner else {
+            unreachable!("only structs are compared");
+        };
+        let what = format!(
+            "{file}: `{}` vs Rust `{}`",
+            twin.wgsl_struct, twin.rust_struct
+        );
+        let mut differences = Vec::new();
+        if *span as usize != twin.size {
+            differences.push(format!(
+                "{what}: size {span} bytes in WGSL, {} in Rust",
+                twin.size
+            ));
+        }
+        let wgsl_names: Vec<&str> = members
+            .iter()
+            .map(|member| member.name.as_deref().unwrap_or("?"))
+            .collect();
+        let rust_names: Vec<&str> = twin.fields.iter().map(|field| field.wgsl).collect();
+        if wgsl_names != rust_names {
+            differences.push(format!(
+                "{what}: members {wgsl_names:?} in WGSL, the twin maps {rust_names:?}"
+            ));
+            return differences;
+        }
+        for (member, field) in members.iter().zip(&twin.fields) {
+            let size = layouter[member.ty].size as usize;
+            if member.offset as usize != field.offset || size != field.size {
+                differences.push(format!(
+                    "{what}: `{}` at offset {} ({size} bytes) in WGSL, {} ({} bytes) in Rust",
+                    field.wgsl, member.offset, field.offset, field.size
+                ));
+            }
+            let kind = scalar_kind(module, member.ty);
+            if kind != Some(field.kind) {
+                differences.push(format!(
+                    "{what}: `{}` holds {kind:?} in WGSL, {:?} in Rust",
+                    field.wgsl, field.kind
+                ));
+            }
+        }
+        differences
+    }
+
+    /// Every uniform and storage struct of every kernel (after includes) has a registered
+    /// Rust twin with the same size, members, offsets, sizes and scalar kinds.
+    #[test]
+    fn uniform_and_storage_structs_match_their_rust_twins() {
+        let twins: Vec<WgslTwin> = [
+            crate::backend::primitives::wgsl_twins(),
+            crate::splat::gpu::wgsl_twins(),
+            crate::lpips::gpu::wgsl_twins(),
+            crate::nn::gpu::wgsl_twins(),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        let mut differences = Vec::new();
+        let mut checked = Vec::new();
+        for (file, raw) in shader_files() {
+            let wgsl = expand_includes(&file, &raw).unwrap();
+            let module = naga::front::wgsl::parse_str(&wgsl)
+                .unwrap_or_else(|error| panic!("{file}: {}", error.emit_to_string(&wgsl)));
+            let mut layouter = naga::proc::Layouter::default();
+            layouter.update(module.to_ctx()).unwrap();
+            for (_, global) in module.global_variables.iter() {
+                if !matches!(
+                    global.space,
+                    naga::AddressSpace::Uniform | naga::AddressSpace::Storage { .. }
+                ) {
+                    continue;
+                }
+                let mut ty = global.ty;
+                if let naga::TypeInner::Array { base, .. } = module.types[ty].inner {
+                    ty = base;
+                }
+                if !matches!(module.types[ty].inner, naga::TypeInner::Struct { .. }) {
+                    continue;
+                }
+                let name = module.types[ty].name.clone().unwrap_or_default();
+                let Some(twin) = twins
+                    .iter()
+                    .find(|twin| twin.wgsl_struct == name && twin.kernels.contains(&file.as_str()))
+                else {
+                    differences.push(format!(
+                        "{file}: struct `{name}` is bound but has no Rust twin (add one with wgsl_twin!)"
+                    ));
+                    continue;
+                };
+                differences.extend(layout_differences(&file, &module, &layouter, ty, twin));
+                checked.push(format!("{file}:{name}"));
+            }
+        }
+        for twin in &twins {
+            for kernel in twin.kernels {
+                let key = format!("{kernel}:{}", twin.wgsl_struct);
+                if !checked.contains(&key) {
+                    differences.push(format!(
+                        "the twin `{}` names {key}, which binds no such struct",
+                        twin.rust_struct
+                    ));
+                }
+            }
+        }
+        assert!(differences.is_empty(), "{}", differences.join("\n"));
+        eprintln!(
+            "{} bound structs match their Rust twins: {checked:?}",
+            checked.len()
+        );
+        assert!(checked.len() >= 12, "{checked:?}");
     }
 }

@@ -47,10 +47,11 @@ fn source((name, wgsl, entry_point): (&'static str, &'static str, &'static str))
     }
 }
 
-/// The uniform block shared by all kernels (see the WGSL for each one's reading).
+/// The uniform block shared by all kernels (`LpipsParams` in `shaders/lpips_types.wgsl`;
+/// see the kernels for each one's reading).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
+pub(crate) struct Params {
     images: u32,
     in_channels: u32,
     in_height: u32,
@@ -63,6 +64,28 @@ struct Params {
     padding: u32,
     total: u32,
     pad: u32,
+}
+
+/// This module's uniform struct for the layout test in `backend::shaders`.
+#[cfg(test)]
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
+    use crate::backend::shaders::wgsl_twin;
+    vec![
+        wgsl_twin!(Params as "LpipsParams" in ["lpips_forward.wgsl", "lpips_backward.wgsl"] {
+            "images" => images,
+            "in_channels" => in_channels,
+            "in_height" => in_height,
+            "in_width" => in_width,
+            "out_channels" => out_channels,
+            "out_height" => out_height,
+            "out_width" => out_width,
+            "kernel" => kernel,
+            "stride" => stride,
+            "padding" => padding,
+            "total" => total,
+            "_pad" => pad,
+        }),
+    ]
 }
 
 /// Converts a size to the u32 the kernels index with, or an error naming it.

@@ -22,6 +22,7 @@ use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
 use super::mlp::{Mlp, MlpSpec};
+use crate::backend::shaders::expand_includes;
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -91,9 +92,10 @@ struct Operand<'a> {
     col_stride: usize,
 }
 
+/// `Params` in `nn_matmul.wgsl` (its layout is checked against the WGSL by a test).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct MatmulParams {
+pub(crate) struct MatmulParams {
     m: u32,
     n: u32,
     k: u32,
@@ -112,9 +114,10 @@ struct MatmulParams {
     pad: u32,
 }
 
+/// `Params` in `nn_adam.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct AdamParams {
+pub(crate) struct AdamParams {
     len: u32,
     groups_x: u32,
     beta1: f32,
@@ -127,15 +130,84 @@ struct AdamParams {
     pad: [u32; 3],
 }
 
+/// `Params` in `nn_posenc.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct PosencParams {
+pub(crate) struct PosencParams {
     rows: u32,
     in_features: u32,
     frequencies: u32,
     include_input: u32,
     groups_x: u32,
     pad: [u32; 3],
+}
+
+/// `Params` in `nn_reduce.wgsl`: `p0..p4` read per entry point (see the WGSL).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ReduceParams {
+    p: [u32; 5],
+    pad: [u32; 3],
+}
+
+/// This module's uniform structs for the layout test in `backend::shaders`.
+#[cfg(test)]
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
+    use crate::backend::shaders::wgsl_twin;
+    vec![
+        wgsl_twin!(MatmulParams as "Params" in ["nn_matmul.wgsl"] {
+            "m" => m,
+            "n" => n,
+            "k" => k,
+            "flags" => flags,
+            "a_offset" => a_offset,
+            "a_row_stride" => a_row_stride,
+            "a_col_stride" => a_col_stride,
+            "b_offset" => b_offset,
+            "b_row_stride" => b_row_stride,
+            "b_col_stride" => b_col_stride,
+            "c_offset" => c_offset,
+            "c_row_stride" => c_row_stride,
+            "k_per_split" => k_per_split,
+            "m_tiles" => m_tiles,
+            "split_stride" => split_stride,
+            "_pad" => pad,
+        }),
+        wgsl_twin!(AdamParams as "Params" in ["nn_adam.wgsl"] {
+            "len" => len,
+            "groups_x" => groups_x,
+            "beta1" => beta1,
+            "beta2" => beta2,
+            "one_minus_beta1" => one_minus_beta1,
+            "one_minus_beta2" => one_minus_beta2,
+            "eps" => eps,
+            "step_size" => step_size,
+            "correction" => correction,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+        wgsl_twin!(PosencParams as "Params" in ["nn_posenc.wgsl"] {
+            "rows" => rows,
+            "in_features" => in_features,
+            "frequencies" => frequencies,
+            "include_input" => include_input,
+            "groups_x" => groups_x,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+        wgsl_twin!(ReduceParams as "Params" in ["nn_reduce.wgsl"] {
+            "p0" => p[0],
+            "p1" => p[1],
+            "p2" => p[2],
+            "p3" => p[3],
+            "p4" => p[4],
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+    ]
 }
 
 /// The dense-network kernels compiled for one device.
@@ -169,6 +241,8 @@ impl NnGpu {
     /// Compiles every kernel for `device`.
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
         let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
+            let wgsl =
+                expand_includes(name, wgsl).map_err(|error| NnError::Gpu(error.to_string()))?;
             let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(name),
@@ -447,16 +521,16 @@ impl NnGpu {
         accumulate: bool,
     ) -> Result<(), NnError> {
         let (x, y) = self.grid(len.div_ceil(256))?;
-        let params = [
-            to_u32("length", len)?,
-            to_u32("slices", slices)?,
-            to_u32("offset", offset)?,
-            x,
-            u32::from(accumulate),
-            0,
-            0,
-            0,
-        ];
+        let params = ReduceParams {
+            p: [
+                to_u32("length", len)?,
+                to_u32("slices", slices)?,
+                to_u32("offset", offset)?,
+                x,
+                u32::from(accumulate),
+            ],
+            pad: [0; 3],
+        };
         self.dispatch(
             encoder,
             &self.accumulate_partials,
@@ -606,16 +680,16 @@ impl NnGpu {
         if rows > 0 {
             let chunks = rows.div_ceil(COLUMN_SUM_ROWS);
             let scratch = self.scratch(chunks * out)?;
-            let params = [
-                to_u32("rows", rows)?,
-                to_u32("columns", out)?,
-                COLUMN_SUM_ROWS as u32,
-                u32::from(relu),
-                0,
-                0,
-                0,
-                0,
-            ];
+            let params = ReduceParams {
+                p: [
+                    to_u32("rows", rows)?,
+                    to_u32("columns", out)?,
+                    COLUMN_SUM_ROWS as u32,
+                    u32::from(relu),
+                    0,
+                ],
+                pad: [0; 3],
+            };
             let groups_y = to_u32("row chunks", chunks)?;
             if groups_y > self.max_groups_per_dimension {
                 return Err(NnError::Gpu(format!(

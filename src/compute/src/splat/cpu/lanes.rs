@@ -217,6 +217,10 @@ mod avx2 {
     //! functions compiled with `#[target_feature(enable = "avx2,fma")]`, which are only
     //! called after [`super::has_avx2`]; these `#[inline(always)]` methods are inlined
     //! into them.
+    #![allow(
+        clippy::undocumented_unsafe_blocks,
+        reason = "one SAFETY note above covers every intrinsic call of this module"
+    )]
 
     use std::arch::x86_64::*;
 

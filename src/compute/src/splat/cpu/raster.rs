@@ -159,6 +159,8 @@ pub(super) struct DisjointWriter<'a, T> {
 // SAFETY: the writer only hands out writes of `T: Send` values to distinct indices (the
 // contract of `write`), like splitting the slice into disjoint `&mut` parts.
 unsafe impl<T: Send> Sync for DisjointWriter<'_, T> {}
+// SAFETY: as for `Sync`: moving the writer to another thread moves only the right to make
+// such writes; the borrowed slice outlives it (`'a`).
 unsafe impl<T: Send> Send for DisjointWriter<'_, T> {}
 
 impl<'a, T: Copy> DisjointWriter<'a, T> {

@@ -57,10 +57,11 @@ pub struct GpuOptions {
     pub max_pairs_per_band: Option<u32>,
 }
 
-/// The camera uniform shared by every splat kernel (`SplatCamera` in the shaders).
+/// The camera uniform shared by every splat kernel (`SplatCamera` in
+/// `shaders/splat_types.wgsl`, which they include).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-struct CameraUniform {
+pub(crate) struct CameraUniform {
     rotation: [[f32; 4]; 3],
     intrinsics: [f32; 4],
     center: [f32; 4],
@@ -73,13 +74,46 @@ struct CameraUniform {
 /// `BinParams` in `splat_bin.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-struct BinParams {
+pub(crate) struct BinParams {
     gaussians: u32,
     pairs: u32,
     tiles_x: u32,
     row_begin: u32,
     row_end: u32,
     pad: [u32; 3],
+}
+
+/// This module's uniform structs for the layout test in `backend::shaders`.
+#[cfg(test)]
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
+    use crate::backend::shaders::wgsl_twin;
+    vec![
+        wgsl_twin!(CameraUniform as "SplatCamera" in [
+            "splat_project.wgsl",
+            "splat_rasterize.wgsl",
+            "splat_rasterize_backward.wgsl",
+        ] {
+            "rotation0" => rotation[0],
+            "rotation1" => rotation[1],
+            "rotation2" => rotation[2],
+            "intrinsics" => intrinsics,
+            "center" => center,
+            "background" => background,
+            "image" => image,
+            "counts" => counts,
+            "flags" => flags,
+        }),
+        wgsl_twin!(BinParams as "BinParams" in ["splat_bin.wgsl"] {
+            "gaussians" => gaussians,
+            "pairs" => pairs,
+            "tiles_x" => tiles_x,
+            "row_begin" => row_begin,
+            "row_end" => row_end,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+    ]
 }
 
 fn tiles(camera: &Camera) -> (u32, u32) {

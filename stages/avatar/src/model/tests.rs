@@ -889,9 +889,11 @@ fn bad_inputs_name_the_field() {
 }
 
 #[test]
-fn from_train_uses_one_scale_below_multiscale() {
-    let mut train = crate::config::TrainConfig::preset(crate::config::Preset::Paper);
-    let config = NetworkConfig::from_train(&train, 24, 24, 3).unwrap();
+fn from_avatar_uses_one_scale_below_multiscale() {
+    let mut train = crate::config::AvatarConfig::for_tests();
+    train.trunk_width = 512;
+    train.tau = 8;
+    let config = NetworkConfig::from_avatar(&train, 24, 24, 3).unwrap();
     assert_eq!(
         (config.n_scales, config.trunk_width, config.tau),
         (3, 512, 8)
@@ -899,7 +901,7 @@ fn from_train_uses_one_scale_below_multiscale() {
     assert_eq!(config.pose_dim(), 69);
     train.motion_context = MotionContext::Velocity;
     assert_eq!(
-        NetworkConfig::from_train(&train, 24, 24, 3)
+        NetworkConfig::from_avatar(&train, 24, 24, 3)
             .unwrap()
             .n_scales,
         1

@@ -4,7 +4,7 @@
 //! the LBS-offset network forward + backward at the demo's 5860 Gaussians (and the sizes
 //! given) and the per-frame pose refiner, in f64 on `cpu` as the trainer's master runs them.
 //!
-//! Run: `cargo bench -p seqavatar-train --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
+//! Run: `cargo bench -p seqavatar-avatar --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
 //! `SEQAVATAR_BENCH_GPU=1` also times `GpuNetworks` on a hardware adapter (`=software` allows
 //! lavapipe); gpu times include the input uploads and output downloads of each call.
@@ -12,12 +12,12 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use seqavatar_avatar::model::gpu::GpuNetworks;
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
-use seqavatar_train::model::gpu::GpuNetworks;
 
+use seqavatar_avatar::config::MotionContext;
+use seqavatar_avatar::model::{FrameInputs, GaussianInputs, NetworkConfig, Networks, Widths};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
-use seqavatar_train::config::MotionContext;
-use seqavatar_train::model::{FrameInputs, GaussianInputs, NetworkConfig, Networks, Widths};
 
 fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
     (0..len).map(|_| rng.uniform(-1.0, 1.0) as f32).collect()

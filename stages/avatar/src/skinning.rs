@@ -526,7 +526,7 @@ pub fn symmetric_upper_gradient(g: &DMat3) -> [f64; 6] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rng::Rng;
+    use seqavatar_core::rng::SplitMix64 as Rng;
     use seqavatar_core::rotation::axis_angle_to_matrix;
 
     fn random_transform(rng: &mut Rng, spread: f64) -> [f64; 12] {

@@ -3,6 +3,9 @@
 //! implementation of the protocol), LPIPS unavailable and available, mismatched cameras and
 //! body models, corrupt and partial avatar arrays, `pipeline render` on another sequence's
 //! poses and on a pose file, and the report of the run.
+//!
+//! Library-level (not through the binary): it lives in the root crate because it trains
+//! through `seqavatar-train`, which the eval crate must not depend on (not even for tests).
 
 use std::path::Path;
 
@@ -412,11 +415,11 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
 
 fn fixture(name: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/fixtures")
+        .join("stages/eval/tests/fixtures")
         .join(name)
 }
 
-/// Pose files in the dataset layout (tests/fixtures/make_poses.py); bad ones name the array.
+/// Pose files in the dataset layout (stages/eval/tests/fixtures/make_poses.py); bad ones name the array.
 #[test]
 fn pose_files_are_read_and_checked() {
     use seqavatar_eval::animate::read_pose_file;

@@ -39,8 +39,8 @@
 //!
 //! # API
 //!
-//! - [`Networks::new`]`(&NetworkConfig, seed)`; [`NetworkConfig::from_train`] derives the
-//!   configuration from a [`TrainConfig`](crate::config::TrainConfig) and the body sizes.
+//! - [`Networks::new`]`(&NetworkConfig, seed)`; [`NetworkConfig::from_avatar`] derives the
+//!   configuration from an [`AvatarConfig`] and the body sizes.
 //! - [`Networks::parameters`] / [`Networks::parameters_mut`]: every array with its stable
 //!   name (`{layer}.weight` `(in, out)` and `{layer}.bias` `(out)`), its gradient and its
 //!   [`NetworkGroup`] (learning rates differ per group); [`Networks::zero_grad`];
@@ -67,7 +67,7 @@ mod tests;
 
 use seqavatar_compute::nn::{NnError, NnScalar, PositionalEncoding, Rng};
 
-use crate::config::{MotionContext, TrainConfig};
+use crate::config::{AvatarConfig, MotionContext};
 use dense::Dense;
 use lbs::LbsOffsetNet;
 use non_rigid::NonRigidNet;
@@ -238,11 +238,11 @@ pub struct NetworkConfig {
 }
 
 impl NetworkConfig {
-    /// The configuration of a training run: trunk size, `tau`, `L`, switches from `config`,
+    /// The configuration of an avatar: trunk size, `tau`, `L`, switches from `config`,
     /// body sizes from the body model and the motion entry, `available_scales` the motion
     /// entry's scale count (only `multiscale` uses more than one).
-    pub fn from_train(
-        config: &TrainConfig,
+    pub fn from_avatar(
+        config: &AvatarConfig,
         skinning_joints: usize,
         motion_joints: usize,
         available_scales: usize,

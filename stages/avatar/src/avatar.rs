@@ -14,9 +14,10 @@
 //! - `network/<name>` f64: network parameters by their stable names (when the motion context
 //!   or the refiners use networks).
 //!
-//! Attributes: `config` (the resolved train config), `sh_degree`, `scales` (raw temporal
-//! scales fed to the networks, largest first), `scale_steps`, `sequence_length`,
-//! `background`, `body_model_kind`, `extent`.
+//! Attributes: `avatar` (the [`AvatarConfig`]), `sh_degree`, `scales` (raw temporal
+//! scales fed to the networks, largest first), `sequence_length`, `background`,
+//! `body_model_kind`, `extent`, `motion_joints` (with networks). The train stage adds its
+//! own `config` (the resolved train config, which nothing here reads).
 
 use std::sync::Arc;
 
@@ -28,11 +29,10 @@ use seqavatar_core::camera::Camera;
 use seqavatar_engine::{EntryReader, EntryWriter};
 use seqavatar_ingest::stage::write_body_model;
 
-use crate::config::TrainConfig;
-use crate::data::MotionTrack;
-use crate::densify::{GaussianState, names};
-use crate::gaussians::{SH, SH_STORED};
-use crate::knn::{KnnGrid, as_points};
+use seqavatar_motion::knn::{KnnGrid, as_points};
+use seqavatar_motion::schema::MotionTrack;
+
+use crate::config::AvatarConfig;
 use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
 use crate::model::{
     GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks, NonRigidCache,
@@ -41,6 +41,11 @@ use crate::model::{
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
 use crate::splatting::{self, WorldGaussians};
+
+/// Spherical-harmonics DC constant (3DGS `C0`).
+pub const SH_C0: f64 = 0.282_094_791_773_878_14;
+/// Coefficients stored per colour channel (degree 3).
+pub const SH_STORED: usize = 16;
 
 /// The per-Gaussian parameters of an avatar (flat, row-major).
 #[derive(Clone, Debug, PartialEq)]
@@ -61,17 +66,6 @@ impl AvatarGaussians {
     pub fn is_empty(&self) -> bool {
         self.opacity_logit.is_empty()
     }
-
-    /// The trainable columns of a training state.
-    pub fn from_state(state: &GaussianState) -> anyhow::Result<Self> {
-        Ok(Self {
-            xyz: state.values(names::POSITION)?.to_vec(),
-            sh: state.values(SH)?.to_vec(),
-            opacity_logit: state.values(names::OPACITY_LOGIT)?.to_vec(),
-            log_scale: state.values(names::LOG_SCALE)?.to_vec(),
-            rotation: state.values(names::ROTATION)?.to_vec(),
-        })
-    }
 }
 
 /// One frame's inputs: body parameters and (for motion contexts that use them) the gathered
@@ -88,7 +82,7 @@ pub struct FrameInputs {
 /// The inputs of frame `frame`: its body parameters and, as the motion context needs, the
 /// window gathered at the raw `scales` (largest first).
 pub fn gather_frame_inputs(
-    config: &TrainConfig,
+    config: &AvatarConfig,
     scales: &[u32],
     motion: &MotionTrack,
     params: &BodyParams,
@@ -248,7 +242,7 @@ pub fn deform(
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
-    config: &TrainConfig,
+    config: &AvatarConfig,
     sh_degree: u32,
 ) -> anyhow::Result<Deformed> {
     deform_on(
@@ -284,7 +278,7 @@ pub fn deform_on(
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
-    config: &TrainConfig,
+    config: &AvatarConfig,
     sh_degree: u32,
 ) -> anyhow::Result<Deformed> {
     let n = gaussians.len();
@@ -527,9 +521,9 @@ pub fn deform_backward(
     Ok(through)
 }
 
-/// Whether a configuration trains networks.
-pub fn needs_networks(config: &TrainConfig) -> bool {
-    config.motion_context.has_non_rigid() || config.pose_refiner || config.lbs_offsets
+/// Whether a configuration has networks.
+pub fn needs_networks(config: &AvatarConfig) -> bool {
+    config.needs_networks()
 }
 
 /// A grid over the canonical template vertices for nearest-vertex queries.
@@ -539,7 +533,7 @@ pub fn template_grid(rig: &BodyRig) -> KnnGrid {
 
 /// A trained avatar, ready to render.
 pub struct TrainedAvatar {
-    pub config: TrainConfig,
+    pub config: AvatarConfig,
     pub rig: BodyRig,
     pub gaussians: AvatarGaussians,
     /// Active SH degree.
@@ -560,7 +554,7 @@ pub struct TrainedAvatar {
 
 impl TrainedAvatar {
     pub fn new(
-        config: TrainConfig,
+        config: AvatarConfig,
         rig: BodyRig,
         gaussians: AvatarGaussians,
         sh_degree: u32,
@@ -737,7 +731,7 @@ impl TrainedAvatar {
             }
         }
         write_body_model(out, &self.rig.model)?;
-        out.set_attribute("config", serde_json::to_value(&self.config)?)?;
+        out.set_attribute("avatar", serde_json::to_value(&self.config)?)?;
         out.set_attribute("sh_degree", self.sh_degree.into())?;
         out.set_attribute("scales", serde_json::to_value(&self.scales)?)?;
         out.set_attribute("sequence_length", self.config.sequence_length.into())?;
@@ -759,11 +753,11 @@ impl TrainedAvatar {
                 .attribute(key)
                 .ok_or_else(|| anyhow::anyhow!("entry {location}: attribute `{key}` is missing"))
         };
-        let config: TrainConfig = serde_json::from_value(attribute("config")?)
-            .with_context(|| format!("entry {location}: attribute `config`"))?;
+        let config: AvatarConfig = serde_json::from_value(attribute("avatar")?)
+            .with_context(|| format!("entry {location}: attribute `avatar`"))?;
         config
             .validate()
-            .with_context(|| format!("entry {location}: attribute `config`"))?;
+            .with_context(|| format!("entry {location}: attribute `avatar`"))?;
         let sh_degree = attribute("sh_degree")?
             .as_u64()
             .filter(|d| *d <= 3)
@@ -809,9 +803,10 @@ impl TrainedAvatar {
                 None => anyhow::bail!("entry {location}: attribute `motion_joints` is not a count"),
             };
             let net_config =
-                NetworkConfig::from_train(&config, rig.joint_count(), motion_joints, scales.len())
+                NetworkConfig::from_avatar(&config, rig.joint_count(), motion_joints, scales.len())
                     .with_context(|| format!("entry {location}: network configuration"))?;
-            let mut networks = Networks::new(&net_config, config.seed)
+            // Every parameter is loaded below; the initialisation seed does not matter.
+            let mut networks = Networks::new(&net_config, 0)
                 .with_context(|| format!("entry {location}: network configuration"))?;
             let names = entry.array_names();
             networks
@@ -836,17 +831,17 @@ impl TrainedAvatar {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{MotionContext, Preset};
+    use crate::config::MotionContext;
     use crate::model::Widths;
-    use crate::rng::Rng;
     use crate::skinning::skin_backward;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::glam::DVec3;
+    use seqavatar_core::rng::SplitMix64 as Rng;
 
     struct Setup {
         rig: BodyRig,
         grid: KnnGrid,
-        config: TrainConfig,
+        config: AvatarConfig,
         gaussians: AvatarGaussians,
         inputs: FrameInputs,
         a: Vec<f64>,
@@ -910,7 +905,7 @@ mod tests {
         let rig = BodyRig::new(model.clone()).unwrap();
         let grid = template_grid(&rig);
         let mut rng = Rng::new(9);
-        let mut config = TrainConfig::preset(Preset::Fast);
+        let mut config = AvatarConfig::for_tests();
         config.motion_context = context;
         config.lbs_offsets = lbs_offsets;
         config.trunk_width = 16;
@@ -951,7 +946,7 @@ mod tests {
                 .map(|_| rng.uniform(-0.5, 0.5) as f32)
                 .collect(),
         };
-        let mut net_config = NetworkConfig::from_train(&config, j, j, scales).unwrap();
+        let mut net_config = NetworkConfig::from_avatar(&config, j, j, scales).unwrap();
         net_config.widths = Widths {
             encoding_frequencies: 2,
             pose_encoder: 4,

@@ -345,7 +345,7 @@ mod tests {
         let mut arrays = base.arrays().clone();
         let j = base.num_joints();
         let features = 9 * (j - 1);
-        let mut rng = crate::rng::Rng::new(5);
+        let mut rng = seqavatar_core::rng::SplitMix64::new(5);
         arrays.pose_dirs = (0..base.num_vertices() * 3 * features)
             .map(|_| rng.uniform(-0.01, 0.01) as f32)
             .collect();

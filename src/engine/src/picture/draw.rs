@@ -1,5 +1,6 @@
-//! A tiny drawing kit for `inspect --png` pictures: line plots, a colour map with a colour
-//! bar, point splats with a depth buffer, and a 3x5 pixel font for numbers.
+//! A tiny drawing kit for the stages' `inspect --png` pictures and eval's reports: line
+//! plots, a colour map with a colour bar, point splats with a depth buffer, and a 3x5 pixel
+//! font for numbers.
 //!
 //! No plotting crate: pictures are diagnostics, drawn straight onto an `image::RgbImage`.
 

@@ -1,0 +1,26 @@
+//! The trained avatar and its render path: canonical Gaussians, the body rig, skinning, the
+//! SeqAvatar networks and the splatting glue, as a `train` entry stores them. Eval and
+//! `pipeline render` depend on this crate, not on the trainer.
+//!
+//! - [`config`]: [`AvatarConfig`], the part of the training configuration rendering needs,
+//!   and the enums it shares with the train config (motion context, device, background).
+//! - [`avatar`]: the trained avatar, its entry arrays and its render path.
+//! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
+//!   offsets) on `cpu` and `gpu`.
+//! - [`rig`]: canonical and per-frame skinning targets from the body model.
+//! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
+//! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
+
+// Numeric kernels index several parallel arrays with one loop variable; iterator chains
+// would hide the maths.
+#![allow(clippy::needless_range_loop)]
+
+pub mod avatar;
+pub mod config;
+pub mod model;
+pub mod rig;
+pub mod skinning;
+pub mod splatting;
+
+pub use avatar::{FrameInputs, TrainedAvatar};
+pub use config::AvatarConfig;
