@@ -304,8 +304,8 @@ pub struct Trainer<'d> {
     /// Raw scales fed to the networks (largest first).
     pub scales: Vec<u32>,
     /// The networks (when the configuration has any) and their Adam state by name.
-    pub networks: Option<Networks<f64>>,
-    network_adam: BTreeMap<String, AdamState<f64>>,
+    pub networks: Option<Networks<f32>>,
+    network_adam: BTreeMap<String, AdamState<f32>>,
     /// On the `gpu` backend, an f32 copy of the networks that evaluates the per-Gaussian ones
     /// (non-rigid, LBS offsets; forward and backward); `networks` stays the parameter master.
     gpu_networks: Option<GpuNetworks>,
@@ -398,8 +398,8 @@ impl<'d> Trainer<'d> {
         rng: Rng,
         curve: LossCurve,
         scales: Vec<u32>,
-        networks: Option<Networks<f64>>,
-        network_adam: BTreeMap<String, AdamState<f64>>,
+        networks: Option<Networks<f32>>,
+        network_adam: BTreeMap<String, AdamState<f32>>,
     ) -> anyhow::Result<Self> {
         let train_images: Vec<usize> = data
             .split(0)
@@ -413,7 +413,7 @@ impl<'d> Trainer<'d> {
         let gpu_networks = match (&backend, networks.as_ref()) {
             (Backend::Gpu(context), Some(net)) if net.has_non_rigid() || net.has_lbs_offsets() => {
                 Some(
-                    GpuNetworks::upload_f64(context.clone(), net)
+                    GpuNetworks::upload(context.clone(), net)
                         .context("uploading the networks to the gpu")?,
                 )
             }
@@ -537,7 +537,7 @@ impl<'d> Trainer<'d> {
         // The master parameters change with every optimiser step (and `networks` is public):
         // the gpu copy is refreshed before every forward pass.
         if let (Some(gpu), Some(net)) = (&self.gpu_networks, &self.networks) {
-            gpu.upload_groups_f64(net, GpuNetworks::DEFORM_GROUPS)
+            gpu.upload_groups(net, GpuNetworks::DEFORM_GROUPS)
                 .context("uploading the networks to the gpu")?;
         }
         let posed = self.posed_frame(frame)?;
@@ -1022,16 +1022,13 @@ impl<'d> Trainer<'d> {
         if let Some(net) = &self.networks {
             for param in net.parameters() {
                 let state = self.network_adam.get(&param.name);
+                // Stored in f64: exactly the f32 values.
+                let widen = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
+                let zeros = || vec![0.0; param.values.len()];
                 for (prefix, values) in [
-                    ("network", param.values.to_vec()),
-                    (
-                        "network_adam_m",
-                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.m.clone()),
-                    ),
-                    (
-                        "network_adam_v",
-                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.v.clone()),
-                    ),
+                    ("network", widen(param.values)),
+                    ("network_adam_m", state.map_or_else(zeros, |s| widen(&s.m))),
+                    ("network_adam_v", state.map_or_else(zeros, |s| widen(&s.v))),
                 ] {
                     tensors.push(Tensor {
                         name: format!("{prefix}/{}", param.name),
@@ -1123,20 +1120,14 @@ impl<'d> Trainer<'d> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let mut networks = build_networks(&config, data, scales.len())?;
         let mut network_adam = BTreeMap::new();
+        // The checkpoint holds the f32 values widened to f64: narrowing restores them exactly.
+        let narrow = |t: &Tensor| t.values.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         if let Some(net) = networks.as_mut() {
-            net.load_parameters(|name| {
-                find(&format!("network/{name}"))
-                    .ok()
-                    .map(|t| t.values.clone())
-            })
-            .context("checkpoint network parameters")?;
+            net.load_parameters(|name| find(&format!("network/{name}")).ok().map(narrow))
+                .context("checkpoint network parameters")?;
             for param in net.parameters() {
-                let m = find(&format!("network_adam_m/{}", param.name))?
-                    .values
-                    .clone();
-                let v = find(&format!("network_adam_v/{}", param.name))?
-                    .values
-                    .clone();
+                let m = narrow(find(&format!("network_adam_m/{}", param.name))?);
+                let v = narrow(find(&format!("network_adam_v/{}", param.name))?);
                 anyhow::ensure!(
                     m.len() == param.values.len() && v.len() == param.values.len(),
                     "checkpoint Adam moments of `{}` have the wrong length",
@@ -1174,7 +1165,7 @@ fn build_networks(
     config: &TrainConfig,
     data: &TrainingData,
     scale_count: usize,
-) -> anyhow::Result<Option<Networks<f64>>> {
+) -> anyhow::Result<Option<Networks<f32>>> {
     let avatar_config = config.avatar();
     if !needs_networks(&avatar_config) {
         return Ok(None);
@@ -1194,7 +1185,7 @@ fn build_networks(
         for param in networks.parameters_mut() {
             if param.name == "non_rigid.heads.weight" {
                 for w in param.values.iter_mut() {
-                    *w = rng.uniform(-bound, bound);
+                    *w = rng.uniform(-bound, bound) as f32;
                 }
             } else if param.name == "non_rigid.heads.bias" {
                 param.values.fill(0.0);
