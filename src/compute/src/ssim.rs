@@ -2,6 +2,8 @@
 //! output, constants `C1 = 0.01^2`, `C2 = 0.03^2`), in f64 with its exact gradient: the
 //! training loss (`1 - SSIM` on the bound-box crop) and eval's metric use this one function.
 
+use rayon::prelude::*;
+
 /// Side of the SSIM window in pixels.
 pub const SSIM_WINDOW: usize = 11;
 /// Standard deviation of the SSIM Gaussian window in pixels.
@@ -21,34 +23,43 @@ pub fn gaussian_window(size: usize, sigma: f64) -> Vec<f64> {
 
 /// Separable "same" correlation with zero padding. The kernel is symmetric, so this operator
 /// is its own adjoint, which the SSIM backward relies on.
+///
+/// Rows run in parallel; every output value is the sum over the in-range taps in kernel
+/// order, whatever the thread count, so the result does not depend on it.
 fn blur_same(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> Vec<f64> {
-    let half = kernel.len() / 2;
-    let mut rows = vec![0.0; plane.len()];
-    for row in 0..height {
-        for col in 0..width {
-            let mut acc = 0.0;
-            for (k, weight) in kernel.iter().enumerate() {
-                let src = col as isize + k as isize - half as isize;
-                if src >= 0 && (src as usize) < width {
-                    acc += weight * plane[row * width + src as usize];
-                }
-            }
-            rows[row * width + col] = acc;
-        }
-    }
+    assert_eq!(plane.len(), width * height, "blur plane size");
     let mut out = vec![0.0; plane.len()];
-    for row in 0..height {
-        for col in 0..width {
-            let mut acc = 0.0;
-            for (k, weight) in kernel.iter().enumerate() {
-                let src = row as isize + k as isize - half as isize;
-                if src >= 0 && (src as usize) < height {
-                    acc += weight * rows[src as usize * width + col];
+    if plane.is_empty() {
+        return out;
+    }
+    let half = kernel.len() / 2;
+    // Taps `k` whose source `i + k - half` lies in `0..len`.
+    let taps = |i: usize, len: usize| half.saturating_sub(i)..kernel.len().min(len + half - i);
+    let mut rows = vec![0.0; plane.len()];
+    rows.par_chunks_mut(width)
+        .zip(plane.par_chunks(width))
+        .with_min_len(8)
+        .for_each(|(out_row, src)| {
+            for (col, value) in out_row.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for k in taps(col, width) {
+                    acc += kernel[k] * src[col + k - half];
+                }
+                *value = acc;
+            }
+        });
+    out.par_chunks_mut(width)
+        .enumerate()
+        .with_min_len(8)
+        .for_each(|(row, out_row)| {
+            for k in taps(row, height) {
+                let src = &rows[(row + k - half) * width..][..width];
+                let weight = kernel[k];
+                for (value, s) in out_row.iter_mut().zip(src) {
+                    *value += weight * s;
                 }
             }
-            out[row * width + col] = acc;
-        }
-    }
+        });
     out
 }
 
@@ -110,6 +121,39 @@ mod tests {
 
     fn random_vec(rng: &mut Rng, n: usize, lo: f64, hi: f64) -> Vec<f64> {
         (0..n).map(|_| rng.uniform(lo, hi)).collect()
+    }
+
+    /// The separable row-parallel blur against a direct 2D zero-padded correlation, on
+    /// planes narrower and shorter than the window as well as larger ones.
+    #[test]
+    fn blur_matches_a_direct_two_dimensional_correlation() {
+        let kernel = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
+        let half = (SSIM_WINDOW / 2) as isize;
+        let mut rng = Rng::new(4);
+        for (width, height) in [(37, 23), (3, 40), (29, 4), (1, 1), (11, 11)] {
+            let plane = random_vec(&mut rng, width * height, -1.0, 1.0);
+            let blurred = blur_same(&plane, width, height, &kernel);
+            for row in 0..height as isize {
+                for col in 0..width as isize {
+                    let mut expected = 0.0;
+                    for dy in -half..=half {
+                        for dx in -half..=half {
+                            let (r, c) = (row + dy, col + dx);
+                            if r >= 0 && r < height as isize && c >= 0 && c < width as isize {
+                                expected += kernel[(dy + half) as usize]
+                                    * kernel[(dx + half) as usize]
+                                    * plane[r as usize * width + c as usize];
+                            }
+                        }
+                    }
+                    let got = blurred[row as usize * width + col as usize];
+                    assert!(
+                        (got - expected).abs() <= 1e-14,
+                        "{width}x{height} at ({row}, {col}): {got} vs {expected}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

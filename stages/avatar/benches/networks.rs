@@ -2,7 +2,8 @@
 //! backward at the paper widths (trunk 512 x 3, L = 8, tau = 8, three scales, SMPL), for
 //! 10k and 50k Gaussians, and the GFLOP/s of the dominant layer (the 512 x 512 trunk layer);
 //! the LBS-offset network forward + backward at the demo's 5860 Gaussians (and the sizes
-//! given) and the per-frame pose refiner, in f64 on `cpu` as the trainer's master runs them.
+//! given) and the per-frame pose refiner, in f64 (the test oracle, and the trainer's
+//! networks before they became f32) and in f32 on `cpu`, as the trainer runs them now.
 //!
 //! Run: `cargo bench -p seqavatar-avatar --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
@@ -153,7 +154,7 @@ fn time_ms(repeats: usize, mut run: impl FnMut()) -> f64 {
 }
 
 /// The LBS-offset network (63 -> 128 x 3, skip, -> 24), forward + backward: `cpu` f64 (the
-/// trainer's master before the gpu path), `cpu` f32, and `GpuNetworks` (uploads and
+/// trainer's networks before they became f32), `cpu` f32 (as it trains), and `GpuNetworks` (uploads and
 /// downloads included, as `deform_on` pays them).
 fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     let config = paper_config(MotionContext::None);

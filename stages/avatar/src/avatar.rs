@@ -12,7 +12,7 @@
 //! - The body model arrays of the ingest schema (`body_model_*`), so that the entry renders
 //!   on its own.
 //! - `network/<name>` f64: network parameters by their stable names (when the motion context
-//!   or the refiners use networks).
+//!   or the refiners use networks), the f32 values the networks train and render with.
 //!
 //! Attributes: `avatar` (the [`AvatarConfig`]), `sh_degree`, `scales` (raw temporal
 //! scales fed to the networks, largest first), `sequence_length`, `background`,
@@ -23,6 +23,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use seqavatar_compute::backend::{Backend, GpuContext};
+use seqavatar_compute::nn::NnScalar;
 use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_count};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
@@ -36,7 +37,7 @@ use crate::config::AvatarConfig;
 use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
 use crate::model::{
     GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks, NonRigidCache,
-    NonRigidOutput, PoseRefinerCache,
+    PoseRefinerCache,
 };
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
@@ -115,12 +116,13 @@ pub fn gather_frame_inputs(
     })
 }
 
-/// One frame's (possibly refined) skinning target and what its backward needs.
-pub struct PosedFrame {
+/// One frame's (possibly refined) skinning target and what its backward needs; `S` is the
+/// networks' scalar (f32 in production, f64 as the oracle in tests).
+pub struct PosedFrame<S = f32> {
     pub pose: FramePose,
     pub chain: PoseChain,
     /// The refiner's cache and its `(J - 1) x 9` matrices, when the pose refiner is on.
-    pub refiner: Option<(PoseRefinerCache<f64>, Vec<f64>)>,
+    pub refiner: Option<(PoseRefinerCache<S>, Vec<S>)>,
 }
 
 /// The local pose without the root joint, `3 (J - 1)` values.
@@ -129,15 +131,15 @@ pub fn local_pose(params: &BodyParams) -> Vec<f64> {
 }
 
 /// The skinning target of a frame, through the pose refiner when the networks have one.
-pub fn frame_pose(
+pub fn frame_pose<S: NnScalar>(
     rig: &BodyRig,
-    networks: Option<&Networks<f64>>,
+    networks: Option<&Networks<S>>,
     params: &BodyParams,
-) -> anyhow::Result<PosedFrame> {
+) -> anyhow::Result<PosedFrame<S>> {
     match networks.filter(|n| n.has_pose_refiner()) {
         Some(net) => {
-            let (matrices, cache) = net.pose_refiner_forward(&local_pose(params))?;
-            let refinements: Vec<seqavatar_core::glam::DMat3> = matrices
+            let (matrices, cache) = net.pose_refiner_forward(&to_scalar(&local_pose(params)))?;
+            let refinements: Vec<seqavatar_core::glam::DMat3> = to_f64(&matrices)
                 .chunks_exact(9)
                 .map(|m| {
                     seqavatar_core::glam::DMat3::from_cols_array(&[
@@ -164,13 +166,14 @@ pub fn frame_pose(
     }
 }
 
-/// The deformed Gaussians of one frame and the intermediates the backward needs.
-pub struct Deformed {
+/// The deformed Gaussians of one frame and the intermediates the backward needs; `S` is the
+/// `cpu` networks' scalar.
+pub struct Deformed<S = f32> {
     /// Nearest template vertex of each (post-non-rigid) centre.
     pub nearest: Vec<u32>,
-    pub non_rigid: Option<NonRigidPass>,
+    pub non_rigid: Option<NonRigidPass<S>>,
     /// LBS weight offsets `N x J` and the activations of the pass that made them.
-    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsPass)>,
+    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsPass<S>)>,
     /// Centres after the non-rigid offset (canonical space).
     pub positions: Vec<f64>,
     /// Linear scale offsets `N x 3` and rotation offsets `N x 4`.
@@ -181,39 +184,41 @@ pub struct Deformed {
 }
 
 /// The activations of the non-rigid network's forward pass, where it ran.
-pub enum NonRigidPass {
-    /// On `cpu`, in f64 (the parameter master).
-    Cpu(NonRigidCache<f64>),
+pub enum NonRigidPass<S = f32> {
+    /// On `cpu`, in the networks' scalar.
+    Cpu(NonRigidCache<S>),
     /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
     Gpu(GpuNonRigidCache),
 }
 
 /// The activations of the LBS-offset network's forward pass, where it ran.
-pub enum LbsOffsetsPass {
-    /// On `cpu`, in f64 (the parameter master).
-    Cpu(LbsOffsetsCache<f64>),
+pub enum LbsOffsetsPass<S = f32> {
+    /// On `cpu`, in the networks' scalar.
+    Cpu(LbsOffsetsCache<S>),
     /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
     Gpu(GpuLbsOffsetsCache),
 }
 
-fn narrow(values: &[f64]) -> Vec<f32> {
-    values.iter().map(|&v| v as f32).collect()
+/// f64 values in the networks' scalar (rounded once for f32).
+fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
+    values.iter().map(|&v| S::from_f64(v)).collect()
 }
 
-fn widen(values: &[f32]) -> Vec<f64> {
-    values.iter().map(|&v| f64::from(v)).collect()
+/// The networks' values in f64 (exact).
+fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
+    values.iter().map(|&v| v.to_f64()).collect()
 }
 
 /// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
 /// centre), `N x L x tau x S x 3`, from a window `(L, S, V, 3)`.
-pub fn knn_velocity(
+pub fn knn_velocity<S: NnScalar>(
     template_grid: &KnnGrid,
     xyz: &[f64],
     window: &[f32],
     length: usize,
     n_scales: usize,
     tau: usize,
-) -> Vec<f64> {
+) -> Vec<S> {
     let n = xyz.len() / 3;
     let v = window.len() / (length * n_scales * 3).max(1);
     let neighbours = template_grid.query_all(&as_points(xyz), tau);
@@ -223,7 +228,11 @@ pub fn knn_velocity(
             for &vertex in &neighbours[i * tau..(i + 1) * tau] {
                 for s in 0..n_scales {
                     let at = ((l * n_scales + s) * v + vertex as usize) * 3;
-                    out.extend(window[at..at + 3].iter().map(|x| f64::from(*x)));
+                    out.extend(
+                        window[at..at + 3]
+                            .iter()
+                            .map(|&x| S::from_f64(f64::from(x))),
+                    );
                 }
             }
         }
@@ -231,20 +240,38 @@ pub fn knn_velocity(
     out
 }
 
+/// [`knn_velocity`] of the Gaussians' canonical centres for the non-rigid network.
+fn gaussian_velocities<T: NnScalar>(
+    template_grid: &KnnGrid,
+    gaussians: &AvatarGaussians,
+    inputs: &FrameInputs,
+    net_config: &NetworkConfig,
+) -> Vec<T> {
+    knn_velocity(
+        template_grid,
+        &gaussians.xyz,
+        &inputs.vertex_velocity,
+        net_config.sequence_length,
+        net_config.n_scales,
+        net_config.tau,
+    )
+}
+
 /// The forward pass shared by training and rendering: non-rigid offsets from the networks
 /// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
-/// skinning, activations. Everything runs on `cpu` in f64 (see [`deform_on`]).
+/// skinning, activations. Everything runs on `cpu`, the networks in their scalar `S` (inputs
+/// rounded to it once, outputs widened to f64), the rest in f64 (see [`deform_on`]).
 #[allow(clippy::too_many_arguments)]
-pub fn deform(
+pub fn deform<S: NnScalar>(
     rig: &BodyRig,
     template_grid: &KnnGrid,
-    networks: Option<&Networks<f64>>,
+    networks: Option<&Networks<S>>,
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
     config: &AvatarConfig,
     sh_degree: u32,
-) -> anyhow::Result<Deformed> {
+) -> anyhow::Result<Deformed<S>> {
     deform_on(
         rig,
         template_grid,
@@ -262,7 +289,7 @@ pub fn deform(
 /// when `gpu_networks` is given (a copy of `networks`' parameters, at least of
 /// [`GpuNetworks::DEFORM_GROUPS`]; inputs rounded to f32 once, outputs widened to f64).
 ///
-/// The pose refiner ([`frame_pose`]) stays on `cpu` in f64 on purpose: it is one row per
+/// The pose refiner ([`frame_pose`]) stays on `cpu` on purpose: it is one row per
 /// frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its output must be
 /// on the host before anything per Gaussian can start (it moves the joints), so a gpu pass
 /// would be a blocking round trip of its own (two with the backward). Measured with
@@ -270,115 +297,104 @@ pub fn deform(
 /// against 9.3 ms on lavapipe; on a hardware gpu the two submit-wait-download round trips
 /// alone (typically 0.1 ms or more each) exceed the whole `cpu` time.
 #[allow(clippy::too_many_arguments)]
-pub fn deform_on(
+pub fn deform_on<S: NnScalar>(
     rig: &BodyRig,
     template_grid: &KnnGrid,
-    networks: Option<&Networks<f64>>,
+    networks: Option<&Networks<S>>,
     gpu_networks: Option<&GpuNetworks>,
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
     config: &AvatarConfig,
     sh_degree: u32,
-) -> anyhow::Result<Deformed> {
+) -> anyhow::Result<Deformed<S>> {
     let n = gaussians.len();
     if let Some(bad) = gaussians.xyz.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite centre", bad / 3);
     }
-    let (positions, d_scales, d_rotations, non_rigid) =
-        match networks.filter(|net| net.has_non_rigid()) {
-            Some(net) => {
-                let net_config = net.config();
-                let skeleton: Vec<f64>;
-                let skeleton_motion = if config.motion_context.has_skeleton_motion() {
-                    skeleton = inputs
+    let (positions, d_scales, d_rotations, non_rigid) = match networks
+        .filter(|net| net.has_non_rigid())
+    {
+        Some(net) => {
+            let net_config = net.config();
+            let has_skeleton = config.motion_context.has_skeleton_motion();
+            let has_velocity = config.motion_context.has_velocity();
+            let pose_values = local_pose(&inputs.params);
+            let (d_xyz, d_rot, d_scale, cache) = match gpu_networks {
+                None => {
+                    let skeleton: Vec<S> = inputs
                         .skeleton_motion
                         .iter()
-                        .map(|x| f64::from(*x))
+                        .map(|&x| S::from_f64(f64::from(x)))
                         .collect();
-                    Some(skeleton.as_slice())
-                } else {
-                    None
-                };
-                let velocity: Vec<f64>;
-                let knn = if config.motion_context.has_velocity() {
-                    velocity = knn_velocity(
-                        template_grid,
-                        &gaussians.xyz,
-                        &inputs.vertex_velocity,
-                        net_config.sequence_length,
-                        net_config.n_scales,
-                        net_config.tau,
-                    );
-                    Some(velocity.as_slice())
-                } else {
-                    None
-                };
-                let pose_values = local_pose(&inputs.params);
-                let (out, cache) = match gpu_networks {
-                    None => {
-                        let (out, cache) = net.non_rigid_forward(
-                            &crate::model::FrameInputs {
-                                local_pose: &pose_values,
-                                skeleton_motion,
-                            },
-                            &GaussianInputs {
-                                xyz: &gaussians.xyz,
-                                knn_velocity: knn,
-                            },
-                        )?;
-                        (out, NonRigidPass::Cpu(cache))
-                    }
-                    Some(gpu) => {
-                        let pose32 = narrow(&pose_values);
-                        let knn32 = knn.map(narrow);
-                        let xyz32 = narrow(&gaussians.xyz);
-                        let skeleton32 = skeleton_motion.map(|_| inputs.skeleton_motion.as_slice());
-                        let (out, cache) = gpu.non_rigid_forward(
-                            &crate::model::FrameInputs {
-                                local_pose: &pose32,
-                                skeleton_motion: skeleton32,
-                            },
-                            &GaussianInputs {
-                                xyz: &xyz32,
-                                knn_velocity: knn32.as_deref(),
-                            },
-                        )?;
-                        let out = NonRigidOutput {
-                            d_xyz: widen(&out.d_xyz),
-                            d_rot: widen(&out.d_rot),
-                            d_scale: widen(&out.d_scale),
-                        };
-                        (out, NonRigidPass::Gpu(cache))
-                    }
-                };
-                let positions: Vec<f64> = gaussians
-                    .xyz
-                    .iter()
-                    .zip(&out.d_xyz)
-                    .map(|(a, b)| a + b)
-                    .collect();
-                (positions, out.d_scale, out.d_rot, Some(cache))
-            }
-            None => (
-                gaussians.xyz.clone(),
-                vec![0.0; 3 * n],
-                [1.0, 0.0, 0.0, 0.0].repeat(n),
-                None,
-            ),
-        };
+                    let knn: Option<Vec<S>> = has_velocity
+                        .then(|| gaussian_velocities(template_grid, gaussians, inputs, net_config));
+                    let (out, cache) = net.non_rigid_forward(
+                        &crate::model::FrameInputs {
+                            local_pose: &to_scalar(&pose_values),
+                            skeleton_motion: has_skeleton.then_some(skeleton.as_slice()),
+                        },
+                        &GaussianInputs {
+                            xyz: &to_scalar(&gaussians.xyz),
+                            knn_velocity: knn.as_deref(),
+                        },
+                    )?;
+                    (
+                        to_f64(&out.d_xyz),
+                        to_f64(&out.d_rot),
+                        to_f64(&out.d_scale),
+                        NonRigidPass::Cpu(cache),
+                    )
+                }
+                Some(gpu) => {
+                    let knn: Option<Vec<f32>> = has_velocity
+                        .then(|| gaussian_velocities(template_grid, gaussians, inputs, net_config));
+                    let (out, cache) = gpu.non_rigid_forward(
+                        &crate::model::FrameInputs {
+                            local_pose: &to_scalar::<f32>(&pose_values),
+                            skeleton_motion: has_skeleton
+                                .then_some(inputs.skeleton_motion.as_slice()),
+                        },
+                        &GaussianInputs {
+                            xyz: &to_scalar::<f32>(&gaussians.xyz),
+                            knn_velocity: knn.as_deref(),
+                        },
+                    )?;
+                    (
+                        to_f64(&out.d_xyz),
+                        to_f64(&out.d_rot),
+                        to_f64(&out.d_scale),
+                        NonRigidPass::Gpu(cache),
+                    )
+                }
+            };
+            let positions: Vec<f64> = gaussians
+                .xyz
+                .iter()
+                .zip(&d_xyz)
+                .map(|(a, b)| a + b)
+                .collect();
+            (positions, d_scale, d_rot, Some(cache))
+        }
+        None => (
+            gaussians.xyz.clone(),
+            vec![0.0; 3 * n],
+            [1.0, 0.0, 0.0, 0.0].repeat(n),
+            None,
+        ),
+    };
     if let Some(bad) = positions.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite deformed centre", bad / 3);
     }
     let weight_offsets = match (networks.filter(|net| net.has_lbs_offsets()), gpu_networks) {
         (None, _) => None,
         (Some(net), None) => {
-            let (offsets, cache) = net.lbs_offsets_forward(&positions)?;
-            Some((offsets, LbsOffsetsPass::Cpu(cache)))
+            let (offsets, cache) = net.lbs_offsets_forward(&to_scalar(&positions))?;
+            Some((to_f64(&offsets), LbsOffsetsPass::Cpu(cache)))
         }
         (Some(_), Some(gpu)) => {
-            let (offsets, cache) = gpu.lbs_offsets_forward(&narrow(&positions))?;
-            Some((widen(&offsets), LbsOffsetsPass::Gpu(cache)))
+            let (offsets, cache) = gpu.lbs_offsets_forward(&to_scalar::<f32>(&positions))?;
+            Some((to_f64(&offsets), LbsOffsetsPass::Gpu(cache)))
         }
     };
     let nearest = template_grid.query_all(&as_points(&positions), 1);
@@ -440,12 +456,12 @@ pub fn deform_on(
 /// ran on): the device gradients are zeroed first, and after both backwards the gradients of
 /// the groups that ran there are downloaded in one go and added to `networks`'.
 #[allow(clippy::too_many_arguments)]
-pub fn deform_backward(
-    networks: &mut Networks<f64>,
+pub fn deform_backward<S: NnScalar>(
+    networks: &mut Networks<S>,
     gpu_networks: Option<&GpuNetworks>,
     rig: &BodyRig,
-    posed: &PosedFrame,
-    deformed: &Deformed,
+    posed: &PosedFrame<S>,
+    deformed: &Deformed<S>,
     params: &BodyParams,
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
@@ -472,33 +488,33 @@ pub fn deform_backward(
     match &deformed.non_rigid {
         None => {}
         Some(NonRigidPass::Cpu(cache)) => {
-            through = networks.non_rigid_backward(
+            through = to_f64(&networks.non_rigid_backward(
                 cache,
-                &skin.positions,
-                &skin.d_rotations,
-                &skin.d_scales,
-            )?;
+                &to_scalar(&skin.positions),
+                &to_scalar(&skin.d_rotations),
+                &to_scalar(&skin.d_scales),
+            )?);
         }
         Some(NonRigidPass::Gpu(cache)) => {
             let d_canonical = gpu.context(gpu_ran)?.non_rigid_backward(
                 cache,
-                &narrow(&skin.positions),
-                &narrow(&skin.d_rotations),
-                &narrow(&skin.d_scales),
+                &to_scalar::<f32>(&skin.positions),
+                &to_scalar::<f32>(&skin.d_rotations),
+                &to_scalar::<f32>(&skin.d_scales),
             )?;
             if !d_canonical.is_empty() {
-                through = widen(&d_canonical);
+                through = to_f64(&d_canonical);
             }
         }
     }
     match &deformed.weight_offsets {
         None => {}
         Some((_, LbsOffsetsPass::Cpu(cache))) => {
-            networks.lbs_offsets_backward(cache, &skin.weight_offsets)?;
+            networks.lbs_offsets_backward(cache, &to_scalar(&skin.weight_offsets))?;
         }
         Some((_, LbsOffsetsPass::Gpu(cache))) => {
             gpu.context(gpu_ran)?
-                .lbs_offsets_backward(cache, &narrow(&skin.weight_offsets))?;
+                .lbs_offsets_backward(cache, &to_scalar::<f32>(&skin.weight_offsets))?;
         }
     }
     if let Some(gpu) = gpu {
@@ -516,7 +532,7 @@ pub fn deform_backward(
                 flat.extend([g.x_axis[r], g.y_axis[r], g.z_axis[r]]);
             }
         }
-        networks.pose_refiner_backward(cache, &flat)?;
+        networks.pose_refiner_backward(cache, &to_scalar(&flat))?;
     }
     Ok(through)
 }
@@ -544,8 +560,8 @@ pub struct TrainedAvatar {
     /// background's [`crate::config::Background::render_colour`] (`pipeline render` uses
     /// it); the held-out PSNR and eval render on the protocol's background instead.
     pub background: [f64; 3],
-    /// The networks (absent for motion context `none` without refiners).
-    pub networks: Option<Networks<f64>>,
+    /// The networks in f32 (absent for motion context `none` without refiners).
+    pub networks: Option<Networks<f32>>,
     template_grid: KnnGrid,
     /// An f32 copy of `networks` on a gpu, made by [`TrainedAvatar::upload_networks`]; the
     /// gpu render path evaluates the per-Gaussian networks with it.
@@ -559,7 +575,7 @@ impl TrainedAvatar {
         gaussians: AvatarGaussians,
         sh_degree: u32,
         scales: Vec<u32>,
-        networks: Option<Networks<f64>>,
+        networks: Option<Networks<f32>>,
     ) -> Self {
         let template_grid = template_grid(&rig);
         Self {
@@ -590,7 +606,7 @@ impl TrainedAvatar {
             return Ok(false);
         };
         self.gpu_networks = Some(
-            GpuNetworks::upload_f64(context, networks)
+            GpuNetworks::upload(context, networks)
                 .context("uploading the avatar's networks to the gpu")?,
         );
         Ok(true)
@@ -603,7 +619,7 @@ impl TrainedAvatar {
 
     /// The deformed Gaussians of one frame (pose refiner, networks, skinning), with the
     /// per-Gaussian networks on the gpu copy when `backend` is the gpu and the avatar has
-    /// one ([`TrainedAvatar::upload_networks`]), on `cpu` in f64 otherwise.
+    /// one ([`TrainedAvatar::upload_networks`]), on `cpu` in f32 otherwise.
     pub fn deform(&self, inputs: &FrameInputs, backend: &Backend) -> anyhow::Result<Deformed> {
         let gpu_networks = match backend {
             Backend::Gpu(_) => self.gpu_networks.as_ref(),
@@ -721,12 +737,13 @@ impl TrainedAvatar {
                     &["output"]
                 };
                 let chunk: Vec<u64> = shape.iter().map(|&d| d.max(1)).collect();
+                // Stored in f64 (exactly the f32 values), as the entry format has it.
                 out.write_array(
                     &format!("network.{}", param.name),
                     dims,
                     &shape,
                     &chunk,
-                    param.values,
+                    &to_f64(param.values),
                 )?;
             }
         }
@@ -815,7 +832,10 @@ impl TrainedAvatar {
                     if !names.contains(&array) {
                         return None;
                     }
-                    entry.read::<f64>(&array).ok().map(|a| a.data)
+                    entry
+                        .read::<f64>(&array)
+                        .ok()
+                        .map(|a| to_scalar::<f32>(&a.data))
                 })
                 .with_context(|| format!("entry {location}: network arrays `network.*`"))?;
             Some(networks)
@@ -1134,7 +1154,11 @@ mod tests {
         (setup, networks)
     }
 
-    fn deform_with(s: &Setup, networks: &Networks<f64>, gpu: Option<&GpuNetworks>) -> Deformed {
+    fn deform_with(
+        s: &Setup,
+        networks: &Networks<f64>,
+        gpu: Option<&GpuNetworks>,
+    ) -> Deformed<f64> {
         let posed = frame_pose(&s.rig, Some(networks), &s.inputs.params).unwrap();
         deform_on(
             &s.rig,
@@ -1177,7 +1201,7 @@ mod tests {
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
         assert!(moved > 1e-3, "largest non-rigid offset {moved}");
-        let offsets = |d: &Deformed| d.weight_offsets.as_ref().unwrap().0.clone();
+        let offsets = |d: &Deformed<f64>| d.weight_offsets.as_ref().unwrap().0.clone();
         assert!(offsets(&cpu).iter().any(|w| w.abs() > 1e-3));
         assert_eq!(on_gpu.nearest, cpu.nearest);
         assert_close("positions", &on_gpu.positions, &cpu.positions, 1e-5);
@@ -1283,7 +1307,7 @@ mod tests {
     }
 
     /// Skinning gradients of a zero loss (for the error path).
-    fn skin_zero(s: &Setup, posed: &PosedFrame, deformed: &Deformed) -> SkinningGrads {
+    fn skin_zero(s: &Setup, posed: &PosedFrame<f64>, deformed: &Deformed<f64>) -> SkinningGrads {
         let frame = s
             .rig
             .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
@@ -1311,7 +1335,7 @@ mod tests {
     }
 
     /// A trained avatar renders the same image on the gpu backend (networks on its gpu copy,
-    /// gpu splatting) as on `cpu` (f64 networks, cpu splatting): PSNR above 50 dB.
+    /// gpu splatting) as on `cpu` (f32 networks, cpu splatting): PSNR above 50 dB.
     #[test]
     fn trained_avatar_renders_the_same_with_gpu_networks() {
         let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
@@ -1337,13 +1361,20 @@ mod tests {
             vec![2, 1],
             None,
         );
+        let mut narrow = Networks::<f32>::new(networks.config(), 0).unwrap();
+        narrow
+            .load_parameters(|name| {
+                let param = networks.parameters().into_iter().find(|p| p.name == name)?;
+                Some(param.values.iter().map(|&v| v as f32).collect())
+            })
+            .unwrap();
         let mut avatar = TrainedAvatar::new(
             s.config.clone(),
             s.rig.clone(),
             gaussians,
             1,
             vec![2, 1],
-            Some(networks),
+            Some(narrow),
         );
         let target = DVec3::new(0.1, 0.0, 2.0);
         let camera = Camera::look_at(

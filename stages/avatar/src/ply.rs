@@ -794,14 +794,14 @@ mod tests {
         };
         let j = rig.joint_count();
         let net_config = NetworkConfig::from_avatar(&config, j, j, 1).unwrap();
-        let mut networks = Networks::<f64>::new(&net_config, 2).unwrap();
+        let mut networks = Networks::<f32>::new(&net_config, 2).unwrap();
         for param in networks.parameters_mut() {
             if param.name.starts_with("non_rigid.heads")
                 || param.name.starts_with("lbs_offsets.4")
                 || param.name.starts_with("pose_refiner.2")
             {
                 for x in param.values.iter_mut() {
-                    *x = rng.uniform(-0.05, 0.05);
+                    *x = rng.uniform(-0.05, 0.05) as f32;
                 }
             }
         }

@@ -387,7 +387,7 @@ mod tests {
             let rig = BodyRig::new(model.clone()).unwrap();
             let j = rig.joint_count();
             let net_config = NetworkConfig::from_avatar(&config, j, j, 1).unwrap();
-            let mut networks = Networks::<f64>::new(&net_config, 3).unwrap();
+            let mut networks = Networks::<f32>::new(&net_config, 3).unwrap();
             let mut rng = Rng::new(8);
             // Outputs well away from the near-zero initialisation of the heads.
             for param in networks.parameters_mut() {
@@ -395,7 +395,7 @@ mod tests {
                     || param.name.starts_with("lbs_offsets.4")
                 {
                     for x in param.values.iter_mut() {
-                        *x = rng.uniform(-0.05, 0.05);
+                        *x = rng.uniform(-0.05, 0.05) as f32;
                     }
                 }
             }

@@ -191,7 +191,8 @@ impl StageKind for EvalStage {
         // 2: on the gpu backend the networks run on the gpu in f32 (GpuNetworks).
         // 3: the avatar renders on the protocol's background (not its training background).
         // 4: reads the avatar config (attribute `avatar`) of train entries of version 5.
-        4
+        // 5: on the cpu backend the networks run in f32 too.
+        5
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {

@@ -1,13 +1,22 @@
-//! Benchmark: training iterations per second at 512 x 512 with the `paper` preset (trunk
-//! 512 x 3, L = 8, tau = 8, all scales, pose refiner, LBS offsets) on each backend.
+//! Benchmark: training iterations per second, with the time of every phase of an iteration
+//! ([`Phase`]), for the `paper` preset at 512 x 512 (trunk 512 x 3, L = 8, tau = 8, all
+//! scales, pose refiner, LBS offsets) and the `fast` preset at the demo's 128 x 128, on each
+//! backend, and a roofline figure for the networks.
 //!
-//! Two rows per backend: without the LPIPS loss, and with it as method.md has it (VGG, weight
-//! 0.1, on the bound-box crop). The LPIPS row uses seeded VGG weights: the trained ones cannot
-//! be committed, and the cost depends only on the architecture (`SEQAVATAR_BENCH_LPIPS=0`
-//! skips the row).
+//! The roofline: the gemm peak is the compute crate's f32 [`linear_forward`] at the trunk's
+//! shape (one row per Gaussian, 512 -> 512, ReLU), timed in the same run; the network phases
+//! are `deform` and `backward` (the phases that run the networks, together with the skinning
+//! around them, so the figure is a lower bound), their FLOPs those of the per-Gaussian layers
+//! (forward `2 rows in out` per layer, backward twice that, as `--bench nn` counts them; the
+//! per-frame layers, about a million multiply-adds, are left out). The last line is
+//! `cpu paper preset: <X> it/s, network phases at <P>% of the gemm peak measured in this run`.
+//!
+//! LPIPS: a row with the loss as method.md has it (VGG, weight 0.1, on the bound-box crop)
+//! with seeded VGG weights (the trained ones cannot be committed; the cost depends only on
+//! the architecture); `SEQAVATAR_BENCH_LPIPS=0` skips it.
 //!
 //! The scene is the built-in synthetic one (procedural body, two cameras, 512 x 512), run
-//! through the real ingest and motion stages into a temporary cache. Each backend runs
+//! through the real ingest and motion stages into a temporary cache. Each row runs
 //! `SEQAVATAR_BENCH_WARMUP` (default 2) untimed and `SEQAVATAR_BENCH_ITERATIONS` (default 10)
 //! timed iterations from the same initial state. The gpu backend needs a hardware adapter
 //! (set `SEQAVATAR_BENCH_SOFTWARE_GPU=1` to time lavapipe instead).
@@ -17,12 +26,14 @@
 use std::path::Path;
 use std::time::Instant;
 
+use seqavatar_avatar::model::{HEAD_WIDTH, NetworkConfig};
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
+use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
-use seqavatar_train::trainer::Trainer;
+use seqavatar_train::trainer::{Phase, Trainer};
 
 const UPSTREAM: &str = r#"
 stages:
@@ -44,6 +55,81 @@ fn env_usize(name: &str, default: usize) -> usize {
         .unwrap_or(default)
 }
 
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+/// GFLOP/s of the f32 `linear_forward` at `rows x in_features -> out_features` + ReLU, the
+/// median of several timed products after one untimed.
+fn gemm_peak(rows: usize, in_features: usize, out_features: usize) -> f64 {
+    let shape = LinearShape {
+        in_features,
+        out_features,
+        activation: Activation::Relu,
+    };
+    let mut rng = Rng::new(3);
+    let mut random =
+        |len: usize| -> Vec<f32> { (0..len).map(|_| rng.uniform(-1.0, 1.0) as f32).collect() };
+    let x = random(rows * in_features);
+    let weight = random(shape.weight_len());
+    let bias = random(out_features);
+    let mut y = vec![0.0f32; rows * out_features];
+    let parts = [InputPart {
+        data: &x,
+        cols: in_features,
+    }];
+    let mut seconds = Vec::new();
+    for repeat in 0..8 {
+        let started = Instant::now();
+        linear_forward(shape, &weight, &bias, &parts, rows, &mut y).expect("valid shapes");
+        if repeat > 0 {
+            seconds.push(started.elapsed().as_secs_f64());
+        }
+    }
+    shape.forward_flops(rows) / median(seconds) / 1e9
+}
+
+/// Forward FLOPs of the per-Gaussian layers for `n` Gaussians: the non-rigid network's
+/// SeqXYZEncoder (velocity and frame layers once per window element), trunk (its first layer
+/// over the per-Gaussian columns; the per-frame ones are one row) and heads, and the
+/// LBS-offset network.
+fn per_gaussian_forward_flops(config: &NetworkConfig, n: usize) -> f64 {
+    let w = &config.widths;
+    let layer = |rows: usize, input: usize, output: usize| 2.0 * (rows * input * output) as f64;
+    let encoding = w.encoding_width();
+    let mut flops = 0.0;
+    if config.motion_context.has_non_rigid() {
+        let mut gaussian_in = encoding;
+        if config.motion_context.has_velocity() {
+            let length = config.sequence_length;
+            flops += layer(n * length, config.seq_xyz_row(), w.seq_xyz_velocity)
+                + layer(n, encoding, w.seq_xyz_position)
+                + layer(
+                    n * length,
+                    w.seq_xyz_velocity + w.seq_xyz_position,
+                    w.seq_xyz_frame,
+                )
+                + layer(n, w.seq_xyz_frame * length, w.seq_xyz_hidden)
+                + layer(n, w.seq_xyz_hidden, w.seq_xyz);
+            gaussian_in += w.seq_xyz;
+        }
+        flops += layer(n, gaussian_in, config.trunk_width);
+        flops += (1..config.trunk_depth)
+            .map(|_| layer(n, config.trunk_width, config.trunk_width))
+            .sum::<f64>();
+        flops += layer(n, config.trunk_width, HEAD_WIDTH);
+    }
+    if config.lbs_offsets {
+        let hidden = w.lbs_hidden;
+        flops += layer(n, encoding, hidden)
+            + 2.0 * layer(n, hidden, hidden)
+            + layer(n, hidden + encoding, hidden)
+            + layer(n, hidden, config.skinning_joints);
+    }
+    flops
+}
+
 fn main() -> anyhow::Result<()> {
     let dir = tempfile::tempdir()?;
     let mut registry = Registry::new();
@@ -60,6 +146,10 @@ fn main() -> anyhow::Result<()> {
     let mut config = TrainConfig::preset(Preset::Paper);
     config.sequence_length = 8;
     let data = TrainingData::read(&ingest, &ingest, &motion, 1.0)?;
+    // The `fast` preset at the demo's training resolution (128 x 128).
+    let mut fast = TrainConfig::preset(Preset::Fast);
+    fast.resolution_scale = 0.25;
+    let fast_data = TrainingData::read(&ingest, &ingest, &motion, fast.resolution_scale)?;
     let warmup = env_usize("SEQAVATAR_BENCH_WARMUP", 2);
     let timed = env_usize("SEQAVATAR_BENCH_ITERATIONS", 10);
     let mut backends = vec![("cpu", Backend::Cpu)];
@@ -72,42 +162,87 @@ fn main() -> anyhow::Result<()> {
         Ok(context) => backends.push(("gpu", Backend::Gpu(std::sync::Arc::new(context)))),
         Err(e) => println!("gpu: not measured ({e})"),
     }
+    let gaussians = data.rig.vertex_count();
     println!(
-        "paper preset at 512x512: {} Gaussians, trunk {}x{}, L = {}, tau = {}, scales {:?}",
-        data.rig.vertex_count(),
+        "paper preset at 512x512: {gaussians} Gaussians, trunk {}x{}, L = {}, tau = {}, scales {:?}",
         config.trunk_width,
         config.trunk_depth,
         config.sequence_length,
         config.tau,
         data.motion.scales
     );
-    let mut variants = vec![("no LPIPS loss", config.clone())];
+    let peak = gemm_peak(gaussians, config.trunk_width, config.trunk_width);
+    println!(
+        "gemm peak: {peak:.1} GFLOP/s (f32 linear_forward, {gaussians} x {w} -> {w} + ReLU, the trunk's shape; {} rayon threads)",
+        rayon::current_num_threads(),
+        w = config.trunk_width
+    );
+    let mut variants = vec![("paper preset, no LPIPS loss", config.clone(), &data)];
     if std::env::var("SEQAVATAR_BENCH_LPIPS").map_or(true, |v| v != "0") {
         let weights = dir.path().join("lpips_vgg_seeded.safetensors");
         seeded_weights(LpipsNet::Vgg, 1).write_safetensors(&weights)?;
         let mut with_lpips = config.clone();
         with_lpips.lpips_weight = 0.1;
         with_lpips.lpips_weights = Some(weights);
-        variants.push(("LPIPS loss (VGG, weight 0.1)", with_lpips));
+        variants.push((
+            "paper preset, LPIPS loss (VGG, weight 0.1)",
+            with_lpips,
+            &data,
+        ));
     }
+    variants.push(("fast preset at 128x128", fast, &fast_data));
+    let mut headline = None;
     for (name, backend) in backends {
         let description = backend.describe();
-        for (variant, config) in &variants {
-            let mut trainer = Trainer::new(config.clone(), &data, backend.clone())?;
+        for (variant, config, data) in &variants {
+            let mut trainer = Trainer::new(config.clone(), data, backend.clone())?;
             for _ in 0..warmup {
                 trainer.step()?;
             }
+            trainer.reset_phase_times();
             let started = Instant::now();
             for _ in 0..timed {
                 trainer.step()?;
             }
             let seconds = started.elapsed().as_secs_f64();
+            let it_s = timed as f64 / seconds;
             println!(
-                "{name}, {variant}: {:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
-                timed as f64 / seconds,
+                "{name}, {variant}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
                 1e3 * seconds / timed as f64
             );
+            let times = trainer.phase_times();
+            let per_iteration = |phase: Phase| 1e3 * times.seconds(phase) / timed as f64;
+            println!(
+                "  ms per phase: {}",
+                Phase::ALL
+                    .iter()
+                    .map(|&phase| format!("{} {:.1}", phase.name(), per_iteration(phase)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+            if let Some(networks) = &trainer.networks {
+                // Forward + backward (dX and dW, twice the forward) of the per-Gaussian layers
+                // at the Gaussian count of the timed iterations' end.
+                let flops =
+                    3.0 * per_gaussian_forward_flops(networks.config(), trainer.state.len());
+                let network_seconds =
+                    (times.seconds(Phase::Deform) + times.seconds(Phase::Backward)) / timed as f64;
+                let achieved = flops / network_seconds / 1e9;
+                let percent = 100.0 * achieved / peak;
+                println!(
+                    "  network phases (deform + backward): {:.2} GFLOP per iteration at {achieved:.1} GFLOP/s, {percent:.0}% of the gemm peak",
+                    flops / 1e9
+                );
+                if name == "cpu" && variant.starts_with("paper preset, no LPIPS") {
+                    headline = Some((it_s, percent));
+                }
+            }
         }
+    }
+    if let Some((it_s, percent)) = headline {
+        println!(
+            "cpu paper preset: {it_s:.2} it/s, network phases at {percent:.0}% of the gemm peak measured in this run"
+        );
     }
     Ok(())
 }

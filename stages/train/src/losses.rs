@@ -15,6 +15,9 @@
 use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsError, LpipsInput, tap_sizes};
 use seqavatar_compute::ssim::ssim_planes;
+use seqavatar_motion::knn::{KnnGrid, as_points};
+
+use seqavatar_avatar::skinning::{canonical_covariances, canonical_covariances_backward};
 
 /// A half-open pixel rectangle `[x0, x1) x [y0, y1)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -389,6 +392,89 @@ pub fn aiap_loss(
     )
 }
 
+/// Weights and neighbourhood of the as-isometric-as-possible loss (the train config's
+/// `aiap_centre_weight`, `aiap_covariance_weight`, `aiap_neighbours`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AiapWeights {
+    pub centre: f64,
+    pub covariance: f64,
+    /// Neighbours per Gaussian, the Gaussian itself included.
+    pub neighbours: usize,
+}
+
+/// The canonical Gaussians and their deformation, as the AIAP loss of one iteration reads
+/// them: `N x 3` centres, log-scales and deformed centres, `N x 4` rotations `[w, x, y, z]`,
+/// `N x 6` deformed covariance upper triangles.
+pub struct AiapGaussians<'a> {
+    pub xyz: &'a [f64],
+    pub log_scale: &'a [f64],
+    pub rotation: &'a [f64],
+    pub deformed_centres: &'a [f64],
+    pub deformed_covariances: &'a [f64],
+}
+
+/// The weighted AIAP loss of one iteration and its gradients: into the deformed centres and
+/// covariances (added to the splatting's before the skinning backward) and into the
+/// canonical Gaussians' own parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AiapGaussianGrads {
+    /// `centre x centres + covariance x covariances`.
+    pub value: f64,
+    pub deformed_centres: Vec<f64>,
+    pub deformed_covariances: Vec<f64>,
+    pub xyz: Vec<f64>,
+    pub log_scale: Vec<f64>,
+    pub rotation: Vec<f64>,
+}
+
+/// As-isometric-as-possible loss between the canonical Gaussians and their deformation, over
+/// each Gaussian's canonical nearest neighbours (recomputed every call: the centres move and
+/// densification renumbers them), with the canonical covariances built from the log-scales
+/// and rotations and their gradients carried back to those. `None` when both weights are 0 or
+/// there is at most one Gaussian (no pair to compare).
+pub fn aiap_gaussians(
+    gaussians: &AiapGaussians<'_>,
+    weights: AiapWeights,
+) -> Option<AiapGaussianGrads> {
+    let n = gaussians.xyz.len() / 3;
+    if !(weights.centre > 0.0 || weights.covariance > 0.0) || n <= 1 {
+        return None;
+    }
+    let k = weights.neighbours.min(n);
+    let points = as_points(gaussians.xyz);
+    let neighbours = KnnGrid::new(&points, 4.0).query_all(&points, k);
+    let canonical_covariances = canonical_covariances(gaussians.log_scale, gaussians.rotation);
+    let (terms, grads) = aiap_loss(
+        &AiapInputs {
+            canonical_centres: gaussians.xyz,
+            deformed_centres: gaussians.deformed_centres,
+            canonical_covariances: &canonical_covariances,
+            deformed_covariances: gaussians.deformed_covariances,
+            neighbours: &neighbours,
+            k,
+        },
+        weights.centre,
+        weights.covariance,
+    );
+    let mut log_scale = vec![0.0; 3 * n];
+    let mut rotation = vec![0.0; 4 * n];
+    canonical_covariances_backward(
+        gaussians.log_scale,
+        gaussians.rotation,
+        &grads.canonical_covariances,
+        &mut log_scale,
+        &mut rotation,
+    );
+    Some(AiapGaussianGrads {
+        value: weights.centre * terms.centres + weights.covariance * terms.covariances,
+        deformed_centres: grads.deformed_centres,
+        deformed_covariances: grads.deformed_covariances,
+        xyz: grads.canonical_centres,
+        log_scale,
+        rotation,
+    })
+}
+
 /// Sum over pairs of `|d(a_i, a_j) - d(b_i, b_j)|` for `D`-vectors; accumulates gradients
 /// times `scale`. A zero distance has a zero (sub)gradient instead of NaN.
 fn aiap_term<const D: usize>(
@@ -758,6 +844,113 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn aiap_on_gaussians_matches_finite_differences_of_its_parameters() {
+        let mut rng = Rng::new(21);
+        let n = 10;
+        let xyz = random_vec(&mut rng, 3 * n, -0.5, 0.5);
+        let log_scale = random_vec(&mut rng, 3 * n, -3.0, -1.0);
+        let rotation = random_vec(&mut rng, 4 * n, -1.0, 1.0);
+        let deformed_centres: Vec<f64> = xyz.iter().map(|x| 1.3 * x + 0.05).collect();
+        let deformed_covariances = random_vec(&mut rng, 6 * n, -0.01, 0.01);
+        let weights = AiapWeights {
+            centre: 1.0,
+            covariance: 100.0,
+            neighbours: 4,
+        };
+        let eval = |t: &[Vec<f64>]| {
+            aiap_gaussians(
+                &AiapGaussians {
+                    xyz: &t[0],
+                    log_scale: &t[1],
+                    rotation: &t[2],
+                    deformed_centres: &t[3],
+                    deformed_covariances: &t[4],
+                },
+                weights,
+            )
+            .expect("active with ten Gaussians")
+        };
+        let tensors = vec![
+            xyz,
+            log_scale,
+            rotation,
+            deformed_centres,
+            deformed_covariances,
+        ];
+        let grads = eval(&tensors);
+        assert!(grads.value > 0.0);
+        // An independent composition of the pieces: brute-force neighbours, covariances
+        // from `canonical_covariances`, the weighted sum of `aiap_loss`'s terms.
+        let neighbours = seqavatar_motion::knn::knn_brute_force(
+            &as_points(&tensors[0]),
+            &as_points(&tensors[0]),
+            weights.neighbours,
+        );
+        let (terms, _) = aiap_loss(
+            &AiapInputs {
+                canonical_centres: &tensors[0],
+                deformed_centres: &tensors[3],
+                canonical_covariances: &canonical_covariances(&tensors[1], &tensors[2]),
+                deformed_covariances: &tensors[4],
+                neighbours: &neighbours,
+                k: weights.neighbours,
+            },
+            1.0,
+            1.0,
+        );
+        let expected = terms.centres + 100.0 * terms.covariances;
+        assert!(
+            (grads.value - expected).abs() <= 1e-12 * expected,
+            "{grads:?}"
+        );
+        let analytic = [
+            &grads.xyz,
+            &grads.log_scale,
+            &grads.rotation,
+            &grads.deformed_centres,
+            &grads.deformed_covariances,
+        ];
+        let eps = 1e-6;
+        for which in 0..tensors.len() {
+            for index in 0..tensors[which].len() {
+                let mut plus = tensors.clone();
+                let mut minus = tensors.clone();
+                plus[which][index] += eps;
+                minus[which][index] -= eps;
+                let numeric = (eval(&plus).value - eval(&minus).value) / (2.0 * eps);
+                let a = analytic[which][index];
+                assert!(
+                    (numeric - a).abs() <= 1e-5 * (1.0 + a.abs()),
+                    "tensor {which} index {index}: numeric {numeric} analytic {a}"
+                );
+            }
+        }
+        // Off: both weights 0, or a single Gaussian.
+        let off = AiapWeights {
+            centre: 0.0,
+            covariance: 0.0,
+            neighbours: 4,
+        };
+        let t = &tensors;
+        let inputs = AiapGaussians {
+            xyz: &t[0],
+            log_scale: &t[1],
+            rotation: &t[2],
+            deformed_centres: &t[3],
+            deformed_covariances: &t[4],
+        };
+        assert!(aiap_gaussians(&inputs, off).is_none());
+        let single = AiapGaussians {
+            xyz: &t[0][..3],
+            log_scale: &t[1][..3],
+            rotation: &t[2][..4],
+            deformed_centres: &t[3][..3],
+            deformed_covariances: &t[4][..6],
+        };
+        assert!(aiap_gaussians(&single, weights).is_none());
     }
 
     #[test]

@@ -46,8 +46,8 @@ use crate::trainer::{LossCurve, Trainer};
 /// The stage kind.
 pub struct TrainStage;
 
-/// Bump whenever the code changes the result.
-const VERSION: u32 = 5;
+/// Bump whenever the code changes the result (6: the networks train and render in f32).
+const VERSION: u32 = 6;
 
 pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;
 

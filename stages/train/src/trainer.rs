@@ -1,10 +1,12 @@
-//! The training loop: per iteration a seeded choice of training image(s) of one frame, the
-//! avatar's forward pass ([`seqavatar_avatar::avatar::deform`]), splatting on the chosen backend onto
-//! the iteration's background ([`crate::config::Background`]), the photometric and LPIPS
-//! (when configured) losses against the ground truth composited with its mask onto that same
-//! background ([`crate::data::ImageRecord::colour_on`]), the as-isometric-as-possible loss,
-//! the full backward, Adam with the method.md schedules, the SH degree schedule and density
-//! control.
+//! The training loop. [`Trainer::step`] runs one iteration as named phases ([`Phase`], each
+//! timed into [`Trainer::phase_times`]): `deform` (a seeded choice of training image(s) of
+//! one frame and the avatar's forward pass, [`seqavatar_avatar::avatar::deform`]), `splat` (on the
+//! chosen backend onto the iteration's background, [`crate::config::Background`]), `losses`
+//! (photometric and, when configured, LPIPS against the ground truth composited with its mask
+//! onto that same background, [`crate::data::ImageRecord::colour_on`], and the
+//! as-isometric-as-possible loss, [`crate::losses::aiap_gaussians`]), `backward` (splatting,
+//! skinning, networks), `optimiser` (Adam with the method.md schedules) and `densify` (density
+//! statistics and control); the SH degree follows its schedule.
 //!
 //! A [`Trainer`] holds the complete resumable state; [`Trainer::checkpoint`] and
 //! [`Trainer::resume`] convert it to and from a [`Checkpoint`] exactly, so a resumed `cpu`
@@ -16,20 +18,18 @@ use seqavatar_compute::backend::Backend;
 use seqavatar_compute::lpips::{Lpips, LpipsWeights};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState, adam_update};
 use seqavatar_compute::splat::{RasterOptions, sh_coefficient_count};
+use seqavatar_core::camera::Camera;
 
 use std::collections::BTreeMap;
+use std::time::Instant;
 
 use seqavatar_avatar::avatar::{
-    AvatarGaussians, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
+    AvatarGaussians, Deformed, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
     gather_frame_inputs, needs_networks, template_grid,
 };
 use seqavatar_avatar::model::gpu::GpuNetworks;
 use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
 use seqavatar_avatar::rig::{FramePose, PoseChain};
-use seqavatar_avatar::skinning::{
-    GaussianParams, canonical_covariances, canonical_covariances_backward, skin_backward,
-};
-use seqavatar_avatar::splatting;
 use seqavatar_motion::knn::{KnnGrid, as_points, knn_brute_force};
 
 use crate::checkpoint::{Checkpoint, Tensor};
@@ -42,9 +42,12 @@ use crate::gaussians::{
     SH, SH_STORED, TRAINABLE, avatar_gaussians, exponential_lr, initial_state, psnr,
 };
 use crate::losses::{
-    AiapInputs, ImageLossWeights, ImagePair, LpipsLoss, Rect, aiap_loss, image_loss,
+    AiapGaussianGrads, AiapGaussians, AiapWeights, ImageLossWeights, ImagePair, LpipsLoss, Rect,
+    aiap_gaussians, image_loss,
 };
 use crate::rng::Rng;
+use seqavatar_avatar::skinning::{GaussianParams, skin_backward};
+use seqavatar_avatar::splatting::{self, SplatPass};
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -151,6 +154,141 @@ pub struct Divergence {
     pub detail: String,
 }
 
+/// The phases of one iteration, in the order [`Trainer::step`] runs them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Phase {
+    /// Image choice, the (refined) pose, the networks' forward, skinning, activations.
+    Deform,
+    /// Splatting into every chosen camera.
+    Splat,
+    /// Photometric, LPIPS and as-isometric-as-possible losses with their gradients.
+    Losses,
+    /// Splatting, skinning and network backward.
+    Backward,
+    /// Adam on the Gaussians and the networks.
+    Optimiser,
+    /// Density statistics and control.
+    Densify,
+}
+
+impl Phase {
+    /// Every phase, in order.
+    pub const ALL: [Phase; 6] = [
+        Phase::Deform,
+        Phase::Splat,
+        Phase::Losses,
+        Phase::Backward,
+        Phase::Optimiser,
+        Phase::Densify,
+    ];
+
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Deform => "deform",
+            Phase::Splat => "splat",
+            Phase::Losses => "losses",
+            Phase::Backward => "backward",
+            Phase::Optimiser => "optimiser",
+            Phase::Densify => "densify",
+        }
+    }
+}
+
+/// Wall time per phase, accumulated over the iterations since the trainer was built or
+/// [`Trainer::reset_phase_times`] was called.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PhaseTimes {
+    seconds: [f64; 6],
+    iterations: u64,
+}
+
+impl PhaseTimes {
+    /// Seconds spent in `phase`.
+    pub fn seconds(&self, phase: Phase) -> f64 {
+        self.seconds[phase as usize]
+    }
+
+    /// Seconds spent in every phase together.
+    pub fn total(&self) -> f64 {
+        self.seconds.iter().sum()
+    }
+
+    /// Completed iterations timed.
+    pub fn iterations(&self) -> u64 {
+        self.iterations
+    }
+}
+
+/// Times consecutive phases: each lap charges the time since the previous one.
+struct PhaseClock(Instant);
+
+impl PhaseClock {
+    fn start() -> Self {
+        PhaseClock(Instant::now())
+    }
+
+    fn lap(&mut self, times: &mut PhaseTimes, phase: Phase) {
+        let now = Instant::now();
+        times.seconds[phase as usize] += (now - self.0).as_secs_f64();
+        self.0 = now;
+    }
+}
+
+/// What the deform phase hands to the rest of the iteration.
+struct Forward {
+    /// The iteration's training images (one frame).
+    chosen: Vec<usize>,
+    frame: usize,
+    sh_degree: u32,
+    posed: PosedFrame,
+    gaussians: AvatarGaussians,
+    deformed: Deformed,
+}
+
+/// What the splat phase hands on.
+struct Rendered {
+    cameras: Vec<Camera>,
+    background: [f64; 3],
+    pass: SplatPass,
+}
+
+/// What the loss phase hands on: the statistics, the image gradients per camera (already
+/// scaled by the camera average) and the AIAP gradients when that loss is on.
+struct Losses {
+    stats: IterationStats,
+    upstream_colour: Vec<Vec<f64>>,
+    upstream_alpha: Vec<Vec<f64>>,
+    aiap: Option<AiapGaussianGrads>,
+}
+
+/// The gradients of the Gaussians' trainable columns and the densification statistics'
+/// inputs.
+struct Gradients {
+    xyz: Vec<f64>,
+    sh: Vec<f64>,
+    opacity_logit: Vec<f64>,
+    log_scale: Vec<f64>,
+    rotation: Vec<f64>,
+    /// Per Gaussian, the norm of the gradient of its projected centre (pixels).
+    mean_2d_norm: Vec<f64>,
+    /// Half the largest side of the iteration's cameras, in pixels.
+    half_size: f64,
+}
+
+impl Gradients {
+    /// The trainable columns' gradients by column name, in the optimiser's order.
+    fn columns(&self) -> [(&'static str, &Vec<f64>); 5] {
+        [
+            (names::POSITION, &self.xyz),
+            (SH, &self.sh),
+            (names::OPACITY_LOGIT, &self.opacity_logit),
+            (names::LOG_SCALE, &self.log_scale),
+            (names::ROTATION, &self.rotation),
+        ]
+    }
+}
+
 /// The complete state of a run.
 pub struct Trainer<'d> {
     pub config: TrainConfig,
@@ -166,8 +304,8 @@ pub struct Trainer<'d> {
     /// Raw scales fed to the networks (largest first).
     pub scales: Vec<u32>,
     /// The networks (when the configuration has any) and their Adam state by name.
-    pub networks: Option<Networks<f64>>,
-    network_adam: BTreeMap<String, AdamState<f64>>,
+    pub networks: Option<Networks<f32>>,
+    network_adam: BTreeMap<String, AdamState<f32>>,
     /// On the `gpu` backend, an f32 copy of the networks that evaluates the per-Gaussian ones
     /// (non-rigid, LBS offsets; forward and backward); `networks` stays the parameter master.
     gpu_networks: Option<GpuNetworks>,
@@ -177,6 +315,7 @@ pub struct Trainer<'d> {
     template_grid: KnnGrid,
     /// Unrefined skinning targets per frame, computed once.
     poses: Vec<Option<(FramePose, PoseChain)>>,
+    phase_times: PhaseTimes,
 }
 
 /// The active SH degree at (1-based) iteration `iteration`: one more every `interval`.
@@ -259,8 +398,8 @@ impl<'d> Trainer<'d> {
         rng: Rng,
         curve: LossCurve,
         scales: Vec<u32>,
-        networks: Option<Networks<f64>>,
-        network_adam: BTreeMap<String, AdamState<f64>>,
+        networks: Option<Networks<f32>>,
+        network_adam: BTreeMap<String, AdamState<f32>>,
     ) -> anyhow::Result<Self> {
         let train_images: Vec<usize> = data
             .split(0)
@@ -274,7 +413,7 @@ impl<'d> Trainer<'d> {
         let gpu_networks = match (&backend, networks.as_ref()) {
             (Backend::Gpu(context), Some(net)) if net.has_non_rigid() || net.has_lbs_offsets() => {
                 Some(
-                    GpuNetworks::upload_f64(context.clone(), net)
+                    GpuNetworks::upload(context.clone(), net)
                         .context("uploading the networks to the gpu")?,
                 )
             }
@@ -310,6 +449,7 @@ impl<'d> Trainer<'d> {
             networks,
             network_adam,
             train_images,
+            phase_times: PhaseTimes::default(),
         })
     }
 
@@ -360,9 +500,34 @@ impl<'d> Trainer<'d> {
         avatar_gaussians(&self.state)
     }
 
-    /// One training iteration.
+    /// One training iteration: the phases of [`Phase`] in order, each timed into
+    /// [`Trainer::phase_times`].
     pub fn step(&mut self) -> anyhow::Result<IterationStats> {
         let iteration = self.iteration + 1;
+        let mut clock = PhaseClock::start();
+        let forward = self.deform_phase(iteration)?;
+        clock.lap(&mut self.phase_times, Phase::Deform);
+        let rendered = self.splat_phase(&forward)?;
+        clock.lap(&mut self.phase_times, Phase::Splat);
+        let losses = self.loss_phase(iteration, &forward, &rendered)?;
+        clock.lap(&mut self.phase_times, Phase::Losses);
+        let mut stats = losses.stats;
+        let gradients = self.backward_phase(iteration, &forward, rendered, losses)?;
+        clock.lap(&mut self.phase_times, Phase::Backward);
+        self.optimiser_phase(iteration, &gradients)?;
+        clock.lap(&mut self.phase_times, Phase::Optimiser);
+        stats.densified = self.densify_phase(iteration, &gradients)?;
+        clock.lap(&mut self.phase_times, Phase::Densify);
+        self.phase_times.iterations += 1;
+        self.iteration = iteration;
+        stats.gaussians = self.state.len();
+        self.curve.push(&stats);
+        Ok(stats)
+    }
+
+    /// Deform: the iteration's images and frame, the (refined) pose, the networks' forward,
+    /// skinning and activations.
+    fn deform_phase(&mut self, iteration: u64) -> anyhow::Result<Forward> {
         let sh_degree = sh_degree_at(&self.config, iteration);
         let chosen = self.pick_images();
         let frame = self.data.images[chosen[0]].frame;
@@ -372,11 +537,10 @@ impl<'d> Trainer<'d> {
         // The master parameters change with every optimiser step (and `networks` is public):
         // the gpu copy is refreshed before every forward pass.
         if let (Some(gpu), Some(net)) = (&self.gpu_networks, &self.networks) {
-            gpu.upload_groups_f64(net, GpuNetworks::DEFORM_GROUPS)
+            gpu.upload_groups(net, GpuNetworks::DEFORM_GROUPS)
                 .context("uploading the networks to the gpu")?;
         }
         let posed = self.posed_frame(frame)?;
-        let pose = &posed.pose;
         let avatar_config = self.config.avatar();
         let inputs = gather_frame_inputs(
             &avatar_config,
@@ -386,7 +550,6 @@ impl<'d> Trainer<'d> {
             frame,
         )?;
         let gaussians = self.avatar_gaussians()?;
-        let n = gaussians.len();
         let deformed = deform_on(
             &self.data.rig,
             &self.template_grid,
@@ -394,24 +557,50 @@ impl<'d> Trainer<'d> {
             self.gpu_networks.as_ref(),
             &gaussians,
             &inputs,
-            pose,
+            &posed.pose,
             &avatar_config,
             sh_degree,
         )?;
-        let cameras: Vec<_> = chosen
+        Ok(Forward {
+            chosen,
+            frame,
+            sh_degree,
+            posed,
+            gaussians,
+            deformed,
+        })
+    }
+
+    /// Splat: the deformed Gaussians rendered into every chosen camera on this iteration's
+    /// background (every image loss compares with the ground truth composited onto it).
+    fn splat_phase(&mut self, forward: &Forward) -> anyhow::Result<Rendered> {
+        let cameras: Vec<_> = forward
+            .chosen
             .iter()
             .map(|&i| self.data.cameras[self.data.images[i].view].clone())
             .collect();
-        // The avatar is rendered on this iteration's background, and every image loss compares
-        // it with the ground truth composited onto the same colour.
         let background = self.config.background.draw(&mut self.rng);
         let options = RasterOptions {
             background,
             smooth_cutoff: false,
         };
-        let pass = splatting::forward(&self.backend, &deformed.world, &cameras, &options)?;
+        let pass = splatting::forward(&self.backend, &forward.deformed.world, &cameras, &options)?;
+        Ok(Rendered {
+            cameras,
+            background,
+            pass,
+        })
+    }
 
-        // Photometric loss per camera, averaged.
+    /// Losses: the photometric (and LPIPS) losses per camera, averaged, with their image
+    /// gradients, and the as-isometric-as-possible loss with its gradients.
+    fn loss_phase(
+        &self,
+        iteration: u64,
+        forward: &Forward,
+        rendered: &Rendered,
+    ) -> anyhow::Result<Losses> {
+        let chosen = &forward.chosen;
         let weights = ImageLossWeights {
             mask: self.config.mask_weight,
             ssim: self.config.ssim_weight,
@@ -423,7 +612,7 @@ impl<'d> Trainer<'d> {
         };
         let mut upstream_colour = Vec::with_capacity(chosen.len());
         let mut upstream_alpha = Vec::with_capacity(chosen.len());
-        for (image, &index) in pass.images.iter().zip(&chosen) {
+        for (image, &index) in rendered.pass.images.iter().zip(chosen) {
             let record = &self.data.images[index];
             let (w, h) = (image.width as usize, image.height as usize);
             let bound = pad_rect(
@@ -432,7 +621,7 @@ impl<'d> Trainer<'d> {
                 w,
                 h,
             );
-            let target_colour = record.colour_on(background);
+            let target_colour = record.colour_on(rendered.background);
             let target_mask = record.mask_f64();
             let (terms, mut grads) = image_loss(
                 &ImagePair {
@@ -471,61 +660,24 @@ impl<'d> Trainer<'d> {
             upstream_colour.push(grads.colour.iter().map(|g| g * scale).collect::<Vec<f64>>());
             upstream_alpha.push(grads.alpha.iter().map(|g| g * scale).collect::<Vec<f64>>());
         }
-        let mut splat_grads = splatting::backward(
-            &self.backend,
-            &pass,
-            &deformed.world,
-            &upstream_colour,
-            &upstream_alpha,
-        )?;
-        drop(pass);
-
-        // As-isometric-as-possible between the canonical and the deformed Gaussians, over
-        // each Gaussian's canonical nearest neighbours (recomputed every iteration: the
-        // centres move and densification renumbers them).
-        let canonical_cov = canonical_covariances(&gaussians.log_scale, &gaussians.rotation);
-        let mut d_xyz = vec![0.0; 3 * n];
-        let mut d_log_scale_aiap = vec![0.0; 3 * n];
-        let mut d_rotation_aiap = vec![0.0; 4 * n];
-        let aiap_active =
-            self.config.aiap_centre_weight > 0.0 || self.config.aiap_covariance_weight > 0.0;
-        if aiap_active && n > 1 {
-            let k = self.config.aiap_neighbours.min(n);
-            let points = as_points(&gaussians.xyz);
-            let neighbours = KnnGrid::new(&points, 4.0).query_all(&points, k);
-            let (terms, grads) = aiap_loss(
-                &AiapInputs {
-                    canonical_centres: &gaussians.xyz,
-                    deformed_centres: &deformed.skinned.positions,
-                    canonical_covariances: &canonical_cov,
-                    deformed_covariances: &deformed.skinned.covariances,
-                    neighbours: &neighbours,
-                    k,
-                },
-                self.config.aiap_centre_weight,
-                self.config.aiap_covariance_weight,
-            );
-            stats.aiap = self.config.aiap_centre_weight * terms.centres
-                + self.config.aiap_covariance_weight * terms.covariances;
+        let gaussians = &forward.gaussians;
+        let aiap = aiap_gaussians(
+            &AiapGaussians {
+                xyz: &gaussians.xyz,
+                log_scale: &gaussians.log_scale,
+                rotation: &gaussians.rotation,
+                deformed_centres: &forward.deformed.skinned.positions,
+                deformed_covariances: &forward.deformed.skinned.covariances,
+            },
+            AiapWeights {
+                centre: self.config.aiap_centre_weight,
+                covariance: self.config.aiap_covariance_weight,
+                neighbours: self.config.aiap_neighbours,
+            },
+        );
+        if let Some(aiap) = &aiap {
+            stats.aiap = aiap.value;
             stats.total += stats.aiap;
-            for (a, b) in splat_grads.means.iter_mut().zip(&grads.deformed_centres) {
-                *a += b;
-            }
-            for (a, b) in splat_grads
-                .covariances
-                .iter_mut()
-                .zip(&grads.deformed_covariances)
-            {
-                *a += b;
-            }
-            d_xyz.copy_from_slice(&grads.canonical_centres);
-            canonical_covariances_backward(
-                &gaussians.log_scale,
-                &gaussians.rotation,
-                &grads.canonical_covariances,
-                &mut d_log_scale_aiap,
-                &mut d_rotation_aiap,
-            );
         }
         if !stats.total.is_finite() {
             return Err(Divergence {
@@ -539,12 +691,56 @@ impl<'d> Trainer<'d> {
             }
             .into());
         }
+        Ok(Losses {
+            stats,
+            upstream_colour,
+            upstream_alpha,
+            aiap,
+        })
+    }
 
-        // Backward through the skinning.
-        let frame_data = self
-            .data
-            .rig
-            .frame(pose, self.config.scale_min, self.config.scale_max);
+    /// Backward: the splatting backward, the AIAP gradients joined to it, the skinning
+    /// backward and the networks' backward (their parameter gradients accumulate); the
+    /// gradients of the Gaussians' trainable columns, checked finite.
+    fn backward_phase(
+        &mut self,
+        iteration: u64,
+        forward: &Forward,
+        rendered: Rendered,
+        losses: Losses,
+    ) -> anyhow::Result<Gradients> {
+        let deformed = &forward.deformed;
+        let gaussians = &forward.gaussians;
+        let n = gaussians.len();
+        let mut splat_grads = splatting::backward(
+            &self.backend,
+            &rendered.pass,
+            &deformed.world,
+            &losses.upstream_colour,
+            &losses.upstream_alpha,
+        )?;
+        drop(rendered.pass);
+        let (mut d_xyz, d_log_scale_aiap, d_rotation_aiap) = match losses.aiap {
+            Some(aiap) => {
+                for (a, b) in splat_grads.means.iter_mut().zip(&aiap.deformed_centres) {
+                    *a += b;
+                }
+                for (a, b) in splat_grads
+                    .covariances
+                    .iter_mut()
+                    .zip(&aiap.deformed_covariances)
+                {
+                    *a += b;
+                }
+                (aiap.xyz, aiap.log_scale, aiap.rotation)
+            }
+            None => (vec![0.0; 3 * n], vec![0.0; 3 * n], vec![0.0; 4 * n]),
+        };
+        let frame_data = self.data.rig.frame(
+            &forward.posed.pose,
+            self.config.scale_min,
+            self.config.scale_max,
+        );
         let params = GaussianParams {
             positions: &deformed.positions,
             log_scales: &gaussians.log_scale,
@@ -563,15 +759,14 @@ impl<'d> Trainer<'d> {
         for (a, b) in d_xyz.iter_mut().zip(&skin.positions) {
             *a += b;
         }
-        // Backward through the networks (their parameter gradients accumulate).
         if let Some(net) = self.networks.as_mut() {
             let through = deform_backward(
                 net,
                 self.gpu_networks.as_ref(),
                 &self.data.rig,
-                &posed,
-                &deformed,
-                &self.data.params[frame],
+                &forward.posed,
+                deformed,
+                &self.data.params[forward.frame],
                 &skin,
             )?;
             for (a, b) in d_xyz.iter_mut().zip(&through) {
@@ -594,20 +789,28 @@ impl<'d> Trainer<'d> {
         let d_opacity: Vec<f64> = (0..n)
             .map(|i| splat_grads.opacities[i] * opacities[i] * (1.0 - opacities[i]))
             .collect();
-        let k = sh_coefficient_count(sh_degree);
+        let k = sh_coefficient_count(forward.sh_degree);
         let mut d_sh = vec![0.0; n * 3 * SH_STORED];
         for i in 0..n {
             d_sh[i * 3 * SH_STORED..i * 3 * SH_STORED + 3 * k]
                 .copy_from_slice(&splat_grads.sh[i * 3 * k..(i + 1) * 3 * k]);
         }
-        let gradients: [(&str, &Vec<f64>); 5] = [
-            (names::POSITION, &d_xyz),
-            (SH, &d_sh),
-            (names::OPACITY_LOGIT, &d_opacity),
-            (names::LOG_SCALE, &d_log_scale),
-            (names::ROTATION, &d_rotation),
-        ];
-        for (name, values) in gradients {
+        let gradients = Gradients {
+            xyz: d_xyz,
+            sh: d_sh,
+            opacity_logit: d_opacity,
+            log_scale: d_log_scale,
+            rotation: d_rotation,
+            mean_2d_norm: splat_grads.mean_2d_norm,
+            half_size: rendered
+                .cameras
+                .iter()
+                .map(|c| c.width.max(c.height))
+                .max()
+                .unwrap_or(1) as f64
+                * 0.5,
+        };
+        for (name, values) in gradients.columns() {
             if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
                 return Err(Divergence {
                     iteration,
@@ -618,25 +821,13 @@ impl<'d> Trainer<'d> {
                 .into());
             }
         }
+        Ok(gradients)
+    }
 
-        // Densification statistics (view-space gradient norm in 3DGS's NDC units).
-        if iteration <= u64::from(self.config.densify_until) {
-            let half_size = cameras
-                .iter()
-                .map(|c| c.width.max(c.height))
-                .max()
-                .unwrap_or(1) as f64
-                * 0.5;
-            let norms: Vec<f64> = splat_grads
-                .mean_2d_norm
-                .iter()
-                .map(|g| g * half_size)
-                .collect();
-            let visible: Vec<bool> = splat_grads.mean_2d_norm.iter().map(|g| *g > 0.0).collect();
-            self.state.accumulate_gradient_stats(&norms, &visible)?;
-        }
-
-        // Adam.
+    /// Optimiser: Adam on the Gaussians' columns (method.md's schedules) and on the networks
+    /// (per-group rates decayed by `network_decay^(step / iterations)`).
+    fn optimiser_phase(&mut self, iteration: u64, gradients: &Gradients) -> anyhow::Result<()> {
+        let n = gradients.opacity_logit.len();
         self.adam_step += 1;
         let lr = &self.config.learning_rates;
         let extent = self.data.extent;
@@ -650,7 +841,7 @@ impl<'d> Trainer<'d> {
             eps: lr.adam_eps,
             ..AdamConfig::default()
         };
-        for (name, gradient) in gradients {
+        for (name, gradient) in gradients.columns() {
             let mut moments = AdamState {
                 m: std::mem::take(self.state.values_mut(&format!("{name}.adam_m"))?),
                 v: std::mem::take(self.state.values_mut(&format!("{name}.adam_v"))?),
@@ -730,8 +921,26 @@ impl<'d> Trainer<'d> {
             }
         }
 
-        // Density control.
+        Ok(())
+    }
+
+    /// Densify: the view-space gradient statistics (in 3DGS's NDC units) while density
+    /// control is on, and clone/split/prune at its iterations.
+    fn densify_phase(
+        &mut self,
+        iteration: u64,
+        gradients: &Gradients,
+    ) -> anyhow::Result<Option<DensifyReport>> {
         let c = &self.config;
+        if iteration <= u64::from(c.densify_until) {
+            let norms: Vec<f64> = gradients
+                .mean_2d_norm
+                .iter()
+                .map(|g| g * gradients.half_size)
+                .collect();
+            let visible: Vec<bool> = gradients.mean_2d_norm.iter().map(|g| *g > 0.0).collect();
+            self.state.accumulate_gradient_stats(&norms, &visible)?;
+        }
         if c.densify
             && iteration > u64::from(c.densify_from)
             && iteration <= u64::from(c.densify_until)
@@ -740,7 +949,7 @@ impl<'d> Trainer<'d> {
             let settings = DensifySettings {
                 grad_threshold: c.densify_grad_threshold,
                 percent_dense: c.percent_dense,
-                extent,
+                extent: self.data.extent,
                 min_opacity: c.prune_opacity,
                 max_gaussians: c.max_gaussians,
             };
@@ -749,18 +958,26 @@ impl<'d> Trainer<'d> {
                 report.count > 0,
                 "iteration {iteration}: density control pruned every Gaussian"
             );
-            stats.densified = Some(report);
+            return Ok(Some(report));
         }
-        self.iteration = iteration;
-        stats.gaussians = self.state.len();
-        self.curve.push(&stats);
-        Ok(stats)
+        Ok(None)
     }
 
     /// Whether the non-rigid network runs on the gpu (the `gpu` backend with a motion
     /// context that has one).
     pub fn non_rigid_on_gpu(&self) -> bool {
         self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.gpu_networks.is_some()
+    }
+
+    /// Wall time per phase since the trainer was built or the last
+    /// [`Trainer::reset_phase_times`].
+    pub fn phase_times(&self) -> &PhaseTimes {
+        &self.phase_times
+    }
+
+    /// Starts the phase times afresh (after warm-up iterations, say).
+    pub fn reset_phase_times(&mut self) {
+        self.phase_times = PhaseTimes::default();
     }
 
     /// Whether the LPIPS loss runs.
@@ -805,16 +1022,13 @@ impl<'d> Trainer<'d> {
         if let Some(net) = &self.networks {
             for param in net.parameters() {
                 let state = self.network_adam.get(&param.name);
+                // Stored in f64: exactly the f32 values.
+                let widen = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
+                let zeros = || vec![0.0; param.values.len()];
                 for (prefix, values) in [
-                    ("network", param.values.to_vec()),
-                    (
-                        "network_adam_m",
-                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.m.clone()),
-                    ),
-                    (
-                        "network_adam_v",
-                        state.map_or_else(|| vec![0.0; param.values.len()], |s| s.v.clone()),
-                    ),
+                    ("network", widen(param.values)),
+                    ("network_adam_m", state.map_or_else(zeros, |s| widen(&s.m))),
+                    ("network_adam_v", state.map_or_else(zeros, |s| widen(&s.v))),
                 ] {
                     tensors.push(Tensor {
                         name: format!("{prefix}/{}", param.name),
@@ -906,20 +1120,14 @@ impl<'d> Trainer<'d> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let mut networks = build_networks(&config, data, scales.len())?;
         let mut network_adam = BTreeMap::new();
+        // The checkpoint holds the f32 values widened to f64: narrowing restores them exactly.
+        let narrow = |t: &Tensor| t.values.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         if let Some(net) = networks.as_mut() {
-            net.load_parameters(|name| {
-                find(&format!("network/{name}"))
-                    .ok()
-                    .map(|t| t.values.clone())
-            })
-            .context("checkpoint network parameters")?;
+            net.load_parameters(|name| find(&format!("network/{name}")).ok().map(narrow))
+                .context("checkpoint network parameters")?;
             for param in net.parameters() {
-                let m = find(&format!("network_adam_m/{}", param.name))?
-                    .values
-                    .clone();
-                let v = find(&format!("network_adam_v/{}", param.name))?
-                    .values
-                    .clone();
+                let m = narrow(find(&format!("network_adam_m/{}", param.name))?);
+                let v = narrow(find(&format!("network_adam_v/{}", param.name))?);
                 anyhow::ensure!(
                     m.len() == param.values.len() && v.len() == param.values.len(),
                     "checkpoint Adam moments of `{}` have the wrong length",
@@ -957,7 +1165,7 @@ fn build_networks(
     config: &TrainConfig,
     data: &TrainingData,
     scale_count: usize,
-) -> anyhow::Result<Option<Networks<f64>>> {
+) -> anyhow::Result<Option<Networks<f32>>> {
     let avatar_config = config.avatar();
     if !needs_networks(&avatar_config) {
         return Ok(None);
@@ -977,7 +1185,7 @@ fn build_networks(
         for param in networks.parameters_mut() {
             if param.name == "non_rigid.heads.weight" {
                 for w in param.values.iter_mut() {
-                    *w = rng.uniform(-bound, bound);
+                    *w = rng.uniform(-bound, bound) as f32;
                 }
             } else if param.name == "non_rigid.heads.bias" {
                 param.values.fill(0.0);

@@ -505,13 +505,13 @@ fn gpu_steps_with_networks_match_cpu() {
     let start = initial.networks.as_ref().unwrap();
     // Norms, not elements: Adam turns an f32-rounded gradient near zero into a full step
     // of either sign, so single values may differ by a step.
-    let norm = |x: &[f64], y: &[f64]| {
+    fn norm<T: Copy + Into<f64>>(x: &[T], y: &[T]) -> f64 {
         x.iter()
             .zip(y)
-            .map(|(a, b)| (a - b).powi(2))
+            .map(|(&a, &b)| (a.into() - b.into()).powi(2))
             .sum::<f64>()
             .sqrt()
-    };
+    }
     for ((pa, pb), p0) in a
         .parameters()
         .iter()

@@ -18,7 +18,7 @@ use std::sync::Arc;
 
 use seqavatar_compute::backend::GpuContext;
 use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
-use seqavatar_compute::nn::{Activation, LinearShape};
+use seqavatar_compute::nn::{Activation, LinearShape, NnScalar};
 
 use super::dense::Dense;
 use super::non_rigid::{check_inputs, split_heads};
@@ -299,33 +299,36 @@ impl GpuNetworks {
 
     /// The groups that [`crate::avatar::deform_on`] evaluates on the gpu: the non-rigid
     /// network and the LBS offsets (both per Gaussian). The pose refiner is one row per frame
-    /// and stays on `cpu` in f64 (a device round trip costs more than the whole network;
+    /// and stays on `cpu` (a device round trip costs more than the whole network;
     /// see `deform_on`).
     pub const DEFORM_GROUPS: &'static [NetworkGroup] =
         &[NetworkGroup::NonRigid, NetworkGroup::LbsOffsets];
 
-    /// Overwrites the device parameters of the layers in `group` with those of the f64
-    /// host networks (rounded to f32; same configuration).
-    pub fn upload_group_f64(
+    /// Overwrites the device parameters of the layers in `group` with those of the host
+    /// networks (f32, or f64 rounded to f32; same configuration).
+    pub fn upload_group<S: NnScalar>(
         &self,
-        networks: &Networks<f64>,
+        networks: &Networks<S>,
         group: NetworkGroup,
     ) -> Result<(), ModelError> {
-        self.upload_groups_f64(networks, &[group])
+        self.upload_groups(networks, &[group])
     }
 
     /// Overwrites the device parameters of the layers in any of `groups` with those of the
-    /// f64 host networks (rounded to f32; same configuration). Layers of other groups are
-    /// neither converted nor written, so refreshing only what the gpu evaluates
+    /// host networks (f32, or f64 rounded to f32; same configuration). Layers of other
+    /// groups are neither converted nor written, so refreshing only what the gpu evaluates
     /// ([`GpuNetworks::DEFORM_GROUPS`]) costs nothing for the rest.
-    pub fn upload_groups_f64(
+    pub fn upload_groups<S: NnScalar>(
         &self,
-        networks: &Networks<f64>,
+        networks: &Networks<S>,
         groups: &[NetworkGroup],
     ) -> Result<(), ModelError> {
         self.check_config(networks.config())?;
-        let narrow =
-            |v: &[f64]| -> Vec<u8> { v.iter().flat_map(|&x| (x as f32).to_ne_bytes()).collect() };
+        let narrow = |v: &[S]| -> Vec<u8> {
+            v.iter()
+                .flat_map(|&x| (x.to_f64() as f32).to_ne_bytes())
+                .collect()
+        };
         let queue = self.context.queue();
         for (gpu, cpu) in self.layers.iter().zip(networks.layers()) {
             if groups.contains(&gpu.group) {
@@ -346,12 +349,12 @@ impl GpuNetworks {
         Ok(())
     }
 
-    /// Downloads the device gradients of the layers in `group` and adds them (widened to
-    /// f64) to the gradients of the host networks (same configuration), which therefore
-    /// accumulate exactly as a `cpu` backward would.
-    pub fn add_group_gradients_into(
+    /// Downloads the device gradients of the layers in `group` and adds them to the
+    /// gradients of the host networks (f32, or widened to f64; same configuration), which
+    /// therefore accumulate exactly as a `cpu` backward would.
+    pub fn add_group_gradients_into<S: NnScalar>(
         &self,
-        networks: &mut Networks<f64>,
+        networks: &mut Networks<S>,
         group: NetworkGroup,
     ) -> Result<(), ModelError> {
         self.add_groups_gradients_into(networks, &[group])
@@ -359,9 +362,9 @@ impl GpuNetworks {
 
     /// [`GpuNetworks::add_group_gradients_into`] for every layer in any of `groups`, in one
     /// download.
-    pub fn add_groups_gradients_into(
+    pub fn add_groups_gradients_into<S: NnScalar>(
         &self,
-        networks: &mut Networks<f64>,
+        networks: &mut Networks<S>,
         groups: &[NetworkGroup],
     ) -> Result<(), ModelError> {
         self.check_config(networks.config())?;
@@ -398,10 +401,10 @@ impl GpuNetworks {
                 return Err(gpu_error(format!("gradient length of `{}`", layer.name)));
             }
             for (a, b) in layer.d_weight.iter_mut().zip(&d_weight) {
-                *a += f64::from(*b);
+                *a += S::from_f64(f64::from(*b));
             }
             for (a, b) in layer.d_bias.iter_mut().zip(&d_bias) {
-                *a += f64::from(*b);
+                *a += S::from_f64(f64::from(*b));
             }
         }
         Ok(())

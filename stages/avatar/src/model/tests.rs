@@ -1051,8 +1051,7 @@ fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
     }
     // Another master: only the non-rigid group is uploaded.
     let other = Networks::<f64>::new(&config, 6).unwrap();
-    gpu.upload_group_f64(&other, NetworkGroup::NonRigid)
-        .unwrap();
+    gpu.upload_group(&other, NetworkGroup::NonRigid).unwrap();
     gpu.download_into(&mut narrowed).unwrap();
     for ((m, o), d) in master
         .parameters()
@@ -1067,8 +1066,7 @@ fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
         };
         assert_eq!(expected, d.values, "{}", m.name);
     }
-    gpu.upload_group_f64(&master, NetworkGroup::NonRigid)
-        .unwrap();
+    gpu.upload_group(&master, NetworkGroup::NonRigid).unwrap();
 
     let mut rng = Rng::new(23);
     let input = inputs(&config, n, &mut rng);
@@ -1142,10 +1140,7 @@ fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
         .add_group_gradients_into(&mut wrong, NetworkGroup::NonRigid)
         .unwrap_err();
     assert!(error.to_string().contains("networks"), "{error}");
-    assert!(
-        gpu.upload_group_f64(&wrong, NetworkGroup::NonRigid)
-            .is_err()
-    );
+    assert!(gpu.upload_group(&wrong, NetworkGroup::NonRigid).is_err());
 }
 
 /// Sets of groups in one call: [`GpuNetworks::DEFORM_GROUPS`] refreshes the non-rigid and
@@ -1162,7 +1157,7 @@ fn gpu_group_sets_upload_and_add_gradients_together() {
     let master = Networks::<f64>::new(&config, 5).unwrap();
     let gpu = GpuNetworks::upload_f64(context, &master).unwrap();
     let other = Networks::<f64>::new(&config, 6).unwrap();
-    gpu.upload_groups_f64(&other, GpuNetworks::DEFORM_GROUPS)
+    gpu.upload_groups(&other, GpuNetworks::DEFORM_GROUPS)
         .unwrap();
     let mut narrowed = Networks::<f32>::new(&config, 77).unwrap();
     gpu.download_into(&mut narrowed).unwrap();
