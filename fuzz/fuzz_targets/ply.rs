@@ -24,7 +24,11 @@ fuzz_target!(|data: &[u8]| {
     // Written as degree 3: the cloud's coefficients, zeros after them.
     for g in 0..3 * n {
         for coeff in 0..16 {
-            let want = if coeff < k { cloud.sh[g * k + coeff] } else { 0.0 };
+            let want = if coeff < k {
+                cloud.sh[g * k + coeff]
+            } else {
+                0.0
+            };
             assert_eq!(back.sh[g * 16 + coeff], want);
         }
     }
