@@ -9,7 +9,7 @@
 
 use std::path::Path;
 
-use seqavatar_avatar::ply::read_ply;
+use seqavatar_avatar::ply::{cloud_to_world, read_ply};
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, StageReport, Store, run,
@@ -425,7 +425,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         assert!(path.ends_with(format!("frame_{frame:05}.ply")));
         let cloud = read_ply(&std::fs::read(path).unwrap()).unwrap();
         assert_eq!(cloud.len(), canonical.len());
-        let world = cloud.to_world().unwrap();
+        let world = cloud_to_world(&cloud).unwrap();
         let replayed = seqavatar_avatar::splatting::forward(
             &Backend::Cpu,
             &world,

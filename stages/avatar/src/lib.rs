@@ -10,8 +10,8 @@
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
-//! - [`ply`]: Gaussians as standard 3D Gaussian Splatting PLY files (writer and strict
-//!   reader), for `pipeline export`.
+//! - [`ply`]: the avatar's canonical and posed Gaussians as 3D Gaussian Splatting PLY
+//!   clouds, for `pipeline export` (the file format is `seqavatar_ingest::formats::ply`).
 
 // Numeric kernels index several parallel arrays with one loop variable; iterator chains
 // would hide the maths.

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
-use seqavatar_avatar::ply::{SplatCloud, write_ply};
+use seqavatar_avatar::ply::{SplatCloud, canonical_cloud, posed_cloud, write_ply};
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::open_store;
 
@@ -54,7 +54,7 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("cannot create {}", options.out.display()))?;
     let canonical = options.out.join("canonical.ply");
-    let cloud = SplatCloud::canonical(&avatar.gaussians, avatar.sh_degree)
+    let cloud = canonical_cloud(&avatar.gaussians, avatar.sh_degree)
         .with_context(|| format!("the avatar of entry {}", train.location()))?;
     write_file(&canonical, &cloud)?;
     let gaussians = cloud.len();
@@ -84,7 +84,7 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
     let mut frames = Vec::with_capacity(range.len());
     for frame in range {
         let deformed = renderer.deform(frame)?;
-        let cloud = SplatCloud::posed(&deformed.world, logits)
+        let cloud = posed_cloud(&deformed.world, logits)
             .with_context(|| format!("frame {frame} of the poses"))?;
         let path = options.out.join(format!("frame_{frame:05}.ply"));
         write_file(&path, &cloud)?;

@@ -1,6 +1,7 @@
 //! Safe readers for the file formats the datasets use: pickles (with numpy arrays, dtypes,
-//! scalars and OrderedDicts), `.npy`, `.npz`, and JPEG/PNG images ([`images`]). They execute
-//! nothing, accept only known globals and never allocate more than the input can justify.
+//! scalars and OrderedDicts), `.npy`, `.npz`, JPEG/PNG images ([`images`]) and 3D Gaussian
+//! Splatting PLY files ([`ply`]). They execute nothing, accept only known globals and never
+//! allocate more than the input can justify.
 //!
 //! # Memory limits
 //!
@@ -17,12 +18,15 @@
 //! - images: see [`images`]: the header's size is checked against the camera and against
 //!   [`images::MAX_IMAGE_PIXELS`] before decoding, and decoding allocates at most
 //!   [`images::MAX_BYTES_PER_PIXEL`] bytes per pixel.
+//! - PLY: the declared vertex count times the record size must equal the bytes after the
+//!   header before anything is allocated, and the decoded cloud is smaller than those bytes.
 
 pub mod dtype;
 pub mod images;
 pub mod npy;
 pub mod npz;
 pub mod pickle;
+pub mod ply;
 pub mod value;
 
 pub use value::{ArrayData, NpArray, Value};
