@@ -77,17 +77,21 @@
 //! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `num_train_images`,
 //! `num_test_images`, `background` (`[0, 0, 0]`).
 
-pub mod cameras;
+pub mod config;
+pub mod contact_sheet;
 pub mod datasets;
 pub mod formats;
+pub mod plan;
+pub mod reader;
+pub mod resample;
+pub mod schema;
 pub mod stage;
 pub mod synthetic;
 
-pub use cameras::read_cameras;
-pub use stage::{
-    DatasetReader, Ingest, IngestConfig, Keypoints3d, read_body_model, read_body_params,
-    read_keypoints_3d,
-};
+pub use config::IngestConfig;
+pub use reader::{DatasetReader, Keypoints3d};
+pub use schema::{read_body_model, read_body_params, read_cameras, read_keypoints_3d};
+pub use stage::Ingest;
 
 /// Adds the `ingest` stage kind to the registry.
 pub fn register(registry: &mut seqavatar_engine::Registry) {

@@ -7,10 +7,13 @@
 //! pushed out of the pelvis, thigh and shin capsules of the posed body. Because particles
 //! carry momentum, the same pose gives different skirt shapes after walking, turning or a
 //! sudden stop.
+//!
+//! The history scene's skirt is a damped oscillator instead ([`SwingParams`], [`Swing`]):
+//! the rest skirt carried by the pose, bent by a pendulum driven by the pelvis's motion.
 
 use seqavatar_core::body::BodyModel;
 use seqavatar_core::body::procedural::{Part, parts};
-use seqavatar_core::glam::{DAffine3, DVec3};
+use seqavatar_core::glam::{DAffine3, DQuat, DVec2, DVec3};
 
 /// Particles around the skirt.
 pub const AROUND: usize = 40;
@@ -149,12 +152,22 @@ impl Skirt {
 
     /// Places every particle at its rest position carried by the pose (no velocity).
     pub fn reset(&mut self, joint_transforms: &[DAffine3], world: DAffine3) {
-        for (i, p) in self.rest.iter().enumerate() {
-            let k = i % AROUND;
-            let blended = blend(&self.attach_weights[k], joint_transforms);
-            self.position[i] = world.transform_point3(blended.transform_point3(*p));
-        }
+        self.position = self.carried(joint_transforms, world);
         self.previous.clone_from(&self.position);
+    }
+
+    /// The rest skirt carried by a pose: every particle skinned with the weights of its
+    /// column's waist attachment, then moved by `world`. The swinging garment of the history
+    /// scene ([`Swing`]) hangs in this shape when its oscillator is at rest.
+    pub fn carried(&self, joint_transforms: &[DAffine3], world: DAffine3) -> Vec<DVec3> {
+        self.rest
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let blended = blend(&self.attach_weights[i % AROUND], joint_transforms);
+                world.transform_point3(blended.transform_point3(*p))
+            })
+            .collect()
     }
 
     /// Advances the simulation by `dt` seconds to the body pose given by its skinning
@@ -230,6 +243,117 @@ impl Skirt {
 
     pub fn rest_positions(&self) -> &[DVec3] {
         &self.rest
+    }
+}
+
+/// The skirt of the history scene as a damped oscillator driven by the body's motion.
+///
+/// The skirt hangs from the waist like a pendulum of length `length` (the hem's distance
+/// below the waist): its hem deflection `u` (horizontal, world x and z) obeys the linearised
+/// damped pendulum whose pivot (the pelvis) moves with velocity `v` and acceleration `a`,
+/// with air drag on the hem's velocity `v + u'`:
+///
+/// `u'' = -(g / length) u - 2 zeta sqrt(g / length) u' - a - drag (v + u')`,
+///
+/// and the skirt twists about the vertical axis by `phi`, a damped torsional oscillator
+/// driven by the heading's angular acceleration `psi''`:
+///
+/// `phi'' = -omega_t^2 phi - 2 zeta_t omega_t phi' - psi''`.
+///
+/// So the skirt lags behind an acceleration, overshoots and settles while the body holds a
+/// pose, and tilts back in proportion to the walking speed. At rest (`u = u' = phi = phi' =
+/// 0`) the skirt is its static drape, [`Skirt::carried`]; [`Swing::apply`] bends every row
+/// by its fraction of the skirt's length about the waist centre.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SwingParams {
+    /// Pendulum length (m): the natural frequency is `sqrt(g / length)`.
+    pub length: f64,
+    /// Damping ratio of the swing.
+    pub damping_ratio: f64,
+    /// Air drag on the hem's velocity (1/s).
+    pub drag_per_second: f64,
+    /// Natural frequency of the twist (Hz) and its damping ratio.
+    pub twist_hz: f64,
+    pub twist_damping_ratio: f64,
+}
+
+impl SwingParams {
+    /// The history scene's skirt: a 45 cm pendulum (0.74 Hz), lightly damped.
+    pub const HISTORY: Self = Self {
+        length: 0.45,
+        damping_ratio: 0.08,
+        drag_per_second: 1.0,
+        twist_hz: 0.8,
+        twist_damping_ratio: 0.1,
+    };
+
+    /// Natural angular frequency of the swing (rad/s).
+    pub fn omega(&self) -> f64 {
+        (GRAVITY / self.length).sqrt()
+    }
+}
+
+/// The oscillator state of [`SwingParams`]: hem deflection and twist, with their rates.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Swing {
+    /// Horizontal hem deflection (world x, z), metres, and its rate.
+    pub offset: DVec2,
+    pub velocity: DVec2,
+    /// Twist about the vertical axis (radians) and its rate.
+    pub twist: f64,
+    pub twist_rate: f64,
+}
+
+impl Swing {
+    /// Advances the state by `dt` (semi-implicit Euler) under the pivot's horizontal
+    /// velocity and acceleration and the heading's angular acceleration.
+    pub fn step(
+        &mut self,
+        params: &SwingParams,
+        pivot_velocity: DVec2,
+        pivot_acceleration: DVec2,
+        heading_acceleration: f64,
+        dt: f64,
+    ) {
+        let omega = params.omega();
+        let acceleration = -self.offset * (omega * omega)
+            - self.velocity * (2.0 * params.damping_ratio * omega)
+            - pivot_acceleration
+            - (pivot_velocity + self.velocity) * params.drag_per_second;
+        self.velocity += acceleration * dt;
+        self.offset += self.velocity * dt;
+        let omega_t = std::f64::consts::TAU * params.twist_hz;
+        let twist_acceleration = -self.twist * (omega_t * omega_t)
+            - self.twist_rate * (2.0 * params.twist_damping_ratio * omega_t)
+            - heading_acceleration;
+        self.twist_rate += twist_acceleration * dt;
+        self.twist += self.twist_rate * dt;
+    }
+
+    /// The swinging skirt from its static drape (one position per particle, row-major as
+    /// [`particle`]): row `r` turns about the waist centre by the fraction `r / (ROWS - 1)` of
+    /// the twist (about +y) and of the swing (the rotation that moves the downward direction
+    /// towards the deflection by `|offset| / length` radians). Row 0 (sewn to the waist)
+    /// stays; a state at rest returns the drape unchanged.
+    pub fn apply(&self, params: &SwingParams, drape: &[DVec3]) -> Vec<DVec3> {
+        let centre = drape[..AROUND].iter().copied().sum::<DVec3>() / AROUND as f64;
+        let deflection = DVec3::new(self.offset.x, 0.0, self.offset.y);
+        // (-y) x u / length: rotating -y about it moves it towards u by |u| / length.
+        let swing_axis = DVec3::NEG_Y.cross(deflection) / params.length;
+        drape
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| {
+                let row = i / AROUND;
+                if row == 0 {
+                    return p;
+                }
+                let s = row as f64 / (ROWS - 1) as f64;
+                let twist = DQuat::from_rotation_y(self.twist * s);
+                let swing = DQuat::from_scaled_axis(swing_axis * s);
+                centre + swing * (twist * (p - centre))
+            })
+            .collect()
     }
 }
 

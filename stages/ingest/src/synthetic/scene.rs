@@ -28,7 +28,7 @@ use super::motion::sample_script;
 use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
 use super::{SyntheticBackground, SyntheticConfig};
-use crate::stage::{
+use crate::reader::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
 };
 
