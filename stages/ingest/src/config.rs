@@ -18,6 +18,10 @@ pub struct SplitOverrides {
     pub train_frames: Option<FrameRange>,
     pub test_frames: Option<FrameRange>,
     pub frame_interval: Option<usize>,
+    /// The temporal hold-out ([`Split::held_out_frames`]); left out of the resolved config
+    /// when not set, so the keys of configs without one stay what they were.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub held_out_frames: Option<FrameRange>,
 }
 
 impl SplitOverrides {
@@ -28,6 +32,7 @@ impl SplitOverrides {
             train_frames: self.train_frames.clone().unwrap_or(default.train_frames),
             test_frames: self.test_frames.clone().unwrap_or(default.test_frames),
             frame_interval: self.frame_interval.unwrap_or(default.frame_interval),
+            held_out_frames: self.held_out_frames.clone().or(default.held_out_frames),
         }
     }
 }

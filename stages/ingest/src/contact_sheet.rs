@@ -1,9 +1,11 @@
-//! The ingest entry's contact sheet picture.
+//! The ingest entry's pictures: the contact sheet (history frames framed in red) and the
+//! garment's history-only displacement per frame.
 
 use seqavatar_engine::{EntryReader, PictureOptions};
 
 /// A grid of ingested images with the mask overlaid in green at the foreground boundary
-/// and tinted outside.
+/// and tinted outside. Images of history frames (the entry's `history_frame`) get a red
+/// frame.
 pub fn contact_sheet(
     entry: &EntryReader,
     options: &PictureOptions,
@@ -34,6 +36,11 @@ pub fn contact_sheet(
     let columns = (options.get_u64("columns", 4)?.max(1) as usize).min(picks.len());
     let rows = picks.len().div_ceil(columns);
     let mut sheet = image::RgbImage::new((columns * w) as u32, (rows * h) as u32);
+    let history = crate::schema::read_garment_history(entry)?;
+    let image_frame = match &history {
+        Some(_) => entry.read::<u32>("image_frame")?.data,
+        None => Vec::new(),
+    };
     for (k, &index) in picks.iter().enumerate() {
         let rgb = entry.read_region::<u8>(
             "images",
@@ -68,6 +75,66 @@ pub fn contact_sheet(
                 sheet.put_pixel((ox + x) as u32, (oy + y) as u32, image::Rgb(c));
             }
         }
+        let flagged = history.as_ref().is_some_and(|history| {
+            image_frame
+                .get(index)
+                .and_then(|&f| history.frames.get(f as usize))
+                .copied()
+                .unwrap_or(false)
+        });
+        if flagged {
+            for y in 0..h {
+                for x in 0..w {
+                    if x < 2 || y < 2 || x + 2 >= w || y + 2 >= h {
+                        sheet.put_pixel((ox + x) as u32, (oy + y) as u32, image::Rgb([255, 0, 0]));
+                    }
+                }
+            }
+        }
     }
     Ok(sheet)
+}
+
+/// The garment's history-only displacement per frame as bars (3 pixels wide per frame,
+/// `height` pixels for the largest value): red for history frames, grey otherwise, with the
+/// history-frame threshold as a blue line.
+pub fn history_chart(
+    entry: &EntryReader,
+    options: &PictureOptions,
+) -> anyhow::Result<image::RgbImage> {
+    let history = crate::schema::read_garment_history(entry)?.ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {}: no garment history (only the synthetic history scene records it)",
+            entry.location()
+        )
+    })?;
+    let height = options.get_u64("height", 120)?.clamp(16, 4096) as usize;
+    let n = history.pixels.len();
+    let largest = history
+        .pixels
+        .iter()
+        .copied()
+        .fold(crate::schema::HISTORY_FRAME_PX, f64::max);
+    let mut chart = image::RgbImage::from_pixel(
+        (3 * n).max(1) as u32,
+        height as u32,
+        image::Rgb([255, 255, 255]),
+    );
+    let to_row = |value: f64| {
+        let bar = (value / largest * (height - 1) as f64).round() as usize;
+        height - 1 - bar.min(height - 1)
+    };
+    for (f, (&value, &flag)) in history.pixels.iter().zip(&history.frames).enumerate() {
+        let colour = if flag { [200, 30, 30] } else { [150, 150, 150] };
+        for y in to_row(value)..height {
+            for x in 3 * f..3 * f + 2 {
+                chart.put_pixel(x as u32, y as u32, image::Rgb(colour));
+            }
+        }
+    }
+    let threshold = to_row(crate::schema::HISTORY_FRAME_PX);
+    for x in 0..3 * n {
+        chart.put_pixel(x as u32, threshold as u32, image::Rgb([40, 60, 220]));
+    }
+    Ok(chart)
 }

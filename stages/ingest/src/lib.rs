@@ -26,7 +26,8 @@
 //! directly: "frame t - l s" is position `t - l s` (clamped at 0).
 //! - `frame_source_id` i64 `(frame)`: the dataset's frame number.
 //! - `frame_split` u8 `(frame)`: bit 0 = a training image uses it, bit 1 = a test image
-//!   does; 0 = only the motion windows use it (no image ingested).
+//!   does, bit 2 = a held-out frame (`split.held_out_frames`: never trained on, every view
+//!   has a test image of it); 0 = only the motion windows use it (no image ingested).
 //!
 //! Images (only those the split uses, one image per chunk):
 //! - `images` u8 `(image, height, width, rgb)` and `masks` u8 `(image, height, width)`
@@ -34,7 +35,17 @@
 //!   top-left corner, padded with zeros; crop with `camera_image_size`.
 //! - `image_view` u32 `(image)`, `image_frame` u32 `(image)`: positions on the view and frame
 //!   axes; `image_split` u8 `(image)`: 0 train, 1 test. Images are ordered train first, then
-//!   test, each by view then frame. A (view, frame) in both splits is stored once, as train.
+//!   test, each by view then frame, then the held-out frames' test images by view then frame.
+//!   A (view, frame) in both splits is stored once, as train.
+//!
+//! Garment history (only the synthetic history scene, `dataset.scene: history`), per frame:
+//! - `history_displacement_mm` f64 `(frame)`: RMS over the garment's particles of the
+//!   simulated garment minus its static drape under the same pose (what the pose alone
+//!   cannot explain), millimetres.
+//! - `history_displacement_px` f64 `(frame)`: the same difference projected into every
+//!   ingested view, RMS over particles and views, in pixels of the ingested images.
+//! - `history_frame` u8 `(frame)`: 1 where `history_displacement_px` exceeds the attribute
+//!   `history_frame_px` (1 px): the *history frames* eval scores separately.
 //!
 //! Body parameters per frame (the dataset's fits; for the synthetic scene, the jittered
 //! copy), in [`seqavatar_core::body::BodyParams`] conventions:

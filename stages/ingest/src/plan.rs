@@ -14,9 +14,12 @@ pub struct IngestPlan {
     /// step `frame_interval` that reaches `past_frames` steps before the first used frame.
     pub frames: Vec<usize>,
     pub frame_interval: usize,
-    /// Per frame of `frames`: bit 0 = a training image uses it, bit 1 = a test image does.
+    /// Per frame of `frames`: bit 0 = a training image uses it, bit 1 = a test image does,
+    /// bit 2 = a held-out frame (never trained on; every view has a test image there).
     pub frame_split: Vec<u8>,
-    /// Images to write: (position in `views`, position in `frames`, split 0 train / 1 test).
+    /// Images to write: (position in `views`, position in `frames`, split 0 train / 1 test):
+    /// training images, then test images, each by view then frame, then the held-out
+    /// frames' images (test) by view then frame.
     pub images: Vec<(usize, usize, u8)>,
 }
 
@@ -46,19 +49,33 @@ impl IngestPlan {
         if split.train_views.is_empty() && split.test_views.is_empty() {
             bail!("split.train_views and split.test_views are both empty");
         }
-        let train_frames = if split.train_views.is_empty() {
+        let held_out = match &split.held_out_frames {
+            Some(range) => range.indices(num_frames, "split.held_out_frames")?,
+            None => Vec::new(),
+        };
+        let train_frames: Vec<usize> = if split.train_views.is_empty() {
             Vec::new()
         } else {
-            split
+            let all = split
                 .train_frames
-                .indices(num_frames, "split.train_frames")?
+                .indices(num_frames, "split.train_frames")?;
+            let kept: Vec<usize> = all.into_iter().filter(|f| !held_out.contains(f)).collect();
+            if kept.is_empty() {
+                bail!("split.held_out_frames leaves no frame of split.train_frames to train on");
+            }
+            kept
         };
         let test_frames = if split.test_views.is_empty() {
             Vec::new()
         } else {
             split.test_frames.indices(num_frames, "split.test_frames")?
         };
-        let used: Vec<usize> = train_frames.iter().chain(&test_frames).copied().collect();
+        let used: Vec<usize> = train_frames
+            .iter()
+            .chain(&test_frames)
+            .chain(&held_out)
+            .copied()
+            .collect();
         let first = *used.iter().min().expect("at least one split is non-empty");
         let last = *used.iter().max().expect("at least one split is non-empty");
         if let Some(bad) = used
@@ -79,6 +96,9 @@ impl IngestPlan {
         for &f in &test_frames {
             frame_split[position(f)] |= 2;
         }
+        for &f in &held_out {
+            frame_split[position(f)] |= 2 | 4;
+        }
         let mut views: Vec<usize> = split
             .train_views
             .iter()
@@ -96,6 +116,11 @@ impl IngestPlan {
         }
         for &v in &split.test_views {
             for &f in &test_frames {
+                images.push((view_position(v), position(f), 1u8));
+            }
+        }
+        for &v in &views {
+            for &f in &held_out {
                 images.push((view_position(v), position(f), 1u8));
             }
         }
@@ -130,6 +155,7 @@ mod tests {
             train_frames,
             test_frames,
             frame_interval: interval,
+            held_out_frames: None,
         }
     }
 
@@ -208,5 +234,48 @@ mod tests {
         );
         let err = IngestPlan::new(&bad, 2, 12, 0).unwrap_err().to_string();
         assert!(err.contains("split.train_frames.end"), "{err}");
+    }
+
+    #[test]
+    fn held_out_frames_are_never_trained_on_and_tested_from_every_view() {
+        let mut s = split(
+            &[0, 2],
+            &[1],
+            FrameRange::all(),
+            FrameRange {
+                start: 0,
+                end: None,
+                step: 2,
+            },
+            1,
+        );
+        s.held_out_frames = Some(FrameRange {
+            start: 3,
+            end: None,
+            step: 4,
+        });
+        let plan = IngestPlan::new(&s, 3, 12, 0).unwrap();
+        let held = [3, 7, 11];
+        for &(view, frame, split) in &plan.images {
+            if held.contains(&frame) {
+                assert_eq!(split, 1, "held-out frame {frame} trained on in view {view}");
+            }
+        }
+        for &f in &held {
+            assert_eq!(plan.frame_split[f], 2 | 4);
+            // Every view (training views too) has a test image of every held-out frame.
+            for view in 0..3 {
+                assert!(plan.images.contains(&(view, f, 1)), "view {view} frame {f}");
+            }
+        }
+        // Training: 2 views x 9 frames; paper test: view 1 on 6 even frames; temporal: the
+        // other two views (view 1's odd held-out frames are new too) -> 3 x 3 held-out.
+        assert_eq!(plan.images.iter().filter(|i| i.2 == 0).count(), 18);
+        assert_eq!(plan.images.len(), 18 + 6 + 9);
+        assert_eq!(plan.frame_split[2], 3);
+        // Holding out every training frame is an error naming the field.
+        s.held_out_frames = Some(FrameRange::all());
+        let err = IngestPlan::new(&s, 3, 12, 0).unwrap_err().to_string();
+        assert!(err.contains("split.held_out_frames"), "{err}");
     }
 }

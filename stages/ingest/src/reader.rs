@@ -77,6 +77,14 @@ impl Keypoints3d {
     }
 }
 
+/// A garment's particles at one frame: as simulated, and its static drape under the same
+/// pose (world space, metres, one position per particle in both).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GarmentHistory {
+    pub simulated: Vec<seqavatar_core::glam::DVec3>,
+    pub drape: Vec<seqavatar_core::glam::DVec3>,
+}
+
 /// A selection of frame-list indices: `start, start + step, ...` below `end`
 /// (`end: None` = up to the last frame).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -128,6 +136,12 @@ pub struct Split {
     pub test_frames: FrameRange,
     /// Sampling interval of the motion frame axis (I3D-Human's `interval`: 1 or 3).
     pub frame_interval: usize,
+    /// The temporal hold-out: frames never trained on. They are taken out of
+    /// `train_frames`, and every view of the split (training and test views) gets a test
+    /// image at each of them. `None` (every dataset's default) is the paper's protocol alone:
+    /// held-out cameras on training frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_frames: Option<FrameRange>,
 }
 
 /// A dataset: what the stage asks of each reader. Everything is at full resolution, in the
@@ -157,6 +171,13 @@ pub trait DatasetReader: Send + Sync {
     }
     /// 3D keypoints of every frame of the frame list, where the dataset has them.
     fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
+        Ok(None)
+    }
+    /// The garment at frame-list index `frame` as simulated and as its static drape (what the
+    /// pose alone determines), particle for particle, where the dataset knows both (the
+    /// synthetic history scene). Their difference is the history-only displacement the
+    /// stage records per frame.
+    fn garment_history(&self, _frame: usize) -> anyhow::Result<Option<GarmentHistory>> {
         Ok(None)
     }
     /// Image and mask of camera `view` at frame-list index `frame`, full resolution.

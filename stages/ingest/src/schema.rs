@@ -507,3 +507,86 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
     BodyModel::new(arrays)
         .with_context(|| format!("body model arrays of entry {}", entry.location()))
 }
+
+/// A frame is a *history frame* when its garment's history-only displacement exceeds this
+/// many pixels RMS (ingested resolution).
+pub const HISTORY_FRAME_PX: f64 = 1.0;
+
+/// The garment's history-only displacement per frame (lib.rs schema: `history_*` arrays).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GarmentHistoryArrays {
+    /// RMS over particles of simulated minus static drape, millimetres.
+    pub millimetres: Vec<f64>,
+    /// RMS over particles and ingested views of the projected difference, pixels.
+    pub pixels: Vec<f64>,
+    /// `pixels > HISTORY_FRAME_PX`.
+    pub frames: Vec<bool>,
+}
+
+/// Writes `history_displacement_mm`, `history_displacement_px` and `history_frame`, and the
+/// attribute `history_frame_px` (the threshold).
+pub fn write_garment_history(
+    out: &EntryWriter,
+    history: &GarmentHistoryArrays,
+) -> anyhow::Result<()> {
+    let n = history.millimetres.len();
+    anyhow::ensure!(
+        history.pixels.len() == n && history.frames.len() == n,
+        "garment history: {} mm, {} px, {} flags",
+        n,
+        history.pixels.len(),
+        history.frames.len()
+    );
+    let n = n as u64;
+    let chunk = [n.max(1)];
+    out.write_array(
+        "history_displacement_mm",
+        &["frame"],
+        &[n],
+        &chunk,
+        &history.millimetres,
+    )?;
+    out.write_array(
+        "history_displacement_px",
+        &["frame"],
+        &[n],
+        &chunk,
+        &history.pixels,
+    )?;
+    let flags: Vec<u8> = history.frames.iter().map(|&f| u8::from(f)).collect();
+    out.write_array("history_frame", &["frame"], &[n], &chunk, &flags)?;
+    out.set_attribute("history_frame_px", HISTORY_FRAME_PX.into())?;
+    Ok(())
+}
+
+/// Reads the arrays of [`write_garment_history`]; `None` when the entry has none (only the
+/// synthetic history scene writes them). Errors name the entry and the array.
+pub fn read_garment_history(entry: &EntryReader) -> anyhow::Result<Option<GarmentHistoryArrays>> {
+    let names = entry.array_names();
+    if !names.iter().any(|n| n == "history_frame") {
+        return Ok(None);
+    }
+    let location = entry.location();
+    let frames = entry.read::<i64>("frame_source_id")?.data.len();
+    let millimetres = entry.read::<f64>("history_displacement_mm")?;
+    let pixels = entry.read::<f64>("history_displacement_px")?;
+    let flags = entry.read::<u8>("history_frame")?;
+    for (name, shape) in [
+        ("history_displacement_mm", &millimetres.shape),
+        ("history_displacement_px", &pixels.shape),
+        ("history_frame", &flags.shape),
+    ] {
+        anyhow::ensure!(
+            *shape == [frames],
+            "entry {location}: array `{name}` has shape {shape:?}, expected ({frames}) (the frame axis)"
+        );
+    }
+    if let Some(bad) = flags.data.iter().find(|f| **f > 1) {
+        anyhow::bail!("entry {location}: array `history_frame` holds {bad}, expected 0 or 1");
+    }
+    Ok(Some(GarmentHistoryArrays {
+        millimetres: millimetres.data,
+        pixels: pixels.data,
+        frames: flags.data.iter().map(|&f| f == 1).collect(),
+    }))
+}

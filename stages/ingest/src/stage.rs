@@ -91,6 +91,15 @@ impl StageKind for Ingest {
         let (model, kind) = reader.body_model()?;
         write_body_model(out, &model)?;
         write_frames(out, reader.as_ref(), &plan, &model)?;
+        if let Some(history) = garment_history(reader.as_ref(), &plan, &cameras)? {
+            let flagged = history.frames.iter().filter(|f| **f).count();
+            ctx.log(&format!(
+                "garment history: {flagged} of {} frames move the garment by more than {} px from its static drape",
+                history.frames.len(),
+                crate::schema::HISTORY_FRAME_PX
+            ));
+            crate::schema::write_garment_history(out, &history)?;
+        }
 
         // Images, in parallel, one chunk each; nothing but the images in flight is held.
         let max_h = cameras.iter().map(|c| c.height).max().unwrap_or(1) as u64;
@@ -175,10 +184,16 @@ impl StageKind for Ingest {
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
-        vec![PictureKind {
-            name: "contact_sheet",
-            description: "grid of ingested images with their masks overlaid in green (options: split=train|test|all, max=N images, columns=N)",
-        }]
+        vec![
+            PictureKind {
+                name: "contact_sheet",
+                description: "grid of ingested images with their masks overlaid in green, history frames framed in red (options: split=train|test|all, max=N images, columns=N)",
+            },
+            PictureKind {
+                name: "history",
+                description: "the garment's history-only displacement per frame (px), history frames in red, the threshold in blue (history scene only; option: height=N)",
+            },
+        ]
     }
 
     fn draw_picture(
@@ -187,10 +202,11 @@ impl StageKind for Ingest {
         picture: &str,
         options: &PictureOptions,
     ) -> anyhow::Result<image::RgbImage> {
-        if picture != "contact_sheet" {
-            return Err(seqavatar_engine::unknown_picture(self, picture));
+        match picture {
+            "contact_sheet" => crate::contact_sheet::contact_sheet(entry, options),
+            "history" => crate::contact_sheet::history_chart(entry, options),
+            _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
-        crate::contact_sheet::contact_sheet(entry, options)
     }
 }
 
@@ -213,6 +229,74 @@ fn ingested_cameras(
             Ok(camera)
         })
         .collect()
+}
+
+/// The garment's history-only displacement per frame of the plan, where the reader knows it:
+/// RMS over particles of `|simulated - drape|` (mm), and RMS over particles and ingested views
+/// of the distance between their projections (pixels of the ingested images; a particle
+/// behind a camera is left out of that view).
+fn garment_history(
+    reader: &dyn DatasetReader,
+    plan: &IngestPlan,
+    cameras: &[Camera],
+) -> anyhow::Result<Option<crate::schema::GarmentHistoryArrays>> {
+    let Some(first) = plan.frames.first() else {
+        return Ok(None);
+    };
+    if reader.garment_history(*first)?.is_none() {
+        return Ok(None);
+    }
+    let rows = plan
+        .frames
+        .par_iter()
+        .map(|&f| {
+            let context = || {
+                format!(
+                    "{}: garment of frame {}",
+                    reader.describe(),
+                    reader.frame_id(f)
+                )
+            };
+            let garment = reader
+                .garment_history(f)
+                .with_context(context)?
+                .ok_or_else(|| anyhow::anyhow!("no garment history"))
+                .with_context(context)?;
+            anyhow::ensure!(
+                garment.simulated.len() == garment.drape.len() && !garment.drape.is_empty(),
+                "{}: {} simulated particles, {} draped",
+                context(),
+                garment.simulated.len(),
+                garment.drape.len()
+            );
+            let pairs = garment.simulated.iter().zip(&garment.drape);
+            let metres = (pairs
+                .clone()
+                .map(|(a, b)| (*a - *b).length_squared())
+                .sum::<f64>()
+                / garment.drape.len() as f64)
+                .sqrt();
+            let (mut squared, mut count) = (0.0, 0usize);
+            for camera in cameras {
+                for (a, b) in pairs.clone() {
+                    if let (Some(pa), Some(pb)) = (camera.project(*a), camera.project(*b)) {
+                        squared += (pa - pb).length_squared();
+                        count += 1;
+                    }
+                }
+            }
+            Ok((metres * 1e3, (squared / count.max(1) as f64).sqrt()))
+        })
+        .collect::<anyhow::Result<Vec<(f64, f64)>>>()?;
+    let pixels: Vec<f64> = rows.iter().map(|r| r.1).collect();
+    Ok(Some(crate::schema::GarmentHistoryArrays {
+        frames: pixels
+            .iter()
+            .map(|p| *p > crate::schema::HISTORY_FRAME_PX)
+            .collect(),
+        millimetres: rows.iter().map(|r| r.0).collect(),
+        pixels,
+    }))
 }
 
 /// Writes the frame axis and the per-frame body parameters (fits and, where known, truth).
@@ -407,6 +491,103 @@ mod stage_tests {
             .unwrap();
         assert_eq!(sheet.dimensions(), (3 * 48, 40));
         assert!(Ingest.draw_picture(&entry, "nope", &options).is_err());
+        // The walk scene records no garment history.
+        assert!(
+            crate::schema::read_garment_history(&entry)
+                .unwrap()
+                .is_none()
+        );
+        assert!(Ingest.draw_picture(&entry, "history", &options).is_err());
+    }
+
+    /// The history scene's entry records the garment's history-only displacement per frame:
+    /// the same millimetres the scene gives, at least 2 px RMS over the history frames at
+    /// 256 x 256, zero while the skirt is at rest; the default scene records none.
+    #[test]
+    fn history_scene_records_the_history_only_displacement() {
+        use crate::synthetic::history;
+        let last = history::LENGTH - 1;
+        let text = format!(
+            "stages:\n  - name: ingest\n    kind: ingest\n    config:\n      dataset: {{kind: synthetic, scene: history, fps: 30, frames: {}, cameras: 3, width: 256, height: 256, supersample: 1, body_grid_spacing: 0.04}}\n      split: {{train_views: [0, 1, 2], test_views: [], train_frames: {{start: 0, end: null, step: {last}}}}}\n",
+            history::LENGTH
+        );
+        let (_dir, entry) = run_pipeline(&text);
+        let arrays = crate::schema::read_garment_history(&entry)
+            .unwrap()
+            .unwrap();
+        assert_eq!(arrays.pixels.len(), history::LENGTH);
+        for (f, (&px, &flag)) in arrays.pixels.iter().zip(&arrays.frames).enumerate() {
+            assert_eq!(flag, px > crate::schema::HISTORY_FRAME_PX, "frame {f}");
+        }
+        // At rest before the first step: no displacement.
+        assert_eq!(arrays.millimetres[0], 0.0);
+        assert_eq!(arrays.pixels[0], 0.0);
+        // The millimetres are the scene's own RMS of simulated minus drape.
+        let scene =
+            crate::synthetic::SyntheticScene::generate(&crate::synthetic::SyntheticConfig {
+                scene: crate::synthetic::SceneKind::History,
+                fps: 30.0,
+                frames: history::LENGTH,
+                cameras: 3,
+                width: 256,
+                height: 256,
+                supersample: 1,
+                body_grid_spacing: 0.04,
+                ..Default::default()
+            })
+            .unwrap();
+        for frame in [20, 100, 190] {
+            let drape = scene.static_drape(frame, 0.0).unwrap();
+            let simulated = scene.skirt_positions(frame);
+            let rms = (simulated
+                .iter()
+                .zip(&drape)
+                .map(|(a, b)| (*a - *b).length_squared())
+                .sum::<f64>()
+                / drape.len() as f64)
+                .sqrt();
+            assert!(
+                (arrays.millimetres[frame] - rms * 1e3).abs() < 1e-9,
+                "frame {frame}"
+            );
+        }
+        let flagged: Vec<f64> = arrays
+            .pixels
+            .iter()
+            .zip(&arrays.frames)
+            .filter(|(_, f)| **f)
+            .map(|(p, _)| *p)
+            .collect();
+        let rms = (flagged.iter().map(|p| p * p).sum::<f64>() / flagged.len() as f64).sqrt();
+        eprintln!(
+            "history frames: {} of {}, {rms:.2} px RMS over them; largest {:.2} px, {:.1} mm",
+            flagged.len(),
+            history::LENGTH,
+            flagged.iter().copied().fold(0.0, f64::max),
+            arrays.millimetres.iter().copied().fold(0.0, f64::max)
+        );
+        assert!(rms >= 2.0, "{rms} px RMS over the history frames");
+        assert!(
+            flagged.len() >= history::LENGTH / 3,
+            "{} history frames",
+            flagged.len()
+        );
+        assert!(
+            flagged.len() < history::LENGTH,
+            "every frame is a history frame"
+        );
+        // Pictures: the chart (3 px per frame) and the contact sheet.
+        let options = PictureOptions::parse(&["height=50".to_string()]).unwrap();
+        let chart = Ingest.draw_picture(&entry, "history", &options).unwrap();
+        assert_eq!(chart.dimensions(), (3 * history::LENGTH as u32, 50));
+        let sheet = Ingest
+            .draw_picture(
+                &entry,
+                "contact_sheet",
+                &PictureOptions::parse(&[]).unwrap(),
+            )
+            .unwrap();
+        assert_eq!(sheet.dimensions().1, 2 * 256);
     }
 
     #[test]
@@ -417,6 +598,32 @@ mod stage_tests {
         let resolved = Ingest.resolve_config(&serde_json::json!({})).unwrap();
         assert_eq!(resolved["dataset"]["kind"], "synthetic");
         assert_eq!(resolved["dataset"]["cameras"], 8);
+        // The default scene and split resolve as before the history scene and the temporal
+        // hold-out existed, so the demo's ingest keys are unchanged.
+        assert!(resolved["dataset"].get("scene").is_none(), "{resolved}");
+        assert!(
+            resolved["split"].get("held_out_frames").is_none(),
+            "{resolved}"
+        );
+        let history = Ingest
+            .resolve_config(&serde_json::json!({"dataset": {"kind": "synthetic", "scene": "history", "fps": 30.0, "frames": 150}, "split": {"held_out_frames": {"start": 5, "end": null, "step": 10}}}))
+            .unwrap();
+        assert_eq!(history["dataset"]["scene"], "history");
+        assert_eq!(history["split"]["held_out_frames"]["step"], 10);
+        // The history scene's script fixes its rate and length.
+        for (raw, field) in [
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "scene": "history"}}),
+                "dataset.fps",
+            ),
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "scene": "history", "fps": 30.0, "frames": 100000}}),
+                "dataset.frames",
+            ),
+        ] {
+            let err = Ingest.resolve_config(&raw).unwrap_err().to_string();
+            assert!(err.contains(field), "{raw}: {err}");
+        }
         let bad = IngestConfig {
             dataset: DatasetConfig::Synthetic(crate::synthetic::SyntheticConfig {
                 frames: 0,

@@ -525,6 +525,7 @@ impl DatasetReader for DnaRendering {
                 step: 5,
             },
             frame_interval: 1,
+            held_out_frames: None,
         }
     }
 

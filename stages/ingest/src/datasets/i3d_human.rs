@@ -434,6 +434,7 @@ impl DatasetReader for I3dHuman {
             train_frames: train_range,
             test_frames: test_range,
             frame_interval: train_step,
+            held_out_frames: None,
         }
     }
 

@@ -291,6 +291,7 @@ impl DatasetReader for ZjuMocap {
                 step: TEST_FRAME_STEP,
             },
             frame_interval: 1,
+            held_out_frames: None,
         }
     }
 

@@ -248,12 +248,12 @@ impl Skirt {
 
 /// The skirt of the history scene as a damped oscillator driven by the body's motion.
 ///
-/// The skirt hangs from the waist like a pendulum of length `length` (the hem's distance
-/// below the waist): its hem deflection `u` (horizontal, world x and z) obeys the linearised
-/// damped pendulum whose pivot (the pelvis) moves with velocity `v` and acceleration `a`,
-/// with air drag on the hem's velocity `v + u'`:
+/// The skirt hangs from the waist like a stiffened pendulum: its hem deflection `u`
+/// (horizontal, world x and z) is a damped oscillator of natural frequency `omega` whose
+/// pivot (the pelvis) moves with velocity `v` and acceleration `a`, with air drag on the
+/// hem's velocity `v + u'`:
 ///
-/// `u'' = -(g / length) u - 2 zeta sqrt(g / length) u' - a - drag (v + u')`,
+/// `u'' = -omega^2 u - 2 zeta omega u' - a - drag (v + u')`,
 ///
 /// and the skirt twists about the vertical axis by `phi`, a damped torsional oscillator
 /// driven by the heading's angular acceleration `psi''`:
@@ -261,14 +261,17 @@ impl Skirt {
 /// `phi'' = -omega_t^2 phi - 2 zeta_t omega_t phi' - psi''`.
 ///
 /// So the skirt lags behind an acceleration, overshoots and settles while the body holds a
-/// pose, and tilts back in proportion to the walking speed. At rest (`u = u' = phi = phi' =
-/// 0`) the skirt is its static drape, [`Skirt::carried`]; [`Swing::apply`] bends every row
-/// by its fraction of the skirt's length about the waist centre.
+/// pose, and tilts back by `drag v / omega^2` at a steady walking speed `v`. At rest
+/// (`u = u' = phi = phi' = 0`) the skirt is its static drape, [`Skirt::carried`];
+/// [`Swing::apply`] turns every row about the waist centre by its fraction of the swing
+/// angle `|u| / length` and of the twist.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SwingParams {
-    /// Pendulum length (m): the natural frequency is `sqrt(g / length)`.
+    /// Hem distance below the waist (m): a deflection `u` turns the hem by `|u| / length`.
     pub length: f64,
-    /// Damping ratio of the swing.
+    /// Natural frequency of the swing (Hz; a free pendulum of `length` would swing at
+    /// `sqrt(g / length) / 2 pi`, the cloth's stiffness raises it) and its damping ratio.
+    pub swing_hz: f64,
     pub damping_ratio: f64,
     /// Air drag on the hem's velocity (1/s).
     pub drag_per_second: f64,
@@ -278,18 +281,19 @@ pub struct SwingParams {
 }
 
 impl SwingParams {
-    /// The history scene's skirt: a 45 cm pendulum (0.74 Hz), lightly damped.
+    /// The history scene's skirt.
     pub const HISTORY: Self = Self {
         length: 0.45,
-        damping_ratio: 0.08,
+        swing_hz: 1.2,
+        damping_ratio: 0.1,
         drag_per_second: 1.0,
-        twist_hz: 0.8,
+        twist_hz: 1.2,
         twist_damping_ratio: 0.1,
     };
 
     /// Natural angular frequency of the swing (rad/s).
     pub fn omega(&self) -> f64 {
-        (GRAVITY / self.length).sqrt()
+        std::f64::consts::TAU * self.swing_hz
     }
 }
 

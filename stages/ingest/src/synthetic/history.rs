@@ -25,7 +25,7 @@ pub const FPS: f64 = 30.0;
 pub const STRIDE: f64 = 1.2;
 
 /// A stretch of the script: `frames` frames advancing `step` phases each, turning the heading
-/// by `turn` radians in equal parts per frame.
+/// by `turn` radians along a smoothstep (the turn rate rises from and falls back to zero).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Segment {
     pub frames: usize,
@@ -37,19 +37,21 @@ const fn segment(frames: usize, step: u64, turn: f64) -> Segment {
     Segment { frames, step, turn }
 }
 
-/// The script: stand; start slowly and walk fast; slow down and stop (hold 1.2 s); restart
-/// slowly through a U-turn; walk fast and stop dead (hold 1.2 s); restart fast through a
-/// quarter turn; slow walk. Every hold lands on a feet-together phase (a multiple of
+/// The script: stand; start slowly and walk fast; slow down and stop (hold 1.5 s); restart
+/// slowly through a U-turn; walk fast and stop short (hold 1.5 s); restart briskly into a
+/// fast walk through a quarter turn; slow walk. Every hold lands on a feet-together phase (a multiple of
 /// `PHASES / 2`).
-pub const SCRIPT: [Segment; 10] = [
+pub const SCRIPT: [Segment; 12] = [
     segment(8, 0, 0.0),
     segment(6, 1, 0.0),
     segment(21, 2, 0.0),
     segment(12, 1, 0.0),
-    segment(36, 0, 0.0),
+    segment(45, 0, 0.0),
     segment(30, 1, std::f64::consts::PI),
-    segment(15, 2, 0.0),
-    segment(36, 0, 0.0),
+    segment(12, 2, 0.0),
+    segment(6, 1, 0.0),
+    segment(45, 0, 0.0),
+    segment(3, 1, 0.0),
     segment(15, 2, -std::f64::consts::FRAC_PI_2),
     segment(15, 1, 0.0),
 ];
@@ -71,11 +73,13 @@ pub fn frame_values() -> (Vec<u64>, Vec<f64>) {
     let mut headings = Vec::with_capacity(LENGTH);
     let (mut phase, mut heading) = (0u64, 0.0f64);
     for segment in SCRIPT {
-        for _ in 0..segment.frames {
+        let start = heading;
+        for k in 0..segment.frames {
             if !phases.is_empty() {
                 phase += segment.step;
-                heading += segment.turn / segment.frames as f64;
             }
+            let u = (k + 1) as f64 / segment.frames as f64;
+            heading = start + segment.turn * u * u * (3.0 - 2.0 * u);
             phases.push(phase);
             headings.push(heading);
         }
@@ -182,8 +186,9 @@ impl MonotoneCubic {
         // h01 = 3u^2 - 2u^3, h10 = u^3 - 2u^2 + u, h11 = u^3 - u^2.
         let (u2, u3) = (u * u, u * u * u);
         let value = y0 + delta * (3.0 * u2 - 2.0 * u3) + m0 * (u3 - 2.0 * u2 + u) + m1 * (u3 - u2);
-        let first =
-            delta * (6.0 * u - 6.0 * u2) + m0 * (3.0 * u2 - 4.0 * u + 1.0) + m1 * (3.0 * u2 - 2.0 * u);
+        let first = delta * (6.0 * u - 6.0 * u2)
+            + m0 * (3.0 * u2 - 4.0 * u + 1.0)
+            + m1 * (3.0 * u2 - 2.0 * u);
         let second = delta * (6.0 - 12.0 * u) + m0 * (6.0 * u - 4.0) + m1 * (6.0 * u - 2.0);
         (value, first, second)
     }
@@ -224,7 +229,7 @@ mod tests {
     fn script_recurs_poses_at_different_speeds_and_holds_feet_together() {
         let (phases, headings) = frame_values();
         assert_eq!(phases.len(), LENGTH);
-        assert!(LENGTH >= 150, "{LENGTH} frames");
+        const { assert!(LENGTH >= 150, "at least 150 frames") };
         // Every hold is on a feet-together phase, and both such phases give one pose.
         assert_eq!(gait_pose(0), gait_pose(PHASES / 2));
         assert_eq!(gait_pose(7), gait_pose(7 + 3 * PHASES));
@@ -243,7 +248,11 @@ mod tests {
         }
         let both = (0..PHASES)
             .step_by(2)
-            .filter(|p| speeds.get(p).is_some_and(|s| s.contains(&1) && s.contains(&2)))
+            .filter(|p| {
+                speeds
+                    .get(p)
+                    .is_some_and(|s| s.contains(&1) && s.contains(&2))
+            })
             .count();
         assert!(both >= 20, "{both} of 30 even phases seen at both speeds");
         // The heading turns by pi then -pi/2.
@@ -287,14 +296,17 @@ mod tests {
         let (phases, headings) = frame_values();
         let phase = MonotoneCubic::new(&phases.iter().map(|&p| p as f64).collect::<Vec<_>>());
         let heading = MonotoneCubic::new(&headings);
-        // Inside the U-turn (frames 83..113): speed and curvature both act.
-        for t in [90.3, 101.7, 110.5] {
+        // Inside the U-turn (frames 92..122): speed and curvature both act.
+        for t in [93.3, 101.7, 119.5] {
             let h = 1e-4; // frames
             let a = path_sample(&phase, &heading, t - h);
             let b = path_sample(&phase, &heading, t + h);
             let numeric = (b.velocity - a.velocity) / (2.0 * h / FPS);
             let analytic = path_sample(&phase, &heading, t).acceleration;
-            assert!((numeric - analytic).length() < 1e-5, "{t}: {numeric} vs {analytic}");
+            assert!(
+                (numeric - analytic).length() < 1e-5,
+                "{t}: {numeric} vs {analytic}"
+            );
         }
         // Holding: no velocity.
         assert_eq!(path_sample(&phase, &heading, 60.5).velocity, DVec2::ZERO);
