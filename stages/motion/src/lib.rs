@@ -9,7 +9,7 @@ pub mod knn;
 pub mod pose;
 pub mod stage;
 
-pub use context::{Scales, VelocityNormalisation, Window, window};
+pub use context::{InputScaling, Scales, VelocityNormalisation, Window, window};
 pub use stage::{MotionConfig, MotionStage};
 
 /// Adds this crate's stage kinds to the registry.

@@ -11,6 +11,11 @@
 //! - `skeleton_motion` f32 `(frame, scale, joint, xyz)`: axis-angle of `R_t R_{t-s}^-1`.
 //! - `vertex_velocity` f32 `(frame, scale, vertex, xyz)`.
 //! - `scales` u32 `(scale)` raw frames; `scale_steps` u32 `(scale)` frames on the frame axis.
+//! - `skeleton_motion_scale`, `vertex_velocity_scale` f64 `(scale)`: the factor each scale's
+//!   block was multiplied by after the `velocity` normalisation (`input_scaling: rms`: one
+//!   over the block's RMS over the whole sequence, so every block has RMS 1 on the dataset;
+//!   1 for `authors` and `none`). Attributes `input_scaling` and `velocity` (the
+//!   normalisation applied: `authors` is the reference quirk with `multi` 300).
 //! - `frame_source_id` i64 `(frame)` (copied from ingest).
 //! - `canonical_vertices` f32 `(vertex, xyz)`; `canonical_knn` u32 and
 //!   `canonical_knn_distance` f32 `(vertex, neighbour)`, nearest first, self first.
@@ -33,8 +38,8 @@ use seqavatar_fit::io::BodySequence;
 use seqavatar_fit::plot;
 use seqavatar_ingest::read_body_model;
 
-use crate::compute::{canonical_template, compute_motion};
-use crate::context::{Scales, VelocityNormalisation};
+use crate::compute::{InputScales, canonical_template, compute_motion, effective_velocity};
+use crate::context::{InputScaling, Scales, VelocityNormalisation};
 
 /// The `motion` stage configuration: only what changes the motion templates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -48,6 +53,10 @@ pub struct MotionConfig {
     pub velocity: VelocityNormalisation,
     /// Neighbours per vertex in the canonical KNN graph (self included).
     pub knn: usize,
+    /// How the input blocks are scaled: `rms` (default: each block has RMS 1 on the
+    /// sequence), `authors` (velocities x 300 / smallest scale, as the authors' code) or
+    /// `none`.
+    pub input_scaling: InputScaling,
 }
 
 impl Default for MotionConfig {
@@ -56,6 +65,7 @@ impl Default for MotionConfig {
             scales: vec![3, 2, 1],
             velocity: VelocityNormalisation::PerScale,
             knn: 8,
+            input_scaling: InputScaling::Rms,
         }
     }
 }
@@ -64,7 +74,8 @@ impl Default for MotionConfig {
 pub struct MotionStage;
 
 /// Bump whenever the code changes the result.
-const VERSION: u32 = 2;
+/// 3: input blocks scaled to RMS 1 by default (`input_scaling`), scale factors recorded.
+const VERSION: u32 = 3;
 
 fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
     let value = ingest.attribute("frame_interval").ok_or_else(|| {
@@ -124,6 +135,14 @@ impl StageKind for MotionStage {
                 format!("multi = {multi} must be positive and finite"),
             ));
         }
+        if config.input_scaling == InputScaling::Authors
+            && matches!(config.velocity, VelocityNormalisation::Reference { .. })
+        {
+            return Err(ConfigError::at_key(
+                "input_scaling",
+                "input_scaling: authors applies the reference velocity normalisation itself; leave `velocity` at per_scale",
+            ));
+        }
         // Canonical order (largest first) so [1, 2, 3] and [3, 2, 1] share a key.
         config.scales = scales.raw;
         serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
@@ -140,8 +159,18 @@ impl StageKind for MotionStage {
         let model = read_body_model(&ingest)?;
         let sequence = BodySequence::read(params_entry, "body")?;
         let started = std::time::Instant::now();
-        let motion = compute_motion(&model, &sequence, &scales, config.velocity)
+        let velocity = effective_velocity(config.input_scaling, config.velocity);
+        let mut motion = compute_motion(&model, &sequence, &scales, velocity)
             .with_context(|| format!("posing the fits of entry {}", params_entry.location()))?;
+        let input_scales = InputScales::for_scaling(config.input_scaling, &motion, scales.len());
+        motion.scale_inputs(&input_scales);
+        ctx.log(&format!(
+            "input scaling {:?}: skeleton motion x {:?}, vertex velocity x {:?} (scales {:?})",
+            config.input_scaling,
+            input_scales.skeleton_motion,
+            input_scales.vertex_velocity,
+            scales.raw
+        ));
         let (canonical, graph) = canonical_template(&model, config.knn)?;
         let seconds = started.elapsed().as_secs_f64();
         ctx.log(&format!(
@@ -254,7 +283,22 @@ impl StageKind for MotionStage {
             )?;
         }
         out.set_attribute("frame_interval", interval.into())?;
-        out.set_attribute("velocity", serde_json::to_value(config.velocity)?)?;
+        out.write_array(
+            "skeleton_motion_scale",
+            &["scale"],
+            &[s],
+            &[s],
+            &input_scales.skeleton_motion,
+        )?;
+        out.write_array(
+            "vertex_velocity_scale",
+            &["scale"],
+            &[s],
+            &[s],
+            &input_scales.vertex_velocity,
+        )?;
+        out.set_attribute("velocity", serde_json::to_value(velocity)?)?;
+        out.set_attribute("input_scaling", serde_json::to_value(config.input_scaling)?)?;
         Ok(())
     }
 
@@ -331,12 +375,15 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
             &[1, 1, num_vertices, 3],
         )?
         .data;
+    // In the units of the velocity normalisation (the input scaling undone).
+    let factor = read_input_scales(entry)?.1.vertex_velocity[slot];
     let speeds: Vec<f64> = velocity
         .chunks_exact(3)
         .map(|c| {
             f64::from(c[0])
                 .hypot(f64::from(c[1]))
                 .hypot(f64::from(c[2]))
+                / factor
         })
         .collect();
     let auto_max = speeds.iter().copied().fold(0.0_f64, f64::max);
@@ -358,6 +405,43 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
     let (w, h) = (i64::from(camera.width), i64::from(camera.height));
     plot::colour_bar(&mut img, w + 10, 20, 16, (h - 40).max(10), 0.0, max);
     Ok(img)
+}
+
+/// The velocity normalisation and input scales a motion entry's arrays were made with, to
+/// compute matching arrays for other pose sequences (`pipeline render`). Entries made
+/// before `input_scaling` existed have no scale arrays: ones.
+pub fn read_input_scales(
+    entry: &EntryReader,
+) -> anyhow::Result<(VelocityNormalisation, InputScales)> {
+    let location = entry.location();
+    let velocity = entry
+        .attribute("velocity")
+        .or_else(|| entry.config().get("velocity").cloned())
+        .ok_or_else(|| {
+            anyhow::anyhow!("motion entry {location}: attribute `velocity` is missing")
+        })?;
+    let velocity: VelocityNormalisation = serde_json::from_value(velocity)
+        .with_context(|| format!("motion entry {location}: attribute `velocity`"))?;
+    let n = entry.read::<u32>("scales")?.data.len();
+    let names = entry.array_names();
+    let read = |name: &str| -> anyhow::Result<Vec<f64>> {
+        if !names.iter().any(|a| a == name) {
+            return Ok(vec![1.0; n]);
+        }
+        let values = entry.read::<f64>(name)?.data;
+        anyhow::ensure!(
+            values.len() == n && values.iter().all(|v| v.is_finite() && *v > 0.0),
+            "motion entry {location}: array `{name}` must hold {n} positive factors, got {values:?}"
+        );
+        Ok(values)
+    };
+    Ok((
+        velocity,
+        InputScales {
+            skeleton_motion: read("skeleton_motion_scale")?,
+            vertex_velocity: read("vertex_velocity_scale")?,
+        },
+    ))
 }
 
 fn read_camera(entry: &EntryReader, view: usize) -> anyhow::Result<Camera> {
@@ -514,7 +598,23 @@ stages:
         assert_eq!(f, 9);
         assert_eq!(velocity.shape, vec![f, 2, v, 3]);
         assert_eq!(skeleton.shape[..2], [f, 2]);
-        // Velocity is the displacement over the scale, zero at the first frame.
+        // Velocity is the displacement over the scale times the recorded factor (RMS 1 per
+        // scale), zero at the first frame.
+        let factors = entry.read::<f64>("vertex_velocity_scale").unwrap().data;
+        assert_eq!(entry.attribute("input_scaling"), Some("rms".into()));
+        for (slot, rms) in crate::context::block_rms(&velocity.data, 2, v)
+            .into_iter()
+            .enumerate()
+        {
+            assert!((rms - 1.0).abs() < 1e-4, "slot {slot}: RMS {rms}");
+            assert!(
+                factors[slot] > 1.0,
+                "metres per frame are below 1: {factors:?}"
+            );
+        }
+        let (normalisation, scales_read) = read_input_scales(&entry).unwrap();
+        assert_eq!(normalisation, VelocityNormalisation::PerScale);
+        assert_eq!(scales_read.vertex_velocity, factors);
         for t in 0..f {
             for (slot, &k) in steps.iter().enumerate() {
                 let former = t.saturating_sub(k as usize);
@@ -522,9 +622,13 @@ stages:
                     for c in 0..3 {
                         let expected = (posed.data[(t * v + vertex) * 3 + c]
                             - posed.data[(former * v + vertex) * 3 + c])
-                            / k as f32;
+                            / k as f32
+                            * factors[slot] as f32;
                         let got = velocity.data[((t * 2 + slot) * v + vertex) * 3 + c];
-                        assert!((got - expected).abs() < 1e-5, "t={t} slot={slot}");
+                        assert!(
+                            (got - expected).abs() < 1e-5 * factors[slot] as f32,
+                            "t={t} slot={slot}"
+                        );
                     }
                 }
             }
