@@ -1090,6 +1090,9 @@ mod tests {
                 }
             }
         }
+        eprintln!(
+            "history scene: peak hem swing {largest:.3} m; {pairs} same-pose frame pairs, hems differ by up to {differ:.3} m"
+        );
         assert!(pairs > 1000, "{pairs} pairs of frames share a pose");
         assert!(
             differ >= 0.10,
@@ -1115,6 +1118,20 @@ mod tests {
             images.len(),
             rendered.as_secs_f64(),
             rendered.as_secs_f64() * 1e3 / images.len() as f64
+        );
+        let started = std::time::Instant::now();
+        let history = SyntheticScene::generate(&SyntheticConfig {
+            scene: SceneKind::History,
+            fps: history::FPS,
+            frames: history::LENGTH,
+            ..Default::default()
+        })
+        .unwrap();
+        println!(
+            "history scene ({} frames, {} cameras): generate {:.2} s",
+            history.skirt.len(),
+            history.cameras.len(),
+            started.elapsed().as_secs_f64()
         );
         if let Ok(dir) = std::env::var("SEQAVATAR_PREVIEW_DIR") {
             for (v, image) in images.iter().enumerate() {
