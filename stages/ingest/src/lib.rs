@@ -86,7 +86,8 @@
 //!
 //! Group attributes: `dataset` (the dataset kind), `body_model_kind` (`smpl`, `smplx` or
 //! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `num_train_images`,
-//! `num_test_images`, `background` (`[0, 0, 0]`).
+//! `num_test_images`, `background` (`[0, 0, 0]`); `history_frame_px` with the garment
+//! history arrays.
 
 pub mod config;
 pub mod contact_sheet;
