@@ -201,7 +201,8 @@ impl StageKind for EvalStage {
     fn version(&self) -> u32 {
         // 2: on the gpu backend the networks run on the gpu in f32 (GpuNetworks).
         // 3: the avatar renders on the protocol's background (not its training background).
-        3
+        // 4: `summary.subsets` (history frames, held-out cameras / frames).
+        4
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
