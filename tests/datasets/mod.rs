@@ -241,3 +241,24 @@ fn dna_rendering_yaml_ingests_the_fixture() {
         2 * 3 + 1,
     );
 }
+
+/// The synthetic pipelines load (configs validated, keys derived) without running anything,
+/// the history pipeline with its per-row evals and the authors' input scaling.
+#[test]
+fn synthetic_pipelines_load() {
+    let sandbox = Sandbox::new();
+    for name in [
+        "synthetic.yaml",
+        "ablation_synthetic.yaml",
+        "ablation_synthetic_exact.yaml",
+        "tradeoff_synthetic.yaml",
+        "history_synthetic.yaml",
+    ] {
+        let status = sandbox.ok(&["status", &pipeline_file(name)]);
+        assert!(status.contains("missing"), "{name}: {status}");
+    }
+    let status = sandbox.ok(&["status", &pipeline_file("history_synthetic.yaml")]);
+    for stage in ["motion_authors", "eval_b_pose", "eval_e_authors"] {
+        assert!(status.contains(stage), "{stage}: {status}");
+    }
+}

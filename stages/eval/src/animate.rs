@@ -226,8 +226,9 @@ pub fn read_pose_file(
         .collect()
 }
 
-/// The motion track of `params` posed with `model`, at the raw `scales` of the motion entry
-/// and its velocity normalisation (the motion crate's computation), on the frame `axis` of
+/// The motion track of `params` posed with `model`, at the raw `scales` of the motion entry,
+/// its velocity normalisation and its recorded input scales (the motion crate's computation;
+/// the scales are the trained-on entry's, not recomputed on `params`), on the frame `axis` of
 /// the poses' source.
 pub fn motion_track_for(
     model: &BodyModel,
@@ -236,11 +237,13 @@ pub fn motion_track_for(
     interval: u32,
     normalisation: VelocityNormalisation,
     axis: FrameAxis,
+    input_scales: &seqavatar_motion::compute::InputScales,
 ) -> anyhow::Result<MotionTrack> {
     let scales = Scales::new(raw_scales, interval)?;
     let sequence = BodySequence::from_params(params).map_err(anyhow::Error::msg)?;
-    let arrays =
+    let mut arrays =
         seqavatar_motion::compute::compute_motion(model, &sequence, &scales, normalisation)?;
+    arrays.scale_inputs(input_scales);
     Ok(MotionTrack {
         num_frames: arrays.num_frames,
         num_joints: arrays.num_joints,
@@ -326,19 +329,7 @@ pub fn drive_avatar(
     let motion = if avatar.config.motion_context.has_skeleton_motion() {
         let motion_entry = upstream(store, &train, "motion")?;
         let raw_scales = motion_entry.read::<u32>("scales")?.data;
-        let normalisation: VelocityNormalisation = serde_json::from_value(
-            motion_entry
-                .config()
-                .get("velocity")
-                .cloned()
-                .unwrap_or(serde_json::Value::Null),
-        )
-        .with_context(|| {
-            format!(
-                "motion entry {}: config `velocity`",
-                motion_entry.location()
-            )
-        })?;
+        let (normalisation, input_scales) = seqavatar_motion::read_input_scales(&motion_entry)?;
         let interval = trained_ingest
             .attribute("frame_interval")
             .and_then(|value| value.as_u64())
@@ -350,6 +341,7 @@ pub fn drive_avatar(
             interval,
             normalisation,
             axis,
+            &input_scales,
         )?)
     } else {
         None

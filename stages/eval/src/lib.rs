@@ -8,6 +8,7 @@
 //! - [`avatar_render`]: the trained avatar as a renderer, and the avatar/entry checks.
 //! - [`animate`]: `pipeline render` (novel poses from another sequence or a pose file).
 //! - [`pipeline_report`]: `pipeline report`.
+//! - [`subsets`]: scores on the history frames and per protocol (held-out cameras, frames).
 //! - [`metrics`], [`report`], [`testset`]: building blocks.
 //! - [`lpips`], [`image`], [`safetensors`]: re-exported from `seqavatar_compute`, where LPIPS
 //!   lives so that training can use it as a loss too.
@@ -20,6 +21,7 @@ pub mod metrics;
 pub mod pipeline_report;
 pub mod report;
 pub mod stage;
+pub mod subsets;
 pub mod testset;
 
 pub use seqavatar_compute::{image, lpips, safetensors};

@@ -19,8 +19,10 @@
 //! - `contact_sheet` u8 `(sheet_height, sheet_width, rgb)`: ground truth | render | error.
 //! - `speed_width`, `speed_height` u32 `(resolution)`, `speed_fps` f64 `(resolution)`.
 //!
-//! Attributes: `summary` (`sequence`, `means` = [`MeanScores`], `lpips` = `"unavailable"` or
-//! the nets used, `backend`), `speed` (a list of [`SpeedRow`]), `mean_table` (Markdown).
+//! Attributes: `summary` (`sequence`, `means` = [`MeanScores`], `subsets` =
+//! [`crate::subsets::SubsetScores`]: means on the ingest entry's history frames and other
+//! frames, held-out cameras and held-out frames, each `null` when empty; `lpips` =
+//! `"unavailable"` or the nets used, `backend`), `speed` (a list of [`SpeedRow`]), `mean_table` (Markdown).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -192,7 +194,8 @@ impl StageKind for EvalStage {
         // 3: the avatar renders on the protocol's background (not its training background).
         // 4: reads the avatar config (attribute `avatar`) of train entries of version 5.
         // 5: on the cpu backend the networks run in f32 too.
-        5
+        // 6: `summary.subsets` (history frames, held-out cameras / frames).
+        6
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -569,6 +572,26 @@ pub fn evaluate_entry(
     }
 
     let means = mean_scores(&scores);
+    // Scores on the history frames and per protocol (held-out cameras / held-out frames).
+    let subsets = crate::subsets::subset_scores(
+        &crate::subsets::frame_flags(ingest)?,
+        &tests.iter().map(|t| t.frame).collect::<Vec<_>>(),
+        &scores,
+    )?;
+    for (name, subset) in [
+        ("history frames", &subsets.history),
+        ("other frames", &subsets.not_history),
+        ("held-out cameras", &subsets.held_out_cameras),
+        ("held-out frames", &subsets.held_out_frames),
+        ("held-out history frames", &subsets.held_out_history_frames),
+    ] {
+        if let Some(m) = subset {
+            ctx.log(&format!(
+                "{name}: {} images, PSNR {:.2} dB, SSIM {:.4}",
+                m.images, m.psnr, m.ssim
+            ));
+        }
+    }
     let sequence = sequence_name(ingest);
     let table = markdown_table(&MEAN_TABLE_HEADERS, &[mean_table_row(&sequence, &means)])
         .map_err(anyhow::Error::msg)?;
@@ -582,6 +605,7 @@ pub fn evaluate_entry(
         serde_json::json!({
             "sequence": sequence,
             "means": means,
+            "subsets": subsets,
             "lpips": if nets.is_empty() { "unavailable".to_owned() } else { nets.join(",") },
             "backend": backend.describe(),
         }),

@@ -10,10 +10,14 @@
 //! camera with the static drape in place of the simulated skirt measures the bound in the
 //! units of the ablation table (PSNR of the true image against the drape image).
 //!
-//! `cargo run --release -p seqavatar-ingest --example garment_history [frames] [settle_s] [size]`
+//! `cargo run --release -p seqavatar-ingest --example garment_history [frames] [settle_s] [size] [walk|history]`
+//!
+//! With `history` (the history scene, `frames` at most its script's length at 30 fps; 0 =
+//! the whole script) the drape is exact (the skirt's oscillator at rest) and `settle_s` is
+//! not used.
 
 use rayon::prelude::*;
-use seqavatar_ingest::synthetic::{SyntheticConfig, SyntheticScene};
+use seqavatar_ingest::synthetic::{SceneKind, SyntheticConfig, SyntheticScene, history};
 
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
@@ -22,12 +26,28 @@ fn main() -> anyhow::Result<()> {
     // The demo's scene (pipelines/synthetic.yaml): 8 cameras at 256 x 256; the `fast`
     // preset trains and scores at half that (`... 48 6 128`).
     let size: u32 = args.next().map_or(Ok(256), |a| a.parse())?;
-    let config = SyntheticConfig {
-        frames,
-        width: size,
-        height: size,
-        ..Default::default()
+    let scene = match args.next().as_deref() {
+        None | Some("walk") => SceneKind::Walk,
+        Some("history") => SceneKind::History,
+        Some(other) => anyhow::bail!("scene `{other}`: expected walk or history"),
     };
+    let config = match scene {
+        SceneKind::Walk => SyntheticConfig {
+            frames,
+            width: size,
+            height: size,
+            ..Default::default()
+        },
+        SceneKind::History => SyntheticConfig {
+            scene,
+            frames: if frames == 0 { history::LENGTH } else { frames },
+            fps: history::FPS,
+            width: size,
+            height: size,
+            ..Default::default()
+        },
+    };
+    let frames = config.frames;
     let scene = SyntheticScene::generate(&config)?;
     let cameras: Vec<_> = (0..config.cameras).collect();
     println!(

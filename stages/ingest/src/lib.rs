@@ -29,7 +29,8 @@
 //! the recording's first frame (`seqavatar_motion::schema::FrameAxis`).
 //! - `frame_source_id` i64 `(frame)`: the dataset's frame number.
 //! - `frame_split` u8 `(frame)`: bit 0 = a training image uses it, bit 1 = a test image
-//!   does; 0 = only the motion windows use it (no image ingested).
+//!   does, bit 2 = a held-out frame (`split.held_out_frames`: never trained on, every view
+//!   has a test image of it); 0 = only the motion windows use it (no image ingested).
 //!
 //! Images (only those the split uses, one image per chunk):
 //! - `images` u8 `(image, height, width, rgb)` and `masks` u8 `(image, height, width)`
@@ -37,7 +38,17 @@
 //!   top-left corner, padded with zeros; crop with `camera_image_size`.
 //! - `image_view` u32 `(image)`, `image_frame` u32 `(image)`: positions on the view and frame
 //!   axes; `image_split` u8 `(image)`: 0 train, 1 test. Images are ordered train first, then
-//!   test, each by view then frame. A (view, frame) in both splits is stored once, as train.
+//!   test, each by view then frame, then the held-out frames' test images by view then frame.
+//!   A (view, frame) in both splits is stored once, as train.
+//!
+//! Garment history (only the synthetic history scene, `dataset.scene: history`), per frame:
+//! - `history_displacement_mm` f64 `(frame)`: RMS over the garment's particles of the
+//!   simulated garment minus its static drape under the same pose (what the pose alone
+//!   cannot explain), millimetres.
+//! - `history_displacement_px` f64 `(frame)`: the same difference projected into every
+//!   ingested view, RMS over particles and views, in pixels of the ingested images.
+//! - `history_frame` u8 `(frame)`: 1 where `history_displacement_px` exceeds the attribute
+//!   `history_frame_px` (1 px): the *history frames* eval scores separately.
 //!
 //! Body parameters per frame (the dataset's fits; for the synthetic scene, the jittered
 //! copy), in [`seqavatar_core::body::BodyParams`] conventions:
@@ -78,20 +89,24 @@
 //!
 //! Group attributes: `dataset` (the dataset kind), `body_model_kind` (`smpl`, `smplx` or
 //! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `first_frame_index`,
-//! `num_train_images`,
-//! `num_test_images`, `background` (`[0, 0, 0]`).
+//! `num_train_images`, `num_test_images`, `background` (`[0, 0, 0]`); `history_frame_px`
+//! with the garment history arrays.
 
-pub mod cameras;
+pub mod config;
+pub mod contact_sheet;
 pub mod datasets;
 pub mod formats;
+pub mod plan;
+pub mod reader;
+pub mod resample;
+pub mod schema;
 pub mod stage;
 pub mod synthetic;
 
-pub use cameras::read_cameras;
-pub use stage::{
-    DatasetReader, Ingest, IngestConfig, Keypoints3d, read_body_model, read_body_params,
-    read_keypoints_3d,
-};
+pub use config::IngestConfig;
+pub use reader::{DatasetReader, Keypoints3d};
+pub use schema::{read_body_model, read_body_params, read_cameras, read_keypoints_3d};
+pub use stage::Ingest;
 
 /// Adds the `ingest` stage kind to the registry.
 pub fn register(registry: &mut seqavatar_engine::Registry) {

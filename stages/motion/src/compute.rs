@@ -8,7 +8,7 @@ use seqavatar_core::glam::DMat3;
 use seqavatar_core::rotation::axis_angle_to_matrix;
 use seqavatar_fit::io::BodySequence;
 
-use crate::context::{self, Scales, VelocityNormalisation};
+use crate::context::{self, InputScaling, Scales, VelocityNormalisation};
 use crate::knn::{KnnGraph, knn_graph};
 use crate::pose::pose_sequence;
 
@@ -27,6 +27,90 @@ pub struct MotionArrays {
     pub skeleton_motion: Vec<f32>,
     /// `(frame, scale, vertex, 3)` vertex velocity.
     pub vertex_velocity: Vec<f32>,
+}
+
+/// The factors each motion-context input block is multiplied by, per scale slot (largest
+/// scale first), on top of the velocity normalisation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InputScales {
+    pub skeleton_motion: Vec<f64>,
+    pub vertex_velocity: Vec<f64>,
+}
+
+impl InputScales {
+    /// No scaling.
+    pub fn ones(n_scales: usize) -> Self {
+        Self {
+            skeleton_motion: vec![1.0; n_scales],
+            vertex_velocity: vec![1.0; n_scales],
+        }
+    }
+
+    /// `1 / RMS` of every block of `motion` ([`InputScaling::Rms`]); 1 for a block that is
+    /// zero throughout (a still sequence, or one frame).
+    pub fn rms_of(motion: &MotionArrays, n_scales: usize) -> Self {
+        let inverse = |rms: Vec<f64>| -> Vec<f64> {
+            rms.into_iter()
+                .map(|r| {
+                    if r > 0.0 && r.is_finite() {
+                        1.0 / r
+                    } else {
+                        1.0
+                    }
+                })
+                .collect()
+        };
+        Self {
+            skeleton_motion: inverse(context::block_rms(
+                &motion.skeleton_motion,
+                n_scales,
+                motion.num_joints,
+            )),
+            vertex_velocity: inverse(context::block_rms(
+                &motion.vertex_velocity,
+                n_scales,
+                motion.num_vertices,
+            )),
+        }
+    }
+
+    /// The scales of `scaling` for `motion`: RMS factors, or ones.
+    pub fn for_scaling(scaling: InputScaling, motion: &MotionArrays, n_scales: usize) -> Self {
+        match scaling {
+            InputScaling::Rms => Self::rms_of(motion, n_scales),
+            InputScaling::Authors | InputScaling::None => Self::ones(n_scales),
+        }
+    }
+}
+
+impl MotionArrays {
+    /// Multiplies the skeleton-motion and vertex-velocity blocks by `scales`.
+    pub fn scale_inputs(&mut self, scales: &InputScales) {
+        context::scale_blocks(
+            &mut self.skeleton_motion,
+            self.num_joints,
+            &scales.skeleton_motion,
+        );
+        context::scale_blocks(
+            &mut self.vertex_velocity,
+            self.num_vertices,
+            &scales.vertex_velocity,
+        );
+    }
+}
+
+/// The velocity normalisation `scaling` uses: the authors' quirk with their multiplier for
+/// [`InputScaling::Authors`], `configured` otherwise.
+pub fn effective_velocity(
+    scaling: InputScaling,
+    configured: VelocityNormalisation,
+) -> VelocityNormalisation {
+    match scaling {
+        InputScaling::Authors => VelocityNormalisation::Reference {
+            multi: context::AUTHORS_MULTI,
+        },
+        InputScaling::Rms | InputScaling::None => configured,
+    }
 }
 
 /// The rotations the skeleton motion differentiates: the root's world orientation (the
@@ -210,5 +294,86 @@ mod tests {
             message.contains("body_pose") && message.contains("frame 2, joint 5"),
             "{message}"
         );
+    }
+
+    /// On the history scene, `rms` gives every input block RMS 1 (the unscaled blocks are far
+    /// from it), and `authors` reproduces the per-scale arrays times 300 times the raw scale
+    /// over the smallest step (the reference quirk), skeleton motion unchanged.
+    #[test]
+    fn rms_scaling_gives_unit_blocks_and_authors_reproduces_the_reference_arrays() {
+        use seqavatar_ingest::DatasetReader;
+        use seqavatar_ingest::synthetic::{SceneKind, SyntheticConfig, SyntheticScene, history};
+        let scene = SyntheticScene::generate(&SyntheticConfig {
+            scene: SceneKind::History,
+            fps: history::FPS,
+            frames: history::LENGTH,
+            cameras: 1,
+            width: 32,
+            height: 32,
+            supersample: 1,
+            garment: false,
+            body_grid_spacing: 0.05,
+            ..Default::default()
+        })
+        .unwrap();
+        let (model, _) = scene.body_model().unwrap();
+        let fits: Vec<_> = (0..history::LENGTH)
+            .map(|f| scene.body_params(f).unwrap())
+            .collect();
+        let sequence = BodySequence::from_params(&fits).unwrap();
+        let scales = Scales::new(&[6, 3], 1).unwrap();
+        let per_scale =
+            compute_motion(&model, &sequence, &scales, VelocityNormalisation::PerScale).unwrap();
+        let before = (
+            context::block_rms(&per_scale.skeleton_motion, 2, per_scale.num_joints),
+            context::block_rms(&per_scale.vertex_velocity, 2, per_scale.num_vertices),
+        );
+        eprintln!(
+            "history scene, unscaled RMS: skeleton motion {:?}, velocity {:?}",
+            before.0, before.1
+        );
+        assert!(before.1.iter().all(|r| *r < 0.1), "{before:?}");
+        let input_scales = InputScales::for_scaling(InputScaling::Rms, &per_scale, 2);
+        let mut scaled = per_scale.clone();
+        scaled.scale_inputs(&input_scales);
+        for rms in context::block_rms(&scaled.skeleton_motion, 2, scaled.num_joints)
+            .into_iter()
+            .chain(context::block_rms(
+                &scaled.vertex_velocity,
+                2,
+                scaled.num_vertices,
+            ))
+        {
+            assert!((rms - 1.0).abs() < 1e-4, "{rms}");
+        }
+        for (slot, factor) in input_scales.vertex_velocity.iter().enumerate() {
+            assert!((factor * before.1[slot] - 1.0).abs() < 1e-9);
+        }
+        // Authors: per-scale velocity (displacement / raw scale) x raw scale x 300 / smallest
+        // step; skeleton motion as computed.
+        let normalisation =
+            effective_velocity(InputScaling::Authors, VelocityNormalisation::PerScale);
+        let mut authors = compute_motion(&model, &sequence, &scales, normalisation).unwrap();
+        authors.scale_inputs(&InputScales::for_scaling(
+            InputScaling::Authors,
+            &authors,
+            2,
+        ));
+        assert_eq!(authors.skeleton_motion, per_scale.skeleton_motion);
+        let smallest = 3.0;
+        let n = per_scale.num_vertices * 3;
+        for (index, (a, p)) in authors
+            .vertex_velocity
+            .iter()
+            .zip(&per_scale.vertex_velocity)
+            .enumerate()
+        {
+            let raw = [6.0, 3.0][(index / n) % 2];
+            let expected = f64::from(*p) * raw * 300.0 / smallest;
+            assert!(
+                (f64::from(*a) - expected).abs() <= 1e-4 * expected.abs().max(1.0),
+                "{index}: {a} vs {expected}"
+            );
+        }
     }
 }

@@ -50,6 +50,70 @@ pub enum VelocityNormalisation {
     Reference { multi: f64 },
 }
 
+/// How the motion-context input blocks (skeleton motion at each scale, vertex velocity at
+/// each scale) are scaled before the networks see them (`input_scaling` in the motion
+/// config).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InputScaling {
+    /// Each block divided by its RMS over the whole sequence (every frame, joint or vertex
+    /// and coordinate), after the `velocity` normalisation: every block has RMS 1 on the
+    /// dataset. The factors are recorded in the motion entry (`skeleton_motion_scale`,
+    /// `vertex_velocity_scale`) and applied unchanged to other pose sequences
+    /// (`pipeline render`).
+    #[default]
+    Rms,
+    /// The authors' code: velocities are displacements times [`AUTHORS_MULTI`] divided by
+    /// the smallest scale in sampled frames ([`VelocityNormalisation::Reference`]), skeleton
+    /// motion as computed.
+    Authors,
+    /// The blocks as the `velocity` normalisation leaves them.
+    None,
+}
+
+/// The authors' velocity multiplier (I3D-Human and DNA-Rendering configs).
+pub const AUTHORS_MULTI: f64 = 300.0;
+
+/// Per scale slot, the RMS of a `(frame, scale, items, 3)` array over frames, items and
+/// coordinates (f64 sums).
+pub fn block_rms(values: &[f32], n_scales: usize, items: usize) -> Vec<f64> {
+    let row = n_scales * items * 3;
+    let frames = values.len().checked_div(row).unwrap_or(0);
+    (0..n_scales)
+        .map(|slot| {
+            let mut sum = 0.0;
+            for frame in 0..frames {
+                let at = (frame * n_scales + slot) * items * 3;
+                sum += values[at..at + items * 3]
+                    .iter()
+                    .map(|&x| f64::from(x) * f64::from(x))
+                    .sum::<f64>();
+            }
+            let count = frames * items * 3;
+            if count == 0 {
+                0.0
+            } else {
+                (sum / count as f64).sqrt()
+            }
+        })
+        .collect()
+}
+
+/// Multiplies every `(frame, scale)` block of a `(frame, scale, items, 3)` array by
+/// `factors[scale]`.
+pub fn scale_blocks(values: &mut [f32], items: usize, factors: &[f64]) {
+    let block = items * 3;
+    if block == 0 || factors.is_empty() {
+        return;
+    }
+    for (index, chunk) in values.chunks_exact_mut(block).enumerate() {
+        let factor = factors[index % factors.len()];
+        for x in chunk {
+            *x = (f64::from(*x) * factor) as f32;
+        }
+    }
+}
+
 /// Validated sampling scales: raw scales (largest first, the reference flatten order) and
 /// their steps in sampled frames.
 #[derive(Clone, Debug, PartialEq)]
@@ -437,5 +501,17 @@ mod tests {
         let v = vertex_velocity(&[1.0, 2.0, 3.0], 1, 1, &[5, 1], &[0.2, 1.0]).unwrap();
         assert_eq!(v, vec![0.0; 6]);
         assert_eq!(window(0, 8, &[5, 1]).frames, vec![0; 16]);
+    }
+
+    #[test]
+    fn block_rms_and_scaling_per_scale_slot() {
+        // 2 frames, 2 scales, 1 item: slot 0 holds (3, 4, 0) and (0, 0, 0); slot 1 is zero.
+        let mut values = vec![3.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let rms = block_rms(&values, 2, 1);
+        assert!((rms[0] - (25.0f64 / 6.0).sqrt()).abs() < 1e-12);
+        assert_eq!(rms[1], 0.0);
+        scale_blocks(&mut values, 1, &[2.0, 5.0]);
+        assert_eq!(values[..3], [6.0, 8.0, 0.0]);
+        assert!(values[3..].iter().all(|x| *x == 0.0));
     }
 }

@@ -10,8 +10,8 @@ pub mod pose;
 pub mod schema;
 pub mod stage;
 
-pub use context::{Scales, VelocityNormalisation, Window, window};
-pub use schema::{FrameAxis, MotionTrack};
+pub use context::{InputScaling, Scales, VelocityNormalisation, Window, window};
+pub use schema::{FrameAxis, MotionTrack, read_input_scales};
 pub use stage::{MotionConfig, MotionStage};
 
 /// Adds this crate's stage kinds to the registry.

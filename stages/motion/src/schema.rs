@@ -9,13 +9,18 @@
 //! - `skeleton_motion` f32 `(frame, scale, joint, xyz)`: axis-angle of `R_t R_{t-s}^-1`.
 //! - `vertex_velocity` f32 `(frame, scale, vertex, xyz)`.
 //! - `scales` u32 `(scale)` raw frames; `scale_steps` u32 `(scale)` frames on the frame axis.
+//! - `skeleton_motion_scale`, `vertex_velocity_scale` f64 `(scale)`: the factor each scale's
+//!   block was multiplied by after the `velocity` normalisation (`input_scaling: rms`: one
+//!   over the block's RMS over the whole sequence, so every block has RMS 1 on the dataset;
+//!   1 for `authors` and `none`); [`read_input_scales`] reads them back.
 //! - `frame_source_id` i64 `(frame)` (copied from ingest).
 //! - `canonical_vertices` f32 `(vertex, xyz)`; `canonical_knn` u32 and
 //!   `canonical_knn_distance` f32 `(vertex, neighbour)`, nearest first, self first.
 //! - `camera_K`, `camera_R` f64 `(view, row, col)`, `camera_t` f64 `(view, xyz)`,
 //!   `camera_image_size` u32 `(view, hw)` (copied from ingest, for pictures).
 //!
-//! Attributes: `frame_interval`, `velocity` (the normalisation), and the ingest entry's frame
+//! Attributes: `frame_interval`, `velocity` (the normalisation applied: `authors` is the
+//! reference quirk with `multi` 300), `input_scaling`, and the ingest entry's frame
 //! axis ([`FrameAxis`]): `past_frames` (copied) and `starts_recording`.
 //!
 //! A training window `(t, L, S)` is [`crate::window`]`(t, L, scale_steps)`: a gather of rows of
@@ -26,10 +31,11 @@
 //! (ingest kept too few `past_frames`) is an error, never a clamp at the edge of what ingest
 //! kept.
 
+use anyhow::Context;
 use seqavatar_engine::{EntryReader, EntryWriter};
 
-use crate::compute::MotionArrays;
-use crate::context::{Scales, VelocityNormalisation};
+use crate::compute::{InputScales, MotionArrays};
+use crate::context::{InputScaling, Scales, VelocityNormalisation};
 use crate::knn::KnnGraph;
 
 /// Where a frame axis sits in its recording, from the ingest entry.
@@ -109,7 +115,11 @@ pub struct MotionEntry<'a> {
     pub graph: &'a KnnGraph,
     /// The ingest entry's `frame_interval` (raw frames per sampled frame).
     pub frame_interval: u32,
+    /// The velocity normalisation applied (after `input_scaling: authors` chose it).
     pub velocity: VelocityNormalisation,
+    pub input_scaling: InputScaling,
+    /// The factors each scale's blocks were multiplied by.
+    pub input_scales: &'a InputScales,
     /// The ingest entry's frame axis.
     pub axis: FrameAxis,
 }
@@ -128,6 +138,8 @@ pub fn write_entry(
         graph,
         frame_interval,
         velocity,
+        input_scaling,
+        input_scales,
         axis,
     } = *entry;
     let (f, v, j, s) = (
@@ -230,10 +242,62 @@ pub fn write_entry(
         )?;
     }
     out.set_attribute("frame_interval", frame_interval.into())?;
+    out.write_array(
+        "skeleton_motion_scale",
+        &["scale"],
+        &[s],
+        &[s],
+        &input_scales.skeleton_motion,
+    )?;
+    out.write_array(
+        "vertex_velocity_scale",
+        &["scale"],
+        &[s],
+        &[s],
+        &input_scales.vertex_velocity,
+    )?;
     out.set_attribute("velocity", serde_json::to_value(velocity)?)?;
+    out.set_attribute("input_scaling", serde_json::to_value(input_scaling)?)?;
     out.set_attribute("past_frames", axis.past_frames.into())?;
     out.set_attribute("starts_recording", axis.starts_recording.into())?;
     Ok(())
+}
+
+/// The velocity normalisation and input scales a motion entry's arrays were made with, to
+/// compute matching arrays for other pose sequences (`pipeline render`). Entries made
+/// before `input_scaling` existed have no scale arrays: ones.
+pub fn read_input_scales(
+    entry: &EntryReader,
+) -> anyhow::Result<(VelocityNormalisation, InputScales)> {
+    let location = entry.location();
+    let velocity = entry
+        .attribute("velocity")
+        .or_else(|| entry.config().get("velocity").cloned())
+        .ok_or_else(|| {
+            anyhow::anyhow!("motion entry {location}: attribute `velocity` is missing")
+        })?;
+    let velocity: VelocityNormalisation = serde_json::from_value(velocity)
+        .with_context(|| format!("motion entry {location}: attribute `velocity`"))?;
+    let n = entry.read::<u32>("scales")?.data.len();
+    let names = entry.array_names();
+    let read = |name: &str| -> anyhow::Result<Vec<f64>> {
+        if !names.iter().any(|a| a == name) {
+            return Ok(vec![1.0; n]);
+        }
+        let values = entry.read::<f64>(name)?.data;
+        anyhow::ensure!(
+            values.len() == n && values.iter().all(|v| v.is_finite() && *v > 0.0),
+            "motion entry {location}: array `{name}` must hold {n} positive factors, got {values:?}"
+        );
+        Ok(values)
+    };
+    Ok((
+        velocity,
+        InputScales {
+            skeleton_motion: read("skeleton_motion_scale")?,
+            vertex_velocity: read("vertex_velocity_scale")?,
+        },
+    ))
 }
 
 /// The motion entry's arrays a window gathers from.

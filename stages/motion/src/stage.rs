@@ -17,9 +17,9 @@ use seqavatar_engine::{
 use seqavatar_fit::io::BodySequence;
 use seqavatar_ingest::read_body_model;
 
-use crate::compute::{canonical_template, compute_motion};
-use crate::context::{Scales, VelocityNormalisation};
-use crate::schema::{FrameAxis, MotionEntry, write_entry};
+use crate::compute::{InputScales, canonical_template, compute_motion, effective_velocity};
+use crate::context::{InputScaling, Scales, VelocityNormalisation};
+use crate::schema::{FrameAxis, MotionEntry, read_input_scales, write_entry};
 
 /// The `motion` stage configuration: only what changes the motion templates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -33,6 +33,10 @@ pub struct MotionConfig {
     pub velocity: VelocityNormalisation,
     /// Neighbours per vertex in the canonical KNN graph (self included).
     pub knn: usize,
+    /// How the input blocks are scaled: `rms` (default: each block has RMS 1 on the
+    /// sequence), `authors` (velocities x 300 / smallest scale, as the authors' code) or
+    /// `none`.
+    pub input_scaling: InputScaling,
 }
 
 impl Default for MotionConfig {
@@ -41,6 +45,7 @@ impl Default for MotionConfig {
             scales: vec![3, 2, 1],
             velocity: VelocityNormalisation::PerScale,
             knn: 8,
+            input_scaling: InputScaling::Rms,
         }
     }
 }
@@ -50,7 +55,8 @@ pub struct MotionStage;
 
 /// Bump whenever the code changes the result.
 /// 3: attributes `past_frames` and `starts_recording` (the ingest entry's frame axis).
-const VERSION: u32 = 3;
+/// 4: input blocks scaled to RMS 1 by default (`input_scaling`), scale factors recorded.
+const VERSION: u32 = 4;
 
 fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
     let value = ingest.attribute("frame_interval").ok_or_else(|| {
@@ -110,6 +116,14 @@ impl StageKind for MotionStage {
                 format!("multi = {multi} must be positive and finite"),
             ));
         }
+        if config.input_scaling == InputScaling::Authors
+            && matches!(config.velocity, VelocityNormalisation::Reference { .. })
+        {
+            return Err(ConfigError::at_key(
+                "input_scaling",
+                "input_scaling: authors applies the reference velocity normalisation itself; leave `velocity` at per_scale",
+            ));
+        }
         // Canonical order (largest first) so [1, 2, 3] and [3, 2, 1] share a key.
         config.scales = scales.raw;
         serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
@@ -126,8 +140,18 @@ impl StageKind for MotionStage {
         let model = read_body_model(&ingest)?;
         let sequence = BodySequence::read(params_entry, "body")?;
         let started = std::time::Instant::now();
-        let motion = compute_motion(&model, &sequence, &scales, config.velocity)
+        let velocity = effective_velocity(config.input_scaling, config.velocity);
+        let mut motion = compute_motion(&model, &sequence, &scales, velocity)
             .with_context(|| format!("posing the fits of entry {}", params_entry.location()))?;
+        let input_scales = InputScales::for_scaling(config.input_scaling, &motion, scales.len());
+        motion.scale_inputs(&input_scales);
+        ctx.log(&format!(
+            "input scaling {:?}: skeleton motion x {:?}, vertex velocity x {:?} (scales {:?})",
+            config.input_scaling,
+            input_scales.skeleton_motion,
+            input_scales.vertex_velocity,
+            scales.raw
+        ));
         let (canonical, graph) = canonical_template(&model, config.knn)?;
         let seconds = started.elapsed().as_secs_f64();
         ctx.log(&format!(
@@ -148,7 +172,9 @@ impl StageKind for MotionStage {
                 canonical: &canonical,
                 graph: &graph,
                 frame_interval: interval,
-                velocity: config.velocity,
+                velocity,
+                input_scaling: config.input_scaling,
+                input_scales: &input_scales,
                 axis: FrameAxis::of_ingest(&ingest)?,
             },
         )?;
@@ -228,12 +254,15 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
             &[1, 1, num_vertices, 3],
         )?
         .data;
+    // In the units of the velocity normalisation (the input scaling undone).
+    let factor = read_input_scales(entry)?.1.vertex_velocity[slot];
     let speeds: Vec<f64> = velocity
         .chunks_exact(3)
         .map(|c| {
             f64::from(c[0])
                 .hypot(f64::from(c[1]))
                 .hypot(f64::from(c[2]))
+                / factor
         })
         .collect();
     let auto_max = speeds.iter().copied().fold(0.0_f64, f64::max);
@@ -411,7 +440,23 @@ stages:
         assert_eq!(f, 9);
         assert_eq!(velocity.shape, vec![f, 2, v, 3]);
         assert_eq!(skeleton.shape[..2], [f, 2]);
-        // Velocity is the displacement over the scale, zero at the first frame.
+        // Velocity is the displacement over the scale times the recorded factor (RMS 1 per
+        // scale), zero at the first frame.
+        let factors = entry.read::<f64>("vertex_velocity_scale").unwrap().data;
+        assert_eq!(entry.attribute("input_scaling"), Some("rms".into()));
+        for (slot, rms) in crate::context::block_rms(&velocity.data, 2, v)
+            .into_iter()
+            .enumerate()
+        {
+            assert!((rms - 1.0).abs() < 1e-4, "slot {slot}: RMS {rms}");
+            assert!(
+                factors[slot] > 1.0,
+                "metres per frame are below 1: {factors:?}"
+            );
+        }
+        let (normalisation, scales_read) = read_input_scales(&entry).unwrap();
+        assert_eq!(normalisation, VelocityNormalisation::PerScale);
+        assert_eq!(scales_read.vertex_velocity, factors);
         for t in 0..f {
             for (slot, &k) in steps.iter().enumerate() {
                 let former = t.saturating_sub(k as usize);
@@ -419,9 +464,13 @@ stages:
                     for c in 0..3 {
                         let expected = (posed.data[(t * v + vertex) * 3 + c]
                             - posed.data[(former * v + vertex) * 3 + c])
-                            / k as f32;
+                            / k as f32
+                            * factors[slot] as f32;
                         let got = velocity.data[((t * 2 + slot) * v + vertex) * 3 + c];
-                        assert!((got - expected).abs() < 1e-5, "t={t} slot={slot}");
+                        assert!(
+                            (got - expected).abs() < 1e-5 * factors[slot] as f32,
+                            "t={t} slot={slot}"
+                        );
                     }
                 }
             }

@@ -13,7 +13,7 @@ use seqavatar_core::body::{BodyModel, BodyModelArrays};
 
 use super::common::read_bytes;
 use crate::formats::{Value, npz};
-use crate::stage::BodyModelKind;
+use crate::reader::BodyModelKind;
 
 /// A loaded body model with what the readers need beyond the arrays.
 #[derive(Clone, Debug)]

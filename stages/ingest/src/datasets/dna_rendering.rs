@@ -33,7 +33,7 @@ use super::body_model::{ComponentLimits, load_body_model_npz};
 use super::common::{check_finite, decode_mask, decode_rgb, warn};
 use super::smc::SmcFile;
 use crate::formats::npz;
-use crate::stage::{
+use crate::reader::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
 };
 
@@ -525,6 +525,7 @@ impl DatasetReader for DnaRendering {
                 step: 5,
             },
             frame_interval: 1,
+            held_out_frames: None,
         }
     }
 

@@ -28,7 +28,7 @@ use seqavatar_core::glam::{DMat3, DVec3};
 use super::body_model::{ComponentLimits, load_body_model_npz};
 use super::common::{Field, decode_mask, decode_rgb, image_size, read_bytes, read_pickle, warn};
 use crate::formats::Value;
-use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
 /// The Dyco split: (sequence, train view ids, test view ids, frame interval) (method.md).
 const SPLITS: [(&str, &[i64], &[i64], usize); 4] = [
@@ -434,6 +434,7 @@ impl DatasetReader for I3dHuman {
             train_frames: train_range,
             test_frames: test_range,
             frame_interval: train_step,
+            held_out_frames: None,
         }
     }
 

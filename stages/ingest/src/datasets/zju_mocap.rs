@@ -25,7 +25,7 @@ use super::common::{
     Field, decode_mask, decode_rgb, image_size, join_relative, read_bytes, read_npy,
     trailing_number,
 };
-use crate::stage::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
 /// Frames used by the 3DGS-Avatar split, per sequence number (method.md).
 const SPLIT_FRAMES: [(i64, usize); 6] = [
@@ -291,6 +291,7 @@ impl DatasetReader for ZjuMocap {
                 step: TEST_FRAME_STEP,
             },
             frame_interval: 1,
+            held_out_frames: None,
         }
     }
 

@@ -7,10 +7,13 @@
 //! pushed out of the pelvis, thigh and shin capsules of the posed body. Because particles
 //! carry momentum, the same pose gives different skirt shapes after walking, turning or a
 //! sudden stop.
+//!
+//! The history scene's skirt is a damped oscillator instead ([`SwingParams`], [`Swing`]):
+//! the rest skirt carried by the pose, bent by a pendulum driven by the pelvis's motion.
 
 use seqavatar_core::body::BodyModel;
 use seqavatar_core::body::procedural::{Part, parts};
-use seqavatar_core::glam::{DAffine3, DVec3};
+use seqavatar_core::glam::{DAffine3, DQuat, DVec2, DVec3};
 
 /// Particles around the skirt.
 pub const AROUND: usize = 40;
@@ -149,12 +152,22 @@ impl Skirt {
 
     /// Places every particle at its rest position carried by the pose (no velocity).
     pub fn reset(&mut self, joint_transforms: &[DAffine3], world: DAffine3) {
-        for (i, p) in self.rest.iter().enumerate() {
-            let k = i % AROUND;
-            let blended = blend(&self.attach_weights[k], joint_transforms);
-            self.position[i] = world.transform_point3(blended.transform_point3(*p));
-        }
+        self.position = self.carried(joint_transforms, world);
         self.previous.clone_from(&self.position);
+    }
+
+    /// The rest skirt carried by a pose: every particle skinned with the weights of its
+    /// column's waist attachment, then moved by `world`. The swinging garment of the history
+    /// scene ([`Swing`]) hangs in this shape when its oscillator is at rest.
+    pub fn carried(&self, joint_transforms: &[DAffine3], world: DAffine3) -> Vec<DVec3> {
+        self.rest
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let blended = blend(&self.attach_weights[i % AROUND], joint_transforms);
+                world.transform_point3(blended.transform_point3(*p))
+            })
+            .collect()
     }
 
     /// Advances the simulation by `dt` seconds to the body pose given by its skinning
@@ -230,6 +243,121 @@ impl Skirt {
 
     pub fn rest_positions(&self) -> &[DVec3] {
         &self.rest
+    }
+}
+
+/// The skirt of the history scene as a damped oscillator driven by the body's motion.
+///
+/// The skirt hangs from the waist like a stiffened pendulum: its hem deflection `u`
+/// (horizontal, world x and z) is a damped oscillator of natural frequency `omega` whose
+/// pivot (the pelvis) moves with velocity `v` and acceleration `a`, with air drag on the
+/// hem's velocity `v + u'`:
+///
+/// `u'' = -omega^2 u - 2 zeta omega u' - a - drag (v + u')`,
+///
+/// and the skirt twists about the vertical axis by `phi`, a damped torsional oscillator
+/// driven by the heading's angular acceleration `psi''`:
+///
+/// `phi'' = -omega_t^2 phi - 2 zeta_t omega_t phi' - psi''`.
+///
+/// So the skirt lags behind an acceleration, overshoots and settles while the body holds a
+/// pose, and tilts back by `drag v / omega^2` at a steady walking speed `v`. At rest
+/// (`u = u' = phi = phi' = 0`) the skirt is its static drape, [`Skirt::carried`];
+/// [`Swing::apply`] turns every row about the waist centre by its fraction of the swing
+/// angle `|u| / length` and of the twist.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SwingParams {
+    /// Hem distance below the waist (m): a deflection `u` turns the hem by `|u| / length`.
+    pub length: f64,
+    /// Natural frequency of the swing (Hz; a free pendulum of `length` would swing at
+    /// `sqrt(g / length) / 2 pi`, the cloth's stiffness raises it) and its damping ratio.
+    pub swing_hz: f64,
+    pub damping_ratio: f64,
+    /// Air drag on the hem's velocity (1/s).
+    pub drag_per_second: f64,
+    /// Natural frequency of the twist (Hz) and its damping ratio.
+    pub twist_hz: f64,
+    pub twist_damping_ratio: f64,
+}
+
+impl SwingParams {
+    /// The history scene's skirt.
+    pub const HISTORY: Self = Self {
+        length: 0.45,
+        swing_hz: 1.2,
+        damping_ratio: 0.1,
+        drag_per_second: 1.0,
+        twist_hz: 1.2,
+        twist_damping_ratio: 0.1,
+    };
+
+    /// Natural angular frequency of the swing (rad/s).
+    pub fn omega(&self) -> f64 {
+        std::f64::consts::TAU * self.swing_hz
+    }
+}
+
+/// The oscillator state of [`SwingParams`]: hem deflection and twist, with their rates.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Swing {
+    /// Horizontal hem deflection (world x, z), metres, and its rate.
+    pub offset: DVec2,
+    pub velocity: DVec2,
+    /// Twist about the vertical axis (radians) and its rate.
+    pub twist: f64,
+    pub twist_rate: f64,
+}
+
+impl Swing {
+    /// Advances the state by `dt` (semi-implicit Euler) under the pivot's horizontal
+    /// velocity and acceleration and the heading's angular acceleration.
+    pub fn step(
+        &mut self,
+        params: &SwingParams,
+        pivot_velocity: DVec2,
+        pivot_acceleration: DVec2,
+        heading_acceleration: f64,
+        dt: f64,
+    ) {
+        let omega = params.omega();
+        let acceleration = -self.offset * (omega * omega)
+            - self.velocity * (2.0 * params.damping_ratio * omega)
+            - pivot_acceleration
+            - (pivot_velocity + self.velocity) * params.drag_per_second;
+        self.velocity += acceleration * dt;
+        self.offset += self.velocity * dt;
+        let omega_t = std::f64::consts::TAU * params.twist_hz;
+        let twist_acceleration = -self.twist * (omega_t * omega_t)
+            - self.twist_rate * (2.0 * params.twist_damping_ratio * omega_t)
+            - heading_acceleration;
+        self.twist_rate += twist_acceleration * dt;
+        self.twist += self.twist_rate * dt;
+    }
+
+    /// The swinging skirt from its static drape (one position per particle, row-major as
+    /// [`particle`]): row `r` turns about the waist centre by the fraction `r / (ROWS - 1)` of
+    /// the twist (about +y) and of the swing (the rotation that moves the downward direction
+    /// towards the deflection by `|offset| / length` radians). Row 0 (sewn to the waist)
+    /// stays; a state at rest returns the drape unchanged.
+    pub fn apply(&self, params: &SwingParams, drape: &[DVec3]) -> Vec<DVec3> {
+        let centre = drape[..AROUND].iter().copied().sum::<DVec3>() / AROUND as f64;
+        let deflection = DVec3::new(self.offset.x, 0.0, self.offset.y);
+        // (-y) x u / length: rotating -y about it moves it towards u by |u| / length.
+        let swing_axis = DVec3::NEG_Y.cross(deflection) / params.length;
+        drape
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| {
+                let row = i / AROUND;
+                if row == 0 {
+                    return p;
+                }
+                let s = row as f64 / (ROWS - 1) as f64;
+                let twist = DQuat::from_rotation_y(self.twist * s);
+                let swing = DQuat::from_scaled_axis(swing_axis * s);
+                centre + swing * (twist * (p - centre))
+            })
+            .collect()
     }
 }
 
@@ -333,5 +461,95 @@ mod tests {
         for p in &skirt.positions()[AROUND..] {
             assert!(p.is_finite());
         }
+    }
+
+    /// The swing integrator against the closed forms of the damped oscillator: free decay
+    /// `u(t) = u0 e^(-zeta' w t) (cos(w_d t) + zeta' w / w_d sin(w_d t))` with the drag
+    /// folded into the damping, the steady deflections `-a / w^2` under a constant pivot
+    /// acceleration and `-drag v / w^2` at a constant pivot velocity, and the twist's decay.
+    #[test]
+    fn swing_matches_the_damped_oscillator_closed_forms() {
+        let params = SwingParams::HISTORY;
+        let w = params.omega();
+        let c = 2.0 * params.damping_ratio * w + params.drag_per_second;
+        let zeta = c / (2.0 * w);
+        let wd = w * (1.0 - zeta * zeta).sqrt();
+        let dt = 1.0 / 4800.0;
+        let mut swing = Swing {
+            offset: DVec2::new(0.1, -0.05),
+            twist: 0.2,
+            ..Default::default()
+        };
+        let wt = std::f64::consts::TAU * params.twist_hz;
+        let zt = params.twist_damping_ratio;
+        let wtd = wt * (1.0 - zt * zt).sqrt();
+        for step in 1..=4800 {
+            swing.step(&params, DVec2::ZERO, DVec2::ZERO, 0.0, dt);
+            let t = step as f64 * dt;
+            if step % 480 == 0 {
+                let shape =
+                    (-zeta * w * t).exp() * ((wd * t).cos() + zeta * w / wd * (wd * t).sin());
+                let expected = DVec2::new(0.1, -0.05) * shape;
+                assert!(
+                    (swing.offset - expected).length() < 2e-3 * 0.1,
+                    "t {t}: {} vs {expected}",
+                    swing.offset
+                );
+                let twist = 0.2
+                    * (-zt * wt * t).exp()
+                    * ((wtd * t).cos() + zt * wt / wtd * (wtd * t).sin());
+                assert!(
+                    (swing.twist - twist).abs() < 2e-3 * 0.2,
+                    "t {t}: twist {} vs {twist}",
+                    swing.twist
+                );
+            }
+        }
+        // Constant pivot acceleration and velocity: the deflection settles at the closed form.
+        let (a, v) = (DVec2::new(0.8, 0.0), DVec2::new(0.0, 1.2));
+        let mut swing = Swing::default();
+        for _ in 0..(20.0 / dt) as usize {
+            swing.step(&params, v, a, 0.0, dt);
+        }
+        let expected = -(a + v * params.drag_per_second) / (w * w);
+        assert!(
+            (swing.offset - expected).length() < 1e-6,
+            "{} vs {expected}",
+            swing.offset
+        );
+        // A state at rest under no drive stays at rest, exactly.
+        let mut rest = Swing::default();
+        rest.step(&params, DVec2::ZERO, DVec2::ZERO, 0.0, dt);
+        assert_eq!(rest, Swing::default());
+    }
+
+    /// The swing turns rows about the waist centre: lengths to the centre are kept, the hem
+    /// moves by about the deflection, and the waist ring does not move.
+    #[test]
+    fn applied_swing_turns_rows_about_the_waist() {
+        let (model, shaped, transforms) = rest_state();
+        let skirt = Skirt::new(&model, &shaped, 1.0);
+        let drape = skirt.carried(&transforms, DAffine3::IDENTITY);
+        let params = SwingParams::HISTORY;
+        let swing = Swing {
+            offset: DVec2::new(0.05, 0.0),
+            twist: 0.1,
+            ..Default::default()
+        };
+        let moved = swing.apply(&params, &drape);
+        let centre = drape[..AROUND].iter().copied().sum::<DVec3>() / AROUND as f64;
+        for (i, (a, b)) in drape.iter().zip(&moved).enumerate() {
+            if i < AROUND {
+                assert_eq!(a, b);
+            }
+            assert!(((*a - centre).length() - (*b - centre).length()).abs() < 1e-12);
+        }
+        let hem_shift = (0..AROUND)
+            .map(|k| moved[particle(ROWS - 1, k)] - drape[particle(ROWS - 1, k)])
+            .sum::<DVec3>()
+            / AROUND as f64;
+        // The twist averages out around the ring; the swing moves the hem along +x.
+        assert!(hem_shift.x > 0.03 && hem_shift.x < 0.07, "{hem_shift}");
+        assert!(hem_shift.z.abs() < 0.01, "{hem_shift}");
     }
 }

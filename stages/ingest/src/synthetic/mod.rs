@@ -4,14 +4,18 @@
 //! jittered copy.
 //!
 //! - [`motion`]: the scripted motion (pose, heading and path over time).
-//! - [`garment`]: the skirt and its damped mass-spring simulation (position based).
+//! - [`history`]: the history scene's script (`scene: history`): poses of an integer gait
+//!   phase visited at different speeds, holds, turns and restarts.
+//! - [`garment`]: the skirt and its damped mass-spring simulation (position based), and the
+//!   history scene's skirt, a damped pendulum driven by the body's motion.
 //! - [`raster`]: the z-buffered, perspective-correct triangle rasterizer.
 //! - [`scene`]: the whole scene: cameras, textures, shading, the per-camera backdrops, the
 //!   [`DatasetReader`] impl.
 //!
-//! [`DatasetReader`]: crate::stage::DatasetReader
+//! [`DatasetReader`]: crate::reader::DatasetReader
 
 pub mod garment;
+pub mod history;
 pub mod motion;
 pub mod raster;
 mod rng;
@@ -58,10 +62,36 @@ pub enum SyntheticBackground {
     Black,
 }
 
+/// Which motion script and garment the synthetic scene uses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SceneKind {
+    /// Walk, turn, stop and go again, scripted in fractions of the sequence, with the
+    /// mass-spring skirt (the demo's scene).
+    #[default]
+    Walk,
+    /// The history scene ([`history`]): exact poses recur under different histories, and the
+    /// skirt is a damped pendulum driven by the body ([`garment::Swing`]), so the garment
+    /// shows what the pose alone cannot explain. Needs `fps: 30` and at most
+    /// [`history::LENGTH`] frames. The ingest entry then stores the garment's
+    /// history-only displacement per frame.
+    History,
+}
+
+impl SceneKind {
+    fn is_walk(&self) -> bool {
+        *self == Self::Walk
+    }
+}
+
 /// Sizes and settings of the synthetic scene (`dataset: {kind: synthetic, ...}`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SyntheticConfig {
+    /// The motion script and garment (`walk`, the default, or `history`). Left out of the
+    /// resolved config when `walk`, so the demo's ingest keys stay what they were.
+    #[serde(skip_serializing_if = "SceneKind::is_walk")]
+    pub scene: SceneKind,
     /// Number of cameras on the ring around the subject.
     pub cameras: usize,
     /// Number of frames of the sequence.
@@ -92,6 +122,7 @@ pub struct SyntheticConfig {
 impl Default for SyntheticConfig {
     fn default() -> Self {
         Self {
+            scene: SceneKind::Walk,
             cameras: 8,
             frames: 48,
             fps: 15.0,
@@ -146,6 +177,20 @@ impl SyntheticConfig {
             "{} must be within 0.005..0.05 metres",
             field("body_grid_spacing")
         );
+        if self.scene == SceneKind::History {
+            anyhow::ensure!(
+                self.fps == history::FPS,
+                "{} must be {} for scene: history (its script is written in frames at that rate)",
+                field("fps"),
+                history::FPS
+            );
+            anyhow::ensure!(
+                self.frames <= history::LENGTH,
+                "{} must be at most {} for scene: history (the script's length)",
+                field("frames"),
+                history::LENGTH
+            );
+        }
         let j = &self.jitter;
         anyhow::ensure!(
             [

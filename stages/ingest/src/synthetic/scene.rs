@@ -23,13 +23,15 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DAffine3, DVec2, DVec3};
 
-use super::garment::{self, Skirt};
+use super::garment::{self, Skirt, Swing, SwingParams};
+use super::history::{self, MonotoneCubic, path_sample};
 use super::motion::sample_script;
 use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
-use super::{SyntheticBackground, SyntheticConfig};
-use crate::stage::{
-    BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
+use super::{SceneKind, SyntheticBackground, SyntheticConfig};
+use crate::reader::{
+    BodyModelKind, DatasetReader, FrameRange, GarmentHistory, Keypoints3d, SourceCamera,
+    SourceImage, Split,
 };
 
 /// Garment simulation rate (substeps per second).
@@ -54,6 +56,8 @@ pub struct SyntheticScene {
     jittered: Vec<BodyParams>,
     /// Per frame, the skirt particle positions (empty without a garment).
     skirt: Vec<Vec<DVec3>>,
+    /// History scene: per frame, the skirt's static drape (its oscillator at rest).
+    drapes: Vec<Vec<DVec3>>,
     skirt_triangles: Vec<[u32; 3]>,
     skirt_texture: Vec<DVec3>,
     /// Per body vertex: albedo region colour.
@@ -130,6 +134,89 @@ impl Backdrop {
         let stripe = self.stripe_amplitude * point.dot(self.stripes).sin();
         (tiled + DVec3::splat(stripe)).clamp(DVec3::ZERO, DVec3::ONE)
     }
+}
+
+/// Per-frame ground truth, simulated skirt and its static drape of the history scene
+/// ([`history`]): the script's poses, the heading as the world rotation, the path integrated
+/// from the interpolated speed and heading at the simulation rate, and the skirt's
+/// oscillator ([`Swing`]) stepped by the same samples, starting at rest (the script starts
+/// with a hold).
+#[allow(clippy::type_complexity)]
+fn history_sequence(
+    config: &SyntheticConfig,
+    model: &BodyModel,
+    shaped: &[DVec3],
+    rest_joints: &[DVec3],
+    pelvis_height: f64,
+) -> anyhow::Result<(Vec<BodyParams>, Vec<Vec<DVec3>>, Vec<Vec<DVec3>>)> {
+    let (phases, headings) = history::frame_values();
+    let n = config.frames;
+    let phase_curve = MonotoneCubic::new(&phases.iter().map(|&p| p as f64).collect::<Vec<_>>());
+    let heading_curve = MonotoneCubic::new(&headings);
+    let substeps = (SIMULATION_RATE / history::FPS).round() as usize;
+    let dt = 1.0 / (history::FPS * substeps as f64);
+    let swing_params = SwingParams::HISTORY;
+    let mut swing = Swing::default();
+    let mut position = DVec2::ZERO;
+    let mut positions = vec![position];
+    let mut states = vec![swing];
+    for frame in 1..n {
+        for sub in 0..substeps {
+            let t = (frame - 1) as f64 + (sub as f64 + 0.5) / substeps as f64;
+            let sample = path_sample(&phase_curve, &heading_curve, t);
+            position += sample.velocity * dt;
+            swing.step(
+                &swing_params,
+                sample.velocity,
+                sample.acceleration,
+                sample.heading_acceleration,
+                dt,
+            );
+        }
+        positions.push(position);
+        states.push(swing);
+    }
+    let (lo, hi) = positions
+        .iter()
+        .fold((DVec2::MAX, DVec2::MIN), |(l, h), p| (l.min(*p), h.max(*p)));
+    let centre = (lo + hi) * 0.5;
+    let ground_truth: Vec<BodyParams> = (0..n)
+        .map(|k| {
+            let rotation = DVec3::new(0.0, headings[k], 0.0);
+            let pelvis = DVec3::new(
+                positions[k].x - centre.x,
+                pelvis_height + history::bob(phases[k]),
+                positions[k].y - centre.y,
+            );
+            BodyParams {
+                pose: history::gait_pose(phases[k]),
+                betas: config.betas.to_vec(),
+                expression: Vec::new(),
+                world_rotation: rotation,
+                world_translation: pelvis
+                    - seqavatar_core::rotation::axis_angle_to_matrix(rotation) * rest_joints[0],
+            }
+        })
+        .collect();
+    if !config.garment {
+        return Ok((ground_truth, Vec::new(), Vec::new()));
+    }
+    let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
+    let skirt = Skirt::new(model, shaped, scale);
+    let (simulated, drapes) = ground_truth
+        .iter()
+        .zip(&states)
+        .map(|(params, state)| {
+            let transforms = model.joint_transforms(rest_joints, &params.pose);
+            let world = DAffine3::from_mat3_translation(
+                seqavatar_core::rotation::axis_angle_to_matrix(params.world_rotation),
+                params.world_translation,
+            );
+            let drape = skirt.carried(&transforms, world);
+            (state.apply(&swing_params, &drape), drape)
+        })
+        .unzip();
+    Ok((ground_truth, simulated, drapes))
 }
 
 /// The albedo region colour of a body vertex from its dominant joint.
@@ -211,63 +298,76 @@ impl SyntheticScene {
         let sole = shaped.iter().map(|v| v.y).fold(f64::INFINITY, f64::min);
         let pelvis_height = rest_joints[0].y - sole;
 
-        let duration = config.frames as f64 / config.fps;
-        let dt = 1.0 / SIMULATION_RATE;
-        let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
-        let frame_step =
-            |frame: usize| (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize;
-        let params_at = |sample: usize| {
-            let s = &samples[sample.min(samples.len() - 1)];
-            BodyParams {
-                pose: s.pose.clone(),
-                betas: config.betas.to_vec(),
-                expression: Vec::new(),
-                world_rotation: DVec3::ZERO,
-                // The pelvis joint of the shaped rest body sits at rest_joints[0].
-                world_translation: s.position - rest_joints[0],
+        let (ground_truth, skirt_frames, drapes) = match config.scene {
+            SceneKind::History => {
+                history_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?
+            }
+            SceneKind::Walk => {
+                let duration = config.frames as f64 / config.fps;
+                let dt = 1.0 / SIMULATION_RATE;
+                let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
+                let frame_step = |frame: usize| {
+                    (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize
+                };
+                let params_at = |sample: usize| {
+                    let s = &samples[sample.min(samples.len() - 1)];
+                    BodyParams {
+                        pose: s.pose.clone(),
+                        betas: config.betas.to_vec(),
+                        expression: Vec::new(),
+                        world_rotation: DVec3::ZERO,
+                        // The pelvis joint of the shaped rest body sits at rest_joints[0].
+                        world_translation: s.position - rest_joints[0],
+                    }
+                };
+                let ground_truth: Vec<BodyParams> = (0..config.frames)
+                    .map(|f| params_at(frame_step(f)))
+                    .collect();
+
+                // Garment simulation over every substep, recording the frames.
+                let mut skirt_frames = Vec::new();
+                if config.garment {
+                    let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
+                    let mut skirt = Skirt::new(&model, &shaped, scale);
+                    let transforms = |sample: usize| {
+                        let p = params_at(sample);
+                        (
+                            model.joint_transforms(&rest_joints, &p.pose),
+                            DAffine3::from_translation(p.world_translation),
+                        )
+                    };
+                    let (t0, w0) = transforms(0);
+                    skirt.reset(&t0, w0);
+                    let last = frame_step(config.frames - 1);
+                    let mut next_frame = 0;
+                    for step in 0..=last {
+                        if step > 0 {
+                            let (t, w) = transforms(step);
+                            skirt.step(&t, w, dt);
+                        }
+                        while next_frame < config.frames && frame_step(next_frame) == step {
+                            skirt_frames.push(skirt.positions().to_vec());
+                            next_frame += 1;
+                        }
+                    }
+                    anyhow::ensure!(
+                        skirt_frames.len() == config.frames,
+                        "garment simulation recorded {} of {} frames",
+                        skirt_frames.len(),
+                        config.frames
+                    );
+                    anyhow::ensure!(
+                        skirt_frames.iter().flatten().all(|p| p.is_finite()),
+                        "garment simulation diverged"
+                    );
+                }
+                (ground_truth, skirt_frames, Vec::new())
             }
         };
-        let ground_truth: Vec<BodyParams> = (0..config.frames)
-            .map(|f| params_at(frame_step(f)))
-            .collect();
-
-        // Garment simulation over every substep, recording the frames.
-        let mut skirt_frames = Vec::new();
-        if config.garment {
-            let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
-            let mut skirt = Skirt::new(&model, &shaped, scale);
-            let transforms = |sample: usize| {
-                let p = params_at(sample);
-                (
-                    model.joint_transforms(&rest_joints, &p.pose),
-                    DAffine3::from_translation(p.world_translation),
-                )
-            };
-            let (t0, w0) = transforms(0);
-            skirt.reset(&t0, w0);
-            let last = frame_step(config.frames - 1);
-            let mut next_frame = 0;
-            for step in 0..=last {
-                if step > 0 {
-                    let (t, w) = transforms(step);
-                    skirt.step(&t, w, dt);
-                }
-                while next_frame < config.frames && frame_step(next_frame) == step {
-                    skirt_frames.push(skirt.positions().to_vec());
-                    next_frame += 1;
-                }
-            }
-            anyhow::ensure!(
-                skirt_frames.len() == config.frames,
-                "garment simulation recorded {} of {} frames",
-                skirt_frames.len(),
-                config.frames
-            );
-            anyhow::ensure!(
-                skirt_frames.iter().flatten().all(|p| p.is_finite()),
-                "garment simulation diverged"
-            );
-        }
+        anyhow::ensure!(
+            skirt_frames.iter().flatten().all(|p| p.is_finite()),
+            "garment simulation diverged"
+        );
 
         let mut rng = super::rng::seeded(config.seed);
         let fitted_betas: Vec<f64> = config
@@ -321,6 +421,7 @@ impl SyntheticScene {
             ground_truth,
             jittered,
             skirt: skirt_frames,
+            drapes,
             skirt_triangles: if config.garment {
                 garment::triangles()
             } else {
@@ -451,11 +552,17 @@ impl SyntheticScene {
     /// dependence is history too. The difference to [`Self::skirt_positions`] is the
     /// history-dependent part of the garment (swing, lag and fold from the motion before the
     /// frame), what only a model with motion context can render.
+    ///
+    /// In the history scene the drape is exact and `seconds` is not used: the rest state of
+    /// the skirt's oscillator, the rest skirt carried by the pose ([`Skirt::carried`]).
     pub fn static_drape(&self, frame: usize, seconds: f64) -> anyhow::Result<Vec<DVec3>> {
         anyhow::ensure!(
             self.config.garment && frame < self.skirt.len(),
             "frame {frame}: the scene has no garment state for it"
         );
+        if let Some(drape) = self.drapes.get(frame) {
+            return Ok(drape.clone());
+        }
         let mut rest_params = self.model.zero_params();
         rest_params.betas = self.config.betas.to_vec();
         let shaped = self.model.shaped_vertices(&rest_params);
@@ -639,6 +746,7 @@ impl DatasetReader for SyntheticScene {
                 step: 2,
             },
             frame_interval: 1,
+            held_out_frames: None,
         }
     }
 
@@ -666,6 +774,22 @@ impl DatasetReader for SyntheticScene {
         Ok(Some(self.ground_truth.get(frame).cloned().ok_or_else(
             || anyhow::anyhow!("synthetic scene has no frame {frame}"),
         )?))
+    }
+
+    /// The history scene's skirt and its exact static drape; `None` for the walk scene (its
+    /// drape needs seconds of simulation per frame: `examples/garment_history.rs`).
+    fn garment_history(&self, frame: usize) -> anyhow::Result<Option<GarmentHistory>> {
+        if self.drapes.is_empty() {
+            return Ok(None);
+        }
+        anyhow::ensure!(
+            frame < self.drapes.len(),
+            "synthetic scene has no frame {frame}"
+        );
+        Ok(Some(GarmentHistory {
+            simulated: self.skirt[frame].clone(),
+            drape: self.drapes[frame].clone(),
+        }))
     }
 
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
@@ -885,6 +1009,97 @@ mod tests {
         }
     }
 
+    fn history_scene(size: u32, cameras: usize) -> SyntheticScene {
+        SyntheticScene::generate(&SyntheticConfig {
+            scene: SceneKind::History,
+            cameras,
+            frames: history::LENGTH,
+            fps: history::FPS,
+            width: size,
+            height: size,
+            supersample: 1,
+            body_grid_spacing: 0.04,
+            ..Default::default()
+        })
+        .unwrap()
+    }
+
+    /// Per frame: every hem particle's displacement from the static drape, in the body's
+    /// heading frame (so displacements at different headings compare).
+    fn hem_displacements(scene: &SyntheticScene) -> Vec<Vec<DVec3>> {
+        (0..scene.skirt.len())
+            .map(|frame| {
+                let heading = scene.ground_truth[frame].world_rotation;
+                let to_body = seqavatar_core::rotation::axis_angle_to_matrix(-heading);
+                let drape = scene.static_drape(frame, 0.0).unwrap();
+                (0..garment::AROUND)
+                    .map(|k| {
+                        let i = garment::particle(garment::ROWS - 1, k);
+                        to_body * (scene.skirt[frame][i] - drape[i])
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn history_scene_recurs_poses_under_different_histories_and_the_skirt_remembers() {
+        let scene = history_scene(64, 2);
+        let truth = scene.ground_truth();
+        let hem = hem_displacements(&scene);
+        let peak = |frame: usize| hem[frame].iter().map(|d| d.length()).fold(0.0, f64::max);
+        // The static drape is the oscillator's rest state: at frame 0 (after a hold from
+        // rest) the skirt is its drape, and a state at rest leaves any drape unchanged.
+        let drape = scene.static_drape(0, 0.0).unwrap();
+        assert_eq!(scene.skirt_positions(0), drape.as_slice());
+        assert_eq!(
+            Swing::default().apply(&SwingParams::HISTORY, &scene.static_drape(90, 0.0).unwrap()),
+            scene.static_drape(90, 0.0).unwrap()
+        );
+        // Peak hem swing >= 10 cm.
+        let largest = (0..truth.len()).map(peak).fold(0.0, f64::max);
+        assert!(largest >= 0.10, "peak hem swing {largest} m");
+        // Stop-and-hold: frames 46..=91 and 139..=184 repeat one pose and place exactly,
+        // while the skirt swings and settles (its amplitude decays).
+        for (start, end) in [(46, 91), (139, 184)] {
+            for frame in start + 1..=end {
+                assert_eq!(truth[frame], truth[start], "frame {frame}");
+            }
+            let early = (start..start + 15).map(peak).fold(0.0, f64::max);
+            let late = (end - 6..=end).map(peak).fold(0.0, f64::max);
+            assert!(early >= 0.03, "hold from {start}: early swing {early} m");
+            assert!(
+                late < 0.35 * early,
+                "hold from {start}: {early} m then {late} m"
+            );
+        }
+        // Identical poses under different histories give hems that differ by >= 10 cm (in
+        // the body's frame), and the same pose recurs at both speeds and in the holds.
+        let mut differ: f64 = 0.0;
+        let mut pairs = 0;
+        for a in 0..truth.len() {
+            for b in a + 1..truth.len() {
+                if truth[a].pose == truth[b].pose {
+                    pairs += 1;
+                    let d = hem[a]
+                        .iter()
+                        .zip(&hem[b])
+                        .map(|(x, y)| (*x - *y).length())
+                        .fold(0.0, f64::max);
+                    differ = differ.max(d);
+                }
+            }
+        }
+        eprintln!(
+            "history scene: peak hem swing {largest:.3} m; {pairs} same-pose frame pairs, hems differ by up to {differ:.3} m"
+        );
+        assert!(pairs > 1000, "{pairs} pairs of frames share a pose");
+        assert!(
+            differ >= 0.10,
+            "same-pose hems differ by at most {differ} m"
+        );
+    }
+
     /// Timing of the demo's default scene (`SEQAVATAR_SLOW_TESTS=1`).
     #[test]
     fn default_scene_timing() {
@@ -903,6 +1118,20 @@ mod tests {
             images.len(),
             rendered.as_secs_f64(),
             rendered.as_secs_f64() * 1e3 / images.len() as f64
+        );
+        let started = std::time::Instant::now();
+        let history = SyntheticScene::generate(&SyntheticConfig {
+            scene: SceneKind::History,
+            fps: history::FPS,
+            frames: history::LENGTH,
+            ..Default::default()
+        })
+        .unwrap();
+        println!(
+            "history scene ({} frames, {} cameras): generate {:.2} s",
+            history.skirt.len(),
+            history.cameras.len(),
+            started.elapsed().as_secs_f64()
         );
         if let Ok(dir) = std::env::var("SEQAVATAR_PREVIEW_DIR") {
             for (v, image) in images.iter().enumerate() {

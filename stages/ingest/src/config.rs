@@ -1,0 +1,201 @@
+//! The `ingest` stage configuration: which dataset, the split overrides, the resolution and
+//! the past frames the motion windows need; ranges checked when the pipeline loads.
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use seqavatar_engine::{ConfigError, ConfigPathSegment};
+
+use crate::reader::{FrameRange, Split};
+
+/// Split overrides from the stage config: any field left out keeps the dataset's default.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SplitOverrides {
+    pub train_views: Option<Vec<usize>>,
+    pub test_views: Option<Vec<usize>>,
+    pub train_frames: Option<FrameRange>,
+    pub test_frames: Option<FrameRange>,
+    pub frame_interval: Option<usize>,
+    /// The temporal hold-out ([`Split::held_out_frames`]); left out of the resolved config
+    /// when not set, so the keys of configs without one stay what they were.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub held_out_frames: Option<FrameRange>,
+}
+
+impl SplitOverrides {
+    pub fn apply(&self, default: Split) -> Split {
+        Split {
+            train_views: self.train_views.clone().unwrap_or(default.train_views),
+            test_views: self.test_views.clone().unwrap_or(default.test_views),
+            train_frames: self.train_frames.clone().unwrap_or(default.train_frames),
+            test_frames: self.test_frames.clone().unwrap_or(default.test_frames),
+            frame_interval: self.frame_interval.unwrap_or(default.frame_interval),
+            held_out_frames: self.held_out_frames.clone().or(default.held_out_frames),
+        }
+    }
+}
+
+/// ZJU-MoCap sequence (`CoreView_XXX/`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZjuMocapConfig {
+    /// The `CoreView_XXX` folder.
+    pub root: PathBuf,
+}
+
+/// I3D-Human sequence (`<root>/<ID>-train/` ...).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct I3dHumanConfig {
+    pub root: PathBuf,
+    /// Subject and sequence id, e.g. `ID1_1`.
+    pub sequence: String,
+}
+
+/// DNA-Rendering take (main `.smc`; the annotation file is found next to it).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DnaRenderingConfig {
+    pub main_file: PathBuf,
+    /// Explicit annotation file; default: derived from `main_file` (datasets.md).
+    pub annotations_file: Option<PathBuf>,
+}
+
+/// Which dataset to ingest (`dataset: {kind: synthetic, ...}` in the YAML).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum DatasetConfig {
+    Synthetic(crate::synthetic::SyntheticConfig),
+    ZjuMocap(ZjuMocapConfig),
+    I3dHuman(I3dHumanConfig),
+    DnaRendering(DnaRenderingConfig),
+}
+
+impl Default for DatasetConfig {
+    fn default() -> Self {
+        Self::Synthetic(crate::synthetic::SyntheticConfig::default())
+    }
+}
+
+/// The `ingest` stage configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct IngestConfig {
+    pub dataset: DatasetConfig,
+    /// Image rescale factor applied after undistortion (ZJU 0.5, DNA 0.25 in method.md).
+    pub resolution_scale: f64,
+    pub split: SplitOverrides,
+    /// How many past frames (in steps of the frame interval) before each used frame the
+    /// motion windows need; their body parameters are ingested (not their images). For
+    /// SeqAvatar this is `L * max(scales)`.
+    pub past_frames: usize,
+    /// Body-model file (SMPL / SMPL-X dense `.npz`) for datasets that need one.
+    pub body_model: Option<PathBuf>,
+}
+
+impl Default for IngestConfig {
+    fn default() -> Self {
+        Self {
+            dataset: DatasetConfig::default(),
+            resolution_scale: 1.0,
+            split: SplitOverrides::default(),
+            past_frames: 0,
+            body_model: None,
+        }
+    }
+}
+
+/// The most cameras a synthetic scene may have (the datasets have 10 to 60).
+pub const MAX_SYNTHETIC_CAMERAS: usize = 1024;
+/// The most frames a synthetic scene, or `past_frames`, may ask for.
+pub const MAX_FRAMES: usize = 100_000;
+
+impl IngestConfig {
+    /// Checks ranges when the pipeline loads (before any stage runs); errors name the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let key = |names: &[&str]| -> Vec<ConfigPathSegment> {
+            names
+                .iter()
+                .map(|n| ConfigPathSegment::Key((*n).to_owned()))
+                .collect()
+        };
+        if !(self.resolution_scale.is_finite()
+            && self.resolution_scale > 0.0
+            && self.resolution_scale <= 4.0)
+        {
+            return Err(ConfigError::at_key(
+                "resolution_scale",
+                format!("must be within (0, 4], got {}", self.resolution_scale),
+            ));
+        }
+        if self.past_frames > MAX_FRAMES {
+            return Err(ConfigError::at_key(
+                "past_frames",
+                format!("must be at most {MAX_FRAMES}, got {}", self.past_frames),
+            ));
+        }
+        if let DatasetConfig::Synthetic(scene) = &self.dataset {
+            for (name, value, max) in [
+                ("cameras", scene.cameras, MAX_SYNTHETIC_CAMERAS),
+                ("frames", scene.frames, MAX_FRAMES),
+            ] {
+                if value > max {
+                    return Err(ConfigError::new(
+                        key(&["dataset", name]),
+                        format!("must be at most {max}, got {value}"),
+                    ));
+                }
+            }
+            scene
+                .validate()
+                .map_err(|e| ConfigError::new(key(&["dataset"]), e.to_string()))?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::stage::Ingest;
+
+    /// Values that passed validation and then aborted the run (issue 16) are refused when
+    /// the config resolves, naming the field.
+    #[test]
+    fn config_ranges_are_checked_at_load() {
+        use seqavatar_engine::StageKind;
+        let resolve = |raw: serde_json::Value| {
+            Ingest
+                .resolve_config(&raw)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        resolve(serde_json::json!({})).unwrap();
+        for (raw, field) in [
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "frames": 1_000_000_000u64}}),
+                "dataset.frames",
+            ),
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "cameras": 100_000_000u64}}),
+                "dataset.cameras",
+            ),
+            (
+                serde_json::json!({"dataset": {"kind": "synthetic", "fps": -1.0}}),
+                "dataset",
+            ),
+            (
+                serde_json::json!({"resolution_scale": 0.0}),
+                "resolution_scale",
+            ),
+            (
+                serde_json::json!({"past_frames": 1_000_000_000u64}),
+                "past_frames",
+            ),
+        ] {
+            let err = resolve(raw.clone()).unwrap_err();
+            assert!(err.contains(field), "{raw} gave `{err}`");
+        }
+    }
+}
