@@ -204,8 +204,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             fps,
             max_frames,
         } => {
-            let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
-            let backend = seqavatar_compute::backend::Backend::select(choice)?;
+            let backend = select_backend(&device)?;
             let options = seqavatar_eval::animate::RenderOptions {
                 avatar,
                 poses: seqavatar_eval::animate::PoseSource::parse(&poses),
@@ -242,8 +241,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             device,
             max_frames,
         } => {
-            let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
-            let backend = seqavatar_compute::backend::Backend::select(choice)?;
+            let backend = select_backend(&device)?;
             let options = seqavatar_eval::export::ExportOptions {
                 avatar,
                 poses: poses
@@ -295,4 +293,11 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// The compute backend a `--device` value names (`auto`, `cpu` or `gpu`), for the commands
+/// that render outside a pipeline (`render`, `export`).
+fn select_backend(device: &str) -> anyhow::Result<seqavatar_compute::backend::Backend> {
+    let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
+    Ok(seqavatar_compute::backend::Backend::select(choice)?)
 }

@@ -225,19 +225,7 @@ mod tests {
     use super::*;
 
     fn config() -> AvatarConfig {
-        AvatarConfig {
-            motion_context: MotionContext::Multiscale,
-            trunk_width: 64,
-            trunk_depth: 3,
-            tau: 4,
-            sequence_length: 2,
-            pose_refiner: true,
-            lbs_offsets: true,
-            sh_degree: 1,
-            scale_min: 1e-5,
-            scale_max: 0.5,
-            background: Background::Black,
-        }
+        AvatarConfig::for_tests()
     }
 
     #[test]
