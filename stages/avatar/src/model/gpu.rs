@@ -154,20 +154,18 @@ impl GpuNetworks {
     pub fn upload(context: Arc<GpuContext>, networks: &Networks<f32>) -> Result<Self, ModelError> {
         let nn = NnGpu::new(context.device())?;
         let mut layers = Vec::new();
-        let net = |network: &Option<super::network::Network<f32>>, layers: &[GpuDense]| {
-            network.as_ref().map(|network| GpuNet {
-                spec: network.spec().clone(),
-                first: layers.len(),
-            })
-        };
         let mut nets = [None, None, None];
         for (slot, network) in nets.iter_mut().zip([
             &networks.non_rigid,
             &networks.pose_refiner,
             &networks.lbs_offsets,
         ]) {
-            *slot = net(network, &layers);
-            for layer in network.iter().flat_map(|n| n.layers.iter()) {
+            let Some(network) = network else { continue };
+            *slot = Some(GpuNet {
+                spec: network.spec().clone(),
+                first: layers.len(),
+            });
+            for layer in &network.layers {
                 let Dense {
                     name,
                     group,

@@ -107,6 +107,17 @@ pub enum Source {
     Window(usize),
 }
 
+impl Source {
+    /// The window elements of a layer's output side by side ([`Source::Window`]); other
+    /// sources are returned unchanged (and a description reading them is still checked).
+    pub fn window(self) -> Source {
+        match self {
+            Source::Layer(j) => Source::Window(j),
+            other => other,
+        }
+    }
+}
+
 /// One dense layer `act(concat(sources) W + b)`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LayerSpec {
@@ -294,13 +305,10 @@ impl NetworkSpec {
                 w.seq_pose_frame,
                 relu,
             );
-            let Source::Layer(frames) = frames else {
-                unreachable!("layer() returns a layer source")
-            };
             net.layer(
                 "seq_pose_encoder.sequence",
                 Rows::Frame,
-                &[Source::Window(frames)],
+                &[frames.window()],
                 w.seq_pose,
                 relu,
             )
@@ -320,19 +328,17 @@ impl NetworkSpec {
                 w.seq_xyz_position,
                 relu,
             );
-            let Source::Layer(frames) = net.layer(
+            let frames = net.layer(
                 "seq_xyz_encoder.frame",
                 Rows::GaussianWindow,
                 &[v, p],
                 w.seq_xyz_frame,
                 relu,
-            ) else {
-                unreachable!("layer() returns a layer source")
-            };
+            );
             let hidden = net.layer(
                 "seq_xyz_encoder.sequence.0",
                 Rows::Gaussian,
-                &[Source::Window(frames)],
+                &[frames.window()],
                 w.seq_xyz_hidden,
                 relu,
             );
