@@ -6,9 +6,9 @@
 //! The roofline: the gemm peak is the compute crate's f32 [`linear_forward`] at the trunk's
 //! shape (one row per Gaussian, 512 -> 512, ReLU), timed in the same run; the network phases
 //! are `deform` and `backward` (the phases that run the networks, together with the skinning
-//! around them, so the figure is a lower bound), their FLOPs those of the per-Gaussian layers
-//! (forward `2 rows in out` per layer, backward twice that, as `--bench nn` counts them; the
-//! per-frame layers, about a million multiply-adds, are left out). The last line is
+//! around them, so the figure is a lower bound), their FLOPs counted from the networks'
+//! descriptions (`NetworkConfig::forward_flops`: forward `2 rows in out` per layer,
+//! backward twice that, as `--bench nn` counts them). The last line is
 //! `cpu paper preset: <X> it/s, network phases at <P>% of the gemm peak measured in this run`.
 //!
 //! LPIPS: a row with the loss as method.md has it (VGG, weight 0.1, on the bound-box crop)
@@ -26,7 +26,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use seqavatar_avatar::model::{HEAD_WIDTH, NetworkConfig};
 use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
@@ -88,46 +87,6 @@ fn gemm_peak(rows: usize, in_features: usize, out_features: usize) -> f64 {
         }
     }
     shape.forward_flops(rows) / median(seconds) / 1e9
-}
-
-/// Forward FLOPs of the per-Gaussian layers for `n` Gaussians: the non-rigid network's
-/// SeqXYZEncoder (velocity and frame layers once per window element), trunk (its first layer
-/// over the per-Gaussian columns; the per-frame ones are one row) and heads, and the
-/// LBS-offset network.
-fn per_gaussian_forward_flops(config: &NetworkConfig, n: usize) -> f64 {
-    let w = &config.widths;
-    let layer = |rows: usize, input: usize, output: usize| 2.0 * (rows * input * output) as f64;
-    let encoding = w.encoding_width();
-    let mut flops = 0.0;
-    if config.motion_context.has_non_rigid() {
-        let mut gaussian_in = encoding;
-        if config.motion_context.has_velocity() {
-            let length = config.sequence_length;
-            flops += layer(n * length, config.seq_xyz_row(), w.seq_xyz_velocity)
-                + layer(n, encoding, w.seq_xyz_position)
-                + layer(
-                    n * length,
-                    w.seq_xyz_velocity + w.seq_xyz_position,
-                    w.seq_xyz_frame,
-                )
-                + layer(n, w.seq_xyz_frame * length, w.seq_xyz_hidden)
-                + layer(n, w.seq_xyz_hidden, w.seq_xyz);
-            gaussian_in += w.seq_xyz;
-        }
-        flops += layer(n, gaussian_in, config.trunk_width);
-        flops += (1..config.trunk_depth)
-            .map(|_| layer(n, config.trunk_width, config.trunk_width))
-            .sum::<f64>();
-        flops += layer(n, config.trunk_width, HEAD_WIDTH);
-    }
-    if config.lbs_offsets {
-        let hidden = w.lbs_hidden;
-        flops += layer(n, encoding, hidden)
-            + 2.0 * layer(n, hidden, hidden)
-            + layer(n, hidden + encoding, hidden)
-            + layer(n, hidden, config.skinning_joints);
-    }
-    flops
 }
 
 fn main() -> anyhow::Result<()> {
@@ -221,10 +180,10 @@ fn main() -> anyhow::Result<()> {
                     .join(", ")
             );
             if let Some(networks) = &trainer.networks {
-                // Forward + backward (dX and dW, twice the forward) of the per-Gaussian layers
-                // at the Gaussian count of the timed iterations' end.
-                let flops =
-                    3.0 * per_gaussian_forward_flops(networks.config(), trainer.state.len());
+                // Forward + backward (dX and dW, twice the forward) of every layer, counted
+                // from the networks' descriptions at the Gaussian count of the timed
+                // iterations' end.
+                let flops = 3.0 * networks.config().forward_flops(trainer.state.len());
                 let network_seconds =
                     (times.seconds(Phase::Deform) + times.seconds(Phase::Backward)) / timed as f64;
                 let achieved = flops / network_seconds / 1e9;

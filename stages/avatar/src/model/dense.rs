@@ -120,8 +120,3 @@ impl<S: NnScalar> Dense<S> {
         self.d_bias.fill(S::ZERO);
     }
 }
-
-/// One input block, `rows x cols`.
-pub fn part<S>(data: &[S], cols: usize) -> InputPart<'_, S> {
-    InputPart { data, cols }
-}

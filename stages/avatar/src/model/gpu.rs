@@ -8,24 +8,29 @@
 //! activations stay on the device in the returned cache for the backward, which likewise
 //! takes host gradients and returns the host position gradient.
 //!
-//! The per-frame trunk contribution is computed as on `cpu`, as a 1-row product whose result
-//! is the bias of the per-Gaussian product; its input has a leading block of zeros in place
-//! of the per-Gaussian rows, so both products read the one `non_rigid.trunk.0.weight` buffer
-//! (the zero block costs one row and contributes nothing, to outputs or gradients).
+//! Each network is run from its description ([`NetworkSpec`]) by one forward and one
+//! backward ([`GpuNetworks::forward_net`], [`GpuNetworks::backward_net`]) that drive the
+//! `nn` kernels by layer index, exactly as the `cpu` interpreter ([`super::network`]) does.
+//! Per-frame values read by a per-Gaussian layer are folded as on `cpu`: a 1-row product whose
+//! result is the bias of the per-Gaussian product; its input has a leading block of zeros in
+//! place of the per-Gaussian rows, so both products read the one weight buffer (the zero
+//! block costs one row and contributes nothing, to outputs or gradients).
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
 use seqavatar_compute::backend::GpuContext;
 use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
-use seqavatar_compute::nn::{Activation, LinearShape, NnScalar};
+use seqavatar_compute::nn::{LinearShape, NnScalar};
 
 use super::dense::Dense;
-use super::non_rigid::{check_inputs, split_heads};
+use super::network::folded_shapes;
+use super::non_rigid::{heads_gradient, split_heads};
 use super::pose_refiner::{rotation_vectors_backward, rotations_from_vectors};
+use super::spec::{NetworkSpec, Part, Rows, Value, window_blocks};
 use super::{
-    FrameInputs, GaussianInputs, HEAD_WIDTH, ModelError, NetworkConfig, NetworkGroup, Networks,
-    NonRigidOutput, check_finite, check_input,
+    FrameInputs, GaussianInputs, ModelError, NetworkConfig, NetworkGroup, Networks, NonRigidOutput,
+    check_input,
 };
 
 /// One layer's parameter and gradient buffers.
@@ -55,54 +60,65 @@ pub struct GpuNamedParam<'a> {
     pub group: NetworkGroup,
 }
 
+/// The device values of one forward pass of one network (see [`super::network::Activations`]).
+#[derive(Debug)]
+struct GpuActivations {
+    rows: usize,
+    /// False when a network with per-Gaussian inputs got none: nothing ran, and every
+    /// gradient is zero (the per-frame values reach the output through no row).
+    ran: bool,
+    /// Per input, its (encoded) blocks.
+    inputs: Vec<Vec<wgpu::Buffer>>,
+    /// Per layer, its output blocks.
+    outputs: Vec<Vec<wgpu::Buffer>>,
+    /// Per layer, the zero placeholder and the per-frame bias of a folded layer.
+    frame_bias: Vec<Option<(wgpu::Buffer, wgpu::Buffer)>>,
+}
+
+impl GpuActivations {
+    fn empty() -> Self {
+        GpuActivations {
+            rows: 0,
+            ran: false,
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            frame_bias: Vec::new(),
+        }
+    }
+}
+
 /// The device activations of one non-rigid forward pass.
 #[derive(Debug)]
 pub struct GpuNonRigidCache {
-    rows: usize,
-    encoding: Option<wgpu::Buffer>,
-    pose_input: wgpu::Buffer,
-    pose_hidden: wgpu::Buffer,
-    pose_out: wgpu::Buffer,
-    seq_pose: Option<[wgpu::Buffer; 3]>,
-    seq_xyz: Option<GpuSeqXyz>,
-    frame_zeros: wgpu::Buffer,
-    frame_bias: wgpu::Buffer,
-    trunk: Vec<wgpu::Buffer>,
-    heads: Option<wgpu::Buffer>,
+    activations: GpuActivations,
 }
 
 impl GpuNonRigidCache {
     /// Number of Gaussians of the forward pass.
     pub fn rows(&self) -> usize {
-        self.rows
+        self.activations.rows
     }
-}
-
-#[derive(Debug)]
-struct GpuSeqXyz {
-    inputs: Vec<wgpu::Buffer>,
-    velocity: Vec<wgpu::Buffer>,
-    position: wgpu::Buffer,
-    frames: Vec<wgpu::Buffer>,
-    hidden: wgpu::Buffer,
-    out: wgpu::Buffer,
 }
 
 /// The device activations of one pose-refiner forward pass.
 #[derive(Debug)]
 pub struct GpuPoseRefinerCache {
-    input: wgpu::Buffer,
-    hidden: [wgpu::Buffer; 2],
-    output: wgpu::Buffer,
+    activations: GpuActivations,
     rotation_vectors: Vec<f32>,
 }
 
 /// The device activations of one LBS-offset forward pass.
 #[derive(Debug)]
 pub struct GpuLbsOffsetsCache {
-    rows: usize,
-    encoding: wgpu::Buffer,
-    outputs: Vec<wgpu::Buffer>,
+    activations: GpuActivations,
+}
+
+/// One network on the device: its description and its first layer in
+/// [`GpuNetworks`]' layer list.
+#[derive(Debug)]
+struct GpuNet {
+    spec: NetworkSpec,
+    first: usize,
 }
 
 /// All networks of one avatar on the gpu (f32).
@@ -112,7 +128,9 @@ pub struct GpuNetworks {
     nn: NnGpu,
     config: NetworkConfig,
     layers: Vec<GpuDense>,
-    index: HashMap<String, usize>,
+    non_rigid: Option<GpuNet>,
+    pose_refiner: Option<GpuNet>,
+    lbs_offsets: Option<GpuNet>,
 }
 
 fn gpu_error(error: impl std::fmt::Display) -> ModelError {
@@ -136,45 +154,58 @@ impl GpuNetworks {
     pub fn upload(context: Arc<GpuContext>, networks: &Networks<f32>) -> Result<Self, ModelError> {
         let nn = NnGpu::new(context.device())?;
         let mut layers = Vec::new();
-        let mut index = HashMap::new();
-        for layer in networks.layers() {
-            let Dense {
-                name,
-                group,
-                shape,
-                weight,
-                bias,
-                ..
-            } = layer;
-            let upload = |what: &str, values: &[f32]| {
-                context
-                    .upload(&format!("{name}.{what}"), values)
-                    .map(|buffer| buffer.buffer)
-                    .map_err(gpu_error)
-            };
-            let zeros = |what: &str, len: usize| {
-                context
-                    .zeros(&format!("{name}.{what}"), len, 4)
-                    .map(|buffer| buffer.buffer)
-                    .map_err(gpu_error)
-            };
-            index.insert(name.clone(), layers.len());
-            layers.push(GpuDense {
-                name: name.clone(),
-                group: *group,
-                shape: *shape,
-                weight: upload("weight", weight)?,
-                bias: upload("bias", bias)?,
-                d_weight: zeros("weight gradient", weight.len())?,
-                d_bias: zeros("bias gradient", bias.len())?,
+        let mut nets = [None, None, None];
+        for (slot, network) in nets.iter_mut().zip([
+            &networks.non_rigid,
+            &networks.pose_refiner,
+            &networks.lbs_offsets,
+        ]) {
+            let Some(network) = network else { continue };
+            *slot = Some(GpuNet {
+                spec: network.spec().clone(),
+                first: layers.len(),
             });
+            for layer in &network.layers {
+                let Dense {
+                    name,
+                    group,
+                    shape,
+                    weight,
+                    bias,
+                    ..
+                } = layer;
+                let upload = |what: &str, values: &[f32]| {
+                    context
+                        .upload(&format!("{name}.{what}"), values)
+                        .map(|buffer| buffer.buffer)
+                        .map_err(gpu_error)
+                };
+                let zeros = |what: &str, len: usize| {
+                    context
+                        .zeros(&format!("{name}.{what}"), len, 4)
+                        .map(|buffer| buffer.buffer)
+                        .map_err(gpu_error)
+                };
+                layers.push(GpuDense {
+                    name: name.clone(),
+                    group: *group,
+                    shape: *shape,
+                    weight: upload("weight", weight)?,
+                    bias: upload("bias", bias)?,
+                    d_weight: zeros("weight gradient", weight.len())?,
+                    d_bias: zeros("bias gradient", bias.len())?,
+                });
+            }
         }
+        let [non_rigid, pose_refiner, lbs_offsets] = nets;
         Ok(GpuNetworks {
             context,
             nn,
             config: networks.config().clone(),
             layers,
-            index,
+            non_rigid,
+            pose_refiner,
+            lbs_offsets,
         })
     }
 
@@ -410,15 +441,6 @@ impl GpuNetworks {
         Ok(())
     }
 
-    fn layer(&self, name: &str) -> Result<&GpuDense, ModelError> {
-        self.index
-            .get(name)
-            .map(|&i| &self.layers[i])
-            .ok_or(ModelError::Disabled {
-                block: "a network block",
-            })
-    }
-
     fn upload_values(&self, what: &str, values: &[f32]) -> Result<wgpu::Buffer, ModelError> {
         self.context
             .upload(what, values)
@@ -444,51 +466,338 @@ impl GpuNetworks {
             .map_err(gpu_error)
     }
 
-    /// Records `layer` over `rows` rows of `parts` into a new output buffer.
-    fn forward_layer(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        layer: &GpuDense,
-        parts: &[GpuInputPart<'_>],
-        rows: usize,
-    ) -> Result<wgpu::Buffer, ModelError> {
-        let output = self.zeros(&layer.name, rows * layer.shape.out_features)?;
-        self.nn.linear_forward(
-            encoder,
-            layer.shape,
-            &layer.weight,
-            &layer.bias,
-            parts,
-            rows,
-            &output,
-        )?;
-        Ok(output)
+    /// The description of a network, or that it is disabled.
+    fn net<'a>(net: &'a Option<GpuNet>, block: &'static str) -> Result<&'a GpuNet, ModelError> {
+        net.as_ref().ok_or(ModelError::Disabled { block })
     }
 
-    /// Records the backward of `layer`.
-    #[allow(clippy::too_many_arguments)]
-    fn backward_layer(
+    /// Runs `net` on `inputs` (as [`super::network::Network::forward`]), recording every
+    /// layer into one command encoder; returns the downloaded output and the device values.
+    fn forward_net(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
-        layer: &GpuDense,
-        parts: &[GpuInputPart<'_>],
-        rows: usize,
-        output: &wgpu::Buffer,
-        d_output: &wgpu::Buffer,
-        d_parts: &[GpuInputGrad<'_>],
-    ) -> Result<(), ModelError> {
-        self.nn.linear_backward(
-            encoder,
-            layer.shape,
-            &layer.weight,
-            parts,
-            rows,
-            output,
-            d_output,
-            grads(layer),
-            d_parts,
+        net: &GpuNet,
+        inputs: &[&[f32]],
+    ) -> Result<(Vec<f32>, GpuActivations), ModelError> {
+        let spec = &net.spec;
+        let n = spec.check_inputs(inputs)?;
+        let window = spec.window;
+        if n == 0 && spec.inputs.iter().any(|i| i.rows.per_gaussian()) {
+            return Ok((Vec::new(), GpuActivations::empty()));
+        }
+        let mut encoder = self.context.encoder();
+        let mut raw_buffers = Vec::new();
+        let mut cache = GpuActivations {
+            rows: n,
+            ran: true,
+            inputs: Vec::with_capacity(inputs.len()),
+            outputs: Vec::with_capacity(spec.layers.len()),
+            frame_bias: Vec::with_capacity(spec.layers.len()),
+        };
+        for (input, data) in spec.inputs.iter().zip(inputs) {
+            let raw = match input.rows {
+                Rows::GaussianWindow => window_blocks(data, window, input.width)
+                    .iter()
+                    .map(|block| self.upload_values(&input.name, block))
+                    .collect::<Result<Vec<_>, _>>()?,
+                _ => vec![self.upload_values(&input.name, data)?],
+            };
+            let blocks = match input.encoding {
+                None => raw,
+                Some(encoding) => {
+                    let rows = input.rows.block_rows(n, window);
+                    let mut encoded = Vec::with_capacity(raw.len());
+                    for block in &raw {
+                        let out = self.zeros(&input.name, rows * input.value_width())?;
+                        self.nn.positional_encoding_forward(
+                            &mut encoder,
+                            encoding,
+                            block,
+                            rows,
+                            input.width,
+                            &out,
+                        )?;
+                        encoded.push(out);
+                    }
+                    raw_buffers.extend(raw);
+                    encoded
+                }
+            };
+            cache.inputs.push(blocks);
+        }
+        for index in 0..spec.layers.len() {
+            let layer = &self.layers[net.first + index];
+            let rows_space = spec.layers[index].rows;
+            let rows = rows_space.block_rows(n, window);
+            let width = layer.shape.out_features;
+            let mut blocks = Vec::new();
+            let mut frame_bias = None;
+            for call in 0..rows_space.calls(window) {
+                let plan = spec.plan(index, call);
+                let parts = gpu_parts(&cache, &plan.rows);
+                let out = self.zeros(&layer.name, rows * width)?;
+                if plan.frame.is_empty() {
+                    self.nn.linear_forward(
+                        &mut encoder,
+                        layer.shape,
+                        &layer.weight,
+                        &layer.bias,
+                        &parts,
+                        rows,
+                        &out,
+                    )?;
+                } else {
+                    let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
+                    let placeholder = self.zeros("per-Gaussian placeholder", plan.rows_in())?;
+                    let bias = self.zeros("per-frame bias", width)?;
+                    let mut frame_parts = vec![input(&placeholder, plan.rows_in())];
+                    frame_parts.extend(gpu_parts(&cache, &plan.frame));
+                    self.nn.linear_forward(
+                        &mut encoder,
+                        LinearShape {
+                            in_features: layer.shape.in_features,
+                            ..frame_shape
+                        },
+                        &layer.weight,
+                        &layer.bias,
+                        &frame_parts,
+                        1,
+                        &bias,
+                    )?;
+                    self.nn.linear_forward(
+                        &mut encoder,
+                        rows_shape,
+                        &layer.weight,
+                        &bias,
+                        &parts,
+                        rows,
+                        &out,
+                    )?;
+                    frame_bias = Some((placeholder, bias));
+                }
+                blocks.push(out);
+            }
+            cache.outputs.push(blocks);
+            cache.frame_bias.push(frame_bias);
+        }
+        let output = &spec.layers[spec.output];
+        let len = output.rows.block_rows(n, window) * output.out;
+        let values = self.download(encoder, &cache.outputs[spec.output][0], len)?;
+        drop(raw_buffers);
+        Ok((values, cache))
+    }
+
+    /// Backward of [`GpuNetworks::forward_net`] (as [`super::network::Network::backward`]):
+    /// accumulates the device parameter gradients and returns, per input, its downloaded
+    /// gradient where the description asks for it.
+    fn backward_net(
+        &self,
+        net: &GpuNet,
+        cache: &GpuActivations,
+        d_output: &[f32],
+    ) -> Result<Vec<Option<Vec<f32>>>, ModelError> {
+        let spec = &net.spec;
+        let window = spec.window;
+        let n = cache.rows;
+        if !cache.ran {
+            check_input(
+                &format!("{} output gradient", spec.prefix),
+                0,
+                d_output.len(),
+            )?;
+            return Ok(spec
+                .inputs
+                .iter()
+                .map(|input| input.gradient.then(Vec::new))
+                .collect());
+        }
+        if cache.inputs.len() != spec.inputs.len() || cache.outputs.len() != spec.layers.len() {
+            return Err(ModelError::Input {
+                field: format!("{} cache", spec.prefix),
+                message: "does not come from this network's forward pass".into(),
+            });
+        }
+        let output = &spec.layers[spec.output];
+        check_input(
+            &format!("{} output gradient", spec.prefix),
+            output.rows.block_rows(n, window) * output.out,
+            d_output.len(),
         )?;
-        Ok(())
+        let mut d_inputs: Vec<Vec<Option<wgpu::Buffer>>> = spec
+            .inputs
+            .iter()
+            .map(|i| (0..i.rows.calls(window)).map(|_| None).collect())
+            .collect();
+        let mut d_outputs: Vec<Vec<Option<wgpu::Buffer>>> = spec
+            .layers
+            .iter()
+            .map(|l| (0..l.rows.calls(window)).map(|_| None).collect())
+            .collect();
+        d_outputs[spec.output][0] = Some(self.upload_values("output gradient", d_output)?);
+        let mut encoder = self.context.encoder();
+        let mut keep = Vec::new();
+        for index in (0..spec.layers.len()).rev() {
+            let layer = &self.layers[net.first + index];
+            let rows_space = spec.layers[index].rows;
+            let rows = rows_space.block_rows(n, window);
+            for call in 0..rows_space.calls(window) {
+                let plan = spec.plan(index, call);
+                let d_out = d_outputs[index][call]
+                    .take()
+                    .ok_or_else(|| ModelError::Input {
+                        field: spec.parameter_name(index),
+                        message: "no gradient reached this layer".into(),
+                    })?;
+                let mut take =
+                    |parts: &[Part]| -> Result<Vec<Option<(wgpu::Buffer, bool)>>, ModelError> {
+                        parts
+                            .iter()
+                            .map(|part| {
+                                let wanted = match part.value {
+                                    Value::Input(i) => spec.inputs[i].gradient,
+                                    Value::Layer(_) => true,
+                                };
+                                if !wanted {
+                                    return Ok(None);
+                                }
+                                let slot = match part.value {
+                                    Value::Input(i) => &mut d_inputs[i][part.block],
+                                    Value::Layer(j) => &mut d_outputs[j][part.block],
+                                };
+                                Ok(Some(match slot.take() {
+                                    Some(buffer) => (buffer, true),
+                                    None => {
+                                        let rows =
+                                            spec.value_rows(part.value).block_rows(n, window);
+                                        let len = rows * spec.value_width(part.value);
+                                        (self.zeros("gradient", len)?, false)
+                                    }
+                                }))
+                            })
+                            .collect()
+                    };
+                let rows_d = take(&plan.rows)?;
+                let frame_d = take(&plan.frame)?;
+                let parts = gpu_parts_ref(&cache.inputs, &cache.outputs, &plan.rows);
+                let out = &cache.outputs[index][call];
+                match &cache.frame_bias[index] {
+                    None => self.nn.linear_backward(
+                        &mut encoder,
+                        layer.shape,
+                        &layer.weight,
+                        &parts,
+                        rows,
+                        out,
+                        &d_out,
+                        grads(layer),
+                        &sinks(&rows_d),
+                    )?,
+                    Some((placeholder, bias)) => {
+                        let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
+                        let d_bias =
+                            self.zeros("per-frame bias gradient", rows_shape.out_features)?;
+                        self.nn.linear_backward(
+                            &mut encoder,
+                            rows_shape,
+                            &layer.weight,
+                            &parts,
+                            rows,
+                            out,
+                            &d_out,
+                            GpuLinearGrads {
+                                weight: &layer.d_weight,
+                                bias: &d_bias,
+                            },
+                            &sinks(&rows_d),
+                        )?;
+                        let mut frame_parts = vec![input(placeholder, plan.rows_in())];
+                        frame_parts.extend(gpu_parts_ref(
+                            &cache.inputs,
+                            &cache.outputs,
+                            &plan.frame,
+                        ));
+                        let mut d_frame = vec![GpuInputGrad::Skip];
+                        d_frame.extend(sinks(&frame_d));
+                        self.nn.linear_backward(
+                            &mut encoder,
+                            LinearShape {
+                                in_features: layer.shape.in_features,
+                                ..frame_shape
+                            },
+                            &layer.weight,
+                            &frame_parts,
+                            1,
+                            bias,
+                            &d_bias,
+                            grads(layer),
+                            &d_frame,
+                        )?;
+                        keep.push(d_bias);
+                    }
+                }
+                keep.push(d_out);
+                for (part, buffer) in plan
+                    .rows
+                    .iter()
+                    .chain(&plan.frame)
+                    .zip(rows_d.into_iter().chain(frame_d))
+                {
+                    if let Some((buffer, _)) = buffer {
+                        match part.value {
+                            Value::Input(i) => d_inputs[i][part.block] = Some(buffer),
+                            Value::Layer(j) => d_outputs[j][part.block] = Some(buffer),
+                        }
+                    }
+                }
+            }
+        }
+        let mut downloads = Vec::new();
+        for (index, input) in spec.inputs.iter().enumerate() {
+            if !input.gradient {
+                continue;
+            }
+            let rows = input.rows.block_rows(n, window);
+            let d_value = match d_inputs[index][0].take() {
+                Some(buffer) => buffer,
+                None => self.zeros("input gradient", rows * input.value_width())?,
+            };
+            let d_raw = match input.encoding {
+                None => d_value,
+                Some(encoding) => {
+                    let d_raw = self.zeros("input gradient", rows * input.width)?;
+                    self.nn.positional_encoding_backward(
+                        &mut encoder,
+                        encoding,
+                        &cache.inputs[index][0],
+                        &d_value,
+                        rows,
+                        input.width,
+                        &d_raw,
+                    )?;
+                    keep.push(d_value);
+                    d_raw
+                }
+            };
+            downloads.push((index, d_raw, rows * input.width));
+        }
+        let mut gradients: Vec<Option<Vec<f32>>> = vec![None; spec.inputs.len()];
+        if downloads.is_empty() {
+            self.context.submit_and_wait(encoder).map_err(gpu_error)?;
+        } else {
+            let sources: Vec<(&wgpu::Buffer, usize)> =
+                downloads.iter().map(|(_, b, len)| (b, *len)).collect();
+            let mut pending = self
+                .context
+                .download_many::<f32>(&mut encoder, &sources)
+                .map_err(gpu_error)?;
+            self.context
+                .finish_downloads(encoder, &mut pending)
+                .map_err(gpu_error)?;
+            for ((index, _, _), values) in downloads.iter().zip(pending) {
+                gradients[*index] = Some(values.values);
+            }
+        }
+        drop(keep);
+        Ok(gradients)
     }
 
     /// The gpu twin of [`Networks::non_rigid_forward`].
@@ -497,196 +806,10 @@ impl GpuNetworks {
         frame: &FrameInputs<'_, f32>,
         gaussians: &GaussianInputs<'_, f32>,
     ) -> Result<(NonRigidOutput<f32>, GpuNonRigidCache), ModelError> {
-        let config = &self.config;
-        if !config.motion_context.has_non_rigid() {
-            return Err(ModelError::Disabled {
-                block: "the non-rigid network",
-            });
-        }
-        let w = config.widths;
-        let has_seq_pose = config.motion_context.has_skeleton_motion();
-        let has_seq_xyz = config.motion_context.has_velocity();
-        let n = check_inputs(config, has_seq_pose, has_seq_xyz, frame, gaussians)?;
-        let length = config.sequence_length;
-        let mut encoder = self.context.encoder();
-
-        let pose_input = self.upload_values("local pose", frame.local_pose)?;
-        let pose0 = self.layer("non_rigid.pose_encoder.0")?;
-        let pose1 = self.layer("non_rigid.pose_encoder.1")?;
-        let pose_hidden = self.forward_layer(
-            &mut encoder,
-            pose0,
-            &[input(&pose_input, config.pose_dim())],
-            1,
-        )?;
-        let pose_out = self.forward_layer(
-            &mut encoder,
-            pose1,
-            &[input(&pose_hidden, w.pose_encoder)],
-            1,
-        )?;
-        let seq_pose = match frame.skeleton_motion.filter(|_| has_seq_pose) {
-            Some(motion) => {
-                let motion = self.upload_values("skeleton motion", motion)?;
-                let frames = self.forward_layer(
-                    &mut encoder,
-                    self.layer("non_rigid.seq_pose_encoder.frame")?,
-                    &[input(&motion, config.seq_pose_row())],
-                    length,
-                )?;
-                let out = self.forward_layer(
-                    &mut encoder,
-                    self.layer("non_rigid.seq_pose_encoder.sequence")?,
-                    &[input(&frames, w.seq_pose_frame * length)],
-                    1,
-                )?;
-                Some([motion, frames, out])
-            }
-            None => None,
-        };
-        let trunk0 = self.layer("non_rigid.trunk.0")?;
-        let width = trunk0.shape.out_features;
-        let gaussian_in = w.encoding_width() + if has_seq_xyz { w.seq_xyz } else { 0 };
-        let frame_zeros = self.zeros("trunk per-Gaussian placeholder", gaussian_in)?;
-        let mut frame_parts = vec![
-            input(&frame_zeros, gaussian_in),
-            input(&pose_out, w.pose_encoder),
-        ];
-        if let Some([_, _, out]) = &seq_pose {
-            frame_parts.push(input(out, w.seq_pose));
-        }
-        let frame_bias = self.zeros("trunk per-frame bias", width)?;
-        self.nn.linear_forward(
-            &mut encoder,
-            LinearShape {
-                activation: Activation::Identity,
-                ..trunk0.shape
-            },
-            &trunk0.weight,
-            &trunk0.bias,
-            &frame_parts,
-            1,
-            &frame_bias,
-        )?;
-        let mut cache = GpuNonRigidCache {
-            rows: n,
-            encoding: None,
-            pose_input,
-            pose_hidden,
-            pose_out,
-            seq_pose,
-            seq_xyz: None,
-            frame_zeros,
-            frame_bias,
-            trunk: Vec::new(),
-            heads: None,
-        };
-        if n == 0 {
-            self.context.submit_and_wait(encoder).map_err(gpu_error)?;
-            return Ok((split_heads(&[]), cache));
-        }
-
-        let xyz = self.upload_values("canonical xyz", gaussians.xyz)?;
-        let encoding_width = w.encoding_width();
-        let encoding = self.zeros("xyz encoding", n * encoding_width)?;
-        self.nn
-            .positional_encoding_forward(&mut encoder, w.encoding(), &xyz, n, 3, &encoding)?;
-        if let Some(velocity) = gaussians.knn_velocity.filter(|_| has_seq_xyz) {
-            let row = config.seq_xyz_row();
-            let mut inputs = Vec::with_capacity(length);
-            let mut gathered = Vec::with_capacity(n * row);
-            for l in 0..length {
-                gathered.clear();
-                for gaussian in velocity.chunks_exact(length * row) {
-                    gathered.extend_from_slice(&gaussian[l * row..(l + 1) * row]);
-                }
-                inputs.push(self.upload_values("knn velocity", &gathered)?);
-            }
-            let position = self.forward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.position")?,
-                &[input(&encoding, encoding_width)],
-                n,
-            )?;
-            let velocity_layer = self.layer("non_rigid.seq_xyz_encoder.velocity")?;
-            let frame_layer = self.layer("non_rigid.seq_xyz_encoder.frame")?;
-            let mut velocities = Vec::with_capacity(length);
-            let mut frames = Vec::with_capacity(length);
-            for l in 0..length {
-                let v =
-                    self.forward_layer(&mut encoder, velocity_layer, &[input(&inputs[l], row)], n)?;
-                let f = self.forward_layer(
-                    &mut encoder,
-                    frame_layer,
-                    &[
-                        input(&v, w.seq_xyz_velocity),
-                        input(&position, w.seq_xyz_position),
-                    ],
-                    n,
-                )?;
-                velocities.push(v);
-                frames.push(f);
-            }
-            let frame_parts: Vec<GpuInputPart<'_>> =
-                frames.iter().map(|f| input(f, w.seq_xyz_frame)).collect();
-            let hidden = self.forward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.sequence.0")?,
-                &frame_parts,
-                n,
-            )?;
-            let out = self.forward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.sequence.1")?,
-                &[input(&hidden, w.seq_xyz_hidden)],
-                n,
-            )?;
-            cache.seq_xyz = Some(GpuSeqXyz {
-                inputs,
-                velocity: velocities,
-                position,
-                frames,
-                hidden,
-                out,
-            });
-        }
-
-        let mut gaussian_parts = vec![input(&encoding, encoding_width)];
-        if let Some(xyz) = &cache.seq_xyz {
-            gaussian_parts.push(input(&xyz.out, w.seq_xyz));
-        }
-        let first = self.zeros("non_rigid.trunk.0", n * width)?;
-        self.nn.linear_forward(
-            &mut encoder,
-            LinearShape {
-                in_features: gaussian_in,
-                ..trunk0.shape
-            },
-            &trunk0.weight,
-            &cache.frame_bias,
-            &gaussian_parts,
-            n,
-            &first,
-        )?;
-        drop(gaussian_parts);
-        cache.trunk.push(first);
-        for index in 1..config.trunk_depth {
-            let layer = self.layer(&format!("non_rigid.trunk.{index}"))?;
-            let previous = cache.trunk.last().ok_or_else(|| gpu_error("empty trunk"))?;
-            let out = self.forward_layer(&mut encoder, layer, &[input(previous, width)], n)?;
-            cache.trunk.push(out);
-        }
-        let last = cache.trunk.last().ok_or_else(|| gpu_error("empty trunk"))?;
-        let heads = self.forward_layer(
-            &mut encoder,
-            self.layer("non_rigid.heads")?,
-            &[input(last, width)],
-            n,
-        )?;
-        let values = self.download(encoder, &heads, n * HEAD_WIDTH)?;
-        cache.encoding = Some(encoding);
-        cache.heads = Some(heads);
-        Ok((split_heads(&values), cache))
+        let net = Self::net(&self.non_rigid, "the non-rigid network")?;
+        let inputs = super::non_rigid::inputs(&self.config, frame, gaussians)?;
+        let (heads, activations) = self.forward_net(net, &inputs)?;
+        Ok((split_heads(&heads), GpuNonRigidCache { activations }))
     }
 
     /// The gpu twin of [`Networks::non_rigid_backward`].
@@ -697,244 +820,10 @@ impl GpuNetworks {
         d_drot: &[f32],
         d_dscale: &[f32],
     ) -> Result<Vec<f32>, ModelError> {
-        let config = &self.config;
-        let w = config.widths;
-        let n = cache.rows;
-        check_input("d_dxyz", 3 * n, d_dxyz.len())?;
-        check_input("d_drot", 4 * n, d_drot.len())?;
-        check_input("d_dscale", 3 * n, d_dscale.len())?;
-        // No rows: every gradient is zero (the per-frame bias has no consumer).
-        let (Some(encoding), Some(heads)) = (&cache.encoding, &cache.heads) else {
-            return Ok(Vec::new());
-        };
-        let length = config.sequence_length;
-        let mut d_heads = Vec::with_capacity(n * HEAD_WIDTH);
-        for g in 0..n {
-            d_heads.extend_from_slice(&d_dxyz[3 * g..3 * g + 3]);
-            d_heads.extend_from_slice(&d_drot[4 * g..4 * g + 4]);
-            d_heads.extend_from_slice(&d_dscale[3 * g..3 * g + 3]);
-        }
-        let d_heads = self.upload_values("heads gradient", &d_heads)?;
-        let mut encoder = self.context.encoder();
-        let trunk0 = self.layer("non_rigid.trunk.0")?;
-        let width = trunk0.shape.out_features;
-        let mut d_current = self.zeros("trunk gradient", n * width)?;
-        let mut d_previous = self.zeros("trunk gradient", n * width)?;
-        let depth = cache.trunk.len();
-        self.backward_layer(
-            &mut encoder,
-            self.layer("non_rigid.heads")?,
-            &[input(&cache.trunk[depth - 1], width)],
-            n,
-            heads,
-            &d_heads,
-            &[GpuInputGrad::Write(&d_current)],
-        )?;
-        for index in (1..depth).rev() {
-            self.backward_layer(
-                &mut encoder,
-                self.layer(&format!("non_rigid.trunk.{index}"))?,
-                &[input(&cache.trunk[index - 1], width)],
-                n,
-                &cache.trunk[index],
-                &d_current,
-                &[GpuInputGrad::Write(&d_previous)],
-            )?;
-            std::mem::swap(&mut d_current, &mut d_previous);
-        }
-
-        // First trunk layer: per-Gaussian product (its bias gradient is the per-frame bias
-        // gradient), then the 1-row per-frame product.
-        let encoding_width = w.encoding_width();
-        let gaussian_in = encoding_width
-            + if cache.seq_xyz.is_some() {
-                w.seq_xyz
-            } else {
-                0
-            };
-        let d_encoding = self.zeros("encoding gradient", n * encoding_width)?;
-        let seq_xyz_len = if cache.seq_xyz.is_some() {
-            n * w.seq_xyz
-        } else {
-            0
-        };
-        let d_seq_xyz = self.zeros("seq-xyz gradient", seq_xyz_len)?;
-        let d_frame_bias = self.zeros("per-frame bias gradient", width)?;
-        let mut gaussian_parts = vec![input(encoding, encoding_width)];
-        let mut d_gaussian_parts = vec![GpuInputGrad::Write(&d_encoding)];
-        if let Some(xyz) = &cache.seq_xyz {
-            gaussian_parts.push(input(&xyz.out, w.seq_xyz));
-            d_gaussian_parts.push(GpuInputGrad::Write(&d_seq_xyz));
-        }
-        self.nn.linear_backward(
-            &mut encoder,
-            LinearShape {
-                in_features: gaussian_in,
-                ..trunk0.shape
-            },
-            &trunk0.weight,
-            &gaussian_parts,
-            n,
-            &cache.trunk[0],
-            &d_current,
-            GpuLinearGrads {
-                weight: &trunk0.d_weight,
-                bias: &d_frame_bias,
-            },
-            &d_gaussian_parts,
-        )?;
-        let d_pose_out = self.zeros("pose encoding gradient", w.pose_encoder)?;
-        let d_seq_pose_out = self.zeros("seq-pose encoding gradient", w.seq_pose)?;
-        let mut frame_parts = vec![
-            input(&cache.frame_zeros, gaussian_in),
-            input(&cache.pose_out, w.pose_encoder),
-        ];
-        let mut d_frame_parts = vec![GpuInputGrad::Skip, GpuInputGrad::Write(&d_pose_out)];
-        if let Some([_, _, out]) = &cache.seq_pose {
-            frame_parts.push(input(out, w.seq_pose));
-            d_frame_parts.push(GpuInputGrad::Write(&d_seq_pose_out));
-        }
-        self.nn.linear_backward(
-            &mut encoder,
-            LinearShape {
-                activation: Activation::Identity,
-                ..trunk0.shape
-            },
-            &trunk0.weight,
-            &frame_parts,
-            1,
-            &cache.frame_bias,
-            &d_frame_bias,
-            grads(trunk0),
-            &d_frame_parts,
-        )?;
-
-        let d_pose_hidden = self.zeros("pose hidden gradient", w.pose_encoder)?;
-        self.backward_layer(
-            &mut encoder,
-            self.layer("non_rigid.pose_encoder.1")?,
-            &[input(&cache.pose_hidden, w.pose_encoder)],
-            1,
-            &cache.pose_out,
-            &d_pose_out,
-            &[GpuInputGrad::Write(&d_pose_hidden)],
-        )?;
-        self.backward_layer(
-            &mut encoder,
-            self.layer("non_rigid.pose_encoder.0")?,
-            &[input(&cache.pose_input, config.pose_dim())],
-            1,
-            &cache.pose_hidden,
-            &d_pose_hidden,
-            &[GpuInputGrad::Skip],
-        )?;
-
-        if let Some([motion, frames, out]) = &cache.seq_pose {
-            let frames_width = w.seq_pose_frame * length;
-            let d_frames = self.zeros("seq-pose frames gradient", frames_width)?;
-            self.backward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_pose_encoder.sequence")?,
-                &[input(frames, frames_width)],
-                1,
-                out,
-                &d_seq_pose_out,
-                &[GpuInputGrad::Write(&d_frames)],
-            )?;
-            self.backward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_pose_encoder.frame")?,
-                &[input(motion, config.seq_pose_row())],
-                length,
-                frames,
-                &d_frames,
-                &[GpuInputGrad::Skip],
-            )?;
-        }
-
-        if let Some(xyz) = &cache.seq_xyz {
-            let d_hidden = self.zeros("seq-xyz hidden gradient", n * w.seq_xyz_hidden)?;
-            self.backward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.sequence.1")?,
-                &[input(&xyz.hidden, w.seq_xyz_hidden)],
-                n,
-                &xyz.out,
-                &d_seq_xyz,
-                &[GpuInputGrad::Write(&d_hidden)],
-            )?;
-            let d_frames = (0..length)
-                .map(|_| self.zeros("seq-xyz frame gradient", n * w.seq_xyz_frame))
-                .collect::<Result<Vec<_>, _>>()?;
-            let frame_parts: Vec<GpuInputPart<'_>> = xyz
-                .frames
-                .iter()
-                .map(|f| input(f, w.seq_xyz_frame))
-                .collect();
-            let d_frame_parts: Vec<GpuInputGrad<'_>> =
-                d_frames.iter().map(GpuInputGrad::Write).collect();
-            self.backward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.sequence.0")?,
-                &frame_parts,
-                n,
-                &xyz.hidden,
-                &d_hidden,
-                &d_frame_parts,
-            )?;
-            let d_position = self.zeros("seq-xyz position gradient", n * w.seq_xyz_position)?;
-            let d_velocity = self.zeros("seq-xyz velocity gradient", n * w.seq_xyz_velocity)?;
-            let row = config.seq_xyz_row();
-            let frame_layer = self.layer("non_rigid.seq_xyz_encoder.frame")?;
-            let velocity_layer = self.layer("non_rigid.seq_xyz_encoder.velocity")?;
-            for l in 0..length {
-                self.backward_layer(
-                    &mut encoder,
-                    frame_layer,
-                    &[
-                        input(&xyz.velocity[l], w.seq_xyz_velocity),
-                        input(&xyz.position, w.seq_xyz_position),
-                    ],
-                    n,
-                    &xyz.frames[l],
-                    &d_frames[l],
-                    &[
-                        GpuInputGrad::Write(&d_velocity),
-                        GpuInputGrad::Accumulate(&d_position),
-                    ],
-                )?;
-                self.backward_layer(
-                    &mut encoder,
-                    velocity_layer,
-                    &[input(&xyz.inputs[l], row)],
-                    n,
-                    &xyz.velocity[l],
-                    &d_velocity,
-                    &[GpuInputGrad::Skip],
-                )?;
-            }
-            self.backward_layer(
-                &mut encoder,
-                self.layer("non_rigid.seq_xyz_encoder.position")?,
-                &[input(encoding, encoding_width)],
-                n,
-                &xyz.position,
-                &d_position,
-                &[GpuInputGrad::Accumulate(&d_encoding)],
-            )?;
-        }
-
-        let d_xyz = self.zeros("xyz gradient", 3 * n)?;
-        self.nn.positional_encoding_backward(
-            &mut encoder,
-            w.encoding(),
-            encoding,
-            &d_encoding,
-            n,
-            3,
-            &d_xyz,
-        )?;
-        self.download(encoder, &d_xyz, 3 * n)
+        let net = Self::net(&self.non_rigid, "the non-rigid network")?;
+        let d_heads = heads_gradient(cache.rows(), d_dxyz, d_drot, d_dscale)?;
+        let gradients = self.backward_net(net, &cache.activations, &d_heads)?;
+        Ok(gradients.into_iter().flatten().next().unwrap_or_default())
     }
 
     /// The gpu twin of [`Networks::pose_refiner_forward`].
@@ -942,43 +831,13 @@ impl GpuNetworks {
         &self,
         local_pose: &[f32],
     ) -> Result<(Vec<f32>, GpuPoseRefinerCache), ModelError> {
-        if !self.config.pose_refiner {
-            return Err(ModelError::Disabled {
-                block: "the pose refiner",
-            });
-        }
-        let pose = self.config.pose_dim();
-        let hidden = self.config.widths.pose_refiner_hidden;
-        check_input("local_pose", pose, local_pose.len())?;
-        check_finite("local_pose", local_pose)?;
-        let mut encoder = self.context.encoder();
-        let pose_input = self.upload_values("refiner input", local_pose)?;
-        let h0 = self.forward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.0")?,
-            &[input(&pose_input, pose)],
-            1,
-        )?;
-        let h1 = self.forward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.1")?,
-            &[input(&h0, hidden)],
-            1,
-        )?;
-        let output = self.forward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.2")?,
-            &[input(&h1, hidden)],
-            1,
-        )?;
-        let rotation_vectors = self.download(encoder, &output, pose)?;
+        let net = Self::net(&self.pose_refiner, "the pose refiner")?;
+        let (rotation_vectors, activations) = self.forward_net(net, &[local_pose])?;
         let rotations = rotations_from_vectors(&rotation_vectors);
         Ok((
             rotations,
             GpuPoseRefinerCache {
-                input: pose_input,
-                hidden: [h0, h1],
-                output,
+                activations,
                 rotation_vectors,
             },
         ))
@@ -990,43 +849,12 @@ impl GpuNetworks {
         cache: &GpuPoseRefinerCache,
         d_rotations: &[f32],
     ) -> Result<(), ModelError> {
-        let pose = self.config.pose_dim();
-        let hidden = self.config.widths.pose_refiner_hidden;
-        check_input("d_rotations", 3 * pose, d_rotations.len())?;
-        let d_vectors = rotation_vectors_backward(&cache.rotation_vectors, d_rotations);
-        let d_output = self.upload_values("refiner output gradient", &d_vectors)?;
-        let d_h1 = self.zeros("refiner hidden gradient", hidden)?;
-        let d_h0 = self.zeros("refiner hidden gradient", hidden)?;
-        let mut encoder = self.context.encoder();
-        let [h0, h1] = &cache.hidden;
-        self.backward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.2")?,
-            &[input(h1, hidden)],
-            1,
-            &cache.output,
-            &d_output,
-            &[GpuInputGrad::Write(&d_h1)],
-        )?;
-        self.backward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.1")?,
-            &[input(h0, hidden)],
-            1,
-            h1,
-            &d_h1,
-            &[GpuInputGrad::Write(&d_h0)],
-        )?;
-        self.backward_layer(
-            &mut encoder,
-            self.layer("pose_refiner.0")?,
-            &[input(&cache.input, pose)],
-            1,
-            h0,
-            &d_h0,
-            &[GpuInputGrad::Skip],
-        )?;
-        self.context.submit_and_wait(encoder).map_err(gpu_error)
+        let net = Self::net(&self.pose_refiner, "the pose refiner")?;
+        let vectors = &cache.rotation_vectors;
+        check_input("d_rotations", 3 * vectors.len(), d_rotations.len())?;
+        let d_vectors = rotation_vectors_backward(vectors, d_rotations);
+        self.backward_net(net, &cache.activations, &d_vectors)?;
+        Ok(())
     }
 
     /// The gpu twin of [`Networks::lbs_offsets_forward`].
@@ -1034,75 +862,9 @@ impl GpuNetworks {
         &self,
         xyz: &[f32],
     ) -> Result<(Vec<f32>, GpuLbsOffsetsCache), ModelError> {
-        if !self.config.lbs_offsets {
-            return Err(ModelError::Disabled {
-                block: "the LBS offsets",
-            });
-        }
-        if !xyz.len().is_multiple_of(3) {
-            return Err(ModelError::Input {
-                field: "lbs xyz".into(),
-                message: format!("{} values is not a whole number of 3-vectors", xyz.len()),
-            });
-        }
-        check_finite("lbs xyz", xyz)?;
-        let n = xyz.len() / 3;
-        let w = self.config.widths;
-        let joints = self.config.skinning_joints;
-        let encoding_width = w.encoding_width();
-        let hidden = w.lbs_hidden;
-        let encoding = self.zeros("lbs encoding", n * encoding_width)?;
-        if n == 0 {
-            return Ok((
-                Vec::new(),
-                GpuLbsOffsetsCache {
-                    rows: 0,
-                    encoding,
-                    outputs: Vec::new(),
-                },
-            ));
-        }
-        let mut encoder = self.context.encoder();
-        let points = self.upload_values("lbs xyz", xyz)?;
-        self.nn.positional_encoding_forward(
-            &mut encoder,
-            w.encoding(),
-            &points,
-            n,
-            3,
-            &encoding,
-        )?;
-        let mut outputs: Vec<wgpu::Buffer> = Vec::with_capacity(5);
-        for index in 0..5 {
-            let layer = self.layer(&format!("lbs_offsets.{index}"))?;
-            let out = match index {
-                0 => {
-                    self.forward_layer(&mut encoder, layer, &[input(&encoding, encoding_width)], n)?
-                }
-                3 => self.forward_layer(
-                    &mut encoder,
-                    layer,
-                    &[input(&outputs[2], hidden), input(&encoding, encoding_width)],
-                    n,
-                )?,
-                _ => self.forward_layer(
-                    &mut encoder,
-                    layer,
-                    &[input(&outputs[index - 1], hidden)],
-                    n,
-                )?,
-            };
-            outputs.push(out);
-        }
-        let offsets = self.download(encoder, &outputs[4], n * joints)?;
-        Ok((
-            offsets,
-            GpuLbsOffsetsCache {
-                rows: n,
-                encoding,
-                outputs,
-            },
-        ))
+        let net = Self::net(&self.lbs_offsets, "the LBS offsets")?;
+        let (offsets, activations) = self.forward_net(net, &[xyz])?;
+        Ok((offsets, GpuLbsOffsetsCache { activations }))
     }
 
     /// The gpu twin of [`Networks::lbs_offsets_backward`].
@@ -1111,59 +873,50 @@ impl GpuNetworks {
         cache: &GpuLbsOffsetsCache,
         d_offsets: &[f32],
     ) -> Result<(), ModelError> {
-        let n = cache.rows;
-        let joints = self.config.skinning_joints;
-        check_input("d_offsets", n * joints, d_offsets.len())?;
-        if n == 0 {
-            return Ok(());
-        }
-        let w = self.config.widths;
-        let encoding_width = w.encoding_width();
-        let hidden = w.lbs_hidden;
-        let d_output = self.upload_values("lbs offsets gradient", d_offsets)?;
-        let mut d_current = self.zeros("lbs gradient", n * hidden)?;
-        let mut d_previous = self.zeros("lbs gradient", n * hidden)?;
-        let mut encoder = self.context.encoder();
-        for index in (0..5).rev() {
-            let layer = self.layer(&format!("lbs_offsets.{index}"))?;
-            let d_out = if index == 4 { &d_output } else { &d_current };
-            let out = &cache.outputs[index];
-            match index {
-                0 => self.backward_layer(
-                    &mut encoder,
-                    layer,
-                    &[input(&cache.encoding, encoding_width)],
-                    n,
-                    out,
-                    d_out,
-                    &[GpuInputGrad::Skip],
-                )?,
-                3 => self.backward_layer(
-                    &mut encoder,
-                    layer,
-                    &[
-                        input(&cache.outputs[2], hidden),
-                        input(&cache.encoding, encoding_width),
-                    ],
-                    n,
-                    out,
-                    d_out,
-                    &[GpuInputGrad::Write(&d_previous), GpuInputGrad::Skip],
-                )?,
-                _ => self.backward_layer(
-                    &mut encoder,
-                    layer,
-                    &[input(&cache.outputs[index - 1], hidden)],
-                    n,
-                    out,
-                    d_out,
-                    &[GpuInputGrad::Write(&d_previous)],
-                )?,
-            }
-            std::mem::swap(&mut d_current, &mut d_previous);
-        }
-        self.context.submit_and_wait(encoder).map_err(gpu_error)
+        let net = Self::net(&self.lbs_offsets, "the LBS offsets")?;
+        check_input(
+            "d_offsets",
+            cache.activations.rows * self.config.skinning_joints,
+            d_offsets.len(),
+        )?;
+        self.backward_net(net, &cache.activations, d_offsets)?;
+        Ok(())
     }
+}
+
+/// The device column blocks of `parts`.
+fn gpu_parts<'a>(cache: &'a GpuActivations, parts: &[Part]) -> Vec<GpuInputPart<'a>> {
+    gpu_parts_ref(&cache.inputs, &cache.outputs, parts)
+}
+
+fn gpu_parts_ref<'a>(
+    inputs: &'a [Vec<wgpu::Buffer>],
+    outputs: &'a [Vec<wgpu::Buffer>],
+    parts: &[Part],
+) -> Vec<GpuInputPart<'a>> {
+    parts
+        .iter()
+        .map(|part| {
+            let blocks = match part.value {
+                Value::Input(i) => &inputs[i],
+                Value::Layer(j) => &outputs[j],
+            };
+            input(&blocks[part.block], part.cols)
+        })
+        .collect()
+}
+
+/// The input-gradient sinks of taken gradient buffers: skip, write (first contribution) or
+/// add.
+fn sinks(buffers: &[Option<(wgpu::Buffer, bool)>]) -> Vec<GpuInputGrad<'_>> {
+    buffers
+        .iter()
+        .map(|b| match b {
+            None => GpuInputGrad::Skip,
+            Some((buffer, true)) => GpuInputGrad::Accumulate(buffer),
+            Some((buffer, false)) => GpuInputGrad::Write(buffer),
+        })
+        .collect()
 }
 
 fn f32_bytes(values: &[f32]) -> Vec<u8> {

@@ -31,6 +31,13 @@
 //!   -> `J`; [`lbs::blend_weights`] turns offsets into skinning weights
 //!   `softmax(log(w_template + 1e-9) + offset)`.
 //!
+//! Each network is written once, as a description ([`spec::NetworkSpec::non_rigid`],
+//! [`spec::NetworkSpec::pose_refiner`], [`spec::NetworkSpec::lbs_offsets`]: input blocks,
+//! layers with what they read, widths, activations, initialisation), and run by one forward
+//! and one backward per backend: [`network::Network`] on `cpu` (generic over f32/f64) and
+//! [`gpu::GpuNetworks`] on the `nn` kernels. Adding an input block or a layer is a change to
+//! the description (and, for an input, to the caller that supplies it).
+//!
 //! [`NetworkConfig::motion_context`] decides which blocks exist: `none` has no non-rigid
 //! network at all (no encoding, no buffers), `pose` the encoding, `PoseEncoder` and trunk,
 //! `skeleton` adds `SeqPoseEncoder`, `velocity` adds `SeqXYZEncoder`, `multiscale` uses all
@@ -60,8 +67,10 @@
 pub mod dense;
 pub mod gpu;
 pub mod lbs;
+pub mod network;
 pub mod non_rigid;
 pub mod pose_refiner;
+pub mod spec;
 #[cfg(test)]
 mod tests;
 
@@ -69,9 +78,8 @@ use seqavatar_compute::nn::{NnError, NnScalar, PositionalEncoding, Rng};
 
 use crate::config::{AvatarConfig, MotionContext};
 use dense::Dense;
-use lbs::LbsOffsetNet;
-use non_rigid::NonRigidNet;
-use pose_refiner::PoseRefiner;
+use network::Network;
+use spec::NetworkSpec;
 
 pub use lbs::LbsOffsetsCache;
 pub use non_rigid::{FrameInputs, GaussianInputs, NonRigidCache, NonRigidOutput};
@@ -417,9 +425,9 @@ pub struct NamedParamMut<'a, S> {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Networks<S> {
     config: NetworkConfig,
-    non_rigid: Option<NonRigidNet<S>>,
-    pose_refiner: Option<PoseRefiner<S>>,
-    lbs_offsets: Option<LbsOffsetNet<S>>,
+    non_rigid: Option<Network<S>>,
+    pose_refiner: Option<Network<S>>,
+    lbs_offsets: Option<Network<S>>,
 }
 
 /// A generator per block, so switching one block off leaves the others' initial values as
@@ -428,27 +436,54 @@ fn block_rng(seed: u64, block: u64) -> Rng {
     Rng::new(seed ^ block.wrapping_mul(0x9e37_79b9_7f4a_7c15))
 }
 
+impl NetworkConfig {
+    /// The descriptions of the enabled networks, in parameter order (non-rigid, pose
+    /// refiner, LBS offsets), each with its initialisation stream (1, 2, 3 of
+    /// [`Networks::new`]'s seed).
+    pub fn specs(&self) -> Vec<(u64, NetworkSpec)> {
+        let mut specs = Vec::new();
+        if self.motion_context.has_non_rigid() {
+            specs.push((1, NetworkSpec::non_rigid(self)));
+        }
+        if self.pose_refiner {
+            specs.push((2, NetworkSpec::pose_refiner(self)));
+        }
+        if self.lbs_offsets {
+            specs.push((3, NetworkSpec::lbs_offsets(self)));
+        }
+        specs
+    }
+
+    /// Forward FLOPs of every enabled network for `n` Gaussians
+    /// ([`NetworkSpec::forward_flops`]; a backward costs twice this).
+    pub fn forward_flops(&self, n: usize) -> f64 {
+        self.specs()
+            .iter()
+            .map(|(_, spec)| spec.forward_flops(n))
+            .sum()
+    }
+}
+
 impl<S: NnScalar> Networks<S> {
     /// The enabled blocks, initialised from `seed` (PyTorch-default initialisation, the pose
     /// refiner's last layer `U(-1e-5, 1e-5)` with zero bias).
     pub fn new(config: &NetworkConfig, seed: u64) -> Result<Self, ModelError> {
         config.validate()?;
-        let non_rigid = config
-            .motion_context
-            .has_non_rigid()
-            .then(|| NonRigidNet::new(config, &mut block_rng(seed, 1)));
-        let pose_refiner = config
-            .pose_refiner
-            .then(|| PoseRefiner::new(config, &mut block_rng(seed, 2)));
-        let lbs_offsets = config
-            .lbs_offsets
-            .then(|| LbsOffsetNet::new(config, &mut block_rng(seed, 3)));
-        Ok(Networks {
+        let mut networks = Networks {
             config: config.clone(),
-            non_rigid,
-            pose_refiner,
-            lbs_offsets,
-        })
+            non_rigid: None,
+            pose_refiner: None,
+            lbs_offsets: None,
+        };
+        for (stream, spec) in config.specs() {
+            let network = Some(Network::new(spec, &mut block_rng(seed, stream))?);
+            match stream {
+                1 => networks.non_rigid = network,
+                2 => networks.pose_refiner = network,
+                _ => networks.lbs_offsets = network,
+            }
+        }
+        Ok(networks)
     }
 
     /// The configuration the networks were built from.
@@ -471,33 +506,28 @@ impl<S: NnScalar> Networks<S> {
         self.lbs_offsets.is_some()
     }
 
+    /// The enabled networks in parameter order (non-rigid, pose refiner, LBS offsets).
+    pub fn networks(&self) -> impl Iterator<Item = &Network<S>> {
+        [&self.non_rigid, &self.pose_refiner, &self.lbs_offsets]
+            .into_iter()
+            .flatten()
+    }
+
     /// Every layer, in a fixed order (non-rigid, pose refiner, LBS offsets).
     pub(crate) fn layers(&self) -> Vec<&Dense<S>> {
-        let mut layers = Vec::new();
-        if let Some(net) = &self.non_rigid {
-            layers.extend(net.layers());
-        }
-        if let Some(net) = &self.pose_refiner {
-            layers.extend(net.layers.iter());
-        }
-        if let Some(net) = &self.lbs_offsets {
-            layers.extend(net.layers.iter());
-        }
-        layers
+        self.networks().flat_map(|net| net.layers.iter()).collect()
     }
 
     fn layers_mut(&mut self) -> Vec<&mut Dense<S>> {
-        let mut layers = Vec::new();
-        if let Some(net) = &mut self.non_rigid {
-            layers.extend(net.layers_mut());
-        }
-        if let Some(net) = &mut self.pose_refiner {
-            layers.extend(net.layers.iter_mut());
-        }
-        if let Some(net) = &mut self.lbs_offsets {
-            layers.extend(net.layers.iter_mut());
-        }
-        layers
+        [
+            &mut self.non_rigid,
+            &mut self.pose_refiner,
+            &mut self.lbs_offsets,
+        ]
+        .into_iter()
+        .flatten()
+        .flat_map(|net| net.layers.iter_mut())
+        .collect()
     }
 
     /// Every parameter array with its gradient, weights before biases, layers in order.
@@ -614,7 +644,10 @@ impl<S: NnScalar> Networks<S> {
         let net = self.non_rigid.as_ref().ok_or(ModelError::Disabled {
             block: "the non-rigid network",
         })?;
-        net.forward(&self.config, frame, gaussians)
+        let inputs = non_rigid::inputs(&self.config, frame, gaussians)?;
+        let activations = net.forward(&inputs)?;
+        let output = non_rigid::split_heads(activations.output());
+        Ok((output, NonRigidCache { activations }))
     }
 
     /// Backward of [`Networks::non_rigid_forward`]: accumulates parameter gradients and
@@ -629,7 +662,9 @@ impl<S: NnScalar> Networks<S> {
         let net = self.non_rigid.as_mut().ok_or(ModelError::Disabled {
             block: "the non-rigid network",
         })?;
-        net.backward(&self.config, cache, d_dxyz, d_drot, d_dscale)
+        let d_heads = non_rigid::heads_gradient(cache.rows(), d_dxyz, d_drot, d_dscale)?;
+        let gradients = net.backward(&cache.activations, &d_heads)?;
+        Ok(gradients.into_iter().flatten().next().unwrap_or_default())
     }
 
     /// The pose corrections: `(J - 1)` row-major 3x3 matrices, one per non-root joint, for
@@ -641,7 +676,9 @@ impl<S: NnScalar> Networks<S> {
         let net = self.pose_refiner.as_ref().ok_or(ModelError::Disabled {
             block: "the pose refiner",
         })?;
-        net.forward(local_pose)
+        let activations = net.forward(&[local_pose])?;
+        let rotations = pose_refiner::rotations_from_vectors(activations.output());
+        Ok((rotations, PoseRefinerCache { activations }))
     }
 
     /// Backward of [`Networks::pose_refiner_forward`] from `dL/d(matrices)` (`(J - 1) x 9`).
@@ -653,7 +690,11 @@ impl<S: NnScalar> Networks<S> {
         let net = self.pose_refiner.as_mut().ok_or(ModelError::Disabled {
             block: "the pose refiner",
         })?;
-        net.backward(cache, d_rotations)
+        let vectors = cache.rotation_vectors();
+        check_input("d_rotations", 3 * vectors.len(), d_rotations.len())?;
+        let d_vectors = pose_refiner::rotation_vectors_backward(vectors, d_rotations);
+        net.backward(&cache.activations, &d_vectors)?;
+        Ok(())
     }
 
     /// LBS-weight offsets (`n x J`) for positions `xyz` (`n x 3`; the encoding is detached).
@@ -664,7 +705,11 @@ impl<S: NnScalar> Networks<S> {
         let net = self.lbs_offsets.as_ref().ok_or(ModelError::Disabled {
             block: "the LBS offsets",
         })?;
-        net.forward(xyz)
+        let activations = net.forward(&[xyz])?;
+        Ok((
+            activations.output().to_vec(),
+            LbsOffsetsCache { activations },
+        ))
     }
 
     /// Backward of [`Networks::lbs_offsets_forward`] from `dL/d(offsets)` (`n x J`).
@@ -676,7 +721,13 @@ impl<S: NnScalar> Networks<S> {
         let net = self.lbs_offsets.as_mut().ok_or(ModelError::Disabled {
             block: "the LBS offsets",
         })?;
-        net.backward(cache, d_offsets)
+        check_input(
+            "d_offsets",
+            cache.rows() * self.config.skinning_joints,
+            d_offsets.len(),
+        )?;
+        net.backward(&cache.activations, d_offsets)?;
+        Ok(())
     }
 }
 

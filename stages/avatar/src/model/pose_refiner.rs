@@ -1,17 +1,15 @@
 //! The body-pose refiner: local pose without root -> one correction matrix per non-root
 //! joint, and its backward from the matrices' gradient.
 //!
-//! The network is `Linear(3 (J - 1), 128)` + ReLU, `Linear(128, 128)` + ReLU,
+//! The network ([`NetworkSpec::pose_refiner`](super::spec::NetworkSpec::pose_refiner)) is `Linear(3 (J - 1), 128)` + ReLU, `Linear(128, 128)` + ReLU,
 //! `Linear(128, 3 (J - 1))` with the last weight from `U(-1e-5, 1e-5)` and zero bias, so a
 //! fresh refiner returns matrices within ~1e-5 of the identity.
 
-use seqavatar_compute::nn::linear::InputGrad;
-use seqavatar_compute::nn::{Activation, NnScalar, Rng};
+use seqavatar_compute::nn::NnScalar;
 use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_core::rotation::skew;
 
-use super::dense::{Dense, Init, part};
-use super::{ModelError, NetworkConfig, NetworkGroup, check_finite, check_input};
+use super::network::Activations;
 
 /// Bound of the uniform initialisation of the refiner's last layer.
 pub const LAST_LAYER_BOUND: f64 = 1e-5;
@@ -56,119 +54,13 @@ fn outer(a: DVec3, b: DVec3) -> DMat3 {
 /// The refiner's activations for its backward.
 #[derive(Clone, Debug, Default)]
 pub struct PoseRefinerCache<S> {
-    input: Vec<S>,
-    hidden: [Vec<S>; 2],
-    rotation_vectors: Vec<S>,
+    pub(crate) activations: Activations<S>,
 }
 
 impl<S> PoseRefinerCache<S> {
     /// The network output: one axis-angle-like 3-vector per non-root joint.
     pub fn rotation_vectors(&self) -> &[S] {
-        &self.rotation_vectors
-    }
-}
-
-/// The refiner's layers.
-#[derive(Clone, Debug, PartialEq)]
-pub(crate) struct PoseRefiner<S> {
-    pub(crate) layers: [Dense<S>; 3],
-}
-
-impl<S: NnScalar> PoseRefiner<S> {
-    pub(crate) fn new(config: &NetworkConfig, rng: &mut Rng) -> Self {
-        let pose = config.pose_dim();
-        let hidden = config.widths.pose_refiner_hidden;
-        let group = NetworkGroup::PoseRefiner;
-        let layers = [
-            Dense::new(
-                "pose_refiner.0",
-                group,
-                pose,
-                hidden,
-                Activation::Relu,
-                Init::PytorchDefault,
-                rng,
-            ),
-            Dense::new(
-                "pose_refiner.1",
-                group,
-                hidden,
-                hidden,
-                Activation::Relu,
-                Init::PytorchDefault,
-                rng,
-            ),
-            Dense::new(
-                "pose_refiner.2",
-                group,
-                hidden,
-                pose,
-                Activation::Identity,
-                Init::SmallUniform(LAST_LAYER_BOUND),
-                rng,
-            ),
-        ];
-        PoseRefiner { layers }
-    }
-
-    fn pose_dim(&self) -> usize {
-        self.layers[0].shape.in_features
-    }
-
-    pub(crate) fn forward(
-        &self,
-        local_pose: &[S],
-    ) -> Result<(Vec<S>, PoseRefinerCache<S>), ModelError> {
-        let pose = self.pose_dim();
-        check_input("local_pose", pose, local_pose.len())?;
-        check_finite("local_pose", local_pose)?;
-        let hidden = self.layers[0].out_features();
-        let mut cache = PoseRefinerCache {
-            input: local_pose.to_vec(),
-            ..PoseRefinerCache::default()
-        };
-        let [h0, h1] = &mut cache.hidden;
-        self.layers[0].forward(&[part(local_pose, pose)], 1, h0)?;
-        self.layers[1].forward(&[part(h0, hidden)], 1, h1)?;
-        self.layers[2].forward(&[part(h1, hidden)], 1, &mut cache.rotation_vectors)?;
-        let rotations = rotations_from_vectors(&cache.rotation_vectors);
-        Ok((rotations, cache))
-    }
-
-    pub(crate) fn backward(
-        &mut self,
-        cache: &PoseRefinerCache<S>,
-        d_rotations: &[S],
-    ) -> Result<(), ModelError> {
-        let pose = self.pose_dim();
-        check_input("d_rotations", 3 * pose, d_rotations.len())?;
-        check_input("pose refiner cache", pose, cache.rotation_vectors.len())?;
-        let mut d_vectors = rotation_vectors_backward(&cache.rotation_vectors, d_rotations);
-        let hidden = self.layers[0].out_features();
-        let (mut d_h1, mut d_h0) = (vec![S::ZERO; hidden], vec![S::ZERO; hidden]);
-        let [l0, l1, l2] = &mut self.layers;
-        l2.backward(
-            &[part(&cache.hidden[1], hidden)],
-            1,
-            &cache.rotation_vectors,
-            &mut d_vectors,
-            &mut [InputGrad::Write(&mut d_h1)],
-        )?;
-        l1.backward(
-            &[part(&cache.hidden[0], hidden)],
-            1,
-            &cache.hidden[1],
-            &mut d_h1,
-            &mut [InputGrad::Write(&mut d_h0)],
-        )?;
-        l0.backward(
-            &[part(&cache.input, pose)],
-            1,
-            &cache.hidden[0],
-            &mut d_h0,
-            &mut [InputGrad::Skip],
-        )?;
-        Ok(())
+        self.activations.output()
     }
 }
 

@@ -1223,3 +1223,268 @@ fn gpu_group_sets_upload_and_add_gradients_together() {
     gpu.add_groups_gradients_into(&mut seeded, &[]).unwrap();
     assert!(before == seeded);
 }
+
+// ---------------------------------------------------------------------------------------
+// The description and its generic interpreter.
+
+/// Random inputs for every block of `spec` with `n` Gaussians.
+fn spec_inputs(spec: &spec::NetworkSpec, n: usize, rng: &mut Rng) -> Vec<Vec<f64>> {
+    spec.inputs
+        .iter()
+        .map(|input| {
+            let len =
+                input.width * input.rows.block_rows(n, spec.window) * input.rows.calls(spec.window);
+            random(rng, len, 1.0)
+        })
+        .collect()
+}
+
+fn spec_loss(net: &network::Network<f64>, inputs: &[Vec<f64>], probe: &[f64]) -> f64 {
+    let slices: Vec<&[f64]> = inputs.iter().map(Vec::as_slice).collect();
+    let activations = net.forward(&slices).unwrap();
+    activations
+        .output()
+        .iter()
+        .zip(probe)
+        .map(|(a, b)| a * b)
+        .sum()
+}
+
+/// Every parameter and every input gradient the description asks for, against central
+/// differences of `<output, probe>`, through the generic `cpu` interpreter in f64.
+fn check_spec_gradients(spec: spec::NetworkSpec, n: usize, seed: u64) -> usize {
+    let mut rng = Rng::new(seed);
+    let mut net = network::Network::<f64>::new(spec.clone(), &mut rng).unwrap();
+    for layer in &mut net.layers {
+        for value in layer.weight.iter_mut().chain(layer.bias.iter_mut()) {
+            *value += rng.uniform(-0.05, 0.05);
+        }
+    }
+    let inputs = spec_inputs(&spec, n, &mut rng);
+    let slices: Vec<&[f64]> = inputs.iter().map(Vec::as_slice).collect();
+    let activations = net.forward(&slices).unwrap();
+    let probe = random(&mut rng, activations.output().len(), 1.0);
+    let input_grads = net.backward(&activations, &probe).unwrap();
+    let h = 1e-6;
+    let close = |what: &str, analytic: f64, fd: f64| {
+        assert!(
+            (analytic - fd).abs() <= 1e-6 * (1.0 + fd.abs()),
+            "{what}: analytic {analytic} vs finite difference {fd}"
+        );
+    };
+    let mut checked = 0;
+    for layer in 0..net.layers.len() {
+        for bias in [false, true] {
+            let len = if bias {
+                net.layers[layer].bias.len()
+            } else {
+                net.layers[layer].weight.len()
+            };
+            for i in 0..len {
+                let mut shifted = net.clone();
+                let shift = |net: &mut network::Network<f64>, delta: f64| {
+                    let dense = &mut net.layers[layer];
+                    if bias {
+                        dense.bias[i] += delta;
+                    } else {
+                        dense.weight[i] += delta;
+                    }
+                };
+                shift(&mut shifted, h);
+                let plus = spec_loss(&shifted, &inputs, &probe);
+                shift(&mut shifted, -2.0 * h);
+                let minus = spec_loss(&shifted, &inputs, &probe);
+                let analytic = if bias {
+                    net.layers[layer].d_bias[i]
+                } else {
+                    net.layers[layer].d_weight[i]
+                };
+                let name = &net.layers[layer].name;
+                close(
+                    &format!("{name} [{i}]"),
+                    analytic,
+                    (plus - minus) / (2.0 * h),
+                );
+                checked += 1;
+            }
+        }
+    }
+    for (index, input) in spec.inputs.iter().enumerate() {
+        let Some(grad) = &input_grads[index] else {
+            assert!(!input.gradient, "{} has no gradient", input.name);
+            continue;
+        };
+        assert!(input.gradient, "{} returned a gradient", input.name);
+        assert_eq!(grad.len(), inputs[index].len());
+        for i in 0..grad.len() {
+            let mut shifted = inputs.clone();
+            shifted[index][i] += h;
+            let plus = spec_loss(&net, &shifted, &probe);
+            shifted[index][i] -= 2.0 * h;
+            let minus = spec_loss(&net, &shifted, &probe);
+            close(
+                &format!("{} [{i}]", input.name),
+                grad[i],
+                (plus - minus) / (2.0 * h),
+            );
+            checked += 1;
+        }
+    }
+    checked
+}
+
+#[test]
+fn an_extra_input_block_is_one_change_and_its_gradients_match_finite_differences() {
+    use spec::{Rows, Source};
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let mut spec = spec::NetworkSpec::non_rigid(&config);
+    let trunk = spec
+        .layers
+        .iter()
+        .position(|l| l.name == "trunk.0")
+        .unwrap();
+    let before = spec.in_features(trunk);
+    // The one change: two new input blocks (a per-Gaussian one read before the per-frame
+    // ones, with a gradient; a per-frame one, folded into the per-frame bias, with a
+    // gradient) and the trunk's first layer reading them.
+    let colour = spec.input("gaussians.colour", Rows::Gaussian, 2, None, true);
+    let expression = spec.input("frame.expression", Rows::Frame, 4, None, true);
+    let sources = &mut spec.layers[trunk].sources;
+    let first_frame = sources.iter().position(|s| *s == Source::Layer(1)).unwrap();
+    sources.insert(first_frame, colour);
+    sources.push(expression);
+    spec.validate().unwrap();
+    assert_eq!(spec.in_features(trunk), before + 2 + 4);
+    let parameters: usize = (0..spec.layers.len())
+        .map(|j| spec.shape(j).weight_len() + spec.layers[j].out)
+        .sum();
+    let checked = check_spec_gradients(spec.clone(), 3, 11);
+    // Every parameter, then xyz (3 n), colour (2 n) and expression (4) values.
+    assert_eq!(checked, parameters + 3 * 3 + 2 * 3 + 4);
+
+    // The unchanged descriptions go through the same interpreter and check.
+    check_spec_gradients(spec::NetworkSpec::lbs_offsets(&config), 3, 12);
+    check_spec_gradients(spec::NetworkSpec::pose_refiner(&config), 0, 13);
+}
+
+#[test]
+fn networks_use_their_descriptions_and_the_parameter_names_are_unchanged() {
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let networks = Networks::<f32>::new(&config, 4).unwrap();
+    let names: Vec<String> = networks
+        .parameters()
+        .iter()
+        .filter(|p| p.name.ends_with(".weight"))
+        .map(|p| p.name.trim_end_matches(".weight").to_string())
+        .collect();
+    let expected = [
+        "non_rigid.pose_encoder.0",
+        "non_rigid.pose_encoder.1",
+        "non_rigid.seq_pose_encoder.frame",
+        "non_rigid.seq_pose_encoder.sequence",
+        "non_rigid.seq_xyz_encoder.velocity",
+        "non_rigid.seq_xyz_encoder.position",
+        "non_rigid.seq_xyz_encoder.frame",
+        "non_rigid.seq_xyz_encoder.sequence.0",
+        "non_rigid.seq_xyz_encoder.sequence.1",
+        "non_rigid.trunk.0",
+        "non_rigid.trunk.1",
+        "non_rigid.heads",
+        "pose_refiner.0",
+        "pose_refiner.1",
+        "pose_refiner.2",
+        "lbs_offsets.0",
+        "lbs_offsets.1",
+        "lbs_offsets.2",
+        "lbs_offsets.3",
+        "lbs_offsets.4",
+    ];
+    assert_eq!(names, expected);
+    // Trunk rows: encoding (2 bands: 15), seq-xyz 5, then pose 5 and seq-pose 4.
+    let trunk = networks
+        .parameters()
+        .into_iter()
+        .find(|p| p.name == "non_rigid.trunk.0.weight")
+        .unwrap();
+    assert_eq!(trunk.shape, vec![15 + 5 + 5 + 4, 7]);
+}
+
+#[test]
+fn bad_descriptions_name_the_layer() {
+    use seqavatar_compute::nn::Activation::Relu;
+    use spec::{NetworkSpec, Rows, Source};
+    let message = |spec: &NetworkSpec| spec.validate().unwrap_err().to_string();
+    let mut spec = NetworkSpec::new("toy", NetworkGroup::NonRigid, 2);
+    let frame = spec.input("frame", Rows::Frame, 2, None, false);
+    let points = spec.input("points", Rows::Gaussian, 3, None, true);
+    spec.layer("mixed", Rows::Gaussian, &[frame, points], 4, Relu);
+    assert!(
+        message(&spec).contains("toy.mixed") && message(&spec).contains("must come last"),
+        "{}",
+        message(&spec)
+    );
+    spec.layers[0].sources = vec![points, frame];
+    spec.validate().unwrap();
+    spec.layer("ahead", Rows::Gaussian, &[Source::Layer(2)], 4, Relu);
+    assert!(message(&spec).contains("toy.ahead"), "{}", message(&spec));
+    spec.layers[1].sources = vec![Source::Layer(0)];
+    spec.layer("window", Rows::Gaussian, &[Source::Window(1)], 4, Relu);
+    assert!(message(&spec).contains("toy.window"), "{}", message(&spec));
+    spec.layers.pop();
+    spec.output = 0;
+    assert!(
+        message(&spec).contains("toy.ahead: is never read"),
+        "{}",
+        message(&spec)
+    );
+    let mut frame_reads_points = NetworkSpec::new("toy", NetworkGroup::NonRigid, 2);
+    let points = frame_reads_points.input("points", Rows::Gaussian, 3, None, false);
+    frame_reads_points.layer("pooled", Rows::Frame, &[points], 4, Relu);
+    assert!(message(&frame_reads_points).contains("toy.pooled"));
+}
+
+#[test]
+fn forward_flops_match_an_independent_count() {
+    let config = small_config(MotionContext::Multiscale, 2, 3);
+    let w = config.widths;
+    let n = 5;
+    let l = config.sequence_length;
+    let enc = 3 * (1 + 2 * w.encoding_frequencies);
+    let pose = config.pose_dim();
+    let t = config.trunk_width;
+    // Multiply-adds, written out layer by layer.
+    let pose_encoder = pose * w.pose_encoder + w.pose_encoder * w.pose_encoder;
+    let seq_pose = l * (config.n_scales * config.motion_joints * 3) * w.seq_pose_frame
+        + (w.seq_pose_frame * l) * w.seq_pose;
+    let seq_xyz = n * l * (config.tau * config.n_scales * 3) * w.seq_xyz_velocity
+        + n * enc * w.seq_xyz_position
+        + n * l * (w.seq_xyz_velocity + w.seq_xyz_position) * w.seq_xyz_frame
+        + n * (w.seq_xyz_frame * l) * w.seq_xyz_hidden
+        + n * w.seq_xyz_hidden * w.seq_xyz;
+    let trunk = n * (enc + w.seq_xyz) * t
+        + (w.pose_encoder + w.seq_pose) * t
+        + (config.trunk_depth - 1) * n * t * t
+        + n * t * HEAD_WIDTH;
+    let refiner = pose * w.pose_refiner_hidden
+        + w.pose_refiner_hidden * w.pose_refiner_hidden
+        + w.pose_refiner_hidden * pose;
+    let h = w.lbs_hidden;
+    let lbs = n * (enc * h + 2 * h * h + (h + enc) * h + h * config.skinning_joints);
+    let non_rigid = 2 * (pose_encoder + seq_pose + seq_xyz + trunk);
+    assert_eq!(
+        spec::NetworkSpec::non_rigid(&config).forward_flops(n),
+        non_rigid as f64
+    );
+    assert_eq!(
+        spec::NetworkSpec::pose_refiner(&config).forward_flops(n),
+        (2 * refiner) as f64
+    );
+    assert_eq!(
+        spec::NetworkSpec::lbs_offsets(&config).forward_flops(n),
+        (2 * lbs) as f64
+    );
+    assert_eq!(
+        config.forward_flops(n),
+        (non_rigid + 2 * refiner + 2 * lbs) as f64
+    );
+}
