@@ -30,8 +30,8 @@ use std::time::Instant;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 
-use seqavatar_avatar::config::{Device, MotionContext, device_choice};
-use seqavatar_compute::backend::Backend;
+use seqavatar_avatar::config::MotionContext;
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::{
     BACKEND_LOG_PREFIX, ConfigError, EntryReader, PictureKind, PictureOptions, StageContext,
     StageKind,
@@ -59,7 +59,7 @@ pub const SPEED_ATTRIBUTE: &str = "speed";
 #[serde(deny_unknown_fields, default)]
 pub struct EvalConfig {
     /// Backend for rendering and LPIPS (`auto`, `cpu`, `gpu`).
-    pub device: Device,
+    pub device: DeviceChoice,
     /// Background and bound-box rules (method.md "Evaluation protocol").
     pub protocol: Protocol,
     /// LPIPS weights converted with `tests/lpips/convert_weights.py`; none: "unavailable".
@@ -80,7 +80,7 @@ pub struct EvalConfig {
 impl Default for EvalConfig {
     fn default() -> Self {
         Self {
-            device: Device::Auto,
+            device: DeviceChoice::Auto,
             protocol: Protocol::default(),
             lpips_vgg_weights: None,
             lpips_alex_weights: None,
@@ -259,7 +259,8 @@ impl StageKind for EvalStage {
         let config: EvalConfig = ctx.config()?;
         let train = ctx.input("train")?.clone();
         let ingest = ctx.input("ingest")?.clone();
-        let backend = Backend::select(device_choice(config.device))?;
+        let backend = Backend::select(config.device)
+            .with_context(|| format!("config `device: {}`", config.device))?;
         ctx.log(&format!("{BACKEND_LOG_PREFIX} {}", backend.describe()));
         let lpips = load_lpips(&config, &backend)?;
         if lpips.vgg.is_none() && lpips.alex.is_none() {

@@ -6,12 +6,13 @@
 
 use std::path::PathBuf;
 
+pub use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use serde::{Deserialize, Serialize};
 
 pub use seqavatar_avatar::config::{
-    AvatarConfig, Background, Device, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH,
-    MAX_TRUNK_WIDTH, MotionContext,
+    AvatarConfig, Background, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH, MAX_TRUNK_WIDTH,
+    MotionContext,
 };
 
 /// Named starting points trading speed for accuracy.
@@ -131,7 +132,7 @@ pub const MAX_BOUND_PADDING: usize = 4096;
 #[serde(deny_unknown_fields)]
 pub struct TrainConfig {
     pub preset: Preset,
-    pub device: Device,
+    pub device: DeviceChoice,
     pub seed: u64,
     pub iterations: u32,
     /// Image scale applied to the ingest images (1 = as ingested).
@@ -197,7 +198,7 @@ impl TrainConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
             preset,
-            device: Device::Auto,
+            device: DeviceChoice::Auto,
             seed: 0,
             iterations: 3000,
             resolution_scale: 1.0,
