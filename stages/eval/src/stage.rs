@@ -628,3 +628,29 @@ pub fn render_image(
 ) -> anyhow::Result<ImageF32> {
     ImageF32::from_f32(what, width, height, rgb).map_err(anyhow::Error::from)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// `device` is the compute crate's `DeviceChoice`, spelled as before (`auto`, `cpu`,
+    /// `gpu`: the resolved config, and so the key, is unchanged); an unknown name is an error
+    /// naming the field, the value and the choices.
+    #[test]
+    fn device_is_spelled_as_before_and_unknown_names_are_errors() {
+        for text in ["auto", "cpu", "gpu"] {
+            let resolved = EvalStage.resolve_config(&json!({"device": text})).unwrap();
+            assert_eq!(resolved["device"], json!(text));
+        }
+        let defaults = EvalStage.resolve_config(&json!({})).unwrap();
+        assert_eq!(defaults["device"], json!("auto"));
+        let err = EvalStage
+            .resolve_config(&json!({"device": "cuda"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["device", "cuda", "auto", "cpu", "gpu"] {
+            assert!(err.contains(part), "`{err}` lacks {part}");
+        }
+    }
+}

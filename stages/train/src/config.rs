@@ -625,6 +625,29 @@ mod tests {
         );
     }
 
+    /// `device` is the compute crate's `DeviceChoice`, spelled as before (`auto`, `cpu`,
+    /// `gpu`: the resolved config, and so the key, is unchanged); an unknown name is an error
+    /// naming the field, the value and the choices.
+    #[test]
+    fn device_is_spelled_as_before_and_unknown_names_are_errors() {
+        for (text, choice) in [
+            ("auto", DeviceChoice::Auto),
+            ("cpu", DeviceChoice::Cpu),
+            ("gpu", DeviceChoice::Gpu),
+        ] {
+            let c = TrainConfig::resolve(&json!({"device": text})).unwrap();
+            assert_eq!(c.device, choice);
+            assert_eq!(serde_json::to_value(&c).unwrap()["device"], json!(text));
+        }
+        assert_eq!(TrainConfig::preset(Preset::Fast).device, DeviceChoice::Auto);
+        let err = TrainConfig::resolve(&json!({"device": "cuda"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["device", "cuda", "auto", "cpu", "gpu"] {
+            assert!(err.contains(part), "`{err}` lacks {part}");
+        }
+    }
+
     #[test]
     fn memory_estimate_counts_the_gaussians_and_the_trunk() {
         let mut c = TrainConfig::preset(Preset::Fast);

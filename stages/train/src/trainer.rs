@@ -358,7 +358,9 @@ pub fn initial_scales(points: &[f64]) -> Vec<f64> {
 
 impl<'d> Trainer<'d> {
     /// A fresh run: Gaussians at the canonical template vertices with random colours,
-    /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations.
+    /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations. Every
+    /// phase runs on `backend`, which the trainer builds its [`AvatarBackend`] from once
+    /// ([`avatar_backend`]).
     pub fn new(
         config: TrainConfig,
         data: &'d TrainingData,
