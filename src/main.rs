@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::commands::{self, InspectOptions};
 use seqavatar_engine::{Registry, RunOptions};
 
@@ -90,8 +91,8 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Backend: auto, cpu or gpu.
-        #[arg(long, default_value = "auto")]
-        device: String,
+        #[arg(long, default_value_t = DeviceChoice::Auto)]
+        device: DeviceChoice,
         /// Frames per second of the MP4.
         #[arg(long, default_value_t = 25)]
         fps: u32,
@@ -114,8 +115,8 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Backend of the networks: auto, cpu or gpu.
-        #[arg(long, default_value = "auto")]
-        device: String,
+        #[arg(long, default_value_t = DeviceChoice::Auto)]
+        device: DeviceChoice,
         /// Export at most this many frames (0 = all).
         #[arg(long, default_value_t = 0)]
         max_frames: usize,
@@ -204,7 +205,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             fps,
             max_frames,
         } => {
-            let backend = select_backend(&device)?;
+            let backend = Backend::select(device)?;
             let options = seqavatar_eval::animate::RenderOptions {
                 avatar,
                 poses: seqavatar_eval::animate::PoseSource::parse(&poses),
@@ -241,7 +242,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             device,
             max_frames,
         } => {
-            let backend = select_backend(&device)?;
+            let backend = Backend::select(device)?;
             let options = seqavatar_eval::export::ExportOptions {
                 avatar,
                 poses: poses
@@ -293,11 +294,4 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-/// The compute backend a `--device` value names (`auto`, `cpu` or `gpu`), for the commands
-/// that render outside a pipeline (`render`, `export`).
-fn select_backend(device: &str) -> anyhow::Result<seqavatar_compute::backend::Backend> {
-    let choice: seqavatar_compute::backend::DeviceChoice = device.parse()?;
-    Ok(seqavatar_compute::backend::Backend::select(choice)?)
 }

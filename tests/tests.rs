@@ -5,3 +5,4 @@ mod engine;
 mod eval;
 mod remote;
 mod support;
+mod tidy;

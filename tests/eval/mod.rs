@@ -10,7 +10,7 @@
 use std::path::Path;
 
 use seqavatar_avatar::ply::{cloud_to_world, read_ply};
-use seqavatar_compute::backend::Backend;
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, StageReport, Store, run,
 };
@@ -20,6 +20,11 @@ use seqavatar_eval::avatar_render::AvatarRenderer;
 use seqavatar_eval::evaluate::ViewRenderer;
 use seqavatar_eval::export::{ExportOptions, export_avatar};
 use seqavatar_eval::lpips::{LpipsNet, seeded};
+
+/// The `cpu` backend, as `--device cpu` selects it.
+fn cpu() -> Backend {
+    Backend::select(DeviceChoice::Cpu).unwrap()
+}
 
 const INGEST: &str = "{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}";
 
@@ -280,8 +285,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     assert!(!eval_lpips.array_names().contains(&"speed_fps".to_owned()));
     {
         use seqavatar_eval::evaluate::ViewRenderer;
-        let mut renderer =
-            AvatarRenderer::open(&train, &ingest, &ingest, None, &Backend::Cpu).unwrap();
+        let mut renderer = AvatarRenderer::open(&train, &ingest, &ingest, None, &cpu()).unwrap();
         let testset = seqavatar_eval::testset::TestSet::read(&ingest).unwrap();
         let test = testset.images[1];
         let render = renderer
@@ -293,7 +297,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
             .unwrap();
         let model = seqavatar_eval::lpips::Lpips::new(
             seqavatar_eval::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
-            &Backend::Cpu,
+            &cpu(),
         )
         .unwrap();
         let direct = model.distances(&[(&pair.render, &pair.truth)]).unwrap()[0].total;
@@ -368,7 +372,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         camera: 1,
         resolution_scale: 0.5,
         out: out.clone(),
-        backend: Backend::Cpu,
+        backend: cpu(),
         fps: 10,
         max_frames: 2,
     };
@@ -398,7 +402,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
             &fixture("swing.npz").display().to_string(),
         )),
         out: dir.path().join("export"),
-        backend: Backend::Cpu,
+        backend: cpu(),
         max_frames: 3,
         progress: false,
     };
@@ -413,7 +417,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         &store,
         &export.avatar,
         export.poses.as_ref().unwrap(),
-        &Backend::Cpu,
+        &cpu(),
     )
     .unwrap();
     let camera = seqavatar_ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
@@ -426,15 +430,13 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         let cloud = read_ply(&std::fs::read(path).unwrap()).unwrap();
         assert_eq!(cloud.len(), canonical.len());
         let world = cloud_to_world(&cloud).unwrap();
-        let replayed = seqavatar_avatar::splatting::forward(
-            &Backend::Cpu,
-            &world,
-            std::slice::from_ref(&camera),
-            &raster,
-        )
-        .unwrap()
-        .images
-        .swap_remove(0);
+        let replayed = driven
+            .renderer
+            .device()
+            .splat_forward(&world, std::slice::from_ref(&camera), &raster)
+            .unwrap()
+            .images
+            .swap_remove(0);
         let rendered = driven.renderer.render(frame, &camera).unwrap();
         assert_eq!(rendered.data.len(), replayed.colour.len());
         let squared: f64 = rendered

@@ -155,7 +155,7 @@ fn time_ms(repeats: usize, mut run: impl FnMut()) -> f64 {
 
 /// The LBS-offset network (63 -> 128 x 3, skip, -> 24), forward + backward: `cpu` f64 (the
 /// trainer's networks before they became f32), `cpu` f32 (as it trains), and `GpuNetworks` (uploads and
-/// downloads included, as `deform_on` pays them).
+/// downloads included, as `avatar::deform` pays them on the gpu backend).
 fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     let config = paper_config(MotionContext::None);
     let mut rng = Rng::new(3);
@@ -191,7 +191,7 @@ fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuConte
 }
 
 /// The pose refiner (one row per frame), forward + backward: `cpu` f64 against the gpu
-/// round trips; the reason it stays on `cpu` (see `avatar::deform_on`).
+/// round trips; the reason it stays on `cpu` (see `avatar::deform`).
 fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     let config = paper_config(MotionContext::None);
     let mut rng = Rng::new(4);

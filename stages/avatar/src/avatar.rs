@@ -19,10 +19,8 @@
 //! `body_model_kind`, `extent`, `motion_joints` (with networks). The train stage adds its
 //! own `config` (the resolved train config, which nothing here reads).
 
-use std::sync::Arc;
-
 use anyhow::Context;
-use seqavatar_compute::backend::{Backend, GpuContext};
+use seqavatar_compute::backend::Backend;
 use seqavatar_compute::nn::NnScalar;
 use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_count};
 use seqavatar_core::body::BodyParams;
@@ -34,14 +32,12 @@ use seqavatar_motion::knn::{KnnGrid, as_points};
 use seqavatar_motion::schema::MotionTrack;
 
 use crate::config::AvatarConfig;
-use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
-use crate::model::{
-    GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks, NonRigidCache,
-    PoseRefinerCache,
-};
+use crate::device::{AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend};
+pub use crate::device::{LbsOffsetsPass, NonRigidPass};
+use crate::model::{NetworkConfig, Networks, PoseRefinerCache};
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
-use crate::splatting::{self, WorldGaussians};
+use crate::splatting::WorldGaussians;
 
 /// Spherical-harmonics DC constant (3DGS `C0`).
 pub const SH_C0: f64 = 0.282_094_791_773_878_14;
@@ -183,29 +179,13 @@ pub struct Deformed<S = f32> {
     pub world: WorldGaussians,
 }
 
-/// The activations of the non-rigid network's forward pass, where it ran.
-pub enum NonRigidPass<S = f32> {
-    /// On `cpu`, in the networks' scalar.
-    Cpu(NonRigidCache<S>),
-    /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
-    Gpu(GpuNonRigidCache),
-}
-
-/// The activations of the LBS-offset network's forward pass, where it ran.
-pub enum LbsOffsetsPass<S = f32> {
-    /// On `cpu`, in the networks' scalar.
-    Cpu(LbsOffsetsCache<S>),
-    /// On the gpu, in f32 ([`GpuNetworks`], a copy of the master's parameters).
-    Gpu(GpuLbsOffsetsCache),
-}
-
 /// f64 values in the networks' scalar (rounded once for f32).
-fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
+pub(crate) fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
     values.iter().map(|&v| S::from_f64(v)).collect()
 }
 
 /// The networks' values in f64 (exact).
-fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
+pub(crate) fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
     values.iter().map(|&v| v.to_f64()).collect()
 }
 
@@ -240,68 +220,25 @@ pub fn knn_velocity<S: NnScalar>(
     out
 }
 
-/// [`knn_velocity`] of the Gaussians' canonical centres for the non-rigid network.
-fn gaussian_velocities<T: NnScalar>(
-    template_grid: &KnnGrid,
-    gaussians: &AvatarGaussians,
-    inputs: &FrameInputs,
-    net_config: &NetworkConfig,
-) -> Vec<T> {
-    knn_velocity(
-        template_grid,
-        &gaussians.xyz,
-        &inputs.vertex_velocity,
-        net_config.sequence_length,
-        net_config.n_scales,
-        net_config.tau,
-    )
-}
-
 /// The forward pass shared by training and rendering: non-rigid offsets from the networks
 /// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
-/// skinning, activations. Everything runs on `cpu`, the networks in their scalar `S` (inputs
-/// rounded to it once, outputs widened to f64), the rest in f64 (see [`deform_on`]).
+/// skinning, activations. The per-Gaussian networks, non-rigid and LBS offsets, run on
+/// `device` (on `cpu` in the networks' scalar `S`, on a gpu on its f32 copy; inputs rounded
+/// once, outputs widened to f64); everything else runs on `cpu` in f64.
+///
+/// The pose refiner ([`frame_pose`]) stays on `cpu` on every backend on purpose: it is one
+/// row per frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its
+/// output must be on the host before anything per Gaussian can start (it moves the joints),
+/// so a gpu pass would be a blocking round trip of its own (two with the backward). Measured
+/// with `benches/networks.rs` (forward + backward, paper widths): 0.054 ms on `cpu` in f64
+/// against 9.3 ms on lavapipe; on a hardware gpu the two submit-wait-download round trips
+/// alone (typically 0.1 ms or more each) exceed the whole `cpu` time.
 #[allow(clippy::too_many_arguments)]
 pub fn deform<S: NnScalar>(
     rig: &BodyRig,
     template_grid: &KnnGrid,
     networks: Option<&Networks<S>>,
-    gaussians: &AvatarGaussians,
-    inputs: &FrameInputs,
-    pose: &FramePose,
-    config: &AvatarConfig,
-    sh_degree: u32,
-) -> anyhow::Result<Deformed<S>> {
-    deform_on(
-        rig,
-        template_grid,
-        networks,
-        None,
-        gaussians,
-        inputs,
-        pose,
-        config,
-        sh_degree,
-    )
-}
-
-/// [`deform`] with the per-Gaussian networks, non-rigid and LBS offsets, evaluated on the gpu
-/// when `gpu_networks` is given (a copy of `networks`' parameters, at least of
-/// [`GpuNetworks::DEFORM_GROUPS`]; inputs rounded to f32 once, outputs widened to f64).
-///
-/// The pose refiner ([`frame_pose`]) stays on `cpu` on purpose: it is one row per
-/// frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its output must be
-/// on the host before anything per Gaussian can start (it moves the joints), so a gpu pass
-/// would be a blocking round trip of its own (two with the backward). Measured with
-/// `benches/networks.rs` (forward + backward, paper widths): 0.054 ms on `cpu` in f64
-/// against 9.3 ms on lavapipe; on a hardware gpu the two submit-wait-download round trips
-/// alone (typically 0.1 ms or more each) exceed the whole `cpu` time.
-#[allow(clippy::too_many_arguments)]
-pub fn deform_on<S: NnScalar>(
-    rig: &BodyRig,
-    template_grid: &KnnGrid,
-    networks: Option<&Networks<S>>,
-    gpu_networks: Option<&GpuNetworks>,
+    device: &dyn AvatarBackend<S>,
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
@@ -312,90 +249,47 @@ pub fn deform_on<S: NnScalar>(
     if let Some(bad) = gaussians.xyz.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite centre", bad / 3);
     }
-    let (positions, d_scales, d_rotations, non_rigid) = match networks
-        .filter(|net| net.has_non_rigid())
-    {
-        Some(net) => {
-            let net_config = net.config();
-            let has_skeleton = config.motion_context.has_skeleton_motion();
-            let has_velocity = config.motion_context.has_velocity();
-            let pose_values = local_pose(&inputs.params);
-            let (d_xyz, d_rot, d_scale, cache) = match gpu_networks {
-                None => {
-                    let skeleton: Vec<S> = inputs
-                        .skeleton_motion
-                        .iter()
-                        .map(|&x| S::from_f64(f64::from(x)))
-                        .collect();
-                    let knn: Option<Vec<S>> = has_velocity
-                        .then(|| gaussian_velocities(template_grid, gaussians, inputs, net_config));
-                    let (out, cache) = net.non_rigid_forward(
-                        &crate::model::FrameInputs {
-                            local_pose: &to_scalar(&pose_values),
-                            skeleton_motion: has_skeleton.then_some(skeleton.as_slice()),
-                        },
-                        &GaussianInputs {
-                            xyz: &to_scalar(&gaussians.xyz),
-                            knn_velocity: knn.as_deref(),
-                        },
-                    )?;
-                    (
-                        to_f64(&out.d_xyz),
-                        to_f64(&out.d_rot),
-                        to_f64(&out.d_scale),
-                        NonRigidPass::Cpu(cache),
-                    )
-                }
-                Some(gpu) => {
-                    let knn: Option<Vec<f32>> = has_velocity
-                        .then(|| gaussian_velocities(template_grid, gaussians, inputs, net_config));
-                    let (out, cache) = gpu.non_rigid_forward(
-                        &crate::model::FrameInputs {
-                            local_pose: &to_scalar::<f32>(&pose_values),
-                            skeleton_motion: has_skeleton
-                                .then_some(inputs.skeleton_motion.as_slice()),
-                        },
-                        &GaussianInputs {
-                            xyz: &to_scalar::<f32>(&gaussians.xyz),
-                            knn_velocity: knn.as_deref(),
-                        },
-                    )?;
-                    (
-                        to_f64(&out.d_xyz),
-                        to_f64(&out.d_rot),
-                        to_f64(&out.d_scale),
-                        NonRigidPass::Gpu(cache),
-                    )
-                }
-            };
-            let positions: Vec<f64> = gaussians
-                .xyz
-                .iter()
-                .zip(&d_xyz)
-                .map(|(a, b)| a + b)
-                .collect();
-            (positions, d_scale, d_rot, Some(cache))
-        }
-        None => (
-            gaussians.xyz.clone(),
-            vec![0.0; 3 * n],
-            [1.0, 0.0, 0.0, 0.0].repeat(n),
-            None,
-        ),
-    };
+    let (positions, d_scales, d_rotations, non_rigid) =
+        match networks.filter(|net| net.has_non_rigid()) {
+            Some(net) => {
+                let has_skeleton = config.motion_context.has_skeleton_motion();
+                let has_velocity = config.motion_context.has_velocity();
+                let (offsets, cache) = device.non_rigid_forward(
+                    net,
+                    &NonRigidInputs {
+                        local_pose: &local_pose(&inputs.params),
+                        skeleton_motion: has_skeleton.then_some(inputs.skeleton_motion.as_slice()),
+                        xyz: &gaussians.xyz,
+                        vertex_velocity: has_velocity
+                            .then_some((template_grid, inputs.vertex_velocity.as_slice())),
+                    },
+                )?;
+                let NonRigidOffsets {
+                    d_xyz,
+                    d_rot,
+                    d_scale,
+                } = offsets;
+                let positions: Vec<f64> = gaussians
+                    .xyz
+                    .iter()
+                    .zip(&d_xyz)
+                    .map(|(a, b)| a + b)
+                    .collect();
+                (positions, d_scale, d_rot, Some(cache))
+            }
+            None => (
+                gaussians.xyz.clone(),
+                vec![0.0; 3 * n],
+                [1.0, 0.0, 0.0, 0.0].repeat(n),
+                None,
+            ),
+        };
     if let Some(bad) = positions.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("Gaussian {} has a non-finite deformed centre", bad / 3);
     }
-    let weight_offsets = match (networks.filter(|net| net.has_lbs_offsets()), gpu_networks) {
-        (None, _) => None,
-        (Some(net), None) => {
-            let (offsets, cache) = net.lbs_offsets_forward(&to_scalar(&positions))?;
-            Some((to_f64(&offsets), LbsOffsetsPass::Cpu(cache)))
-        }
-        (Some(_), Some(gpu)) => {
-            let (offsets, cache) = gpu.lbs_offsets_forward(&to_scalar::<f32>(&positions))?;
-            Some((to_f64(&offsets), LbsOffsetsPass::Gpu(cache)))
-        }
+    let weight_offsets = match networks.filter(|net| net.has_lbs_offsets()) {
+        None => None,
+        Some(net) => Some(device.lbs_offsets_forward(net, &positions)?),
     };
     let nearest = template_grid.query_all(&as_points(&positions), 1);
     anyhow::ensure!(
@@ -452,74 +346,19 @@ pub fn deform_on<S: NnScalar>(
 /// gradients: accumulates the networks' parameter gradients and returns the gradient of the
 /// canonical centres through the non-rigid network (zeros without one; the direct path
 /// `x' = x + d_xyz` is the caller's). `params` are the frame's unrefined body parameters.
-/// Passes that ran on the gpu run their backward there too (`gpu_networks`, the copy they
-/// ran on): the device gradients are zeroed first, and after both backwards the gradients of
-/// the groups that ran there are downloaded in one go and added to `networks`'.
+/// The per-Gaussian networks' backward runs on `device`, the backend their forward ran on
+/// ([`AvatarBackend::networks_backward`]); the pose refiner's on `cpu`.
 #[allow(clippy::too_many_arguments)]
 pub fn deform_backward<S: NnScalar>(
     networks: &mut Networks<S>,
-    gpu_networks: Option<&GpuNetworks>,
+    device: &dyn AvatarBackend<S>,
     rig: &BodyRig,
     posed: &PosedFrame<S>,
     deformed: &Deformed<S>,
     params: &BodyParams,
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
-    let mut on_gpu: Vec<NetworkGroup> = Vec::new();
-    if matches!(deformed.non_rigid, Some(NonRigidPass::Gpu(_))) {
-        on_gpu.push(NetworkGroup::NonRigid);
-    }
-    if matches!(deformed.weight_offsets, Some((_, LbsOffsetsPass::Gpu(_)))) {
-        on_gpu.push(NetworkGroup::LbsOffsets);
-    }
-    let gpu = if on_gpu.is_empty() {
-        None
-    } else {
-        let gpu = gpu_networks.with_context(|| {
-            format!("the {on_gpu:?} passes ran on the gpu, but their backward got no gpu networks")
-        })?;
-        // The device gradients accumulate across backwards; start from zero so the download
-        // holds exactly this pass's contribution.
-        gpu.zero_grad()?;
-        Some(gpu)
-    };
-    let gpu_ran = "a pass ran on the gpu without gpu networks";
-    let mut through = vec![0.0; deformed.positions.len()];
-    match &deformed.non_rigid {
-        None => {}
-        Some(NonRigidPass::Cpu(cache)) => {
-            through = to_f64(&networks.non_rigid_backward(
-                cache,
-                &to_scalar(&skin.positions),
-                &to_scalar(&skin.d_rotations),
-                &to_scalar(&skin.d_scales),
-            )?);
-        }
-        Some(NonRigidPass::Gpu(cache)) => {
-            let d_canonical = gpu.context(gpu_ran)?.non_rigid_backward(
-                cache,
-                &to_scalar::<f32>(&skin.positions),
-                &to_scalar::<f32>(&skin.d_rotations),
-                &to_scalar::<f32>(&skin.d_scales),
-            )?;
-            if !d_canonical.is_empty() {
-                through = to_f64(&d_canonical);
-            }
-        }
-    }
-    match &deformed.weight_offsets {
-        None => {}
-        Some((_, LbsOffsetsPass::Cpu(cache))) => {
-            networks.lbs_offsets_backward(cache, &to_scalar(&skin.weight_offsets))?;
-        }
-        Some((_, LbsOffsetsPass::Gpu(cache))) => {
-            gpu.context(gpu_ran)?
-                .lbs_offsets_backward(cache, &to_scalar::<f32>(&skin.weight_offsets))?;
-        }
-    }
-    if let Some(gpu) = gpu {
-        gpu.add_groups_gradients_into(networks, &on_gpu)?;
-    }
+    let through = device.networks_backward(networks, deformed, skin)?;
     if let Some((cache, _)) = &posed.refiner {
         let d_rotations =
             rig.pose_backward(&posed.chain, &skin.target_joints, &skin.vertex_offsets);
@@ -563,9 +402,6 @@ pub struct TrainedAvatar {
     /// The networks in f32 (absent for motion context `none` without refiners).
     pub networks: Option<Networks<f32>>,
     template_grid: KnnGrid,
-    /// An f32 copy of `networks` on a gpu, made by [`TrainedAvatar::upload_networks`]; the
-    /// gpu render path evaluates the per-Gaussian networks with it.
-    gpu_networks: Option<GpuNetworks>,
 }
 
 impl TrainedAvatar {
@@ -587,50 +423,31 @@ impl TrainedAvatar {
             sh_degree,
             scales,
             template_grid,
-            gpu_networks: None,
         }
     }
 
-    /// Uploads an f32 copy of the networks to `context`, so that [`TrainedAvatar::render`]
-    /// on the gpu backend evaluates the per-Gaussian networks there
-    /// ([`GpuNetworks::DEFORM_GROUPS`]; the pose refiner stays on `cpu`, see [`deform_on`]).
-    /// Returns whether a copy was made: there is none to make without a per-Gaussian
-    /// network. The copy is a snapshot: after changing `networks`, upload again.
-    pub fn upload_networks(&mut self, context: Arc<GpuContext>) -> anyhow::Result<bool> {
-        let Some(networks) = self
-            .networks
-            .as_ref()
-            .filter(|net| net.has_non_rigid() || net.has_lbs_offsets())
-        else {
-            self.gpu_networks = None;
-            return Ok(false);
-        };
-        self.gpu_networks = Some(
-            GpuNetworks::upload(context, networks)
-                .context("uploading the avatar's networks to the gpu")?,
-        );
-        Ok(true)
+    /// The backend `backend` names, built for this avatar's networks (on the gpu, with an
+    /// f32 copy of its per-Gaussian networks: [`avatar_backend`]). Build it once and render
+    /// every frame with it; it is a snapshot of the networks (after changing them, build
+    /// another).
+    pub fn backend(&self, backend: Backend) -> anyhow::Result<Box<dyn AvatarBackend>> {
+        avatar_backend(backend, self.networks.as_ref())
+            .context("the avatar's networks on the chosen backend")
     }
 
-    /// Whether [`TrainedAvatar::upload_networks`] made a gpu copy of the networks.
-    pub fn has_gpu_networks(&self) -> bool {
-        self.gpu_networks.is_some()
-    }
-
-    /// The deformed Gaussians of one frame (pose refiner, networks, skinning), with the
-    /// per-Gaussian networks on the gpu copy when `backend` is the gpu and the avatar has
-    /// one ([`TrainedAvatar::upload_networks`]), on `cpu` in f32 otherwise.
-    pub fn deform(&self, inputs: &FrameInputs, backend: &Backend) -> anyhow::Result<Deformed> {
-        let gpu_networks = match backend {
-            Backend::Gpu(_) => self.gpu_networks.as_ref(),
-            Backend::Cpu => None,
-        };
+    /// The deformed Gaussians of one frame (pose refiner, networks, skinning), the
+    /// per-Gaussian networks on `device` (built by [`TrainedAvatar::backend`]).
+    pub fn deform(
+        &self,
+        inputs: &FrameInputs,
+        device: &dyn AvatarBackend,
+    ) -> anyhow::Result<Deformed> {
         let posed = frame_pose(&self.rig, self.networks.as_ref(), &inputs.params)?;
-        deform_on(
+        deform(
             &self.rig,
             &self.template_grid,
             self.networks.as_ref(),
-            gpu_networks,
+            device,
             &self.gaussians,
             inputs,
             &posed.pose,
@@ -649,16 +466,15 @@ impl TrainedAvatar {
         gather_frame_inputs(&self.config, &self.scales, motion, params, frame)
     }
 
-    /// Renders one frame from `camera` on `backend`: colour (background included) and alpha.
-    /// On the gpu backend the per-Gaussian networks run on the gpu copy when there is one
-    /// ([`TrainedAvatar::deform`]).
+    /// Renders one frame from `camera` on `device` (built by [`TrainedAvatar::backend`]):
+    /// colour (background included) and alpha.
     pub fn render(
         &self,
         inputs: &FrameInputs,
         camera: &Camera,
-        backend: &Backend,
+        device: &dyn AvatarBackend,
     ) -> anyhow::Result<RenderedImage<f64>> {
-        self.render_on(inputs, camera, backend, self.background)
+        self.render_on(inputs, camera, device, self.background)
     }
 
     /// [`TrainedAvatar::render`] on `background` instead of the avatar's own colour.
@@ -666,20 +482,16 @@ impl TrainedAvatar {
         &self,
         inputs: &FrameInputs,
         camera: &Camera,
-        backend: &Backend,
+        device: &dyn AvatarBackend,
         background: [f64; 3],
     ) -> anyhow::Result<RenderedImage<f64>> {
-        let deformed = self.deform(inputs, backend)?;
+        let deformed = self.deform(inputs, device)?;
         let options = RasterOptions {
             background,
             smooth_cutoff: false,
         };
-        let mut pass = splatting::forward(
-            backend,
-            &deformed.world,
-            std::slice::from_ref(camera),
-            &options,
-        )?;
+        let mut pass =
+            device.splat_forward(&deformed.world, std::slice::from_ref(camera), &options)?;
         Ok(pass.images.swap_remove(0))
     }
 
@@ -854,6 +666,8 @@ mod tests {
     use crate::config::MotionContext;
     use crate::model::Widths;
     use crate::skinning::skin_backward;
+    use seqavatar_compute::backend::DeviceChoice;
+    use seqavatar_compute::backend::test_support::gpu_test_backend;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::glam::DVec3;
     use seqavatar_core::rng::SplitMix64 as Rng;
@@ -868,6 +682,11 @@ mod tests {
         b: Vec<f64>,
     }
 
+    /// The `cpu` backend, as every caller builds it.
+    fn cpu<S: NnScalar>() -> Box<dyn AvatarBackend<S>> {
+        avatar_backend(Backend::select(DeviceChoice::Cpu).unwrap(), None).unwrap()
+    }
+
     /// A smooth function of the skinned Gaussians: `sum a . centres + sum b . covariances`.
     fn loss(s: &Setup, networks: &Networks<f64>, xyz: &[f64]) -> f64 {
         let gaussians = AvatarGaussians {
@@ -879,6 +698,7 @@ mod tests {
             &s.rig,
             &s.grid,
             Some(networks),
+            &*cpu(),
             &gaussians,
             &s.inputs,
             &posed.pose,
@@ -1007,10 +827,12 @@ mod tests {
         let (setup, mut networks) = build(context, lbs_offsets, n);
         // Analytic gradients.
         let posed = frame_pose(&setup.rig, Some(&networks), &setup.inputs.params).unwrap();
+        let device = cpu();
         let deformed = deform(
             &setup.rig,
             &setup.grid,
             Some(&networks),
+            &*device,
             &setup.gaussians,
             &setup.inputs,
             &posed.pose,
@@ -1038,7 +860,7 @@ mod tests {
         networks.zero_grad();
         let through = deform_backward(
             &mut networks,
-            None,
+            &*device,
             &setup.rig,
             &posed,
             &deformed,
@@ -1157,14 +979,14 @@ mod tests {
     fn deform_with(
         s: &Setup,
         networks: &Networks<f64>,
-        gpu: Option<&GpuNetworks>,
+        device: &dyn AvatarBackend<f64>,
     ) -> Deformed<f64> {
         let posed = frame_pose(&s.rig, Some(networks), &s.inputs.params).unwrap();
-        deform_on(
+        deform(
             &s.rig,
             &s.grid,
             Some(networks),
-            gpu,
+            device,
             &s.gaussians,
             &s.inputs,
             &posed.pose,
@@ -1180,13 +1002,14 @@ mod tests {
     /// at most 1.4e-7).
     #[test]
     fn deform_with_gpu_networks_matches_cpu() {
-        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        let Some(backend) = gpu_test_backend() else {
             return;
         };
         let (s, networks) = gpu_setup(200);
-        let gpu = GpuNetworks::upload_f64(context, &networks).unwrap();
-        let cpu = deform_with(&s, &networks, None);
-        let on_gpu = deform_with(&s, &networks, Some(&gpu));
+        let gpu = avatar_backend(backend, Some(&networks)).unwrap();
+        assert!(gpu.networks_on_gpu());
+        let cpu = deform_with(&s, &networks, &*cpu());
+        let on_gpu = deform_with(&s, &networks, &*gpu);
         assert!(matches!(on_gpu.non_rigid, Some(NonRigidPass::Gpu(_))));
         assert!(matches!(
             on_gpu.weight_offsets,
@@ -1226,15 +1049,16 @@ mod tests {
     /// lavapipe measured at most 2.3e-6).
     #[test]
     fn deform_backward_with_gpu_networks_matches_cpu() {
-        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        let Some(backend) = gpu_test_backend() else {
             return;
         };
         let (s, networks) = gpu_setup(60);
-        let gpu = GpuNetworks::upload_f64(context, &networks).unwrap();
-        let run = |gpu: Option<&GpuNetworks>| {
+        let gpu = avatar_backend(backend, Some(&networks)).unwrap();
+        let cpu = cpu();
+        let run = |device: &dyn AvatarBackend<f64>| {
             let mut master = networks.clone();
             let posed = frame_pose(&s.rig, Some(&master), &s.inputs.params).unwrap();
-            let deformed = deform_with(&s, &master, gpu);
+            let deformed = deform_with(&s, &master, device);
             let frame = s
                 .rig
                 .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
@@ -1258,7 +1082,7 @@ mod tests {
             for _ in 0..2 {
                 through = deform_backward(
                     &mut master,
-                    gpu,
+                    device,
                     &s.rig,
                     &posed,
                     &deformed,
@@ -1269,11 +1093,11 @@ mod tests {
             }
             (master, through)
         };
-        let (cpu, cpu_through) = run(None);
-        let (on_gpu, gpu_through) = run(Some(&gpu));
+        let (on_cpu, cpu_through) = run(&*cpu);
+        let (on_gpu, gpu_through) = run(&*gpu);
         assert_close("d canonical xyz", &gpu_through, &cpu_through, 1e-4);
         let mut groups = std::collections::HashSet::new();
-        for (c, g) in cpu.parameters().iter().zip(on_gpu.parameters()) {
+        for (c, g) in on_cpu.parameters().iter().zip(on_gpu.parameters()) {
             assert_eq!(c.name, g.name);
             assert_eq!(
                 c.values, g.values,
@@ -1289,21 +1113,48 @@ mod tests {
             groups.insert(format!("{:?}", c.group));
         }
         assert_eq!(groups.len(), 3, "groups checked: {groups:?}");
-        // A backward of a gpu pass without the gpu networks is an error, not a panic.
+        // A backward on another backend than its forward's is an error, not a panic, both
+        // ways.
         let posed = frame_pose(&s.rig, Some(&networks), &s.inputs.params).unwrap();
-        let deformed = deform_with(&s, &networks, Some(&gpu));
-        let skin = skin_zero(&s, &posed, &deformed);
-        let error = deform_backward(
-            &mut networks.clone(),
-            None,
+        for (forward, backward) in [(&*gpu, &*cpu), (&*cpu, &*gpu)] {
+            let deformed = deform_with(&s, &networks, forward);
+            let skin = skin_zero(&s, &posed, &deformed);
+            let error = deform_backward(
+                &mut networks.clone(),
+                backward,
+                &s.rig,
+                &posed,
+                &deformed,
+                &s.inputs.params,
+                &skin,
+            )
+            .expect_err("a pass of another backend");
+            assert!(
+                format!("{error:#}").contains("another backend"),
+                "{error:#}"
+            );
+        }
+        // A gpu backend built for other networks refuses to run these.
+        let mut other_config = networks.config().clone();
+        other_config.trunk_width += 1;
+        let other = Networks::<f64>::new(&other_config, 0).unwrap();
+        let error = deform(
             &s.rig,
-            &posed,
-            &deformed,
-            &s.inputs.params,
-            &skin,
+            &s.grid,
+            Some(&other),
+            &*gpu,
+            &s.gaussians,
+            &s.inputs,
+            &posed.pose,
+            &s.config,
+            0,
         )
-        .expect_err("no gpu networks");
-        assert!(format!("{error:#}").contains("gpu"), "{error:#}");
+        .err()
+        .expect("networks of another configuration");
+        assert!(
+            format!("{error:#}").contains("another configuration"),
+            "{error:#}"
+        );
     }
 
     /// Skinning gradients of a zero loss (for the error path).
@@ -1338,7 +1189,7 @@ mod tests {
     /// gpu splatting) as on `cpu` (f32 networks, cpu splatting): PSNR above 50 dB.
     #[test]
     fn trained_avatar_renders_the_same_with_gpu_networks() {
-        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        let Some(backend) = gpu_test_backend() else {
             return;
         };
         let (s, networks) = gpu_setup(400);
@@ -1368,7 +1219,7 @@ mod tests {
                 Some(param.values.iter().map(|&v| v as f32).collect())
             })
             .unwrap();
-        let mut avatar = TrainedAvatar::new(
+        let avatar = TrainedAvatar::new(
             s.config.clone(),
             s.rig.clone(),
             gaussians,
@@ -1390,14 +1241,16 @@ mod tests {
             target,
             DVec3::new(0.0, 1.0, 0.0),
         );
-        let cpu = avatar.render(&s.inputs, &camera, &Backend::Cpu).unwrap();
-        assert!(!avatar.has_gpu_networks());
-        assert!(avatar.upload_networks(context.clone()).unwrap());
-        assert!(avatar.has_gpu_networks());
-        let backend = Backend::Gpu(context.clone());
-        let deformed = avatar.deform(&s.inputs, &backend).unwrap();
+        let on_cpu = avatar
+            .backend(Backend::select(DeviceChoice::Cpu).unwrap())
+            .unwrap();
+        assert!(!on_cpu.networks_on_gpu());
+        let cpu = avatar.render(&s.inputs, &camera, &*on_cpu).unwrap();
+        let on_gpu = avatar.backend(backend.clone()).unwrap();
+        assert!(on_gpu.networks_on_gpu());
+        let deformed = avatar.deform(&s.inputs, &*on_gpu).unwrap();
         assert!(matches!(deformed.non_rigid, Some(NonRigidPass::Gpu(_))));
-        let gpu = avatar.render(&s.inputs, &camera, &backend).unwrap();
+        let gpu = avatar.render(&s.inputs, &camera, &*on_gpu).unwrap();
         let covered = cpu.alpha.iter().filter(|&&a| a > 0.5).count();
         assert!(
             covered > cpu.alpha.len() / 50,
@@ -1409,7 +1262,7 @@ mod tests {
         assert!(db > 50.0, "PSNR {db} dB");
         // The networks change the image far more than that (the comparison is not vacuous).
         let rigid = without_networks
-            .render(&s.inputs, &camera, &Backend::Cpu)
+            .render(&s.inputs, &camera, &*on_cpu)
             .unwrap();
         let effect = psnr(&rigid.colour, &cpu.colour);
         eprintln!("with vs without networks: PSNR {effect:.1} dB");
@@ -1418,7 +1271,7 @@ mod tests {
             "the networks change the image by PSNR {effect} dB only"
         );
         // An avatar without per-Gaussian networks makes no copy.
-        let mut refiner_only = TrainedAvatar::new(
+        let refiner_only = TrainedAvatar::new(
             s.config.clone(),
             s.rig.clone(),
             s.gaussians.clone(),
@@ -1426,7 +1279,6 @@ mod tests {
             Vec::new(),
             None,
         );
-        assert!(!refiner_only.upload_networks(context).unwrap());
-        assert!(!refiner_only.has_gpu_networks());
+        assert!(!refiner_only.backend(backend).unwrap().networks_on_gpu());
     }
 }

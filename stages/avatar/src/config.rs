@@ -4,7 +4,6 @@
 //! it into its entry (attribute `avatar`); eval and `pipeline render` read it from there, so
 //! neither depends on the trainer (learning rates, schedules and losses stay in `train`).
 
-use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 
@@ -47,24 +46,6 @@ impl MotionContext {
             Self::Velocity => 'd',
             Self::Multiscale => 'e',
         }
-    }
-}
-
-/// Where the numeric work runs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Device {
-    Auto,
-    Cpu,
-    Gpu,
-}
-
-/// Converts a config's device to the compute crate's choice.
-pub fn device_choice(device: Device) -> DeviceChoice {
-    match device {
-        Device::Auto => DeviceChoice::Auto,
-        Device::Cpu => DeviceChoice::Cpu,
-        Device::Gpu => DeviceChoice::Gpu,
     }
 }
 

@@ -3,8 +3,10 @@
 //! `pipeline render` depend on this crate, not on the trainer.
 //!
 //! - [`config`]: [`AvatarConfig`], the part of the training configuration rendering needs,
-//!   and the enums it shares with the train config (motion context, device, background).
+//!   and the enums it shares with the train config (motion context, background).
 //! - [`avatar`]: the trained avatar, its entry arrays and its render path.
+//! - [`device`]: [`device::AvatarBackend`], the backend the render and training paths run
+//!   on, chosen once ([`device::avatar_backend`]): networks and splatting on `cpu` or `gpu`.
 //! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
 //!   offsets) on `cpu` and `gpu`.
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
@@ -19,6 +21,7 @@
 
 pub mod avatar;
 pub mod config;
+pub mod device;
 pub mod model;
 pub mod ply;
 pub mod rig;

@@ -263,7 +263,7 @@ mod tests {
         use crate::config::{AvatarConfig, MotionContext};
         use crate::model::{NetworkConfig, Networks};
         use crate::rig::BodyRig;
-        use seqavatar_compute::backend::Backend;
+        use seqavatar_compute::backend::{Backend, DeviceChoice};
         use seqavatar_compute::splat::RasterOptions;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_core::camera::{Camera, Intrinsics};
@@ -328,8 +328,11 @@ mod tests {
             DVec3::ZERO,
             DVec3::new(0.0, 1.0, 0.0),
         );
-        let rendered = avatar.render(&inputs, &camera, &Backend::Cpu).unwrap();
-        let deformed = avatar.deform(&inputs, &Backend::Cpu).unwrap();
+        let device = avatar
+            .backend(Backend::select(DeviceChoice::Cpu).unwrap())
+            .unwrap();
+        let rendered = avatar.render(&inputs, &camera, &*device).unwrap();
+        let deformed = avatar.deform(&inputs, &*device).unwrap();
         let cloud = posed_cloud(&deformed.world, &avatar.gaussians.opacity_logit).unwrap();
         let back = read_ply(&write_ply(&cloud).unwrap()).unwrap();
         let world = cloud_to_world(&back).unwrap();
@@ -337,15 +340,11 @@ mod tests {
             background: avatar.background,
             smooth_cutoff: false,
         };
-        let replayed = crate::splatting::forward(
-            &Backend::Cpu,
-            &world,
-            std::slice::from_ref(&camera),
-            &options,
-        )
-        .unwrap()
-        .images
-        .swap_remove(0);
+        let replayed = device
+            .splat_forward(&world, std::slice::from_ref(&camera), &options)
+            .unwrap()
+            .images
+            .swap_remove(0);
         let squared: f64 = rendered
             .colour
             .iter()

@@ -7,7 +7,7 @@
 
 use std::time::Instant;
 
-use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
+use seqavatar_compute::backend::{AdapterChoice, Backend, DeviceChoice};
 use seqavatar_eval::image::ImageF32;
 use seqavatar_eval::lpips::{Lpips, LpipsInput, LpipsNet, seeded};
 use seqavatar_eval::metrics::ssim;
@@ -26,17 +26,15 @@ fn main() {
         .split(',')
         .filter_map(|text| text.trim().parse().ok())
         .collect();
-    let mut backends = vec![("cpu".to_owned(), Backend::Cpu)];
+    let cpu = Backend::select(DeviceChoice::Cpu).expect("the cpu backend");
+    let mut backends = vec![("cpu".to_owned(), cpu)];
     let choice = if std::env::var("SEQAVATAR_BENCH_SOFTWARE_GPU").is_ok_and(|value| value == "1") {
         AdapterChoice::AllowSoftware
     } else {
         AdapterChoice::Hardware
     };
-    match GpuContext::new(choice) {
-        Ok(context) => {
-            let name = format!("gpu ({})", context.info().name);
-            backends.push((name, Backend::Gpu(std::sync::Arc::new(context))));
-        }
+    match Backend::select_adapter(DeviceChoice::Gpu, choice) {
+        Ok(gpu) => backends.push((gpu.describe(), gpu)),
         Err(error) => println!("gpu: not timed ({error})"),
     }
     for &size in &sizes {

@@ -4,6 +4,7 @@
 
 use anyhow::Context as _;
 use seqavatar_avatar::avatar::{FrameInputs, TrainedAvatar};
+use seqavatar_avatar::device::AvatarBackend;
 use seqavatar_compute::backend::Backend;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
@@ -157,7 +158,8 @@ pub struct AvatarRenderer {
     pub avatar: TrainedAvatar,
     params: Vec<BodyParams>,
     motion: Option<MotionTrack>,
-    backend: Backend,
+    /// The backend every render runs on, chosen when the renderer is built.
+    device: Box<dyn AvatarBackend>,
     location: String,
 }
 
@@ -173,11 +175,12 @@ impl AvatarRenderer {
     }
 
     /// An avatar driven by `params` (one per frame) and `motion` (needed when the avatar's
-    /// motion context uses skeleton motion or velocities). On the gpu backend the avatar's
-    /// per-Gaussian networks are uploaded once (f32) and every render evaluates them there,
-    /// so renders and the frame rates measured on them include gpu networks.
+    /// motion context uses skeleton motion or velocities), rendered on `backend`, chosen
+    /// here once ([`TrainedAvatar::backend`]): on the gpu the avatar's per-Gaussian networks
+    /// are uploaded once (f32) and every render evaluates them there, so renders and the
+    /// frame rates measured on them include gpu networks.
     pub fn new(
-        mut avatar: TrainedAvatar,
+        avatar: TrainedAvatar,
         params: Vec<BodyParams>,
         motion: Option<MotionTrack>,
         backend: Backend,
@@ -213,16 +216,14 @@ impl AvatarRenderer {
                 )
             })?;
         }
-        if let Backend::Gpu(context) = &backend {
-            avatar
-                .upload_networks(context.clone())
-                .with_context(|| format!("the avatar of {location}"))?;
-        }
+        let device = avatar
+            .backend(backend)
+            .with_context(|| format!("the avatar of {location}"))?;
         Ok(Self {
             avatar,
             params,
             motion,
-            backend,
+            device,
             location,
         })
     }
@@ -268,8 +269,13 @@ impl AvatarRenderer {
     pub fn deform(&self, frame: usize) -> anyhow::Result<seqavatar_avatar::avatar::Deformed> {
         let inputs = self.frame_inputs(frame)?;
         self.avatar
-            .deform(&inputs, &self.backend)
+            .deform(&inputs, &*self.device)
             .with_context(|| format!("avatar {}: frame {frame}", self.location))
+    }
+
+    /// The backend the renderer runs on.
+    pub fn device(&self) -> &dyn AvatarBackend {
+        &*self.device
     }
 
     /// Number of frames this renderer can draw.
@@ -301,7 +307,7 @@ impl ViewRenderer for AvatarRenderer {
         let inputs = self.frame_inputs(frame)?;
         let image = self
             .avatar
-            .render(&inputs, camera, &self.backend)
+            .render(&inputs, camera, &*self.device)
             .with_context(|| format!("avatar {}: frame {frame}", self.location))?;
         let colour: Vec<f32> = image.colour.iter().map(|&value| value as f32).collect();
         ImageF32::from_f32(
@@ -317,6 +323,7 @@ impl ViewRenderer for AvatarRenderer {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use seqavatar_compute::backend::DeviceChoice;
     use seqavatar_core::glam::DVec3;
 
     fn camera() -> Camera {
@@ -362,7 +369,7 @@ mod tests {
         use seqavatar_avatar::rig::BodyRig;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_core::rng::SplitMix64 as Rng;
-        let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        let Some(backend) = seqavatar_compute::backend::test_support::gpu_test_backend() else {
             return;
         };
         let model = procedural_body(0.05);
@@ -418,10 +425,10 @@ mod tests {
                 TrainedAvatar::new(config.clone(), rig, gaussians, 1, vec![1], Some(networks));
             AvatarRenderer::new(avatar, vec![params.clone()], None, backend, "test".into()).unwrap()
         };
-        let mut cpu = build(Backend::Cpu);
-        let mut gpu = build(Backend::Gpu(context));
-        assert!(!cpu.avatar.has_gpu_networks());
-        assert!(gpu.avatar.has_gpu_networks());
+        let mut cpu = build(Backend::select(DeviceChoice::Cpu).unwrap());
+        let mut gpu = build(backend);
+        assert!(!cpu.device().networks_on_gpu());
+        assert!(gpu.device().networks_on_gpu());
         let camera = Camera::look_at(
             48,
             64,
@@ -501,7 +508,7 @@ mod tests {
                 avatar,
                 vec![model.zero_params(); frames],
                 Some(track),
-                Backend::Cpu,
+                Backend::select(DeviceChoice::Cpu).unwrap(),
                 "test".into(),
             )
             .unwrap()

@@ -30,8 +30,8 @@ use std::time::Instant;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 
-use seqavatar_avatar::config::{Device, MotionContext, device_choice};
-use seqavatar_compute::backend::Backend;
+use seqavatar_avatar::config::MotionContext;
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::{
     BACKEND_LOG_PREFIX, ConfigError, EntryReader, PictureKind, PictureOptions, StageContext,
     StageKind,
@@ -59,7 +59,7 @@ pub const SPEED_ATTRIBUTE: &str = "speed";
 #[serde(deny_unknown_fields, default)]
 pub struct EvalConfig {
     /// Backend for rendering and LPIPS (`auto`, `cpu`, `gpu`).
-    pub device: Device,
+    pub device: DeviceChoice,
     /// Background and bound-box rules (method.md "Evaluation protocol").
     pub protocol: Protocol,
     /// LPIPS weights converted with `tests/lpips/convert_weights.py`; none: "unavailable".
@@ -80,7 +80,7 @@ pub struct EvalConfig {
 impl Default for EvalConfig {
     fn default() -> Self {
         Self {
-            device: Device::Auto,
+            device: DeviceChoice::Auto,
             protocol: Protocol::default(),
             lpips_vgg_weights: None,
             lpips_alex_weights: None,
@@ -259,7 +259,8 @@ impl StageKind for EvalStage {
         let config: EvalConfig = ctx.config()?;
         let train = ctx.input("train")?.clone();
         let ingest = ctx.input("ingest")?.clone();
-        let backend = Backend::select(device_choice(config.device))?;
+        let backend = Backend::select(config.device)
+            .with_context(|| format!("config `device: {}`", config.device))?;
         ctx.log(&format!("{BACKEND_LOG_PREFIX} {}", backend.describe()));
         let lpips = load_lpips(&config, &backend)?;
         if lpips.vgg.is_none() && lpips.alex.is_none() {
@@ -626,4 +627,30 @@ pub fn render_image(
     rgb: Vec<f32>,
 ) -> anyhow::Result<ImageF32> {
     ImageF32::from_f32(what, width, height, rgb).map_err(anyhow::Error::from)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// `device` is the compute crate's `DeviceChoice`, spelled as before (`auto`, `cpu`,
+    /// `gpu`: the resolved config, and so the key, is unchanged); an unknown name is an error
+    /// naming the field, the value and the choices.
+    #[test]
+    fn device_is_spelled_as_before_and_unknown_names_are_errors() {
+        for text in ["auto", "cpu", "gpu"] {
+            let resolved = EvalStage.resolve_config(&json!({"device": text})).unwrap();
+            assert_eq!(resolved["device"], json!(text));
+        }
+        let defaults = EvalStage.resolve_config(&json!({})).unwrap();
+        assert_eq!(defaults["device"], json!("auto"));
+        let err = EvalStage
+            .resolve_config(&json!({"device": "cuda"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["device", "cuda", "auto", "cpu", "gpu"] {
+            assert!(err.contains(part), "`{err}` lacks {part}");
+        }
+    }
 }

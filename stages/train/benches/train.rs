@@ -26,7 +26,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
+use seqavatar_compute::backend::{AdapterChoice, Backend, DeviceChoice};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
@@ -111,14 +111,14 @@ fn main() -> anyhow::Result<()> {
     let fast_data = TrainingData::read(&ingest, &ingest, &motion, fast.resolution_scale)?;
     let warmup = env_usize("SEQAVATAR_BENCH_WARMUP", 2);
     let timed = env_usize("SEQAVATAR_BENCH_ITERATIONS", 10);
-    let mut backends = vec![("cpu", Backend::Cpu)];
+    let mut backends = vec![("cpu", Backend::select(DeviceChoice::Cpu)?)];
     let choice = if std::env::var_os("SEQAVATAR_BENCH_SOFTWARE_GPU").is_some() {
         AdapterChoice::AllowSoftware
     } else {
         AdapterChoice::Hardware
     };
-    match GpuContext::new(choice) {
-        Ok(context) => backends.push(("gpu", Backend::Gpu(std::sync::Arc::new(context)))),
+    match Backend::select_adapter(DeviceChoice::Gpu, choice) {
+        Ok(gpu) => backends.push(("gpu", gpu)),
         Err(e) => println!("gpu: not measured ({e})"),
     }
     let gaussians = data.rig.vertex_count();

@@ -13,11 +13,11 @@
 use std::path::Path;
 use std::time::Instant;
 
-use seqavatar_compute::backend::Backend;
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsInput, LpipsNet, seeded};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
-use seqavatar_train::config::{Device, Preset, TrainConfig};
+use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
 use seqavatar_train::trainer::{Trainer, pad_rect};
 
@@ -61,7 +61,7 @@ fn main() -> anyhow::Result<()> {
     };
     let (ingest, motion) = (open("ingest")?, open("motion")?);
     let mut base = TrainConfig::preset(Preset::Fast);
-    base.device = Device::Cpu;
+    base.device = DeviceChoice::Cpu;
     let data = TrainingData::read(&ingest, &ingest, &motion, base.resolution_scale)?;
 
     // The crops the loss sees: the padded bound boxes of the training images.
@@ -102,7 +102,10 @@ fn main() -> anyhow::Result<()> {
     };
     let (render, target) = (image(1), image(2));
     for net in [LpipsNet::Vgg, LpipsNet::Alex] {
-        let lpips = Lpips::new(seeded::seeded_weights(net, 1), &Backend::Cpu)?;
+        let lpips = Lpips::new(
+            seeded::seeded_weights(net, 1),
+            &Backend::select(base.device)?,
+        )?;
         let pairs = [(&render, &target)];
         let forward = milliseconds_per_call(5, || {
             lpips.distances(&pairs).expect("lpips");
@@ -134,7 +137,8 @@ fn main() -> anyhow::Result<()> {
     }
     let mut off = None;
     for (name, config) in settings {
-        let mut trainer = Trainer::new(config, &data, Backend::Cpu)?;
+        let backend = Backend::select(config.device)?;
+        let mut trainer = Trainer::new(config, &data, backend)?;
         for _ in 0..2 {
             trainer.step()?;
         }

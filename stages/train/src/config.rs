@@ -6,12 +6,13 @@
 
 use std::path::PathBuf;
 
+pub use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use serde::{Deserialize, Serialize};
 
 pub use seqavatar_avatar::config::{
-    AvatarConfig, Background, Device, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH,
-    MAX_TRUNK_WIDTH, MotionContext,
+    AvatarConfig, Background, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH, MAX_TRUNK_WIDTH,
+    MotionContext,
 };
 
 /// Named starting points trading speed for accuracy.
@@ -131,7 +132,7 @@ pub const MAX_BOUND_PADDING: usize = 4096;
 #[serde(deny_unknown_fields)]
 pub struct TrainConfig {
     pub preset: Preset,
-    pub device: Device,
+    pub device: DeviceChoice,
     pub seed: u64,
     pub iterations: u32,
     /// Image scale applied to the ingest images (1 = as ingested).
@@ -197,7 +198,7 @@ impl TrainConfig {
     pub fn preset(preset: Preset) -> Self {
         let base = Self {
             preset,
-            device: Device::Auto,
+            device: DeviceChoice::Auto,
             seed: 0,
             iterations: 3000,
             resolution_scale: 1.0,
@@ -622,6 +623,29 @@ mod tests {
             TrainConfig::resolve(&json!([1])),
             Err(ConfigError::NotAMapping)
         );
+    }
+
+    /// `device` is the compute crate's `DeviceChoice`, spelled as before (`auto`, `cpu`,
+    /// `gpu`: the resolved config, and so the key, is unchanged); an unknown name is an error
+    /// naming the field, the value and the choices.
+    #[test]
+    fn device_is_spelled_as_before_and_unknown_names_are_errors() {
+        for (text, choice) in [
+            ("auto", DeviceChoice::Auto),
+            ("cpu", DeviceChoice::Cpu),
+            ("gpu", DeviceChoice::Gpu),
+        ] {
+            let c = TrainConfig::resolve(&json!({"device": text})).unwrap();
+            assert_eq!(c.device, choice);
+            assert_eq!(serde_json::to_value(&c).unwrap()["device"], json!(text));
+        }
+        assert_eq!(TrainConfig::preset(Preset::Fast).device, DeviceChoice::Auto);
+        let err = TrainConfig::resolve(&json!({"device": "cuda"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["device", "cuda", "auto", "cpu", "gpu"] {
+            assert!(err.contains(part), "`{err}` lacks {part}");
+        }
     }
 
     #[test]

@@ -685,12 +685,10 @@ mod tests {
     }
 
     fn lpips_loss(net: seqavatar_compute::lpips::LpipsNet, input: LpipsInput) -> LpipsLoss {
-        use seqavatar_compute::backend::Backend;
+        use seqavatar_compute::backend::{Backend, DeviceChoice};
         use seqavatar_compute::lpips::seeded::seeded_weights;
-        LpipsLoss::new(
-            Lpips::new(seeded_weights(net, 7), &Backend::Cpu).unwrap(),
-            input,
-        )
+        let cpu = Backend::select(DeviceChoice::Cpu).unwrap();
+        LpipsLoss::new(Lpips::new(seeded_weights(net, 7), &cpu).unwrap(), input)
     }
 
     #[test]

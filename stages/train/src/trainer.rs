@@ -24,10 +24,10 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use seqavatar_avatar::avatar::{
-    AvatarGaussians, Deformed, PosedFrame, TrainedAvatar, deform_backward, deform_on, frame_pose,
+    AvatarGaussians, Deformed, PosedFrame, TrainedAvatar, deform, deform_backward, frame_pose,
     gather_frame_inputs, needs_networks, template_grid,
 };
-use seqavatar_avatar::model::gpu::GpuNetworks;
+use seqavatar_avatar::device::{AvatarBackend, avatar_backend};
 use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
 use seqavatar_avatar::rig::{FramePose, PoseChain};
 use seqavatar_motion::knn::{KnnGrid, as_points, knn_brute_force};
@@ -47,7 +47,7 @@ use crate::losses::{
 };
 use crate::rng::Rng;
 use seqavatar_avatar::skinning::{GaussianParams, skin_backward};
-use seqavatar_avatar::splatting::{self, SplatPass};
+use seqavatar_avatar::splatting::SplatPass;
 
 /// Loss and statistics of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -293,7 +293,10 @@ impl Gradients {
 pub struct Trainer<'d> {
     pub config: TrainConfig,
     data: &'d TrainingData,
-    backend: Backend,
+    /// The backend every phase runs on, chosen once when the trainer is built (on the gpu it
+    /// owns an f32 copy of the per-Gaussian networks, non-rigid and LBS offsets, refreshed
+    /// from `networks`, the parameter master, before every forward pass).
+    device: Box<dyn AvatarBackend>,
     pub state: GaussianState,
     /// Completed iterations.
     pub iteration: u64,
@@ -306,9 +309,6 @@ pub struct Trainer<'d> {
     /// The networks (when the configuration has any) and their Adam state by name.
     pub networks: Option<Networks<f32>>,
     network_adam: BTreeMap<String, AdamState<f32>>,
-    /// On the `gpu` backend, an f32 copy of the networks that evaluates the per-Gaussian ones
-    /// (non-rigid, LBS offsets; forward and backward); `networks` stays the parameter master.
-    gpu_networks: Option<GpuNetworks>,
     train_images: Vec<usize>,
     /// The LPIPS loss, loaded only when `lpips_weight > 0`.
     lpips: Option<LpipsLoss>,
@@ -358,7 +358,9 @@ pub fn initial_scales(points: &[f64]) -> Vec<f64> {
 
 impl<'d> Trainer<'d> {
     /// A fresh run: Gaussians at the canonical template vertices with random colours,
-    /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations.
+    /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations. Every
+    /// phase runs on `backend`, which the trainer builds its [`AvatarBackend`] from once
+    /// ([`avatar_backend`]).
     pub fn new(
         config: TrainConfig,
         data: &'d TrainingData,
@@ -410,16 +412,8 @@ impl<'d> Trainer<'d> {
             !train_images.is_empty(),
             "no training image has a non-empty foreground mask"
         );
-        let gpu_networks = match (&backend, networks.as_ref()) {
-            (Backend::Gpu(context), Some(net)) if net.has_non_rigid() || net.has_lbs_offsets() => {
-                Some(
-                    GpuNetworks::upload(context.clone(), net)
-                        .context("uploading the networks to the gpu")?,
-                )
-            }
-            _ => None,
-        };
-        let lpips = load_lpips_loss(&config, &backend)?;
+        let device = avatar_backend(backend, networks.as_ref())?;
+        let lpips = load_lpips_loss(&config, device.compute())?;
         if let Some(loss) = &lpips {
             for &index in &train_images {
                 let camera = &data.cameras[data.images[index].view];
@@ -433,13 +427,12 @@ impl<'d> Trainer<'d> {
             }
         }
         Ok(Self {
-            gpu_networks,
             lpips,
             template_grid: template_grid(&data.rig),
             poses: vec![None; data.params.len()],
             config,
             data,
-            backend,
+            device,
             state,
             iteration,
             adam_step,
@@ -535,10 +528,9 @@ impl<'d> Trainer<'d> {
             net.zero_grad();
         }
         // The master parameters change with every optimiser step (and `networks` is public):
-        // the gpu copy is refreshed before every forward pass.
-        if let (Some(gpu), Some(net)) = (&self.gpu_networks, &self.networks) {
-            gpu.upload_groups(net, GpuNetworks::DEFORM_GROUPS)
-                .context("uploading the networks to the gpu")?;
+        // the backend's copy (on the gpu) is refreshed before every forward pass.
+        if let Some(net) = &self.networks {
+            self.device.refresh_networks(net)?;
         }
         let posed = self.posed_frame(frame)?;
         let avatar_config = self.config.avatar();
@@ -550,11 +542,11 @@ impl<'d> Trainer<'d> {
             frame,
         )?;
         let gaussians = self.avatar_gaussians()?;
-        let deformed = deform_on(
+        let deformed = deform(
             &self.data.rig,
             &self.template_grid,
             self.networks.as_ref(),
-            self.gpu_networks.as_ref(),
+            &*self.device,
             &gaussians,
             &inputs,
             &posed.pose,
@@ -584,7 +576,9 @@ impl<'d> Trainer<'d> {
             background,
             smooth_cutoff: false,
         };
-        let pass = splatting::forward(&self.backend, &forward.deformed.world, &cameras, &options)?;
+        let pass = self
+            .device
+            .splat_forward(&forward.deformed.world, &cameras, &options)?;
         Ok(Rendered {
             cameras,
             background,
@@ -712,8 +706,7 @@ impl<'d> Trainer<'d> {
         let deformed = &forward.deformed;
         let gaussians = &forward.gaussians;
         let n = gaussians.len();
-        let mut splat_grads = splatting::backward(
-            &self.backend,
+        let mut splat_grads = self.device.splat_backward(
             &rendered.pass,
             &deformed.world,
             &losses.upstream_colour,
@@ -762,7 +755,7 @@ impl<'d> Trainer<'d> {
         if let Some(net) = self.networks.as_mut() {
             let through = deform_backward(
                 net,
-                self.gpu_networks.as_ref(),
+                &*self.device,
                 &self.data.rig,
                 &forward.posed,
                 deformed,
@@ -966,7 +959,7 @@ impl<'d> Trainer<'d> {
     /// Whether the non-rigid network runs on the gpu (the `gpu` backend with a motion
     /// context that has one).
     pub fn non_rigid_on_gpu(&self) -> bool {
-        self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.gpu_networks.is_some()
+        self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.device.networks_on_gpu()
     }
 
     /// Wall time per phase since the trainer was built or the last

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use seqavatar_avatar::TrainedAvatar;
-use seqavatar_compute::backend::{AdapterChoice, Backend, GpuContext};
+use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::lpips::LpipsNet;
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
@@ -189,7 +189,7 @@ fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
 fn stored_avatar_renders_exactly_like_the_trainer() {
     let dir = tempfile::tempdir().unwrap();
     let (data, config) = tiny_data(dir.path(), 5);
-    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    let mut trainer = Trainer::new(config, &data, cpu_backend()).unwrap();
     for _ in 0..5 {
         trainer.step().unwrap();
     }
@@ -199,7 +199,8 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
         .frame_inputs(&data.motion, &data.params[record.frame], record.frame)
         .unwrap();
     let camera = &data.cameras[record.view];
-    let direct = avatar.render(&inputs, camera, &Backend::Cpu).unwrap();
+    let device = avatar.backend(cpu_backend()).unwrap();
+    let direct = avatar.render(&inputs, camera, &*device).unwrap();
     assert!(direct.alpha.iter().any(|a| *a > 0.5), "the body is visible");
 
     // The same 5 iterations as a stage: its entry loads and renders identically.
@@ -209,7 +210,9 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
     assert_eq!(loaded.gaussians, avatar.gaussians);
     assert_eq!(loaded.config, avatar.config);
     assert_eq!(loaded.sh_degree, avatar.sh_degree);
-    let again = loaded.render(&inputs, camera, &Backend::Cpu).unwrap();
+    let again = loaded
+        .render(&inputs, camera, &*loaded.backend(cpu_backend()).unwrap())
+        .unwrap();
     assert_eq!(again.colour, direct.colour);
     assert_eq!(again.alpha, direct.alpha);
 }
@@ -218,11 +221,11 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
 fn checkpoint_resume_is_exact() {
     let dir = tempfile::tempdir().unwrap();
     let (data, config) = tiny_data(dir.path(), 40);
-    let mut straight = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut straight = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     for _ in 0..12 {
         straight.step().unwrap();
     }
-    let mut first = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut first = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     for _ in 0..7 {
         first.step().unwrap();
     }
@@ -230,7 +233,7 @@ fn checkpoint_resume_is_exact() {
     checkpoint::save(&ckpt_dir, &first.checkpoint()).unwrap();
     drop(first);
     let loaded = checkpoint::load_latest(&ckpt_dir).unwrap().unwrap();
-    let mut resumed = Trainer::resume(config.clone(), &data, Backend::Cpu, &loaded).unwrap();
+    let mut resumed = Trainer::resume(config.clone(), &data, cpu_backend(), &loaded).unwrap();
     assert_eq!(resumed.iteration, 7);
     for _ in 0..5 {
         resumed.step().unwrap();
@@ -241,7 +244,7 @@ fn checkpoint_resume_is_exact() {
     // A different configuration refuses the checkpoint.
     let mut other = config;
     other.seed += 1;
-    assert!(Trainer::resume(other, &data, Backend::Cpu, &loaded).is_err());
+    assert!(Trainer::resume(other, &data, cpu_backend(), &loaded).is_err());
 }
 
 /// With every network (multiscale context, pose refiner, LBS offsets): the network
@@ -255,11 +258,11 @@ fn checkpoint_resume_is_exact_with_networks() {
     config.lbs_offsets = true;
     config.trunk_width = 16;
     config.trunk_depth = 2;
-    let mut straight = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut straight = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     for _ in 0..6 {
         straight.step().unwrap();
     }
-    let mut first = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut first = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     for _ in 0..3 {
         first.step().unwrap();
     }
@@ -267,7 +270,7 @@ fn checkpoint_resume_is_exact_with_networks() {
     checkpoint::save(&ckpt_dir, &first.checkpoint()).unwrap();
     drop(first);
     let loaded = checkpoint::load_latest(&ckpt_dir).unwrap().unwrap();
-    let mut resumed = Trainer::resume(config, &data, Backend::Cpu, &loaded).unwrap();
+    let mut resumed = Trainer::resume(config, &data, cpu_backend(), &loaded).unwrap();
     for _ in 0..3 {
         resumed.step().unwrap();
     }
@@ -287,7 +290,7 @@ fn checkpoint_resume_is_exact_with_networks() {
 /// Largest non-rigid centre and scale offsets of a fresh run's networks at frame 1.
 fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
     use seqavatar_avatar::avatar::{deform, frame_pose, template_grid};
-    let trainer = Trainer::new(config.clone(), data, Backend::Cpu).unwrap();
+    let trainer = Trainer::new(config.clone(), data, cpu_backend()).unwrap();
     let avatar = trainer.avatar().unwrap();
     let inputs = avatar
         .frame_inputs(&data.motion, &data.params[1], 1)
@@ -299,6 +302,7 @@ fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
         &avatar.rig,
         &grid,
         networks,
+        &*avatar.backend(cpu_backend()).unwrap(),
         &avatar.gaussians,
         &inputs,
         &posed.pose,
@@ -343,7 +347,7 @@ fn absurd_learning_rate_stops_with_iteration_and_tensor() {
     let (data, mut config) = tiny_data(dir.path(), 40);
     config.learning_rates.position_initial = 1e308;
     config.learning_rates.position_final = 1e308;
-    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    let mut trainer = Trainer::new(config, &data, cpu_backend()).unwrap();
     let err = trainer.step().unwrap_err();
     let divergence = err
         .downcast_ref::<Divergence>()
@@ -367,7 +371,7 @@ fn densification_keeps_columns_consistent_across_real_steps() {
     config.densify_interval = 2;
     config.densify_grad_threshold = 1e-9;
     config.max_gaussians = 100_000;
-    let mut trainer = Trainer::new(config, &data, Backend::Cpu).unwrap();
+    let mut trainer = Trainer::new(config, &data, cpu_backend()).unwrap();
     let start = trainer.state.len();
     trainer.step().unwrap();
     let visible_before = trainer
@@ -411,17 +415,15 @@ fn densification_keeps_columns_consistent_across_real_steps() {
     assert_eq!(next.gaussians, report.count);
 }
 
+/// The `cpu` backend, as the train stage selects it.
+fn cpu_backend() -> Backend {
+    Backend::select(DeviceChoice::Cpu).unwrap()
+}
+
+/// The gpu backend on the software adapter allowed, or `None` (skipped, with the reason
+/// printed) without one, except under `CI`, where that fails the test.
 fn gpu_backend() -> Option<Backend> {
-    match GpuContext::new(AdapterChoice::AllowSoftware) {
-        Ok(context) => Some(Backend::Gpu(std::sync::Arc::new(context))),
-        Err(e) => {
-            if std::env::var_os("SEQAVATAR_REQUIRE_GPU").is_some() {
-                panic!("no GPU adapter: {e}");
-            }
-            eprintln!("skipping the gpu comparison: {e}");
-            None
-        }
-    }
+    seqavatar_compute::backend::test_support::gpu_test_backend()
 }
 
 #[test]
@@ -429,7 +431,7 @@ fn gpu_steps_match_cpu() {
     let Some(gpu) = gpu_backend() else { return };
     let dir = tempfile::tempdir().unwrap();
     let (data, config) = tiny_data(dir.path(), 40);
-    let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut cpu = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     let mut gpu = Trainer::new(config, &data, gpu).unwrap();
     for step in 0..4 {
         let a = cpu.step().unwrap();
@@ -467,7 +469,7 @@ fn gpu_steps_with_networks_match_cpu() {
     // Every network group: the LBS offsets run on the gpu too, the pose refiner on cpu.
     config.lbs_offsets = true;
     config.pose_refiner = true;
-    let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut cpu = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     let mut gpu = Trainer::new(config, &data, gpu).unwrap();
     assert!(!cpu.non_rigid_on_gpu());
     assert!(gpu.non_rigid_on_gpu());
@@ -501,7 +503,7 @@ fn gpu_steps_with_networks_match_cpu() {
         cpu.networks.as_ref().unwrap(),
         gpu.networks.as_ref().unwrap(),
     );
-    let initial = Trainer::new(cpu.config.clone(), &data, Backend::Cpu).unwrap();
+    let initial = Trainer::new(cpu.config.clone(), &data, cpu_backend()).unwrap();
     let start = initial.networks.as_ref().unwrap();
     // Norms, not elements: Adam turns an f32-rounded gradient near zero into a full step
     // of either sign, so single values may differ by a step.
@@ -671,8 +673,8 @@ fn lpips_loss_enters_the_total_and_the_gradient() {
     let mut on = off.clone();
     on.lpips_weight = 0.1;
     on.lpips_weights = Some(weights.clone());
-    let mut without = Trainer::new(off.clone(), &data, Backend::Cpu).unwrap();
-    let mut with = Trainer::new(on.clone(), &data, Backend::Cpu).unwrap();
+    let mut without = Trainer::new(off.clone(), &data, cpu_backend()).unwrap();
+    let mut with = Trainer::new(on.clone(), &data, cpu_backend()).unwrap();
     assert!(with.lpips_active() && !without.lpips_active());
     let started = Instant::now();
     let (a, b) = (without.step().unwrap(), with.step().unwrap());
@@ -706,7 +708,7 @@ fn lpips_loss_enters_the_total_and_the_gradient() {
     assert!(with.curve.lpips.iter().all(|v| *v > 0.0));
     assert!(without.curve.lpips.iter().all(|v| *v == 0.0));
     // A checkpoint carries the curve and resumes.
-    let resumed = Trainer::resume(on, &data, Backend::Cpu, &with.checkpoint()).unwrap();
+    let resumed = Trainer::resume(on, &data, cpu_backend(), &with.checkpoint()).unwrap();
     assert_eq!(resumed.curve, with.curve);
 }
 
@@ -719,7 +721,7 @@ fn lpips_weights_file_errors_name_the_file_and_tensor() {
     config.lpips_weights = Some(absent);
     let error = format!(
         "{:#}",
-        Trainer::new(config.clone(), &data, Backend::Cpu)
+        Trainer::new(config.clone(), &data, cpu_backend())
             .err()
             .unwrap()
     );
@@ -731,7 +733,7 @@ fn lpips_weights_file_errors_name_the_file_and_tensor() {
     config.lpips_net = seqavatar_compute::lpips::LpipsNet::Alex;
     let error = format!(
         "{:#}",
-        Trainer::new(config.clone(), &data, Backend::Cpu)
+        Trainer::new(config.clone(), &data, cpu_backend())
             .err()
             .unwrap()
     );
@@ -754,7 +756,7 @@ fn lpips_weights_file_errors_name_the_file_and_tensor() {
     config.lpips_weights = Some(alex);
     let error = format!(
         "{:#}",
-        Trainer::new(config, &small, Backend::Cpu).err().unwrap()
+        Trainer::new(config, &small, cpu_backend()).err().unwrap()
     );
     assert!(
         error.contains("31 x 31") && error.contains("20 x 20"),
@@ -810,7 +812,7 @@ fn gpu_steps_with_the_lpips_loss_match_cpu() {
     config.lpips_weight = 0.1;
     config.lpips_weights = Some(weights);
     config.motion_context = seqavatar_train::config::MotionContext::None;
-    let mut cpu = Trainer::new(config.clone(), &data, Backend::Cpu).unwrap();
+    let mut cpu = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
     let mut gpu = Trainer::new(config, &data, gpu).unwrap();
     for step in 0..3 {
         let (a, b) = (cpu.step().unwrap(), gpu.step().unwrap());
@@ -900,7 +902,7 @@ fn targets_are_composited_onto_the_background() {
             .zip(&repainted.images)
             .any(|(a, b)| a.rgb != b.rgb)
     );
-    let mut backends = vec![Backend::Cpu];
+    let mut backends = vec![cpu_backend()];
     backends.extend(gpu_backend());
     for backend in backends {
         for background in [Background::Black, Background::White, Background::Random] {

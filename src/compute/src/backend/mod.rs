@@ -38,8 +38,11 @@ pub enum BackendError {
     Shader { name: String, message: String },
 }
 
-/// The `device:` setting of a configuration.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// The `device:` setting of a configuration (the train and eval configs hold it directly,
+/// spelled `auto`, `cpu` or `gpu`; any other name is rejected with the choices) and of the
+/// `--device` option. [`Backend::select`] resolves it once.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum DeviceChoice {
     /// A hardware GPU when there is one, else `cpu`.
     #[default]
@@ -85,12 +88,19 @@ pub enum Backend {
 impl Backend {
     /// Resolves a `device:` setting. `Auto` never fails: without a hardware adapter it is `Cpu`.
     pub fn select(choice: DeviceChoice) -> Result<Self, BackendError> {
+        Self::select_adapter(choice, AdapterChoice::Hardware)
+    }
+
+    /// [`Backend::select`] with the gpu taken as `adapter` allows: benches pass
+    /// [`AdapterChoice::AllowSoftware`] to time the software adapter (Mesa lavapipe).
+    pub fn select_adapter(
+        choice: DeviceChoice,
+        adapter: AdapterChoice,
+    ) -> Result<Self, BackendError> {
         match choice {
             DeviceChoice::Cpu => Ok(Self::Cpu),
-            DeviceChoice::Gpu => Ok(Self::Gpu(Arc::new(GpuContext::new(
-                AdapterChoice::Hardware,
-            )?))),
-            DeviceChoice::Auto => match GpuContext::new(AdapterChoice::Hardware) {
+            DeviceChoice::Gpu => Ok(Self::Gpu(Arc::new(GpuContext::new(adapter)?))),
+            DeviceChoice::Auto => match GpuContext::new(adapter) {
                 Ok(context) => Ok(Self::Gpu(Arc::new(context))),
                 Err(_) => Ok(Self::Cpu),
             },
@@ -130,6 +140,30 @@ mod tests {
         }
         let error = "cuda".parse::<DeviceChoice>().unwrap_err();
         assert!(error.to_string().contains("\"cuda\""), "{error}");
+    }
+
+    /// Configs spell the choice as the former config enum did (`auto`, `cpu`, `gpu`: the
+    /// same canonical JSON, so the same cache keys), and an unknown name is an error that
+    /// names it and the choices.
+    #[test]
+    fn device_choice_serialises_as_configs_spell_it() {
+        for (choice, text) in [
+            (DeviceChoice::Auto, "auto"),
+            (DeviceChoice::Cpu, "cpu"),
+            (DeviceChoice::Gpu, "gpu"),
+        ] {
+            let json = serde_json::to_string(&choice).unwrap();
+            assert_eq!(json, format!("\"{text}\""));
+            assert_eq!(serde_json::from_str::<DeviceChoice>(&json).unwrap(), choice);
+        }
+        for bad in ["cuda", "GPU", ""] {
+            let error = serde_json::from_value::<DeviceChoice>(serde_json::json!(bad))
+                .unwrap_err()
+                .to_string();
+            for part in [&format!("`{bad}`"), "auto", "cpu", "gpu"] {
+                assert!(error.contains(part), "{bad:?}: `{error}` lacks {part}");
+            }
+        }
     }
 
     #[test]

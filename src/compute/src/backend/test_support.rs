@@ -5,7 +5,7 @@
 
 use std::sync::{Arc, OnceLock};
 
-use super::{AdapterChoice, GpuContext};
+use super::{AdapterChoice, Backend, GpuContext};
 
 /// The shared gpu context for tests, or `None` (after printing why) when the test should be
 /// skipped. Panics when `CI` is set and no adapter exists, so CI never passes vacuously.
@@ -32,6 +32,12 @@ pub fn gpu_test_context() -> Option<Arc<GpuContext>> {
             None
         }
     }
+}
+
+/// The gpu backend on the shared test context ([`gpu_test_context`]), or `None` under the
+/// same rules.
+pub fn gpu_test_backend() -> Option<Backend> {
+    gpu_test_context().map(Backend::Gpu)
 }
 
 /// A separate context whose dispatches go 2D beyond `limit` workgroups per dimension, or

@@ -328,10 +328,10 @@ impl GpuNetworks {
         Self::upload(context, &narrow)
     }
 
-    /// The groups that [`crate::avatar::deform_on`] evaluates on the gpu: the non-rigid
+    /// The groups that [`crate::avatar::deform`] evaluates on the gpu: the non-rigid
     /// network and the LBS offsets (both per Gaussian). The pose refiner is one row per frame
     /// and stays on `cpu` (a device round trip costs more than the whole network;
-    /// see `deform_on`).
+    /// see `crate::avatar::deform`).
     pub const DEFORM_GROUPS: &'static [NetworkGroup] =
         &[NetworkGroup::NonRigid, NetworkGroup::LbsOffsets];
 
