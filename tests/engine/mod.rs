@@ -417,17 +417,20 @@ fn gc_keeps_only_listed_pipelines() {
 fn gc_skips_entries_a_running_pipeline_reads_until_it_dies() {
     let sandbox = Sandbox::new();
     sandbox.write("p.yaml", &two_stages("", "sleep_ms: 60000, steps: 600"));
-    let mut child = sandbox.spawn(&["run", "p.yaml"]);
-    let staging = sandbox.cache().join(".staging").join("test_arrays");
-    wait_for("a step of b", Duration::from_secs(60), || {
-        fs::read_dir(&staging)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .any(|entry| entry.path().join("work").join("steps_done").exists())
-    });
+    // Keys derive from configs, so they are known before anything runs.
     let a = sandbox.key_of("p.yaml", "a");
     let b = sandbox.key_of("p.yaml", "b");
+    let mut child = sandbox.spawn(&["run", "p.yaml"]);
+    // Wait for a step of b itself: a (one step) writes the same `work/steps_done` in its own
+    // staging folder before it is published, and gc must see a published.
+    let b_steps = sandbox
+        .cache()
+        .join(".staging")
+        .join("test_arrays")
+        .join(&b)
+        .join("work")
+        .join("steps_done");
+    wait_for("a step of b", Duration::from_secs(60), || b_steps.exists());
     // b is running with a as its input: gc (keeping nothing) must leave a alone.
     let report = sandbox.ok(&["gc"]);
     assert!(
