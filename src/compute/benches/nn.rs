@@ -7,8 +7,13 @@
 //! skips that column with a note.
 //!
 //! The cpu and numpy timings are interleaved (cpu, then numpy, for each product in each
-//! repetition, numpy kept running in one process, a 200 ms pause before each run) and the
-//! medians reported, so a busy machine slows both sides alike; the load average is printed before and after. numpy
+//! repetition, numpy kept running in one process) and the medians reported, so a busy
+//! machine slows both sides alike; the load average is printed before and after. Before
+//! each run the bench waits until neither side uses CPU any more: OpenBLAS's worker threads
+//! spin for about 100 ms of CPU after every product, so a fixed pause (200 ms here before)
+//! let them compete with the next cpu run whenever the machine was busy enough to stretch
+//! that spin past the pause. `cpu/numpy` is the ratio of the medians; `paired` the range of
+//! the per-repetition ratios (each cpu run against the numpy run right after it). numpy
 //! writes into preallocated outputs (`out=`) as the cpu layer does. Per shape, three rows:
 //! `forward` (`X W + b`, ReLU; numpy `X W`), `backward` (ReLU mask, `db`, `dX = dY' W^T`,
 //! `dW += X^T dY'`; numpy the two products) and `dW only` (the backward of a layer whose
@@ -16,7 +21,7 @@
 
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
 use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
@@ -284,18 +289,68 @@ impl CpuLayer {
     }
 }
 
-/// The pause before each timed run, so that neither side's idle threads still hold a core
-/// when the other side starts (OpenBLAS workers spin for a while after each product).
-const SETTLE: std::time::Duration = std::time::Duration::from_millis(200);
+/// The shortest pause before each timed run.
+const SETTLE: Duration = Duration::from_millis(50);
 
-/// Median cpu and numpy seconds per product, interleaved over `reps` repetitions after
-/// one untimed warm-up repetition; numpy `Err` says why it was skipped.
-fn interleaved(
-    rows: usize,
-    shape: LinearShape,
-    reps: usize,
-    numpy: &mut Option<Numpy>,
-) -> (Vec<f64>, Result<Vec<f64>, String>) {
+/// The window in which a process counts as idle when it used less than `IDLE_CPU` of CPU.
+const IDLE_WINDOW: Duration = Duration::from_millis(25);
+
+/// See [`IDLE_WINDOW`]: 4% of one core.
+const IDLE_CPU: Duration = Duration::from_millis(1);
+
+/// The longest wait for a process to go idle before a run is timed anyway.
+const IDLE_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// CPU time used so far by all threads of process `pid` (from `/proc/<pid>/task/*/schedstat`,
+/// nanoseconds), or `None` where that is unreadable (not Linux).
+fn process_cpu(pid: u32) -> Option<Duration> {
+    let mut total = 0u64;
+    for entry in std::fs::read_dir(format!("/proc/{pid}/task")).ok()? {
+        // A thread may exit between the listing and the read; it no longer runs.
+        if let Ok(text) = std::fs::read_to_string(entry.ok()?.path().join("schedstat")) {
+            total += text.split_whitespace().next()?.parse::<u64>().ok()?;
+        }
+    }
+    Some(Duration::from_nanos(total))
+}
+
+/// Sleeps [`SETTLE`], then until each process in `pids` used less than [`IDLE_CPU`] in an
+/// [`IDLE_WINDOW`] (at most [`IDLE_TIMEOUT`]), so that no thread of the previous run still
+/// spins on a core. Returns how long it waited beyond `SETTLE`.
+fn settle(pids: &[u32]) -> Duration {
+    std::thread::sleep(SETTLE);
+    let start = Instant::now();
+    loop {
+        let before: Vec<Option<Duration>> = pids.iter().map(|&pid| process_cpu(pid)).collect();
+        std::thread::sleep(IDLE_WINDOW);
+        let busy =
+            pids.iter()
+                .zip(&before)
+                .any(|(&pid, before)| match (before, process_cpu(pid)) {
+                    (Some(before), Some(after)) => after.saturating_sub(*before) >= IDLE_CPU,
+                    _ => false,
+                });
+        if !busy || start.elapsed() >= IDLE_TIMEOUT {
+            return start.elapsed();
+        }
+    }
+}
+
+/// One shape's cpu and numpy figures, per product in [`Product::ALL`] order.
+struct Figures {
+    /// cpu GFLOP/s (median time).
+    cpu: Vec<f64>,
+    /// numpy GFLOP/s (median time), or why numpy was skipped.
+    numpy: Result<Vec<f64>, String>,
+    /// Smallest and largest per-repetition cpu/numpy ratio.
+    paired: Vec<(f64, f64)>,
+    /// The longest wait, beyond the fixed pause, for the other side to go idle.
+    longest_wait: Duration,
+}
+
+/// Median cpu and numpy timings per product, interleaved over `reps` repetitions after
+/// one untimed warm-up repetition.
+fn interleaved(rows: usize, shape: LinearShape, reps: usize, numpy: &mut Option<Numpy>) -> Figures {
     let mut layer = CpuLayer::new(rows, shape);
     let mut numpy_error = None;
     if let Some(worker) = numpy.as_mut()
@@ -304,13 +359,17 @@ fn interleaved(
         numpy_error = Some(error);
         *numpy = None;
     }
+    let own = std::process::id();
     let mut cpu_times = vec![Vec::new(); Product::ALL.len()];
     let mut numpy_times = vec![Vec::new(); Product::ALL.len()];
+    let mut longest_wait = Duration::ZERO;
     for rep in 0..=reps {
         for (index, &product) in Product::ALL.iter().enumerate() {
-            std::thread::sleep(SETTLE);
+            let mut pids = vec![own];
+            pids.extend(numpy.as_ref().map(|worker| worker.child.id()));
+            let waited = settle(&pids);
             let cpu = layer.time(product);
-            std::thread::sleep(SETTLE);
+            let waited = waited.max(settle(&pids));
             let other = match numpy.as_mut() {
                 Some(worker) => match worker.time(product) {
                     Ok(seconds) => Some(seconds),
@@ -323,12 +382,26 @@ fn interleaved(
                 None => None,
             };
             if rep > 0 {
+                longest_wait = longest_wait.max(waited);
                 cpu_times[index].push(cpu);
                 numpy_times[index].extend(other);
             }
         }
     }
     let flops = shape.forward_flops(rows);
+    let paired = cpu_times
+        .iter()
+        .zip(&numpy_times)
+        .map(|(cpu, other)| {
+            // Throughput ratio cpu/numpy = numpy seconds / cpu seconds, per repetition.
+            cpu.iter()
+                .zip(other)
+                .map(|(c, n)| n / c)
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), r| {
+                    (lo.min(r), hi.max(r))
+                })
+        })
+        .collect();
     let gflops = |times: &mut Vec<f64>, product: Product| {
         product.flop_factor() * flops / median(times) / 1e9
     };
@@ -346,7 +419,12 @@ fn interleaved(
             .map(|(&product, times)| gflops(times, product))
             .collect()),
     };
-    (cpu, numpy_result)
+    Figures {
+        cpu,
+        numpy: numpy_result,
+        paired,
+        longest_wait,
+    }
 }
 
 /// gpu forward and backward GFLOP/s (10 layers per submission, best of 3 submissions).
@@ -460,19 +538,21 @@ fn main() {
         }
     };
     println!(
-        "{:>11} | {:>9} | {:>8} {:>8} {:>9} | {:>8}",
-        "in x out", "product", "cpu", "numpy", "cpu/numpy", "gpu"
+        "{:>11} | {:>9} | {:>8} {:>8} {:>9} {:>11} | {:>8}",
+        "in x out", "product", "cpu", "numpy", "cpu/numpy", "paired", "gpu"
     );
+    let mut longest_wait = Duration::ZERO;
     for (n_in, n_out) in shapes {
         let shape = LinearShape {
             in_features: n_in,
             out_features: n_out,
             activation: Activation::Relu,
         };
-        let (cpu, numpy_result) = interleaved(rows, shape, reps, &mut numpy);
-        if let Err(reason) = &numpy_result {
+        let figures = interleaved(rows, shape, reps, &mut numpy);
+        if let Err(reason) = &figures.numpy {
             eprintln!("numpy skipped for {n_in} x {n_out}: {reason}");
         }
+        longest_wait = longest_wait.max(figures.longest_wait);
         let gpu_figures = match &gpu {
             Some((context, nn)) => match gpu_gflops(context, nn, rows, shape) {
                 Ok((forward, backward)) => [Some(forward), Some(backward), None],
@@ -484,27 +564,40 @@ fn main() {
             None => [None; 3],
         };
         for (index, product) in Product::ALL.iter().enumerate() {
-            let (numpy_column, ratio_column) = match &numpy_result {
-                Ok(figures) => (
-                    format!("{:>8.1}", figures[index]),
-                    format!("{:>9.2}", cpu[index] / figures[index]),
+            let (numpy_column, ratio_column, paired_column) = match &figures.numpy {
+                Ok(numpy_figures) => {
+                    let (low, high) = figures.paired[index];
+                    (
+                        format!("{:>8.1}", numpy_figures[index]),
+                        format!("{:>9.2}", figures.cpu[index] / numpy_figures[index]),
+                        format!("{:>11}", format!("{low:.2}-{high:.2}")),
+                    )
+                }
+                Err(_) => (
+                    format!("{:>8}", "-"),
+                    format!("{:>9}", "-"),
+                    format!("{:>11}", "-"),
                 ),
-                Err(_) => (format!("{:>8}", "-"), format!("{:>9}", "-")),
             };
             let gpu_column = gpu_figures[index]
                 .map(|value| format!("{value:>8.1}"))
                 .unwrap_or_else(|| format!("{:>8}", "-"));
             println!(
-                "{:>11} | {:>9} | {:>8.1} {numpy_column} {ratio_column} | {gpu_column}",
+                "{:>11} | {:>9} | {:>8.1} {numpy_column} {ratio_column} {paired_column} | \
+                 {gpu_column}",
                 if index == 0 {
                     format!("{n_in} x {n_out}")
                 } else {
                     String::new()
                 },
                 product.label(),
-                cpu[index]
+                figures.cpu[index]
             );
         }
     }
+    println!(
+        "longest wait for the other side's threads to stop spinning before a run: {} ms",
+        longest_wait.as_millis()
+    );
     println!("load average after: {}", load_average());
 }
