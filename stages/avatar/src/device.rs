@@ -139,11 +139,11 @@ pub trait AvatarBackend<S: NnScalar = f32>: Send + Sync {
         options: &RasterOptions,
     ) -> anyhow::Result<SplatPass>;
 
-    /// Gradients with respect to `gaussians` (the set given to the forward of `pass`).
+    /// Gradients with respect to the Gaussians given to the forward of `pass` (the pass keeps
+    /// the f32 copy both backends splat).
     fn splat_backward(
         &self,
         pass: &SplatPass,
-        gaussians: &WorldGaussians,
         colour: &[Vec<f64>],
         alpha: &[Vec<f64>],
     ) -> anyhow::Result<SplatGradients<f64>>;
@@ -287,11 +287,10 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
     fn splat_backward(
         &self,
         pass: &SplatPass,
-        gaussians: &WorldGaussians,
         colour: &[Vec<f64>],
         alpha: &[Vec<f64>],
     ) -> anyhow::Result<SplatGradients<f64>> {
-        splatting::backward_cpu(pass, gaussians, colour, alpha)
+        splatting::backward_cpu(pass, colour, alpha)
     }
 }
 
@@ -438,7 +437,6 @@ impl<S: NnScalar> AvatarBackend<S> for GpuBackend {
     fn splat_backward(
         &self,
         pass: &SplatPass,
-        _gaussians: &WorldGaussians,
         colour: &[Vec<f64>],
         alpha: &[Vec<f64>],
     ) -> anyhow::Result<SplatGradients<f64>> {

@@ -195,7 +195,8 @@ impl StageKind for EvalStage {
         // 4: reads the avatar config (attribute `avatar`) of train entries of version 5.
         // 5: on the cpu backend the networks run in f32 too.
         // 6: `summary.subsets` (history frames, held-out cameras / frames).
-        6
+        // 7: on the cpu backend the avatar splats in f32 (the lane path).
+        7
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {

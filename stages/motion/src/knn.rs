@@ -18,6 +18,9 @@ pub struct KnnGrid {
     cell_start: Vec<usize>,
     /// Point indices sorted by cell.
     order: Vec<u32>,
+    /// How far (per axis) a point may lie outside its cell's box through the rounding of
+    /// [`Self::cell_coords`]: the cell skip test of [`Self::query`] grows the boxes by it.
+    slack: f64,
 }
 
 impl KnnGrid {
@@ -50,6 +53,7 @@ impl KnnGrid {
         let dims: [usize; 3] =
             std::array::from_fn(|a| ((extent[a] / cell).floor() as usize + 1).max(1));
         let cells = dims[0] * dims[1] * dims[2];
+        let magnitude = lo.iter().chain(&hi).fold(0.0_f64, |m, v| m.max(v.abs()));
         let mut grid = Self {
             points: points.to_vec(),
             origin: lo,
@@ -57,6 +61,8 @@ impl KnnGrid {
             dims,
             cell_start: vec![0; cells + 1],
             order: Vec::with_capacity(finite.len()),
+            // Far above the rounding of `(p - origin) / cell` and of the box corners.
+            slack: 1e-6 * cell + 1e-12 * magnitude,
         };
         let cell_of: Vec<Option<usize>> = points
             .iter()
@@ -120,6 +126,11 @@ impl KnnGrid {
                         if !on_shell {
                             continue;
                         }
+                        // With k candidates, a cell whose box lies farther than the k-th
+                        // cannot hold a better one (ties included: they are farther too).
+                        if best.len() == k && self.box_distance2(query, [x, y, z]) > best[k - 1].0 {
+                            continue;
+                        }
                         let c = self.flat([x as usize, y as usize, z as usize]);
                         for &i in &self.order[self.cell_start[c]..self.cell_start[c + 1]] {
                             let d = dist2(query, &self.points[i as usize]);
@@ -150,6 +161,19 @@ impl KnnGrid {
             }
         }
         best.into_iter().map(|(_, i)| i).collect()
+    }
+
+    /// Squared distance from `query` to the box of cell `c` grown by [`Self::slack`]: no
+    /// point of the cell is nearer.
+    fn box_distance2(&self, query: &[f64; 3], c: [isize; 3]) -> f64 {
+        let mut sum = 0.0;
+        for a in 0..3 {
+            let lo = self.origin[a] + c[a] as f64 * self.cell - self.slack;
+            let hi = self.origin[a] + (c[a] + 1) as f64 * self.cell + self.slack;
+            let gap = (lo - query[a]).max(query[a] - hi).max(0.0);
+            sum += gap * gap;
+        }
+        sum
     }
 
     /// `k` nearest neighbours of every query, flattened `queries x k` (parallel).

@@ -45,10 +45,9 @@ use crate::trainer::{LossCurve, Trainer};
 /// The stage kind.
 pub struct TrainStage;
 
-/// Bump whenever the code changes the result (6: the networks train and render in f32; 7: on
-/// the gpu backend the held-out PSNR renders with the gpu copy of the per-Gaussian networks,
-/// as eval does, no longer with the cpu networks: the backend is chosen once; `cpu` runs are
-/// bit-identical to 6).
+/// Bump whenever the code changes the result (6: the networks train and render in f32; 7: the
+/// cpu backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
+/// with the gpu copy of the per-Gaussian networks, as eval does).
 const VERSION: u32 = 7;
 
 pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;

@@ -708,7 +708,6 @@ impl<'d> Trainer<'d> {
         let n = gaussians.len();
         let mut splat_grads = self.device.splat_backward(
             &rendered.pass,
-            &deformed.world,
             &losses.upstream_colour,
             &losses.upstream_alpha,
         )?;
