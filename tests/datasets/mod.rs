@@ -251,7 +251,6 @@ fn synthetic_pipelines_load() {
     for name in [
         "synthetic.yaml",
         "ablation_synthetic.yaml",
-        "ablation_synthetic_exact.yaml",
         "tradeoff_synthetic.yaml",
         "history_synthetic.yaml",
     ] {
