@@ -18,6 +18,8 @@ pub struct SeedRun {
     pub train_config: Value,
     /// The eval entry's `summary` attribute.
     pub summary: Value,
+    /// Training wall time (the train entry's `wall_seconds`), when known.
+    pub train_seconds: Option<f64>,
 }
 
 /// The config without its `seed`, as canonical JSON: runs with the same key are seeds of one
@@ -153,6 +155,7 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
     }
     let mut headers = vec!["row", "seeds"];
     headers.extend(COLUMNS.iter().map(|(name, _)| *name));
+    headers.push("train time (s)");
     let mut table = Vec::new();
     for key in &order {
         let group = &groups[key];
@@ -165,12 +168,18 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
                 .filter(|value| value.is_finite())
                 .collect();
             let signed = index >= 5;
+            // Changes get a third decimal: "no effect" and "a few hundredths" differ.
             cells.push(match mean_std(&values) {
                 None => "-".to_owned(),
-                Some((mean, std)) if signed => format!("{mean:+.2} ± {std:.2}"),
+                Some((mean, std)) if signed => format!("{mean:+.3} ± {std:.3}"),
                 Some((mean, std)) => format!("{mean:.2} ± {std:.2}"),
             });
         }
+        let seconds: Vec<f64> = group.iter().filter_map(|run| run.train_seconds).collect();
+        cells.push(match mean_std(&seconds) {
+            None => "-".to_owned(),
+            Some((mean, std)) => format!("{mean:.0} ± {std:.0}"),
+        });
         table.push(cells);
     }
     Ok(Some(
@@ -196,6 +205,7 @@ mod tests {
                     {"probe": {"kind": "from_frame", "offset": 50}, "psnr_change": {"all": 0.0, "history": -0.1}}
                 ],
             }),
+            train_seconds: Some(100.0 * seed as f64),
         }
     }
 
@@ -223,8 +233,9 @@ mod tests {
         assert!(lines[3].starts_with("| train_e_multiscale | 2 | 28.20 ± 0.28 | 27.00 ± 0.00 |"));
         // Missing subsets are "-", changes are signed.
         assert!(
-            lines[3]
-                .contains("| - | - | 30.00 ± 0.00 | -2.00 ± 1.41 | -1.00 ± 0.71 | -0.10 ± 0.00 |"),
+            lines[3].ends_with(
+                "| - | - | 30.00 ± 0.00 | -2.000 ± 1.414 | -1.000 ± 0.707 | -0.100 ± 0.000 | 150 ± 71 |"
+            ),
             "{table}"
         );
         // One run per config: no ablation table.

@@ -305,6 +305,7 @@ pub fn write_report_for(
                 summary: entry
                     .attribute(SUMMARY_ATTRIBUTE)
                     .unwrap_or(serde_json::Value::Null),
+                train_seconds: train.entry.as_ref().map(training_seconds),
             });
         }
         rows.push(EvalRow {
@@ -385,7 +386,8 @@ pub fn write_report_for(
              Eval stages whose train stages differ only in `seed` form one row: PSNR (dB) on \
              all test images, the history frames, each protocol and the training images, and \
              the PSNR change when the motion context (skeleton motion, velocities) is zeroed \
-             or taken from another frame (`-`: the row has no such inputs or subset).\n\n",
+             or taken from another frame (`-`: the row has no such inputs or subset), and the \
+             training time.\n\n",
         );
         text.push_str(&table);
         text.push('\n');
