@@ -298,7 +298,7 @@ impl AvatarRenderer {
         };
         let mut inputs = self.avatar.frame_inputs(track, params, frame)?;
         if let Some(probe) = self.context_probe {
-            let donor = match probe.donor(frame, self.params.len()) {
+            let donor = match probe.donor(frame, self.first_frame(), self.params.len()) {
                 Some(donor) => Some(
                     self.avatar
                         .frame_inputs(track, &self.params[donor], donor)?,

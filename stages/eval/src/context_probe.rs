@@ -23,7 +23,8 @@ use crate::subsets::SubsetScores;
 pub enum ContextProbe {
     /// Skeleton motion and vertex velocities set to zero.
     Zeroed,
-    /// Frame `i` gets the history inputs of frame `(i + offset) mod frames`.
+    /// Frame `i` gets the history inputs of frame `(i + offset) mod frames` (counted from the
+    /// first frame whose motion window the sequence holds, see [`ContextProbe::donor`]).
     FromFrame { offset: usize },
 }
 
@@ -38,12 +39,18 @@ impl ContextProbe {
         }
     }
 
-    /// The frame whose history inputs frame `frame` of `frames` gets, `None` for
-    /// [`ContextProbe::Zeroed`].
-    pub fn donor(self, frame: usize, frames: usize) -> Option<usize> {
+    /// The frame whose history inputs frame `frame` gets, `None` for
+    /// [`ContextProbe::Zeroed`]. Donors are drawn from `first..frames`, the frames whose
+    /// motion windows the sequence holds (`first` is 0 when it starts its recording):
+    /// `first + (frame - first + offset) mod (frames - first)`.
+    pub fn donor(self, frame: usize, first: usize, frames: usize) -> Option<usize> {
         match self {
             ContextProbe::Zeroed => None,
-            ContextProbe::FromFrame { offset } => Some((frame + offset) % frames.max(1)),
+            ContextProbe::FromFrame { offset } => {
+                let first = first.min(frame);
+                let span = frames.saturating_sub(first).max(1);
+                Some(first + (frame - first + offset) % span)
+            }
         }
     }
 }
@@ -193,9 +200,12 @@ mod tests {
     #[test]
     fn another_frame_gives_its_history_inputs() {
         let probe = ContextProbe::FromFrame { offset: 5 };
-        assert_eq!(probe.donor(0, 8), Some(5));
-        assert_eq!(probe.donor(6, 8), Some(3));
-        assert_eq!(ContextProbe::Zeroed.donor(3, 8), None);
+        assert_eq!(probe.donor(0, 0, 8), Some(5));
+        assert_eq!(probe.donor(6, 0, 8), Some(3));
+        // Frames 0..4 cannot be drawn: donors stay in 4..8.
+        assert_eq!(probe.donor(6, 4, 8), Some(7));
+        assert_eq!(probe.donor(7, 4, 8), Some(4));
+        assert_eq!(ContextProbe::Zeroed.donor(3, 0, 8), None);
         let mut frame = inputs(1.0);
         let donor = inputs(-3.0);
         apply(probe, &mut frame, Some(&donor)).unwrap();
