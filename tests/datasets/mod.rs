@@ -243,14 +243,14 @@ fn dna_rendering_yaml_ingests_the_fixture() {
 }
 
 /// The synthetic pipelines load (configs validated, keys derived) without running anything,
-/// the history pipeline with its per-row evals and the authors' input scaling.
+/// the history pipeline with its per-row evals and the authors' input scaling, the ablation
+/// with its seeds.
 #[test]
 fn synthetic_pipelines_load() {
     let sandbox = Sandbox::new();
     for name in [
         "synthetic.yaml",
         "ablation_synthetic.yaml",
-        "ablation_synthetic_exact.yaml",
         "tradeoff_synthetic.yaml",
         "history_synthetic.yaml",
     ] {
@@ -259,6 +259,15 @@ fn synthetic_pipelines_load() {
     }
     let status = sandbox.ok(&["status", &pipeline_file("history_synthetic.yaml")]);
     for stage in ["motion_authors", "eval_b_pose", "eval_e_authors"] {
+        assert!(status.contains(stage), "{stage}: {status}");
+    }
+    // The ablation: rows (a)-(e) x 3 seeds, each evaluated.
+    let status = sandbox.ok(&["status", &pipeline_file("ablation_synthetic.yaml")]);
+    for stage in [
+        "eval_a_none_s1",
+        "eval_c_skeleton_s2",
+        "eval_e_multiscale_s3",
+    ] {
         assert!(status.contains(stage), "{stage}: {status}");
     }
 }

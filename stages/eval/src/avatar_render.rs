@@ -11,6 +11,7 @@ use seqavatar_core::camera::Camera;
 use seqavatar_engine::EntryReader;
 use seqavatar_motion::schema::MotionTrack;
 
+use crate::context_probe::ContextProbe;
 use crate::evaluate::ViewRenderer;
 use crate::image::ImageF32;
 
@@ -161,6 +162,8 @@ pub struct AvatarRenderer {
     /// The backend every render runs on, chosen when the renderer is built.
     device: Box<dyn AvatarBackend>,
     location: String,
+    /// Replaces the motion-history inputs of every frame (eval's context probes).
+    context_probe: Option<ContextProbe>,
 }
 
 impl AvatarRenderer {
@@ -225,6 +228,7 @@ impl AvatarRenderer {
             motion,
             device,
             location,
+            context_probe: None,
         })
     }
 
@@ -291,18 +295,37 @@ impl AvatarRenderer {
                 self.params.len()
             )
         })?;
-        match &self.motion {
-            Some(track) => self.avatar.frame_inputs(track, params, frame),
-            None => Ok(FrameInputs {
+        let Some(track) = &self.motion else {
+            return Ok(FrameInputs {
                 params: params.clone(),
                 skeleton_motion: Vec::new(),
                 vertex_velocity: Vec::new(),
-            }),
+            });
+        };
+        let mut inputs = self.avatar.frame_inputs(track, params, frame)?;
+        if let Some(probe) = self.context_probe {
+            let donor = match probe.donor(frame, self.first_frame(), self.params.len()) {
+                Some(donor) => Some(
+                    self.avatar
+                        .frame_inputs(track, &self.params[donor], donor)?,
+                ),
+                None => None,
+            };
+            crate::context_probe::apply(probe, &mut inputs, donor.as_ref())?;
         }
+        Ok(inputs)
     }
 }
 
 impl ViewRenderer for AvatarRenderer {
+    fn set_context_probe(&mut self, probe: Option<ContextProbe>) -> bool {
+        if !self.avatar.config.motion_context.has_skeleton_motion() || self.motion.is_none() {
+            return false;
+        }
+        self.context_probe = probe;
+        true
+    }
+
     fn render(&mut self, frame: usize, camera: &Camera) -> anyhow::Result<ImageF32> {
         let inputs = self.frame_inputs(frame)?;
         let image = self

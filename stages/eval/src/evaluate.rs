@@ -17,6 +17,12 @@ use crate::report::{self, format_metric};
 /// evaluation included), RGB in [0, 1] of the camera's size.
 pub trait ViewRenderer {
     fn render(&mut self, frame: usize, camera: &Camera) -> anyhow::Result<ImageF32>;
+
+    /// Renders from now on with the motion-history inputs replaced as `probe` says (`None`:
+    /// the frame's own); false when this renderer has no such inputs (nothing would change).
+    fn set_context_probe(&mut self, _probe: Option<crate::context_probe::ContextProbe>) -> bool {
+        false
+    }
 }
 
 impl<F: FnMut(usize, &Camera) -> anyhow::Result<ImageF32>> ViewRenderer for F {

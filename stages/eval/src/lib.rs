@@ -7,14 +7,17 @@
 //! - [`evaluate`]: scoring renders (protocol, metrics, error maps, contact sheet, speed).
 //! - [`avatar_render`]: the trained avatar as a renderer, and the avatar/entry checks.
 //! - [`animate`]: `pipeline render` (novel poses from another sequence or a pose file).
-//! - [`pipeline_report`]: `pipeline report`.
+//! - [`pipeline_report`]: `pipeline report`; [`ablation`]: its seed-averaged ablation table.
 //! - [`subsets`]: scores on the history frames and per protocol (held-out cameras, frames).
+//! - [`context_probe`]: the PSNR change with the motion context zeroed or from another frame.
 //! - [`metrics`], [`report`], [`testset`]: building blocks.
 //! - [`lpips`], [`image`], [`safetensors`]: re-exported from `seqavatar_compute`, where LPIPS
 //!   lives so that training can use it as a loss too.
 
+pub mod ablation;
 pub mod animate;
 pub mod avatar_render;
+pub mod context_probe;
 pub mod evaluate;
 pub mod export;
 pub mod metrics;

@@ -1,7 +1,8 @@
 //! `pipeline report`: a Markdown report with PNG plots for one pipeline run, read from the
 //! cache only: the metrics of every eval stage, loss curves from the train entries, the timing
 //! of every stage from its manifest, cache reuse, and for a sweep (several eval stages) a table
-//! over all of them with Pareto plots (PSNR vs training time, PSNR vs FPS).
+//! over all of them with Pareto plots (PSNR vs training time, PSNR vs FPS), and for an
+//! ablation with several seeds per configuration the seed-averaged table of [`crate::ablation`].
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -13,6 +14,7 @@ use seqavatar_engine::{
     open_store,
 };
 
+use crate::ablation::{SeedRun, ablation_table};
 use crate::evaluate::{MEAN_TABLE_HEADERS, MeanScores, SpeedRow, format_lpips_x1000};
 use crate::report::{
     self, PlotOptions, Series, format_metric, markdown_table, palette, pareto_front,
@@ -283,6 +285,7 @@ pub fn write_report_for(
 
     // Metrics of every eval stage.
     let mut rows: Vec<EvalRow> = Vec::new();
+    let mut seed_runs: Vec<SeedRun> = Vec::new();
     for state in states.iter().filter(|state| state.spec.kind == EVAL_KIND) {
         let Some(entry) = &state.entry else {
             continue;
@@ -295,6 +298,16 @@ pub fn write_report_for(
             .filter_map(|input| by_name.get(input.as_str()))
             .find(|input| input.spec.kind == "train");
         let train_entry = train_state.and_then(|train| train.entry.as_ref());
+        if let Some(train) = train_state {
+            seed_runs.push(SeedRun {
+                train_stage: train.spec.name.clone(),
+                train_config: train.spec.config.clone(),
+                summary: entry
+                    .attribute(SUMMARY_ATTRIBUTE)
+                    .unwrap_or(serde_json::Value::Null),
+                train_seconds: train.entry.as_ref().map(training_seconds),
+            });
+        }
         rows.push(EvalRow {
             eval_stage: state.spec.name.clone(),
             train_stage: train_state.map(|train| train.spec.name.clone()),
@@ -366,6 +379,18 @@ pub fn write_report_for(
             );
             text.push('\n');
         }
+    }
+    if let Some(table) = ablation_table(&seed_runs)? {
+        text.push_str(
+            "## Ablation (mean ± std over seeds)\n\n\
+             Eval stages whose train stages differ only in `seed` form one row: PSNR (dB) on \
+             all test images, the history frames, each protocol and the training images, and \
+             the PSNR change when the motion context (skeleton motion, velocities) is zeroed \
+             or taken from another frame (`-`: the row has no such inputs or subset), and the \
+             training time.\n\n",
+        );
+        text.push_str(&table);
+        text.push('\n');
     }
     if !missing_evals.is_empty() {
         let _ = writeln!(

@@ -21,7 +21,11 @@
 //!
 //! Attributes: `summary` (`sequence`, `means` = [`MeanScores`], `subsets` =
 //! [`crate::subsets::SubsetScores`]: means on the ingest entry's history frames and other
-//! frames, held-out cameras and held-out frames, each `null` when empty; `lpips` =
+//! frames, held-out cameras and held-out frames, each `null` when empty; `train_image_psnr` =
+//! the train entry's `train_image_psnr_mean` (protocol PSNR on training images) or `null`;
+//! `context_probes` = a list of [`crate::context_probe::ProbeResult`]: the scores with the
+//! motion-history inputs zeroed and taken from frame `i + context_probe_offset`, and their
+//! PSNR change per subset, empty for avatars without such inputs; `lpips` =
 //! `"unavailable"` or the nets used, `backend`), `speed` (a list of [`SpeedRow`]), `mean_table` (Markdown).
 
 use std::path::{Path, PathBuf};
@@ -37,9 +41,10 @@ use seqavatar_engine::{
     StageKind,
 };
 
+use crate::context_probe::{ContextProbe, ProbeResult, probe_result};
 use crate::evaluate::{
-    LpipsModels, MEAN_TABLE_HEADERS, SpeedRow, ViewRenderer, contact_sheet_rows, mean_scores,
-    mean_table_row, measure_speed, pad_to, score_image, spread,
+    LpipsModels, MEAN_TABLE_HEADERS, MeanScores, SpeedRow, ViewRenderer, contact_sheet_rows,
+    mean_scores, mean_table_row, measure_speed, pad_to, score_image, spread,
 };
 use crate::image::ImageF32;
 use crate::lpips::{Lpips, LpipsNet, LpipsWeights};
@@ -53,6 +58,8 @@ pub const EVAL_KIND: &str = "eval";
 pub const SUMMARY_ATTRIBUTE: &str = "summary";
 /// Entry attribute holding the rendering speed rows.
 pub const SPEED_ATTRIBUTE: &str = "speed";
+/// Train-entry attribute with the protocol PSNR on training images.
+pub const TRAIN_IMAGE_PSNR_ATTRIBUTE: &str = "train_image_psnr_mean";
 
 /// The `eval` stage configuration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,6 +82,11 @@ pub struct EvalConfig {
     pub speed_scales: Vec<f64>,
     /// Timed renders per resolution (after one untimed warm-up render).
     pub speed_frames: usize,
+    /// Score the test images again with the motion-history inputs zeroed and taken from
+    /// another frame ([`crate::context_probe`]); avatars without such inputs are not probed.
+    pub context_probes: bool,
+    /// The "another frame" probe gives frame `i` the inputs of frame `(i + offset) mod n`.
+    pub context_probe_offset: usize,
 }
 
 impl Default for EvalConfig {
@@ -89,6 +101,8 @@ impl Default for EvalConfig {
             contact_sheet_rows: 4,
             speed_scales: vec![1.0, 0.5],
             speed_frames: 5,
+            context_probes: true,
+            context_probe_offset: 50,
         }
     }
 }
@@ -129,6 +143,12 @@ impl EvalConfig {
             return Err(ConfigError::at_key(
                 "speed_scales",
                 format!("{bad} must be in (0, 4]"),
+            ));
+        }
+        if self.context_probes && self.context_probe_offset == 0 {
+            return Err(ConfigError::at_key(
+                "context_probe_offset",
+                "must be at least 1 (offset 0 gives every frame its own context)",
             ));
         }
         if self.speed_frames == 0 && !self.speed_scales.is_empty() {
@@ -195,8 +215,10 @@ impl StageKind for EvalStage {
         // 4: reads the avatar config (attribute `avatar`) of train entries of version 5.
         // 5: on the cpu backend the networks run in f32 too.
         // 6: `summary.subsets` (history frames, held-out cameras / frames).
-        // 7: on the cpu backend the avatar splats in f32 (the lane path).
-        7
+        // 7: `summary.context_probes` (context zeroed / from another frame) and
+        //    `summary.train_image_psnr` (from the train entry).
+        // 8: on the cpu backend the avatar splats in f32 (the lane path).
+        8
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -286,7 +308,20 @@ impl StageKind for EvalStage {
         // The avatar is rendered on the protocol's background, the colour the ground truth
         // outside its mask is set to, whatever background it was trained on.
         renderer.avatar.background = config.protocol.background.map(f64::from);
-        evaluate_entry(ctx, &config, &ingest, &mut renderer, &lpips, &backend)
+        // Train-image PSNR (the train entry's, by the same protocol) goes next to the
+        // held-out scores: a large gap is memorisation, none with low scores under-fitting.
+        let train_image_psnr = train
+            .attribute(TRAIN_IMAGE_PSNR_ATTRIBUTE)
+            .and_then(|value| value.as_f64());
+        evaluate_entry(
+            ctx,
+            &config,
+            &ingest,
+            &mut renderer,
+            &lpips,
+            &backend,
+            train_image_psnr,
+        )
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
@@ -411,6 +446,7 @@ pub fn evaluate_entry(
     renderer: &mut dyn ViewRenderer,
     lpips: &LpipsModels,
     backend: &Backend,
+    train_image_psnr: Option<f64>,
 ) -> anyhow::Result<()> {
     let testset = TestSet::read(ingest)?;
     anyhow::ensure!(
@@ -594,6 +630,16 @@ pub fn evaluate_entry(
             ));
         }
     }
+    if let Some(value) = train_image_psnr {
+        ctx.log(&format!("train images (train entry): PSNR {value:.2} dB"));
+    }
+    let probes = if config.context_probes {
+        run_context_probes(
+            ctx, config, ingest, &testset, &tests, renderer, &means, &subsets,
+        )?
+    } else {
+        Vec::new()
+    };
     let sequence = sequence_name(ingest);
     let table = markdown_table(&MEAN_TABLE_HEADERS, &[mean_table_row(&sequence, &means)])
         .map_err(anyhow::Error::msg)?;
@@ -608,6 +654,8 @@ pub fn evaluate_entry(
             "sequence": sequence,
             "means": means,
             "subsets": subsets,
+            "train_image_psnr": train_image_psnr,
+            "context_probes": probes,
             "lpips": if nets.is_empty() { "unavailable".to_owned() } else { nets.join(",") },
             "backend": backend.describe(),
         }),
@@ -618,6 +666,78 @@ pub fn evaluate_entry(
         ctx.log(line);
     }
     Ok(())
+}
+
+/// Scores `tests` again under each context probe ([`crate::context_probe`]), PSNR and SSIM
+/// (no LPIPS), and logs the PSNR change per subset; empty when the renderer has no motion
+/// history inputs.
+#[allow(clippy::too_many_arguments)]
+fn run_context_probes(
+    ctx: &StageContext<'_>,
+    config: &EvalConfig,
+    ingest: &EntryReader,
+    testset: &TestSet,
+    tests: &[crate::testset::TestImage],
+    renderer: &mut dyn ViewRenderer,
+    means: &MeanScores,
+    subsets: &crate::subsets::SubsetScores,
+) -> anyhow::Result<Vec<ProbeResult>> {
+    let flags = crate::subsets::frame_flags(ingest)?;
+    let frames: Vec<usize> = tests.iter().map(|t| t.frame).collect();
+    let mut results = Vec::new();
+    for probe in [
+        ContextProbe::Zeroed,
+        ContextProbe::FromFrame {
+            offset: config.context_probe_offset,
+        },
+    ] {
+        if !renderer.set_context_probe(Some(probe)) {
+            ctx.log("context probes: the avatar has no motion-history inputs, nothing to probe");
+            return Ok(Vec::new());
+        }
+        let progress = ctx.progress_bar(tests.len() as u64, &probe.describe());
+        let mut scores = Vec::with_capacity(tests.len());
+        for test in tests {
+            let camera = &testset.cameras[test.view];
+            let render = renderer.render(test.frame, camera).with_context(|| {
+                format!(
+                    "{}: rendering test image {} (view {}, frame {})",
+                    probe.describe(),
+                    test.index,
+                    test.view,
+                    test.frame
+                )
+            })?;
+            let (truth, mask) = testset.load(ingest, test)?;
+            let scored = score_image(
+                &config.protocol,
+                &LpipsModels::default(),
+                &render,
+                &truth,
+                &mask,
+            )?;
+            scores.push(scored.score);
+            progress.inc(1);
+        }
+        progress.finish_and_clear();
+        let probe_subsets = crate::subsets::subset_scores(&flags, &frames, &scores)?;
+        let result = probe_result(probe, &scores, probe_subsets, means, subsets);
+        let change = &result.psnr_change;
+        let show =
+            |value: Option<f64>| value.map_or_else(|| "-".to_owned(), |v| format!("{v:+.2}"));
+        ctx.log(&format!(
+            "{}: PSNR change {:+.2} dB on all {} images, history frames {}, other frames {}, held-out frames {}",
+            probe.describe(),
+            change.all,
+            scores.len(),
+            show(change.history),
+            show(change.not_history),
+            show(change.held_out_frames)
+        ));
+        results.push(result);
+    }
+    renderer.set_context_probe(None);
+    Ok(results)
 }
 
 /// Converts a render to the metrics' image type, naming the source in errors.

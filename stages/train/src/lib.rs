@@ -6,6 +6,8 @@
 //!   is the part the avatar keeps).
 //! - [`losses`]: L1, mask MSE, SSIM and as-isometric-as-possible losses with backward passes.
 //! - [`densify`]: per-Gaussian state and clone/split/prune.
+//! - [`diagnostics`]: input RMS and first-layer weight norms per input block of the non-rigid
+//!   network.
 //! - [`gaussians`]: the trainable Gaussian columns, their initial state and schedules.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
@@ -21,6 +23,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod data;
 pub mod densify;
+pub mod diagnostics;
 pub mod gaussians;
 pub mod losses;
 pub mod rng;

@@ -23,7 +23,13 @@
 //!   `test_image` u32 `(image)` the ingest image index;
 //! - attributes `wall_seconds`, `iterations_per_second` (of the last session when resumed),
 //!   `resumed_from`, `final_train_psnr` (mean over the last tenth of the iterations),
-//!   `test_psnr_mean`, `backend`, `gaussians`.
+//!   `test_psnr_mean`, `backend`, `gaussians`;
+//! - attributes `train_image_psnr_mean` (the held-out protocol's PSNR on up to
+//!   [`TRAIN_PSNR_IMAGES`] training images spread over the training split, next to
+//!   `test_psnr_mean`: the gap is memorisation), `train_image_psnr_images`, `input_rms`
+//!   ([`crate::diagnostics::InputRms`]: RMS of each non-rigid input block over the training
+//!   frames) and `first_layer_norms` (a list of [`crate::diagnostics::BlockNorm`]: first-layer
+//!   weight norms per input block).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -45,10 +51,14 @@ use crate::trainer::{LossCurve, Trainer};
 /// The stage kind.
 pub struct TrainStage;
 
-/// Bump whenever the code changes the result (6: the networks train and render in f32; 7: the
-/// cpu backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
+/// Bump whenever the code changes the result (6: the networks train and render in f32;
+/// 7: train-image PSNR, input RMS and first-layer weight norms per input block; 8: the cpu
+/// backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
 /// with the gpu copy of the per-Gaussian networks, as eval does).
-const VERSION: u32 = 7;
+const VERSION: u32 = 8;
+
+/// Training images (spread evenly over the training split) scored for the train-image PSNR.
+pub const TRAIN_PSNR_IMAGES: usize = 64;
 
 pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;
 
@@ -250,11 +260,9 @@ impl StageKind for TrainStage {
         let avatar = trainer.avatar()?;
         let device = avatar.backend(backend.clone())?;
 
-        // Held-out PSNR on the test split.
-        let test = data.split(1);
-        let mut test_psnr = Vec::with_capacity(test.len());
-        for &i in &test {
-            let record = &data.images[i];
+        // Held-out PSNR on the test split, and on training images by the same protocol.
+        let protocol_psnr_of = |index: usize| -> anyhow::Result<f64> {
+            let record = &data.images[index];
             let inputs =
                 avatar.frame_inputs(&data.motion, &data.params[record.frame], record.frame)?;
             let camera = &data.cameras[record.view];
@@ -267,7 +275,7 @@ impl StageKind for TrainStage {
                     camera.height as usize,
                 )
             });
-            test_psnr.push(protocol_psnr(
+            Ok(protocol_psnr(
                 &image.colour,
                 &record.rgb,
                 &record.mask,
@@ -275,6 +283,52 @@ impl StageKind for TrainStage {
                 camera.height as usize,
                 bound,
                 PROTOCOL_BACKGROUND,
+            ))
+        };
+        let test = data.split(1);
+        let test_psnr = test
+            .iter()
+            .map(|&i| protocol_psnr_of(i))
+            .collect::<anyhow::Result<Vec<f64>>>()?;
+        let train_split = data.split(0);
+        let train_picks: Vec<usize> = (0..TRAIN_PSNR_IMAGES.min(train_split.len()))
+            .map(|k| train_split[k * train_split.len() / TRAIN_PSNR_IMAGES.min(train_split.len())])
+            .collect();
+        let train_psnr = train_picks
+            .iter()
+            .map(|&i| protocol_psnr_of(i))
+            .collect::<anyhow::Result<Vec<f64>>>()?;
+        let train_image_psnr = (!train_psnr.is_empty())
+            .then(|| train_psnr.iter().sum::<f64>() / train_psnr.len() as f64);
+        // Diagnostics of the non-rigid network's inputs (issue 17).
+        let mut train_frames: Vec<usize> =
+            train_split.iter().map(|&i| data.images[i].frame).collect();
+        train_frames.sort_unstable();
+        train_frames.dedup();
+        let input_rms = crate::diagnostics::input_rms(
+            &config.avatar(),
+            &trainer.scales,
+            &data.motion,
+            &data.params,
+            &train_frames,
+        )?;
+        let first_layer_norms = match &trainer.networks {
+            Some(networks) => crate::diagnostics::first_layer_norms(networks, &trainer.scales)?,
+            None => crate::diagnostics::FirstLayerNorms::default(),
+        };
+        if let Some(pose) = input_rms.pose {
+            ctx.log(&format!(
+                "input RMS over {} training frames: pose {pose:.3}, skeleton motion {:?}, vertex velocity {:?} (scales {:?})",
+                train_frames.len(),
+                input_rms.skeleton_motion,
+                input_rms.vertex_velocity,
+                input_rms.scales
+            ));
+        }
+        for block in &first_layer_norms.blocks {
+            ctx.log(&format!(
+                "first-layer weights of {} ({}, {} rows): norm {:.4}, RMS {:.5}",
+                block.block, block.layer, block.rows, block.norm, block.rms
             ));
         }
         let test_mean = if test_psnr.is_empty() {
@@ -288,10 +342,12 @@ impl StageKind for TrainStage {
             .sum::<f64>()
             / tail as f64;
         ctx.log(&format!(
-            "{} iterations in {wall:.1} s ({rate:.2} it/s), {} Gaussians, train PSNR {final_train_psnr:.2} dB, held-out PSNR {test_mean:.2} dB over {} test images",
+            "{} iterations in {wall:.1} s ({rate:.2} it/s), {} Gaussians, train PSNR {final_train_psnr:.2} dB, held-out PSNR {test_mean:.2} dB over {} test images, train-image PSNR {} over {} training images (same protocol)",
             ran,
             avatar.gaussians.len(),
-            test_psnr.len()
+            test_psnr.len(),
+            train_image_psnr.map_or_else(|| "-".to_owned(), |p| format!("{p:.2} dB")),
+            train_psnr.len()
         ));
 
         let out = ctx.output();
@@ -346,6 +402,13 @@ impl StageKind for TrainStage {
             } else {
                 serde_json::Value::Null
             },
+        )?;
+        out.set_attribute("train_image_psnr_mean", json!(train_image_psnr))?;
+        out.set_attribute("train_image_psnr_images", json!(train_psnr.len()))?;
+        out.set_attribute("input_rms", serde_json::to_value(&input_rms)?)?;
+        out.set_attribute(
+            "first_layer_norms",
+            serde_json::to_value(&first_layer_norms.blocks)?,
         )?;
         out.set_attribute("backend", json!(backend.describe()))?;
         out.set_attribute("gaussians", json!(avatar.gaussians.len()))?;

@@ -1,0 +1,371 @@
+//! Does the avatar use its motion context? Eval renders the test images again with the
+//! per-frame motion-history inputs (skeleton motion and vertex velocities, the arrays gathered
+//! from the motion entry and fed to the avatar) replaced, and reports the PSNR change per
+//! subset:
+//! - [`ContextProbe::Zeroed`]: the history inputs set to zero (the body pose is kept);
+//! - [`ContextProbe::FromFrame`]: frame `i` gets frame `(i + offset) mod n`'s history inputs,
+//!   its own pose (a plausible context from another moment of the same sequence).
+//!
+//! The replacement happens on the inputs, outside the avatar's networks, so the probes apply
+//! to every backend and network implementation alike. Avatars whose motion context has no
+//! history inputs (`none`, `pose`) are not probed: their renders could not change.
+
+use serde::{Deserialize, Serialize};
+
+use seqavatar_avatar::avatar::FrameInputs;
+
+use crate::evaluate::{ImageScore, MeanScores};
+use crate::subsets::SubsetScores;
+
+/// How the motion-history inputs of a frame are replaced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum ContextProbe {
+    /// Skeleton motion and vertex velocities set to zero.
+    Zeroed,
+    /// Frame `i` gets the history inputs of frame `(i + offset) mod frames` (counted from the
+    /// first frame whose motion window the sequence holds, see [`ContextProbe::donor`]).
+    FromFrame { offset: usize },
+}
+
+impl ContextProbe {
+    /// A short name for logs and tables.
+    pub fn describe(self) -> String {
+        match self {
+            ContextProbe::Zeroed => "context zeroed".to_owned(),
+            ContextProbe::FromFrame { offset } => {
+                format!("context from frame i + {offset} (mod n)")
+            }
+        }
+    }
+
+    /// The frame whose history inputs frame `frame` gets, `None` for
+    /// [`ContextProbe::Zeroed`]. Donors are drawn from `first..frames`, the frames whose
+    /// motion windows the sequence holds (`first` is 0 when it starts its recording):
+    /// `first + (frame - first + offset) mod (frames - first)`.
+    pub fn donor(self, frame: usize, first: usize, frames: usize) -> Option<usize> {
+        match self {
+            ContextProbe::Zeroed => None,
+            ContextProbe::FromFrame { offset } => {
+                let first = first.min(frame);
+                let span = frames.saturating_sub(first).max(1);
+                Some(first + (frame - first + offset) % span)
+            }
+        }
+    }
+}
+
+/// Replaces the history inputs of `inputs` as `probe` says; `donor` holds the inputs of the
+/// donor frame ([`ContextProbe::donor`]) for [`ContextProbe::FromFrame`]. The body
+/// parameters are never changed.
+pub fn apply(
+    probe: ContextProbe,
+    inputs: &mut FrameInputs,
+    donor: Option<&FrameInputs>,
+) -> anyhow::Result<()> {
+    match probe {
+        ContextProbe::Zeroed => {
+            inputs.skeleton_motion.fill(0.0);
+            inputs.vertex_velocity.fill(0.0);
+        }
+        ContextProbe::FromFrame { offset } => {
+            let donor = donor.ok_or_else(|| {
+                anyhow::anyhow!("context probe from frame i + {offset}: no donor inputs given")
+            })?;
+            anyhow::ensure!(
+                donor.skeleton_motion.len() == inputs.skeleton_motion.len()
+                    && donor.vertex_velocity.len() == inputs.vertex_velocity.len(),
+                "context probe: the donor frame's inputs have {} skeleton-motion and {} velocity \
+                 values, the frame's {} and {}",
+                donor.skeleton_motion.len(),
+                donor.vertex_velocity.len(),
+                inputs.skeleton_motion.len(),
+                inputs.vertex_velocity.len()
+            );
+            inputs
+                .skeleton_motion
+                .copy_from_slice(&donor.skeleton_motion);
+            inputs
+                .vertex_velocity
+                .copy_from_slice(&donor.vertex_velocity);
+        }
+    }
+    Ok(())
+}
+
+/// The scores of one probe and their change against the unprobed renders of the same images.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProbeResult {
+    pub probe: ContextProbe,
+    /// Means over all scored images with the probe.
+    pub means: MeanScores,
+    /// Subset means with the probe.
+    pub subsets: SubsetScores,
+    /// Probe PSNR minus the unprobed PSNR (dB, same images): all images and each subset
+    /// (`None` where the subset is empty). Negative: the probe hurts, the context is used.
+    pub psnr_change: PsnrChange,
+}
+
+/// PSNR changes per subset (dB).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PsnrChange {
+    pub all: f64,
+    pub history: Option<f64>,
+    pub not_history: Option<f64>,
+    pub held_out_cameras: Option<f64>,
+    pub held_out_frames: Option<f64>,
+    pub held_out_history_frames: Option<f64>,
+}
+
+impl PsnrChange {
+    /// The change of every subset from the probed and unprobed means.
+    pub fn between(
+        probed: &MeanScores,
+        probed_subsets: &SubsetScores,
+        base: &MeanScores,
+        base_subsets: &SubsetScores,
+    ) -> Self {
+        let delta = |p: &Option<MeanScores>, b: &Option<MeanScores>| match (p, b) {
+            (Some(p), Some(b)) => Some(p.psnr - b.psnr),
+            _ => None,
+        };
+        PsnrChange {
+            all: probed.psnr - base.psnr,
+            history: delta(&probed_subsets.history, &base_subsets.history),
+            not_history: delta(&probed_subsets.not_history, &base_subsets.not_history),
+            held_out_cameras: delta(
+                &probed_subsets.held_out_cameras,
+                &base_subsets.held_out_cameras,
+            ),
+            held_out_frames: delta(
+                &probed_subsets.held_out_frames,
+                &base_subsets.held_out_frames,
+            ),
+            held_out_history_frames: delta(
+                &probed_subsets.held_out_history_frames,
+                &base_subsets.held_out_history_frames,
+            ),
+        }
+    }
+}
+
+/// Builds a [`ProbeResult`] from the probe's per-image scores and the unprobed means.
+pub fn probe_result(
+    probe: ContextProbe,
+    scores: &[ImageScore],
+    subsets: SubsetScores,
+    base: &MeanScores,
+    base_subsets: &SubsetScores,
+) -> ProbeResult {
+    let means = crate::evaluate::mean_scores(scores);
+    let psnr_change = PsnrChange::between(&means, &subsets, base, base_subsets);
+    ProbeResult {
+        probe,
+        means,
+        subsets,
+        psnr_change,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_core::body::BodyParams;
+    use seqavatar_core::glam::DVec3;
+
+    fn inputs(value: f32) -> FrameInputs {
+        FrameInputs {
+            params: BodyParams {
+                pose: vec![DVec3::new(0.1, -0.2, 0.3); 4],
+                betas: vec![0.5],
+                expression: Vec::new(),
+                world_rotation: DVec3::ZERO,
+                world_translation: DVec3::new(0.0, 1.0, 0.0),
+            },
+            skeleton_motion: vec![value; 6],
+            vertex_velocity: vec![2.0 * value; 4],
+        }
+    }
+
+    #[test]
+    fn zeroing_clears_the_history_inputs_and_keeps_the_pose() {
+        let mut frame = inputs(1.5);
+        let pose = frame.params.clone();
+        apply(ContextProbe::Zeroed, &mut frame, None).unwrap();
+        assert!(frame.skeleton_motion.iter().all(|&v| v == 0.0));
+        assert!(frame.vertex_velocity.iter().all(|&v| v == 0.0));
+        assert_eq!(frame.params, pose);
+    }
+
+    #[test]
+    fn another_frame_gives_its_history_inputs() {
+        let probe = ContextProbe::FromFrame { offset: 5 };
+        assert_eq!(probe.donor(0, 0, 8), Some(5));
+        assert_eq!(probe.donor(6, 0, 8), Some(3));
+        // Frames 0..4 cannot be drawn: donors stay in 4..8.
+        assert_eq!(probe.donor(6, 4, 8), Some(7));
+        assert_eq!(probe.donor(7, 4, 8), Some(4));
+        assert_eq!(ContextProbe::Zeroed.donor(3, 0, 8), None);
+        let mut frame = inputs(1.0);
+        let donor = inputs(-3.0);
+        apply(probe, &mut frame, Some(&donor)).unwrap();
+        assert_eq!(frame.skeleton_motion, donor.skeleton_motion);
+        assert_eq!(frame.vertex_velocity, donor.vertex_velocity);
+        // Without donor inputs, or with inputs of another shape, it is an error.
+        assert!(apply(probe, &mut inputs(1.0), None).is_err());
+        let mut short = inputs(1.0);
+        short.vertex_velocity.pop();
+        assert!(apply(probe, &mut inputs(1.0), Some(&short)).is_err());
+    }
+
+    /// An avatar with skeleton motion and velocity inputs (multiscale, non-trivial heads) on
+    /// a track whose frames differ only in their motion values (every pose is the rest pose):
+    /// zeroing must change the render and equal a frame whose track values are zero; the
+    /// context of frame `i + k` must render exactly as frame `i + k` itself.
+    #[test]
+    fn probes_change_what_the_avatar_renders() {
+        use crate::avatar_render::AvatarRenderer;
+        use crate::evaluate::ViewRenderer;
+        use seqavatar_avatar::TrainedAvatar;
+        use seqavatar_avatar::avatar::AvatarGaussians;
+        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
+        use seqavatar_avatar::model::{NetworkConfig, Networks};
+        use seqavatar_avatar::rig::BodyRig;
+        use seqavatar_compute::backend::Backend;
+        use seqavatar_compute::nn::Rng;
+        use seqavatar_core::body::procedural::procedural_body;
+        use seqavatar_core::camera::{Camera, Intrinsics};
+        use seqavatar_motion::schema::{FrameAxis, MotionTrack};
+
+        let model = procedural_body(0.05);
+        let (j, v, frames) = (model.num_joints(), model.num_vertices(), 4);
+        let config = AvatarConfig {
+            motion_context: MotionContext::Multiscale,
+            trunk_width: 16,
+            trunk_depth: 2,
+            tau: 2,
+            sequence_length: 2,
+            pose_refiner: false,
+            lbs_offsets: false,
+            sh_degree: 0,
+            scale_min: 1e-5,
+            scale_max: 0.5,
+            background: Background::Black,
+        };
+        let rig = BodyRig::new(model.clone()).unwrap();
+        let net_config = NetworkConfig::from_avatar(&config, j, j, 2).unwrap();
+        let mut networks = Networks::<f32>::new(&net_config, 5).unwrap();
+        let mut rng = Rng::new(11);
+        for param in networks.parameters_mut() {
+            if param.name.starts_with("non_rigid.heads") {
+                for x in param.values.iter_mut() {
+                    *x = rng.uniform(-0.05, 0.05) as f32;
+                }
+            }
+        }
+        let n = 200;
+        let xyz: Vec<f64> = (0..n)
+            .flat_map(|i| {
+                let k = 3 * ((i * 97) % v);
+                rig.canonical_vertices[k..k + 3].to_vec()
+            })
+            .collect();
+        let gaussians = AvatarGaussians {
+            xyz,
+            sh: (0..n * 48).map(|_| rng.uniform(0.0, 1.0)).collect(),
+            opacity_logit: vec![2.0; n],
+            log_scale: vec![-3.0; 3 * n],
+            rotation: (0..n).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect(),
+        };
+        let avatar = TrainedAvatar::new(config, rig, gaussians, 0, vec![2, 1], Some(networks));
+        // Frame f's motion values are all f (frame 0: zero), at both scales.
+        let fill = |count: usize| -> Vec<f32> {
+            (0..frames)
+                .flat_map(|f| vec![f as f32; 2 * count * 3])
+                .collect()
+        };
+        let track = MotionTrack {
+            num_frames: frames,
+            num_joints: j,
+            num_vertices: v,
+            scales: vec![2, 1],
+            scale_steps: vec![2, 1],
+            skeleton_motion: fill(j),
+            vertex_velocity: fill(v),
+            axis: FrameAxis::FROM_START,
+        };
+        let mut renderer = AvatarRenderer::new(
+            avatar,
+            vec![model.zero_params(); frames],
+            Some(track),
+            Backend::Cpu,
+            "test".into(),
+        )
+        .unwrap();
+        let camera = Camera::look_at(
+            32,
+            40,
+            Intrinsics {
+                fx: 40.0,
+                fy: 40.0,
+                cx: 16.0,
+                cy: 20.0,
+            },
+            DVec3::new(0.0, 0.0, 2.5),
+            DVec3::ZERO,
+            DVec3::new(0.0, 1.0, 0.0),
+        );
+        // Frame 0's window clamps at frame 0 (all zero); frame 3's is not zero.
+        let own = renderer.render(3, &camera).unwrap();
+        let zero_frame = renderer.render(0, &camera).unwrap();
+        let frame_one = renderer.render(1, &camera).unwrap();
+        let differs = |a: &crate::image::ImageF32, b: &crate::image::ImageF32| {
+            a.data
+                .iter()
+                .zip(&b.data)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0_f32, f32::max)
+        };
+        assert!(
+            differs(&own, &zero_frame) > 1e-3,
+            "the context changes nothing"
+        );
+        assert!(renderer.set_context_probe(Some(ContextProbe::Zeroed)));
+        let zeroed = renderer.render(3, &camera).unwrap();
+        assert!(differs(&zeroed, &own) > 1e-3, "zeroing changed nothing");
+        assert_eq!(differs(&zeroed, &zero_frame), 0.0);
+        assert!(renderer.set_context_probe(Some(ContextProbe::FromFrame { offset: 2 })));
+        // Frame 3 gets frame (3 + 2) mod 4 = 1's context.
+        let shifted = renderer.render(3, &camera).unwrap();
+        assert_eq!(differs(&shifted, &frame_one), 0.0);
+        assert!(differs(&shifted, &own) > 1e-3);
+        assert!(renderer.set_context_probe(None));
+        assert_eq!(differs(&renderer.render(3, &camera).unwrap(), &own), 0.0);
+    }
+
+    #[test]
+    fn psnr_change_is_probed_minus_unprobed_per_subset() {
+        let mean = |psnr: f64| MeanScores {
+            images: 2,
+            psnr,
+            ssim: 0.9,
+            lpips_vgg: None,
+            lpips_alex: None,
+        };
+        let base = SubsetScores {
+            history: Some(mean(30.0)),
+            not_history: Some(mean(32.0)),
+            ..SubsetScores::default()
+        };
+        let probed = SubsetScores {
+            history: Some(mean(28.5)),
+            not_history: Some(mean(32.0)),
+            ..SubsetScores::default()
+        };
+        let change = PsnrChange::between(&mean(31.0), &probed, &mean(31.5), &base);
+        assert_eq!(change.all, -0.5);
+        assert_eq!(change.history, Some(-1.5));
+        assert_eq!(change.not_history, Some(0.0));
+        assert_eq!(change.held_out_frames, None);
+    }
+}
