@@ -231,7 +231,7 @@ mod tests {
         use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
         use seqavatar_avatar::model::{NetworkConfig, Networks};
         use seqavatar_avatar::rig::BodyRig;
-        use seqavatar_compute::backend::Backend;
+        use seqavatar_compute::backend::{Backend, DeviceChoice};
         use seqavatar_compute::nn::Rng;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_core::camera::{Camera, Intrinsics};
@@ -298,7 +298,7 @@ mod tests {
             avatar,
             vec![model.zero_params(); frames],
             Some(track),
-            Backend::Cpu,
+            Backend::select(DeviceChoice::Cpu).unwrap(),
             "test".into(),
         )
         .unwrap();
