@@ -179,6 +179,22 @@ pub struct Deformed<S = f32> {
     pub world: WorldGaussians,
 }
 
+impl<S> Deformed<S> {
+    /// The skinning inputs of these Gaussians: their deformed centres and offsets with the
+    /// canonical `gaussians` they were deformed from (what the skinning backward reads).
+    pub fn skin_params<'a>(&'a self, gaussians: &'a AvatarGaussians) -> GaussianParams<'a> {
+        GaussianParams {
+            positions: &self.positions,
+            log_scales: &gaussians.log_scale,
+            d_scales: &self.d_scales,
+            rotations: &gaussians.rotation,
+            d_rotations: &self.d_rotations,
+            weight_offsets: self.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
+            nearest: &self.nearest,
+        }
+    }
+}
+
 /// f64 values in the networks' scalar (rounded once for f32).
 pub(crate) fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
     values.iter().map(|&v| S::from_f64(v)).collect()
@@ -845,15 +861,7 @@ mod tests {
             .frame(&posed.pose, setup.config.scale_min, setup.config.scale_max);
         let skin = skin_backward(
             &frame,
-            &GaussianParams {
-                positions: &deformed.positions,
-                log_scales: &setup.gaussians.log_scale,
-                d_scales: &deformed.d_scales,
-                rotations: &setup.gaussians.rotation,
-                d_rotations: &deformed.d_rotations,
-                weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
-                nearest: &deformed.nearest,
-            },
+            &deformed.skin_params(&setup.gaussians),
             &setup.a,
             &setup.b,
         );
@@ -1062,20 +1070,7 @@ mod tests {
             let frame = s
                 .rig
                 .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
-            let skin = skin_backward(
-                &frame,
-                &GaussianParams {
-                    positions: &deformed.positions,
-                    log_scales: &s.gaussians.log_scale,
-                    d_scales: &deformed.d_scales,
-                    rotations: &s.gaussians.rotation,
-                    d_rotations: &deformed.d_rotations,
-                    weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
-                    nearest: &deformed.nearest,
-                },
-                &s.a,
-                &s.b,
-            );
+            let skin = skin_backward(&frame, &deformed.skin_params(&s.gaussians), &s.a, &s.b);
             // Twice: the second adds to the first's gradients (as a second camera's would),
             // on the device too, which must not carry the first pass's gradients over.
             let mut through = Vec::new();
@@ -1165,15 +1160,7 @@ mod tests {
         let n = deformed.positions.len() / 3;
         skin_backward(
             &frame,
-            &GaussianParams {
-                positions: &deformed.positions,
-                log_scales: &s.gaussians.log_scale,
-                d_scales: &deformed.d_scales,
-                rotations: &s.gaussians.rotation,
-                d_rotations: &deformed.d_rotations,
-                weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
-                nearest: &deformed.nearest,
-            },
+            &deformed.skin_params(&s.gaussians),
             &vec![0.0; 3 * n],
             &vec![0.0; 6 * n],
         )

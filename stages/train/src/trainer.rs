@@ -46,7 +46,7 @@ use crate::losses::{
     aiap_gaussians, image_loss,
 };
 use crate::rng::Rng;
-use seqavatar_avatar::skinning::{GaussianParams, skin_backward};
+use seqavatar_avatar::skinning::skin_backward;
 use seqavatar_avatar::splatting::SplatPass;
 
 /// Loss and statistics of one iteration.
@@ -733,15 +733,7 @@ impl<'d> Trainer<'d> {
             self.config.scale_min,
             self.config.scale_max,
         );
-        let params = GaussianParams {
-            positions: &deformed.positions,
-            log_scales: &gaussians.log_scale,
-            d_scales: &deformed.d_scales,
-            rotations: &gaussians.rotation,
-            d_rotations: &deformed.d_rotations,
-            weight_offsets: deformed.weight_offsets.as_ref().map(|(w, _)| w.as_slice()),
-            nearest: &deformed.nearest,
-        };
+        let params = deformed.skin_params(gaussians);
         let skin = skin_backward(
             &frame_data,
             &params,
