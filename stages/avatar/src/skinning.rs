@@ -559,6 +559,32 @@ mod tests {
         nearest: Vec<u32>,
     }
 
+    impl Scene {
+        fn frame(&self, bounds: (f64, f64)) -> SkinningFrame<'_> {
+            SkinningFrame {
+                joint_count: self.j,
+                canonical_joints: &self.canonical,
+                target_joints: &self.target,
+                template_weights: &self.template_weights,
+                vertex_offsets: &self.vertex_offsets,
+                scale_min: bounds.0,
+                scale_max: bounds.1,
+            }
+        }
+
+        fn params(&self) -> GaussianParams<'_> {
+            GaussianParams {
+                positions: &self.positions,
+                log_scales: &self.log_scales,
+                d_scales: &self.d_scales,
+                rotations: &self.rotations,
+                d_rotations: &self.d_rotations,
+                weight_offsets: Some(&self.weight_offsets),
+                nearest: &self.nearest,
+            }
+        }
+    }
+
     fn scene(seed: u64) -> Scene {
         let mut rng = Rng::new(seed);
         let (j, v, n) = (4, 5, 7);
@@ -590,24 +616,7 @@ mod tests {
     }
 
     fn run(s: &Scene, bounds: (f64, f64)) -> Skinned {
-        let frame = SkinningFrame {
-            joint_count: s.j,
-            canonical_joints: &s.canonical,
-            target_joints: &s.target,
-            template_weights: &s.template_weights,
-            vertex_offsets: &s.vertex_offsets,
-            scale_min: bounds.0,
-            scale_max: bounds.1,
-        };
-        let params = GaussianParams {
-            positions: &s.positions,
-            log_scales: &s.log_scales,
-            d_scales: &s.d_scales,
-            rotations: &s.rotations,
-            d_rotations: &s.d_rotations,
-            weight_offsets: Some(&s.weight_offsets),
-            nearest: &s.nearest,
-        };
+        let (frame, params) = (s.frame(bounds), s.params());
         skin_forward(&frame, &params)
     }
 
@@ -640,24 +649,7 @@ mod tests {
             let s = scene(21);
             let n = s.nearest.len();
             let (gp, gc) = upstream(n, 5);
-            let frame = SkinningFrame {
-                joint_count: s.j,
-                canonical_joints: &s.canonical,
-                target_joints: &s.target,
-                template_weights: &s.template_weights,
-                vertex_offsets: &s.vertex_offsets,
-                scale_min: bounds.0,
-                scale_max: bounds.1,
-            };
-            let params = GaussianParams {
-                positions: &s.positions,
-                log_scales: &s.log_scales,
-                d_scales: &s.d_scales,
-                rotations: &s.rotations,
-                d_rotations: &s.d_rotations,
-                weight_offsets: Some(&s.weight_offsets),
-                nearest: &s.nearest,
-            };
+            let (frame, params) = (s.frame(bounds), s.params());
             let grads = skin_backward(&frame, &params, &gp, &gc);
             let eps = 1e-6;
             type Field = fn(&mut Scene) -> &mut Vec<f64>;
