@@ -395,16 +395,27 @@ impl GpuContext {
     /// `encoder` first).
     pub fn download<T: bytemuck::Pod>(
         &self,
-        mut encoder: wgpu::CommandEncoder,
+        encoder: wgpu::CommandEncoder,
         source: &wgpu::Buffer,
         len: usize,
     ) -> Result<Vec<T>, BackendError> {
-        let mut results = self.download_many::<T>(&mut encoder, &[(source, len)])?;
-        self.finish_downloads(encoder, &mut results)?;
-        Ok(results
+        Ok(self
+            .download_all::<T>(encoder, &[(source, len)])?
             .pop()
-            .map(|pending| pending.values)
             .unwrap_or_default())
+    }
+
+    /// Copies the first `len` elements of each `(source, len)` back to the host, in order
+    /// (submits pending work in `encoder` first): [`GpuContext::download_many`] and
+    /// [`GpuContext::finish_downloads`] in one call.
+    pub fn download_all<T: bytemuck::Pod>(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        sources: &[(&wgpu::Buffer, usize)],
+    ) -> Result<Vec<Vec<T>>, BackendError> {
+        let mut pending = self.download_many::<T>(&mut encoder, sources)?;
+        self.finish_downloads(encoder, &mut pending)?;
+        Ok(pending.into_iter().map(|p| p.values).collect())
     }
 
     /// Records copies of several buffers into staging buffers; call

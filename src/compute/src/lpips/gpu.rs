@@ -517,13 +517,8 @@ impl GpuLpips {
         if let Some(input_gradient) = gradients.last() {
             sources.push((&input_gradient.buffer, input_gradient.len));
         }
-        let mut pending = context.download_many::<f32>(&mut encoder, &sources)?;
-        context.finish_downloads(encoder, &mut pending)?;
+        let mut values = context.download_all::<f32>(encoder, &sources)?;
         drop((uniforms, activations, gradients));
-        let mut values: Vec<Vec<f32>> = pending
-            .into_iter()
-            .map(|download| download.values)
-            .collect();
         let gradient = if with_gradient {
             values.pop().unwrap_or_default()
         } else {

@@ -259,19 +259,13 @@ impl GpuNetworks {
 
     fn download_buffers(&self, grads: bool) -> Result<Vec<Vec<f32>>, ModelError> {
         let params = self.parameters();
-        let mut encoder = self.context.encoder();
         let sources: Vec<(&wgpu::Buffer, usize)> = params
             .iter()
             .map(|p| (if grads { p.grads } else { p.values }, p.len))
             .collect();
-        let mut pending = self
-            .context
-            .download_many::<f32>(&mut encoder, &sources)
-            .map_err(gpu_error)?;
         self.context
-            .finish_downloads(encoder, &mut pending)
-            .map_err(gpu_error)?;
-        Ok(pending.into_iter().map(|p| p.values).collect())
+            .download_all::<f32>(self.context.encoder(), &sources)
+            .map_err(gpu_error)
     }
 
     /// Copies the device parameters and gradients into `networks` (same configuration).
@@ -412,15 +406,11 @@ impl GpuNetworks {
             sources.push((&layer.d_weight, layer.shape.weight_len()));
             sources.push((&layer.d_bias, layer.shape.out_features));
         }
-        let mut encoder = self.context.encoder();
-        let mut pending = self
+        let mut arrays = self
             .context
-            .download_many::<f32>(&mut encoder, &sources)
-            .map_err(gpu_error)?;
-        self.context
-            .finish_downloads(encoder, &mut pending)
-            .map_err(gpu_error)?;
-        let mut arrays = pending.into_iter().map(|p| p.values);
+            .download_all::<f32>(self.context.encoder(), &sources)
+            .map_err(gpu_error)?
+            .into_iter();
         for layer in networks
             .layers_mut()
             .into_iter()
@@ -785,15 +775,12 @@ impl GpuNetworks {
         } else {
             let sources: Vec<(&wgpu::Buffer, usize)> =
                 downloads.iter().map(|(_, b, len)| (b, *len)).collect();
-            let mut pending = self
+            let arrays = self
                 .context
-                .download_many::<f32>(&mut encoder, &sources)
+                .download_all::<f32>(encoder, &sources)
                 .map_err(gpu_error)?;
-            self.context
-                .finish_downloads(encoder, &mut pending)
-                .map_err(gpu_error)?;
-            for ((index, _, _), values) in downloads.iter().zip(pending) {
-                gradients[*index] = Some(values.values);
+            for ((index, _, _), values) in downloads.iter().zip(arrays) {
+                gradients[*index] = Some(values);
             }
         }
         drop(keep);
