@@ -497,6 +497,8 @@ fn gpu_gflops(
 }
 
 fn main() {
+    // As the `pipeline` binary does, so the figures are the ones users get.
+    seqavatar_compute::memory::retain_freed_memory();
     let rows: usize = std::env::var("SEQAVATAR_BENCH_ROWS")
         .ok()
         .and_then(|text| text.parse().ok())

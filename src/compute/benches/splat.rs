@@ -152,6 +152,8 @@ fn time_cpu(scene: &Prepared, reps: usize) -> Option<Timing> {
 }
 
 fn main() {
+    // As the `pipeline` binary does, so the figures are the ones users get.
+    seqavatar_compute::memory::retain_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let device = args
         .windows(2)

@@ -14,11 +14,14 @@
 //! - [`lpips`]: the LPIPS perceptual distance (VGG16, AlexNet trunks), used by evaluation as a
 //!   metric and by training as a loss; [`image`] is its float image, [`safetensors`] the
 //!   strict reader of its weights files.
+//! - [`memory`]: keeps the allocator from returning training's short-lived buffers to the
+//!   kernel every iteration (glibc thresholds), called once by the binaries.
 //! - [`ssim`]: SSIM with its exact gradient (f64), the training loss's and eval's metric.
 
 pub mod backend;
 pub mod image;
 pub mod lpips;
+pub mod memory;
 pub mod nn;
 pub mod safetensors;
 pub mod scalar;

@@ -260,6 +260,8 @@ fn bench_trunk_layer(n: usize, repeats: usize) {
 }
 
 fn main() {
+    // As the `pipeline` binary does, so the figures are the ones users get.
+    seqavatar_compute::memory::retain_freed_memory();
     let sizes: Vec<usize> = std::env::var("SEQAVATAR_BENCH_SIZES")
         .ok()
         .map(|text| {

@@ -90,6 +90,8 @@ fn gemm_peak(rows: usize, in_features: usize, out_features: usize) -> f64 {
 }
 
 fn main() -> anyhow::Result<()> {
+    // As the `pipeline` binary does, so the figures are the ones users get.
+    seqavatar_compute::memory::retain_freed_memory();
     let dir = tempfile::tempdir()?;
     let mut registry = Registry::new();
     seqavatar_ingest::register(&mut registry);

@@ -46,7 +46,7 @@ use seqavatar_engine::{
 use crate::checkpoint;
 use crate::config::TrainConfig;
 use crate::data::TrainingData;
-use crate::trainer::{LossCurve, Trainer};
+use crate::trainer::{LossCurve, Phase, Trainer};
 
 /// The stage kind.
 pub struct TrainStage;
@@ -257,6 +257,25 @@ impl StageKind for TrainStage {
         let wall = started.elapsed().as_secs_f64();
         let ran = trainer.iteration - resumed_from;
         let rate = ran as f64 / wall.max(1e-9);
+        if ran > 0 {
+            let times = trainer.phase_times();
+            let per_phase = Phase::ALL
+                .iter()
+                .map(|&phase| {
+                    format!(
+                        "{} {:.1}",
+                        phase.name(),
+                        1e3 * times.seconds(phase) / ran as f64
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(", ");
+            // The rest of the loop's wall time: checkpoints, progress and logging.
+            let other = 1e3 * (wall - times.total()).max(0.0) / ran as f64;
+            ctx.log(&format!(
+                "ms per iteration: {per_phase}, checkpoints and logging {other:.1}"
+            ));
+        }
         let avatar = trainer.avatar()?;
         let device = avatar.backend(backend.clone())?;
 
