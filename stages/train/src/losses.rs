@@ -15,7 +15,7 @@
 use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsError, LpipsInput, tap_sizes};
 use seqavatar_compute::ssim::ssim_planes;
-use seqavatar_motion::knn::{KnnGrid, as_points};
+use seqavatar_motion::knn::{MovingKnn, as_points};
 
 use seqavatar_avatar::skinning::{canonical_covariances, canonical_covariances_backward};
 
@@ -428,13 +428,16 @@ pub struct AiapGaussianGrads {
 }
 
 /// As-isometric-as-possible loss between the canonical Gaussians and their deformation, over
-/// each Gaussian's canonical nearest neighbours (recomputed every call: the centres move and
-/// densification renumbers them), with the canonical covariances built from the log-scales
-/// and rotations and their gradients carried back to those. `None` when both weights are 0 or
-/// there is at most one Gaussian (no pair to compare).
+/// each Gaussian's canonical nearest neighbours (exact for this call's centres, as the
+/// reference code's per-iteration search: the centres move and densification renumbers them;
+/// `knn` keeps candidate lists between calls so that small moves cost no full search), with
+/// the canonical covariances built from the log-scales and rotations and their gradients
+/// carried back to those. `None` when both weights are 0 or there is at most one Gaussian (no
+/// pair to compare).
 pub fn aiap_gaussians(
     gaussians: &AiapGaussians<'_>,
     weights: AiapWeights,
+    knn: &mut MovingKnn,
 ) -> Option<AiapGaussianGrads> {
     let n = gaussians.xyz.len() / 3;
     if !(weights.centre > 0.0 || weights.covariance > 0.0) || n <= 1 {
@@ -442,7 +445,7 @@ pub fn aiap_gaussians(
     }
     let k = weights.neighbours.min(n);
     let points = as_points(gaussians.xyz);
-    let neighbours = KnnGrid::new(&points, 4.0).query_all(&points, k);
+    let neighbours = knn.neighbours(&points, k);
     let canonical_covariances = canonical_covariances(gaussians.log_scale, gaussians.rotation);
     let (terms, grads) = aiap_loss(
         &AiapInputs {
@@ -868,6 +871,7 @@ mod tests {
                     deformed_covariances: &t[4],
                 },
                 weights,
+                &mut MovingKnn::default(),
             )
             .expect("active with ten Gaussians")
         };
@@ -940,7 +944,7 @@ mod tests {
             deformed_centres: &t[3],
             deformed_covariances: &t[4],
         };
-        assert!(aiap_gaussians(&inputs, off).is_none());
+        assert!(aiap_gaussians(&inputs, off, &mut MovingKnn::default()).is_none());
         let single = AiapGaussians {
             xyz: &t[0][..3],
             log_scale: &t[1][..3],
@@ -948,7 +952,7 @@ mod tests {
             deformed_centres: &t[3][..3],
             deformed_covariances: &t[4][..6],
         };
-        assert!(aiap_gaussians(&single, weights).is_none());
+        assert!(aiap_gaussians(&single, weights, &mut MovingKnn::default()).is_none());
     }
 
     #[test]

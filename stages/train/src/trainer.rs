@@ -30,7 +30,7 @@ use seqavatar_avatar::avatar::{
 use seqavatar_avatar::device::{AvatarBackend, avatar_backend};
 use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
 use seqavatar_avatar::rig::{FramePose, PoseChain};
-use seqavatar_motion::knn::{KnnGrid, as_points, knn_brute_force};
+use seqavatar_motion::knn::{KnnGrid, MovingKnn, as_points, knn_brute_force};
 
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;
@@ -313,6 +313,9 @@ pub struct Trainer<'d> {
     /// The LPIPS loss, loaded only when `lpips_weight > 0`.
     lpips: Option<LpipsLoss>,
     template_grid: KnnGrid,
+    /// The AIAP loss's canonical neighbour lists, kept between iterations (exact every
+    /// iteration; not checkpointed: a resumed run rebuilds them on its first step).
+    aiap_knn: MovingKnn,
     /// Unrefined skinning targets per frame, computed once.
     poses: Vec<Option<(FramePose, PoseChain)>>,
     phase_times: PhaseTimes,
@@ -429,6 +432,7 @@ impl<'d> Trainer<'d> {
         Ok(Self {
             lpips,
             template_grid: template_grid(&data.rig),
+            aiap_knn: MovingKnn::default(),
             poses: vec![None; data.params.len()],
             config,
             data,
@@ -589,7 +593,7 @@ impl<'d> Trainer<'d> {
     /// Losses: the photometric (and LPIPS) losses per camera, averaged, with their image
     /// gradients, and the as-isometric-as-possible loss with its gradients.
     fn loss_phase(
-        &self,
+        &mut self,
         iteration: u64,
         forward: &Forward,
         rendered: &Rendered,
@@ -668,6 +672,7 @@ impl<'d> Trainer<'d> {
                 covariance: self.config.aiap_covariance_weight,
                 neighbours: self.config.aiap_neighbours,
             },
+            &mut self.aiap_knn,
         );
         if let Some(aiap) = &aiap {
             stats.aiap = aiap.value;
@@ -951,6 +956,12 @@ impl<'d> Trainer<'d> {
     /// context that has one).
     pub fn non_rigid_on_gpu(&self) -> bool {
         self.networks.as_ref().is_some_and(|n| n.has_non_rigid()) && self.device.networks_on_gpu()
+    }
+
+    /// Full neighbour searches of the AIAP loss and the iterations that asked for
+    /// neighbours, since the trainer was built (the rest reused their candidate lists).
+    pub fn aiap_neighbour_searches(&self) -> (u64, u64) {
+        (self.aiap_knn.rebuilds(), self.aiap_knn.calls())
     }
 
     /// Wall time per phase since the trainer was built or the last
