@@ -217,7 +217,9 @@ pub fn knn_velocity<S: NnScalar>(
 ) -> Vec<S> {
     let n = xyz.len() / 3;
     let v = window.len() / (length * n_scales * 3).max(1);
-    let neighbours = template_grid.query_all(&as_points(xyz), tau);
+    // The canonical centres move by at most an optimiser step per iteration (and not at all
+    // between rendered frames): the grid's candidate lists answer most calls.
+    let neighbours = template_grid.query_all_tracked(&as_points(xyz), tau);
     let mut out = Vec::with_capacity(n * length * tau * n_scales * 3);
     for i in 0..n {
         for l in 0..length {

@@ -7,6 +7,7 @@
 //! searches and on every run.
 
 use rayon::prelude::*;
+use std::sync::Mutex;
 
 /// A uniform grid over reference points for repeated k-nearest queries.
 pub struct KnnGrid {
@@ -21,6 +22,8 @@ pub struct KnnGrid {
     /// How far (per axis) a point may lie outside its cell's box through the rounding of
     /// [`Self::cell_coords`]: the cell skip test of [`Self::query`] grows the boxes by it.
     slack: f64,
+    /// [`Self::query_all_tracked`]'s lists for the last query set it was given.
+    tracked: Mutex<CandidateLists>,
 }
 
 impl KnnGrid {
@@ -63,6 +66,7 @@ impl KnnGrid {
             order: Vec::with_capacity(finite.len()),
             // Far above the rounding of `(p - origin) / cell` and of the box corners.
             slack: 1e-6 * cell + 1e-12 * magnitude,
+            tracked: Mutex::default(),
         };
         let cell_of: Vec<Option<usize>> = points
             .iter()
@@ -196,6 +200,35 @@ impl KnnGrid {
             .collect()
     }
 
+    /// [`Self::query_all`] for a query set that moves a little between calls (the
+    /// canonical Gaussians, whose nearest template vertices training and rendering look up
+    /// every frame): the same result, from candidate lists kept in the grid
+    /// ([`CandidateLists`]) while no query has moved beyond their margin. The lists follow the
+    /// last query set given; another set (or a call while another thread holds them) takes
+    /// the full search, so any mix of callers gets exact results.
+    pub fn query_all_tracked(&self, queries: &[[f64; 3]], k: usize) -> Vec<u32> {
+        let finite = queries.iter().all(|q| q.iter().all(|v| v.is_finite()));
+        let Ok(mut lists) = self.tracked.try_lock() else {
+            return self.query_all(queries, k);
+        };
+        lists.calls += 1;
+        if k == 0 || !finite {
+            lists.anchor.clear();
+            return self.query_all(queries, k);
+        }
+        if lists.valid_for(queries, k) {
+            return lists.select(queries, &self.points, k);
+        }
+        lists.rebuild(self, queries, k, DEFAULT_MARGIN_FRACTION, 2.0)
+    }
+
+    /// Full searches and calls of [`Self::query_all_tracked`] so far.
+    pub fn tracked_searches(&self) -> (u64, u64) {
+        self.tracked
+            .lock()
+            .map_or((0, 0), |lists| (lists.rebuilds, lists.calls))
+    }
+
     /// Number of finite reference points.
     pub fn reference_count(&self) -> usize {
         self.order.len()
@@ -230,36 +263,120 @@ impl KnnGrid {
     }
 }
 
-/// Exact `k` nearest neighbours of a point set among itself, for a set that moves a little
-/// between calls: training's AIAP neighbours, whose canonical Gaussians move by one Adam step
-/// per iteration. A full grid search every iteration was 8% of a `fast` iteration.
+/// Candidate lists for queries that move a little between calls (a Verlet list): the one
+/// mechanism behind [`MovingKnn`] (a point set among itself) and [`KnnGrid::query_all_tracked`]
+/// (moving queries against fixed reference points).
 ///
-/// A Verlet list: a rebuild searches the grid and keeps, for each point `i`, every point
-/// within `d_k(i) + 4 margin` of it (`d_k(i)`: its k-th neighbour's distance then). While no
-/// point has moved more than `margin` from where it was at the rebuild, the current k nearest
-/// of `i` are among those candidates: its old k nearest are now within `d_k(i) + 2 margin`,
-/// so every current neighbour is, and was then within `d_k(i) + 4 margin`. Selecting the k
-/// best candidates by (squared distance, index) therefore gives exactly what
-/// `KnnGrid::new(points, 4.0).query_all(points, k)` gives, ties included. A move beyond the
-/// margin, a new point count or a new `k` rebuilds; non-finite points take the full search.
-pub struct MovingKnn {
-    /// The margin as a fraction of the mean k-th-neighbour distance at a rebuild: larger
-    /// keeps lists valid longer but makes them longer.
-    margin_fraction: f64,
+/// A rebuild searches the grid and keeps, for each query `i`, every reference point within
+/// `d_k(i) + reach x margin` of it, `d_k(i)` being its k-th neighbour's distance then. While
+/// no query (and, for a set among itself, no reference point) has moved more than `margin`
+/// from where it was at the rebuild, the current k nearest of `i` are among those candidates:
+/// with fixed references its old k nearest are now within `d_k(i) + margin`, so every current
+/// neighbour is, and was within `d_k(i) + 2 margin` of the old query (`reach` 2); when the
+/// references move too, `d_k(i) + 2 margin` and `d_k(i) + 4 margin` (`reach` 4). Selecting
+/// the k best candidates by (squared distance, index) then gives exactly what the full grid
+/// search gives, ties included.
+#[derive(Default)]
+struct CandidateLists {
     k: usize,
-    /// Positions at the last rebuild.
+    /// Query positions at the last rebuild.
     anchor: Vec<[f64; 3]>,
     margin: f64,
-    /// Start of each point's run in `candidates` (length points + 1).
-    candidate_start: Vec<usize>,
+    /// Start of each query's run in `candidates` (length queries + 1).
+    start: Vec<usize>,
     candidates: Vec<u32>,
     rebuilds: u64,
     calls: u64,
 }
 
+impl CandidateLists {
+    /// Whether the lists still hold every query's k nearest: same count, same `k`, no query
+    /// moved beyond the margin.
+    fn valid_for(&self, queries: &[[f64; 3]], k: usize) -> bool {
+        self.anchor.len() == queries.len()
+            && self.k == k
+            && !self
+                .anchor
+                .par_iter()
+                .zip(queries.par_iter())
+                .any(|(a, q)| dist2(a, q) > self.margin * self.margin)
+    }
+
+    /// The k best candidates of every query, flattened `queries x k`.
+    fn select(&self, queries: &[[f64; 3]], references: &[[f64; 3]], k: usize) -> Vec<u32> {
+        queries
+            .par_iter()
+            .enumerate()
+            .flat_map_iter(|(i, q)| {
+                let mut best = Vec::with_capacity(k + 1);
+                for &j in &self.candidates[self.start[i]..self.start[i + 1]] {
+                    insert_sorted(&mut best, (dist2(q, &references[j as usize]), j), k);
+                }
+                best.into_iter().map(|(_, j)| j)
+            })
+            .collect()
+    }
+
+    /// A full search of `grid`, whose result it returns, and new lists around it; the
+    /// margin is `margin_fraction` x the mean k-th-neighbour distance.
+    fn rebuild(
+        &mut self,
+        grid: &KnnGrid,
+        queries: &[[f64; 3]],
+        k: usize,
+        margin_fraction: f64,
+        reach: f64,
+    ) -> Vec<u32> {
+        self.rebuilds += 1;
+        let nearest = grid.query_all(queries, k);
+        let kth: Vec<f64> = nearest
+            .par_chunks(k)
+            .zip(queries.par_iter())
+            .map(|(row, q)| dist2(q, &grid.points[row[k - 1] as usize]).sqrt())
+            .collect();
+        let mean = kth.iter().sum::<f64>() / kth.len().max(1) as f64;
+        self.margin = margin_fraction * mean;
+        let margin = self.margin;
+        let lists: Vec<Vec<u32>> = queries
+            .par_iter()
+            .zip(kth.par_iter())
+            // Grown by a relative 1e-9 so that rounding in the distances never drops a point
+            // the argument above includes.
+            .map(|(q, &d)| grid.within(q, (d + reach * margin) * (1.0 + 1e-9)))
+            .collect();
+        self.start.clear();
+        self.start.push(0);
+        self.candidates.clear();
+        for list in &lists {
+            self.candidates.extend_from_slice(list);
+            self.start.push(self.candidates.len());
+        }
+        self.anchor.clear();
+        self.anchor.extend_from_slice(queries);
+        self.k = k;
+        nearest
+    }
+}
+
+/// The margin of [`MovingKnn::default`] and [`KnnGrid::query_all_tracked`], as a fraction of
+/// the mean k-th-neighbour distance: larger keeps lists valid longer but makes them longer
+/// (0.25: the demo's AIAP lists were rebuilt every 5 iterations).
+pub const DEFAULT_MARGIN_FRACTION: f64 = 0.25;
+
+/// Exact `k` nearest neighbours of a point set among itself, for a set that moves a little
+/// between calls: training's AIAP neighbours, whose canonical Gaussians move by one Adam step
+/// per iteration (a full grid search every iteration was 3% of a `fast` iteration). Every
+/// call returns exactly what `KnnGrid::new(points, 4.0).query_all(points, k)` returns; the
+/// grid is searched only when a point has moved beyond the margin since the last search
+/// ([`CandidateLists`]), when the count or `k` changes, or when a point is not finite.
+pub struct MovingKnn {
+    margin_fraction: f64,
+    lists: CandidateLists,
+}
+
 impl Default for MovingKnn {
     fn default() -> Self {
-        Self::new(0.25)
+        Self::new(DEFAULT_MARGIN_FRACTION)
     }
 }
 
@@ -268,91 +385,36 @@ impl MovingKnn {
     pub fn new(margin_fraction: f64) -> Self {
         Self {
             margin_fraction: margin_fraction.max(0.0),
-            k: 0,
-            anchor: Vec::new(),
-            margin: 0.0,
-            candidate_start: Vec::new(),
-            candidates: Vec::new(),
-            rebuilds: 0,
-            calls: 0,
+            lists: CandidateLists::default(),
         }
     }
 
     /// Full searches so far (the first call always is one).
     pub fn rebuilds(&self) -> u64 {
-        self.rebuilds
+        self.lists.rebuilds
     }
 
     /// Calls so far.
     pub fn calls(&self) -> u64 {
-        self.calls
+        self.lists.calls
     }
 
     /// The `k` nearest of every point among `points`, flattened `points x k`, nearest first
     /// (itself first unless an identical point has a smaller index). Panics as
     /// [`KnnGrid::query_all`] does when fewer than `k` points are finite.
     pub fn neighbours(&mut self, points: &[[f64; 3]], k: usize) -> Vec<u32> {
-        self.calls += 1;
+        self.lists.calls += 1;
         let finite = points.iter().all(|p| p.iter().all(|v| v.is_finite()));
         if k == 0 || !finite {
-            self.anchor.clear();
+            self.lists.anchor.clear();
             return KnnGrid::new(points, 4.0).query_all(points, k);
         }
-        let moved = self.anchor.len() != points.len()
-            || self.k != k
-            || self
-                .anchor
-                .par_iter()
-                .zip(points.par_iter())
-                .any(|(a, p)| dist2(a, p) > self.margin * self.margin);
-        if moved {
-            return self.rebuild(points, k);
+        if self.lists.valid_for(points, k) {
+            return self.lists.select(points, points, k);
         }
-        let candidate_start = &self.candidate_start;
-        let candidates = &self.candidates;
-        points
-            .par_iter()
-            .enumerate()
-            .flat_map_iter(|(i, p)| {
-                let mut best = Vec::with_capacity(k + 1);
-                for &j in &candidates[candidate_start[i]..candidate_start[i + 1]] {
-                    insert_sorted(&mut best, (dist2(p, &points[j as usize]), j), k);
-                }
-                best.into_iter().map(|(_, j)| j)
-            })
-            .collect()
-    }
-
-    fn rebuild(&mut self, points: &[[f64; 3]], k: usize) -> Vec<u32> {
-        self.rebuilds += 1;
         let grid = KnnGrid::new(points, 4.0);
-        let nearest = grid.query_all(points, k);
-        let kth: Vec<f64> = nearest
-            .par_chunks(k)
-            .zip(points.par_iter())
-            .map(|(row, p)| dist2(p, &points[row[k - 1] as usize]).sqrt())
-            .collect();
-        let mean = kth.iter().sum::<f64>() / kth.len().max(1) as f64;
-        self.margin = self.margin_fraction * mean;
-        let margin = self.margin;
-        let lists: Vec<Vec<u32>> = points
-            .par_iter()
-            .zip(kth.par_iter())
-            // Grown by a relative 1e-9 so that rounding in the distances never drops a point
-            // the argument above includes.
-            .map(|(p, &d)| grid.within(p, (d + 4.0 * margin) * (1.0 + 1e-9)))
-            .collect();
-        self.candidate_start.clear();
-        self.candidate_start.push(0);
-        self.candidates.clear();
-        for list in &lists {
-            self.candidates.extend_from_slice(list);
-            self.candidate_start.push(self.candidates.len());
-        }
-        self.anchor.clear();
-        self.anchor.extend_from_slice(points);
-        self.k = k;
-        nearest
+        self.lists
+            .rebuild(&grid, points, k, self.margin_fraction, 4.0)
     }
 }
 
@@ -580,6 +642,54 @@ mod tests {
             moving.rebuilds(),
             moving.calls()
         );
+    }
+
+    #[test]
+    fn tracked_queries_are_the_full_search_while_they_drift() {
+        let template: Vec<[f64; 3]> = shell_points(2000)
+            .iter()
+            .map(|p| p.map(f64::from))
+            .collect();
+        let grid = KnnGrid::new(&template, 4.0);
+        let mut rng = Rng::new(9);
+        // Gaussians near the template, drifting; a second query set interleaved now and then
+        // (another caller of the same grid) must not disturb either's results.
+        let mut gaussians: Vec<[f64; 3]> = template[..1700]
+            .iter()
+            .map(|p| p.map(|v| v + rng.uniform(-0.01, 0.01)))
+            .collect();
+        let other: Vec<[f64; 3]> = template[300..400].to_vec();
+        for step in 0..40 {
+            for g in gaussians.iter_mut() {
+                for v in g.iter_mut() {
+                    *v += rng.uniform(-5e-4, 5e-4);
+                }
+            }
+            if step == 15 {
+                gaussians[42] = [0.5, 0.5, 0.5];
+            }
+            let k = if step == 30 { 1 } else { 4 };
+            assert_eq!(
+                grid.query_all_tracked(&gaussians, k),
+                grid.query_all(&gaussians, k),
+                "step {step}"
+            );
+            if step % 10 == 9 {
+                assert_eq!(grid.query_all_tracked(&other, 3), grid.query_all(&other, 3));
+            }
+        }
+        assert_eq!(
+            grid.query_all_tracked(&gaussians, 4),
+            knn_brute_force(&template, &gaussians, 4)
+        );
+        let (searches, calls) = grid.tracked_searches();
+        assert_eq!(calls, 45);
+        // First call, the jump, k = 1 and back, and two rebuilds per interleaved set.
+        assert!(searches >= 5, "{searches} searches");
+        assert!(searches * 3 < calls, "{searches} searches in {calls} calls");
+        // Non-finite queries take the full search and get its defined rows.
+        let bad = vec![[f64::NAN, 0.0, 0.0], template[0]];
+        assert_eq!(grid.query_all_tracked(&bad, 2), grid.query_all(&bad, 2));
     }
 
     #[test]
