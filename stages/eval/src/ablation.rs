@@ -137,9 +137,11 @@ fn common_label(names: &[&str]) -> String {
     }
 }
 
-/// The Markdown table of the ablation, or `None` when no row has more than one seed. Rows keep
-/// the order of their first run; cells are `mean ± std` in dB (changes signed), `-` where no
-/// run has the value.
+/// The Markdown table of the ablation, or `None` when no row has more than one seed and no run
+/// has a history-frame subset (a sweep on a history scene gets the table with one seed per row:
+/// its main table shows only the PSNR on all images). Rows keep the order of their first run;
+/// cells are `mean ± std` in dB (changes signed) over two or more seeds, the value itself for
+/// one, `-` where no run has the value.
 pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
     let mut order: Vec<String> = Vec::new();
     let mut groups: BTreeMap<String, Vec<&SeedRun>> = BTreeMap::new();
@@ -150,7 +152,10 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
         }
         groups.entry(key).or_default().push(run);
     }
-    if groups.values().all(|group| group.len() < 2) {
+    let has_history = runs
+        .iter()
+        .any(|run| COLUMNS[1].1.read(&run.summary).is_some());
+    if groups.values().all(|group| group.len() < 2) && !has_history {
         return Ok(None);
     }
     let mut headers = vec!["row", "seeds"];
@@ -169,16 +174,19 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
                 .collect();
             let signed = index >= 5;
             // Changes get a third decimal: "no effect" and "a few hundredths" differ.
-            cells.push(match mean_std(&values) {
-                None => "-".to_owned(),
-                Some((mean, std)) if signed => format!("{mean:+.3} ± {std:.3}"),
-                Some((mean, std)) => format!("{mean:.2} ± {std:.2}"),
+            cells.push(match (mean_std(&values), values.len()) {
+                (None, _) => "-".to_owned(),
+                (Some((mean, _)), 1) if signed => format!("{mean:+.3}"),
+                (Some((mean, _)), 1) => format!("{mean:.2}"),
+                (Some((mean, std)), _) if signed => format!("{mean:+.3} ± {std:.3}"),
+                (Some((mean, std)), _) => format!("{mean:.2} ± {std:.2}"),
             });
         }
         let seconds: Vec<f64> = group.iter().filter_map(|run| run.train_seconds).collect();
-        cells.push(match mean_std(&seconds) {
-            None => "-".to_owned(),
-            Some((mean, std)) => format!("{mean:.0} ± {std:.0}"),
+        cells.push(match (mean_std(&seconds), seconds.len()) {
+            (None, _) => "-".to_owned(),
+            (Some((mean, _)), 1) => format!("{mean:.0}"),
+            (Some((mean, std)), _) => format!("{mean:.0} ± {std:.0}"),
         });
         table.push(cells);
     }
@@ -238,8 +246,27 @@ mod tests {
             ),
             "{table}"
         );
-        // One run per config: no ablation table.
-        assert_eq!(ablation_table(&runs[..2]).unwrap(), None);
+        // One run per config with history subsets (a sweep on the history scene): the table,
+        // values without a spread.
+        let single = ablation_table(&runs[..2]).unwrap().unwrap();
+        let lines: Vec<&str> = single.lines().collect();
+        assert_eq!(lines.len(), 4, "{single}");
+        assert!(
+            lines[2]
+                .starts_with("| train_b_pose_s1 | 1 | 27.00 | 26.00 | - | - | 30.00 | +0.000 |"),
+            "{single}"
+        );
+        assert!(lines[3].ends_with("| -0.100 | 100 |"), "{single}");
+        // One run per config and no history frames: no ablation table.
+        let plain: Vec<SeedRun> = runs[..2]
+            .iter()
+            .cloned()
+            .map(|mut run| {
+                run.summary["subsets"] = json!({});
+                run
+            })
+            .collect();
+        assert_eq!(ablation_table(&plain).unwrap(), None);
     }
 
     #[test]

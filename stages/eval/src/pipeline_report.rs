@@ -382,12 +382,12 @@ pub fn write_report_for(
     }
     if let Some(table) = ablation_table(&seed_runs)? {
         text.push_str(
-            "## Ablation (mean ± std over seeds)\n\n\
-             Eval stages whose train stages differ only in `seed` form one row: PSNR (dB) on \
-             all test images, the history frames, each protocol and the training images, and \
-             the PSNR change when the motion context (skeleton motion, velocities) is zeroed \
-             or taken from another frame (`-`: the row has no such inputs or subset), and the \
-             training time.\n\n",
+            "## Per row: subsets and context probes (mean ± std over seeds)\n\n\
+             Eval stages whose train stages differ only in `seed` form one row (a row of one \
+             seed shows its values without a spread): PSNR (dB) on all test images, the \
+             history frames, each protocol and the training images, and the PSNR change when \
+             the motion context (skeleton motion, velocities) is zeroed or taken from another \
+             frame (`-`: the row has no such inputs or subset), and the training time.\n\n",
         );
         text.push_str(&table);
         text.push('\n');
