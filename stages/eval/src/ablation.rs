@@ -111,7 +111,9 @@ impl Metric {
     }
 }
 
-/// The longest common prefix of the names, without a trailing `_`, `_s` or seed digits.
+/// The longest common prefix of the names, without a trailing seed suffix (`_s` and the
+/// digits of a seed number, or `_`); digits that belong to the row's own name stay
+/// (`train_iter3000` and `train_iter3000_s2` are `train_iter3000`).
 fn common_label(names: &[&str]) -> String {
     let first = names.first().copied().unwrap_or("");
     let mut end = first.len();
@@ -127,8 +129,11 @@ fn common_label(names: &[&str]) -> String {
     }
     let mut label = &first[..end];
     if names.len() > 1 {
-        label = label.trim_end_matches(|c: char| c.is_ascii_digit());
-        label = label.trim_end_matches("_s").trim_end_matches('_');
+        let without_digits = label.trim_end_matches(|c: char| c.is_ascii_digit());
+        if let Some(stripped) = without_digits.strip_suffix("_s") {
+            label = stripped;
+        }
+        label = label.trim_end_matches('_');
     }
     if label.is_empty() {
         first.to_owned()
@@ -276,6 +281,11 @@ mod tests {
             "train_c"
         );
         assert_eq!(common_label(&["a_seed1", "a_seed2"]), "a_seed");
+        assert_eq!(common_label(&["x_s12", "x_s13"]), "x");
+        assert_eq!(
+            common_label(&["train_iter3000", "train_iter3000_s2", "train_iter3000_s1"]),
+            "train_iter3000"
+        );
         assert_eq!(common_label(&["only"]), "only");
         assert_eq!(common_label(&["x1", "y1"]), "x1");
     }
