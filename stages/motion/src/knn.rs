@@ -207,19 +207,10 @@ impl KnnGrid {
     /// last query set given; another set (or a call while another thread holds them) takes
     /// the full search, so any mix of callers gets exact results.
     pub fn query_all_tracked(&self, queries: &[[f64; 3]], k: usize) -> Vec<u32> {
-        let finite = queries.iter().all(|q| q.iter().all(|v| v.is_finite()));
         let Ok(mut lists) = self.tracked.try_lock() else {
             return self.query_all(queries, k);
         };
-        lists.calls += 1;
-        if k == 0 || !finite {
-            lists.anchor.clear();
-            return self.query_all(queries, k);
-        }
-        if lists.valid_for(queries, k) {
-            return lists.select(queries, &self.points, k);
-        }
-        lists.rebuild(self, queries, k, DEFAULT_MARGIN_FRACTION, 2.0)
+        lists.nearest(queries, Some(self), k, DEFAULT_MARGIN_FRACTION)
     }
 
     /// Full searches and calls of [`Self::query_all_tracked`] so far.
@@ -317,6 +308,42 @@ impl CandidateLists {
             .collect()
     }
 
+    /// The `k` nearest of every query, flattened `queries x k`: among `fixed`'s points, or
+    /// with `None` among the queries themselves. From the lists while they are valid, else by
+    /// a full search that rebuilds them; `k = 0` or a non-finite query takes the full search
+    /// and forgets the lists.
+    fn nearest(
+        &mut self,
+        queries: &[[f64; 3]],
+        fixed: Option<&KnnGrid>,
+        k: usize,
+        margin_fraction: f64,
+    ) -> Vec<u32> {
+        self.calls += 1;
+        // Checked first: a NaN displacement would pass `valid_for`'s comparison.
+        let finite = queries.iter().all(|q| q.iter().all(|v| v.is_finite()));
+        if k > 0 && finite && self.valid_for(queries, k) {
+            let references = fixed.map_or(queries, |grid| grid.points.as_slice());
+            return self.select(queries, references, k);
+        }
+        let own;
+        let grid = match fixed {
+            Some(grid) => grid,
+            None => {
+                own = KnnGrid::new(queries, 4.0);
+                &own
+            }
+        };
+        if k == 0 || !finite {
+            self.anchor.clear();
+            return grid.query_all(queries, k);
+        }
+        // Fixed references: a query's old neighbours are at most one margin farther now;
+        // references that move too add another (see the type's comment).
+        let reach = if fixed.is_some() { 2.0 } else { 4.0 };
+        self.rebuild(grid, queries, k, margin_fraction, reach)
+    }
+
     /// A full search of `grid`, whose result it returns, and new lists around it; the
     /// margin is `margin_fraction` x the mean k-th-neighbour distance.
     fn rebuild(
@@ -403,18 +430,7 @@ impl MovingKnn {
     /// (itself first unless an identical point has a smaller index). Panics as
     /// [`KnnGrid::query_all`] does when fewer than `k` points are finite.
     pub fn neighbours(&mut self, points: &[[f64; 3]], k: usize) -> Vec<u32> {
-        self.lists.calls += 1;
-        let finite = points.iter().all(|p| p.iter().all(|v| v.is_finite()));
-        if k == 0 || !finite {
-            self.lists.anchor.clear();
-            return KnnGrid::new(points, 4.0).query_all(points, k);
-        }
-        if self.lists.valid_for(points, k) {
-            return self.lists.select(points, points, k);
-        }
-        let grid = KnnGrid::new(points, 4.0);
-        self.lists
-            .rebuild(&grid, points, k, self.margin_fraction, 4.0)
+        self.lists.nearest(points, None, k, self.margin_fraction)
     }
 }
 
