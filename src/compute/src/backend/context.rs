@@ -54,6 +54,57 @@ pub struct GpuContext {
     /// lowered in tests to exercise the 2D index arithmetic of every kernel.
     dispatch_limit: u32,
     kernels: Mutex<HashMap<&'static str, Arc<Kernel>>>,
+    /// Host-device traffic through this context since it was made (see [`Transfers`]).
+    transfers: TransferCounters,
+}
+
+/// Host-device traffic through one [`GpuContext`]: what a steady-state training step must
+/// keep near zero (`--bench train` prints it per iteration, a test bounds it on lavapipe).
+/// Uploads count buffers created with contents, uniforms and queue writes; readbacks count
+/// each submit-and-map round trip ([`GpuContext::finish_downloads`]), however many buffers
+/// it maps.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Transfers {
+    /// Round trips that waited for the device to map results back.
+    pub readbacks: u64,
+    /// Bytes written from the host into device buffers.
+    pub bytes_up: u64,
+    /// Bytes copied from the device back to the host.
+    pub bytes_down: u64,
+}
+
+impl Transfers {
+    /// The traffic between two snapshots (`self` the later one).
+    pub fn since(&self, earlier: &Transfers) -> Transfers {
+        Transfers {
+            readbacks: self.readbacks - earlier.readbacks,
+            bytes_up: self.bytes_up - earlier.bytes_up,
+            bytes_down: self.bytes_down - earlier.bytes_down,
+        }
+    }
+}
+
+#[derive(Default)]
+struct TransferCounters {
+    readbacks: std::sync::atomic::AtomicU64,
+    bytes_up: std::sync::atomic::AtomicU64,
+    bytes_down: std::sync::atomic::AtomicU64,
+}
+
+impl TransferCounters {
+    fn snapshot(&self) -> Transfers {
+        use std::sync::atomic::Ordering::Relaxed;
+        Transfers {
+            readbacks: self.readbacks.load(Relaxed),
+            bytes_up: self.bytes_up.load(Relaxed),
+            bytes_down: self.bytes_down.load(Relaxed),
+        }
+    }
+
+    fn up(&self, bytes: usize) {
+        self.bytes_up
+            .fetch_add(bytes as u64, std::sync::atomic::Ordering::Relaxed);
+    }
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -140,6 +191,7 @@ impl GpuContext {
             float_atomics,
             dispatch_limit: limits.max_compute_workgroups_per_dimension,
             kernels: Mutex::new(HashMap::new()),
+            transfers: TransferCounters::default(),
         })
     }
 
@@ -255,6 +307,38 @@ impl GpuContext {
         Ok(())
     }
 
+    /// Host-device traffic through this context so far; the difference of two snapshots
+    /// ([`Transfers::since`]) is the traffic between them.
+    pub fn transfers(&self) -> Transfers {
+        self.transfers.snapshot()
+    }
+
+    /// Writes `data` into `buffer` at element `offset` (`T` elements) through the queue,
+    /// ordered before the next submission: how per-iteration scalars reach a resident step.
+    pub fn write<T: bytemuck::Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        offset: usize,
+        data: &[T],
+    ) -> Result<(), BackendError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        let start = (offset * std::mem::size_of::<T>()) as u64;
+        if start + bytes.len() as u64 > buffer.size() {
+            return Err(BackendError::Gpu {
+                message: format!(
+                    "writing {} bytes at byte {start} of a {}-byte buffer",
+                    bytes.len(),
+                    buffer.size()
+                ),
+            });
+        }
+        if !bytes.is_empty() {
+            self.queue.write_buffer(buffer, start, bytes);
+            self.transfers.up(bytes.len());
+        }
+        Ok(())
+    }
+
     /// A storage buffer holding `data` (copyable back with [`GpuContext::download`]).
     pub fn upload<T: bytemuck::Pod>(
         &self,
@@ -263,6 +347,7 @@ impl GpuContext {
     ) -> Result<GpuBuffer, BackendError> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         self.check_size(what, bytes.len() as u64)?;
+        self.transfers.up(bytes.len());
         let buffer = if bytes.len() >= 16 {
             self.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -314,6 +399,7 @@ impl GpuContext {
 
     /// A small uniform buffer holding one `T`.
     pub fn uniform<T: bytemuck::Pod>(&self, what: &str, value: &T) -> wgpu::Buffer {
+        self.transfers.up(std::mem::size_of::<T>());
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(what),
@@ -456,6 +542,15 @@ impl GpuContext {
         pending: &mut [PendingDownload<T>],
     ) -> Result<(), BackendError> {
         let index = self.queue.submit([encoder.finish()]);
+        {
+            use std::sync::atomic::Ordering::Relaxed;
+            self.transfers.readbacks.fetch_add(1, Relaxed);
+            let bytes: usize = pending
+                .iter()
+                .map(|p| p.len * std::mem::size_of::<T>())
+                .sum();
+            self.transfers.bytes_down.fetch_add(bytes as u64, Relaxed);
+        }
         let (sender, receiver) = std::sync::mpsc::channel();
         for (position, download) in pending.iter().enumerate() {
             let sender = sender.clone();

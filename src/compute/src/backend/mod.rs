@@ -10,7 +10,8 @@ pub mod shaders;
 pub mod test_support;
 
 pub use context::{
-    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, split_workgroups,
+    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, Transfers,
+    split_workgroups,
 };
 
 use std::fmt;
