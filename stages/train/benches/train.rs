@@ -15,6 +15,10 @@
 //! with seeded VGG weights (the trained ones cannot be committed; the cost depends only on
 //! the architecture); `SEQAVATAR_BENCH_LPIPS=0` skips it.
 //!
+//! Each row also prints the host-device traffic of its timed iterations
+//! (`transfers per iteration: <R> readbacks, <U> KiB up, <D> KiB down`, counted by the gpu
+//! context; zero on `cpu`).
+//!
 //! The scene is the built-in synthetic one (procedural body, two cameras, 512 x 512), run
 //! through the real ingest and motion stages into a temporary cache. Each row runs
 //! `SEQAVATAR_BENCH_WARMUP` (default 2) untimed and `SEQAVATAR_BENCH_ITERATIONS` (default 10)
@@ -161,11 +165,13 @@ fn main() -> anyhow::Result<()> {
                 trainer.step()?;
             }
             trainer.reset_phase_times();
+            let traffic_before = backend.transfers();
             let started = Instant::now();
             for _ in 0..timed {
                 trainer.step()?;
             }
             let seconds = started.elapsed().as_secs_f64();
+            let traffic = backend.transfers().since(&traffic_before);
             let it_s = timed as f64 / seconds;
             println!(
                 "{name}, {variant}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
@@ -180,6 +186,12 @@ fn main() -> anyhow::Result<()> {
                     .map(|&phase| format!("{} {:.1}", phase.name(), per_iteration(phase)))
                     .collect::<Vec<_>>()
                     .join(", ")
+            );
+            println!(
+                "  transfers per iteration: {} readbacks, {:.1} KiB up, {:.1} KiB down",
+                traffic.readbacks as f64 / timed as f64,
+                traffic.bytes_up as f64 / 1024.0 / timed as f64,
+                traffic.bytes_down as f64 / 1024.0 / timed as f64
             );
             if let Some(networks) = &trainer.networks {
                 // Forward + backward (dX and dW, twice the forward) of every layer, counted

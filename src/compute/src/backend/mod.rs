@@ -116,6 +116,12 @@ impl Backend {
         }
     }
 
+    /// Host-device traffic through this backend so far (none on `cpu`).
+    pub fn transfers(&self) -> Transfers {
+        self.gpu()
+            .map_or_else(Transfers::default, |context| context.transfers())
+    }
+
     /// The gpu context, if this is the gpu backend.
     pub fn gpu(&self) -> Option<&Arc<GpuContext>> {
         match self {
