@@ -26,6 +26,7 @@ pub mod densify;
 pub mod diagnostics;
 pub mod gaussians;
 pub mod losses;
+pub mod resident;
 pub mod rng;
 pub mod stage;
 pub mod trainer;
