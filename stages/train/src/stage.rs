@@ -250,7 +250,7 @@ impl StageKind for TrainStage {
                 .is_multiple_of(u64::from(config.checkpoint_every))
                 && trainer.iteration < total
             {
-                checkpoint::save(&work, &trainer.checkpoint())?;
+                checkpoint::save(&work, &trainer.checkpoint()?)?;
             }
         }
         bar.finish_and_clear();

@@ -45,6 +45,7 @@ use crate::losses::{
     AiapGaussianGrads, AiapGaussians, AiapWeights, ImageLossWeights, ImagePair, LpipsLoss, Rect,
     aiap_gaussians, image_loss,
 };
+use crate::resident::step::{IterationPlan, LOG_CAPACITY, ResidentStep};
 use crate::rng::Rng;
 use seqavatar_avatar::skinning::skin_backward;
 use seqavatar_avatar::splatting::SplatPass;
@@ -319,9 +320,24 @@ pub struct Trainer<'d> {
     /// Unrefined skinning targets per frame, computed once.
     poses: Vec<Option<(FramePose, PoseChain)>>,
     phase_times: PhaseTimes,
+    /// On the `gpu` backend: the run's state on the device and its iteration
+    /// ([`ResidentStep`]); the host fields above are brought up to date by
+    /// [`Trainer::sync`].
+    resident: Option<ResidentStep>,
+    /// On the `gpu` backend: iterations between two reads of the logged scalars.
+    log_every: usize,
+    /// The last iteration whose logged scalars were read (`IterationStats` of the iterations
+    /// recorded since repeat them).
+    last_logged: IterationStats,
 }
 
 /// The active SH degree at (1-based) iteration `iteration`: one more every `interval`.
+/// Whether the device-resident step covers a configuration (the LPIPS loss runs through the
+/// host path for now).
+fn resident_supported(config: &TrainConfig) -> bool {
+    !config.lpips_enabled()
+}
+
 pub fn sh_degree_at(config: &TrainConfig, iteration: u64) -> u32 {
     let steps = iteration / u64::from(config.sh_degree_interval.max(1));
     steps.min(u64::from(config.sh_degree)) as u32
@@ -415,6 +431,21 @@ impl<'d> Trainer<'d> {
             !train_images.is_empty(),
             "no training image has a non-empty foreground mask"
         );
+        let resident = match backend.gpu() {
+            Some(context) if resident_supported(&config) => Some(
+                ResidentStep::new(
+                    context.clone(),
+                    &config,
+                    data,
+                    &scales,
+                    &state,
+                    networks.as_ref(),
+                    &network_adam,
+                )
+                .context("the device-resident training step")?,
+            ),
+            _ => None,
+        };
         let device = avatar_backend(backend, networks.as_ref())?;
         let lpips = load_lpips_loss(&config, device.compute())?;
         if let Some(loss) = &lpips {
@@ -447,6 +478,9 @@ impl<'d> Trainer<'d> {
             network_adam,
             train_images,
             phase_times: PhaseTimes::default(),
+            resident,
+            log_every: LOG_CAPACITY,
+            last_logged: IterationStats::default(),
         })
     }
 
@@ -500,6 +534,9 @@ impl<'d> Trainer<'d> {
     /// One training iteration: the phases of [`Phase`] in order, each timed into
     /// [`Trainer::phase_times`].
     pub fn step(&mut self) -> anyhow::Result<IterationStats> {
+        if self.resident.is_some() {
+            return self.resident_step();
+        }
         let iteration = self.iteration + 1;
         let mut clock = PhaseClock::start();
         let forward = self.deform_phase(iteration)?;
@@ -952,6 +989,128 @@ impl<'d> Trainer<'d> {
         Ok(None)
     }
 
+    /// One iteration on the device ([`ResidentStep`]): the host makes the same draws as the
+    /// `cpu` path (images, frame, background, densification), records and submits; the
+    /// logged scalars are read every `log_every` iterations, before densification and at
+    /// the last iteration. The returned statistics are the last ones read.
+    fn resident_step(&mut self) -> anyhow::Result<IterationStats> {
+        let iteration = self.iteration + 1;
+        let mut clock = PhaseClock::start();
+        let sh_degree = sh_degree_at(&self.config, iteration);
+        let chosen = self.pick_images();
+        let frame = self.data.images[chosen[0]].frame;
+        let background = self.config.background.draw(&mut self.rng);
+        self.adam_step += 1;
+        let c = &self.config;
+        let densify_now = c.densify
+            && iteration > u64::from(c.densify_from)
+            && iteration <= u64::from(c.densify_until)
+            && iteration.is_multiple_of(u64::from(c.densify_interval));
+        let plan = IterationPlan {
+            iteration,
+            frame,
+            images: &chosen,
+            background,
+            sh_degree,
+            adam_step: self.adam_step,
+            density_statistics: iteration <= u64::from(c.densify_until),
+        };
+        let resident = self.resident.as_mut().expect("resident step");
+        resident
+            .record(&plan, self.data)
+            .with_context(|| format!("iteration {iteration} on the device"))?;
+        clock.lap(&mut self.phase_times, Phase::Deform);
+        self.iteration = iteration;
+        self.phase_times.iterations += 1;
+        let due = resident.unread() >= self.log_every.clamp(1, resident.log_capacity())
+            || iteration >= u64::from(self.config.iterations)
+            || densify_now;
+        if due {
+            self.read_log()?;
+        }
+        let mut stats = IterationStats {
+            iteration,
+            gaussians: self.state.len(),
+            densified: None,
+            ..self.last_logged
+        };
+        if densify_now {
+            let resident = self.resident.as_mut().expect("resident step");
+            resident.download_state(&mut self.state)?;
+            let settings = DensifySettings {
+                grad_threshold: c.densify_grad_threshold,
+                percent_dense: c.percent_dense,
+                extent: self.data.extent,
+                min_opacity: c.prune_opacity,
+                max_gaussians: c.max_gaussians,
+            };
+            let report = densify_and_prune(&mut self.state, &settings, &mut self.rng)?;
+            anyhow::ensure!(
+                report.count > 0,
+                "iteration {iteration}: density control pruned every Gaussian"
+            );
+            resident.upload_state(&self.state)?;
+            stats.densified = Some(report);
+            stats.gaussians = self.state.len();
+            clock.lap(&mut self.phase_times, Phase::Densify);
+        }
+        Ok(stats)
+    }
+
+    /// Reads the logged scalars of the iterations recorded on the device since the last
+    /// read into the loss curve (and checks them: a non-finite value is a [`Divergence`]).
+    fn read_log(&mut self) -> anyhow::Result<()> {
+        let Some(resident) = self.resident.as_mut() else {
+            return Ok(());
+        };
+        let count = resident.unread() as u64;
+        let logged = resident.read_log(self.iteration)?;
+        for (offset, values) in logged.iter().enumerate() {
+            let stats = IterationStats {
+                iteration: self.iteration + 1 - count + offset as u64,
+                total: values.image_total + values.aiap,
+                l1: values.l1,
+                mask_mse: values.mask_mse,
+                dssim: values.dssim,
+                lpips: values.lpips,
+                aiap: values.aiap,
+                psnr: values.psnr,
+                gaussians: self.state.len(),
+                densified: None,
+            };
+            self.curve.push(&stats);
+            self.last_logged = stats;
+        }
+        Ok(())
+    }
+
+    /// Brings the host state (Gaussians, networks, their Adam moments, the loss curve) up to
+    /// date with the device on the `gpu` backend (nothing to do on `cpu`): before a
+    /// checkpoint, the trained avatar, or reading [`Trainer::state`], [`Trainer::networks`]
+    /// or [`Trainer::curve`].
+    pub fn sync(&mut self) -> anyhow::Result<()> {
+        self.read_log()?;
+        if let Some(resident) = &self.resident {
+            resident.download_state(&mut self.state)?;
+            if let Some(networks) = self.networks.as_mut() {
+                resident.download_networks(networks, &mut self.network_adam)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Iterations between two reads of the logged scalars on the `gpu` backend (1: every
+    /// iteration's statistics are exact when [`Trainer::step`] returns them; at most the
+    /// log ring's capacity).
+    pub fn set_log_every(&mut self, iterations: usize) {
+        self.log_every = iterations.max(1);
+    }
+
+    /// Whether the iteration runs on the device ([`ResidentStep`]).
+    pub fn resident(&self) -> bool {
+        self.resident.is_some()
+    }
+
     /// Whether the non-rigid network runs on the gpu (the `gpu` backend with a motion
     /// context that has one).
     pub fn non_rigid_on_gpu(&self) -> bool {
@@ -981,7 +1140,8 @@ impl<'d> Trainer<'d> {
     }
 
     /// The current avatar.
-    pub fn avatar(&self) -> anyhow::Result<TrainedAvatar> {
+    pub fn avatar(&mut self) -> anyhow::Result<TrainedAvatar> {
+        self.sync()?;
         Ok(TrainedAvatar::new(
             self.config.avatar(),
             self.data.rig.clone(),
@@ -992,8 +1152,14 @@ impl<'d> Trainer<'d> {
         ))
     }
 
-    /// The complete state as a checkpoint.
-    pub fn checkpoint(&self) -> Checkpoint {
+    /// The complete state as a checkpoint (synchronised from the device first on `gpu`).
+    pub fn checkpoint(&mut self) -> anyhow::Result<Checkpoint> {
+        self.sync()?;
+        Ok(self.host_checkpoint())
+    }
+
+    /// The host state as a checkpoint.
+    fn host_checkpoint(&self) -> Checkpoint {
         let n = self.state.len();
         let mut tensors: Vec<Tensor> = self
             .state

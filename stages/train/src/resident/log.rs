@@ -17,13 +17,11 @@ pub enum LogField {
     Lpips = 3,
     Aiap = 4,
     Psnr = 5,
-    /// Non-zero when a kernel of the iteration met a non-finite value (the pieces' status).
-    Status = 6,
-    /// The index of the first non-finite value the status refers to.
-    StatusIndex = 7,
+    /// The image losses' weighted total (AIAP not included).
+    ImageTotal = 6,
 }
 
-/// Values per slot.
+/// Values per slot (one spare, keeping a slot 32 bytes).
 pub const LOG_FIELDS: usize = 8;
 
 /// A ring of `capacity` iteration slots of [`LOG_FIELDS`] f32 values on the device.

@@ -1,0 +1,730 @@
+//! The device-resident training iteration of the `gpu` backend: every phase of
+//! [`crate::trainer::Trainer::step`] recorded into one command encoder and submitted once, on
+//! state that lives on the device (`docs/resident-step.md`). The host chooses the
+//! iteration's images, frame and background with the trainer's generator (the same draws,
+//! in the same order, as the `cpu` path), writes the pieces' small per-iteration records, and
+//! submits; it reads back only the log ring (every [`ResidentStep::log_capacity`] iterations
+//! at most) and, when densification runs, the Gaussians.
+//!
+//! Phases, in recording order: pose (the refiner's forward, forward kinematics and pose
+//! blend shapes), motion inputs (skeleton window, canonical KNN, velocity gather), the
+//! non-rigid network, the heads applied, the LBS offsets, the nearest template vertices,
+//! skinning and activations, splatting, the image losses with their image gradients, AIAP,
+//! then the backward in reverse (splatting, skinning, LBS offsets, non-rigid network, pose,
+//! pose refiner), Adam on the Gaussians and on the networks, and the densification
+//! statistics.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+
+use anyhow::Context;
+use seqavatar_avatar::model::gpu::{GpuNetworks, NonRigidDeviceInputs};
+use seqavatar_avatar::model::{NetworkGroup, Networks};
+use seqavatar_avatar::resident::motion::{MotionSetup, ResidentMotion};
+use seqavatar_avatar::resident::pose::ResidentPose;
+use seqavatar_avatar::resident::skinning::{
+    GaussianColumns, ResidentSkinning, SkinInputs, SkinningSetup,
+};
+use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
+use seqavatar_compute::splat::RasterOptions;
+use seqavatar_compute::splat::gpu::{
+    DeviceGaussians, DeviceImageGradient, GpuOptions, SplatWorkspace,
+};
+use seqavatar_core::camera::Camera;
+
+use super::adam::{GaussianAdam, GaussianGradients};
+use super::aiap::ResidentAiap;
+use super::densify::GradientStats;
+use super::image_loss::{DeviceImages, GroundTruth, ImageLoss, LossCamera};
+use super::log::{LOG_FIELDS, LogField, LogRing};
+use super::state::{GaussianRates, OptimiserStep, ResidentGaussians};
+use crate::config::TrainConfig;
+use crate::data::TrainingData;
+use crate::densify::GaussianState;
+use crate::losses::{AiapWeights, ImageLossWeights};
+use crate::trainer::{Divergence, pad_rect};
+
+const STEP_WGSL: &str = include_str!("../../../../shaders/train_step.wgsl");
+
+/// Iterations the log ring holds: the most iterations between two reads of the logged
+/// scalars.
+pub const LOG_CAPACITY: usize = 64;
+
+/// What the host decided for one iteration.
+#[derive(Clone, Debug)]
+pub struct IterationPlan<'a> {
+    /// 1-based.
+    pub iteration: u64,
+    /// The frame of the chosen images.
+    pub frame: usize,
+    /// The chosen training images (indices into `TrainingData::images`).
+    pub images: &'a [usize],
+    pub background: [f64; 3],
+    pub sh_degree: u32,
+    /// The Gaussians' Adam update count including this iteration's.
+    pub adam_step: u64,
+    /// Whether this iteration accumulates densification statistics.
+    pub density_statistics: bool,
+}
+
+/// The logged scalars of one iteration as read back.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LoggedIteration {
+    pub l1: f64,
+    pub mask_mse: f64,
+    pub dssim: f64,
+    pub lpips: f64,
+    pub aiap: f64,
+    pub psnr: f64,
+    /// The image losses' weighted total (without AIAP).
+    pub image_total: f64,
+}
+
+/// The device state and workspaces of a resident training run.
+pub struct ResidentStep {
+    context: Arc<GpuContext>,
+    config: TrainConfig,
+    pose: ResidentPose,
+    motion: ResidentMotion,
+    networks: Option<GpuNetworks>,
+    skinning: ResidentSkinning,
+    splat: SplatWorkspace,
+    truth: GroundTruth,
+    losses: ImageLoss,
+    gaussians: ResidentGaussians,
+    adam: GaussianAdam,
+    aiap: ResidentAiap,
+    statistics: GradientStats,
+    log: LogRing,
+    /// Every frame's local pose without the root, `F x 3 (J - 1)`, and the current one.
+    local_poses: GpuBuffer,
+    local_pose: GpuBuffer,
+    local_pose_width: usize,
+    /// Per camera slot, the image gradients the losses write and the splatting reads.
+    image_gradients: Vec<(GpuBuffer, GpuBuffer)>,
+    /// The canonical centres' total gradient (skinning's direct path plus the non-rigid
+    /// network's), `N x 3`.
+    xyz_gradient: GpuBuffer,
+    add: Arc<Kernel>,
+    has_non_rigid: bool,
+    has_lbs: bool,
+    has_refiner: bool,
+    /// Iterations recorded since the log was last read, and the first one's slot.
+    unread: usize,
+    first_unread: usize,
+}
+
+/// `(n)` of `train_step.wgsl`'s `add_into`.
+fn add_uniform(context: &GpuContext, len: usize) -> wgpu::Buffer {
+    context.uniform("add length", &[len as u32, 0, 0, 0])
+}
+
+impl ResidentStep {
+    /// Uploads the run's state and data once: the Gaussians (`state`) with their Adam
+    /// moments, the networks with theirs (`network_adam`, empty for a fresh run), the
+    /// sequence's poses and motion arrays, the ground-truth images; allocates every
+    /// workspace for the current Gaussian count.
+    pub fn new(
+        context: Arc<GpuContext>,
+        config: &TrainConfig,
+        data: &TrainingData,
+        scales: &[u32],
+        state: &GaussianState,
+        networks: Option<&Networks<f32>>,
+        network_adam: &BTreeMap<String, AdamState<f32>>,
+    ) -> anyhow::Result<Self> {
+        let n = state.len();
+        let avatar = config.avatar();
+        let context_kind = avatar.motion_context;
+        let rig = &data.rig;
+        let pose = ResidentPose::new(context.clone(), rig, &data.params)
+            .context("resident pose path")?;
+        let networks = match networks {
+            None => None,
+            Some(net) => {
+                let mut gpu = GpuNetworks::upload(context.clone(), net)
+                    .context("uploading the networks")?;
+                if !network_adam.is_empty() {
+                    let states: HashMap<String, AdamState<f32>> = network_adam
+                        .iter()
+                        .map(|(k, v)| (k.clone(), v.clone()))
+                        .collect();
+                    gpu.upload_adam(&adam_config(config), &states)
+                        .context("uploading the networks' Adam moments")?;
+                }
+                Some(gpu)
+            }
+        };
+        let has_non_rigid = networks.is_some() && context_kind.has_non_rigid();
+        let has_lbs = networks.is_some() && config.lbs_offsets;
+        let has_refiner = networks.is_some() && config.pose_refiner;
+        let motion = ResidentMotion::new(
+            &context,
+            &MotionSetup {
+                track: &data.motion,
+                scales,
+                length: config.sequence_length,
+                template: &rig.canonical_vertices,
+                tau: if has_non_rigid && context_kind.has_velocity() {
+                    config.tau
+                } else {
+                    0
+                },
+                skeleton_motion: has_non_rigid && context_kind.has_skeleton_motion(),
+            },
+            n,
+        )
+        .context("resident motion inputs")?;
+        let skinning = ResidentSkinning::new(
+            &context,
+            &SkinningSetup {
+                canonical_joints: &rig.canonical_joints,
+                template_weights: &rig.template_weights,
+                scale_min: config.scale_min,
+                scale_max: config.scale_max,
+                heads: has_non_rigid,
+                weight_offsets: has_lbs,
+                atomic_add: None,
+            },
+            n,
+        )
+        .context("resident skinning")?;
+        let splat = SplatWorkspace::new(&context, GpuOptions::default(), None)
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("splatting workspace")?;
+        let truth = GroundTruth::upload_training(&context, data).context("training images")?;
+        let max_pixels = data
+            .cameras
+            .iter()
+            .map(|c| c.width as usize * c.height as usize)
+            .max()
+            .unwrap_or(1);
+        let losses = ImageLoss::new(
+            context.clone(),
+            ImageLossWeights {
+                mask: config.mask_weight,
+                ssim: config.ssim_weight,
+            },
+            if config.lpips_enabled() {
+                config.lpips_weight
+            } else {
+                0.0
+            },
+            max_pixels,
+            config.cameras_per_step,
+        )
+        .context("image losses")?;
+        let gaussians = ResidentGaussians::upload(&context, state).context("Gaussians")?;
+        let adam = GaussianAdam::new(&context)?;
+        let aiap = ResidentAiap::new(
+            &context,
+            AiapWeights {
+                centre: config.aiap_centre_weight,
+                covariance: config.aiap_covariance_weight,
+                neighbours: config.aiap_neighbours,
+            },
+        )?;
+        let statistics = GradientStats::new(&context)?;
+        let log = LogRing::new(&context, LOG_CAPACITY)?;
+        let local_pose_width = 3 * (rig.joint_count() - 1);
+        let table: Vec<f32> = data
+            .params
+            .iter()
+            .flat_map(|p| {
+                seqavatar_avatar::avatar::local_pose(p)
+                    .into_iter()
+                    .map(|v| v as f32)
+            })
+            .collect();
+        let local_poses = context.upload("local poses", &table)?;
+        let local_pose = context.zeros("local pose", local_pose_width, 4)?;
+        let image_gradients = (0..config.cameras_per_step)
+            .map(|_| {
+                Ok((
+                    context.zeros("colour gradient", 3 * max_pixels, 4)?,
+                    context.zeros("alpha gradient", max_pixels, 4)?,
+                ))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let xyz_gradient = context.zeros("xyz gradient", 3 * n.max(1), 4)?;
+        let add = context.kernel(&KernelSource {
+            name: "train_step_add_into",
+            wgsl: std::borrow::Cow::Borrowed(STEP_WGSL),
+            entry_point: "add_into",
+        })?;
+        Ok(Self {
+            context,
+            config: config.clone(),
+            pose,
+            motion,
+            networks,
+            skinning,
+            splat,
+            truth,
+            losses,
+            gaussians,
+            adam,
+            aiap,
+            statistics,
+            log,
+            local_poses,
+            local_pose,
+            local_pose_width,
+            image_gradients,
+            xyz_gradient,
+            add,
+            has_non_rigid,
+            has_lbs,
+            has_refiner,
+            unread: 0,
+            first_unread: 0,
+        })
+    }
+
+    /// Iterations that can be recorded between two reads of the log.
+    pub fn log_capacity(&self) -> usize {
+        self.log.capacity()
+    }
+
+    /// Iterations recorded since the log was last read.
+    pub fn unread(&self) -> usize {
+        self.unread
+    }
+
+    /// Records `b += a` over `len` values.
+    fn add_into(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &GpuBuffer,
+        source: &wgpu::Buffer,
+        len: usize,
+    ) {
+        let uniform = add_uniform(&self.context, len);
+        self.context.dispatch(
+            encoder,
+            &self.add,
+            &[(0, &uniform), (1, source), (2, &target.buffer)],
+            len.div_ceil(256) as u32,
+        );
+    }
+
+    /// Records and submits one iteration (see the module documentation). Nothing is read
+    /// back.
+    pub fn record(
+        &mut self,
+        plan: &IterationPlan<'_>,
+        data: &TrainingData,
+    ) -> anyhow::Result<()> {
+        let config = &self.config;
+        let n = self.gaussians.len();
+        let context = self.context.clone();
+        let mut encoder = context.encoder();
+        let slot = self.first_unread + self.unread;
+        self.log.clear_slot(&mut encoder, slot);
+
+        // Host-side per-iteration records (small writes, ordered before the submission).
+        self.motion.set_iteration(plan.frame, n)?;
+        self.skinning.set_iteration(n, plan.sh_degree)?;
+        self.gaussians.write_step(&OptimiserStep {
+            iteration: plan.iteration,
+            adam_step: plan.adam_step,
+            adam: adam_config(config),
+            rates: GaussianRates::at(&config.learning_rates, data.extent, plan.iteration),
+            sh_degree: plan.sh_degree as usize,
+            half_size: half_size(data, plan.images),
+        })?;
+
+        // Pose: the refiner's forward (on the frame's unrefined local pose), forward
+        // kinematics and pose blend shapes.
+        let row = (plan.frame * self.local_pose_width * 4) as u64;
+        encoder.copy_buffer_to_buffer(
+            &self.local_poses.buffer,
+            row,
+            &self.local_pose.buffer,
+            0,
+            (self.local_pose_width * 4) as u64,
+        );
+        let (has_non_rigid, has_lbs, has_refiner) =
+            (self.has_non_rigid, self.has_lbs, self.has_refiner);
+        if let Some(networks) = self.networks.as_mut() {
+            networks.record_zero_grad(&mut encoder);
+        }
+        let refinements = match (has_refiner, self.networks.as_mut()) {
+            (true, Some(networks)) => Some(
+                networks
+                    .record_pose_refiner_forward(&mut encoder, &self.local_pose.buffer)?,
+            ),
+            _ => None,
+        };
+        self.pose.forward(&mut encoder, plan.frame, refinements)?;
+
+        // Motion inputs and the non-rigid network.
+        let columns = self.gaussians.columns_view()?;
+        let heads = if has_non_rigid {
+            self.motion.record_skeleton_window(&mut encoder)?;
+            self.motion.record_canonical_knn(&mut encoder, columns.xyz)?;
+            self.motion.record_velocity(&mut encoder)?;
+            let velocity: Vec<&wgpu::Buffer> =
+                self.motion.velocity.iter().map(|b| &b.buffer).collect();
+            let networks = self.networks.as_mut().expect("has a non-rigid network");
+            Some(networks.record_non_rigid_forward(
+                &mut encoder,
+                n,
+                &NonRigidDeviceInputs {
+                    local_pose: &self.local_pose.buffer,
+                    skeleton_motion: config
+                        .motion_context
+                        .has_skeleton_motion()
+                        .then_some(&self.motion.window.buffer),
+                    xyz: &columns.xyz.buffer,
+                    knn_velocity: &velocity,
+                },
+            )?)
+        } else {
+            None
+        };
+        self.skinning.record_deform(&mut encoder, columns.xyz, heads)?;
+        let weight_offsets = match self.networks.as_mut() {
+            Some(networks) if has_lbs => Some(
+                networks.record_lbs_offsets_forward(
+                    &mut encoder,
+                    n,
+                    &self.skinning.positions.buffer,
+                )?,
+            ),
+            _ => None,
+        };
+        self.motion
+            .record_nearest(&mut encoder, &self.skinning.positions)?;
+        let inputs = SkinInputs {
+            nearest: &self.motion.nearest,
+            weight_offsets,
+            target_joints: self.pose.target_joints(),
+            vertex_offsets: self.pose.vertex_offsets(),
+        };
+        self.skinning.record_forward(&mut encoder, &columns, &inputs)?;
+
+        // Splatting into the chosen cameras on the iteration's background.
+        let cameras: Vec<Camera> = plan
+            .images
+            .iter()
+            .map(|&i| data.cameras[data.images[i].view].clone())
+            .collect();
+        let world = DeviceGaussians {
+            means: &self.skinning.means,
+            covariances: &self.skinning.covariances,
+            opacities: &self.skinning.opacities,
+            sh: &self.skinning.sh,
+            count: n as u32,
+            sh_degree: plan.sh_degree,
+        };
+        let options = RasterOptions {
+            background: plan.background,
+            smooth_cutoff: false,
+        };
+        self.splat
+            .forward(&context, &mut encoder, world, &cameras, &options)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+        // Image losses and their image gradients, then AIAP.
+        let loss_cameras: Vec<LossCamera> = plan
+            .images
+            .iter()
+            .zip(&cameras)
+            .map(|(&i, camera)| {
+                let record = &data.images[i];
+                LossCamera {
+                    image: i,
+                    pixel_offset: 0,
+                    rect: pad_rect(
+                        record.bound.expect("training images have a foreground"),
+                        config.bound_padding,
+                        camera.width as usize,
+                        camera.height as usize,
+                    ),
+                    background: plan.background,
+                }
+            })
+            .collect();
+        self.losses
+            .begin_iteration(&mut encoder, plan.iteration, &loss_cameras, &self.truth)?;
+        for c in 0..cameras.len() {
+            let (colour, alpha) = &self.image_gradients[c];
+            self.losses.record_camera(
+                &mut encoder,
+                c,
+                &self.truth,
+                DeviceImages {
+                    colour: self.splat.colour(c).map_err(|e| anyhow::anyhow!("{e}"))?,
+                    alpha: self.splat.alpha(c).map_err(|e| anyhow::anyhow!("{e}"))?,
+                },
+                DeviceImages { colour, alpha },
+            )?;
+        }
+        self.losses.finish_iteration(&mut encoder);
+        self.aiap.record(
+            &mut encoder,
+            &self.gaussians,
+            &self.skinning.means,
+            &self.skinning.covariances,
+        )?;
+
+        // Backward: splatting, AIAP's deformed-space gradients joined, skinning.
+        let upstream: Vec<DeviceImageGradient<'_>> = self.image_gradients[..cameras.len()]
+            .iter()
+            .map(|(colour, alpha)| DeviceImageGradient {
+                colour,
+                alpha: Some(alpha),
+                depth: None,
+            })
+            .collect();
+        self.splat
+            .backward(&context, &mut encoder, world, &upstream)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let splat_grads = self.splat.gradients().map_err(|e| anyhow::anyhow!("{e}"))?;
+        let aiap_active = self.aiap.active(n);
+        if aiap_active {
+            let grads = self.aiap.gradients().context("AIAP gradients")?;
+            self.add_into(
+                &mut encoder,
+                splat_grads.means(),
+                &grads.deformed_centres.buffer,
+                3 * n,
+            );
+            self.add_into(
+                &mut encoder,
+                splat_grads.covariances(),
+                &grads.deformed_covariances.buffer,
+                6 * n,
+            );
+        }
+        self.skinning.record_backward(
+            &mut encoder,
+            &columns,
+            &inputs,
+            splat_grads.means(),
+            splat_grads.covariances(),
+        )?;
+
+        // Networks' backward: LBS offsets, the non-rigid network (its centre gradient joins
+        // the direct path), the pose path and the pose refiner.
+        encoder.copy_buffer_to_buffer(
+            &self.skinning.grad_positions.buffer,
+            0,
+            &self.xyz_gradient.buffer,
+            0,
+            (3 * n * 4) as u64,
+        );
+        if let Some(networks) = self.networks.as_mut() {
+            if has_lbs {
+                networks.record_lbs_offsets_backward(
+                    &mut encoder,
+                    &self.skinning.grad_weight_offsets.buffer,
+                )?;
+            }
+        }
+        if has_non_rigid {
+            let networks = self.networks.as_mut().expect("has a non-rigid network");
+            let through = networks
+                .record_non_rigid_backward(&mut encoder, &self.skinning.grad_heads.buffer)?;
+            let uniform = add_uniform(&context, 3 * n);
+            context.dispatch(
+                &mut encoder,
+                &self.add,
+                &[(0, &uniform), (1, through), (2, &self.xyz_gradient.buffer)],
+                (3 * n).div_ceil(256) as u32,
+            );
+        }
+        if has_refiner {
+            self.pose.backward(
+                &mut encoder,
+                &self.skinning.grad_target_joints,
+                &self.skinning.grad_vertex_offsets,
+            )?;
+            let networks = self.networks.as_mut().expect("has a pose refiner");
+            networks.record_pose_refiner_backward(
+                &mut encoder,
+                &self.pose.refinement_gradients().buffer,
+            )?;
+        }
+
+        // Optimisers and densification statistics.
+        let aiap_grads = if aiap_active {
+            let grads = self.aiap.gradients().context("AIAP gradients")?;
+            Some([&grads.xyz, &grads.log_scale, &grads.rotation])
+        } else {
+            None
+        };
+        self.adam.record(
+            &mut encoder,
+            &self.gaussians,
+            &GaussianGradients {
+                xyz: &self.xyz_gradient,
+                log_scale: &self.skinning.grad_log_scales,
+                rotation: &self.skinning.grad_rotations,
+                opacity: splat_grads.opacities(),
+                sh: splat_grads.sh(),
+                aiap: aiap_grads,
+            },
+            plan.sh_degree as usize,
+        )?;
+        if let Some(networks) = self.networks.as_mut() {
+            let lr = &config.learning_rates;
+            let decay = lr
+                .network_decay
+                .powf((plan.iteration - 1) as f64 / f64::from(config.iterations));
+            networks.record_adam(&mut encoder, &adam_config(config), |group| {
+                decay
+                    * match group {
+                        NetworkGroup::NonRigid => lr.non_rigid,
+                        NetworkGroup::PoseRefiner => lr.pose_refiner,
+                        NetworkGroup::LbsOffsets => lr.lbs_offsets,
+                    }
+            })?;
+        }
+        if plan.density_statistics {
+            self.statistics
+                .record(&mut encoder, &self.gaussians, splat_grads.mean_2d_norm())?;
+        }
+
+        // The iteration's logged scalars into its slot of the ring.
+        let loss_log = self.losses.log_buffer();
+        for (field, index) in [
+            (LogField::L1, 0),
+            (LogField::MaskMse, 1),
+            (LogField::Dssim, 2),
+            (LogField::Lpips, 3),
+            (LogField::Psnr, 4),
+            (LogField::ImageTotal, 5),
+        ] {
+            self.log
+                .record(&mut encoder, slot, field, &loss_log.buffer, index);
+        }
+        self.log
+            .record(&mut encoder, slot, LogField::Aiap, &self.aiap.log().buffer, 0);
+        context.queue().submit([encoder.finish()]);
+        self.unread += 1;
+        Ok(())
+    }
+
+    /// Reads the logged scalars of the iterations recorded since the last read (one round
+    /// trip, after they have run) and checks every piece's status: a non-finite value is a
+    /// [`Divergence`] naming the iteration and tensor, as on `cpu`.
+    pub fn read_log(&mut self, last_iteration: u64) -> anyhow::Result<Vec<LoggedIteration>> {
+        let slots = self.log.read(&self.context, self.first_unread, self.unread)?;
+        let first_iteration = last_iteration + 1 - self.unread as u64;
+        self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
+        self.unread = 0;
+        let logged: Vec<LoggedIteration> = slots.iter().map(logged_from).collect();
+        if let Some(found) = self.gaussians.download_non_finite()? {
+            return Err(Divergence {
+                iteration: found.iteration,
+                what: found.what,
+                tensor: found.tensor,
+                detail: format!(" (Gaussian {})", found.gaussian),
+            }
+            .into());
+        }
+        for (offset, values) in logged.iter().enumerate() {
+            let total = values.image_total + values.aiap;
+            if !total.is_finite() {
+                return Err(Divergence {
+                    iteration: first_iteration + offset as u64,
+                    what: "loss",
+                    tensor: "total".into(),
+                    detail: format!(
+                        " (l1 {}, mask {}, dssim {}, lpips {}, aiap {})",
+                        values.l1, values.mask_mse, values.dssim, values.lpips, values.aiap
+                    ),
+                }
+                .into());
+            }
+        }
+        let status = self
+            .splat
+            .check_status(&self.context)
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        if status.overflowed_bands > 0 {
+            // The bands rendered without their last pairs; the capacity has grown for the
+            // next iterations. Rare (the first iterations after a large densification).
+            eprintln!(
+                "splatting: {} bands exceeded the pair capacity in the last {} iterations (grown to {} pairs per band)",
+                status.overflowed_bands,
+                slots.len(),
+                self.splat.pairs_per_band()
+            );
+        }
+        Ok(logged)
+    }
+
+    /// Copies the Gaussians (values, moments, densification statistics) back into `state`.
+    pub fn download_state(&self, state: &mut GaussianState) -> anyhow::Result<()> {
+        self.gaussians.download_into(state)
+    }
+
+    /// Replaces the device Gaussians with `state` (after the host densified) and grows the
+    /// workspaces that depend on the Gaussian count.
+    pub fn upload_state(&mut self, state: &GaussianState) -> anyhow::Result<()> {
+        self.gaussians.reupload(state)?;
+        let n = state.len();
+        if n > self.motion.capacity() {
+            self.motion.reserve(n)?;
+        }
+        if n > self.skinning.capacity() {
+            self.skinning.reserve(n)?;
+        }
+        if self.xyz_gradient.len < 3 * n {
+            self.xyz_gradient = self.context.zeros("xyz gradient", 3 * n, 4)?;
+        }
+        Ok(())
+    }
+
+    /// Copies the networks' parameters and Adam moments back to the host.
+    pub fn download_networks(
+        &self,
+        networks: &mut Networks<f32>,
+        adam: &mut BTreeMap<String, AdamState<f32>>,
+    ) -> anyhow::Result<()> {
+        if let Some(gpu) = &self.networks {
+            gpu.download_into(networks)?;
+            adam.clear();
+            adam.extend(gpu.download_adam()?);
+        }
+        Ok(())
+    }
+}
+
+/// The Adam configuration of the run (both the Gaussians' and the networks').
+fn adam_config(config: &TrainConfig) -> AdamConfig {
+    AdamConfig {
+        eps: config.learning_rates.adam_eps,
+        ..AdamConfig::default()
+    }
+}
+
+/// Half the largest side of the iteration's cameras, in pixels.
+fn half_size(data: &TrainingData, images: &[usize]) -> f64 {
+    images
+        .iter()
+        .map(|&i| {
+            let camera = &data.cameras[data.images[i].view];
+            camera.width.max(camera.height)
+        })
+        .max()
+        .unwrap_or(1) as f64
+        * 0.5
+}
+
+fn logged_from(values: &[f32; LOG_FIELDS]) -> LoggedIteration {
+    let v = |field: LogField| f64::from(values[field as usize]);
+    LoggedIteration {
+        l1: v(LogField::L1),
+        mask_mse: v(LogField::MaskMse),
+        dssim: v(LogField::Dssim),
+        lpips: v(LogField::Lpips),
+        aiap: v(LogField::Aiap),
+        psnr: v(LogField::Psnr),
+        image_total: v(LogField::ImageTotal),
+    }
+}
