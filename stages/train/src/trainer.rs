@@ -1106,6 +1106,15 @@ impl<'d> Trainer<'d> {
         self.log_every = iterations.max(1);
     }
 
+    /// Waits until the device has run every submitted iteration (for timing: a resident
+    /// step returns once its work is submitted); nothing to do on `cpu`.
+    pub fn wait_for_device(&mut self) -> anyhow::Result<()> {
+        match self.resident.as_mut() {
+            Some(resident) => resident.wait_idle(),
+            None => Ok(()),
+        }
+    }
+
     /// Whether the iteration runs on the device ([`ResidentStep`]).
     pub fn resident(&self) -> bool {
         self.resident.is_some()

@@ -47,6 +47,9 @@ use crate::trainer::{Divergence, pad_rect};
 
 const STEP_WGSL: &str = include_str!("../../../../shaders/train_step.wgsl");
 
+/// Iterations submitted ahead of the device at most.
+const IN_FLIGHT: usize = 2;
+
 /// Iterations the log ring holds: the most iterations between two reads of the logged
 /// scalars.
 pub const LOG_CAPACITY: usize = 64;
@@ -110,6 +113,8 @@ pub struct ResidentStep {
     has_non_rigid: bool,
     has_lbs: bool,
     has_refiner: bool,
+    /// Submissions the device may not have run yet, oldest first.
+    in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
     /// Iterations recorded since the log was last read, and the first one's slot.
     unread: usize,
     first_unread: usize,
@@ -277,6 +282,7 @@ impl ResidentStep {
             has_non_rigid,
             has_lbs,
             has_refiner,
+            in_flight: std::collections::VecDeque::new(),
             unread: 0,
             first_unread: 0,
         })
@@ -603,8 +609,33 @@ impl ResidentStep {
         }
         self.log
             .record(&mut encoder, slot, LogField::Aiap, &self.aiap.log().buffer, 0);
-        context.queue().submit([encoder.finish()]);
+        let submitted = context.queue().submit([encoder.finish()]);
         self.unread += 1;
+        // At most `IN_FLIGHT` iterations queued ahead of the device: the host waits (no data
+        // comes back) for the oldest before going on, so the queue and its staging memory
+        // stay bounded when the host records faster than the device runs.
+        self.in_flight.push_back(submitted);
+        if self.in_flight.len() > IN_FLIGHT {
+            let oldest = self.in_flight.pop_front().expect("non-empty");
+            self.wait_for(Some(oldest))?;
+        }
+        Ok(())
+    }
+
+    /// Waits until the device has run every submitted iteration (timing; nothing is read).
+    pub fn wait_idle(&mut self) -> anyhow::Result<()> {
+        self.in_flight.clear();
+        self.wait_for(None)
+    }
+
+    fn wait_for(&self, submission: Option<wgpu::SubmissionIndex>) -> anyhow::Result<()> {
+        self.context
+            .device()
+            .poll(wgpu::PollType::Wait {
+                submission_index: submission,
+                timeout: None,
+            })
+            .map_err(|error| anyhow::anyhow!("waiting for the device: {error}"))?;
         Ok(())
     }
 
