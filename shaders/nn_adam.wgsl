@@ -3,21 +3,24 @@
 //   m = beta1 m + (1 - beta1) g;  v = beta2 v + (1 - beta2) g^2;
 //   p -= step_size * m / (sqrt(v) / correction + eps)
 // with step_size = lr / (1 - beta1^t) and correction = sqrt(1 - beta2^t) computed in f64 on
-// the host. One thread per value; the grid may be 2D (index = x + y * groups_x).
+// the host. They change every update, so they are read from a storage record
+// (`factors[2 slot]`, `factors[2 slot + 1]`) that a resident step writes once per iteration
+// for all its tensors, while the per-tensor uniform block is created once. One thread per
+// value; the grid may be 2D (index = x + y * groups_x).
 
 struct Params {
     len: u32,
     groups_x: u32,
+    slot: u32,
+    _pad0: u32,
     beta1: f32,
     beta2: f32,
     one_minus_beta1: f32,
     one_minus_beta2: f32,
     eps: f32,
-    step_size: f32,
-    correction: f32,
-    _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -25,6 +28,7 @@ struct Params {
 @group(0) @binding(2) var<storage, read> gradients: array<f32>;
 @group(0) @binding(3) var<storage, read_write> first_moment: array<f32>;
 @group(0) @binding(4) var<storage, read_write> second_moment: array<f32>;
+@group(0) @binding(5) var<storage, read> factors: array<f32>;
 
 @compute @workgroup_size(256)
 fn main(
@@ -35,11 +39,13 @@ fn main(
     if (i >= params.len) {
         return;
     }
+    let step_size = factors[2u * params.slot];
+    let correction = factors[2u * params.slot + 1u];
     let g = gradients[i];
     let m = params.beta1 * first_moment[i] + params.one_minus_beta1 * g;
     let v = params.beta2 * second_moment[i] + params.one_minus_beta2 * g * g;
     first_moment[i] = m;
     second_moment[i] = v;
-    let denominator = sqrt(v) / params.correction + params.eps;
-    parameters[i] = parameters[i] - params.step_size * m / denominator;
+    let denominator = sqrt(v) / correction + params.eps;
+    parameters[i] = parameters[i] - step_size * m / denominator;
 }

@@ -28,6 +28,7 @@ const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
 const ADAM_WGSL: &str = include_str!("../../../../shaders/nn_adam.wgsl");
 const POSENC_WGSL: &str = include_str!("../../../../shaders/nn_posenc.wgsl");
+const RODRIGUES_WGSL: &str = include_str!("../../../../shaders/nn_rodrigues.wgsl");
 
 /// Output tile edge of the matrix kernel (rows and columns), as in `nn_matmul.wgsl`.
 const TILE: usize = 64;
@@ -72,6 +73,126 @@ pub struct GpuLinearGrads<'a> {
     pub weight: &'a wgpu::Buffer,
     /// `out`.
     pub bias: &'a wgpu::Buffer,
+}
+
+/// One dispatch with its uniform block and bindings resolved: what a [`Record`] receives.
+#[derive(Clone, Debug)]
+pub struct PreparedDispatch {
+    /// The kernel's name (the compute pass label).
+    pub label: &'static str,
+    /// The compiled kernel.
+    pub pipeline: wgpu::ComputePipeline,
+    /// Its uniform block and buffers.
+    pub bind_group: wgpu::BindGroup,
+    /// Workgroups along x.
+    pub x: u32,
+    /// Workgroups along y.
+    pub y: u32,
+}
+
+/// Where the `nn` operations record their work: straight into a command encoder (the
+/// uniform blocks and bind groups of each call are created by the call), or into a
+/// [`NnProgram`] that keeps them, so a resident step creates them once per shape and replays
+/// the program every iteration with no allocation and no upload.
+pub trait Record {
+    /// Records one dispatch.
+    fn record_dispatch(&mut self, dispatch: PreparedDispatch);
+    /// Records the zeroing of a whole buffer.
+    fn record_clear(&mut self, buffer: &wgpu::Buffer);
+}
+
+impl Record for wgpu::CommandEncoder {
+    fn record_dispatch(&mut self, dispatch: PreparedDispatch) {
+        let mut pass = self.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(dispatch.label),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&dispatch.pipeline);
+        pass.set_bind_group(0, &dispatch.bind_group, &[]);
+        pass.dispatch_workgroups(dispatch.x, dispatch.y, 1);
+    }
+
+    fn record_clear(&mut self, buffer: &wgpu::Buffer) {
+        self.clear_buffer(buffer, 0, None);
+    }
+}
+
+/// One step of a [`NnProgram`].
+#[derive(Clone, Debug)]
+enum ProgramStep {
+    Dispatch(PreparedDispatch),
+    Clear(wgpu::Buffer),
+}
+
+/// A recorded sequence of `nn` operations whose uniform blocks and bind groups were created
+/// once (by calling the [`NnGpu`] operations with the program as their [`Record`]); replayed
+/// into an encoder by [`NnProgram::replay`] without creating or uploading anything. The
+/// buffers it binds are kept alive by the program; their contents are read when the
+/// replayed commands run.
+#[derive(Clone, Debug, Default)]
+pub struct NnProgram {
+    steps: Vec<ProgramStep>,
+}
+
+impl Record for NnProgram {
+    fn record_dispatch(&mut self, dispatch: PreparedDispatch) {
+        self.steps.push(ProgramStep::Dispatch(dispatch));
+    }
+
+    fn record_clear(&mut self, buffer: &wgpu::Buffer) {
+        self.steps.push(ProgramStep::Clear(buffer.clone()));
+    }
+}
+
+impl NnProgram {
+    /// An empty program.
+    pub fn new() -> Self {
+        NnProgram::default()
+    }
+
+    /// Number of recorded steps (dispatches and clears).
+    pub fn len(&self) -> usize {
+        self.steps.len()
+    }
+
+    /// Whether nothing was recorded.
+    pub fn is_empty(&self) -> bool {
+        self.steps.is_empty()
+    }
+
+    /// Number of recorded dispatches.
+    pub fn dispatches(&self) -> usize {
+        self.steps
+            .iter()
+            .filter(|step| matches!(step, ProgramStep::Dispatch(_)))
+            .count()
+    }
+
+    /// Records the program into `encoder`: consecutive dispatches share one compute pass
+    /// (wgpu orders their storage accesses), clears run between passes.
+    pub fn replay(&self, encoder: &mut wgpu::CommandEncoder) {
+        let mut index = 0;
+        while index < self.steps.len() {
+            match &self.steps[index] {
+                ProgramStep::Clear(buffer) => {
+                    encoder.clear_buffer(buffer, 0, None);
+                    index += 1;
+                }
+                ProgramStep::Dispatch(_) => {
+                    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("nn program"),
+                        timestamp_writes: None,
+                    });
+                    while let Some(ProgramStep::Dispatch(dispatch)) = self.steps.get(index) {
+                        pass.set_pipeline(&dispatch.pipeline);
+                        pass.set_bind_group(0, &dispatch.bind_group, &[]);
+                        pass.dispatch_workgroups(dispatch.x, dispatch.y, 1);
+                        index += 1;
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// A compiled kernel and its bind-group layout (derived from the shader).
@@ -120,14 +241,24 @@ pub(crate) struct MatmulParams {
 pub(crate) struct AdamParams {
     len: u32,
     groups_x: u32,
+    slot: u32,
+    pad0: u32,
     beta1: f32,
     beta2: f32,
     one_minus_beta1: f32,
     one_minus_beta2: f32,
     eps: f32,
-    step_size: f32,
-    correction: f32,
     pad: [u32; 3],
+}
+
+/// `Params` in `nn_rodrigues.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RodriguesParams {
+    count: u32,
+    groups_x: u32,
+    epsilon: f32,
+    pad: u32,
 }
 
 /// `Params` in `nn_posenc.wgsl`.
@@ -176,16 +307,22 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
         wgsl_twin!(AdamParams as "Params" in ["nn_adam.wgsl"] {
             "len" => len,
             "groups_x" => groups_x,
+            "slot" => slot,
+            "_pad0" => pad0,
             "beta1" => beta1,
             "beta2" => beta2,
             "one_minus_beta1" => one_minus_beta1,
             "one_minus_beta2" => one_minus_beta2,
             "eps" => eps,
-            "step_size" => step_size,
-            "correction" => correction,
-            "_pad0" => pad[0],
-            "_pad1" => pad[1],
-            "_pad2" => pad[2],
+            "_pad1" => pad[0],
+            "_pad2" => pad[1],
+            "_pad3" => pad[2],
+        }),
+        wgsl_twin!(RodriguesParams as "Params" in ["nn_rodrigues.wgsl"] {
+            "count" => count,
+            "groups_x" => groups_x,
+            "epsilon" => epsilon,
+            "_pad" => pad,
         }),
         wgsl_twin!(PosencParams as "Params" in ["nn_posenc.wgsl"] {
             "rows" => rows,
@@ -220,6 +357,8 @@ pub struct NnGpu {
     adam: Kernel,
     posenc_forward: Kernel,
     posenc_backward: Kernel,
+    rodrigues_forward: Kernel,
+    rodrigues_backward: Kernel,
     /// Bound to read-only slots a dispatch does not use.
     placeholder: wgpu::Buffer,
     /// Partial sums of the split reductions; grown on demand, reused across calls (commands
@@ -279,6 +418,8 @@ impl NnGpu {
             adam: compile("nn_adam", ADAM_WGSL, "main")?,
             posenc_forward: compile("nn_posenc_forward", POSENC_WGSL, "forward")?,
             posenc_backward: compile("nn_posenc_backward", POSENC_WGSL, "backward")?,
+            rodrigues_forward: compile("nn_rodrigues_forward", RODRIGUES_WGSL, "forward")?,
+            rodrigues_backward: compile("nn_rodrigues_backward", RODRIGUES_WGSL, "backward")?,
             placeholder: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn placeholder"),
                 size: 16,
@@ -291,6 +432,14 @@ impl NnGpu {
                 .min(limits.max_buffer_size),
             max_groups_per_dimension: limits.max_compute_workgroups_per_dimension,
         })
+    }
+
+    /// Lays out 1D launches in 2D beyond `limit` workgroups per dimension (at most the
+    /// device's limit): what [`GpuContext::with_dispatch_limit`](crate::backend::GpuContext::with_dispatch_limit)
+    /// does for the context's kernels, so tests reach the 2D grids with small inputs.
+    pub fn with_max_workgroups_per_dimension(mut self, limit: u32) -> Self {
+        self.max_groups_per_dimension = self.max_groups_per_dimension.min(limit.max(1));
+        self
     }
 
     /// Checks that `buffer` holds at least `elements` f32 values and can be bound whole.
@@ -348,10 +497,12 @@ impl NnGpu {
         }
     }
 
-    /// Records one dispatch of an `x` by `y` grid with a fresh uniform block.
+    /// Records one dispatch of an `x` by `y` grid with a fresh uniform block (created now:
+    /// into a [`NnProgram`] it is created once and replayed).
+    #[allow(clippy::too_many_arguments)]
     fn dispatch(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         kernel: &Kernel,
         params: &[u8],
         bindings: &[(u32, &wgpu::Buffer)],
@@ -385,13 +536,13 @@ impl NnGpu {
             layout: &kernel.layout,
             entries: &entries,
         });
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(kernel.name),
-            timestamp_writes: None,
+        encoder.record_dispatch(PreparedDispatch {
+            label: kernel.name,
+            pipeline: kernel.pipeline.clone(),
+            bind_group,
+            x,
+            y,
         });
-        pass.set_pipeline(&kernel.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(x, y, 1);
     }
 
     /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
@@ -411,7 +562,7 @@ impl NnGpu {
     #[allow(clippy::too_many_arguments)]
     fn matmul(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         (m, n, k): (usize, usize, usize),
         a: Operand<'_>,
         b: Operand<'_>,
@@ -512,7 +663,7 @@ impl NnGpu {
     #[allow(clippy::too_many_arguments)]
     fn accumulate_into(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         partials: &wgpu::Buffer,
         slices: usize,
         len: usize,
@@ -584,7 +735,7 @@ impl NnGpu {
     #[allow(clippy::too_many_arguments)]
     pub fn linear_forward(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         shape: LinearShape,
         weight: &wgpu::Buffer,
         bias: &wgpu::Buffer,
@@ -638,7 +789,7 @@ impl NnGpu {
     #[allow(clippy::too_many_arguments)]
     pub fn linear_backward(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         shape: LinearShape,
         weight: &wgpu::Buffer,
         inputs: &[GpuInputPart<'_>],
@@ -772,11 +923,13 @@ impl NnGpu {
     }
 
     /// Records one Adam update of `len` values at rate `lr`, `t` being the 1-based index of
-    /// this update (the `cpu` twin is [`adam_update`](super::adam::adam_update)).
+    /// this update (the `cpu` twin is [`adam_update`](super::adam::adam_update)). The step
+    /// factors go to the device in a small buffer created by the call; a resident step uses
+    /// [`NnGpu::adam_update_from_record`] with a record it writes once per iteration.
     #[allow(clippy::too_many_arguments)]
     pub fn adam_update(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         config: &AdamConfig,
         lr: f64,
         t: u64,
@@ -787,22 +940,60 @@ impl NnGpu {
         len: usize,
     ) -> Result<(), NnError> {
         config.validate()?;
+        let factors = adam_factors_record(&[AdamStepFactors::new(config, lr, t)]);
+        let factors = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("adam factors"),
+                contents: bytemuck::cast_slice(&factors),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        self.adam_update_from_record(
+            encoder,
+            config,
+            (&factors, 0),
+            params,
+            grads,
+            first_moment,
+            second_moment,
+            len,
+        )
+    }
+
+    /// Records one Adam update of `len` values whose step factors are read on the device
+    /// from `record.0` at slot `record.1` (`[step_size, correction]` at f32 index
+    /// `2 slot`, as [`adam_factors_record`] lays them out). Recorded into a [`NnProgram`],
+    /// the update replays every iteration while the host rewrites only the record.
+    #[allow(clippy::too_many_arguments)]
+    pub fn adam_update_from_record(
+        &self,
+        encoder: &mut impl Record,
+        config: &AdamConfig,
+        record: (&wgpu::Buffer, usize),
+        params: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        first_moment: &wgpu::Buffer,
+        second_moment: &wgpu::Buffer,
+        len: usize,
+    ) -> Result<(), NnError> {
+        config.validate()?;
+        let (factors, slot) = record;
         self.check_buffer("adam parameters", params, len)?;
         self.check_buffer("adam gradient", grads, len)?;
         self.check_buffer("adam first moment", first_moment, len)?;
         self.check_buffer("adam second moment", second_moment, len)?;
-        let factors = AdamStepFactors::new(config, lr, t);
+        self.check_buffer("adam step factors", factors, 2 * slot + 2)?;
         let (x, y) = self.grid(len.div_ceil(256))?;
         let uniform = AdamParams {
             len: to_u32("adam length", len)?,
             groups_x: x,
+            slot: to_u32("adam factor slot", slot)?,
+            pad0: 0,
             beta1: config.beta1 as f32,
             beta2: config.beta2 as f32,
             one_minus_beta1: (1.0 - config.beta1) as f32,
             one_minus_beta2: (1.0 - config.beta2) as f32,
             eps: config.eps as f32,
-            step_size: factors.step_size as f32,
-            correction: factors.bias_correction2_sqrt as f32,
             pad: [0; 3],
         };
         self.dispatch(
@@ -814,7 +1005,71 @@ impl NnGpu {
                 (2, grads),
                 (3, first_moment),
                 (4, second_moment),
+                (5, factors),
             ],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
+    /// Records the regularised Rodrigues map of `count` rotation vectors (`count x 3`) into
+    /// `matrices` (`count x 9`, row-major): `theta = sqrt(epsilon + |v|^2)`, `k = v / theta`,
+    /// `R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x`.
+    pub fn rodrigues_forward(
+        &self,
+        encoder: &mut impl Record,
+        epsilon: f64,
+        vectors: &wgpu::Buffer,
+        count: usize,
+        matrices: &wgpu::Buffer,
+    ) -> Result<(), NnError> {
+        self.check_buffer("rotation vectors", vectors, 3 * count)?;
+        self.check_buffer("rotation matrices", matrices, 9 * count)?;
+        let (x, y) = self.grid(count.div_ceil(64))?;
+        let params = RodriguesParams {
+            count: to_u32("rotation count", count)?,
+            groups_x: x,
+            epsilon: epsilon as f32,
+            pad: 0,
+        };
+        self.dispatch(
+            encoder,
+            &self.rodrigues_forward,
+            bytemuck::bytes_of(&params),
+            &[(1, vectors), (3, matrices)],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
+    /// Records the backward of [`NnGpu::rodrigues_forward`]: `d_vectors` (`count x 3`) is
+    /// overwritten with `dL/dv` from `d_matrices = dL/dR` (`count x 9`, row-major).
+    pub fn rodrigues_backward(
+        &self,
+        encoder: &mut impl Record,
+        epsilon: f64,
+        vectors: &wgpu::Buffer,
+        d_matrices: &wgpu::Buffer,
+        count: usize,
+        d_vectors: &wgpu::Buffer,
+    ) -> Result<(), NnError> {
+        self.check_buffer("rotation vectors", vectors, 3 * count)?;
+        self.check_buffer("rotation matrix gradient", d_matrices, 9 * count)?;
+        self.check_buffer("rotation vector gradient", d_vectors, 3 * count)?;
+        let (x, y) = self.grid(count.div_ceil(64))?;
+        let params = RodriguesParams {
+            count: to_u32("rotation count", count)?,
+            groups_x: x,
+            epsilon: epsilon as f32,
+            pad: 0,
+        };
+        self.dispatch(
+            encoder,
+            &self.rodrigues_backward,
+            bytemuck::bytes_of(&params),
+            &[(1, vectors), (2, d_matrices), (3, d_vectors)],
             x,
             y,
         );
@@ -849,7 +1104,7 @@ impl NnGpu {
     /// Records the positional encoding of `input` (`rows x in_features`) into `output`.
     pub fn positional_encoding_forward(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         encoding: PositionalEncoding,
         input: &wgpu::Buffer,
         rows: usize,
@@ -878,7 +1133,7 @@ impl NnGpu {
     #[allow(clippy::too_many_arguments)]
     pub fn positional_encoding_backward(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         encoding: PositionalEncoding,
         output: &wgpu::Buffer,
         d_output: &wgpu::Buffer,
@@ -909,6 +1164,17 @@ impl NnGpu {
         );
         Ok(())
     }
+}
+
+/// The device layout of Adam step factors read by `nn_adam.wgsl`: `[step_size, correction]`
+/// per slot, f32, in slot order (at least 4 values, so the buffer can be bound).
+pub fn adam_factors_record(factors: &[AdamStepFactors]) -> Vec<f32> {
+    let mut record: Vec<f32> = factors
+        .iter()
+        .flat_map(|f| [f.step_size as f32, f.bias_correction2_sqrt as f32])
+        .collect();
+    record.resize(record.len().max(4), 0.0);
+    record
 }
 
 /// A dense network on the gpu: the [`Mlp`] twin, with parameter, gradient and activation
@@ -1068,7 +1334,7 @@ impl GpuMlp {
     pub fn forward(
         &self,
         nn: &NnGpu,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         input: &wgpu::Buffer,
         rows: usize,
     ) -> Result<(), NnError> {
@@ -1095,7 +1361,7 @@ impl GpuMlp {
     pub fn backward(
         &self,
         nn: &NnGpu,
-        encoder: &mut wgpu::CommandEncoder,
+        encoder: &mut impl Record,
         input: &wgpu::Buffer,
         rows: usize,
         d_output: &wgpu::Buffer,

@@ -16,6 +16,8 @@
 //! place of the per-Gaussian rows, so both products read the one weight buffer (the zero
 //! block costs one row and contributes nothing, to outputs or gradients).
 
+mod resident;
+
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -131,7 +133,16 @@ pub struct GpuNetworks {
     non_rigid: Option<GpuNet>,
     pose_refiner: Option<GpuNet>,
     lbs_offsets: Option<GpuNet>,
+    /// The resident workspaces, by network group (non-rigid, pose refiner, LBS offsets).
+    resident: [Option<resident::ResidentNet>; 3],
+    /// Adam of every parameter on the device (created by the first resident update).
+    adam: Option<resident::ResidentAdam>,
+    /// Resident programs built so far (forward/backward pairs and Adam programs): constant
+    /// over steady-state iterations.
+    programs_built: std::sync::atomic::AtomicUsize,
 }
+
+pub use resident::NonRigidDeviceInputs;
 
 fn gpu_error(error: impl std::fmt::Display) -> ModelError {
     ModelError::Gpu(error.to_string())
@@ -152,7 +163,8 @@ fn input(buffer: &wgpu::Buffer, cols: usize) -> GpuInputPart<'_> {
 impl GpuNetworks {
     /// Uploads the parameters of `networks` (gradients start at zero).
     pub fn upload(context: Arc<GpuContext>, networks: &Networks<f32>) -> Result<Self, ModelError> {
-        let nn = NnGpu::new(context.device())?;
+        let nn = NnGpu::new(context.device())?
+            .with_max_workgroups_per_dimension(context.max_workgroups_per_dimension());
         let mut layers = Vec::new();
         let mut nets = [None, None, None];
         for (slot, network) in nets.iter_mut().zip([
@@ -206,6 +218,9 @@ impl GpuNetworks {
             non_rigid,
             pose_refiner,
             lbs_offsets,
+            resident: [None, None, None],
+            adam: None,
+            programs_built: std::sync::atomic::AtomicUsize::new(0),
         })
     }
 
@@ -298,10 +313,13 @@ impl GpuNetworks {
                 message: "the cpu networks have another configuration".into(),
             });
         }
-        let queue = self.context.queue();
         for (gpu, cpu) in self.layers.iter().zip(networks.layers()) {
-            queue.write_buffer(&gpu.weight, 0, &f32_bytes(&cpu.weight));
-            queue.write_buffer(&gpu.bias, 0, &f32_bytes(&cpu.bias));
+            self.context
+                .write(&gpu.weight, 0, &cpu.weight)
+                .map_err(gpu_error)?;
+            self.context
+                .write(&gpu.bias, 0, &cpu.bias)
+                .map_err(gpu_error)?;
         }
         Ok(())
     }
@@ -349,16 +367,15 @@ impl GpuNetworks {
         groups: &[NetworkGroup],
     ) -> Result<(), ModelError> {
         self.check_config(networks.config())?;
-        let narrow = |v: &[S]| -> Vec<u8> {
-            v.iter()
-                .flat_map(|&x| (x.to_f64() as f32).to_ne_bytes())
-                .collect()
-        };
-        let queue = self.context.queue();
+        let narrow = |v: &[S]| -> Vec<f32> { v.iter().map(|&x| x.to_f64() as f32).collect() };
         for (gpu, cpu) in self.layers.iter().zip(networks.layers()) {
             if groups.contains(&gpu.group) {
-                queue.write_buffer(&gpu.weight, 0, &narrow(&cpu.weight));
-                queue.write_buffer(&gpu.bias, 0, &narrow(&cpu.bias));
+                self.context
+                    .write(&gpu.weight, 0, &narrow(&cpu.weight))
+                    .map_err(gpu_error)?;
+                self.context
+                    .write(&gpu.bias, 0, &narrow(&cpu.bias))
+                    .map_err(gpu_error)?;
             }
         }
         Ok(())
@@ -904,8 +921,4 @@ fn sinks(buffers: &[Option<(wgpu::Buffer, bool)>]) -> Vec<GpuInputGrad<'_>> {
             Some((buffer, false)) => GpuInputGrad::Write(buffer),
         })
         .collect()
-}
-
-fn f32_bytes(values: &[f32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_ne_bytes()).collect()
 }

@@ -1488,3 +1488,431 @@ fn forward_flops_match_an_independent_count() {
         (non_rigid + 2 * refiner + 2 * lbs) as f64
     );
 }
+
+// ---- The resident networks: device inputs, device outputs, device Adam -------------------
+
+/// One resident iteration's host view: outputs and input gradients downloaded after the
+/// recorded forward and backward of every network.
+struct ResidentRun {
+    heads: Vec<f32>,
+    d_xyz: Vec<f32>,
+    rotations: Vec<f32>,
+    offsets: Vec<f32>,
+}
+
+/// The host inputs and output gradients of one resident check, uploaded once.
+struct DeviceCase {
+    n: usize,
+    pose: seqavatar_compute::backend::GpuBuffer,
+    skeleton: Option<seqavatar_compute::backend::GpuBuffer>,
+    xyz: seqavatar_compute::backend::GpuBuffer,
+    velocity: Vec<seqavatar_compute::backend::GpuBuffer>,
+    d_heads: seqavatar_compute::backend::GpuBuffer,
+    d_rotations: seqavatar_compute::backend::GpuBuffer,
+    d_offsets: seqavatar_compute::backend::GpuBuffer,
+}
+
+struct HostCase {
+    pose: Vec<f32>,
+    skeleton: Option<Vec<f32>>,
+    xyz: Vec<f32>,
+    velocity: Option<Vec<f32>>,
+    d_dxyz: Vec<f32>,
+    d_drot: Vec<f32>,
+    d_dscale: Vec<f32>,
+    d_rotations: Vec<f32>,
+    d_offsets: Vec<f32>,
+}
+
+fn host_case(config: &NetworkConfig, n: usize, seed: u64) -> HostCase {
+    let mut rng = Rng::new(seed);
+    let input = inputs(config, n, &mut rng);
+    let joints = config.pose_dim() / 3;
+    HostCase {
+        pose: to_f32(&input.pose),
+        skeleton: input.skeleton.as_deref().map(to_f32),
+        xyz: to_f32(&input.xyz),
+        velocity: input.velocity.as_deref().map(to_f32),
+        d_dxyz: to_f32(&random(&mut rng, 3 * n, 1.0)),
+        d_drot: to_f32(&random(&mut rng, 4 * n, 1.0)),
+        d_dscale: to_f32(&random(&mut rng, 3 * n, 1.0)),
+        d_rotations: to_f32(&random(&mut rng, 9 * joints, 1.0)),
+        d_offsets: to_f32(&random(&mut rng, n * config.skinning_joints, 1.0)),
+    }
+}
+
+fn device_case(
+    context: &seqavatar_compute::backend::GpuContext,
+    config: &NetworkConfig,
+    host: &HostCase,
+) -> DeviceCase {
+    let n = host.xyz.len() / 3;
+    let up = |what: &str, values: &[f32]| context.upload(what, values).unwrap();
+    let d_heads = non_rigid::heads_gradient(n, &host.d_dxyz, &host.d_drot, &host.d_dscale).unwrap();
+    DeviceCase {
+        n,
+        pose: up("pose", &host.pose),
+        skeleton: host.skeleton.as_deref().map(|s| up("skeleton", s)),
+        xyz: up("xyz", &host.xyz),
+        velocity: host
+            .velocity
+            .as_deref()
+            .map(|v| {
+                spec::window_blocks(v, config.sequence_length, config.seq_xyz_row())
+                    .iter()
+                    .map(|block| up("velocity", block))
+                    .collect()
+            })
+            .unwrap_or_default(),
+        d_heads: up("d heads", &d_heads),
+        d_rotations: up("d rotations", &host.d_rotations),
+        d_offsets: up("d offsets", &host.d_offsets),
+    }
+}
+
+/// Records the forward and backward of every enabled network (and, when given, the Adam
+/// update) into one encoder; submits; returns the encoder-free host view when `download`.
+fn resident_iteration(
+    gpu: &mut gpu::GpuNetworks,
+    case: &DeviceCase,
+    adam: Option<(&seqavatar_compute::nn::AdamConfig, f64)>,
+    download: bool,
+) -> Option<ResidentRun> {
+    let context = gpu.context().clone();
+    let config = gpu.config().clone();
+    let mut encoder = context.encoder();
+    gpu.record_zero_grad(&mut encoder);
+    let n = case.n;
+    let mut sources: Vec<(wgpu::Buffer, usize)> = Vec::new();
+    if config.motion_context.has_non_rigid() {
+        let velocity: Vec<&wgpu::Buffer> = case.velocity.iter().map(|b| &b.buffer).collect();
+        let heads = gpu
+            .record_non_rigid_forward(
+                &mut encoder,
+                n,
+                &gpu::NonRigidDeviceInputs {
+                    local_pose: &case.pose.buffer,
+                    skeleton_motion: case.skeleton.as_ref().map(|b| &b.buffer),
+                    xyz: &case.xyz.buffer,
+                    knn_velocity: &velocity,
+                },
+            )
+            .unwrap()
+            .clone();
+        sources.push((heads, n * HEAD_WIDTH));
+        let d_xyz = gpu
+            .record_non_rigid_backward(&mut encoder, &case.d_heads.buffer)
+            .unwrap()
+            .clone();
+        sources.push((d_xyz, 3 * n));
+    }
+    let joints = config.pose_dim() / 3;
+    let rotations = gpu
+        .record_pose_refiner_forward(&mut encoder, &case.pose.buffer)
+        .unwrap()
+        .clone();
+    sources.push((rotations, 9 * joints));
+    gpu.record_pose_refiner_backward(&mut encoder, &case.d_rotations.buffer)
+        .unwrap();
+    let offsets = gpu
+        .record_lbs_offsets_forward(&mut encoder, n, &case.xyz.buffer)
+        .unwrap()
+        .clone();
+    sources.push((offsets, n * config.skinning_joints));
+    gpu.record_lbs_offsets_backward(&mut encoder, &case.d_offsets.buffer)
+        .unwrap();
+    if let Some((adam, rate)) = adam {
+        gpu.record_adam(&mut encoder, adam, |_| rate).unwrap();
+    }
+    if !download {
+        context.submit_and_wait(encoder).unwrap();
+        return None;
+    }
+    let refs: Vec<(&wgpu::Buffer, usize)> = sources.iter().map(|(b, l)| (b, *l)).collect();
+    let mut arrays = context
+        .download_all::<f32>(encoder, &refs)
+        .unwrap()
+        .into_iter();
+    let (heads, d_xyz) = if config.motion_context.has_non_rigid() {
+        (arrays.next().unwrap(), arrays.next().unwrap())
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    Some(ResidentRun {
+        heads,
+        d_xyz,
+        rotations: arrays.next().unwrap(),
+        offsets: arrays.next().unwrap(),
+    })
+}
+
+/// The resident forward and backward of every network against the `cpu` f32 networks:
+/// outputs, input gradients and parameter gradients, twice (the second time replaying the
+/// programs), then at another Gaussian count on the same workspace.
+fn check_resident_parity(
+    context: std::sync::Arc<seqavatar_compute::backend::GpuContext>,
+    config: &NetworkConfig,
+    counts: &[usize],
+) {
+    let mut cpu = Networks::<f32>::new(config, 11).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    for (round, &n) in counts.iter().enumerate() {
+        let label = format!("{:?} n = {n} (round {round})", config.motion_context);
+        let host = host_case(config, n, 31 + round as u64);
+        let case = device_case(&context, config, &host);
+        for replay in 0..2 {
+            let run = resident_iteration(&mut gpu, &case, None, true).unwrap();
+            cpu.zero_grad();
+            let frame = FrameInputs {
+                local_pose: &host.pose,
+                skeleton_motion: host.skeleton.as_deref(),
+            };
+            let gaussians = GaussianInputs {
+                xyz: &host.xyz,
+                knn_velocity: host.velocity.as_deref(),
+            };
+            let label = format!("{label} replay {replay}");
+            if config.motion_context.has_non_rigid() {
+                let (out, cache) = cpu.non_rigid_forward(&frame, &gaussians).unwrap();
+                let mut heads = Vec::with_capacity(n * HEAD_WIDTH);
+                for g in 0..n {
+                    heads.extend_from_slice(&out.d_xyz[3 * g..3 * g + 3]);
+                    heads.push(out.d_rot[4 * g] - 1.0);
+                    heads.extend_from_slice(&out.d_rot[4 * g + 1..4 * g + 4]);
+                    heads.extend_from_slice(&out.d_scale[3 * g..3 * g + 3]);
+                }
+                assert_close_f32(&format!("{label} heads"), &run.heads, &heads, 1e-4);
+                let d_xyz = cpu
+                    .non_rigid_backward(&cache, &host.d_dxyz, &host.d_drot, &host.d_dscale)
+                    .unwrap();
+                assert_close_f32(&format!("{label} d xyz"), &run.d_xyz, &d_xyz, 1e-4);
+            }
+            let (rotations, cache) = cpu.pose_refiner_forward(&host.pose).unwrap();
+            assert_close_f32(
+                &format!("{label} rotations"),
+                &run.rotations,
+                &rotations,
+                1e-5,
+            );
+            cpu.pose_refiner_backward(&cache, &host.d_rotations)
+                .unwrap();
+            let (offsets, cache) = cpu.lbs_offsets_forward(&host.xyz).unwrap();
+            assert_close_f32(&format!("{label} offsets"), &run.offsets, &offsets, 1e-4);
+            cpu.lbs_offsets_backward(&cache, &host.d_offsets).unwrap();
+            let mut downloaded = cpu.clone();
+            gpu.download_into(&mut downloaded).unwrap();
+            for (c, g) in cpu.parameters().iter().zip(downloaded.parameters()) {
+                assert_close_f32(
+                    &format!("{label} {} gradient", c.name),
+                    g.grads,
+                    c.grads,
+                    1e-4,
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn resident_networks_match_cpu_at_every_level_and_the_extremes() {
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let mut multiscale = small_config(MotionContext::Multiscale, 3, 3);
+    multiscale.widths = Widths::PAPER;
+    multiscale.trunk_width = 80;
+    multiscale.skinning_joints = 24;
+    // 300 is not a multiple of the 64-row tile; then a shrink and a growth of the workspace.
+    check_resident_parity(context.clone(), &multiscale, &[300, 1, 0, 301]);
+    check_resident_parity(
+        context.clone(),
+        &small_config(MotionContext::Pose, 1, 1),
+        &[5, 0],
+    );
+    check_resident_parity(
+        context.clone(),
+        &small_config(MotionContext::Skeleton, 1, 2),
+        &[1, 70],
+    );
+    check_resident_parity(
+        context.clone(),
+        &small_config(MotionContext::Velocity, 1, 2),
+        &[0, 65],
+    );
+    check_resident_parity(context, &small_config(MotionContext::None, 1, 1), &[7]);
+}
+
+#[test]
+fn resident_networks_match_cpu_with_two_dimensional_grids() {
+    let Some(context) =
+        seqavatar_compute::backend::test_support::gpu_test_context_with_dispatch_limit(8)
+    else {
+        return;
+    };
+    check_resident_parity(
+        context,
+        &small_config(MotionContext::Multiscale, 2, 3),
+        &[300],
+    );
+}
+
+#[test]
+fn resident_rodrigues_matches_the_cpu_map_and_its_backward() {
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let nn = seqavatar_compute::nn::gpu::NnGpu::new(context.device()).unwrap();
+    // Zero, tiny, moderate, large and near-pi vectors; 70 of them (not a multiple of 64).
+    let mut rng = Rng::new(5);
+    let mut vectors = vec![
+        0.0, 0.0, 0.0, 1e-4, -2e-4, 3e-4, 3.1, 0.0, 0.0, 0.0, -2.0, 2.0,
+    ];
+    while vectors.len() < 3 * 70 {
+        vectors.push(rng.uniform(-1.5, 1.5));
+    }
+    let count = vectors.len() / 3;
+    let d_matrices = random(&mut rng, 9 * count, 1.0);
+    let v32 = to_f32(&vectors);
+    let d32 = to_f32(&d_matrices);
+    let up = |what: &str, values: &[f32]| context.upload(what, values).unwrap().buffer;
+    let (v_buf, d_buf) = (up("vectors", &v32), up("d matrices", &d32));
+    let matrices = context.zeros("matrices", 9 * count, 4).unwrap().buffer;
+    let d_vectors = context.zeros("d vectors", 3 * count, 4).unwrap().buffer;
+    let mut encoder = context.encoder();
+    let eps = pose_refiner::THETA_SQUARED_EPSILON;
+    nn.rodrigues_forward(&mut encoder, eps, &v_buf, count, &matrices)
+        .unwrap();
+    nn.rodrigues_backward(&mut encoder, eps, &v_buf, &d_buf, count, &d_vectors)
+        .unwrap();
+    let got = context
+        .download_all::<f32>(encoder, &[(&matrices, 9 * count), (&d_vectors, 3 * count)])
+        .unwrap();
+    let expected_matrices = pose_refiner::rotations_from_vectors(&vectors);
+    let expected_d = pose_refiner::rotation_vectors_backward(&vectors, &d_matrices);
+    assert_close_f32("matrices", &got[0], &to_f32(&expected_matrices), 2e-6);
+    assert_close_f32("d vectors", &got[1], &to_f32(&expected_d), 5e-5);
+}
+
+/// Device Adam of every network parameter against `cpu` `adam_update` over several steps
+/// with fresh gradients each step, then a checkpoint round trip (download, upload into a
+/// fresh copy, one more step on both).
+#[test]
+fn resident_adam_matches_cpu_adam_update_and_round_trips() {
+    use seqavatar_compute::nn::adam::{AdamConfig, AdamState, adam_update};
+    use std::collections::HashMap;
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let config = small_config(MotionContext::Multiscale, 2, 2);
+    let mut cpu = Networks::<f32>::new(&config, 3).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let adam = AdamConfig {
+        eps: 1e-15,
+        ..AdamConfig::default()
+    };
+    let rate = |group: NetworkGroup| match group {
+        NetworkGroup::NonRigid => 1e-3,
+        NetworkGroup::PoseRefiner => 3e-4,
+        NetworkGroup::LbsOffsets => 2e-3,
+    };
+    let mut states: HashMap<String, AdamState<f32>> = HashMap::new();
+    let mut rng = Rng::new(8);
+    let step = |cpu: &mut Networks<f32>,
+                gpu: &mut gpu::GpuNetworks,
+                states: &mut HashMap<String, AdamState<f32>>,
+                rng: &mut Rng| {
+        let device = gpu.parameters();
+        let mut device = device.iter();
+        for layer in cpu.layers_mut() {
+            for grads in [&mut layer.d_weight, &mut layer.d_bias] {
+                let values = to_f32(&random(rng, grads.len(), 1.0));
+                context
+                    .write(device.next().unwrap().grads, 0, &values)
+                    .unwrap();
+                grads.copy_from_slice(&values);
+            }
+        }
+        let mut encoder = context.encoder();
+        gpu.record_adam(&mut encoder, &adam, rate).unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        for c in cpu.parameters_mut() {
+            let state = states
+                .entry(c.name.clone())
+                .or_insert_with(|| AdamState::new(c.values.len()));
+            adam_update(&adam, rate(c.group), c.values, c.grads, state).unwrap();
+        }
+    };
+    let compare = |cpu: &Networks<f32>,
+                   gpu: &gpu::GpuNetworks,
+                   states: &HashMap<String, AdamState<f32>>,
+                   what: &str| {
+        let mut downloaded = cpu.clone();
+        gpu.download_into(&mut downloaded).unwrap();
+        for (c, g) in cpu.parameters().iter().zip(downloaded.parameters()) {
+            assert_close_f32(&format!("{what} {}", c.name), g.values, c.values, 1e-6);
+        }
+        let device = gpu.download_adam().unwrap();
+        for (name, state) in states {
+            let d = &device[name];
+            assert_eq!(d.step, state.step, "{what} {name} step");
+            assert_close_f32(&format!("{what} {name} m"), &d.m, &state.m, 1e-6);
+            assert_close_f32(&format!("{what} {name} v"), &d.v, &state.v, 1e-6);
+        }
+    };
+    for _ in 0..3 {
+        step(&mut cpu, &mut gpu, &mut states, &mut rng);
+    }
+    assert_eq!(gpu.adam_step(), 3);
+    compare(&cpu, &gpu, &states, "after 3 steps");
+    // Resume: a fresh device copy of the parameters with the downloaded moments.
+    let mut resumed = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    resumed
+        .upload_adam(&adam, &gpu.download_adam().unwrap())
+        .unwrap();
+    assert_eq!(resumed.adam_step(), 3);
+    step(&mut cpu, &mut resumed, &mut states, &mut rng);
+    compare(&cpu, &resumed, &states, "resumed step 4");
+    // A missing state is named.
+    let mut partial = gpu.download_adam().unwrap();
+    let name = partial.keys().next().unwrap().clone();
+    partial.remove(&name);
+    let error = resumed.upload_adam(&adam, &partial).unwrap_err();
+    assert!(error.to_string().contains(&name), "{error}");
+}
+
+/// A steady-state resident iteration (forward, backward and Adam of every network) reads
+/// nothing back, uploads only the Adam step record and builds no program.
+#[test]
+fn resident_steady_state_iteration_reads_back_nothing_and_uploads_under_one_kib() {
+    use seqavatar_compute::nn::adam::AdamConfig;
+    // A context of its own: the shared one counts the traffic of tests running beside this.
+    let Some(context) =
+        seqavatar_compute::backend::test_support::gpu_test_context_with_dispatch_limit(u32::MAX)
+    else {
+        return;
+    };
+    let mut config = small_config(MotionContext::Multiscale, 3, 3);
+    config.widths = Widths::PAPER;
+    config.trunk_width = 64;
+    let cpu = Networks::<f32>::new(&config, 2).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let host = host_case(&config, 200, 4);
+    let case = device_case(&context, &config, &host);
+    let adam = AdamConfig::default();
+    resident_iteration(&mut gpu, &case, Some((&adam, 1e-3)), false);
+    let built = gpu.resident_programs_built();
+    let before = context.transfers();
+    for _ in 0..3 {
+        resident_iteration(&mut gpu, &case, Some((&adam, 1e-3)), false);
+    }
+    let traffic = context.transfers().since(&before);
+    assert_eq!(traffic.readbacks, 0, "{traffic:?}");
+    assert_eq!(traffic.bytes_down, 0, "{traffic:?}");
+    assert!(traffic.bytes_up <= 3 * 24, "{traffic:?}");
+    assert!(traffic.bytes_up < 3 * 1024, "{traffic:?}");
+    assert_eq!(gpu.resident_programs_built(), built, "no program rebuilt");
+    // A different Gaussian count rebuilds (densification), the same count does not.
+    let grown = device_case(&context, &config, &host_case(&config, 201, 5));
+    resident_iteration(&mut gpu, &grown, Some((&adam, 1e-3)), false);
+    assert!(gpu.resident_programs_built() > built);
+}
