@@ -1,0 +1,188 @@
+// Device-resident motion inputs of the avatar (stages/avatar/src/resident/motion.rs), f32:
+// the frame's skeleton-motion window (motion::schema::MotionTrack::gather), the k nearest
+// template vertices of query points (motion::knn::KnnGrid::query_all: sorted by squared
+// distance, then index) and the velocity gather (avatar::knn_velocity).
+//
+// Layouts (row-major): skeleton motion of the sequence F x S x J x 3 and vertex velocity
+// F x S x V x 3 (only the scale slots in use, in the order used, largest scale first);
+// template vertices V x 3; queries N x 3; neighbours N x k (nearest first); the window
+// L x S x J x 3; velocity block l: N x (tau S 3), `[neighbour][scale][xyz]` per Gaussian.
+
+struct MotionShape {
+    length: u32,
+    scales: u32,
+    joints: u32,
+    vertices: u32,
+    // Neighbours per query of this search, and the gather's window element.
+    k: u32,
+    element: u32,
+    // What a non-finite query gets (k times): the cpu search's first reference point.
+    fallback: u32,
+    _pad: u32,
+}
+
+// The per-iteration record: frame index and Gaussian count.
+struct MotionRecord {
+    frame: u32,
+    count: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+const MAX_K: u32 = 64u;
+const TILE: u32 = 64u;
+
+@group(0) @binding(0) var<uniform> shape: MotionShape;
+@group(0) @binding(1) var<storage, read> record: MotionRecord;
+// Per scale slot in use: its step on the frame axis.
+@group(0) @binding(2) var<storage, read> steps: array<u32>;
+@group(0) @binding(3) var<storage, read> skeleton_motion: array<f32>;
+@group(0) @binding(4) var<storage, read> vertex_velocity: array<f32>;
+@group(0) @binding(5) var<storage, read> template_vertices: array<f32>;
+@group(0) @binding(6) var<storage, read> queries: array<f32>;
+@group(0) @binding(7) var<storage, read_write> neighbours: array<u32>;
+@group(0) @binding(8) var<storage, read_write> window: array<f32>;
+
+fn linear_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
+    return (group.x + group.y * groups.x) * 64u + local;
+}
+
+fn finite(x: f32) -> bool {
+    // A bit test, because compilers may assume `x == x`.
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// The frame row of window element l at scale slot s: frame - l step, clamped at 0 (the host
+// checked that clamping is allowed: MotionTrack::gather's rule).
+fn window_row(l: u32, s: u32) -> u32 {
+    let back = l * steps[s];
+    return select(0u, record.frame - back, record.frame >= back);
+}
+
+// The skeleton-motion window L x S x J x 3 of the record's frame.
+@compute @workgroup_size(64)
+fn gather_skeleton(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let o = linear_index(group, groups, local);
+    let per_scale = shape.joints * 3u;
+    if o >= shape.length * shape.scales * per_scale {
+        return;
+    }
+    let inner = o % per_scale;
+    let s = (o / per_scale) % shape.scales;
+    let l = o / (per_scale * shape.scales);
+    let row = window_row(l, s);
+    window[o] = skeleton_motion[(row * shape.scales + s) * per_scale + inner];
+}
+
+// Velocity block of window element `shape.element`: for Gaussian i, neighbour n (of the
+// tau = shape.k nearest in `neighbours`) and scale s, the velocity of that vertex at the
+// window row.
+@compute @workgroup_size(64)
+fn gather_velocity(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let o = linear_index(group, groups, local);
+    let width = shape.k * shape.scales * 3u;
+    if o >= record.count * width {
+        return;
+    }
+    let i = o / width;
+    let inner = o % width;
+    let c = inner % 3u;
+    let s = (inner / 3u) % shape.scales;
+    let n = inner / (3u * shape.scales);
+    let vertex = neighbours[i * shape.k + n];
+    let row = window_row(shape.element, s);
+    window[o] = vertex_velocity[((row * shape.scales + s) * shape.vertices + vertex) * 3u + c];
+}
+
+var<workgroup> tile: array<vec3<f32>, 64>;
+
+// The shape.k nearest template vertices of each query, nearest first, ties by index: a tiled
+// brute force (every query against every vertex, vertices staged through workgroup memory).
+// Vertices are visited in index order and a candidate enters only when strictly nearer than
+// the current k-th, behind every kept one at the same distance, so equal distances keep the
+// lower index first, as the cpu grid search orders them. Non-finite vertices never enter; a
+// non-finite query gets `shape.fallback` k times.
+@compute @workgroup_size(64)
+fn knn(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let i = linear_index(group, groups, local);
+    let k = min(shape.k, MAX_K);
+    let active_query = i < record.count;
+    var q = vec3<f32>(0.0);
+    var valid = false;
+    if active_query {
+        q = vec3<f32>(queries[3u * i], queries[3u * i + 1u], queries[3u * i + 2u]);
+        valid = finite(q.x) && finite(q.y) && finite(q.z);
+    }
+    // Far queries are compared in units of a power of two (exact scaling) so that squared
+    // distances never overflow; the order is that of the unscaled distances.
+    let largest = max(max(abs(q.x), abs(q.y)), abs(q.z));
+    var exponent = 0;
+    if valid && largest > 1e18 {
+        exponent = frexp(largest).exp;
+    }
+    var best_d: array<f32, 64>;
+    var best_i: array<u32, 64>;
+    for (var n = 0u; n < MAX_K; n++) {
+        best_d[n] = 3.4e38;
+        best_i[n] = shape.fallback;
+    }
+    var filled = 0u;
+    for (var base = 0u; base < shape.vertices; base += TILE) {
+        workgroupBarrier();
+        let v = base + local;
+        if v < shape.vertices {
+            tile[local] = vec3<f32>(template_vertices[3u * v], template_vertices[3u * v + 1u], template_vertices[3u * v + 2u]);
+        }
+        workgroupBarrier();
+        if !valid {
+            continue;
+        }
+        let count = min(TILE, shape.vertices - base);
+        for (var t = 0u; t < count; t++) {
+            let p = tile[t];
+            if !(finite(p.x) && finite(p.y) && finite(p.z)) {
+                continue;
+            }
+            let diff = ldexp(q - p, vec3<i32>(-exponent));
+            let d = dot(diff, diff);
+            if filled < k {
+                // Fill phase: insert behind every kept one at a distance <= d.
+                var j = filled;
+                while j > 0u && best_d[j - 1u] > d {
+                    best_d[j] = best_d[j - 1u];
+                    best_i[j] = best_i[j - 1u];
+                    j -= 1u;
+                }
+                best_d[j] = d;
+                best_i[j] = base + t;
+                filled += 1u;
+            } else if d < best_d[k - 1u] {
+                var j = k - 1u;
+                while j > 0u && best_d[j - 1u] > d {
+                    best_d[j] = best_d[j - 1u];
+                    best_i[j] = best_i[j - 1u];
+                    j -= 1u;
+                }
+                best_d[j] = d;
+                best_i[j] = base + t;
+            }
+        }
+    }
+    if active_query {
+        for (var n = 0u; n < k; n++) {
+            neighbours[i * shape.k + n] = best_i[n];
+        }
+    }
+}
