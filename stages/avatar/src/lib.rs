@@ -12,6 +12,7 @@
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
+//! - [`resident`]: the device-resident pieces of the `gpu` training step (the pose path).
 //! - [`ply`]: the avatar's canonical and posed Gaussians as 3D Gaussian Splatting PLY
 //!   clouds, for `pipeline export` (the file format is `seqavatar_ingest::formats::ply`).
 
@@ -24,6 +25,7 @@ pub mod config;
 pub mod device;
 pub mod model;
 pub mod ply;
+pub mod resident;
 pub mod rig;
 pub mod skinning;
 pub mod splatting;
