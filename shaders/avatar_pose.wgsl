@@ -29,7 +29,6 @@ struct PoseParams {
     frame_rotations_at: u32,
     frame_world_at: u32,
     rest_joints_at: u32,
-    frames: u32,
     // Offsets (in floats) into `chain`.
     rotations_at: u32,
     globals_at: u32,
@@ -39,6 +38,7 @@ struct PoseParams {
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
 
 // The iteration's record (`PoseRecord` in pose.rs), written once per iteration.
