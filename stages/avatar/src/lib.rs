@@ -12,8 +12,8 @@
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.
 //! - [`skinning`]: Gaussian skinning (non-rigid offsets, blended LBS, covariance transform).
 //! - [`splatting`]: splatting on the `cpu` or `gpu` backend with f64 at the boundary.
-//! - [`resident`]: motion inputs and skinning on the device, recorded into the resident
-//!   training step.
+//! - [`resident`]: the device-resident pieces of the `gpu` training step: motion inputs,
+//!   the pose path and skinning, recorded into the step's command encoder.
 //! - [`ply`]: the avatar's canonical and posed Gaussians as 3D Gaussian Splatting PLY
 //!   clouds, for `pipeline export` (the file format is `seqavatar_ingest::formats::ply`).
 

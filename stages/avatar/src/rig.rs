@@ -94,6 +94,12 @@ impl BodyRig {
         self.model.num_vertices()
     }
 
+    /// `B_v^-1 c_v = t_v + P_v f(big)` per vertex: what [`BodyRig::pose`] subtracts from a
+    /// frame's rest vertices to get its vertex offsets.
+    pub fn canonical_rest(&self) -> &[DVec3] {
+        &self.canonical_rest
+    }
+
     /// The skinning target of one frame's body parameters.
     pub fn pose(&self, params: &BodyParams) -> anyhow::Result<FramePose> {
         Ok(self.pose_with_chain(params)?.0)

@@ -2,4 +2,5 @@
 //! buffers stay on the device, operations record into the step's command encoder.
 
 pub mod motion;
+pub mod pose;
 pub mod skinning;
