@@ -1,0 +1,4 @@
+//! The device-resident training step on the `gpu` backend (`docs/resident-step.md`): its
+//! pieces record into one encoder per iteration and read nothing back in the steady state.
+
+pub mod image_loss;
