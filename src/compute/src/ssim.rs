@@ -8,8 +8,10 @@ use rayon::prelude::*;
 pub const SSIM_WINDOW: usize = 11;
 /// Standard deviation of the SSIM Gaussian window in pixels.
 pub const SSIM_SIGMA: f64 = 1.5;
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
+/// SSIM's luminance stabiliser `(0.01 L)^2` for the dynamic range `L = 1`.
+pub const SSIM_C1: f64 = 0.01 * 0.01;
+/// SSIM's contrast stabiliser `(0.03 L)^2` for the dynamic range `L = 1`.
+pub const SSIM_C2: f64 = 0.03 * 0.03;
 
 /// The normalised 1D Gaussian window.
 pub fn gaussian_window(size: usize, sigma: f64) -> Vec<f64> {

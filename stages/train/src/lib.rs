@@ -10,6 +10,7 @@
 //!   network.
 //! - [`gaussians`]: the trainable Gaussian columns, their initial state and schedules.
 //! - [`checkpoint`]: checkpoints as Zarr arrays, RNG state included.
+//! - [`resident`]: the device-resident training step's pieces (`gpu` backend).
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
 //! - [`data`]: what a run reads from its input entries.
 //! - [`trainer`]: the training loop and its resumable state.

@@ -1,3 +1,6 @@
-//! The device-resident training step of the `gpu` backend (docs/resident-step.md).
+//! The device-resident training step on the `gpu` backend (`docs/resident-step.md`): its
+//! pieces record into one encoder per iteration and read nothing back in the steady state.
 
+pub mod image_loss;
 pub mod log;
+pub mod step;
