@@ -14,6 +14,7 @@
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
 //! - [`data`]: what a run reads from its input entries.
 //! - [`trainer`]: the training loop and its resumable state.
+//! - [`resident`]: pieces of the device-resident training step (`gpu` backend).
 //! - [`stage`]: the `train` stage kind.
 
 // Numeric kernels index several parallel arrays with one loop variable; iterator chains

@@ -1396,7 +1396,7 @@ pub fn pad_rect(rect: Rect, pad: usize, width: usize, height: usize) -> Rect {
 }
 
 /// Adam on the SH column with one rate for the DC coefficients and another for the rest.
-fn update_sh(
+pub(crate) fn update_sh(
     config: &AdamConfig,
     dc_rate: f64,
     rest_rate: f64,

@@ -1,0 +1,406 @@
+// The as-isometric-as-possible loss on the device (stages/train/src/resident/aiap.rs; the cpu
+// twin is `aiap_gaussians` in stages/train/src/losses.rs with its neighbours from
+// `MovingKnn`): the k nearest canonical neighbours of every Gaussian (itself first), the
+// canonical covariances, the mean over neighbour pairs of `|d(a_i, a_j) - d(b_i, b_j)|` for
+// centres and covariance upper triangles, its gradients into the canonical and deformed
+// centres and covariances (accumulated with `gradient_add`), the canonical covariances'
+// gradient carried back to log-scales and rotations, and the loss value reduced in a fixed
+// order into the log record. Entry points, in recording order: `nearest`,
+// `covariances`, `pairs`, `reduce_loss`, `finish`. One thread per Gaussian (`reduce_loss`:
+// one workgroup); grids may be 2D.
+//
+// `params` (written when the count changes): x = N, y = k, z = the scratch's capacity C
+// (rows), w unused; second vector: centre weight / pairs, covariance weight / pairs, centre
+// weight, covariance weight (f32 bits). The gradient scratch holds, at row offsets of C:
+// canonical centres 3C | deformed centres 3C | canonical covariances 6C | deformed
+// covariances 6C.
+
+@group(0) @binding(0) var<uniform> params: array<vec4<u32>, 2>;
+@group(0) @binding(1) var<storage, read> xyz: array<f32>;
+@group(0) @binding(2) var<storage, read> log_scale: array<f32>;
+@group(0) @binding(3) var<storage, read> rotation: array<f32>;
+@group(0) @binding(4) var<storage, read> deformed_centres: array<f32>;
+@group(0) @binding(5) var<storage, read> deformed_covariances: array<f32>;
+@group(0) @binding(6) var<storage, read_write> neighbours: array<u32>;
+@group(0) @binding(7) var<storage, read_write> canonical_covariances: array<f32>;
+// Per Gaussian: the sums of its pairs' centre and covariance terms.
+@group(0) @binding(8) var<storage, read_write> partials: array<f32>;
+// [weighted value, centre term, covariance term].
+@group(0) @binding(9) var<storage, read_write> loss_log: array<f32>;
+// The gradient scratch, read back as floats by `finish`.
+@group(0) @binding(10) var<storage, read> accumulated: array<f32>;
+@group(0) @binding(11) var<storage, read_write> d_xyz: array<f32>;
+@group(0) @binding(12) var<storage, read_write> d_log_scale: array<f32>;
+@group(0) @binding(13) var<storage, read_write> d_rotation: array<f32>;
+
+const MAX_K: u32 = 16u;
+const TILE: u32 = 256u;
+
+fn count() -> u32 {
+    return params[0].x;
+}
+
+fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
+    return (group.x + group.y * groups.x) * 256u + local;
+}
+
+fn is_finite(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// ---------------------------------------------------------------------------------------
+// Exact k nearest by (squared distance, index), as `knn_brute_force` and `KnnGrid` order
+// them: a tiled brute-force search, non-finite reference points skipped.
+
+var<workgroup> tile_points: array<vec4<f32>, TILE>;
+
+fn nearer(d: f32, j: u32, best_d: f32, best_j: u32) -> bool {
+    return d < best_d || (d == best_d && j < best_j);
+}
+
+@compute @workgroup_size(256)
+fn nearest(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let n = count();
+    let k = params[0].y;
+    let i = gaussian_index(group, groups, local);
+    let in_range = i < n;
+    var query = vec3<f32>(0.0);
+    if (in_range) {
+        query = vec3<f32>(xyz[3u * i], xyz[3u * i + 1u], xyz[3u * i + 2u]);
+    }
+    var best_d: array<f32, MAX_K>;
+    var best_j: array<u32, MAX_K>;
+    var found = 0u;
+    for (var start = 0u; start < n; start = start + TILE) {
+        let load = start + local;
+        var point = vec4<f32>(0.0, 0.0, 0.0, 0.0);
+        if (load < n) {
+            let p = vec3<f32>(xyz[3u * load], xyz[3u * load + 1u], xyz[3u * load + 2u]);
+            if (is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) {
+                point = vec4<f32>(p, 1.0);
+            }
+        }
+        workgroupBarrier();
+        tile_points[local] = point;
+        workgroupBarrier();
+        if (in_range) {
+            let end = min(TILE, n - start);
+            for (var t = 0u; t < end; t = t + 1u) {
+                let p = tile_points[t];
+                if (p.w == 0.0) {
+                    continue;
+                }
+                let delta = query - p.xyz;
+                let d = delta.x * delta.x + delta.y * delta.y + delta.z * delta.z;
+                let j = start + t;
+                if (found == k && !nearer(d, j, best_d[k - 1u], best_j[k - 1u])) {
+                    continue;
+                }
+                // Insertion from the end of the sorted list.
+                var slot = min(found, k - 1u);
+                loop {
+                    if (slot == 0u || !nearer(d, j, best_d[slot - 1u], best_j[slot - 1u])) {
+                        break;
+                    }
+                    best_d[slot] = best_d[slot - 1u];
+                    best_j[slot] = best_j[slot - 1u];
+                    slot = slot - 1u;
+                }
+                best_d[slot] = d;
+                best_j[slot] = j;
+                found = min(found + 1u, k);
+            }
+        }
+    }
+    if (in_range) {
+        for (var s = 0u; s < k; s = s + 1u) {
+            // Fewer finite points than k (the cpu search refuses that): the Gaussian itself,
+            // whose pair terms are 0.
+            var j = i;
+            if (s < found) {
+                j = best_j[s];
+            }
+            neighbours[i * k + s] = j;
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Canonical covariances `R diag(exp(log_scale)^2) R^T` (`covariance_from_scale_rotation`:
+// the quaternion normalised, a degenerate one taken as the identity).
+
+fn quaternion(i: u32) -> vec4<f32> {
+    return vec4<f32>(rotation[4u * i], rotation[4u * i + 1u], rotation[4u * i + 2u],
+        rotation[4u * i + 3u]);
+}
+
+fn is_degenerate(q: vec4<f32>) -> bool {
+    let n2 = dot(q, q);
+    return !(is_finite(n2) && n2 > 1e-24);
+}
+
+// The rotation of a unit `w x y z` quaternion; `m[c][r]` is row r, column c.
+fn rotation_matrix(unit: vec4<f32>) -> mat3x3<f32> {
+    let w = unit.x;
+    let x = unit.y;
+    let y = unit.z;
+    let z = unit.w;
+    return transpose(mat3x3<f32>(
+        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
+        vec3<f32>(2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
+        vec3<f32>(2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
+    ));
+}
+
+fn rotation_of(q: vec4<f32>) -> mat3x3<f32> {
+    if (is_degenerate(q)) {
+        return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0),
+            vec3<f32>(0.0, 0.0, 1.0));
+    }
+    return rotation_matrix(q / sqrt(dot(q, q)));
+}
+
+fn scale_of(i: u32) -> vec3<f32> {
+    return exp(vec3<f32>(log_scale[3u * i], log_scale[3u * i + 1u], log_scale[3u * i + 2u]));
+}
+
+@compute @workgroup_size(256)
+fn covariances(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let i = gaussian_index(group, groups, local);
+    if (i >= count()) {
+        return;
+    }
+    let r = rotation_of(quaternion(i));
+    let s = scale_of(i);
+    let sigma = r * mat3x3<f32>(vec3<f32>(s.x * s.x, 0.0, 0.0), vec3<f32>(0.0, s.y * s.y, 0.0),
+        vec3<f32>(0.0, 0.0, s.z * s.z)) * transpose(r);
+    canonical_covariances[6u * i] = sigma[0][0];
+    canonical_covariances[6u * i + 1u] = sigma[1][0];
+    canonical_covariances[6u * i + 2u] = sigma[2][0];
+    canonical_covariances[6u * i + 3u] = sigma[1][1];
+    canonical_covariances[6u * i + 4u] = sigma[2][1];
+    canonical_covariances[6u * i + 5u] = sigma[2][2];
+}
+
+// ---------------------------------------------------------------------------------------
+// The pair terms of Gaussian i (`aiap_term`): a zero distance has a zero subgradient.
+
+// @atomic-add-begin
+// Portable f32 atomic add on the gradient buffer: a compare-exchange loop on the bit
+// pattern held in an atomic<u32>. Kernels that accumulate gradients carry this text between
+// the atomic-add begin and end marker lines; the host swaps in atomic_add_float.wgsl
+// when the adapter has native f32 atomics.
+
+@group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
+
+fn gradient_add(index: u32, value: f32) {
+    if value == 0.0 {
+        return;
+    }
+    var old = atomicLoad(&gradients[index]);
+    loop {
+        let new_bits = bitcast<u32>(bitcast<f32>(old) + value);
+        let result = atomicCompareExchangeWeak(&gradients[index], old, new_bits);
+        if result.exchanged {
+            break;
+        }
+        old = result.old_value;
+    }
+}
+// @atomic-add-end
+
+fn sign_of(v: f32) -> f32 {
+    if (v > 0.0) {
+        return 1.0;
+    }
+    if (v < 0.0) {
+        return -1.0;
+    }
+    return 0.0;
+}
+
+@compute @workgroup_size(256)
+fn pairs(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let i = gaussian_index(group, groups, local);
+    if (i >= count()) {
+        return;
+    }
+    let k = params[0].y;
+    let c = params[0].z;
+    let centre_scale = bitcast<f32>(params[1].x);
+    let covariance_scale = bitcast<f32>(params[1].y);
+    var centre_sum = 0.0;
+    var covariance_sum = 0.0;
+    for (var slot = 1u; slot < k; slot = slot + 1u) {
+        let j = neighbours[i * k + slot];
+        // Centres.
+        var du: array<f32, 6>;
+        var dv: array<f32, 6>;
+        var lu = 0.0;
+        var lv = 0.0;
+        for (var d = 0u; d < 3u; d = d + 1u) {
+            du[d] = xyz[3u * i + d] - xyz[3u * j + d];
+            dv[d] = deformed_centres[3u * i + d] - deformed_centres[3u * j + d];
+            lu = lu + du[d] * du[d];
+            lv = lv + dv[d] * dv[d];
+        }
+        lu = sqrt(lu);
+        lv = sqrt(lv);
+        centre_sum = centre_sum + abs(lu - lv);
+        var g = centre_scale * sign_of(lu - lv);
+        if (g != 0.0) {
+            for (var d = 0u; d < 3u; d = d + 1u) {
+                if (lu > 0.0) {
+                    let t = g * du[d] / lu;
+                    gradient_add(3u * i + d, t);
+                    gradient_add(3u * j + d, -t);
+                }
+                if (lv > 0.0) {
+                    let t = g * dv[d] / lv;
+                    gradient_add(3u * c + 3u * i + d, -t);
+                    gradient_add(3u * c + 3u * j + d, t);
+                }
+            }
+        }
+        // Covariance upper triangles.
+        lu = 0.0;
+        lv = 0.0;
+        for (var d = 0u; d < 6u; d = d + 1u) {
+            du[d] = canonical_covariances[6u * i + d] - canonical_covariances[6u * j + d];
+            dv[d] = deformed_covariances[6u * i + d] - deformed_covariances[6u * j + d];
+            lu = lu + du[d] * du[d];
+            lv = lv + dv[d] * dv[d];
+        }
+        lu = sqrt(lu);
+        lv = sqrt(lv);
+        covariance_sum = covariance_sum + abs(lu - lv);
+        g = covariance_scale * sign_of(lu - lv);
+        if (g != 0.0) {
+            for (var d = 0u; d < 6u; d = d + 1u) {
+                if (lu > 0.0) {
+                    let t = g * du[d] / lu;
+                    gradient_add(6u * c + 6u * i + d, t);
+                    gradient_add(6u * c + 6u * j + d, -t);
+                }
+                if (lv > 0.0) {
+                    let t = g * dv[d] / lv;
+                    gradient_add(12u * c + 6u * i + d, -t);
+                    gradient_add(12u * c + 6u * j + d, t);
+                }
+            }
+        }
+    }
+    partials[2u * i] = centre_sum;
+    partials[2u * i + 1u] = covariance_sum;
+}
+
+// ---------------------------------------------------------------------------------------
+// The loss value: the partial sums added in a fixed order (strided per thread, then a tree),
+// divided by the pair count and weighted.
+
+var<workgroup> sums: array<vec2<f32>, 256>;
+
+@compute @workgroup_size(256)
+fn reduce_loss(@builtin(local_invocation_index) local: u32) {
+    let n = count();
+    var sum = vec2<f32>(0.0);
+    for (var i = local; i < n; i = i + 256u) {
+        sum = sum + vec2<f32>(partials[2u * i], partials[2u * i + 1u]);
+    }
+    sums[local] = sum;
+    workgroupBarrier();
+    for (var width = 128u; width > 0u; width = width / 2u) {
+        if (local < width) {
+            sums[local] = sums[local] + sums[local + width];
+        }
+        workgroupBarrier();
+    }
+    if (local == 0u) {
+        let k = params[0].y;
+        let pair_count = f32(n) * f32(k - 1u);
+        let centres = sums[0].x / pair_count;
+        let covariances = sums[0].y / pair_count;
+        loss_log[1] = centres;
+        loss_log[2] = covariances;
+        loss_log[0] = bitcast<f32>(params[1].z) * centres + bitcast<f32>(params[1].w) * covariances;
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The canonical gradients: the centres' copied out, the covariances' carried back to the
+// log-scales and rotations (`canonical_covariances_backward`).
+
+@compute @workgroup_size(256)
+fn finish(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let i = gaussian_index(group, groups, local);
+    if (i >= count()) {
+        return;
+    }
+    let c = params[0].z;
+    for (var d = 0u; d < 3u; d = d + 1u) {
+        d_xyz[3u * i + d] = accumulated[3u * i + d];
+    }
+    let u = 6u * c + 6u * i;
+    // The full symmetric gradient of the upper triangle (off-diagonals count both halves).
+    let gxy = 0.5 * accumulated[u + 1u];
+    let gxz = 0.5 * accumulated[u + 2u];
+    let gyz = 0.5 * accumulated[u + 4u];
+    let g = mat3x3<f32>(
+        vec3<f32>(accumulated[u], gxy, gxz),
+        vec3<f32>(gxy, accumulated[u + 3u], gyz),
+        vec3<f32>(gxz, gyz, accumulated[u + 5u]),
+    );
+    let q = quaternion(i);
+    let r = rotation_of(q);
+    let s = scale_of(i);
+    let rt_g_r = transpose(r) * g * r;
+    d_log_scale[3u * i] = 2.0 * s.x * rt_g_r[0][0] * s.x;
+    d_log_scale[3u * i + 1u] = 2.0 * s.y * rt_g_r[1][1] * s.y;
+    d_log_scale[3u * i + 2u] = 2.0 * s.z * rt_g_r[2][2] * s.z;
+    if (is_degenerate(q)) {
+        for (var a = 0u; a < 4u; a = a + 1u) {
+            d_rotation[4u * i + a] = 0.0;
+        }
+        return;
+    }
+    // dL/dR = 2 G R D, then the derivative of R(q / |q|) (`quat_matrix_backward`).
+    let e = g * r * mat3x3<f32>(vec3<f32>(2.0 * s.x * s.x, 0.0, 0.0),
+        vec3<f32>(0.0, 2.0 * s.y * s.y, 0.0), vec3<f32>(0.0, 0.0, 2.0 * s.z * s.z));
+    let norm = sqrt(dot(q, q));
+    let unit = q / norm;
+    let w = unit.x;
+    let x = unit.y;
+    let y = unit.z;
+    let z = unit.w;
+    // e[c][r] is row r, column c.
+    let dw = 2.0 * (-z * e[1][0] + y * e[2][0] + z * e[0][1] - x * e[2][1] - y * e[0][2]
+        + x * e[1][2]);
+    let dx = 2.0 * (y * e[1][0] + z * e[2][0] + y * e[0][1] - 2.0 * x * e[1][1] - w * e[2][1]
+        + z * e[0][2] + w * e[1][2] - 2.0 * x * e[2][2]);
+    let dy = 2.0 * (-2.0 * y * e[0][0] + x * e[1][0] + w * e[2][0] + x * e[0][1] + z * e[2][1]
+        - w * e[0][2] + z * e[1][2] - 2.0 * y * e[2][2]);
+    let dz = 2.0 * (-2.0 * z * e[0][0] - w * e[1][0] + x * e[2][0] + w * e[0][1]
+        - 2.0 * z * e[1][1] + y * e[2][1] + x * e[0][2] + y * e[1][2]);
+    let gn = vec4<f32>(dw, dx, dy, dz);
+    let d_q = (gn - unit * dot(gn, unit)) / norm;
+    d_rotation[4u * i] = d_q.x;
+    d_rotation[4u * i + 1u] = d_q.y;
+    d_rotation[4u * i + 2u] = d_q.z;
+    d_rotation[4u * i + 3u] = d_q.w;
+}
