@@ -1001,7 +1001,7 @@ impl<'d> Trainer<'d> {
         let frame = self.data.images[chosen[0]].frame;
         let background = self.config.background.draw(&mut self.rng);
         self.adam_step += 1;
-        let c = &self.config;
+        let c = self.config.clone();
         let densify_now = c.densify
             && iteration > u64::from(c.densify_from)
             && iteration <= u64::from(c.densify_until)

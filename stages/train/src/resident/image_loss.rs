@@ -601,6 +601,13 @@ impl ImageLoss {
         Ok(())
     }
 
+    /// The device log record (layout in the type's documentation): its first words are
+    /// the current iteration's `l1, mask_mse, dssim, lpips, psnr, total`, complete after
+    /// [`ImageLoss::finish_iteration`] (the step copies them into its log ring).
+    pub fn log_buffer(&self) -> &GpuBuffer {
+        &self.log
+    }
+
     /// Closes the iteration in the log (its values become `last` and join the mean).
     pub fn finish_iteration(&self, encoder: &mut wgpu::CommandEncoder) {
         self.context.dispatch(

@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use seqavatar_avatar::model::gpu::{GpuNetworks, NonRigidDeviceInputs};
-use seqavatar_avatar::model::{NetworkGroup, Networks};
+use seqavatar_avatar::model::{HEAD_WIDTH, NetworkGroup, Networks};
 use seqavatar_avatar::resident::motion::{MotionSetup, ResidentMotion};
 use seqavatar_avatar::resident::pose::ResidentPose;
 use seqavatar_avatar::resident::skinning::{
@@ -41,7 +41,8 @@ use super::log::{LOG_FIELDS, LogField, LogRing};
 use super::state::{GaussianRates, OptimiserStep, ResidentGaussians};
 use crate::config::TrainConfig;
 use crate::data::TrainingData;
-use crate::densify::GaussianState;
+use crate::densify::{GaussianState, names};
+use crate::gaussians::SH;
 use crate::losses::{AiapWeights, ImageLossWeights};
 use crate::trainer::{Divergence, pad_rect};
 
@@ -356,17 +357,28 @@ impl ResidentStep {
         if let Some(networks) = self.networks.as_mut() {
             networks.record_zero_grad(&mut encoder);
         }
+        let joints = data.rig.joint_count();
         let refinements = match (has_refiner, self.networks.as_mut()) {
-            (true, Some(networks)) => Some(
-                networks
-                    .record_pose_refiner_forward(&mut encoder, &self.local_pose.buffer)?,
-            ),
+            (true, Some(networks)) => Some(device_view(
+                networks.record_pose_refiner_forward(&mut encoder, &self.local_pose.buffer)?,
+                9 * (joints - 1),
+            )),
             _ => None,
         };
-        self.pose.forward(&mut encoder, plan.frame, refinements)?;
+        self.pose
+            .forward(&mut encoder, plan.frame, refinements.as_ref())?;
 
         // Motion inputs and the non-rigid network.
-        let columns = self.gaussians.columns_view()?;
+        let column = |name: &str| -> anyhow::Result<&GpuBuffer> {
+            Ok(&self.gaussians.column(name)?.values)
+        };
+        let columns = GaussianColumns {
+            xyz: column(names::POSITION)?,
+            log_scale: column(names::LOG_SCALE)?,
+            rotation: column(names::ROTATION)?,
+            opacity_logit: column(names::OPACITY_LOGIT)?,
+            sh: column(SH)?,
+        };
         let heads = if has_non_rigid {
             self.motion.record_skeleton_window(&mut encoder)?;
             self.motion.record_canonical_knn(&mut encoder, columns.xyz)?;
@@ -374,7 +386,7 @@ impl ResidentStep {
             let velocity: Vec<&wgpu::Buffer> =
                 self.motion.velocity.iter().map(|b| &b.buffer).collect();
             let networks = self.networks.as_mut().expect("has a non-rigid network");
-            Some(networks.record_non_rigid_forward(
+            Some(device_view(networks.record_non_rigid_forward(
                 &mut encoder,
                 n,
                 &NonRigidDeviceInputs {
@@ -386,26 +398,28 @@ impl ResidentStep {
                     xyz: &columns.xyz.buffer,
                     knn_velocity: &velocity,
                 },
-            )?)
+            )?, HEAD_WIDTH * n))
         } else {
             None
         };
-        self.skinning.record_deform(&mut encoder, columns.xyz, heads)?;
+        self.skinning
+            .record_deform(&mut encoder, columns.xyz, heads.as_ref())?;
         let weight_offsets = match self.networks.as_mut() {
-            Some(networks) if has_lbs => Some(
+            Some(networks) if has_lbs => Some(device_view(
                 networks.record_lbs_offsets_forward(
                     &mut encoder,
                     n,
                     &self.skinning.positions.buffer,
                 )?,
-            ),
+                joints * n,
+            )),
             _ => None,
         };
         self.motion
             .record_nearest(&mut encoder, &self.skinning.positions)?;
         let inputs = SkinInputs {
             nearest: &self.motion.nearest,
-            weight_offsets,
+            weight_offsets: weight_offsets.as_ref(),
             target_joints: self.pose.target_joints(),
             vertex_offsets: self.pose.vertex_offsets(),
         };
@@ -648,7 +662,12 @@ impl ResidentStep {
         self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
         self.unread = 0;
         let logged: Vec<LoggedIteration> = slots.iter().map(logged_from).collect();
-        if let Some(found) = self.gaussians.download_non_finite()? {
+        let status = self.context.download::<u32>(
+            self.context.encoder(),
+            &self.gaussians.status().buffer,
+            self.gaussians.status().len,
+        )?;
+        if let Some(found) = ResidentGaussians::decode_status(&status) {
             return Err(Divergence {
                 iteration: found.iteration,
                 what: found.what,
@@ -723,6 +742,15 @@ impl ResidentStep {
             adam.extend(gpu.download_adam()?);
         }
         Ok(())
+    }
+}
+
+/// A `GpuBuffer` handle of the first `len` values of a network's device buffer (the same
+/// buffer: wgpu buffers are shared handles).
+fn device_view(buffer: &wgpu::Buffer, len: usize) -> GpuBuffer {
+    GpuBuffer {
+        buffer: buffer.clone(),
+        len,
     }
 }
 
