@@ -1,9 +1,14 @@
 // Tile binning for Gaussian splatting (SPLATTING.md, "Binning"). The host first sorts the
 // Gaussians by depth (stable, so ties keep index order), then:
 // `count_tiles` counts each depth-sorted Gaussian's tiles within the band of tile rows,
-// the host scans the counts into offsets, `emit_pairs` writes one (tile, Gaussian) pair per
-// touched tile in depth order, the host sorts the pairs stably by tile (so each tile's list
-// stays in depth order), and `tile_ranges` finds each tile's [start, end) in the sorted pairs.
+// the host scans the counts into offsets (the total stays on the device), `emit_pairs` writes
+// one (tile, Gaussian) pair per touched tile in depth order, at most the band's pair capacity
+// `pairs`, `finish_pairs` fills the slots past the total with the sentinel tile `tiles` (so
+// they sort last), records the band's total and flags an overflow in the status buffer, the
+// host sorts all `pairs` slots stably by tile (so each tile's list stays in depth order), and
+// `tile_ranges` finds each tile's [start, end) in the sorted pairs, skipping the sentinels.
+// Nothing is read back: an overflowed band renders without its last pairs until the host,
+// reading the status with its logs, grows the capacity.
 
 struct BinParams {
     gaussians: u32,
@@ -11,9 +16,11 @@ struct BinParams {
     tiles_x: u32,
     row_begin: u32,
     row_end: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // Where `finish_pairs` records the band's pair total in `band_pairs`.
+    slot: u32,
+    // tiles_x * tiles_y: the sentinel tile of unused pair slots.
+    tiles: u32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: BinParams;
@@ -23,6 +30,12 @@ struct BinParams {
 @group(0) @binding(4) var<storage, read_write> tile_keys: array<u32>;
 @group(0) @binding(5) var<storage, read_write> pair_gaussians: array<u32>;
 @group(0) @binding(6) var<storage, read_write> ranges: array<vec2<u32>>;
+// Element 0: the band's pair total (the scan's total of `counts`).
+@group(0) @binding(7) var<storage, read> pair_total: array<u32>;
+// [0] bands that overflowed their capacity, [1] the largest band total seen (SplatStatus).
+@group(0) @binding(8) var<storage, read_write> status: array<atomic<u32>>;
+// One pair total per (camera, band) slot.
+@group(0) @binding(9) var<storage, read_write> band_pairs: array<u32>;
 
 fn thread_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
     return (group.x + group.y * groups.x) * 256u + local;
@@ -78,6 +91,27 @@ fn emit_pairs(
 }
 
 @compute @workgroup_size(256)
+fn finish_pairs(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let i = thread_index(group, groups, local);
+    let total = pair_total[0];
+    if i == 0u {
+        band_pairs[params.slot] = total;
+        atomicMax(&status[1], total);
+        if total > params.pairs {
+            atomicAdd(&status[0], 1u);
+        }
+    }
+    if i < params.pairs && i >= total {
+        tile_keys[i] = params.tiles;
+        pair_gaussians[i] = 0u;
+    }
+}
+
+@compute @workgroup_size(256)
 fn tile_ranges(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -88,6 +122,9 @@ fn tile_ranges(
         return;
     }
     let tile = tile_keys[i];
+    if tile >= params.tiles {
+        return;
+    }
     if i == 0u || tile_keys[i - 1u] != tile {
         ranges[tile].x = i;
     }

@@ -58,6 +58,278 @@ pub(crate) fn wgsl_twins() -> Vec<super::shaders::WgslTwin> {
     ]
 }
 
+/// An exclusive prefix sum recorded from buffers allocated once for up to `capacity` values:
+/// the per-level block sums and their parameter uniforms. Recording a count other than the
+/// last one rewrites the parameters of the levels it uses (a few bytes, only on a change), so
+/// a steady-state caller uploads nothing.
+pub struct ScanWorkspace {
+    capacity: u32,
+    /// Per level: its parameter uniform and the block sums it writes.
+    levels: Vec<(wgpu::Buffer, GpuBuffer)>,
+    /// The count each level's uniform holds now.
+    written: Vec<u32>,
+    /// The level whose block sums hold the total of the last recorded scan.
+    total_level: usize,
+}
+
+impl ScanWorkspace {
+    /// Allocates the levels for scans of up to `capacity` values.
+    pub fn new(context: &GpuContext, capacity: u32) -> Result<Self, BackendError> {
+        let mut levels = Vec::new();
+        let mut written = Vec::new();
+        let mut count = capacity;
+        loop {
+            let blocks = count.div_ceil(BLOCK).max(1);
+            let params = context.uniform("scan params", &ScanParams { count, pad: [0; 3] });
+            levels.push((params, context.zeros("scan block sums", blocks as usize, 4)?));
+            written.push(count);
+            if blocks == 1 {
+                break;
+            }
+            count = blocks;
+        }
+        Ok(Self {
+            capacity,
+            levels,
+            written,
+            total_level: 0,
+        })
+    }
+
+    /// The most values one scan may hold.
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
+    /// Records an in-place exclusive prefix sum of the first `count` u32 of `data`;
+    /// afterwards [`ScanWorkspace::total`] holds their total at element 0.
+    pub fn record(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        count: u32,
+    ) -> Result<(), BackendError> {
+        if count > self.capacity {
+            return Err(BackendError::Gpu {
+                message: format!(
+                    "scan of {count} values in a workspace for {}",
+                    self.capacity
+                ),
+            });
+        }
+        if count == 0 {
+            encoder.clear_buffer(&self.levels[0].1.buffer, 0, None);
+            self.total_level = 0;
+            return Ok(());
+        }
+        let scan = context.kernel(&source("scan_blocks", SCAN_WGSL, "scan_blocks"))?;
+        let add = context.kernel(&source("scan_add", SCAN_WGSL, "scan_add"))?;
+        // Down: scan each level's blocks, whose totals the next level scans.
+        let mut level = 0;
+        let mut level_count = count;
+        loop {
+            if self.written[level] != level_count {
+                context.write(
+                    &self.levels[level].0,
+                    0,
+                    &[ScanParams {
+                        count: level_count,
+                        pad: [0; 3],
+                    }],
+                )?;
+                self.written[level] = level_count;
+            }
+            let input = if level == 0 {
+                data
+            } else {
+                &self.levels[level - 1].1.buffer
+            };
+            let blocks = level_count.div_ceil(BLOCK);
+            context.dispatch(
+                encoder,
+                &scan,
+                &[
+                    (0, &self.levels[level].0),
+                    (1, input),
+                    (2, &self.levels[level].1.buffer),
+                ],
+                blocks,
+            );
+            if blocks == 1 {
+                break;
+            }
+            level += 1;
+            level_count = blocks;
+        }
+        self.total_level = level;
+        // Up: add each level's scanned block totals back to the level below.
+        for below in (0..level).rev() {
+            let input = if below == 0 {
+                data
+            } else {
+                &self.levels[below - 1].1.buffer
+            };
+            context.dispatch(
+                encoder,
+                &add,
+                &[
+                    (0, &self.levels[below].0),
+                    (1, input),
+                    (2, &self.levels[below].1.buffer),
+                ],
+                self.written[below].div_ceil(BLOCK),
+            );
+        }
+        Ok(())
+    }
+
+    /// The buffer whose first element is the total of the last recorded scan.
+    pub fn total(&self) -> &GpuBuffer {
+        &self.levels[self.total_level].1
+    }
+
+    fn into_total(mut self) -> GpuBuffer {
+        self.levels.swap_remove(self.total_level).1
+    }
+}
+
+/// A stable key-value radix sort recorded from buffers allocated once for up to `capacity`
+/// pairs: the digit histograms, their scan, the ping-pong scratch and one parameter uniform
+/// per pass. The caller's `keys` and `values` and the scratch alternate as pass inputs, so the
+/// sorted pairs end in the caller's buffers after an even number of passes and in the scratch
+/// ([`SortWorkspace::scratch_keys`], [`SortWorkspace::scratch_values`]) after an odd one.
+pub struct SortWorkspace {
+    capacity: u32,
+    counts: GpuBuffer,
+    keys: GpuBuffer,
+    values: GpuBuffer,
+    params: Vec<wgpu::Buffer>,
+    written_count: u32,
+    scan: ScanWorkspace,
+}
+
+/// Passes of 4 bits that cover 32-bit keys.
+const MAX_PASSES: u32 = 32 / DIGIT_BITS;
+
+impl SortWorkspace {
+    /// Allocates a sort of up to `capacity` pairs.
+    pub fn new(context: &GpuContext, capacity: u32) -> Result<Self, BackendError> {
+        let blocks = capacity.div_ceil(BLOCK).max(1);
+        let params = (0..MAX_PASSES)
+            .map(|pass| {
+                context.uniform(
+                    "sort params",
+                    &SortParams {
+                        count: capacity,
+                        shift: pass * DIGIT_BITS,
+                        blocks,
+                        pad: 0,
+                    },
+                )
+            })
+            .collect();
+        Ok(Self {
+            capacity,
+            counts: context.zeros("sort counts", (blocks * DIGITS) as usize, 4)?,
+            keys: context.zeros("sort keys", capacity as usize, 4)?,
+            values: context.zeros("sort values", capacity as usize, 4)?,
+            params,
+            written_count: capacity,
+            scan: ScanWorkspace::new(context, blocks * DIGITS)?,
+        })
+    }
+
+    /// The most pairs one sort may hold.
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
+    /// The keys after a sort that returned `true`.
+    pub fn scratch_keys(&self) -> &GpuBuffer {
+        &self.keys
+    }
+
+    /// The values after a sort that returned `true`.
+    pub fn scratch_values(&self) -> &GpuBuffer {
+        &self.values
+    }
+
+    /// Records a stable sort of the first `count` pairs of `keys`/`values` by the low
+    /// `key_bits` bits of the keys. Returns whether the sorted pairs are in the scratch
+    /// buffers (`true`) or back in `keys`/`values` (`false`).
+    pub fn record(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: &wgpu::Buffer,
+        values: &wgpu::Buffer,
+        count: u32,
+        key_bits: u32,
+    ) -> Result<bool, BackendError> {
+        if count > self.capacity {
+            return Err(BackendError::Gpu {
+                message: format!(
+                    "sort of {count} pairs in a workspace for {}",
+                    self.capacity
+                ),
+            });
+        }
+        let passes = key_bits.min(32).div_ceil(DIGIT_BITS);
+        if count <= 1 || passes == 0 {
+            return Ok(false);
+        }
+        let blocks = count.div_ceil(BLOCK);
+        if self.written_count != count {
+            for (pass, params) in (0..).zip(&self.params) {
+                context.write(
+                    params,
+                    0,
+                    &[SortParams {
+                        count,
+                        shift: pass * DIGIT_BITS,
+                        blocks,
+                        pad: 0,
+                    }],
+                )?;
+            }
+            self.written_count = count;
+        }
+        let count_kernel = context.kernel(&source("sort_count", SORT_WGSL, "sort_count"))?;
+        let scatter_kernel = context.kernel(&source("sort_scatter", SORT_WGSL, "sort_scatter"))?;
+        for pass in 0..passes {
+            let (keys_in, values_in, keys_out, values_out) = if pass % 2 == 0 {
+                (keys, values, &self.keys.buffer, &self.values.buffer)
+            } else {
+                (&self.keys.buffer, &self.values.buffer, keys, values)
+            };
+            let params = &self.params[pass as usize];
+            context.dispatch(
+                encoder,
+                &count_kernel,
+                &[(0, params), (1, keys_in), (3, &self.counts.buffer)],
+                blocks,
+            );
+            self.scan
+                .record(context, encoder, &self.counts.buffer, blocks * DIGITS)?;
+            context.dispatch(
+                encoder,
+                &scatter_kernel,
+                &[
+                    (0, params),
+                    (1, keys_in),
+                    (2, values_in),
+                    (3, &self.counts.buffer),
+                    (4, keys_out),
+                    (5, values_out),
+                ],
+                blocks,
+            );
+        }
+        Ok(passes % 2 == 1)
+    }
+}
+
 /// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a
 /// buffer whose first element is the total of all `count` values.
 pub fn exclusive_scan(
@@ -66,22 +338,9 @@ pub fn exclusive_scan(
     data: &wgpu::Buffer,
     count: u32,
 ) -> Result<GpuBuffer, BackendError> {
-    let blocks = count.div_ceil(BLOCK).max(1);
-    let block_sums = context.zeros("scan block sums", blocks as usize, 4)?;
-    let params = context.uniform("scan params", &ScanParams { count, pad: [0; 3] });
-    let scan = context.kernel(&source("scan_blocks", SCAN_WGSL, "scan_blocks"))?;
-    let add = context.kernel(&source("scan_add", SCAN_WGSL, "scan_add"))?;
-    let bindings = [(0, &params), (1, data), (2, &block_sums.buffer)];
-    if count == 0 {
-        return Ok(block_sums);
-    }
-    context.dispatch(encoder, &scan, &bindings, blocks);
-    if blocks == 1 {
-        return Ok(block_sums);
-    }
-    let total = exclusive_scan(context, encoder, &block_sums.buffer, blocks)?;
-    context.dispatch(encoder, &add, &bindings, blocks);
-    Ok(total)
+    let mut workspace = ScanWorkspace::new(context, count)?;
+    workspace.record(context, encoder, data, count)?;
+    Ok(workspace.into_total())
 }
 
 /// Records a stable sort of `count` pairs by the low `key_bits` bits of their keys.
@@ -98,42 +357,20 @@ pub fn radix_sort(
     if count <= 1 || passes == 0 {
         return Ok((keys, values));
     }
-    let blocks = count.div_ceil(BLOCK);
-    let counts = context.zeros("sort counts", (blocks * DIGITS) as usize, 4)?;
-    let mut keys_other = context.zeros("sort keys", count as usize, 4)?;
-    let mut values_other = context.zeros("sort values", count as usize, 4)?;
-    let count_kernel = context.kernel(&source("sort_count", SORT_WGSL, "sort_count"))?;
-    let scatter_kernel = context.kernel(&source("sort_scatter", SORT_WGSL, "sort_scatter"))?;
-    let (mut keys, mut values) = (keys, values);
-    for pass in 0..passes {
-        let params = context.uniform(
-            "sort params",
-            &SortParams {
-                count,
-                shift: pass * DIGIT_BITS,
-                blocks,
-                pad: 0,
-            },
-        );
-        let bindings = [
-            (0, &params),
-            (1, &keys.buffer),
-            (2, &values.buffer),
-            (3, &counts.buffer),
-            (4, &keys_other.buffer),
-            (5, &values_other.buffer),
-        ];
-        context.dispatch(
-            encoder,
-            &count_kernel,
-            &[bindings[0], bindings[1], bindings[3]],
-            blocks,
-        );
-        exclusive_scan(context, encoder, &counts.buffer, blocks * DIGITS)?;
-        context.dispatch(encoder, &scatter_kernel, &bindings, blocks);
-        std::mem::swap(&mut keys, &mut keys_other);
-        std::mem::swap(&mut values, &mut values_other);
-    }
+    let mut workspace = SortWorkspace::new(context, count)?;
+    let in_scratch = workspace.record(
+        context,
+        encoder,
+        &keys.buffer,
+        &values.buffer,
+        count,
+        key_bits,
+    )?;
+    let (mut keys, mut values) = if in_scratch {
+        (workspace.keys, workspace.values)
+    } else {
+        (keys, values)
+    };
     keys.len = count as usize;
     values.len = count as usize;
     Ok((keys, values))
@@ -281,5 +518,96 @@ mod tests {
         let values: Vec<u32> = pseudo_random(4, 3_000).iter().map(|x| x % 50).collect();
         check_scan_on(&context, &values);
         check_sort_on(&context, &pseudo_random(6, 2_000), 32);
+    }
+
+    #[test]
+    fn reused_workspaces_match_the_cpu_as_counts_change_and_upload_nothing_when_steady() {
+        let Some(context) = gpu_test_context() else {
+            return;
+        };
+        let mut scan = ScanWorkspace::new(&context, 70_000).unwrap();
+        let mut sort = SortWorkspace::new(&context, 5_000).unwrap();
+        // Up, down, one, none, and the same count twice (the steady state).
+        for (round, count) in [(0, 70_000_usize), (1, 300), (2, 1), (3, 0), (4, 4_000), (5, 4_000)] {
+            let values: Vec<u32> = pseudo_random(30 + round, count)
+                .iter()
+                .map(|x| x % 100)
+                .collect();
+            let data = context
+                .upload("scan input", &[values.as_slice(), &[7; 5]].concat())
+                .unwrap();
+            let before = context.transfers();
+            let mut encoder = context.encoder();
+            scan.record(&context, &mut encoder, &data.buffer, count as u32)
+                .unwrap();
+            let traffic = context.transfers().since(&before);
+            if round == 5 {
+                assert_eq!(traffic.bytes_up, 0, "steady scan uploads");
+            }
+            let mut pending = context
+                .download_many::<u32>(
+                    &mut encoder,
+                    &[(&data.buffer, count + 5), (&scan.total().buffer, 1)],
+                )
+                .unwrap();
+            context.finish_downloads(encoder, &mut pending).unwrap();
+            let mut running = 0;
+            let expected: Vec<u32> = values
+                .iter()
+                .map(|v| {
+                    running += v;
+                    running - v
+                })
+                .chain([7; 5])
+                .collect();
+            assert_eq!(pending[0].values, expected, "scan of {count}");
+            assert_eq!(pending[1].values[0], running, "total of {count}");
+
+            let count = count.min(5_000);
+            let keys: Vec<u32> = pseudo_random(50 + round, count)
+                .iter()
+                .map(|x| x % 999)
+                .collect();
+            let indices: Vec<u32> = (0..count as u32).collect();
+            let keys_buffer = context.upload("keys", &keys).unwrap();
+            let values_buffer = context.upload("values", &indices).unwrap();
+            let before = context.transfers();
+            let mut encoder = context.encoder();
+            let in_scratch = sort
+                .record(
+                    &context,
+                    &mut encoder,
+                    &keys_buffer.buffer,
+                    &values_buffer.buffer,
+                    count as u32,
+                    10,
+                )
+                .unwrap();
+            let traffic = context.transfers().since(&before);
+            if round == 5 {
+                assert_eq!(traffic.bytes_up, 0, "steady sort uploads");
+            }
+            let (sorted_keys, sorted_values) = if in_scratch {
+                (&sort.scratch_keys().buffer, &sort.scratch_values().buffer)
+            } else {
+                (&keys_buffer.buffer, &values_buffer.buffer)
+            };
+            let mut pending = context
+                .download_many::<u32>(&mut encoder, &[(sorted_keys, count), (sorted_values, count)])
+                .unwrap();
+            context.finish_downloads(encoder, &mut pending).unwrap();
+            let mut expected: Vec<(u32, u32)> = keys.iter().copied().zip(indices).collect();
+            expected.sort_by_key(|pair| pair.0);
+            assert_eq!(
+                pending[0].values,
+                expected.iter().map(|p| p.0).collect::<Vec<_>>(),
+                "sorted keys of {count}"
+            );
+            assert_eq!(
+                pending[1].values,
+                expected.iter().map(|p| p.1).collect::<Vec<_>>(),
+                "sorted values of {count}"
+            );
+        }
     }
 }

@@ -1,26 +1,34 @@
 //! The `gpu` splatting backend: the contract of `src/compute/SPLATTING.md` as WGSL kernels
 //! (`shaders/splat_*.wgsl`) run through wgpu.
 //!
-//! Per call the Gaussians are uploaded once and stay resident for forward and backward. Per
-//! camera: `project_forward` (one thread per Gaussian), a GPU radix sort of the visible
-//! Gaussians by depth, per-Gaussian tile counts in depth order, a prefix scan, pair emission,
-//! a stable GPU radix sort of the pairs by tile (so each tile's list stays in depth order, ties
-//! by Gaussian index), tile ranges, then `rasterize_forward` (one 16x16 workgroup per tile).
-//! The only host round trip is the 4-byte pair count needed to size the pair buffers. When the
-//! pairs of a camera do not fit one storage binding, the image is split into bands of tile
-//! rows that are binned and composited one after another. Backward walks the same lists back
-//! to front and adds per-Gaussian screen-space gradients with f32 atomics (native, or a
-//! compare-exchange fallback), then `project_backward` chains them to the inputs.
+//! Everything lives in a [`SplatWorkspace`], allocated once and reused. Per camera:
+//! `project_forward` (one thread per Gaussian), a GPU radix sort of the Gaussians by depth,
+//! per-Gaussian tile counts in depth order, a prefix scan whose total stays on the device,
+//! pair emission up to the pair capacity (the slots past the total get a sentinel tile and an
+//! overflow is flagged in a device status buffer), a stable GPU radix sort of the capacity's
+//! pairs by tile (so each tile's list stays in depth order, ties by Gaussian index), tile
+//! ranges, then `rasterize_forward` (one 16x16 workgroup per tile). Nothing is read back:
+//! the host reads the status when it wants to ([`SplatWorkspace::check_status`]) and grows
+//! the capacity after an overflow; [`SplatWorkspace::forward_checked`] re-runs at once. The
+//! image's tile rows are split into bands, each with its own pairs, so that one band's pairs
+//! fit a storage binding. Backward walks the same lists back to front and adds per-Gaussian
+//! screen-space gradients with f32 atomics (native, or a compare-exchange fallback), then
+//! `project_backward` chains them to the inputs.
+//!
+//! The host-slice entry points ([`forward`], [`forward_with`], [`backward`]) upload, run
+//! the workspace checked and download.
 
 use std::borrow::Cow;
 
 use seqavatar_core::camera::Camera;
 
+use bytemuck::Zeroable;
+
 use super::{
-    GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatDiagnostics, SplatError,
-    SplatGradients, TILE_SIZE, validate_call,
+    GaussianSet, ImageGradient, MAX_SH_DEGREE, RasterOptions, RenderedImage, SplatDiagnostics,
+    SplatError, SplatGradients, TILE_SIZE, sh_coefficient_count, validate_call,
 };
-use crate::backend::primitives::{exclusive_scan, radix_sort};
+use crate::backend::primitives::{ScanWorkspace, SortWorkspace};
 use crate::backend::shaders::{AtomicAdd, with_atomic_add};
 use crate::backend::{BackendError, GpuBuffer, GpuContext, KernelSource};
 
@@ -80,7 +88,9 @@ pub(crate) struct BinParams {
     tiles_x: u32,
     row_begin: u32,
     row_end: u32,
-    pad: [u32; 3],
+    slot: u32,
+    tiles: u32,
+    pad: u32,
 }
 
 /// This module's uniform structs for the layout test in `backend::shaders`.
@@ -109,9 +119,9 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "tiles_x" => tiles_x,
             "row_begin" => row_begin,
             "row_end" => row_end,
-            "_pad0" => pad[0],
-            "_pad1" => pad[1],
-            "_pad2" => pad[2],
+            "slot" => slot,
+            "tiles" => tiles,
+            "_pad" => pad,
         }),
     ]
 }
@@ -184,7 +194,8 @@ fn kernel_source(
     }
 }
 
-/// The Gaussians of one call, resident on the GPU.
+/// The Gaussians of one call, uploaded and owned (the host path; a resident step passes its
+/// own buffers as [`DeviceGaussians`]).
 pub struct ResidentGaussians {
     means: GpuBuffer,
     covariances: GpuBuffer,
@@ -192,7 +203,6 @@ pub struct ResidentGaussians {
     sh: GpuBuffer,
     count: u32,
     sh_degree: u32,
-    sh_coefficients: u32,
 }
 
 impl ResidentGaussians {
@@ -212,8 +222,19 @@ impl ResidentGaussians {
             sh: context.upload("sh", gaussians.sh)?,
             count,
             sh_degree: gaussians.sh_degree,
-            sh_coefficients: gaussians.sh_coefficients() as u32,
         })
+    }
+
+    /// The uploaded buffers as a borrowed [`DeviceGaussians`].
+    pub fn view(&self) -> DeviceGaussians<'_> {
+        DeviceGaussians {
+            means: &self.means,
+            covariances: &self.covariances,
+            opacities: &self.opacities,
+            sh: &self.sh,
+            count: self.count,
+            sh_degree: self.sh_degree,
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -225,26 +246,956 @@ impl ResidentGaussians {
     }
 }
 
-/// The Gaussian-tile pairs of one band of tile rows, sorted by tile then depth.
-struct Band {
-    rows: (u32, u32),
-    pair_gaussians: GpuBuffer,
-    pairs: u32,
+/// Gaussians on the device, borrowed from whoever writes them (f32, the `cpu` layouts; each
+/// buffer may be longer than `count` needs, the excess is ignored):
+/// `means` `N x 3`, `covariances` `N x 6` (upper triangle `xx xy xz yy yz zz`), `opacities`
+/// `N` (activated, in (0, 1)), `sh` `N x k x 3` with `k = (sh_degree + 1)^2`.
+#[derive(Clone, Copy, Debug)]
+pub struct DeviceGaussians<'a> {
+    pub means: &'a GpuBuffer,
+    pub covariances: &'a GpuBuffer,
+    pub opacities: &'a GpuBuffer,
+    pub sh: &'a GpuBuffer,
+    /// `N`.
+    pub count: u32,
+    pub sh_degree: u32,
 }
 
-/// What one camera's forward pass keeps on the GPU for the image download and backward.
-struct CameraState {
-    camera: Camera,
+/// `Err(Length)` when `buffer` holds fewer than `needed` values.
+fn check_at_least(field: &'static str, buffer: &GpuBuffer, needed: usize) -> Result<(), SplatError> {
+    if buffer.len < needed {
+        return Err(SplatError::Length {
+            field,
+            expected: needed,
+            actual: buffer.len,
+        });
+    }
+    Ok(())
+}
+
+impl DeviceGaussians<'_> {
+    /// SH coefficients per colour channel.
+    pub fn sh_coefficients(&self) -> u32 {
+        sh_coefficient_count(self.sh_degree) as u32
+    }
+
+    fn validate(&self) -> Result<(), SplatError> {
+        if self.sh_degree > MAX_SH_DEGREE {
+            return Err(SplatError::ShDegree {
+                degree: self.sh_degree,
+            });
+        }
+        if self.count > u32::MAX / 2 {
+            return Err(SplatError::TooManyGaussians {
+                count: self.count as usize,
+            });
+        }
+        let n = self.count as usize;
+        check_at_least("means", self.means, n * 3)?;
+        check_at_least("covariances", self.covariances, n * 6)?;
+        check_at_least("opacities", self.opacities, n)?;
+        check_at_least("sh", self.sh, n * self.sh_coefficients() as usize * 3)
+    }
+}
+
+/// One camera's upstream image gradients on the device (f32, written by another piece):
+/// `colour` `H x W x 3` (row-major pixels, RGB), `alpha` and `depth` `H x W`; an absent alpha
+/// or depth gradient is zero. Buffers may be longer than the image; the excess is ignored.
+#[derive(Clone, Copy, Debug)]
+pub struct DeviceImageGradient<'a> {
+    pub colour: &'a GpuBuffer,
+    pub alpha: Option<&'a GpuBuffer>,
+    pub depth: Option<&'a GpuBuffer>,
+}
+
+/// What [`SplatWorkspace::check_status`] read from the device status buffer: the pair
+/// capacity overflows since the previous check, and what it did about them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SplatStatus {
+    /// Bands (over cameras and calls) whose Gaussian-tile pairs exceeded the capacity: those
+    /// bands rendered without their last pairs (in depth order).
+    pub overflowed_bands: u32,
+    /// The most pairs one band needed.
+    pub largest_band_pairs: u32,
+    /// Whether the capacity was grown (after an overflow) for the next call.
+    pub grown: bool,
+}
+
+/// Device status words (`status` in `splat_bin.wgsl`): overflowed bands, largest band total.
+const STATUS_WORDS: usize = 4;
+
+/// The buffers that depend on the Gaussian count.
+struct GaussianParts {
+    capacity: u32,
+    sh_coefficients: u32,
+    rects: GpuBuffer,
+    depth_keys: GpuBuffer,
+    depth_indices: GpuBuffer,
+    depth_sort: SortWorkspace,
+    tile_counts: GpuBuffer,
+    tile_scan: ScanWorkspace,
+    screen: GpuBuffer,
+    gradients: ResidentGradients,
+}
+
+impl GaussianParts {
+    fn new(context: &GpuContext, capacity: u32, sh_coefficients: u32) -> Result<Self, BackendError> {
+        let n = capacity as usize;
+        let k = sh_coefficients as usize;
+        Ok(Self {
+            capacity,
+            sh_coefficients,
+            rects: context.zeros("tile rects", n, 16)?,
+            depth_keys: context.zeros("depth keys", n, 4)?,
+            depth_indices: context.zeros("depth order", n, 4)?,
+            depth_sort: SortWorkspace::new(context, capacity)?,
+            tile_counts: context.zeros("tile counts", n, 4)?,
+            tile_scan: ScanWorkspace::new(context, capacity)?,
+            screen: context.zeros("screen gradients", n * SCREEN_GRADIENTS, 4)?,
+            gradients: ResidentGradients {
+                means: context.zeros("grad means", n * 3, 4)?,
+                covariances: context.zeros("grad covariances", n * 6, 4)?,
+                opacities: context.zeros("grad opacities", n, 4)?,
+                sh: context.zeros("grad sh", n * k * 3, 4)?,
+                mean_2d_norm: context.zeros("grad mean 2d norm", n, 4)?,
+                diagnostics: context.zeros("backward diagnostics", DIAGNOSTICS, 4)?,
+                count: 0,
+                sh_coefficients: 0,
+            },
+        })
+    }
+}
+
+/// One band of tile rows of one camera: its uniforms and its sorted pairs.
+struct BandSlot {
+    /// The camera uniform with this band's rows (band 0's also serves the projection).
+    camera: wgpu::Buffer,
+    bin_params: wgpu::Buffer,
+    /// What `bin_params` holds now (rewritten only on a change).
+    written: BinParams,
+    /// The band's Gaussian per pair, sorted by tile then depth (pair capacity long).
+    pair_gaussians: GpuBuffer,
+}
+
+/// The per-camera buffers, sized for a pixel and tile count and the pair capacity.
+struct CameraSlot {
+    pixels: usize,
+    tiles: usize,
     projected: GpuBuffer,
     ranges: GpuBuffer,
-    bands: Vec<Band>,
     colour: GpuBuffer,
     alpha: GpuBuffer,
     depth: GpuBuffer,
     transmittance: GpuBuffer,
     contributors: GpuBuffer,
     diagnostics: GpuBuffer,
-    intersections: u64,
+    bands: Vec<BandSlot>,
+}
+
+impl CameraSlot {
+    fn new(
+        context: &GpuContext,
+        gaussians: u32,
+        pixels: usize,
+        tiles: usize,
+        bands: u32,
+        pairs_per_band: u32,
+    ) -> Result<Self, BackendError> {
+        let zero_camera = CameraUniform::zeroed();
+        let bands = (0..bands)
+            .map(|_| {
+                Ok(BandSlot {
+                    camera: context.uniform("splat camera band", &zero_camera),
+                    bin_params: context.uniform("bin params", &BinParams::zeroed()),
+                    written: BinParams::zeroed(),
+                    pair_gaussians: context.zeros("pair gaussians", pairs_per_band as usize, 4)?,
+                })
+            })
+            .collect::<Result<Vec<_>, BackendError>>()?;
+        Ok(Self {
+            pixels,
+            tiles,
+            projected: context.zeros("projected", gaussians as usize * 3, 16)?,
+            ranges: context.zeros("tile ranges", tiles, 8)?,
+            colour: context.zeros("colour", pixels * 3, 4)?,
+            alpha: context.zeros("alpha", pixels, 4)?,
+            depth: context.zeros("depth", pixels, 4)?,
+            transmittance: context.zeros("final transmittance", pixels, 4)?,
+            contributors: context.zeros("contributors", pixels, 4)?,
+            diagnostics: context.zeros("diagnostics", DIAGNOSTICS, 4)?,
+            bands,
+        })
+    }
+}
+
+/// What the last forward rendered (the backward and the downloads use it).
+struct Call {
+    cameras: Vec<Camera>,
+    options: RasterOptions,
+    gaussians: u32,
+    sh_degree: u32,
+    /// Per camera, the tile rows of each of its bands.
+    bands: Vec<Vec<(u32, u32)>>,
+}
+
+/// Everything a splatting forward and backward need on the device, allocated once and
+/// reused: per Gaussian (rects, depth keys and their sort, tile counts and their scan,
+/// screen-space and input gradients), per camera (projected Gaussians, tile ranges, images,
+/// final transmittance, contributor counts, diagnostics, camera uniforms) and per camera band
+/// (sorted pairs, `pairs_per_band` long), plus the pair keys and their sort and the status.
+///
+/// Sizes follow the calls: a call with more Gaussians, SH coefficients, cameras or pixels
+/// than allocated grows the workspace first (an allocation, as after densification); the pair
+/// capacity grows only in [`SplatWorkspace::check_status`] after an overflow was flagged.
+/// The pair count never leaves the device: each band's pairs are emitted up to the capacity,
+/// the slots past the device total carry a sentinel tile that sorts last, and the pair sort
+/// and range kernels run over the whole capacity.
+///
+/// Bands: the image's tile rows are split into `bands` equal bands (fewer when the image has
+/// fewer tile rows), each with its own pairs, so that one band's pairs fit a storage binding
+/// (`max_binding_bytes`, or [`GpuOptions::max_pairs_per_band`]); the count doubles when one
+/// band needs more pairs than that.
+///
+/// One forward (then at most one backward) per submission: the camera uniforms are written
+/// with [`GpuContext::write`], which lands before the next submission.
+pub struct SplatWorkspace {
+    gpu_options: GpuOptions,
+    pairs_per_band: u32,
+    bands: u32,
+    gaussians: Option<GaussianParts>,
+    pair_keys: GpuBuffer,
+    pair_sort: SortWorkspace,
+    cameras: Vec<CameraSlot>,
+    /// `STATUS_WORDS` u32: see `status` in `splat_bin.wgsl`.
+    status: GpuBuffer,
+    /// Per (camera, band) slot, the pair total of the last forward.
+    band_pairs: GpuBuffer,
+    placeholder: GpuBuffer,
+    call: Option<Call>,
+}
+
+/// Pair capacity of the first call when the caller gives none: at most every tile of every
+/// Gaussian, else sixteen tiles per Gaussian (at least a few thousand).
+fn estimate_pairs(gaussians: u32, tiles: u32) -> u64 {
+    let n = u64::from(gaussians);
+    (n * u64::from(tiles))
+        .min((16 * n).max(4096))
+        .max(1)
+}
+
+impl SplatWorkspace {
+    /// An empty workspace; the first forward sizes it. `pairs_per_band` seeds the pair
+    /// capacity (else it is estimated from the first call).
+    pub fn new(
+        context: &GpuContext,
+        gpu_options: GpuOptions,
+        pairs_per_band: Option<u32>,
+    ) -> Result<Self, GpuSplatError> {
+        let mut workspace = Self {
+            gpu_options,
+            pairs_per_band: 0,
+            bands: 1,
+            gaussians: None,
+            pair_keys: context.zeros("pair tiles", 1, 4)?,
+            pair_sort: SortWorkspace::new(context, 1)?,
+            cameras: Vec::new(),
+            status: context.zeros("splat status", STATUS_WORDS, 4)?,
+            band_pairs: context.zeros("band pairs", 1, 4)?,
+            placeholder: context.zeros("absent gradient", 1, 4)?,
+            call: None,
+        };
+        if let Some(pairs) = pairs_per_band {
+            workspace.set_pair_capacity(context, u64::from(pairs))?;
+        }
+        Ok(workspace)
+    }
+
+    /// Gaussian-tile pairs each band can hold.
+    pub fn pairs_per_band(&self) -> u32 {
+        self.pairs_per_band
+    }
+
+    /// Bands of tile rows each camera's pairs are binned in (at most; fewer for an image with
+    /// fewer tile rows).
+    pub fn bands(&self) -> u32 {
+        self.bands
+    }
+
+    fn max_pairs_per_band(&self, context: &GpuContext) -> u64 {
+        self.gpu_options
+            .max_pairs_per_band
+            .map_or(u64::MAX, u64::from)
+            .min(context.max_binding_bytes() / 4)
+            .min(u64::from(u32::MAX))
+            .max(1)
+    }
+
+    /// Sets the total pair capacity per camera to `pairs`, split into as many bands as the
+    /// binding limit needs, and reallocates the pair buffers.
+    fn set_pair_capacity(&mut self, context: &GpuContext, pairs: u64) -> Result<(), GpuSplatError> {
+        let max = self.max_pairs_per_band(context);
+        let bands = pairs.div_ceil(max).max(u64::from(self.bands));
+        self.bands = u32::try_from(bands).unwrap_or(u32::MAX);
+        self.reallocate_pairs(context, pairs.div_ceil(bands).clamp(1, max) as u32)
+    }
+
+    fn reallocate_pairs(&mut self, context: &GpuContext, pairs: u32) -> Result<(), GpuSplatError> {
+        self.pairs_per_band = pairs;
+        self.pair_keys = context.zeros("pair tiles", pairs as usize, 4)?;
+        self.pair_sort = SortWorkspace::new(context, pairs)?;
+        // Camera slots hold per-band pair buffers: rebuilt at the next forward.
+        self.cameras.clear();
+        Ok(())
+    }
+
+    /// Grows whatever the call needs beyond the current sizes.
+    fn reserve(
+        &mut self,
+        context: &GpuContext,
+        gaussians: &DeviceGaussians<'_>,
+        cameras: &[Camera],
+    ) -> Result<(), GpuSplatError> {
+        let k = gaussians.sh_coefficients();
+        let grow_gaussians = self
+            .gaussians
+            .as_ref()
+            .is_none_or(|parts| parts.capacity < gaussians.count || parts.sh_coefficients < k);
+        if grow_gaussians {
+            // Headroom over the current capacity, so densification does not reallocate at
+            // every step.
+            let current = self.gaussians.as_ref().map_or(0, |parts| parts.capacity);
+            let capacity = if current == 0 {
+                gaussians.count
+            } else {
+                gaussians.count.max(current.saturating_add(current / 4))
+            };
+            let k = k.max(self.gaussians.as_ref().map_or(0, |p| p.sh_coefficients));
+            self.gaussians = Some(GaussianParts::new(context, capacity, k)?);
+            self.cameras.clear();
+        }
+        if self.pairs_per_band == 0 {
+            let most_tiles = cameras
+                .iter()
+                .map(|camera| {
+                    let (x, y) = tiles(camera);
+                    x * y
+                })
+                .max()
+                .unwrap_or(1);
+            self.set_pair_capacity(context, estimate_pairs(gaussians.count, most_tiles))?;
+        }
+        let capacity = self.gaussians.as_ref().map_or(0, |parts| parts.capacity);
+        for (index, camera) in cameras.iter().enumerate() {
+            let pixels = camera.width as usize * camera.height as usize;
+            let (tiles_x, tiles_y) = tiles(camera);
+            let tile_count = (tiles_x * tiles_y) as usize;
+            let fits = self
+                .cameras
+                .get(index)
+                .is_some_and(|slot| slot.pixels >= pixels && slot.tiles >= tile_count);
+            if !fits {
+                let (pixels, tile_count) = match self.cameras.get(index) {
+                    Some(slot) => (pixels.max(slot.pixels), tile_count.max(slot.tiles)),
+                    None => (pixels, tile_count),
+                };
+                let slot = CameraSlot::new(
+                    context,
+                    capacity,
+                    pixels,
+                    tile_count,
+                    self.bands,
+                    self.pairs_per_band,
+                )?;
+                if index < self.cameras.len() {
+                    self.cameras[index] = slot;
+                } else {
+                    self.cameras.push(slot);
+                }
+            }
+        }
+        let slots = self.cameras.len() * self.bands as usize;
+        if self.band_pairs.len < slots {
+            self.band_pairs = context.zeros("band pairs", slots, 4)?;
+        }
+        Ok(())
+    }
+
+    /// Records the forward pass of `gaussians` seen from every camera into `encoder`: per
+    /// camera the projection, the depth sort, the binning of each band with the pair count
+    /// kept on the device, the pair sort, the tile ranges and the compositing. Writes each
+    /// camera's uniforms (144 bytes per band); reads nothing back. When the call needs more
+    /// room than the workspace has (Gaussians, SH coefficients, cameras, pixels) it grows
+    /// first. Images stay in the workspace ([`SplatWorkspace::colour`] and friends).
+    pub fn forward(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        gaussians: DeviceGaussians<'_>,
+        cameras: &[Camera],
+        options: &RasterOptions,
+    ) -> Result<(), GpuSplatError> {
+        validate_call(cameras, options)?;
+        gaussians.validate()?;
+        let max_grid = context.max_workgroups_per_dimension();
+        for camera in cameras {
+            // Tile kernels run on a tiles_x by tiles_y grid of workgroups.
+            let (tiles_x, tiles_y) = tiles(camera);
+            if tiles_x > max_grid || tiles_y > max_grid {
+                return Err(BackendError::Gpu {
+                    message: format!(
+                        "image {}x{} has more than {max_grid} tiles along one side",
+                        camera.width, camera.height
+                    ),
+                }
+                .into());
+            }
+        }
+        self.reserve(context, &gaussians, cameras)?;
+        let n = gaussians.count;
+        let k = gaussians.sh_coefficients();
+        let project = context.kernel(&kernel_source(
+            "project_forward",
+            PROJECT_WGSL,
+            "project_forward",
+        ))?;
+        let count_kernel = context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
+        let emit_kernel = context.kernel(&kernel_source("emit_pairs", BIN_WGSL, "emit_pairs"))?;
+        let finish_kernel =
+            context.kernel(&kernel_source("finish_pairs", BIN_WGSL, "finish_pairs"))?;
+        let ranges_kernel = context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
+        let rasterize = context.kernel(&kernel_source(
+            "rasterize_forward",
+            RASTERIZE_WGSL,
+            "rasterize_forward",
+        ))?;
+        let pairs = self.pairs_per_band;
+        let Some(parts) = self.gaussians.as_mut() else {
+            unreachable!("reserve allocates the per-Gaussian buffers");
+        };
+        let mut call_bands = Vec::with_capacity(cameras.len());
+        for (index, camera) in cameras.iter().enumerate() {
+            let slot = &mut self.cameras[index];
+            let (tiles_x, tiles_y) = tiles(camera);
+            let tile_count = tiles_x * tiles_y;
+            let band_count = self.bands.min(tiles_y).max(1);
+            let rows: Vec<(u32, u32)> = (0..band_count)
+                .map(|band| {
+                    let row = |b: u32| (u64::from(b) * u64::from(tiles_y) / u64::from(band_count)) as u32;
+                    (row(band), row(band + 1))
+                })
+                .collect();
+            for (band, rows) in slot.bands.iter().zip(&rows) {
+                context.write(
+                    &band.camera,
+                    0,
+                    &[camera_uniform(camera, n, k, *rows, options, false, false)],
+                )?;
+            }
+            encoder.clear_buffer(&slot.diagnostics.buffer, 0, None);
+            encoder.clear_buffer(&slot.ranges.buffer, 0, None);
+            context.dispatch(
+                encoder,
+                &project,
+                &[
+                    (0, &slot.bands[0].camera),
+                    (1, &gaussians.means.buffer),
+                    (2, &gaussians.covariances.buffer),
+                    (3, &gaussians.opacities.buffer),
+                    (4, &gaussians.sh.buffer),
+                    (5, &slot.projected.buffer),
+                    (6, &parts.rects.buffer),
+                    (7, &parts.depth_keys.buffer),
+                    (8, &parts.depth_indices.buffer),
+                    (9, &slot.diagnostics.buffer),
+                ],
+                n.div_ceil(GROUP),
+            );
+            // Stable sort by depth: culled Gaussians carry the largest key and sort last; ties
+            // keep index order because the values start as 0..N.
+            let in_scratch = parts.depth_sort.record(
+                context,
+                encoder,
+                &parts.depth_keys.buffer,
+                &parts.depth_indices.buffer,
+                n,
+                32,
+            )?;
+            let sorted_indices = if in_scratch {
+                &parts.depth_sort.scratch_values().buffer
+            } else {
+                &parts.depth_indices.buffer
+            };
+            // The sentinel tile `tile_count` must fit the sorted bits.
+            let tile_bits = 32 - tile_count.leading_zeros();
+            for (band_index, (band, rows)) in slot.bands.iter_mut().zip(&rows).enumerate() {
+                let params = BinParams {
+                    gaussians: n,
+                    pairs,
+                    tiles_x,
+                    row_begin: rows.0,
+                    row_end: rows.1,
+                    slot: (index * self.bands as usize + band_index) as u32,
+                    tiles: tile_count,
+                    pad: 0,
+                };
+                if bytemuck::bytes_of(&params) != bytemuck::bytes_of(&band.written) {
+                    context.write(&band.bin_params, 0, &[params])?;
+                    band.written = params;
+                }
+                context.dispatch(
+                    encoder,
+                    &count_kernel,
+                    &[
+                        (0, &band.bin_params),
+                        (1, sorted_indices),
+                        (2, &parts.rects.buffer),
+                        (3, &parts.tile_counts.buffer),
+                    ],
+                    n.div_ceil(GROUP),
+                );
+                parts
+                    .tile_scan
+                    .record(context, encoder, &parts.tile_counts.buffer, n)?;
+                context.dispatch(
+                    encoder,
+                    &emit_kernel,
+                    &[
+                        (0, &band.bin_params),
+                        (1, sorted_indices),
+                        (2, &parts.rects.buffer),
+                        (3, &parts.tile_counts.buffer),
+                        (4, &self.pair_keys.buffer),
+                        (5, &band.pair_gaussians.buffer),
+                    ],
+                    n.div_ceil(GROUP),
+                );
+                context.dispatch(
+                    encoder,
+                    &finish_kernel,
+                    &[
+                        (0, &band.bin_params),
+                        (4, &self.pair_keys.buffer),
+                        (5, &band.pair_gaussians.buffer),
+                        (7, &parts.tile_scan.total().buffer),
+                        (8, &self.status.buffer),
+                        (9, &self.band_pairs.buffer),
+                    ],
+                    pairs.div_ceil(GROUP),
+                );
+                let in_scratch = self.pair_sort.record(
+                    context,
+                    encoder,
+                    &self.pair_keys.buffer,
+                    &band.pair_gaussians.buffer,
+                    pairs,
+                    tile_bits,
+                )?;
+                let sorted_keys = if in_scratch {
+                    encoder.copy_buffer_to_buffer(
+                        &self.pair_sort.scratch_values().buffer,
+                        0,
+                        &band.pair_gaussians.buffer,
+                        0,
+                        u64::from(pairs) * 4,
+                    );
+                    &self.pair_sort.scratch_keys().buffer
+                } else {
+                    &self.pair_keys.buffer
+                };
+                context.dispatch(
+                    encoder,
+                    &ranges_kernel,
+                    &[(0, &band.bin_params), (4, sorted_keys), (6, &slot.ranges.buffer)],
+                    pairs.div_ceil(GROUP),
+                );
+            }
+            for (band, rows) in slot.bands.iter().zip(&rows) {
+                context.dispatch_grid(
+                    encoder,
+                    &rasterize,
+                    &[
+                        (0, &band.camera),
+                        (1, &slot.ranges.buffer),
+                        (2, &band.pair_gaussians.buffer),
+                        (3, &slot.projected.buffer),
+                        (4, &slot.colour.buffer),
+                        (5, &slot.alpha.buffer),
+                        (6, &slot.depth.buffer),
+                        (7, &slot.transmittance.buffer),
+                        (8, &slot.contributors.buffer),
+                    ],
+                    tiles_x,
+                    rows.1 - rows.0,
+                );
+            }
+            call_bands.push(rows);
+        }
+        self.call = Some(Call {
+            cameras: cameras.to_vec(),
+            options: options.clone(),
+            gaussians: n,
+            sh_degree: gaussians.sh_degree,
+            bands: call_bands,
+        });
+        Ok(())
+    }
+
+    /// Reads the status buffer (one read-back: call it with the logs), resets it and, when a
+    /// band overflowed its pair capacity, grows the capacity for the next call: to the
+    /// largest band total plus a quarter, or, beyond the per-band limit, twice the bands.
+    /// Fails when one tile row alone needs more pairs than a binding holds.
+    pub fn check_status(&mut self, context: &GpuContext) -> Result<SplatStatus, GpuSplatError> {
+        let words: Vec<u32> =
+            context.download(context.encoder(), &self.status.buffer, STATUS_WORDS)?;
+        let mut encoder = context.encoder();
+        encoder.clear_buffer(&self.status.buffer, 0, None);
+        context.queue().submit([encoder.finish()]);
+        let mut status = SplatStatus {
+            overflowed_bands: words[0],
+            largest_band_pairs: words[1],
+            grown: false,
+        };
+        if status.overflowed_bands == 0 {
+            return Ok(status);
+        }
+        let largest = u64::from(status.largest_band_pairs);
+        let max = self.max_pairs_per_band(context);
+        if largest > max {
+            let most_rows = self.call.as_ref().map_or(1, |call| {
+                call.cameras
+                    .iter()
+                    .map(|camera| tiles(camera).1)
+                    .max()
+                    .unwrap_or(1)
+            });
+            if self.bands >= most_rows {
+                return Err(BackendError::BufferTooLarge {
+                    what: "Gaussian-tile pairs of one tile row".to_owned(),
+                    bytes: largest * 4,
+                    limit: max * 4,
+                }
+                .into());
+            }
+            self.bands = self.bands.saturating_mul(2).min(most_rows);
+            self.reallocate_pairs(context, max as u32)?;
+        } else {
+            let wanted = (largest + largest / 4 + 256).min(max) as u32;
+            self.reallocate_pairs(context, wanted.max(self.pairs_per_band))?;
+        }
+        status.grown = true;
+        Ok(status)
+    }
+
+    /// [`SplatWorkspace::forward`] submitted and checked: when a band overflowed, the
+    /// capacity grows and the forward runs again, until every band fits (an exact render for
+    /// evaluation and tests; one read-back per try).
+    pub fn forward_checked(
+        &mut self,
+        context: &GpuContext,
+        gaussians: DeviceGaussians<'_>,
+        cameras: &[Camera],
+        options: &RasterOptions,
+    ) -> Result<SplatStatus, GpuSplatError> {
+        // A status left from unchecked calls is not this call's.
+        let mut encoder = context.encoder();
+        encoder.clear_buffer(&self.status.buffer, 0, None);
+        loop {
+            self.forward(context, &mut encoder, gaussians, cameras, options)?;
+            context.submit_and_wait(encoder)?;
+            let status = self.check_status(context)?;
+            if !status.grown {
+                return Ok(status);
+            }
+            encoder = context.encoder();
+        }
+    }
+
+    /// Records the backward pass of the last forward into `encoder`: per camera and band the
+    /// compositing backward (screen-space gradients added with f32 atomics), then the
+    /// projection backward into the input gradients, summed over cameras. `gaussians` must be
+    /// the forward's (their buffers unchanged since). Clears the gradient buffers first;
+    /// writes 16 bytes per camera band (the gradient flags); reads nothing back. The
+    /// gradients stay in the workspace ([`SplatWorkspace::gradients`]).
+    pub fn backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        gaussians: DeviceGaussians<'_>,
+        upstream: &[DeviceImageGradient<'_>],
+    ) -> Result<(), GpuSplatError> {
+        let (Some(call), Some(parts)) = (self.call.as_ref(), self.gaussians.as_ref()) else {
+            return Err(BackendError::Gpu {
+                message: "splatting backward before any forward".to_owned(),
+            }
+            .into());
+        };
+        if gaussians.count != call.gaussians || gaussians.sh_degree != call.sh_degree {
+            return Err(SplatError::GaussiansChanged {
+                expected: call.gaussians as usize,
+                actual: gaussians.count as usize,
+            }
+            .into());
+        }
+        gaussians.validate()?;
+        if upstream.len() != call.cameras.len() {
+            return Err(SplatError::GradientCount {
+                expected: call.cameras.len(),
+                actual: upstream.len(),
+            }
+            .into());
+        }
+        for (gradient, camera) in upstream.iter().zip(&call.cameras) {
+            let pixels = camera.width as usize * camera.height as usize;
+            check_at_least("colour", gradient.colour, pixels * 3)?;
+            if let Some(alpha) = gradient.alpha {
+                check_at_least("alpha", alpha, pixels)?;
+            }
+            if let Some(depth) = gradient.depth {
+                check_at_least("depth", depth, pixels)?;
+            }
+        }
+        let rasterize = rasterize_backward_kernel(context, self.gpu_options)?;
+        let project = context.kernel(&kernel_source(
+            "project_backward",
+            PROJECT_WGSL,
+            "project_backward",
+        ))?;
+        let out = &parts.gradients;
+        for buffer in [
+            &out.means,
+            &out.covariances,
+            &out.opacities,
+            &out.sh,
+            &out.mean_2d_norm,
+            &out.diagnostics,
+        ] {
+            encoder.clear_buffer(&buffer.buffer, 0, None);
+        }
+        for ((slot, gradient), (camera, rows)) in self
+            .cameras
+            .iter()
+            .zip(upstream)
+            .zip(call.cameras.iter().zip(&call.bands))
+        {
+            let (tiles_x, _) = tiles(camera);
+            // An absent alpha or depth gradient binds a placeholder the kernel never reads.
+            let d_alpha = gradient.alpha.unwrap_or(&self.placeholder);
+            let d_depth = gradient.depth.unwrap_or(&self.placeholder);
+            let flags = [
+                u32::from(call.options.smooth_cutoff),
+                u32::from(gradient.alpha.is_some()),
+                u32::from(gradient.depth.is_some()),
+                0,
+            ];
+            encoder.clear_buffer(&parts.screen.buffer, 0, None);
+            for (band, rows) in slot.bands.iter().zip(rows) {
+                context.write(&band.camera, CAMERA_FLAGS_OFFSET, &[flags])?;
+                context.dispatch_grid(
+                    encoder,
+                    &rasterize,
+                    &[
+                        (0, &band.camera),
+                        (1, &slot.ranges.buffer),
+                        (2, &band.pair_gaussians.buffer),
+                        (3, &slot.projected.buffer),
+                        (4, &gradient.colour.buffer),
+                        (5, &d_alpha.buffer),
+                        (6, &d_depth.buffer),
+                        (7, &slot.transmittance.buffer),
+                        (8, &slot.contributors.buffer),
+                        (15, &parts.screen.buffer),
+                    ],
+                    tiles_x,
+                    rows.1 - rows.0,
+                );
+            }
+            context.dispatch(
+                encoder,
+                &project,
+                &[
+                    (0, &slot.bands[0].camera),
+                    (1, &gaussians.means.buffer),
+                    (2, &gaussians.covariances.buffer),
+                    (3, &gaussians.opacities.buffer),
+                    (4, &gaussians.sh.buffer),
+                    (9, &out.diagnostics.buffer),
+                    (10, &parts.screen.buffer),
+                    (11, &out.means.buffer),
+                    (12, &out.covariances.buffer),
+                    (13, &out.opacities.buffer),
+                    (14, &out.sh.buffer),
+                    (15, &out.mean_2d_norm.buffer),
+                ],
+                call.gaussians.div_ceil(GROUP),
+            );
+        }
+        Ok(())
+    }
+
+    fn call(&self) -> Result<&Call, GpuSplatError> {
+        self.call.as_ref().ok_or_else(|| {
+            BackendError::Gpu {
+                message: "splatting workspace read before any forward".to_owned(),
+            }
+            .into()
+        })
+    }
+
+    fn slot(&self, camera: usize) -> Result<&CameraSlot, GpuSplatError> {
+        let cameras = self.call()?.cameras.len();
+        self.cameras
+            .get(camera)
+            .filter(|_| camera < cameras)
+            .ok_or_else(|| {
+                BackendError::Gpu {
+                    message: format!("camera {camera} of a forward with {cameras} cameras"),
+                }
+                .into()
+            })
+    }
+
+    /// Camera `camera`'s rendered colour of the last forward: `H x W x 3` f32 (the buffer
+    /// may be longer; the excess is stale).
+    pub fn colour(&self, camera: usize) -> Result<&GpuBuffer, GpuSplatError> {
+        Ok(&self.slot(camera)?.colour)
+    }
+
+    /// Camera `camera`'s accumulated opacity of the last forward: `H x W` f32.
+    pub fn alpha(&self, camera: usize) -> Result<&GpuBuffer, GpuSplatError> {
+        Ok(&self.slot(camera)?.alpha)
+    }
+
+    /// Camera `camera`'s alpha-weighted depth of the last forward: `H x W` f32.
+    pub fn depth(&self, camera: usize) -> Result<&GpuBuffer, GpuSplatError> {
+        Ok(&self.slot(camera)?.depth)
+    }
+
+    /// The input gradients of the last backward (see [`ResidentGradients`] for layouts).
+    pub fn gradients(&self) -> Result<ResidentGradients, GpuSplatError> {
+        let call = self.call()?;
+        let Some(parts) = self.gaussians.as_ref() else {
+            unreachable!("a forward allocated the per-Gaussian buffers");
+        };
+        let g = &parts.gradients;
+        let n = call.gaussians as usize;
+        let k = sh_coefficient_count(call.sh_degree);
+        Ok(ResidentGradients {
+            means: share(&g.means, n * 3),
+            covariances: share(&g.covariances, n * 6),
+            opacities: share(&g.opacities, n),
+            sh: share(&g.sh, n * k * 3),
+            mean_2d_norm: share(&g.mean_2d_norm, n),
+            diagnostics: share(&g.diagnostics, DIAGNOSTICS),
+            count: call.gaussians,
+            sh_coefficients: k as u32,
+        })
+    }
+
+    /// Per camera, the bands of tile rows the last forward binned its pairs in.
+    pub fn band_counts(&self) -> Vec<usize> {
+        self.call
+            .as_ref()
+            .map(|call| call.bands.iter().map(Vec::len).collect())
+            .unwrap_or_default()
+    }
+
+    /// Copies every camera's images and diagnostics of the last forward to the host (one
+    /// read-back). `intersections` counts every pair the bands needed, also past an overflow.
+    pub fn download_images(
+        &self,
+        context: &GpuContext,
+    ) -> Result<(Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>), GpuSplatError> {
+        let call = self.call()?;
+        let mut sources: Vec<(&wgpu::Buffer, usize)> = Vec::new();
+        for (slot, camera) in self.cameras.iter().zip(&call.cameras) {
+            let pixels = camera.width as usize * camera.height as usize;
+            sources.extend([
+                (&slot.colour.buffer, pixels * 3),
+                (&slot.alpha.buffer, pixels),
+                (&slot.depth.buffer, pixels),
+                (&slot.diagnostics.buffer, DIAGNOSTICS),
+            ]);
+        }
+        let slots = call.cameras.len() * self.bands as usize;
+        sources.push((&self.band_pairs.buffer, slots));
+        let mut words = context.download_all::<u32>(context.encoder(), &sources)?;
+        let band_pairs = words.pop().unwrap_or_default();
+        let floats = |bits: Vec<u32>| bits.into_iter().map(f32::from_bits).collect::<Vec<_>>();
+        let mut words = words.into_iter();
+        let mut images = Vec::with_capacity(call.cameras.len());
+        let mut diagnostics = Vec::with_capacity(call.cameras.len());
+        for (index, (camera, rows)) in call.cameras.iter().zip(&call.bands).enumerate() {
+            let mut next = || words.next().unwrap_or_default();
+            let (colour, alpha, depth, c) = (next(), next(), next(), next());
+            images.push(RenderedImage {
+                width: camera.width,
+                height: camera.height,
+                colour: floats(colour),
+                alpha: floats(alpha),
+                depth: floats(depth),
+            });
+            let first = index * self.bands as usize;
+            let intersections: u64 = band_pairs[first..first + rows.len()]
+                .iter()
+                .map(|&pairs| u64::from(pairs))
+                .sum();
+            diagnostics.push(SplatDiagnostics {
+                gaussians: call.gaussians as usize,
+                non_finite_inputs: c[0] as usize,
+                non_finite_projections: c[1] as usize,
+                culled_depth: c[2] as usize,
+                culled_covariance: c[3] as usize,
+                culled_opacity: c[4] as usize,
+                culled_offscreen: c[5] as usize,
+                visible: c[6] as usize,
+                intersections: intersections as usize,
+            });
+        }
+        Ok((images, diagnostics))
+    }
+}
+
+/// The camera uniform's `flags`, in 16-byte elements from its start.
+const CAMERA_FLAGS_OFFSET: usize = 8;
+
+/// A second handle on `buffer`'s first `len` values.
+fn share(buffer: &GpuBuffer, len: usize) -> GpuBuffer {
+    GpuBuffer {
+        buffer: buffer.buffer.clone(),
+        len,
+    }
+}
+
+fn rasterize_backward_kernel(
+    context: &GpuContext,
+    gpu_options: GpuOptions,
+) -> Result<std::sync::Arc<crate::backend::Kernel>, GpuSplatError> {
+    let mode = gpu_options
+        .atomic_add
+        .unwrap_or(if context.has_float_atomics() {
+            AtomicAdd::NativeFloat
+        } else {
+            AtomicAdd::CompareExchange
+        });
+    let (name, wgsl) = match mode {
+        AtomicAdd::NativeFloat => (
+            "rasterize_backward_float_atomics",
+            with_atomic_add(
+                "splat_rasterize_backward.wgsl",
+                RASTERIZE_BACKWARD_WGSL,
+                mode,
+            )?,
+        ),
+        AtomicAdd::CompareExchange => (
+            "rasterize_backward_compare_exchange",
+            RASTERIZE_BACKWARD_WGSL.to_owned(),
+        ),
+    };
+    Ok(context.kernel(&KernelSource {
+        name,
+        wgsl: Cow::Owned(wgsl),
+        entry_point: "rasterize_backward",
+    })?)
 }
 
 /// Result of [`forward`]: images and diagnostics per camera, and the GPU state [`backward`]
@@ -257,12 +1208,11 @@ pub struct GpuForward {
     resident: ResidentForward,
 }
 
-/// A forward pass whose outputs are still on the GPU (the benchmark times this part).
+/// A forward pass whose outputs are still on the GPU: the uploaded Gaussians and the
+/// workspace holding the pass.
 pub struct ResidentForward {
     gaussians: ResidentGaussians,
-    states: Vec<CameraState>,
-    options: RasterOptions,
-    gpu_options: GpuOptions,
+    workspace: SplatWorkspace,
 }
 
 /// Renders the Gaussians from every camera on the GPU.
@@ -294,7 +1244,8 @@ pub fn forward_with(
     })
 }
 
-/// Runs the forward kernels for every camera, leaving the outputs on the GPU.
+/// Runs the forward kernels for every camera in a fresh workspace
+/// ([`SplatWorkspace::forward_checked`]), leaving the outputs on the GPU.
 pub fn forward_resident(
     context: &GpuContext,
     gaussians: ResidentGaussians,
@@ -303,248 +1254,23 @@ pub fn forward_resident(
     gpu_options: GpuOptions,
 ) -> Result<ResidentForward, GpuSplatError> {
     validate_call(cameras, options)?;
-    let states = cameras
-        .iter()
-        .map(|camera| forward_camera(context, &gaussians, camera, options, gpu_options))
-        .collect::<Result<Vec<_>, _>>()?;
+    let mut workspace = SplatWorkspace::new(context, gpu_options, None)?;
+    workspace.forward_checked(context, gaussians.view(), cameras, options)?;
     Ok(ResidentForward {
         gaussians,
-        states,
-        options: options.clone(),
-        gpu_options,
-    })
-}
-
-fn forward_camera(
-    context: &GpuContext,
-    gaussians: &ResidentGaussians,
-    camera: &Camera,
-    options: &RasterOptions,
-    gpu_options: GpuOptions,
-) -> Result<CameraState, GpuSplatError> {
-    let n = gaussians.count;
-    let (tiles_x, tiles_y) = tiles(camera);
-    // Tile kernels run on a tiles_x by tiles_y grid of workgroups.
-    let max_grid = context.max_workgroups_per_dimension();
-    if tiles_x > max_grid || tiles_y > max_grid {
-        return Err(BackendError::Gpu {
-            message: format!(
-                "image {}x{} has more than {max_grid} tiles along one side",
-                camera.width, camera.height
-            ),
-        }
-        .into());
-    }
-    let pixels = camera.width as usize * camera.height as usize;
-    let uniform = camera_uniform(
-        camera,
-        n,
-        gaussians.sh_coefficients,
-        (0, tiles_y),
-        options,
-        false,
-        false,
-    );
-    let camera_buffer = context.uniform("splat camera", &uniform);
-    let projected = context.zeros("projected", n as usize * 3, 16)?;
-    let rects = context.zeros("tile rects", n as usize, 16)?;
-    let depth_keys = context.zeros("depth keys", n as usize, 4)?;
-    let indices = context.zeros("depth order", n as usize, 4)?;
-    let diagnostics = context.zeros("diagnostics", DIAGNOSTICS, 4)?;
-
-    let project = context.kernel(&kernel_source(
-        "project_forward",
-        PROJECT_WGSL,
-        "project_forward",
-    ))?;
-    let mut encoder = context.encoder();
-    context.dispatch(
-        &mut encoder,
-        &project,
-        &[
-            (0, &camera_buffer),
-            (1, &gaussians.means.buffer),
-            (2, &gaussians.covariances.buffer),
-            (3, &gaussians.opacities.buffer),
-            (4, &gaussians.sh.buffer),
-            (5, &projected.buffer),
-            (6, &rects.buffer),
-            (7, &depth_keys.buffer),
-            (8, &indices.buffer),
-            (9, &diagnostics.buffer),
-        ],
-        n.div_ceil(GROUP),
-    );
-    // Stable sort by depth: culled Gaussians carry the largest key and sort last; ties keep
-    // index order because the values start as 0..N.
-    let (_, sorted_indices) = radix_sort(context, &mut encoder, depth_keys, indices, n, 32)?;
-
-    let ranges = context.zeros("tile ranges", (tiles_x * tiles_y) as usize, 8)?;
-    let max_pairs = gpu_options
-        .max_pairs_per_band
-        .map_or(u64::MAX, u64::from)
-        .min(context.max_binding_bytes() / 4)
-        .min(u64::from(u32::MAX));
-    let mut bands = Vec::new();
-    let mut pending = vec![(0, tiles_y)];
-    let mut intersections = 0_u64;
-    let counts = context.zeros("tile counts", n as usize, 4)?;
-    let count_kernel = context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
-    let emit_kernel = context.kernel(&kernel_source("emit_pairs", BIN_WGSL, "emit_pairs"))?;
-    let ranges_kernel = context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
-    while let Some(rows) = pending.pop() {
-        let count_params = context.uniform(
-            "bin params",
-            &BinParams {
-                gaussians: n,
-                pairs: 0,
-                tiles_x,
-                row_begin: rows.0,
-                row_end: rows.1,
-                pad: [0; 3],
-            },
-        );
-        context.dispatch(
-            &mut encoder,
-            &count_kernel,
-            &[
-                (0, &count_params),
-                (1, &sorted_indices.buffer),
-                (2, &rects.buffer),
-                (3, &counts.buffer),
-            ],
-            n.div_ceil(GROUP),
-        );
-        let total = exclusive_scan(context, &mut encoder, &counts.buffer, n)?;
-        let finished = std::mem::replace(&mut encoder, context.encoder());
-        // The one host round trip: the pair count sizes the pair buffers.
-        let pairs = u64::from(context.download::<u32>(finished, &total.buffer, 1)?[0]);
-        if pairs > max_pairs {
-            if rows.1 - rows.0 <= 1 {
-                return Err(BackendError::BufferTooLarge {
-                    what: format!("Gaussian-tile pairs of tile row {}", rows.0),
-                    bytes: pairs * 4,
-                    limit: max_pairs * 4,
-                }
-                .into());
-            }
-            let middle = rows.0 + (rows.1 - rows.0) / 2;
-            // Popped in order: the upper half first.
-            pending.push((middle, rows.1));
-            pending.push((rows.0, middle));
-            continue;
-        }
-        let pairs = pairs as u32;
-        intersections += u64::from(pairs);
-        let keys = context.zeros("pair tiles", pairs as usize, 4)?;
-        let pair_gaussians = context.zeros("pair gaussians", pairs as usize, 4)?;
-        let params = context.uniform(
-            "bin params",
-            &BinParams {
-                gaussians: n,
-                pairs,
-                tiles_x,
-                row_begin: rows.0,
-                row_end: rows.1,
-                pad: [0; 3],
-            },
-        );
-        context.dispatch(
-            &mut encoder,
-            &emit_kernel,
-            &[
-                (0, &params),
-                (1, &sorted_indices.buffer),
-                (2, &rects.buffer),
-                (3, &counts.buffer),
-                (4, &keys.buffer),
-                (5, &pair_gaussians.buffer),
-            ],
-            n.div_ceil(GROUP),
-        );
-        let tile_bits = 32 - (tiles_x * tiles_y).saturating_sub(1).leading_zeros();
-        let (keys, pair_gaussians) = radix_sort(
-            context,
-            &mut encoder,
-            keys,
-            pair_gaussians,
-            pairs,
-            tile_bits,
-        )?;
-        context.dispatch(
-            &mut encoder,
-            &ranges_kernel,
-            &[(0, &params), (4, &keys.buffer), (6, &ranges.buffer)],
-            pairs.div_ceil(GROUP),
-        );
-        bands.push(Band {
-            rows,
-            pair_gaussians,
-            pairs,
-        });
-    }
-
-    let colour = context.zeros("colour", pixels * 3, 4)?;
-    let alpha = context.zeros("alpha", pixels, 4)?;
-    let depth = context.zeros("depth", pixels, 4)?;
-    let transmittance = context.zeros("final transmittance", pixels, 4)?;
-    let contributors = context.zeros("contributors", pixels, 4)?;
-    let rasterize = context.kernel(&kernel_source(
-        "rasterize_forward",
-        RASTERIZE_WGSL,
-        "rasterize_forward",
-    ))?;
-    for band in &bands {
-        let band_uniform = context.uniform(
-            "splat camera band",
-            &camera_uniform(
-                camera,
-                n,
-                gaussians.sh_coefficients,
-                band.rows,
-                options,
-                false,
-                false,
-            ),
-        );
-        context.dispatch_grid(
-            &mut encoder,
-            &rasterize,
-            &[
-                (0, &band_uniform),
-                (1, &ranges.buffer),
-                (2, &band.pair_gaussians.buffer),
-                (3, &projected.buffer),
-                (4, &colour.buffer),
-                (5, &alpha.buffer),
-                (6, &depth.buffer),
-                (7, &transmittance.buffer),
-                (8, &contributors.buffer),
-            ],
-            tiles_x,
-            band.rows.1 - band.rows.0,
-        );
-    }
-    context.submit_and_wait(encoder)?;
-    Ok(CameraState {
-        camera: camera.clone(),
-        projected,
-        ranges,
-        bands,
-        colour,
-        alpha,
-        depth,
-        transmittance,
-        contributors,
-        diagnostics,
-        intersections,
+        workspace,
     })
 }
 
 impl ResidentForward {
     /// Per camera, the number of bands of tile rows its pairs were binned in.
     pub fn band_counts(&self) -> Vec<usize> {
-        self.states.iter().map(|state| state.bands.len()).collect()
+        self.workspace.band_counts()
+    }
+
+    /// The workspace holding the pass.
+    pub fn workspace(&self) -> &SplatWorkspace {
+        &self.workspace
     }
 
     /// Copies every camera's images and diagnostics to the host.
@@ -552,44 +1278,7 @@ impl ResidentForward {
         &self,
         context: &GpuContext,
     ) -> Result<(Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>), GpuSplatError> {
-        let mut images = Vec::with_capacity(self.states.len());
-        let mut diagnostics = Vec::with_capacity(self.states.len());
-        for state in &self.states {
-            let mut encoder = context.encoder();
-            let mut floats = context.download_many::<f32>(
-                &mut encoder,
-                &[
-                    (&state.colour.buffer, state.colour.len),
-                    (&state.alpha.buffer, state.alpha.len),
-                    (&state.depth.buffer, state.depth.len),
-                ],
-            )?;
-            let mut counters = context
-                .download_many::<u32>(&mut encoder, &[(&state.diagnostics.buffer, DIAGNOSTICS)])?;
-            context.finish_downloads(encoder, &mut floats)?;
-            context.finish_downloads(context.encoder(), &mut counters)?;
-            let [colour, alpha, depth] = [0, 1, 2].map(|i| std::mem::take(&mut floats[i].values));
-            images.push(RenderedImage {
-                width: state.camera.width,
-                height: state.camera.height,
-                colour,
-                alpha,
-                depth,
-            });
-            let c = &counters[0].values;
-            diagnostics.push(SplatDiagnostics {
-                gaussians: self.gaussians.len(),
-                non_finite_inputs: c[0] as usize,
-                non_finite_projections: c[1] as usize,
-                culled_depth: c[2] as usize,
-                culled_covariance: c[3] as usize,
-                culled_opacity: c[4] as usize,
-                culled_offscreen: c[5] as usize,
-                visible: c[6] as usize,
-                intersections: state.intersections as usize,
-            });
-        }
-        Ok((images, diagnostics))
+        self.workspace.download_images(context)
     }
 }
 
@@ -617,7 +1306,10 @@ pub fn backward(
     gradients.download(context)
 }
 
-/// Input gradients still on the GPU.
+/// Input gradients on the GPU, summed over the cameras (f32, the layouts of the inputs):
+/// `means` `N x 3`, `covariances` `N x 6`, `opacities` `N`, `sh` `N x k x 3`, and
+/// `mean_2d_norm` `N` (the norm of each Gaussian's screen-space mean gradient, summed over
+/// cameras, for densification).
 pub struct ResidentGradients {
     means: GpuBuffer,
     covariances: GpuBuffer,
@@ -625,34 +1317,63 @@ pub struct ResidentGradients {
     sh: GpuBuffer,
     mean_2d_norm: GpuBuffer,
     diagnostics: GpuBuffer,
+    count: u32,
+    sh_coefficients: u32,
 }
 
 impl ResidentGradients {
+    pub fn means(&self) -> &GpuBuffer {
+        &self.means
+    }
+
+    pub fn covariances(&self) -> &GpuBuffer {
+        &self.covariances
+    }
+
+    pub fn opacities(&self) -> &GpuBuffer {
+        &self.opacities
+    }
+
+    pub fn sh(&self) -> &GpuBuffer {
+        &self.sh
+    }
+
+    pub fn mean_2d_norm(&self) -> &GpuBuffer {
+        &self.mean_2d_norm
+    }
+
+    /// Copies the gradients to the host (one read-back).
     pub fn download(&self, context: &GpuContext) -> Result<SplatGradients<f32>, GpuSplatError> {
-        let mut encoder = context.encoder();
-        let mut floats = context.download_many::<f32>(
-            &mut encoder,
+        debug_assert_eq!(self.means.len, self.count as usize * 3);
+        debug_assert_eq!(
+            self.sh.len,
+            (self.count * self.sh_coefficients) as usize * 3
+        );
+        let mut words = context.download_all::<u32>(
+            context.encoder(),
             &[
                 (&self.means.buffer, self.means.len),
                 (&self.covariances.buffer, self.covariances.len),
                 (&self.opacities.buffer, self.opacities.len),
                 (&self.sh.buffer, self.sh.len),
                 (&self.mean_2d_norm.buffer, self.mean_2d_norm.len),
+                (&self.diagnostics.buffer, DIAGNOSTICS),
             ],
         )?;
-        let mut counters = context
-            .download_many::<u32>(&mut encoder, &[(&self.diagnostics.buffer, DIAGNOSTICS)])?;
-        context.finish_downloads(encoder, &mut floats)?;
-        context.finish_downloads(context.encoder(), &mut counters)?;
-        let [means, covariances, opacities, sh, mean_2d_norm] =
-            [0, 1, 2, 3, 4].map(|i| std::mem::take(&mut floats[i].values));
+        let diagnostics = words.pop().unwrap_or_default();
+        let [means, covariances, opacities, sh, mean_2d_norm] = [0, 1, 2, 3, 4].map(|i| {
+            std::mem::take(&mut words[i])
+                .into_iter()
+                .map(f32::from_bits)
+                .collect::<Vec<f32>>()
+        });
         Ok(SplatGradients {
             means,
             covariances,
             opacities,
             sh,
             mean_2d_norm,
-            non_finite_gradients: counters[0].values[7] as usize,
+            non_finite_gradients: diagnostics[7] as usize,
         })
     }
 }
@@ -698,19 +1419,20 @@ impl ResidentImageGradient {
         forward: &ResidentForward,
         upstream: &[ImageGradient<'_, f32>],
     ) -> Result<Vec<Self>, GpuSplatError> {
-        if upstream.len() != forward.states.len() {
+        let cameras = &forward.workspace.call()?.cameras;
+        if upstream.len() != cameras.len() {
             return Err(SplatError::GradientCount {
-                expected: forward.states.len(),
+                expected: cameras.len(),
                 actual: upstream.len(),
             }
             .into());
         }
         upstream
             .iter()
-            .zip(&forward.states)
+            .zip(cameras)
             .enumerate()
-            .map(|(index, (gradient, state))| {
-                check_upstream(index, gradient, &state.camera)?;
+            .map(|(index, (gradient, camera))| {
+                check_upstream(index, gradient, camera)?;
                 Ok(Self {
                     colour: context.upload("d colour", gradient.colour)?,
                     alpha: gradient
@@ -725,141 +1447,31 @@ impl ResidentImageGradient {
             })
             .collect()
     }
+
+    /// The uploaded buffers as a borrowed [`DeviceImageGradient`].
+    pub fn view(&self) -> DeviceImageGradient<'_> {
+        DeviceImageGradient {
+            colour: &self.colour,
+            alpha: self.alpha.as_ref(),
+            depth: self.depth.as_ref(),
+        }
+    }
 }
 
-/// Runs the backward kernels for every camera, leaving the gradients on the GPU.
+/// Runs the backward kernels for every camera of `forward` (submitted and waited for),
+/// leaving the gradients on the GPU in its workspace.
 pub fn backward_resident(
     context: &GpuContext,
     forward: &ResidentForward,
     upstream: &[ResidentImageGradient],
 ) -> Result<ResidentGradients, GpuSplatError> {
-    if upstream.len() != forward.states.len() {
-        return Err(SplatError::GradientCount {
-            expected: forward.states.len(),
-            actual: upstream.len(),
-        }
-        .into());
-    }
-    let gaussians = &forward.gaussians;
-    let n = gaussians.len();
-    let k = gaussians.sh_coefficients as usize;
-    let out = ResidentGradients {
-        means: context.zeros("grad means", n * 3, 4)?,
-        covariances: context.zeros("grad covariances", n * 6, 4)?,
-        opacities: context.zeros("grad opacities", n, 4)?,
-        sh: context.zeros("grad sh", n * k * 3, 4)?,
-        mean_2d_norm: context.zeros("grad mean 2d norm", n, 4)?,
-        diagnostics: context.zeros("backward diagnostics", DIAGNOSTICS, 4)?,
-    };
-    let mode = forward
-        .gpu_options
-        .atomic_add
-        .unwrap_or(if context.has_float_atomics() {
-            AtomicAdd::NativeFloat
-        } else {
-            AtomicAdd::CompareExchange
-        });
-    let (name, wgsl) = match mode {
-        AtomicAdd::NativeFloat => (
-            "rasterize_backward_float_atomics",
-            with_atomic_add(
-                "splat_rasterize_backward.wgsl",
-                RASTERIZE_BACKWARD_WGSL,
-                mode,
-            )?,
-        ),
-        AtomicAdd::CompareExchange => (
-            "rasterize_backward_compare_exchange",
-            RASTERIZE_BACKWARD_WGSL.to_owned(),
-        ),
-    };
-    let rasterize = context.kernel(&KernelSource {
-        name,
-        wgsl: Cow::Owned(wgsl),
-        entry_point: "rasterize_backward",
-    })?;
-    let project = context.kernel(&kernel_source(
-        "project_backward",
-        PROJECT_WGSL,
-        "project_backward",
-    ))?;
-    let screen = context.zeros("screen gradients", n * SCREEN_GRADIENTS, 4)?;
-    let placeholder = context.zeros("absent gradient", 1, 4)?;
+    let views: Vec<DeviceImageGradient<'_>> = upstream.iter().map(|g| g.view()).collect();
     let mut encoder = context.encoder();
-    for (state, gradient) in forward.states.iter().zip(upstream) {
-        let camera = &state.camera;
-        let (tiles_x, tiles_y) = tiles(camera);
-        // An absent alpha or depth gradient binds a placeholder the kernel never reads.
-        let d_alpha = gradient.alpha.as_ref().unwrap_or(&placeholder);
-        let d_depth = gradient.depth.as_ref().unwrap_or(&placeholder);
-        encoder.clear_buffer(&screen.buffer, 0, None);
-        for band in &state.bands {
-            let uniform = context.uniform(
-                "splat camera band",
-                &camera_uniform(
-                    camera,
-                    gaussians.count,
-                    gaussians.sh_coefficients,
-                    band.rows,
-                    &forward.options,
-                    gradient.alpha.is_some(),
-                    gradient.depth.is_some(),
-                ),
-            );
-            context.dispatch_grid(
-                &mut encoder,
-                &rasterize,
-                &[
-                    (0, &uniform),
-                    (1, &state.ranges.buffer),
-                    (2, &band.pair_gaussians.buffer),
-                    (3, &state.projected.buffer),
-                    (4, &gradient.colour.buffer),
-                    (5, &d_alpha.buffer),
-                    (6, &d_depth.buffer),
-                    (7, &state.transmittance.buffer),
-                    (8, &state.contributors.buffer),
-                    (15, &screen.buffer),
-                ],
-                tiles_x,
-                band.rows.1 - band.rows.0,
-            );
-            debug_assert!(band.pairs > 0 || band.rows.1 > band.rows.0);
-        }
-        let uniform = context.uniform(
-            "splat camera",
-            &camera_uniform(
-                camera,
-                gaussians.count,
-                gaussians.sh_coefficients,
-                (0, tiles_y),
-                &forward.options,
-                false,
-                false,
-            ),
-        );
-        context.dispatch(
-            &mut encoder,
-            &project,
-            &[
-                (0, &uniform),
-                (1, &gaussians.means.buffer),
-                (2, &gaussians.covariances.buffer),
-                (3, &gaussians.opacities.buffer),
-                (4, &gaussians.sh.buffer),
-                (9, &out.diagnostics.buffer),
-                (10, &screen.buffer),
-                (11, &out.means.buffer),
-                (12, &out.covariances.buffer),
-                (13, &out.opacities.buffer),
-                (14, &out.sh.buffer),
-                (15, &out.mean_2d_norm.buffer),
-            ],
-            gaussians.count.div_ceil(GROUP),
-        );
-    }
+    forward
+        .workspace
+        .backward(context, &mut encoder, forward.gaussians.view(), &views)?;
     context.submit_and_wait(encoder)?;
-    Ok(out)
+    forward.workspace.gradients()
 }
 
 impl GpuForward {

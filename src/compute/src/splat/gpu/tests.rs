@@ -431,3 +431,301 @@ fn bad_upstream_gradients_are_rejected_with_the_field_named() {
         "{error}"
     );
 }
+
+/// The upstream gradients of `values` uploaded, one per camera.
+fn upload_gradients(
+    context: &GpuContext,
+    values: &[(Vec<f32>, Vec<f32>, Vec<f32>)],
+) -> Vec<(GpuBuffer, GpuBuffer, GpuBuffer)> {
+    values
+        .iter()
+        .map(|(colour, alpha, depth)| {
+            (
+                context.upload("d colour", colour).unwrap(),
+                context.upload("d alpha", alpha).unwrap(),
+                context.upload("d depth", depth).unwrap(),
+            )
+        })
+        .collect()
+}
+
+fn device_gradients(
+    buffers: &[(GpuBuffer, GpuBuffer, GpuBuffer)],
+    with_alpha_depth: bool,
+) -> Vec<DeviceImageGradient<'_>> {
+    buffers
+        .iter()
+        .map(|(colour, alpha, depth)| DeviceImageGradient {
+            colour,
+            alpha: with_alpha_depth.then_some(alpha),
+            depth: with_alpha_depth.then_some(depth),
+        })
+        .collect()
+}
+
+/// Bitwise equality of two renders (the same kernels on the same pairs).
+fn assert_images_identical(
+    what: &str,
+    resident: &[RenderedImage<f32>],
+    reference: &[RenderedImage<f32>],
+) {
+    assert_eq!(resident.len(), reference.len(), "{what}: cameras");
+    for (camera, (r, h)) in resident.iter().zip(reference).enumerate() {
+        let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!((r.width, r.height), (h.width, h.height), "{what}: size");
+        assert!(bits(&r.colour) == bits(&h.colour), "{what}: camera {camera} colour");
+        assert!(bits(&r.alpha) == bits(&h.alpha), "{what}: camera {camera} alpha");
+        assert!(bits(&r.depth) == bits(&h.depth), "{what}: camera {camera} depth");
+    }
+}
+
+/// One workspace reused over calls whose Gaussian count goes up and down: every forward
+/// recorded into the caller's encoder equals the host path bitwise (images and
+/// diagnostics), and every backward matches the cpu backend.
+fn check_reused_workspace(context: &GpuContext, scenes: &[GaussianBuffers<f32>]) {
+    let cameras = two_cameras();
+    let mut workspace = SplatWorkspace::new(context, GpuOptions::default(), None).unwrap();
+    let values = upstream(&cameras, 41);
+    let device_upstream = upload_gradients(context, &values);
+    for (call, gaussians) in scenes.iter().enumerate() {
+        let view = gaussians.view();
+        let reference = forward(context, &view, &cameras, &options()).unwrap();
+        let resident = ResidentGaussians::upload(context, &view).unwrap();
+        // Checked once (the capacity may grow), then recorded unchecked like a training step.
+        workspace
+            .forward_checked(context, resident.view(), &cameras, &options())
+            .unwrap();
+        let mut encoder = context.encoder();
+        workspace
+            .forward(context, &mut encoder, resident.view(), &cameras, &options())
+            .unwrap();
+        let with_alpha_depth = call % 2 == 1;
+        workspace
+            .backward(
+                context,
+                &mut encoder,
+                resident.view(),
+                &device_gradients(&device_upstream, with_alpha_depth),
+            )
+            .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        assert_eq!(workspace.check_status(context).unwrap().overflowed_bands, 0);
+        let (images, diagnostics) = workspace.download_images(context).unwrap();
+        assert_eq!(diagnostics, reference.diagnostics, "call {call}");
+        assert_images_identical(&format!("call {call}"), &images, &reference.images);
+        let cpu_forward = cpu::forward(&view, &cameras, &options()).unwrap();
+        let cpu_gradients = cpu::backward(
+            &cpu_forward,
+            &view,
+            &image_gradients(&values, with_alpha_depth),
+        )
+        .unwrap();
+        let gradients = workspace.gradients().unwrap().download(context).unwrap();
+        assert_gradients_match(&gradients, &cpu_gradients);
+    }
+}
+
+#[test]
+fn a_reused_workspace_equals_the_host_path_as_the_gaussian_count_changes() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    check_reused_workspace(
+        &context,
+        &[scene(100, 2, 21), scene(170, 2, 22), scene(60, 1, 23)],
+    );
+}
+
+#[test]
+fn a_reused_workspace_on_two_dimensional_dispatches_equals_the_host_path() {
+    let Some(context) = crate::backend::test_support::gpu_test_context_with_dispatch_limit(3)
+    else {
+        return;
+    };
+    check_reused_workspace(&context, &[scene(1100, 1, 24), scene(900, 1, 25)]);
+}
+
+#[test]
+fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let gaussians = scene(150, 1, 26);
+    let view = gaussians.view();
+    let cameras = two_cameras();
+    let reference = forward(&context, &view, &cameras, &options()).unwrap();
+    let needed = reference
+        .diagnostics
+        .iter()
+        .map(|d| d.intersections)
+        .max()
+        .unwrap();
+    let resident = ResidentGaussians::upload(&context, &view).unwrap();
+    let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), Some(16)).unwrap();
+    let mut encoder = context.encoder();
+    workspace
+        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .unwrap();
+    context.submit_and_wait(encoder).unwrap();
+    // The truncated render still counts every pair it needed.
+    let (truncated, diagnostics) = workspace.download_images(&context).unwrap();
+    assert_eq!(diagnostics, reference.diagnostics);
+    assert_ne!(truncated[0].colour, reference.images[0].colour);
+    let status = workspace.check_status(&context).unwrap();
+    assert_eq!(
+        status,
+        SplatStatus {
+            overflowed_bands: 2,
+            largest_band_pairs: needed as u32,
+            grown: true,
+        }
+    );
+    assert!(workspace.pairs_per_band() as usize >= needed);
+    // The status was reset by the check.
+    assert_eq!(
+        workspace.check_status(&context).unwrap(),
+        SplatStatus {
+            overflowed_bands: 0,
+            largest_band_pairs: 0,
+            grown: false,
+        }
+    );
+    let mut encoder = context.encoder();
+    workspace
+        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .unwrap();
+    context.submit_and_wait(encoder).unwrap();
+    let status = workspace.check_status(&context).unwrap();
+    assert_eq!(status.overflowed_bands, 0);
+    assert_eq!(status.largest_band_pairs as usize, needed);
+    let (images, _) = workspace.download_images(&context).unwrap();
+    assert_images_identical("after growing", &images, &reference.images);
+
+    // The checked call does the same at once.
+    let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), Some(16)).unwrap();
+    let status = workspace
+        .forward_checked(&context, resident.view(), &cameras, &options())
+        .unwrap();
+    assert_eq!(status.overflowed_bands, 0);
+    let (images, diagnostics) = workspace.download_images(&context).unwrap();
+    assert_eq!(diagnostics, reference.diagnostics);
+    assert_images_identical("checked", &images, &reference.images);
+}
+
+#[test]
+fn an_overflow_beyond_the_band_limit_adds_bands_and_stays_exact() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let gaussians = scene(120, 1, 5);
+    let view = gaussians.view();
+    let cameras = vec![camera(64, 70, DVec3::new(0.1, 0.1, -2.0))];
+    let reference = forward(&context, &view, &cameras, &options()).unwrap();
+    let gpu_options = GpuOptions {
+        max_pairs_per_band: Some(400),
+        ..GpuOptions::default()
+    };
+    assert!(reference.diagnostics[0].intersections > 400);
+    let resident = ResidentGaussians::upload(&context, &view).unwrap();
+    let mut workspace = SplatWorkspace::new(&context, gpu_options, Some(300)).unwrap();
+    assert_eq!(workspace.bands(), 1);
+    workspace
+        .forward_checked(&context, resident.view(), &cameras, &options())
+        .unwrap();
+    assert!(workspace.bands() > 1, "bands {}", workspace.bands());
+    assert!(workspace.pairs_per_band() <= 400);
+    assert!(workspace.band_counts()[0] > 1);
+    let (images, diagnostics) = workspace.download_images(&context).unwrap();
+    assert_eq!(diagnostics, reference.diagnostics);
+    assert_images_identical("banded", &images, &reference.images);
+}
+
+#[test]
+fn a_steady_state_forward_and_backward_reads_nothing_back_and_writes_only_the_cameras() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let gaussians = scene(150, 3, 27);
+    let view = gaussians.view();
+    let cameras = two_cameras();
+    let resident = ResidentGaussians::upload(&context, &view).unwrap();
+    let device_upstream = upload_gradients(&context, &upstream(&cameras, 5));
+    let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), None).unwrap();
+    let mut step = |workspace: &mut SplatWorkspace, cameras: &[Camera]| {
+        let mut encoder = context.encoder();
+        workspace
+            .forward(&context, &mut encoder, resident.view(), cameras, &options())
+            .unwrap();
+        workspace
+            .backward(
+                &context,
+                &mut encoder,
+                resident.view(),
+                &device_gradients(&device_upstream, true),
+            )
+            .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+    };
+    // The first call sizes the workspace.
+    step(&mut workspace, &cameras);
+    assert_eq!(workspace.check_status(&context).unwrap().overflowed_bands, 0);
+    // Cameras that move (same sizes) are the training steady state.
+    let moved = vec![
+        camera(70, 45, DVec3::new(0.35, -0.1, -2.4)),
+        camera(33, 50, DVec3::new(-1.7, 0.5, -1.3)),
+    ];
+    for cameras in [&cameras, &moved] {
+        let before = context.transfers();
+        step(&mut workspace, cameras);
+        let traffic = context.transfers().since(&before);
+        // Per camera band: its camera uniform (forward) and gradient flags (backward).
+        let bands: usize = workspace.band_counts().iter().sum();
+        let expected = bands * (std::mem::size_of::<CameraUniform>() + 16);
+        assert_eq!(traffic.readbacks, 0, "{traffic:?}");
+        assert_eq!(traffic.bytes_down, 0, "{traffic:?}");
+        assert_eq!(traffic.bytes_up as usize, expected, "{traffic:?}");
+    }
+    // And the steady-state render is the right one.
+    let reference = forward(&context, &view, &moved, &options()).unwrap();
+    let (images, _) = workspace.download_images(&context).unwrap();
+    assert_images_identical("steady state", &images, &reference.images);
+}
+
+#[test]
+fn device_inputs_of_the_wrong_size_are_rejected_with_the_field_named() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let gaussians = scene(10, 1, 28);
+    let resident = ResidentGaussians::upload(&context, &gaussians.view()).unwrap();
+    let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), None).unwrap();
+    let cameras = vec![camera(20, 20, DVec3::new(0.0, 0.0, -2.0))];
+    let mut too_many = resident.view();
+    too_many.count = 11;
+    let mut encoder = context.encoder();
+    let error = workspace
+        .forward(&context, &mut encoder, too_many, &cameras, &options())
+        .unwrap_err();
+    assert!(error.to_string().contains("means"), "{error}");
+    let error = workspace
+        .backward(&context, &mut encoder, resident.view(), &[])
+        .unwrap_err();
+    assert!(error.to_string().contains("before any forward"), "{error}");
+    workspace
+        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .unwrap();
+    let short = context.zeros("d colour", 20 * 20 * 3 - 1, 4).unwrap();
+    let error = workspace
+        .backward(
+            &context,
+            &mut encoder,
+            resident.view(),
+            &[DeviceImageGradient {
+                colour: &short,
+                alpha: None,
+                depth: None,
+            }],
+        )
+        .unwrap_err();
+    assert!(error.to_string().contains("colour"), "{error}");
+}
