@@ -31,21 +31,16 @@ const WORKGROUP: usize = 64;
 /// Largest `k` of one search (the config's `MAX_TAU`).
 pub const MAX_K: usize = 64;
 
-fn kernel(context: &GpuContext, entry: &'static str) -> anyhow::Result<Arc<Kernel>> {
+fn kernel(
+    context: &GpuContext,
+    name: &'static str,
+    entry: &'static str,
+) -> anyhow::Result<Arc<Kernel>> {
     Ok(context.kernel(&KernelSource {
-        name: entry_name(entry),
+        name,
         wgsl: Cow::Borrowed(KNN_WGSL),
         entry_point: entry,
     })?)
-}
-
-fn entry_name(entry: &'static str) -> &'static str {
-    match entry {
-        "knn" => "avatar_knn",
-        "gather_skeleton" => "avatar_gather_skeleton",
-        "gather_velocity" => "avatar_gather_velocity",
-        other => other,
-    }
 }
 
 /// `MotionShape` of `avatar_knn.wgsl`: length, scales, joints, vertices, k, element,
@@ -217,9 +212,9 @@ impl ResidentMotion {
             tau_shape: shape(setup.tau, 0),
             nearest_shape: shape(1, 0),
             velocity_shapes: (0..setup.length).map(|l| shape(setup.tau, l)).collect(),
-            knn: kernel(context, "knn")?,
-            gather_skeleton: kernel(context, "gather_skeleton")?,
-            gather_velocity: kernel(context, "gather_velocity")?,
+            knn: kernel(context, "avatar_knn", "knn")?,
+            gather_skeleton: kernel(context, "avatar_gather_skeleton", "gather_skeleton")?,
+            gather_velocity: kernel(context, "avatar_gather_velocity", "gather_velocity")?,
             scale_steps,
             context: context.clone(),
         };
@@ -747,5 +742,16 @@ mod tests {
         );
         assert!(track.gather(3, 2, &[1, 2]).is_err());
         motion.set_iteration(4, 1).unwrap();
+        // No Gaussians: nothing to search or gather, the window still is.
+        motion.set_iteration(5, 0).unwrap();
+        let mut encoder = context.encoder();
+        motion.record_skeleton_window(&mut encoder).unwrap();
+        let empty = context.zeros("no queries", 0, 4).unwrap();
+        motion.record_nearest(&mut encoder, &empty).unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        let got = motion.download(0).unwrap();
+        let slots = track.slots(&[2, 1]).unwrap();
+        assert_eq!(got.window, track.gather(5, 2, &slots).unwrap().0);
+        assert!(got.nearest.is_empty() && got.velocity.is_empty());
     }
 }

@@ -148,8 +148,10 @@ pub struct ResidentSkinning {
     reduce_joints: Arc<Kernel>,
     finish_joints: Arc<Kernel>,
     activations_backward: Arc<Kernel>,
-    /// Gaussians of this iteration ([`ResidentSkinning::set_iteration`]).
+    /// Gaussians of this iteration and SH coefficients per channel of its active degree
+    /// ([`ResidentSkinning::set_iteration`]).
     count: usize,
+    sh_coefficients: usize,
 }
 
 const STATUS_CLEAR: [u32; 4] = [0, u32::MAX, 0, u32::MAX];
@@ -178,7 +180,7 @@ impl ResidentSkinning {
         let joints = setup.canonical_joints.len();
         anyhow::ensure!(joints > 0, "canonical_joints: no joints");
         anyhow::ensure!(
-            setup.template_weights.len() % joints == 0,
+            setup.template_weights.len().is_multiple_of(joints),
             "template_weights: {} values are not V x {joints}",
             setup.template_weights.len()
         );
@@ -192,8 +194,8 @@ impl ResidentSkinning {
             setup.scale_max
         );
         let vertices = setup.template_weights.len() / joints;
-        let flags = u32::from(setup.heads) * HAS_HEADS
-            | u32::from(setup.weight_offsets) * HAS_WEIGHT_OFFSETS;
+        let flags = (u32::from(setup.heads) * HAS_HEADS)
+            | (u32::from(setup.weight_offsets) * HAS_WEIGHT_OFFSETS);
         let shape: [u32; 8] = [
             joints as u32,
             vertices as u32,
@@ -272,6 +274,7 @@ impl ResidentSkinning {
             finish_joints: plain("avatar_finish_joints", "finish_joints")?,
             activations_backward: plain("avatar_activations_backward", "activations_backward")?,
             count: 0,
+            sh_coefficients: 1,
             context: context.clone(),
         };
         skinning.reserve(capacity)?;
@@ -330,6 +333,7 @@ impl ResidentSkinning {
             &[gaussians as u32, coefficients, chunks, 0],
         )?;
         self.count = gaussians;
+        self.sh_coefficients = coefficients as usize;
         Ok(())
     }
 
@@ -549,6 +553,7 @@ impl ResidentSkinning {
     ) -> anyhow::Result<()> {
         self.check("opacity_logit", opacity_logit, 1)?;
         self.check("grad_opacities", grad_opacities, 1)?;
+        self.check("grad_sh", grad_sh, 3 * self.sh_coefficients)?;
         self.context.dispatch(
             encoder,
             &self.activations_backward,
@@ -641,21 +646,25 @@ mod tests {
             }
         }
         let mut log_scale: Vec<f64> = (0..3 * n).map(|_| rng.uniform(-6.0, -1.5)).collect();
-        // Tiny and huge scales.
-        log_scale[0..3].copy_from_slice(&[-30.0, -25.0, -20.0]);
-        log_scale[3..6].copy_from_slice(&[4.0, 5.0, 6.5]);
         let mut rotation: Vec<f64> = (0..4 * n).map(|_| rng.normal()).collect();
-        // Degenerate quaternions: zero and far below the threshold.
-        rotation[8..12].copy_from_slice(&[0.0; 4]);
-        rotation[12..16].copy_from_slice(&[1e-14, 0.0, -1e-14, 0.0]);
+        if n >= 8 {
+            // Tiny and huge scales.
+            log_scale[0..3].copy_from_slice(&[-30.0, -25.0, -20.0]);
+            log_scale[3..6].copy_from_slice(&[4.0, 5.0, 6.5]);
+            // Degenerate quaternions: zero and far below the threshold.
+            rotation[8..12].copy_from_slice(&[0.0; 4]);
+            rotation[12..16].copy_from_slice(&[1e-14, 0.0, -1e-14, 0.0]);
+        }
         let mut heads = Vec::with_capacity(10 * n);
         for _ in 0..n {
             heads.extend((0..3).map(|_| 0.01 * rng.normal()));
             heads.extend((0..4).map(|_| 0.1 * rng.normal()));
             heads.extend((0..3).map(|_| 0.003 * rng.normal()));
         }
-        // A rotation offset cancelling the identity bias: a degenerate product.
-        heads[10 * 7 + 3..10 * 7 + 7].copy_from_slice(&[-1.0, 0.0, 0.0, 0.0]);
+        if n >= 8 {
+            // A rotation offset cancelling the identity bias: a degenerate product.
+            heads[10 * 7 + 3..10 * 7 + 7].copy_from_slice(&[-1.0, 0.0, 0.0, 0.0]);
+        }
         Scene {
             target_joints: pose.target_joints,
             vertex_offsets: round(&pose.vertex_offsets),
@@ -751,6 +760,7 @@ mod tests {
         atomic_add: Option<AtomicAdd>,
         dispatch_limit: Option<u32>,
         sh_degree: u32,
+        gaussians: usize,
     }
 
     fn run_case(case: &Case) {
@@ -763,7 +773,7 @@ mod tests {
             eprintln!("skipped: the adapter has no f32 atomics");
             return;
         }
-        let s = scene(333, 7);
+        let s = scene(case.gaussians, 7);
         let (n, j) = (s.n, s.rig.joint_count());
         let o = oracle(&s, case.heads);
         let mut skinning = ResidentSkinning::new(
@@ -996,7 +1006,7 @@ mod tests {
             rel,
             0.0,
         );
-        assert!(scale(tj) > 0.0);
+        assert!(n == 0 || scale(tj) > 0.0);
         let vo = &grads.vertex_offsets;
         let got_vo = download(&context, &skinning.grad_vertex_offsets, vo.len());
         assert_rows("grad vertex offsets", &got_vo, vo, vo.len(), rel, 0.0);
@@ -1036,6 +1046,7 @@ mod tests {
             atomic_add: None,
             dispatch_limit: None,
             sh_degree: 3,
+            gaussians: 333,
         });
     }
 
@@ -1048,6 +1059,7 @@ mod tests {
             atomic_add: Some(AtomicAdd::CompareExchange),
             dispatch_limit: None,
             sh_degree: 0,
+            gaussians: 333,
         });
     }
 
@@ -1060,6 +1072,7 @@ mod tests {
             atomic_add: Some(AtomicAdd::NativeFloat),
             dispatch_limit: None,
             sh_degree: 1,
+            gaussians: 333,
         });
     }
 
@@ -1072,7 +1085,24 @@ mod tests {
             atomic_add: Some(AtomicAdd::CompareExchange),
             dispatch_limit: Some(2),
             sh_degree: 2,
+            gaussians: 333,
         });
+    }
+
+    /// No Gaussians and one: kernels stop at the count, reductions are zeros or one term.
+    #[test]
+    fn resident_skinning_handles_empty_and_single_inputs() {
+        for gaussians in [0, 1] {
+            run_case(&Case {
+                heads: true,
+                weight_offsets: true,
+                bounds: (1e-6, 1e3),
+                atomic_add: None,
+                dispatch_limit: None,
+                sh_degree: 3,
+                gaussians,
+            });
+        }
     }
 
     #[test]
