@@ -290,7 +290,7 @@ fn checkpoint_resume_is_exact_with_networks() {
 /// Largest non-rigid centre and scale offsets of a fresh run's networks at frame 1.
 fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
     use seqavatar_avatar::avatar::{deform, frame_pose, template_grid};
-    let trainer = Trainer::new(config.clone(), data, cpu_backend()).unwrap();
+    let mut trainer = Trainer::new(config.clone(), data, cpu_backend()).unwrap();
     let avatar = trainer.avatar().unwrap();
     let inputs = avatar
         .frame_inputs(&data.motion, &data.params[1], 1)
@@ -576,7 +576,7 @@ fn resident_paper_iteration_reads_nothing_back() {
         trainer.step().unwrap();
     }
     let before = traffic(&gpu);
-    let steps = 4;
+    let steps: u32 = 4;
     for _ in 0..steps {
         trainer.step().unwrap();
     }
