@@ -446,14 +446,25 @@ fn gpu_steps_match_cpu() {
         assert!(relative < 1e-3, "step {step}: {} vs {}", a.total, b.total);
     }
     gpu.sync().unwrap();
+    // Norms, not elements: the device's f32 Adam turns a gradient rounded near zero into a
+    // full step of either sign, so single centres may differ by a step.
+    let initial = Trainer::new(cpu.config.clone(), &data, cpu_backend()).unwrap();
+    let x0 = initial.state.values("xyz").unwrap();
     let xa = cpu.state.values("xyz").unwrap();
     let xb = gpu.state.values("xyz").unwrap();
-    let worst = xa
-        .iter()
-        .zip(xb)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    assert!(worst < 1e-4, "largest centre difference {worst}");
+    let norm = |x: &[f64], y: &[f64]| {
+        x.iter()
+            .zip(y)
+            .map(|(a, b)| (a - b).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let (moved, apart) = (norm(xa, x0), norm(xa, xb));
+    eprintln!("centres: moved {moved:.3e}, apart {apart:.3e}");
+    assert!(
+        moved > 0.0 && apart <= 0.1 * moved,
+        "centres {apart} apart, moved {moved}"
+    );
 }
 
 /// With every network (multiscale context, pose refiner, LBS offsets; tiny sizes): on the gpu
@@ -492,8 +503,8 @@ fn gpu_steps_with_networks_match_cpu() {
         }
         let relative = (a.total - b.total).abs() / a.total.abs();
         eprintln!(
-            "step {step}: cpu loss {} gpu loss {} (relative {relative:e})",
-            a.total, b.total
+            "step {step}: cpu loss {} gpu loss {} (relative {relative:e}); l1 {} / {}, mask {} / {}, dssim {} / {}, aiap {} / {}",
+            a.total, b.total, a.l1, b.l1, a.mask_mse, b.mask_mse, a.dssim, b.dssim, a.aiap, b.aiap
         );
         assert!(relative < 1e-3, "step {step}: {} vs {}", a.total, b.total);
     }
@@ -561,7 +572,10 @@ fn gpu_steps_with_networks_match_cpu() {
 /// every `log_every` iterations.
 #[test]
 fn resident_paper_iteration_reads_nothing_back() {
-    let Some(gpu) = gpu_backend() else { return };
+    // A context of its own: the counters see this trainer's traffic only.
+    let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend_alone() else {
+        return;
+    };
     let dir = tempfile::tempdir().unwrap();
     let (data, _) = tiny_data(dir.path(), 40);
     let mut config = TrainConfig::preset(seqavatar_train::config::Preset::Paper);

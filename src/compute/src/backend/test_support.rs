@@ -49,3 +49,14 @@ pub fn gpu_test_context_with_dispatch_limit(limit: u32) -> Option<Arc<GpuContext
         Err(error) => panic!("a second gpu context could not be opened: {error}"),
     }
 }
+
+/// The gpu backend on a context of its own (not shared with other tests), or `None` under
+/// the same rules as [`gpu_test_context`]: for tests that count the context's host-device
+/// traffic ([`GpuContext::transfers`]) while other tests run in parallel.
+pub fn gpu_test_backend_alone() -> Option<Backend> {
+    gpu_test_context()?;
+    match GpuContext::new(AdapterChoice::AllowSoftware) {
+        Ok(context) => Some(Backend::Gpu(Arc::new(context))),
+        Err(error) => panic!("a second gpu context could not be opened: {error}"),
+    }
+}

@@ -217,8 +217,8 @@ impl ResidentStep {
             } else {
                 0.0
             },
-            max_pixels,
             config.cameras_per_step,
+            max_pixels,
         )
         .context("image losses")?;
         let gaussians = ResidentGaussians::upload(&context, state).context("Gaussians")?;
