@@ -548,11 +548,11 @@ impl GpuNetworks {
             Some(work) if work.capacity >= n => work,
             _ => self.allocate_resident(group, n)?,
         };
-        if work.built_for != Some(n) {
-            if let Err(error) = self.build_programs(group, &mut work, n) {
-                self.resident[slot] = Some(work);
-                return Err(error);
-            }
+        if work.built_for != Some(n)
+            && let Err(error) = self.build_programs(group, &mut work, n)
+        {
+            self.resident[slot] = Some(work);
+            return Err(error);
         }
         for ((input_spec, blocks), raw) in spec.inputs.iter().zip(inputs).zip(&work.raw) {
             let len = input_spec.rows.block_rows(n, spec.window) * input_spec.width;
