@@ -29,6 +29,7 @@ const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
 const ADAM_WGSL: &str = include_str!("../../../../shaders/nn_adam.wgsl");
 const POSENC_WGSL: &str = include_str!("../../../../shaders/nn_posenc.wgsl");
 const RODRIGUES_WGSL: &str = include_str!("../../../../shaders/nn_rodrigues.wgsl");
+const FINITE_WGSL: &str = include_str!("../../../../shaders/nn_finite.wgsl");
 
 /// Output tile edge of the matrix kernel (rows and columns), as in `nn_matmul.wgsl`.
 const TILE: usize = 64;
@@ -251,6 +252,16 @@ pub(crate) struct AdamParams {
     pad: [u32; 3],
 }
 
+/// `Params` in `nn_finite.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct FiniteParams {
+    len: u32,
+    groups_x: u32,
+    slot: u32,
+    pad: u32,
+}
+
 /// `Params` in `nn_rodrigues.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -318,6 +329,12 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "_pad2" => pad[1],
             "_pad3" => pad[2],
         }),
+        wgsl_twin!(FiniteParams as "Params" in ["nn_finite.wgsl"] {
+            "len" => len,
+            "groups_x" => groups_x,
+            "slot" => slot,
+            "_pad" => pad,
+        }),
         wgsl_twin!(RodriguesParams as "Params" in ["nn_rodrigues.wgsl"] {
             "count" => count,
             "groups_x" => groups_x,
@@ -359,6 +376,7 @@ pub struct NnGpu {
     posenc_backward: Kernel,
     rodrigues_forward: Kernel,
     rodrigues_backward: Kernel,
+    finite: Kernel,
     /// Bound to read-only slots a dispatch does not use.
     placeholder: wgpu::Buffer,
     /// Partial sums of the split reductions; grown on demand, reused across calls (commands
@@ -420,6 +438,7 @@ impl NnGpu {
             posenc_backward: compile("nn_posenc_backward", POSENC_WGSL, "backward")?,
             rodrigues_forward: compile("nn_rodrigues_forward", RODRIGUES_WGSL, "forward")?,
             rodrigues_backward: compile("nn_rodrigues_backward", RODRIGUES_WGSL, "backward")?,
+            finite: compile("nn_finite", FINITE_WGSL, "main")?,
             placeholder: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn placeholder"),
                 size: 16,
@@ -1013,6 +1032,38 @@ impl NnGpu {
         Ok(())
     }
 
+    /// Records the non-finite check of `len` values: `status[slot]` (a `u32` word, zero when
+    /// cleared) becomes `0xffffffff - i` for the first non-finite `values[i]` (the largest
+    /// flag wins; [`first_non_finite`] decodes it), and is left unchanged when every value
+    /// is finite. The flag is sticky until the caller clears the status buffer.
+    pub fn flag_non_finite(
+        &self,
+        encoder: &mut impl Record,
+        values: &wgpu::Buffer,
+        len: usize,
+        status: &wgpu::Buffer,
+        slot: usize,
+    ) -> Result<(), NnError> {
+        self.check_buffer("checked values", values, len)?;
+        self.check_buffer("status", status, slot + 1)?;
+        let (x, y) = self.grid(len.div_ceil(256))?;
+        let params = FiniteParams {
+            len: to_u32("checked length", len)?,
+            groups_x: x,
+            slot: to_u32("status slot", slot)?,
+            pad: 0,
+        };
+        self.dispatch(
+            encoder,
+            &self.finite,
+            bytemuck::bytes_of(&params),
+            &[(1, values), (2, status)],
+            x,
+            y,
+        );
+        Ok(())
+    }
+
     /// Records the regularised Rodrigues map of `count` rotation vectors (`count x 3`) into
     /// `matrices` (`count x 9`, row-major): `theta = sqrt(epsilon + |v|^2)`, `k = v / theta`,
     /// `R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x`.
@@ -1164,6 +1215,12 @@ impl NnGpu {
         );
         Ok(())
     }
+}
+
+/// The first non-finite index flagged in a status word by [`NnGpu::flag_non_finite`], or
+/// `None` when the word is clear.
+pub fn first_non_finite(status: u32) -> Option<usize> {
+    (status != 0).then(|| (u32::MAX - status) as usize)
 }
 
 /// The device layout of Adam step factors read by `nn_adam.wgsl`: `[step_size, correction]`

@@ -8,6 +8,13 @@
 //! activations stay on the device in the returned cache for the backward, which likewise
 //! takes host gradients and returns the host position gradient.
 //!
+//! The resident step uses the other entry points ([`GpuNetworks::record_forward`],
+//! [`GpuNetworks::record_backward`], [`GpuNetworks::record_adam`] and their per-network
+//! forms, in `resident`): inputs and output gradients are device buffers, outputs and input
+//! gradients stay in buffers of a workspace sized for a Gaussian capacity, and each pass is a
+//! replayed [`seqavatar_compute::nn::gpu::NnProgram`] recorded into the caller's encoder with
+//! no upload, read-back or allocation in the steady state.
+//!
 //! Each network is run from its description ([`NetworkSpec`]) by one forward and one
 //! backward ([`GpuNetworks::forward_net`], [`GpuNetworks::backward_net`]) that drive the
 //! `nn` kernels by layer index, exactly as the `cpu` interpreter ([`super::network`]) does.
@@ -142,7 +149,7 @@ pub struct GpuNetworks {
     programs_built: std::sync::atomic::AtomicUsize,
 }
 
-pub use resident::NonRigidDeviceInputs;
+pub use resident::{NetworkNonFinite, NonRigidDeviceInputs};
 
 fn gpu_error(error: impl std::fmt::Display) -> ModelError {
     ModelError::Gpu(error.to_string())

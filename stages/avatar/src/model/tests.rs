@@ -1872,6 +1872,34 @@ fn resident_adam_matches_cpu_adam_update_and_round_trips() {
     assert_eq!(resumed.adam_step(), 3);
     step(&mut cpu, &mut resumed, &mut states, &mut rng);
     compare(&cpu, &resumed, &states, "resumed step 4");
+    assert_eq!(resumed.download_non_finite().unwrap(), None);
+    // A NaN gradient and an infinite value are flagged on the device, first array first.
+    let params = resumed.parameters();
+    let (first, second) = (&params[1], &params[4]);
+    let mut bad = vec![0.5_f32; first.len];
+    bad[first.len - 1] = f32::NAN;
+    context.write(first.grads, 0, &bad).unwrap();
+    let mut huge = vec![0.5_f32; second.len];
+    huge[0] = f32::INFINITY;
+    context.write(second.grads, 0, &huge).unwrap();
+    let (first_name, first_len) = (first.name.clone(), first.len);
+    drop(params);
+    let mut encoder = context.encoder();
+    resumed.record_adam(&mut encoder, &adam, rate).unwrap();
+    context.submit_and_wait(encoder).unwrap();
+    let flagged = resumed.download_non_finite().unwrap().unwrap();
+    assert_eq!(
+        flagged,
+        gpu::NetworkNonFinite {
+            tensor: format!("network.{first_name}"),
+            gradient: true,
+            index: first_len - 1,
+        }
+    );
+    let mut encoder = context.encoder();
+    resumed.record_clear_non_finite(&mut encoder);
+    context.submit_and_wait(encoder).unwrap();
+    assert_eq!(resumed.download_non_finite().unwrap(), None);
     // A missing state is named.
     let mut partial = gpu.download_adam().unwrap();
     let name = partial.keys().next().unwrap().clone();

@@ -20,6 +20,7 @@ use seqavatar_compute::nn::AdamConfig;
 use seqavatar_compute::nn::adam::{AdamState, AdamStepFactors};
 use seqavatar_compute::nn::gpu::{
     GpuInputGrad, GpuInputPart, GpuLinearGrads, NnProgram, Record, adam_factors_record,
+    first_non_finite,
 };
 
 use super::super::network::folded_shapes;
@@ -42,6 +43,17 @@ pub struct NonRigidDeviceInputs<'a> {
     /// element-`l` slices of `GaussianInputs::knn_velocity`); empty exactly when the motion
     /// context has no velocity.
     pub knn_velocity: &'a [&'a wgpu::Buffer],
+}
+
+/// A non-finite network value found on the device (the `cpu` trainer's `Divergence`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct NetworkNonFinite {
+    /// `network.{parameter name}`, as the `cpu` trainer names it.
+    pub tensor: String,
+    /// Whether the gradient (before the update) was non-finite, else the values (after it).
+    pub gradient: bool,
+    /// The first non-finite index in the array.
+    pub index: usize,
 }
 
 /// The workspace and programs of one network (see the module documentation).
@@ -82,6 +94,9 @@ pub(super) struct ResidentAdam {
     moments: Vec<[wgpu::Buffer; 2]>,
     /// `[step_size, correction]` per network group (slot = [`group_slot`]).
     record: wgpu::Buffer,
+    /// Non-finite flags (`nn_finite.wgsl`), `u32`: per parameter array `p`, slot `2 p` for its
+    /// gradient (checked before the update) and `2 p + 1` for its values (after).
+    status: wgpu::Buffer,
     program: NnProgram,
     /// Updates applied so far.
     step: u64,
@@ -533,11 +548,11 @@ impl GpuNetworks {
             Some(work) if work.capacity >= n => work,
             _ => self.allocate_resident(group, n)?,
         };
-        if work.built_for != Some(n) {
-            if let Err(error) = self.build_programs(group, &mut work, n) {
-                self.resident[slot] = Some(work);
-                return Err(error);
-            }
+        if work.built_for != Some(n)
+            && let Err(error) = self.build_programs(group, &mut work, n)
+        {
+            self.resident[slot] = Some(work);
+            return Err(error);
         }
         for ((input_spec, blocks), raw) in spec.inputs.iter().zip(inputs).zip(&work.raw) {
             let len = input_spec.rows.block_rows(n, spec.window) * input_spec.width;
@@ -749,8 +764,11 @@ impl GpuNetworks {
                 .collect::<Result<Vec<_>, ModelError>>()?,
         };
         let record = self.zeros("network adam record", 2 * GROUPS.len())?;
+        let status = self.zeros("network non-finite status", 2 * params.len())?;
         let mut program = NnProgram::new();
-        for (param, [m, v]) in params.iter().zip(&moments) {
+        for (index, (param, [m, v])) in params.iter().zip(&moments).enumerate() {
+            self.nn
+                .flag_non_finite(&mut program, param.grads, param.len, &status, 2 * index)?;
             self.nn.adam_update_from_record(
                 &mut program,
                 config,
@@ -761,11 +779,19 @@ impl GpuNetworks {
                 v,
                 param.len,
             )?;
+            self.nn.flag_non_finite(
+                &mut program,
+                param.values,
+                param.len,
+                &status,
+                2 * index + 1,
+            )?;
         }
         Ok(ResidentAdam {
             config: *config,
             moments,
             record,
+            status,
             program,
             step,
         })
@@ -804,6 +830,41 @@ impl GpuNetworks {
         adam.program.replay(encoder);
         self.adam = Some(adam);
         Ok(())
+    }
+
+    /// Reads the non-finite flags of the device Adam (one read-back, for the logging
+    /// iterations): the first parameter array, in [`GpuNetworks::parameters`] order, whose
+    /// gradient (checked before the update) or values (after it) held a NaN or an infinity
+    /// since the flags were last cleared ([`GpuNetworks::record_clear_non_finite`]), with the
+    /// first bad index; `None` when all were finite or no update ran.
+    pub fn download_non_finite(&self) -> Result<Option<NetworkNonFinite>, ModelError> {
+        let Some(adam) = &self.adam else {
+            return Ok(None);
+        };
+        let params = self.parameters();
+        let flags = self
+            .context
+            .download::<u32>(self.context.encoder(), &adam.status, 2 * params.len())
+            .map_err(gpu_error)?;
+        for (param, pair) in params.iter().zip(flags.chunks_exact(2)) {
+            for (gradient, &flag) in [true, false].into_iter().zip(pair) {
+                if let Some(index) = first_non_finite(flag) {
+                    return Ok(Some(NetworkNonFinite {
+                        tensor: format!("network.{}", param.name),
+                        gradient,
+                        index,
+                    }));
+                }
+            }
+        }
+        Ok(None)
+    }
+
+    /// Records the clearing of the non-finite flags of the device Adam.
+    pub fn record_clear_non_finite(&self, encoder: &mut wgpu::CommandEncoder) {
+        if let Some(adam) = &self.adam {
+            encoder.clear_buffer(&adam.status, 0, None);
+        }
     }
 
     /// How many resident programs were built so far (a steady-state iteration builds none).
