@@ -150,17 +150,32 @@ pub struct ResidentPose {
     shape_count: usize,
     rotations_at: usize,
     d_rotations_at: usize,
+    /// `PoseParams` (uniform, 16 `u32`), fixed per sequence.
     params: wgpu::Buffer,
+    /// `PoseRecord` (uniform, 4 `u32`), written once per iteration by the forward.
     record: wgpu::Buffer,
+    /// Per frame `J x 9` local rotations, per frame `12` world `(R(Rh) row-major, Th)`, per
+    /// shape `J x 3` rest joints, at the offsets in `params`.
     sequence: GpuBuffer,
+    /// `J` parent indices (`u32`, `NO_PARENT` for the root).
     parents: GpuBuffer,
+    /// Per shape `V x 3`: `shape_v - P_v f(big)`.
     base_offsets: GpuBuffer,
+    /// `posedirs`, `(V x 3) x 9 (J - 1)`, or empty.
     pose_dirs: GpuBuffer,
+    /// Workspace: `R'` `J x 9`, global frames `J x 12` (`M_j` row-major then `g_j`), the
+    /// pose feature `9 (J - 1)` (when there are pose blend shapes), the frames' gradients
+    /// `J x 12`, `dL/dR'` `J x 9`.
     chain: GpuBuffer,
+    /// `blend_groups x features` partial sums of `P^T dL/d offsets`.
     partials: GpuBuffer,
+    /// `J x 12`.
     target_joints: GpuBuffer,
+    /// `V x 3`.
     vertex_offsets: GpuBuffer,
+    /// `(J - 1) x 9`.
     refinement_gradients: GpuBuffer,
+    /// 4 `u32` counters ([`PoseStatus`]).
     status: GpuBuffer,
     /// Per frame the local pose without the root, `3 (J - 1)` axis-angle values.
     local_poses: GpuBuffer,
@@ -194,7 +209,8 @@ fn u32_len(what: &str, value: usize) -> anyhow::Result<u32> {
 impl ResidentPose {
     /// Uploads what the pose path of a sequence needs, once: the kinematic tree, for every
     /// frame of `frames` (its unrefined body parameters, indexed as [`ResidentPose::forward`]
-    /// indexes them) the local rotation matrices and the world transform `(R(Rh), Th)`, for
+    /// indexes them) the local rotation matrices, the local pose (the refiner's input) and
+    /// the world transform `(R(Rh), Th)`, for
     /// every distinct body shape among them the rest joints and the base offsets
     /// `shape_v - P_v f(big)`, and `posedirs`; and allocates the workspace and outputs.
     pub fn new(
