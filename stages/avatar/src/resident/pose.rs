@@ -66,7 +66,8 @@ impl PoseStatus {
     }
 }
 
-/// `PoseParams` in the shader: sizes and offsets fixed per sequence.
+/// Sizes and offsets fixed per sequence, the shader's `params` uniform (16 `u32` as
+/// `array<vec4u, 4>`, in the order of [`PoseParams::words`]).
 #[derive(Clone, Copy, Debug, Default)]
 struct PoseParams {
     joints: u32,
@@ -84,7 +85,7 @@ struct PoseParams {
 }
 
 impl PoseParams {
-    /// The uniform's 16 words, in the shader's member order.
+    /// The uniform's 16 words, in the order of the shader's accessors (`joint_count()`...).
     fn words(&self) -> [u32; 16] {
         [
             self.joints,
@@ -107,7 +108,8 @@ impl PoseParams {
     }
 }
 
-/// The per-iteration record (`PoseRecord` in the shader): `[frame, shape, refine, 0]`.
+/// The per-iteration record, the shader's `record` uniform (`vec4u`):
+/// `[frame, shape, refine, 0]`.
 type PoseRecord = [u32; 4];
 
 struct PoseKernels {
@@ -150,9 +152,9 @@ pub struct ResidentPose {
     shape_count: usize,
     rotations_at: usize,
     d_rotations_at: usize,
-    /// `PoseParams` (uniform, 16 `u32`), fixed per sequence.
+    /// [`PoseParams`] (uniform, 16 `u32`), fixed per sequence.
     params: wgpu::Buffer,
-    /// `PoseRecord` (uniform, 4 `u32`), written once per iteration by the forward.
+    /// [`PoseRecord`] (uniform, 4 `u32`), written once per iteration by the forward.
     record: wgpu::Buffer,
     /// Per frame `J x 9` local rotations, per frame `12` world `(R(Rh) row-major, Th)`, per
     /// shape `J x 3` rest joints, at the offsets in `params`.
