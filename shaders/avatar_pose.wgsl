@@ -17,38 +17,34 @@
 // - `pose_backward` (one workgroup): the partial sums reduced in a fixed order, the chain
 //   backward, and `dL/dR_ref_j = R_j^T dL/dR'_j`.
 
-// Sizes and offsets, fixed per sequence (`PoseParams` in pose.rs).
-struct PoseParams {
-    joints: u32,
-    vertices: u32,
-    // Pose-feature length 9 (J - 1), or 0 without pose blend shapes.
-    features: u32,
-    // Workgroups of `pose_blend_backward` (partial sums per feature).
-    blend_groups: u32,
-    // Offsets (in floats) into `sequence`.
-    frame_rotations_at: u32,
-    frame_world_at: u32,
-    rest_joints_at: u32,
-    // Offsets (in floats) into `chain`.
-    rotations_at: u32,
-    globals_at: u32,
-    feature_at: u32,
-    d_globals_at: u32,
-    d_rotations_at: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-    _pad3: u32,
-}
+// The kernels' uniforms are plain words rather than structs: their Rust side lives in the
+// avatar crate, which the struct-layout test of `compute::backend::shaders` cannot see, and
+// an array of `vec4u` has the layout of the `u32` array pose.rs writes, with no padding.
+//
+// Sizes and offsets, fixed per sequence (`PoseParams::words` in pose.rs), in this order:
+// joints, vertices, features (9 (J - 1), or 0 without pose blend shapes), blend_groups
+// (workgroups of `pose_blend_backward`); offsets in floats into `sequence`:
+// frame_rotations_at, frame_world_at, rest_joints_at; offsets in floats into `chain`:
+// rotations_at, globals_at, feature_at, d_globals_at, d_rotations_at; 4 unused.
+fn joint_count() -> u32 { return params[0].x; }
+fn vertex_count() -> u32 { return params[0].y; }
+fn feature_count() -> u32 { return params[0].z; }
+fn blend_groups() -> u32 { return params[0].w; }
+fn frame_rotations_at() -> u32 { return params[1].x; }
+fn frame_world_at() -> u32 { return params[1].y; }
+fn rest_joints_at() -> u32 { return params[1].z; }
+fn rotations_at() -> u32 { return params[1].w; }
+fn globals_at() -> u32 { return params[2].x; }
+fn feature_at() -> u32 { return params[2].y; }
+fn d_globals_at() -> u32 { return params[2].z; }
+fn d_rotations_at() -> u32 { return params[2].w; }
 
-// The iteration's record (`PoseRecord` in pose.rs), written once per iteration.
-struct PoseRecord {
-    frame: u32,
-    shape: u32,
-    // 1 when `refinements` holds the refiner's matrices, 0 to use the frame's own pose.
-    refine: u32,
-    _pad: u32,
-}
+// The iteration's record (`PoseRecord` in pose.rs), written once per iteration: frame,
+// shape, refine (1 when `refinements` holds the refiner's matrices, 0 to use the frame's
+// own pose), unused.
+fn record_frame() -> u32 { return record.x; }
+fn record_shape() -> u32 { return record.y; }
+fn record_refine() -> u32 { return record.z; }
 
 // Status counters (`PoseStatus` in pose.rs).
 const STATUS_TARGET_JOINTS: u32 = 0u;
@@ -60,8 +56,8 @@ const CHAIN_GROUP: u32 = 64u;
 const OFFSET_GROUP: u32 = 256u;
 const BLEND_ROWS: u32 = 128u;
 
-@group(0) @binding(0) var<uniform> params: PoseParams;
-@group(0) @binding(1) var<uniform> record: PoseRecord;
+@group(0) @binding(0) var<uniform> params: array<vec4u, 4>;
+@group(0) @binding(1) var<uniform> record: vec4u;
 // Per sequence: per frame `J x 9` local rotations, per frame `12` world `(W row-major, T)`,
 // per shape `J x 3` rest joints.
 @group(0) @binding(2) var<storage, read> sequence: array<f32>;
@@ -143,34 +139,34 @@ fn outer(a: vec3f, b: vec3f) -> mat3x3f {
 }
 
 fn frame_rotation(j: u32) -> mat3x3f {
-    return sequence_matrix(params.frame_rotations_at + 9u * (params.joints * record.frame + j));
+    return sequence_matrix(frame_rotations_at() + 9u * (joint_count() * record_frame() + j));
 }
 
 fn world_rotation() -> mat3x3f {
-    return sequence_matrix(params.frame_world_at + 12u * record.frame);
+    return sequence_matrix(frame_world_at() + 12u * record_frame());
 }
 
 fn world_translation() -> vec3f {
-    return sequence_vector(params.frame_world_at + 12u * record.frame + 9u);
+    return sequence_vector(frame_world_at() + 12u * record_frame() + 9u);
 }
 
 fn rest_joint(j: u32) -> vec3f {
-    return sequence_vector(params.rest_joints_at + 3u * (params.joints * record.shape + j));
+    return sequence_vector(rest_joints_at() + 3u * (joint_count() * record_shape() + j));
 }
 
 @compute @workgroup_size(64)
 fn pose_forward(@builtin(local_invocation_index) t: u32) {
-    let joints = params.joints;
+    let joints = joint_count();
     // Refined local rotations and the pose feature.
     for (var j = t; j < joints; j += CHAIN_GROUP) {
         var r = frame_rotation(j);
-        if record.refine != 0u && j > 0u {
+        if record_refine() != 0u && j > 0u {
             r = r * refinement(j);
         }
-        store_chain_matrix(params.rotations_at + 9u * j, r);
-        if params.features != 0u && j > 0u {
+        store_chain_matrix(rotations_at() + 9u * j, r);
+        if feature_count() != 0u && j > 0u {
             let d = r - mat3x3f(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0);
-            store_chain_matrix(params.feature_at + 9u * (j - 1u), d);
+            store_chain_matrix(feature_at() + 9u * (j - 1u), d);
         }
     }
     storageBarrier();
@@ -178,19 +174,19 @@ fn pose_forward(@builtin(local_invocation_index) t: u32) {
     // g_j = M_p (J_j - J_p) + g_p; the root's frame is (R_0, J_0).
     if t == 0u {
         for (var j = 0u; j < joints; j++) {
-            let r = chain_matrix(params.rotations_at + 9u * j);
+            let r = chain_matrix(rotations_at() + 9u * j);
             let rest = rest_joint(j);
             let p = parents[j];
             var m = r;
             var g = rest;
             if p != NO_PARENT {
-                let m_p = chain_matrix(params.globals_at + 12u * p);
-                let g_p = chain_vector(params.globals_at + 12u * p + 9u);
+                let m_p = chain_matrix(globals_at() + 12u * p);
+                let g_p = chain_vector(globals_at() + 12u * p + 9u);
                 m = m_p * r;
                 g = m_p * (rest - rest_joint(p)) + g_p;
             }
-            store_chain_matrix(params.globals_at + 12u * j, m);
-            store_chain_vector(params.globals_at + 12u * j + 9u, g);
+            store_chain_matrix(globals_at() + 12u * j, m);
+            store_chain_vector(globals_at() + 12u * j + 9u, g);
         }
     }
     storageBarrier();
@@ -198,8 +194,8 @@ fn pose_forward(@builtin(local_invocation_index) t: u32) {
     let w = world_rotation();
     let translation = world_translation();
     for (var j = t; j < joints; j += CHAIN_GROUP) {
-        let m = chain_matrix(params.globals_at + 12u * j);
-        let g = chain_vector(params.globals_at + 12u * j + 9u);
+        let m = chain_matrix(globals_at() + 12u * j);
+        let g = chain_vector(globals_at() + 12u * j + 9u);
         let linear = w * m;
         let offset = w * (g - m * rest_joint(j)) + translation;
         var bad = 0u;
@@ -224,15 +220,15 @@ fn pose_offsets(
     @builtin(local_invocation_index) t: u32,
 ) {
     let row = (group.x + group.y * groups.x) * OFFSET_GROUP + t;
-    if row >= 3u * params.vertices {
+    if row >= 3u * vertex_count() {
         return;
     }
-    let features = params.features;
+    let features = feature_count();
     var blend = 0.0;
     for (var k = 0u; k < features; k++) {
-        blend += pose_dirs[row * features + k] * chain[params.feature_at + k];
+        blend += pose_dirs[row * features + k] * chain[feature_at() + k];
     }
-    let value = base_offsets[3u * params.vertices * record.shape + row] + blend;
+    let value = base_offsets[3u * vertex_count() * record_shape() + row] + blend;
     vertex_offsets[row] = value;
     if !finite(value) {
         atomicAdd(&status[STATUS_VERTEX_OFFSETS], 1u);
@@ -249,10 +245,10 @@ fn pose_blend_backward(
 ) {
     // Uniform across the workgroup: every thread reaches the barrier or none does.
     let block = group.x + group.y * groups.x;
-    if block >= params.blend_groups {
+    if block >= blend_groups() {
         return;
     }
-    let rows = 3u * params.vertices;
+    let rows = 3u * vertex_count();
     let first = block * BLEND_ROWS;
     let row = first + t;
     var gradient = 0.0;
@@ -261,7 +257,7 @@ fn pose_blend_backward(
     }
     blend_gradient[t] = gradient;
     workgroupBarrier();
-    let features = params.features;
+    let features = feature_count();
     let count = min(BLEND_ROWS, rows - first);
     for (var k = t; k < features; k += BLEND_ROWS) {
         var sum = 0.0;
@@ -274,7 +270,7 @@ fn pose_blend_backward(
 
 @compute @workgroup_size(64)
 fn pose_backward(@builtin(local_invocation_index) t: u32) {
-    let joints = params.joints;
+    let joints = joint_count();
     let wt = transpose(world_rotation());
     // Target = W [M_j | g_j - M_j J_j] + T: dL/dM_j = W^T dLin - (W^T dt) J_j^T,
     // dL/dg_j = W^T dt.
@@ -286,20 +282,20 @@ fn pose_backward(@builtin(local_invocation_index) t: u32) {
             d_target_joints[at + 8u], d_target_joints[at + 9u], d_target_joints[at + 10u],
         ));
         let d_t = wt * vec3f(d_target_joints[at + 3u], d_target_joints[at + 7u], d_target_joints[at + 11u]);
-        store_chain_matrix(params.d_globals_at + at, wt * d_linear - outer(d_t, rest_joint(j)));
-        store_chain_vector(params.d_globals_at + at + 9u, d_t);
-        store_chain_matrix(params.d_rotations_at + 9u * j, mat3x3f());
+        store_chain_matrix(d_globals_at() + at, wt * d_linear - outer(d_t, rest_joint(j)));
+        store_chain_vector(d_globals_at() + at + 9u, d_t);
+        store_chain_matrix(d_rotations_at() + 9u * j, mat3x3f());
     }
     storageBarrier();
     // Pose blend shapes: dL/dR_j += unvec(dL/df) for j >= 1 (feature k is joint 1 + k / 9,
     // entry k % 9 row-major), the partial sums added in workgroup order.
-    let features = params.features;
+    let features = feature_count();
     for (var k = t; k < features; k += CHAIN_GROUP) {
         var sum = 0.0;
-        for (var b = 0u; b < params.blend_groups; b++) {
+        for (var b = 0u; b < blend_groups(); b++) {
             sum += partials[b * features + k];
         }
-        chain[params.d_rotations_at + 9u + k] = sum;
+        chain[d_rotations_at() + 9u + k] = sum;
     }
     storageBarrier();
     // The chain, leaves first: dL/dR_j += M_p^T dL/dM_j,
@@ -308,17 +304,17 @@ fn pose_backward(@builtin(local_invocation_index) t: u32) {
     if t == 0u {
         for (var step = 0u; step < joints; step++) {
             let j = joints - 1u - step;
-            let d_m = chain_matrix(params.d_globals_at + 12u * j);
-            let d_g = chain_vector(params.d_globals_at + 12u * j + 9u);
-            let d_r_at = params.d_rotations_at + 9u * j;
+            let d_m = chain_matrix(d_globals_at() + 12u * j);
+            let d_g = chain_vector(d_globals_at() + 12u * j + 9u);
+            let d_r_at = d_rotations_at() + 9u * j;
             let p = parents[j];
             if p == NO_PARENT {
                 store_chain_matrix(d_r_at, chain_matrix(d_r_at) + d_m);
             } else {
-                let m_p = chain_matrix(params.globals_at + 12u * p);
+                let m_p = chain_matrix(globals_at() + 12u * p);
                 store_chain_matrix(d_r_at, chain_matrix(d_r_at) + transpose(m_p) * d_m);
-                let r = chain_matrix(params.rotations_at + 9u * j);
-                let p_at = params.d_globals_at + 12u * p;
+                let r = chain_matrix(rotations_at() + 9u * j);
+                let p_at = d_globals_at() + 12u * p;
                 let d_m_p = chain_matrix(p_at) + d_m * transpose(r)
                     + outer(d_g, rest_joint(j) - rest_joint(p));
                 store_chain_matrix(p_at, d_m_p);
@@ -329,7 +325,7 @@ fn pose_backward(@builtin(local_invocation_index) t: u32) {
     storageBarrier();
     // R'_j = R_j R_ref_j: dL/dR_ref_j = R_j^T dL/dR'_j.
     for (var j = t + 1u; j < joints; j += CHAIN_GROUP) {
-        let g = transpose(frame_rotation(j)) * chain_matrix(params.d_rotations_at + 9u * j);
+        let g = transpose(frame_rotation(j)) * chain_matrix(d_rotations_at() + 9u * j);
         var bad = 0u;
         for (var r = 0u; r < 3u; r++) {
             for (var c = 0u; c < 3u; c++) {

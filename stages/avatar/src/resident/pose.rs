@@ -14,12 +14,14 @@
 //! - backward: `dL/dR_ref_j = R_j^T dL/dR'_j`, `(J - 1) x 9`.
 //!
 //! Everything a sequence needs is uploaded once by [`ResidentPose::new`]: the kinematic tree,
-//! per frame the local rotation matrices and the world transform, per distinct body shape
+//! per frame the local rotation matrices, the local pose (the refiner's input) and the world
+//! transform, per distinct body shape
 //! (`betas`, `expression`) the rest joints and the base offsets, and `posedirs`. An
 //! iteration writes one 16-byte record ([`ResidentPose::forward`]) and reads nothing back.
 //!
-//! Order within an iteration (one submission): [`ResidentPose::forward`] (after the refiner's
-//! forward has been recorded), the skinning's forward and backward, then
+//! Order within an iteration (one submission): [`ResidentPose::record_refiner_input`] (the
+//! frame's local pose into [`ResidentPose::refiner_input`]), the refiner's forward,
+//! [`ResidentPose::forward`], the skinning's forward and backward, then
 //! [`ResidentPose::backward`] (before the refiner's backward). The backward reads the chain
 //! the forward of the same iteration left in the workspace.
 
@@ -32,6 +34,7 @@ use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::rotation::axis_angle_to_matrix;
 
+use crate::avatar::local_pose;
 use crate::rig::BodyRig;
 
 const POSE_WGSL: &str = include_str!("../../../../shaders/avatar_pose.wgsl");
@@ -63,7 +66,8 @@ impl PoseStatus {
     }
 }
 
-/// `PoseParams` in the shader: sizes and offsets fixed per sequence.
+/// Sizes and offsets fixed per sequence, the shader's `params` uniform (16 `u32` as
+/// `array<vec4u, 4>`, in the order of [`PoseParams::words`]).
 #[derive(Clone, Copy, Debug, Default)]
 struct PoseParams {
     joints: u32,
@@ -81,7 +85,7 @@ struct PoseParams {
 }
 
 impl PoseParams {
-    /// The uniform's 16 words, in the shader's member order.
+    /// The uniform's 16 words, in the order of the shader's accessors (`joint_count()`...).
     fn words(&self) -> [u32; 16] {
         [
             self.joints,
@@ -104,7 +108,8 @@ impl PoseParams {
     }
 }
 
-/// The per-iteration record (`PoseRecord` in the shader): `[frame, shape, refine, 0]`.
+/// The per-iteration record, the shader's `record` uniform (`vec4u`):
+/// `[frame, shape, refine, 0]`.
 type PoseRecord = [u32; 4];
 
 struct PoseKernels {
@@ -147,18 +152,37 @@ pub struct ResidentPose {
     shape_count: usize,
     rotations_at: usize,
     d_rotations_at: usize,
+    /// [`PoseParams`] (uniform, 16 `u32`), fixed per sequence.
     params: wgpu::Buffer,
+    /// [`PoseRecord`] (uniform, 4 `u32`), written once per iteration by the forward.
     record: wgpu::Buffer,
+    /// Per frame `J x 9` local rotations, per frame `12` world `(R(Rh) row-major, Th)`, per
+    /// shape `J x 3` rest joints, at the offsets in `params`.
     sequence: GpuBuffer,
+    /// `J` parent indices (`u32`, `NO_PARENT` for the root).
     parents: GpuBuffer,
+    /// Per shape `V x 3`: `shape_v - P_v f(big)`.
     base_offsets: GpuBuffer,
+    /// `posedirs`, `(V x 3) x 9 (J - 1)`, or empty.
     pose_dirs: GpuBuffer,
+    /// Workspace: `R'` `J x 9`, global frames `J x 12` (`M_j` row-major then `g_j`), the
+    /// pose feature `9 (J - 1)` (when there are pose blend shapes), the frames' gradients
+    /// `J x 12`, `dL/dR'` `J x 9`.
     chain: GpuBuffer,
+    /// `blend_groups x features` partial sums of `P^T dL/d offsets`.
     partials: GpuBuffer,
+    /// `J x 12`.
     target_joints: GpuBuffer,
+    /// `V x 3`.
     vertex_offsets: GpuBuffer,
+    /// `(J - 1) x 9`.
     refinement_gradients: GpuBuffer,
+    /// 4 `u32` counters ([`PoseStatus`]).
     status: GpuBuffer,
+    /// Per frame the local pose without the root, `3 (J - 1)` axis-angle values.
+    local_poses: GpuBuffer,
+    /// The refiner's input of the current frame, `3 (J - 1)`.
+    refiner_input: GpuBuffer,
     /// Bound in place of the refiner's matrices when a forward runs without them.
     no_refinements: GpuBuffer,
 }
@@ -187,7 +211,8 @@ fn u32_len(what: &str, value: usize) -> anyhow::Result<u32> {
 impl ResidentPose {
     /// Uploads what the pose path of a sequence needs, once: the kinematic tree, for every
     /// frame of `frames` (its unrefined body parameters, indexed as [`ResidentPose::forward`]
-    /// indexes them) the local rotation matrices and the world transform `(R(Rh), Th)`, for
+    /// indexes them) the local rotation matrices, the local pose (the refiner's input) and
+    /// the world transform `(R(Rh), Th)`, for
     /// every distinct body shape among them the rest joints and the base offsets
     /// `shape_v - P_v f(big)`, and `posedirs`; and allocates the workspace and outputs.
     pub fn new(
@@ -211,6 +236,7 @@ impl ResidentPose {
         // Per frame: local rotations and world transform; per shape: rest joints and base.
         let mut frame_rotations = Vec::with_capacity(frames.len() * joints * 9);
         let mut frame_world = Vec::with_capacity(frames.len() * 12);
+        let mut local_poses = Vec::with_capacity(frames.len() * 3 * (joints - 1));
         let mut shapes: HashMap<(Vec<u64>, Vec<u64>), u32> = HashMap::new();
         let mut frame_shapes = Vec::with_capacity(frames.len());
         let mut rest_joints: Vec<f32> = Vec::new();
@@ -223,6 +249,7 @@ impl ResidentPose {
             for v in &params.pose {
                 frame_rotations.extend(rows_f32(axis_angle_to_matrix(*v)));
             }
+            local_poses.extend(local_pose(params).iter().map(|x| *x as f32));
             frame_world.extend(rows_f32(axis_angle_to_matrix(params.world_rotation)));
             frame_world.extend(params.world_translation.to_array().map(|x| x as f32));
             let next = shapes.len() as u32;
@@ -309,6 +336,8 @@ impl ResidentPose {
                 4,
             )?,
             status: context.zeros("pose status", 4, 4)?,
+            local_poses: context.upload("local poses", &local_poses)?,
+            refiner_input: context.zeros("pose refiner input", 3 * (joints - 1), 4)?,
             no_refinements: context.zeros("no pose refinements", 0, 4)?,
             context,
         })
@@ -332,6 +361,44 @@ impl ResidentPose {
     /// Distinct body shapes among the frames (one per subject when `betas` are shared).
     pub fn shape_count(&self) -> usize {
         self.shape_count
+    }
+
+    /// The pose refiner's input of the frame of the last
+    /// [`ResidentPose::record_refiner_input`]: its local pose without the root, `3 (J - 1)`
+    /// axis-angle values ([`crate::avatar::local_pose`] in f32).
+    pub fn refiner_input(&self) -> &GpuBuffer {
+        &self.refiner_input
+    }
+
+    /// Records the copy of frame `frame`'s local pose into [`ResidentPose::refiner_input`]
+    /// (device to device, nothing uploaded), before the refiner's forward.
+    pub fn record_refiner_input(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        frame: usize,
+    ) -> anyhow::Result<()> {
+        self.shape_of(frame)?;
+        let values = 3 * (self.joints - 1);
+        if values > 0 {
+            let bytes = (4 * values) as u64;
+            encoder.copy_buffer_to_buffer(
+                &self.local_poses.buffer,
+                bytes * frame as u64,
+                &self.refiner_input.buffer,
+                0,
+                bytes,
+            );
+        }
+        Ok(())
+    }
+
+    fn shape_of(&self, frame: usize) -> anyhow::Result<u32> {
+        self.frame_shapes.get(frame).copied().ok_or_else(|| {
+            anyhow::anyhow!(
+                "resident pose: frame {frame} out of range ({} frames)",
+                self.frame_shapes.len()
+            )
+        })
     }
 
     /// The target joint transforms of the last forward, `J x 12` (3 x 4 row-major, world
@@ -382,12 +449,7 @@ impl ResidentPose {
         frame: usize,
         refinements: Option<&GpuBuffer>,
     ) -> anyhow::Result<()> {
-        let shape = *self.frame_shapes.get(frame).ok_or_else(|| {
-            anyhow::anyhow!(
-                "resident pose: frame {frame} out of range ({} frames)",
-                self.frame_shapes.len()
-            )
-        })?;
+        let shape = self.shape_of(frame)?;
         if let Some(buffer) = refinements {
             Self::check_len("refinements", buffer, 9 * (self.joints - 1))?;
         }

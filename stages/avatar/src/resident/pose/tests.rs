@@ -406,6 +406,7 @@ fn resident_pose_steady_state_uploads_only_its_record() {
         .unwrap();
     let iteration = |frame: usize| {
         let mut encoder = context.encoder();
+        pose.record_refiner_input(&mut encoder, frame).unwrap();
         pose.forward(&mut encoder, frame, Some(&refinements))
             .unwrap();
         pose.backward(&mut encoder, &d_target, &d_offsets).unwrap();
@@ -422,6 +423,20 @@ fn resident_pose_steady_state_uploads_only_its_record() {
     assert_eq!(traffic.bytes_down, 0, "{traffic:?}");
     assert_eq!(traffic.bytes_up, 16 * iterations as u64, "{traffic:?}");
     assert!(pose.download_status().unwrap().is_clean());
+    // The refiner's input is the last iteration's frame's local pose.
+    let last = (iterations - 1) % frames.len();
+    let input: Vec<f32> = context
+        .download(
+            context.encoder(),
+            &pose.refiner_input().buffer,
+            pose.refiner_input().len,
+        )
+        .unwrap();
+    let expected: Vec<f32> = crate::avatar::local_pose(&frames[last])
+        .iter()
+        .map(|x| *x as f32)
+        .collect();
+    assert_eq!(input, expected);
 }
 
 /// The vertex kernels split to 2D dispatches beyond the per-dimension limit give the same
@@ -511,6 +526,11 @@ fn resident_pose_rejects_bad_inputs() {
     let mut encoder = context.encoder();
     let error = pose.forward(&mut encoder, 1, None).unwrap_err().to_string();
     assert!(error.contains("frame 1 out of range"), "{error}");
+    let error = pose
+        .record_refiner_input(&mut encoder, 3)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("frame 3 out of range"), "{error}");
     let short = context.upload("short", &[0.0f32; 9]).unwrap();
     let error = pose
         .forward(&mut encoder, 0, Some(&short))
