@@ -741,8 +741,11 @@ fn pool_params(shape: PoolShape, total: u32) -> Result<Params, LpipsError> {
 }
 
 const RESIDENT_WGSL: &str = include_str!("../../../../shaders/lpips_resident.wgsl");
-const CROP_TO_TRUNK: (&str, &str, &str) =
-    ("lpips_resident_crop_to_trunk", RESIDENT_WGSL, "crop_to_trunk");
+const CROP_TO_TRUNK: (&str, &str, &str) = (
+    "lpips_resident_crop_to_trunk",
+    RESIDENT_WGSL,
+    "crop_to_trunk",
+);
 const REDUCE_DISTANCE: (&str, &str, &str) = (
     "lpips_resident_reduce_distance",
     RESIDENT_WGSL,
@@ -923,7 +926,8 @@ impl GpuLpips {
         let plan = self.plan(max_height, max_width)?;
         let context = &self.context;
         // Every buffer is sized for the largest crop (every extent grows with the input's).
-        let mut activations = vec![context.zeros("lpips trunk input", 6 * max_height * max_width, 4)?];
+        let mut activations =
+            vec![context.zeros("lpips trunk input", 6 * max_height * max_width, 4)?];
         let mut gradient_len = 3 * max_height * max_width;
         let (mut channels, mut h, mut w) = (3_usize, max_height, max_width);
         for step in steps(self.net) {
@@ -1003,9 +1007,20 @@ impl GpuLpips {
         let mut plan = Vec::new();
         // Forward, with what the backward needs.
         enum Trace {
-            Conv { conv: usize, shape: ConvShape, output: usize },
-            Pool { shape: PoolShape, input: usize },
-            Tap { layer: usize, features: usize, dims: [usize; 3] },
+            Conv {
+                conv: usize,
+                shape: ConvShape,
+                output: usize,
+            },
+            Pool {
+                shape: PoolShape,
+                input: usize,
+            },
+            Tap {
+                layer: usize,
+                features: usize,
+                dims: [usize; 3],
+            },
         }
         let mut trace = Vec::new();
         let (mut channels, mut h, mut w) = (3_usize, height, width);
@@ -1245,7 +1260,9 @@ impl ResidentLpips {
             ))
         })?;
         if gpu.net != self.net {
-            return Err(input_error("resident LPIPS: another trunk's workspace".to_owned()));
+            return Err(input_error(
+                "resident LPIPS: another trunk's workspace".to_owned(),
+            ));
         }
         if crop.height > self.max_height || crop.width > self.max_width {
             return Err(input_error(format!(
@@ -1303,7 +1320,10 @@ impl ResidentLpips {
         };
         // The call's record: one write, then device copies into the uniforms.
         let mut words: Vec<u32> = bytemuck::cast_slice(&[resident]).to_vec();
-        for op in plan.iter().filter(|op| !matches!(op.op, Planned::Clear { .. })) {
+        for op in plan
+            .iter()
+            .filter(|op| !matches!(op.op, Planned::Clear { .. }))
+        {
             words.extend_from_slice(bytemuck::cast_slice(&[op.params]));
         }
         let context = &self.context;

@@ -678,16 +678,36 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
         (
             LpipsNet::Vgg,
             [
-                Crop { x0: 3, y0: 5, width: 20, height: 18 },
+                Crop {
+                    x0: 3,
+                    y0: 5,
+                    width: 20,
+                    height: 18,
+                },
                 // Touching the right and bottom borders.
-                Crop { x0: 25, y0: 21, width: 16, height: 16 },
+                Crop {
+                    x0: 25,
+                    y0: 21,
+                    width: 16,
+                    height: 16,
+                },
             ],
         ),
         (
             LpipsNet::Alex,
             [
-                Crop { x0: 0, y0: 2, width: 33, height: 31 },
-                Crop { x0: 8, y0: 0, width: 31, height: 37 },
+                Crop {
+                    x0: 0,
+                    y0: 2,
+                    width: 33,
+                    height: 31,
+                },
+                Crop {
+                    x0: 8,
+                    y0: 0,
+                    width: 31,
+                    height: 37,
+                },
             ],
         ),
     ] {
@@ -770,7 +790,10 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
             assert!(largest > 0.0);
             for (index, (&ours, &theirs)) in got_gradient.iter().zip(&want_gradient).enumerate() {
                 if theirs == 0.5 {
-                    assert_eq!(ours, 0.5, "{net:?} {mapping:?} value {index} outside the crops");
+                    assert_eq!(
+                        ours, 0.5,
+                        "{net:?} {mapping:?} value {index} outside the crops"
+                    );
                 }
                 assert!(
                     (ours - theirs).abs() <= 1e-4 * largest,
@@ -791,7 +814,11 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
             let traffic = context.transfers().since(&before);
             assert_eq!(traffic.readbacks, 0, "{traffic:?}");
             assert_eq!(traffic.bytes_down, 0, "{traffic:?}");
-            assert_eq!(traffic.bytes_up, 2 * (112 + 48 * ops), "{net:?}: {traffic:?}");
+            assert_eq!(
+                traffic.bytes_up,
+                2 * (112 + 48 * ops),
+                "{net:?}: {traffic:?}"
+            );
         }
     }
     // A crop larger than the workspace is an error naming both sizes.
@@ -811,11 +838,19 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
             0,
             image,
             image,
-            Crop { x0: 0, y0: 0, width: 24, height: 18 },
+            Crop {
+                x0: 0,
+                y0: 0,
+                width: 24,
+                height: 18,
+            },
             1.0,
             &render_buffer,
         )
         .unwrap_err()
         .to_string();
-    assert!(error.contains("18 x 24") && error.contains("20 x 20"), "{error}");
+    assert!(
+        error.contains("18 x 24") && error.contains("20 x 20"),
+        "{error}"
+    );
 }
