@@ -87,11 +87,12 @@ pub struct TruthImage<'a> {
 /// row-major per image, images packed in order into chunk buffers of at most the device's
 /// storage-binding size (an image never straddles two chunks).
 ///
-/// Sizes: the demo (`pipelines/synthetic.yaml`: 8 cameras x 48 frames at 256 x 256) takes
-/// 384 x 256 KiB = 96 MiB for all its images (less for the training split alone); a
-/// DNA-Rendering sequence of 48 cameras x 150 frames at 1024 x 1224 takes 7200 x 4.78 MiB =
-/// 33.6 GiB, more than any one binding: it is split over chunks and needs that much device
-/// memory. The device's total memory is not queried (wgpu does not expose it): only the
+/// Sizes: the demo (`pipelines/synthetic.yaml`: 8 cameras x 48 frames at 256 x 256, 6
+/// training cameras) takes 288 x 256 KiB = 72 MiB for its training split (96 MiB for all 384
+/// images); a DNA-Rendering sequence of 48 cameras x 150 frames at 1024 x 1224 (after
+/// `resolution_scale`) takes 7200 x 4.78 MiB = 33.6 GiB (its default split, 24 training
+/// cameras x 100 frames, 11.2 GiB), more than any one binding: it is split over chunks and
+/// needs that much device memory. The device's total memory is not queried (wgpu does not expose it): only the
 /// per-buffer limits are checked, and an image larger than one binding is an error naming
 /// the sizes. Streaming images in from the host in chunks, for sequences larger than the
 /// device, can come later.

@@ -72,9 +72,12 @@ fn rect(x0: usize, y0: usize, x1: usize, y1: usize) -> Rect {
     Rect { x0, y0, x1, y1 }
 }
 
+/// One camera's (colour, alpha) gradients as the cpu path computes them.
+type CameraGradients = (Vec<f64>, Vec<f64>);
+
 /// What the cpu path computes for one iteration of `cases`: per camera the gradients times
 /// `1 / cameras`, and the iteration's averaged values.
-fn oracle(cases: &[Case], weights: ImageLossWeights) -> (Vec<(Vec<f64>, Vec<f64>)>, LossValues) {
+fn oracle(cases: &[Case], weights: ImageLossWeights) -> (Vec<CameraGradients>, LossValues) {
     let scale = 1.0 / cases.len() as f64;
     let mut values = LossValues::default();
     let mut gradients = Vec::new();
