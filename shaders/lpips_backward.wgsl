@@ -31,6 +31,13 @@ fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
     return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
 }
 
+// `a s - b t`, exactly 0 when `a = b` and `s = t` (as in lpips_forward.wgsl: without the
+// select a compiler may contract it into an fma that leaves the rounding error of `b t`, so
+// identical images would get a nonzero gradient).
+fn normalised_difference(a: f32, s: f32, b: f32, t: f32) -> f32 {
+    return select(a * s - b * t, 0.0, a == b && s == t);
+}
+
 // One thread: one pixel of one pair (`images` counts pairs, `in_channels` the channels,
 // `in_height * in_width` the pixels). Adds to `gradient` (pairs, C, pixels) the derivative of
 // the layer's spatial mean of sum_c w_c (u_c - v_c)^2, u = f0 / (|f0| + eps),
@@ -69,7 +76,7 @@ fn distance_backward(
     for (var channel = 0u; channel < params.in_channels; channel++) {
         let a = forward_values[first + channel * pixels];
         let b = forward_values[second + channel * pixels];
-        let g = 2.0 * weight[channel] * (a * scale0 - b * scale1) * mean;
+        let g = 2.0 * weight[channel] * normalised_difference(a, scale0, b, scale1) * mean;
         dot += g * a;
     }
     // |dot / length0| <= |g|, so the product below cannot overflow even as length0 -> 0.
@@ -81,7 +88,7 @@ fn distance_backward(
         let a = forward_values[first + channel * pixels];
         let b = forward_values[second + channel * pixels];
         let u = a * scale0;
-        let g = 2.0 * weight[channel] * (u - b * scale1) * mean;
+        let g = 2.0 * weight[channel] * normalised_difference(a, scale0, b, scale1) * mean;
         gradient[first + channel * pixels] += scale0 * (g - u * projection);
     }
 }

@@ -11,12 +11,13 @@
 // thread per value written) and every sum is a fixed-order tree, so no atomics are needed
 // and results do not depend on the subgroup size.
 //
-// SSIM planes live in two crop-sized workspaces of `slot.plane_stride` values per plane:
+// SSIM planes live in two crop-sized workspaces of `plane_stride()` values per plane:
 // `planes` (15: the row-blurred mu_x, mu_y, E[xx], E[yy], E[xy] per channel, quantity-major;
 // later its first 9 hold the row-blurred adjoints) and `adjoints` (10: d/d mu_x, d/d E[xx],
 // d/d E[xy] per channel, then the per-pixel SSIM summed over channels).
 
-// One camera of the iteration (16 words; the Rust twin is `CameraWords`).
+// One camera of the iteration (16 words of the record, packed by
+// `ImageLoss::begin_iteration`).
 struct LossCamera {
     // First pixel of the ground truth image in its chunk.
     image_offset: u32,
@@ -40,43 +41,23 @@ struct LossCamera {
     _pad3: u32,
 }
 
-// The per-iteration record (8 words, then the cameras), written once per iteration.
-struct LossRecord {
-    iteration: u32,
-    cameras: u32,
-    mask_weight: f32,
-    ssim_weight: f32,
-    lpips_weight: f32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
-    camera: array<LossCamera>,
-}
+// The per-iteration record, written once per iteration, bound as words: 8 header words
+// (iteration, cameras, mask weight, SSIM weight, LPIPS weight, 3 unused), then one
+// `LossCamera` (16 words) per camera. The buffers are bound as plain words rather than
+// structs because their Rust side lives in the train crate (stages/train/src/resident/
+// image_loss.rs packs them), outside compute's struct-twin layout test.
+// Per camera slot, created once with the workspace (a uniform of 4 x vec4 words): camera
+// index, plane stride, C1 and C2 (f32 bits), then the 11 normalised Gaussian window weights
+// (compute::ssim::gaussian_window, f32 bits), padded.
+//
+// The log record, 20 words: `current` (words 0-7) the iteration being recorded (its
+// cameras' terms times their scale, summed), `sum` (8-15) the sum of `current` over the
+// iterations since the last reset, both f32 with entries 0 l1, 1 mask_mse, 2 dssim, 3 lpips,
+// 4 psnr, 5 total, 6-7 free; then u32 iterations (16), non-finite iterations (17), first
+// non-finite iteration (18), last iteration (19).
 
-// Per camera slot, created once with the workspace.
-struct LossSlot {
-    camera: u32,
-    plane_stride: u32,
-    c1: f32,
-    c2: f32,
-    // The 11 normalised Gaussian window weights (compute::ssim::gaussian_window), padded.
-    window: array<vec4<f32>, 3>,
-}
-
-// The log record: `current` the iteration being recorded (its cameras' terms times their
-// scale, summed), `sum` the sum of `current` over the iterations since the last reset.
-// Entries: 0 l1, 1 mask_mse, 2 dssim, 3 lpips, 4 psnr, 5 total, 6-7 free.
-struct LossLog {
-    current: array<f32, 8>,
-    sum: array<f32, 8>,
-    iterations: u32,
-    nonfinite_iterations: u32,
-    first_nonfinite_iteration: u32,
-    last_iteration: u32,
-}
-
-@group(0) @binding(0) var<uniform> slot: LossSlot;
-@group(0) @binding(1) var<storage, read> record: LossRecord;
+@group(0) @binding(0) var<uniform> slot: array<vec4<u32>, 4>;
+@group(0) @binding(1) var<storage, read> record: array<u32>;
 // Packed 8-bit ground truth: r | g << 8 | b << 16 | mask << 24 per pixel.
 @group(0) @binding(2) var<storage, read> truth: array<u32>;
 @group(0) @binding(3) var<storage, read> colour: array<f32>;
@@ -88,9 +69,11 @@ struct LossLog {
 // Per workgroup of `image_loss_gradient`: (l1 sum, squared mask error sum, SSIM sum,
 // squared colour error sum).
 @group(0) @binding(9) var<storage, read_write> partials: array<vec4<f32>>;
-@group(0) @binding(10) var<storage, read_write> loss_log: LossLog;
+@group(0) @binding(10) var<storage, read_write> loss_log: array<u32>;
 // One f32: the LPIPS value of the camera (compute::lpips::gpu resident path).
 @group(0) @binding(11) var<storage, read> lpips_value: array<f32>;
+// The composited target of one image, `H x W x 3` (what the resident LPIPS compares with).
+@group(0) @binding(12) var<storage, read_write> targets: array<f32>;
 
 const WORKGROUP: u32 = 256u;
 const HALF_WINDOW: i32 = 5;
@@ -101,8 +84,61 @@ fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
     return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
 }
 
+const LOG_SUM: u32 = 8u;
+const LOG_ITERATIONS: u32 = 16u;
+const LOG_NONFINITE_ITERATIONS: u32 = 17u;
+const LOG_FIRST_NONFINITE: u32 = 18u;
+const LOG_LAST_ITERATION: u32 = 19u;
+
+fn slot_camera() -> u32 {
+    return slot[0].x;
+}
+
+fn plane_stride() -> u32 {
+    return slot[0].y;
+}
+
+fn ssim_c1() -> f32 {
+    return bitcast<f32>(slot[0].z);
+}
+
+fn ssim_c2() -> f32 {
+    return bitcast<f32>(slot[0].w);
+}
+
 fn window(tap: i32) -> f32 {
-    return slot.window[u32(tap) / 4u][u32(tap) % 4u];
+    return bitcast<f32>(slot[1u + u32(tap) / 4u][u32(tap) % 4u]);
+}
+
+fn iteration() -> u32 {
+    return record[0];
+}
+
+fn mask_weight() -> f32 {
+    return bitcast<f32>(record[2]);
+}
+
+fn ssim_weight() -> f32 {
+    return bitcast<f32>(record[3]);
+}
+
+fn lpips_weight() -> f32 {
+    return bitcast<f32>(record[4]);
+}
+
+fn load_camera(index: u32) -> LossCamera {
+    let b = 8u + 16u * index;
+    return LossCamera(
+        record[b], record[b + 1u], record[b + 2u], record[b + 3u],
+        record[b + 4u], record[b + 5u], record[b + 6u], record[b + 7u],
+        bitcast<f32>(record[b + 8u]), bitcast<f32>(record[b + 9u]),
+        bitcast<f32>(record[b + 10u]), bitcast<f32>(record[b + 11u]),
+        0u, 0u, 0u, 0u,
+    );
+}
+
+fn log_add(index: u32, value: f32) {
+    loss_log[index] = bitcast<u32>(bitcast<f32>(loss_log[index]) + value);
 }
 
 fn background(camera: LossCamera) -> vec3<f32> {
@@ -139,7 +175,7 @@ fn ssim_rows(
     @builtin(local_invocation_index) local: u32,
 ) {
     let index = linear_index(workgroup, groups, local);
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let crop_width = camera.x1 - camera.x0;
     let crop_height = camera.y1 - camera.y0;
     if (index >= crop_width * crop_height) {
@@ -168,7 +204,7 @@ fn ssim_rows(
         e_yy += weight * (y * y);
         e_xy += weight * (x * y);
     }
-    let stride = slot.plane_stride;
+    let stride = plane_stride();
     for (var c = 0u; c < 3u; c++) {
         planes[(0u + c) * stride + index] = mu_x[c];
         planes[(3u + c) * stride + index] = mu_y[c];
@@ -192,7 +228,7 @@ fn column_blur_planes(
     for (var q = 0u; q < count; q++) {
         (*values)[q] = 0.0;
     }
-    let stride = slot.plane_stride;
+    let stride = plane_stride();
     for (var tap = 0; tap < 2 * HALF_WINDOW + 1; tap++) {
         let source = i32(row) + tap - HALF_WINDOW;
         if (source < 0 || source >= i32(crop_height)) {
@@ -216,7 +252,7 @@ fn ssim_columns(
     @builtin(local_invocation_index) local: u32,
 ) {
     let index = linear_index(workgroup, groups, local);
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let crop_width = camera.x1 - camera.x0;
     let crop_height = camera.y1 - camera.y0;
     if (index >= crop_width * crop_height) {
@@ -225,7 +261,7 @@ fn ssim_columns(
     var values: array<f32, 15>;
     column_blur_planes(0u, index / crop_width, index % crop_width, crop_width, crop_height, &values, 15u);
     let mean_factor = 1.0 / (3.0 * f32(crop_width * crop_height));
-    let stride = slot.plane_stride;
+    let stride = plane_stride();
     var ssim_sum = 0.0;
     for (var c = 0u; c < 3u; c++) {
         let m = values[c];
@@ -233,10 +269,10 @@ fn ssim_columns(
         let sxx = values[6u + c] - m * m;
         let syy = values[9u + c] - k * k;
         let sxy = values[12u + c] - m * k;
-        let a1 = 2.0 * m * k + slot.c1;
-        let a2 = 2.0 * sxy + slot.c2;
-        let b1 = m * m + k * k + slot.c1;
-        let b2 = sxx + syy + slot.c2;
+        let a1 = 2.0 * m * k + ssim_c1();
+        let a2 = 2.0 * sxy + ssim_c2();
+        let b1 = m * m + k * k + ssim_c1();
+        let b2 = sxx + syy + ssim_c2();
         let inv = 1.0 / (b1 * b2);
         let s = a1 * a2 * inv;
         ssim_sum += s;
@@ -256,7 +292,7 @@ fn ssim_gradient_rows(
     @builtin(local_invocation_index) local: u32,
 ) {
     let index = linear_index(workgroup, groups, local);
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let crop_width = camera.x1 - camera.x0;
     let crop_height = camera.y1 - camera.y0;
     if (index >= crop_width * crop_height) {
@@ -264,7 +300,7 @@ fn ssim_gradient_rows(
     }
     let col = index % crop_width;
     let line = index - col;
-    let stride = slot.plane_stride;
+    let stride = plane_stride();
     var values: array<f32, 9>;
     for (var tap = 0; tap < 2 * HALF_WINDOW + 1; tap++) {
         let source = i32(col) + tap - HALF_WINDOW;
@@ -292,7 +328,7 @@ fn image_loss_gradient(
 ) {
     let group_index = workgroup.x + workgroup.y * groups.x;
     let index = group_index * WORKGROUP + local;
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let pixels = camera.width * camera.height;
     var sums = vec4<f32>(0.0);
     if (index < pixels) {
@@ -311,7 +347,7 @@ fn image_loss_gradient(
             sums.x = abs(difference.x) + abs(difference.y) + abs(difference.z);
             sums.w = dot(difference, difference);
             gradient = sign(difference) / (3.0 * count);
-            if (record.ssim_weight != 0.0) {
+            if (ssim_weight() != 0.0) {
                 let crop_row = row - camera.y0;
                 let crop_col = col - camera.x0;
                 var values: array<f32, 15>;
@@ -319,12 +355,12 @@ fn image_loss_gradient(
                 let g_mu = vec3<f32>(values[0], values[1], values[2]);
                 let g_exx = vec3<f32>(values[3], values[4], values[5]);
                 let g_exy = vec3<f32>(values[6], values[7], values[8]);
-                gradient -= record.ssim_weight * (g_mu + 2.0 * x * g_exx + y * g_exy);
-                sums.z = adjoints[9u * slot.plane_stride + crop_row * crop_width + crop_col];
+                gradient -= ssim_weight() * (g_mu + 2.0 * x * g_exx + y * g_exy);
+                sums.z = adjoints[9u * plane_stride() + crop_row * crop_width + crop_col];
             }
             let mask_difference = alpha[camera.render_offset + index] - target_mask(camera, index);
             sums.y = mask_difference * mask_difference;
-            alpha_grad = record.mask_weight * 2.0 * mask_difference / count;
+            alpha_grad = mask_weight() * 2.0 * mask_difference / count;
         }
         let base = 3u * (camera.render_offset + index);
         colour_gradient[base] = camera.scale * gradient.x;
@@ -354,7 +390,7 @@ fn is_finite(value: f32) -> bool {
 // the camera's terms and adds them, times the camera's scale, into the log's `current`.
 @compute @workgroup_size(256)
 fn image_loss_reduce(@builtin(local_invocation_index) local: u32) {
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let partial_count = (camera.width * camera.height + WORKGROUP - 1u) / WORKGROUP;
     var sums = vec4<f32>(0.0);
     for (var i = local; i < partial_count; i += WORKGROUP) {
@@ -374,47 +410,66 @@ fn image_loss_reduce(@builtin(local_invocation_index) local: u32) {
         let l1 = total_sums.x / (3.0 * count);
         let mask_mse = total_sums.y / count;
         var dssim = 0.0;
-        if (record.ssim_weight != 0.0) {
+        if (ssim_weight() != 0.0) {
             dssim = 1.0 - total_sums.z / (3.0 * count);
         }
         let mse = max(total_sums.w / (3.0 * count), 1e-20);
         let psnr = -10.0 * log2(mse) / log2(10.0);
-        let total = l1 + record.mask_weight * mask_mse + record.ssim_weight * dssim;
-        loss_log.current[0] += camera.scale * l1;
-        loss_log.current[1] += camera.scale * mask_mse;
-        loss_log.current[2] += camera.scale * dssim;
-        loss_log.current[4] += camera.scale * psnr;
-        loss_log.current[5] += camera.scale * total;
+        let total = l1 + mask_weight() * mask_mse + ssim_weight() * dssim;
+        log_add(0u, camera.scale * l1);
+        log_add(1u, camera.scale * mask_mse);
+        log_add(2u, camera.scale * dssim);
+        log_add(4u, camera.scale * psnr);
+        log_add(5u, camera.scale * total);
     }
+}
+
+// One thread: one pixel of the whole image; writes its composited target into `targets`.
+@compute @workgroup_size(256)
+fn composite_target(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) local: u32,
+) {
+    let index = linear_index(workgroup, groups, local);
+    let camera = load_camera(slot_camera());
+    if (index >= camera.width * camera.height) {
+        return;
+    }
+    let value = target_colour(camera, index);
+    targets[3u * index] = value.x;
+    targets[3u * index + 1u] = value.y;
+    targets[3u * index + 2u] = value.z;
 }
 
 // One thread: adds the camera's LPIPS value (unweighted) and its weighted share of the total,
 // times the camera's scale, into the log's `current`.
 @compute @workgroup_size(1)
 fn add_lpips() {
-    let camera = record.camera[slot.camera];
+    let camera = load_camera(slot_camera());
     let value = lpips_value[0];
-    loss_log.current[3] += camera.scale * value;
-    loss_log.current[5] += camera.scale * record.lpips_weight * value;
+    log_add(3u, camera.scale * value);
+    log_add(5u, camera.scale * lpips_weight() * value);
 }
 
 // One thread: closes the iteration: `sum += current`, one more iteration, and the first
 // iteration whose total is not finite remembered (the host reports it as a divergence).
 @compute @workgroup_size(1)
 fn finish_iteration() {
-    for (var i = 0u; i < 8u; i++) {
-        loss_log.sum[i] += loss_log.current[i];
-    }
-    loss_log.iterations += 1u;
-    loss_log.last_iteration = record.iteration;
     var finite = true;
-    for (var i = 0u; i < 6u; i++) {
-        finite = finite && is_finite(loss_log.current[i]);
-    }
-    if (!finite) {
-        if (loss_log.nonfinite_iterations == 0u) {
-            loss_log.first_nonfinite_iteration = record.iteration;
+    for (var i = 0u; i < 8u; i++) {
+        let value = bitcast<f32>(loss_log[i]);
+        log_add(LOG_SUM + i, value);
+        if (i < 6u) {
+            finite = finite && is_finite(value);
         }
-        loss_log.nonfinite_iterations += 1u;
+    }
+    loss_log[LOG_ITERATIONS] += 1u;
+    loss_log[LOG_LAST_ITERATION] = iteration();
+    if (!finite) {
+        if (loss_log[LOG_NONFINITE_ITERATIONS] == 0u) {
+            loss_log[LOG_FIRST_NONFINITE] = iteration();
+        }
+        loss_log[LOG_NONFINITE_ITERATIONS] += 1u;
     }
 }

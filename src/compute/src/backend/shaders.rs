@@ -494,6 +494,7 @@ mod tests {
             crate::backend::primitives::wgsl_twins(),
             crate::splat::gpu::wgsl_twins(),
             crate::lpips::gpu::wgsl_twins(),
+            crate::lpips::gpu::resident_wgsl_twins(),
             crate::nn::gpu::wgsl_twins(),
         ]
         .into_iter()

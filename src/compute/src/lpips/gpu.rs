@@ -739,3 +739,776 @@ fn pool_params(shape: PoolShape, total: u32) -> Result<Params, LpipsError> {
         ..Params::default()
     })
 }
+
+const RESIDENT_WGSL: &str = include_str!("../../../../shaders/lpips_resident.wgsl");
+const CROP_TO_TRUNK: (&str, &str, &str) = (
+    "lpips_resident_crop_to_trunk",
+    RESIDENT_WGSL,
+    "crop_to_trunk",
+);
+const REDUCE_DISTANCE: (&str, &str, &str) = (
+    "lpips_resident_reduce_distance",
+    RESIDENT_WGSL,
+    "reduce_distance",
+);
+const ADD_IMAGE_GRADIENT: (&str, &str, &str) = (
+    "lpips_resident_add_image_gradient",
+    RESIDENT_WGSL,
+    "add_image_gradient",
+);
+/// Words of one [`Params`] block.
+const PARAMS_WORDS: usize = 12;
+
+/// The per-call uniform of `shaders/lpips_resident.wgsl` (`LpipsResidentParams`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ResidentParams {
+    render_offset: u32,
+    render_width: u32,
+    target_offset: u32,
+    target_width: u32,
+    x0: u32,
+    y0: u32,
+    crop_width: u32,
+    crop_height: u32,
+    gradient_factor: f32,
+    signed_mapping: u32,
+    pad: [u32; 2],
+    shift: [f32; 4],
+    scale: [f32; 4],
+    layer_pixels: [[u32; 4]; 2],
+}
+
+/// The resident path's uniform struct for the layout test in `backend::shaders`.
+#[cfg(test)]
+pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
+    use crate::backend::shaders::wgsl_twin;
+    vec![
+        wgsl_twin!(ResidentParams as "LpipsResidentParams" in ["lpips_resident.wgsl"] {
+            "render_offset" => render_offset,
+            "render_width" => render_width,
+            "target_offset" => target_offset,
+            "target_width" => target_width,
+            "x0" => x0,
+            "y0" => y0,
+            "crop_width" => crop_width,
+            "crop_height" => crop_height,
+            "gradient_factor" => gradient_factor,
+            "signed_mapping" => signed_mapping,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "shift" => shift,
+            "scale" => scale,
+            "layer_pixels0" => layer_pixels[0],
+            "layer_pixels1" => layer_pixels[1],
+        }),
+    ]
+}
+
+/// A device image as the resident LPIPS reads it: an interleaved `H x W x 3` f32 image
+/// starting at pixel `offset` of `buffer`, rows of `width` pixels.
+#[derive(Clone, Copy, Debug)]
+pub struct DeviceImage<'a> {
+    pub buffer: &'a GpuBuffer,
+    pub offset: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// A crop `[x0, x0 + width) x [y0, y0 + height)` of a [`DeviceImage`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Crop {
+    pub x0: usize,
+    pub y0: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// Which buffer of the resident workspace an op reads or writes.
+#[derive(Clone, Copy, Debug)]
+enum Planned {
+    /// Forward conv from activation `input` into `input + 1`.
+    Conv { conv: usize, input: usize },
+    /// Forward max pool from activation `input` into `input + 1`.
+    Pool { input: usize },
+    /// Distance map `layer` of activation `features`.
+    Distance { layer: usize, features: usize },
+    /// Zeroes `len` values of gradient buffer `target` (before the last tap's backward).
+    Clear { target: usize, len: usize },
+    DistanceBackward {
+        layer: usize,
+        features: usize,
+        target: usize,
+    },
+    /// ReLU mask of gradient `upstream` by activation `output`.
+    ReluMask { output: usize, upstream: usize },
+    ConvBackward {
+        conv: usize,
+        upstream: usize,
+        target: usize,
+    },
+    PoolBackward {
+        input: usize,
+        upstream: usize,
+        target: usize,
+    },
+}
+
+/// One op of a resident LPIPS evaluation: what it touches, its kernel parameters and its
+/// workgroups (none for `Clear`).
+#[derive(Clone, Copy, Debug)]
+struct PlannedOp {
+    op: Planned,
+    params: Params,
+    workgroups: u32,
+}
+
+/// Per camera slot: its staging buffer (the call's record), its uniforms and its value.
+struct ResidentSlot {
+    /// `ResidentParams` then one `Params` per op, written with one `GpuContext::write` per
+    /// call and copied into the uniforms on the device.
+    staging: GpuBuffer,
+    resident_uniform: wgpu::Buffer,
+    op_uniforms: Vec<wgpu::Buffer>,
+    value: GpuBuffer,
+}
+
+/// The LPIPS loss on device buffers, for the resident training step: the workspace
+/// (activations for two crops of at most `max_height x max_width`, two gradient buffers,
+/// the distance maps) allocated once, per camera slot a staging buffer, the kernels'
+/// uniforms and a value buffer (one f32).
+///
+/// [`ResidentLpips::record`] records, into the caller's encoder: the render and target crops
+/// cut from device images into the trunk input, the trunk forward, the distance reduced to
+/// one value (written to [`ResidentLpips::value`]), the backward, and `factor x` the image
+/// gradient added (`+=`) into the render's colour gradient buffer on the crop. The one
+/// upload per call is its record, one `GpuContext::write`: the crop and images (112 bytes)
+/// and the trunk's kernel parameters for the crop's shape (48 bytes per op: 57 ops for VGG,
+/// 2848 bytes in all; 29 for AlexNet, 1504 bytes), since the crop's shape changes from call
+/// to call (computing them on the device from the crop's size would remove all but the first
+/// 112 bytes).
+pub struct ResidentLpips {
+    context: Arc<GpuContext>,
+    net: LpipsNet,
+    input: super::LpipsInput,
+    shift: [f32; 3],
+    scale: [f32; 3],
+    max_height: usize,
+    max_width: usize,
+    /// activations[0] is the trunk input; every conv and pool appends its output (two
+    /// images each).
+    activations: Vec<GpuBuffer>,
+    gradients: [GpuBuffer; 2],
+    maps: Vec<GpuBuffer>,
+    slots: Vec<ResidentSlot>,
+}
+
+impl GpuLpips {
+    /// A resident workspace for crops of at most `max_height x max_width` and `cameras`
+    /// calls per submission (one slot each), feeding images through `input`.
+    pub fn resident(
+        &self,
+        weights: &LpipsWeights,
+        input: super::LpipsInput,
+        max_height: usize,
+        max_width: usize,
+        cameras: usize,
+    ) -> Result<ResidentLpips, LpipsError> {
+        if weights.net != self.net {
+            return Err(LpipsError::Input {
+                message: format!(
+                    "resident LPIPS: weights of {} for a {} trunk",
+                    weights.net.name(),
+                    self.net.name()
+                ),
+            });
+        }
+        let plan = self.plan(max_height, max_width)?;
+        let context = &self.context;
+        // Every buffer is sized for the largest crop (every extent grows with the input's).
+        let mut activations =
+            vec![context.zeros("lpips trunk input", 6 * max_height * max_width, 4)?];
+        let mut gradient_len = 3 * max_height * max_width;
+        let (mut channels, mut h, mut w) = (3_usize, max_height, max_width);
+        for step in steps(self.net) {
+            match step {
+                Step::Conv(spec) => {
+                    channels = spec.out_channels;
+                    h = spec.output_extent(h).unwrap_or(0);
+                    w = spec.output_extent(w).unwrap_or(0);
+                }
+                Step::MaxPool { kernel, stride } => {
+                    h = Step::pool_extent(kernel, stride, h).unwrap_or(0);
+                    w = Step::pool_extent(kernel, stride, w).unwrap_or(0);
+                }
+                Step::Tap => continue,
+            }
+            gradient_len = gradient_len.max(channels * h * w);
+            activations.push(context.zeros("lpips activation", 2 * channels * h * w, 4)?);
+        }
+        let gradients = [
+            context.zeros("lpips gradient ping", gradient_len, 4)?,
+            context.zeros("lpips gradient pong", gradient_len, 4)?,
+        ];
+        let maps = plan
+            .iter()
+            .filter(|op| matches!(op.op, Planned::Distance { .. }))
+            .map(|op| {
+                context.zeros(
+                    "lpips distance map",
+                    (op.params.in_height * op.params.in_width) as usize,
+                    4,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let with_params = plan
+            .iter()
+            .filter(|op| !matches!(op.op, Planned::Clear { .. }))
+            .count();
+        let slots = (0..cameras.max(1))
+            .map(|_| -> Result<ResidentSlot, LpipsError> {
+                Ok(ResidentSlot {
+                    staging: context.zeros(
+                        "lpips resident record",
+                        size_of::<ResidentParams>() / 4 + PARAMS_WORDS * with_params,
+                        4,
+                    )?,
+                    resident_uniform: context
+                        .uniform("lpips resident params", &ResidentParams::default()),
+                    op_uniforms: (0..with_params)
+                        .map(|_| context.uniform("lpips resident op params", &Params::default()))
+                        .collect(),
+                    value: context.zeros("lpips resident value", 1, 4)?,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        for kernel in [CROP_TO_TRUNK, REDUCE_DISTANCE, ADD_IMAGE_GRADIENT] {
+            context.kernel(&source(kernel))?;
+        }
+        Ok(ResidentLpips {
+            context: context.clone(),
+            net: self.net,
+            input,
+            shift: weights.shift,
+            scale: weights.scale,
+            max_height,
+            max_width,
+            activations,
+            gradients,
+            maps,
+            slots,
+        })
+    }
+
+    /// The ops of one evaluation (forward, then backward for the first image) of one pair
+    /// of `height x width` crops, with their kernel parameters.
+    fn plan(&self, height: usize, width: usize) -> Result<Vec<PlannedOp>, LpipsError> {
+        super::tap_sizes(self.net, height, width)?;
+        let mut plan = Vec::new();
+        // Forward, with what the backward needs.
+        enum Trace {
+            Conv {
+                conv: usize,
+                shape: ConvShape,
+                output: usize,
+            },
+            Pool {
+                shape: PoolShape,
+                input: usize,
+            },
+            Tap {
+                layer: usize,
+                features: usize,
+                dims: [usize; 3],
+            },
+        }
+        let mut trace = Vec::new();
+        let (mut channels, mut h, mut w) = (3_usize, height, width);
+        let (mut conv_index, mut layer, mut current) = (0, 0, 0);
+        for step in steps(self.net) {
+            match step {
+                Step::Conv(spec) => {
+                    let shape = ConvShape {
+                        images: 2,
+                        in_channels: channels,
+                        in_height: h,
+                        in_width: w,
+                        out_channels: spec.out_channels,
+                        out_height: spec.output_extent(h).unwrap_or(0),
+                        out_width: spec.output_extent(w).unwrap_or(0),
+                        kernel: spec.kernel,
+                        stride: spec.stride,
+                        padding: spec.padding,
+                    };
+                    let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
+                    let total = to_u32(
+                        "conv threads",
+                        2 * groups * shape.out_height * shape.out_width,
+                    )?;
+                    plan.push(PlannedOp {
+                        op: Planned::Conv {
+                            conv: conv_index,
+                            input: current,
+                        },
+                        params: conv_params(shape, total)?,
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    trace.push(Trace::Conv {
+                        conv: conv_index,
+                        shape: ConvShape { images: 1, ..shape },
+                        output: current + 1,
+                    });
+                    conv_index += 1;
+                    current += 1;
+                    (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
+                }
+                Step::MaxPool { kernel, stride } => {
+                    let shape = PoolShape {
+                        planes: 2 * channels,
+                        in_height: h,
+                        in_width: w,
+                        out_height: Step::pool_extent(kernel, stride, h).unwrap_or(0),
+                        out_width: Step::pool_extent(kernel, stride, w).unwrap_or(0),
+                        kernel,
+                        stride,
+                    };
+                    let total = to_u32(
+                        "pool threads",
+                        shape.planes * shape.out_height * shape.out_width,
+                    )?;
+                    plan.push(PlannedOp {
+                        op: Planned::Pool { input: current },
+                        params: pool_params(shape, total)?,
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    trace.push(Trace::Pool {
+                        shape: PoolShape {
+                            planes: channels,
+                            ..shape
+                        },
+                        input: current,
+                    });
+                    current += 1;
+                    (h, w) = (shape.out_height, shape.out_width);
+                }
+                Step::Tap => {
+                    let total = to_u32("distance threads", h * w)?;
+                    plan.push(PlannedOp {
+                        op: Planned::Distance {
+                            layer,
+                            features: current,
+                        },
+                        params: Params {
+                            images: 1,
+                            in_channels: to_u32("channels", channels)?,
+                            in_height: to_u32("height", h)?,
+                            in_width: to_u32("width", w)?,
+                            total,
+                            ..Params::default()
+                        },
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    trace.push(Trace::Tap {
+                        layer,
+                        features: current,
+                        dims: [channels, h, w],
+                    });
+                    layer += 1;
+                }
+            }
+        }
+        // Backward: the gradient with respect to the current activation lives in gradient
+        // buffer `at` (`None` while it is still zero).
+        let mut at: Option<usize> = None;
+        for traced in trace.iter().rev() {
+            match *traced {
+                Trace::Tap {
+                    layer,
+                    features,
+                    dims: [channels, height, width],
+                } => {
+                    let target = match at {
+                        Some(target) => target,
+                        None => {
+                            plan.push(PlannedOp {
+                                op: Planned::Clear {
+                                    target: 0,
+                                    len: channels * height * width,
+                                },
+                                params: Params::default(),
+                                workgroups: 0,
+                            });
+                            0
+                        }
+                    };
+                    let total = to_u32("distance gradient threads", height * width)?;
+                    plan.push(PlannedOp {
+                        op: Planned::DistanceBackward {
+                            layer,
+                            features,
+                            target,
+                        },
+                        params: Params {
+                            images: 1,
+                            in_channels: to_u32("channels", channels)?,
+                            in_height: to_u32("height", height)?,
+                            in_width: to_u32("width", width)?,
+                            total,
+                            ..Params::default()
+                        },
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    at = Some(target);
+                }
+                Trace::Conv {
+                    conv,
+                    shape,
+                    output,
+                } => {
+                    let Some(upstream) = at else {
+                        continue;
+                    };
+                    let mask_total = to_u32(
+                        "relu mask threads",
+                        shape.out_channels * shape.out_height * shape.out_width,
+                    )?;
+                    plan.push(PlannedOp {
+                        op: Planned::ReluMask { output, upstream },
+                        params: Params {
+                            total: mask_total,
+                            ..Params::default()
+                        },
+                        workgroups: mask_total.div_ceil(WORKGROUP),
+                    });
+                    let groups = shape.in_channels.div_ceil(CHANNELS_PER_THREAD);
+                    let total = to_u32(
+                        "conv gradient threads",
+                        groups * shape.in_height * shape.in_width,
+                    )?;
+                    plan.push(PlannedOp {
+                        op: Planned::ConvBackward {
+                            conv,
+                            upstream,
+                            target: 1 - upstream,
+                        },
+                        params: conv_params(shape, total)?,
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    at = Some(1 - upstream);
+                }
+                Trace::Pool { shape, input } => {
+                    let Some(upstream) = at else {
+                        continue;
+                    };
+                    let total = to_u32(
+                        "pool gradient threads",
+                        shape.planes * shape.in_height * shape.in_width,
+                    )?;
+                    plan.push(PlannedOp {
+                        op: Planned::PoolBackward {
+                            input,
+                            upstream,
+                            target: 1 - upstream,
+                        },
+                        params: pool_params(shape, total)?,
+                        workgroups: total.div_ceil(WORKGROUP),
+                    });
+                    at = Some(1 - upstream);
+                }
+            }
+        }
+        if at.is_none() {
+            return Err(LpipsError::Input {
+                message: "resident LPIPS: the trunk has no tap".to_owned(),
+            });
+        }
+        Ok(plan)
+    }
+}
+
+impl ResidentLpips {
+    /// The value buffer of camera slot `slot` (one f32, the last recorded distance).
+    pub fn value(&self, slot: usize) -> &GpuBuffer {
+        &self.slots[slot].value
+    }
+
+    /// Camera slots (calls per submission).
+    pub fn slots(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Records, with camera slot `slot` (one call per slot per submission): LPIPS between
+    /// `crop` of `render` and of `target` into [`Self::value`], and `factor x` its gradient
+    /// with respect to the render added into `gradient` (same layout as `render`) on the crop.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        gpu: &GpuLpips,
+        encoder: &mut wgpu::CommandEncoder,
+        slot: usize,
+        render: DeviceImage<'_>,
+        target: DeviceImage<'_>,
+        crop: Crop,
+        factor: f32,
+        gradient: &GpuBuffer,
+    ) -> Result<(), LpipsError> {
+        let input_error = |message: String| LpipsError::Input { message };
+        let slot_state = self.slots.get(slot).ok_or_else(|| {
+            input_error(format!(
+                "resident LPIPS: slot {slot} of a workspace with {}",
+                self.slots.len()
+            ))
+        })?;
+        if gpu.net != self.net {
+            return Err(input_error(
+                "resident LPIPS: another trunk's workspace".to_owned(),
+            ));
+        }
+        if crop.height > self.max_height || crop.width > self.max_width {
+            return Err(input_error(format!(
+                "resident LPIPS: a {} x {} crop exceeds the workspace's {} x {}",
+                crop.height, crop.width, self.max_height, self.max_width
+            )));
+        }
+        for (what, image) in [("render", render), ("target", target)] {
+            if crop.x0 + crop.width > image.width || crop.y0 + crop.height > image.height {
+                return Err(input_error(format!(
+                    "resident LPIPS: crop {crop:?} outside the {what}'s {} x {} image",
+                    image.width, image.height
+                )));
+            }
+            if image.buffer.len < 3 * (image.offset + image.width * image.height) {
+                return Err(input_error(format!(
+                    "resident LPIPS: the {what} buffer holds {} values, a {} x {} image at pixel {} needs {}",
+                    image.buffer.len,
+                    image.width,
+                    image.height,
+                    image.offset,
+                    3 * (image.offset + image.width * image.height)
+                )));
+            }
+        }
+        if gradient.len < 3 * (render.offset + render.width * render.height) {
+            return Err(input_error(format!(
+                "resident LPIPS: the gradient buffer holds {} values, the render needs {}",
+                gradient.len,
+                3 * (render.offset + render.width * render.height)
+            )));
+        }
+        let plan = gpu.plan(crop.height, crop.width)?;
+        let mut layer_pixels = [[0_u32; 4]; 2];
+        for op in &plan {
+            if let Planned::Distance { layer, .. } = op.op {
+                layer_pixels[layer / 4][layer % 4] = op.params.in_height * op.params.in_width;
+            }
+        }
+        let resident = ResidentParams {
+            render_offset: to_u32("render offset", render.offset)?,
+            render_width: to_u32("render width", render.width)?,
+            target_offset: to_u32("target offset", target.offset)?,
+            target_width: to_u32("target width", target.width)?,
+            x0: to_u32("crop x0", crop.x0)?,
+            y0: to_u32("crop y0", crop.y0)?,
+            crop_width: to_u32("crop width", crop.width)?,
+            crop_height: to_u32("crop height", crop.height)?,
+            gradient_factor: factor,
+            signed_mapping: u32::from(self.input == super::LpipsInput::Unit),
+            pad: [0; 2],
+            shift: [self.shift[0], self.shift[1], self.shift[2], 0.0],
+            scale: [self.scale[0], self.scale[1], self.scale[2], 1.0],
+            layer_pixels,
+        };
+        // The call's record: one write, then device copies into the uniforms.
+        let mut words: Vec<u32> = bytemuck::cast_slice(&[resident]).to_vec();
+        for op in plan
+            .iter()
+            .filter(|op| !matches!(op.op, Planned::Clear { .. }))
+        {
+            words.extend_from_slice(bytemuck::cast_slice(&[op.params]));
+        }
+        let context = &self.context;
+        context.write(&slot_state.staging.buffer, 0, &words)?;
+        let resident_bytes = size_of::<ResidentParams>() as u64;
+        encoder.copy_buffer_to_buffer(
+            &slot_state.staging.buffer,
+            0,
+            &slot_state.resident_uniform,
+            0,
+            resident_bytes,
+        );
+        let op_bytes = (4 * PARAMS_WORDS) as u64;
+        for (index, uniform) in slot_state.op_uniforms.iter().enumerate() {
+            encoder.copy_buffer_to_buffer(
+                &slot_state.staging.buffer,
+                resident_bytes + index as u64 * op_bytes,
+                uniform,
+                0,
+                op_bytes,
+            );
+        }
+        let crop_groups = to_u32("crop pixels", crop.width * crop.height)?.div_ceil(WORKGROUP);
+        context.dispatch(
+            encoder,
+            &*gpu.kernel(CROP_TO_TRUNK)?,
+            &[
+                (0, &slot_state.resident_uniform),
+                (1, &render.buffer.buffer),
+                (2, &target.buffer.buffer),
+                (3, &self.activations[0].buffer),
+            ],
+            crop_groups,
+        );
+        let mut uniforms = slot_state.op_uniforms.iter();
+        let mut next_uniform = || {
+            uniforms
+                .next()
+                .ok_or_else(|| input_error("resident LPIPS: plan longer than its uniforms".into()))
+        };
+        let mut forward_done = false;
+        for op in &plan {
+            let a = |index: usize| &self.activations[index].buffer;
+            let g = |index: usize| &self.gradients[index].buffer;
+            match op.op {
+                Planned::Conv { conv, input } => {
+                    let (weight, bias) = &gpu.convs[conv];
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(CONV)?,
+                        &[
+                            (0, next_uniform()?),
+                            (1, a(input)),
+                            (2, &weight.buffer),
+                            (3, &bias.buffer),
+                            (4, a(input + 1)),
+                        ],
+                        op.workgroups,
+                    );
+                }
+                Planned::Pool { input } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(POOL)?,
+                        &[(0, next_uniform()?), (1, a(input)), (4, a(input + 1))],
+                        op.workgroups,
+                    );
+                }
+                Planned::Distance { layer, features } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(DISTANCE)?,
+                        &[
+                            (0, next_uniform()?),
+                            (1, a(features)),
+                            (2, &gpu.lins[layer].buffer),
+                            (4, &self.maps[layer].buffer),
+                        ],
+                        op.workgroups,
+                    );
+                }
+                Planned::Clear { target, len } => {
+                    if !forward_done {
+                        forward_done = true;
+                        self.record_reduce(gpu, encoder, slot_state)?;
+                    }
+                    encoder.clear_buffer(g(target), 0, Some((4 * len.max(1)) as u64));
+                }
+                Planned::DistanceBackward {
+                    layer,
+                    features,
+                    target,
+                } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(DISTANCE_BACKWARD)?,
+                        &[
+                            (0, next_uniform()?),
+                            (1, a(features)),
+                            (2, &gpu.lins[layer].buffer),
+                            (4, g(target)),
+                        ],
+                        op.workgroups,
+                    );
+                }
+                Planned::ReluMask { output, upstream } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(RELU_MASK)?,
+                        &[(0, next_uniform()?), (1, a(output)), (4, g(upstream))],
+                        op.workgroups,
+                    );
+                }
+                Planned::ConvBackward {
+                    conv,
+                    upstream,
+                    target,
+                } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(CONV_BACKWARD)?,
+                        &[
+                            (0, next_uniform()?),
+                            (2, &gpu.convs[conv].0.buffer),
+                            (3, g(upstream)),
+                            (4, g(target)),
+                        ],
+                        op.workgroups,
+                    );
+                }
+                Planned::PoolBackward {
+                    input,
+                    upstream,
+                    target,
+                } => {
+                    context.dispatch(
+                        encoder,
+                        &*gpu.kernel(POOL_BACKWARD)?,
+                        &[
+                            (0, next_uniform()?),
+                            (1, a(input)),
+                            (3, g(upstream)),
+                            (4, g(target)),
+                        ],
+                        op.workgroups,
+                    );
+                }
+            }
+        }
+        let last = plan
+            .iter()
+            .rev()
+            .find_map(|op| match op.op {
+                Planned::ConvBackward { target, .. } | Planned::PoolBackward { target, .. } => {
+                    Some(target)
+                }
+                _ => None,
+            })
+            .ok_or_else(|| input_error("resident LPIPS: no backward to the input".into()))?;
+        context.dispatch(
+            encoder,
+            &*gpu.kernel(ADD_IMAGE_GRADIENT)?,
+            &[
+                (0, &slot_state.resident_uniform),
+                (4, &self.gradients[last].buffer),
+                (5, &gradient.buffer),
+            ],
+            crop_groups,
+        );
+        Ok(())
+    }
+
+    fn record_reduce(
+        &self,
+        gpu: &GpuLpips,
+        encoder: &mut wgpu::CommandEncoder,
+        slot: &ResidentSlot,
+    ) -> Result<(), LpipsError> {
+        let mut bindings: Vec<(u32, &wgpu::Buffer)> = vec![(0, &slot.resident_uniform)];
+        for (layer, map) in self.maps.iter().enumerate() {
+            bindings.push((6 + layer as u32, &map.buffer));
+        }
+        bindings.push((11, &slot.value.buffer));
+        self.context
+            .dispatch(encoder, &*gpu.kernel(REDUCE_DISTANCE)?, &bindings, 1);
+        Ok(())
+    }
+}

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
 use crate::backend::{GpuBuffer, GpuContext};
 
-use super::gpu::{ConvShape, GpuLpips, PoolShape};
+use super::gpu::{ConvShape, Crop, DeviceImage, GpuLpips, PoolShape};
 use super::*;
 
 /// Deterministic values in [-1, 1).
@@ -618,7 +618,9 @@ fn pairs_are_independent_and_two_dimensional_dispatch_agrees() {
     };
     let (_, single_gradient) = lpips.distance_gradient(&single).unwrap();
     assert_eq!(single_gradient, gradient[image_values..]);
-    // Identical images: zero distance and a zero gradient.
+    // Identical images: zero distance and a zero gradient, exactly on every adapter (the
+    // kernels' `normalised_difference` keeps a compiler's fma contraction from leaving the
+    // rounding error of one product).
     let same = TrunkInput {
         data: [&input.data[..image_values], &input.data[..image_values]].concat(),
         ..single
@@ -633,4 +635,222 @@ fn pairs_are_independent_and_two_dimensional_dispatch_agrees() {
         ..single
     };
     assert!(lpips.distance_gradient(&odd).is_err());
+}
+
+/// The resident LPIPS (crops cut from device images, value and gradient kept on the device)
+/// against the cpu `distances_with_gradient` on the same crops: two cameras' slots in one
+/// submission, images at pixel offsets of shared buffers, the gradient added (`+=`) on the
+/// crop only; and a steady-state call reads nothing back and uploads only its record.
+#[test]
+fn resident_lpips_matches_the_cpu_on_device_crops() {
+    // A context of its own, so that its traffic counters see only this test.
+    let Some(context) = gpu_test_context_with_dispatch_limit(u32::MAX) else {
+        return;
+    };
+    let (width, height) = (41, 37);
+    let pixels = width * height;
+    let image = |salt: u64| -> Vec<f32> {
+        values(3 * pixels, salt)
+            .into_iter()
+            .map(|v| v * 0.5 + 0.5)
+            .collect()
+    };
+    // Two renders at pixel offsets 5 and 5 + pixels of one buffer, two targets in another
+    // at offsets 0 and pixels.
+    let lead = 5;
+    let renders = [image(90), image(91)];
+    let targets = [image(92), image(93)];
+    let mut render_values = vec![0.0_f32; 3 * lead];
+    renders.iter().for_each(|r| render_values.extend(r));
+    let target_values: Vec<f32> = targets.concat();
+    let render_buffer = context.upload("renders", &render_values).unwrap();
+    let target_buffer = context.upload("targets", &target_values).unwrap();
+    let cut = |data: &[f32], crop: Crop| -> ImageF32 {
+        let mut values = Vec::new();
+        for row in crop.y0..crop.y0 + crop.height {
+            values.extend_from_slice(
+                &data[3 * (row * width + crop.x0)..3 * (row * width + crop.x0 + crop.width)],
+            );
+        }
+        ImageF32::from_f32("crop", crop.width, crop.height, values).unwrap()
+    };
+    for (net, crops) in [
+        (
+            LpipsNet::Vgg,
+            [
+                Crop {
+                    x0: 3,
+                    y0: 5,
+                    width: 20,
+                    height: 18,
+                },
+                // Touching the right and bottom borders.
+                Crop {
+                    x0: 25,
+                    y0: 21,
+                    width: 16,
+                    height: 16,
+                },
+            ],
+        ),
+        (
+            LpipsNet::Alex,
+            [
+                Crop {
+                    x0: 0,
+                    y0: 2,
+                    width: 33,
+                    height: 31,
+                },
+                Crop {
+                    x0: 8,
+                    y0: 0,
+                    width: 31,
+                    height: 37,
+                },
+            ],
+        ),
+    ] {
+        let weights = seeded::seeded_weights(net, 7);
+        let cpu = Lpips::new(weights.clone(), &Backend::Cpu).unwrap();
+        let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
+        for mapping in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
+            let resident = gpu.resident(&weights, mapping, 37, 41, 2).unwrap();
+            let gradient = context
+                .upload("gradient", &vec![0.5_f32; render_values.len()])
+                .unwrap();
+            let factors = [0.3_f32, -0.7];
+            let record_all = |encoder: &mut wgpu::CommandEncoder| {
+                for slot in 0..2 {
+                    resident
+                        .record(
+                            &gpu,
+                            encoder,
+                            slot,
+                            DeviceImage {
+                                buffer: &render_buffer,
+                                offset: lead + slot * pixels,
+                                width,
+                                height,
+                            },
+                            DeviceImage {
+                                buffer: &target_buffer,
+                                offset: slot * pixels,
+                                width,
+                                height,
+                            },
+                            crops[slot],
+                            factors[slot],
+                            &gradient,
+                        )
+                        .unwrap();
+                }
+            };
+            let mut encoder = context.encoder();
+            record_all(&mut encoder);
+            let read = context
+                .download_all::<f32>(
+                    encoder,
+                    &[
+                        (&resident.value(0).buffer, 1),
+                        (&resident.value(1).buffer, 1),
+                        (&gradient.buffer, gradient.len),
+                    ],
+                )
+                .unwrap();
+            let got_gradient = &read[2];
+            let mut want_gradient = vec![0.5_f32; render_values.len()];
+            for slot in 0..2 {
+                let crop = crops[slot];
+                let (distances, gradients) = cpu
+                    .distances_with_gradient(
+                        &[(&cut(&renders[slot], crop), &cut(&targets[slot], crop))],
+                        mapping,
+                    )
+                    .unwrap();
+                let value = f64::from(read[slot][0]);
+                assert!(
+                    (value - distances[0].total).abs() <= 1e-5 * distances[0].total.abs(),
+                    "{net:?} {mapping:?} slot {slot}: value {value} vs cpu {}",
+                    distances[0].total
+                );
+                for row in 0..crop.height {
+                    for col in 0..crop.width {
+                        let pixel = lead + slot * pixels + (crop.y0 + row) * width + crop.x0 + col;
+                        for c in 0..3 {
+                            want_gradient[3 * pixel + c] +=
+                                factors[slot] * gradients[0][3 * (row * crop.width + col) + c];
+                        }
+                    }
+                }
+            }
+            let largest = want_gradient
+                .iter()
+                .fold(0.0_f32, |m, g| m.max((g - 0.5).abs()));
+            assert!(largest > 0.0);
+            for (index, (&ours, &theirs)) in got_gradient.iter().zip(&want_gradient).enumerate() {
+                if theirs == 0.5 {
+                    assert_eq!(
+                        ours, 0.5,
+                        "{net:?} {mapping:?} value {index} outside the crops"
+                    );
+                }
+                assert!(
+                    (ours - theirs).abs() <= 1e-4 * largest,
+                    "{net:?} {mapping:?} value {index}: resident {ours} vs cpu {theirs}"
+                );
+            }
+            // Steady state: a second submission reads nothing back and uploads only the two
+            // calls' records (the 112-byte crop parameters and one 48-byte kernel block per
+            // op).
+            let ops = match net {
+                LpipsNet::Vgg => 57,
+                LpipsNet::Alex => 29,
+            };
+            let before = context.transfers();
+            let mut encoder = context.encoder();
+            record_all(&mut encoder);
+            context.submit_and_wait(encoder).unwrap();
+            let traffic = context.transfers().since(&before);
+            assert_eq!(traffic.readbacks, 0, "{traffic:?}");
+            assert_eq!(traffic.bytes_down, 0, "{traffic:?}");
+            assert_eq!(
+                traffic.bytes_up,
+                2 * (112 + 48 * ops),
+                "{net:?}: {traffic:?}"
+            );
+        }
+    }
+    // A crop larger than the workspace is an error naming both sizes.
+    let weights = seeded::seeded_weights(LpipsNet::Vgg, 7);
+    let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
+    let resident = gpu.resident(&weights, LpipsInput::Unit, 20, 20, 1).unwrap();
+    let image = DeviceImage {
+        buffer: &target_buffer,
+        offset: 0,
+        width,
+        height,
+    };
+    let error = resident
+        .record(
+            &gpu,
+            &mut context.encoder(),
+            0,
+            image,
+            image,
+            Crop {
+                x0: 0,
+                y0: 0,
+                width: 24,
+                height: 18,
+            },
+            1.0,
+            &render_buffer,
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("18 x 24") && error.contains("20 x 20"),
+        "{error}"
+    );
 }

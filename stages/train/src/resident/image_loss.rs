@@ -10,8 +10,11 @@
 //! An iteration, recorded into one encoder:
 //! 1. [`ImageLoss::begin_iteration`]: one `GpuContext::write` of the iteration's record
 //!    (32 + 64 bytes per camera) and the log's `current` cleared on the device;
-//! 2. per chosen camera `c`: [`ImageLoss::record_camera`], then (LPIPS on) the resident LPIPS
-//!    and [`ImageLoss::record_lpips`];
+//! 2. per chosen camera `c`: [`ImageLoss::record_camera`] (writes the camera's gradients);
+//!    with LPIPS on, [`ImageLoss::record_target`], the resident LPIPS
+//!    (`seqavatar_compute::lpips::gpu::ResidentLpips::record`, slot `c`, on the crop
+//!    `LpipsLoss::crop` of the rect, factor `lpips_weight / cameras`; it adds into the colour
+//!    gradient) and [`ImageLoss::record_lpips`] with its value buffer;
 //! 3. [`ImageLoss::finish_iteration`].
 //!
 //! Nothing is read back; [`ImageLoss::download_log`] reads the log record when the host logs.
@@ -49,6 +52,7 @@ fn kernel_source(entry_point: &'static str) -> KernelSource {
             "image_loss_gradient" => "train_image_loss_gradient",
             "image_loss_reduce" => "train_image_loss_reduce",
             "add_lpips" => "train_image_loss_add_lpips",
+            "composite_target" => "train_image_loss_composite_target",
             "finish_iteration" => "train_image_loss_finish_iteration",
             other => unreachable!("no entry point {other}"),
         },
@@ -83,11 +87,12 @@ pub struct TruthImage<'a> {
 /// row-major per image, images packed in order into chunk buffers of at most the device's
 /// storage-binding size (an image never straddles two chunks).
 ///
-/// Sizes: the demo (`pipelines/synthetic.yaml`: 8 cameras x 48 frames at 256 x 256) takes
-/// 384 x 256 KiB = 96 MiB for all its images (less for the training split alone); a
-/// DNA-Rendering sequence of 48 cameras x 150 frames at 1024 x 1224 takes 7200 x 4.78 MiB =
-/// 33.6 GiB, more than any one binding: it is split over chunks and needs that much device
-/// memory. The device's total memory is not queried (wgpu does not expose it): only the
+/// Sizes: the demo (`pipelines/synthetic.yaml`: 8 cameras x 48 frames at 256 x 256, 6
+/// training cameras) takes 288 x 256 KiB = 72 MiB for its training split (96 MiB for all 384
+/// images); a DNA-Rendering sequence of 48 cameras x 150 frames at 1024 x 1224 (after
+/// `resolution_scale`) takes 7200 x 4.78 MiB = 33.6 GiB (its default split, 24 training
+/// cameras x 100 frames, 11.2 GiB), more than any one binding: it is split over chunks and
+/// needs that much device memory. The device's total memory is not queried (wgpu does not expose it): only the
 /// per-buffer limits are checked, and an image larger than one binding is an error naming
 /// the sizes. Streaming images in from the host in chunks, for sequences larger than the
 /// device, can come later.
@@ -323,6 +328,8 @@ pub struct ImageLoss {
     adjoints: GpuBuffer,
     partials: GpuBuffer,
     log: GpuBuffer,
+    /// One image's composited target, `max_pixels x 3` (LPIPS on) or one value (off).
+    targets: GpuBuffer,
     /// The cameras of the iteration being recorded (host copy, for dispatch sizes).
     cameras: Vec<(LossCamera, TruthSlot)>,
     kernels: Kernels,
@@ -335,6 +342,7 @@ struct Kernels {
     gradient: Arc<Kernel>,
     reduce: Arc<Kernel>,
     add_lpips: Arc<Kernel>,
+    composite_target: Arc<Kernel>,
     finish: Arc<Kernel>,
 }
 
@@ -349,8 +357,14 @@ impl ImageLoss {
         max_cameras: usize,
         max_pixels: usize,
     ) -> anyhow::Result<Self> {
-        ensure!(max_cameras > 0, "image losses: max_cameras must be at least 1");
-        ensure!(max_pixels > 0, "image losses: max_pixels must be at least 1");
+        ensure!(
+            max_cameras > 0,
+            "image losses: max_cameras must be at least 1"
+        );
+        ensure!(
+            max_pixels > 0,
+            "image losses: max_pixels must be at least 1"
+        );
         ensure!(
             u32::try_from(3 * max_pixels).is_ok()
                 && u32::try_from(MEAN_PLANES * max_pixels).is_ok(),
@@ -364,6 +378,7 @@ impl ImageLoss {
             gradient: kernel("image_loss_gradient")?,
             reduce: kernel("image_loss_reduce")?,
             add_lpips: kernel("add_lpips")?,
+            composite_target: kernel("composite_target")?,
             finish: kernel("finish_iteration")?,
         };
         let window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
@@ -395,6 +410,15 @@ impl ImageLoss {
                 4,
             )?,
             log: context.upload("image loss log", &log_words)?,
+            targets: context.zeros(
+                "image loss LPIPS target",
+                if lpips_weight != 0.0 {
+                    3 * max_pixels
+                } else {
+                    1
+                },
+                4,
+            )?,
             slots,
             weights,
             lpips_weight,
@@ -575,6 +599,38 @@ impl ImageLoss {
         Ok(())
     }
 
+    /// Records the composited target of camera `camera` into the workspace's target buffer
+    /// and returns it: `H x W x 3` f32 from pixel 0, what the resident LPIPS
+    /// (`compute::lpips::gpu::ResidentLpips::record`) compares the render with. Valid until
+    /// the next camera's call; needs a workspace made with a nonzero `lpips_weight`.
+    pub fn record_target(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        camera: usize,
+        truth: &GroundTruth,
+    ) -> anyhow::Result<&GpuBuffer> {
+        let (_, slot) = *self
+            .cameras
+            .get(camera)
+            .with_context(|| format!("image losses: camera {camera} was not begun"))?;
+        ensure!(
+            self.targets.len >= 3 * slot.width * slot.height,
+            "image losses: the workspace was made without LPIPS (lpips_weight 0), it holds no target"
+        );
+        self.context.dispatch(
+            encoder,
+            &self.kernels.composite_target,
+            &[
+                (0, &self.slots[camera]),
+                (1, &self.record.buffer),
+                (2, &truth.chunks[slot.chunk].buffer),
+                (12, &self.targets.buffer),
+            ],
+            (slot.width * slot.height).div_ceil(WORKGROUP) as u32,
+        );
+        Ok(&self.targets)
+    }
+
     /// Adds camera `camera`'s LPIPS value (one f32 in `value`, as the resident LPIPS writes
     /// it) into the log: `lpips += value / cameras`, `total += lpips_weight value / cameras`.
     pub fn record_lpips(
@@ -628,7 +684,9 @@ impl ImageLoss {
 
     /// Reads the log record back (one readback; submits `encoder` first).
     pub fn download_log(&self, encoder: wgpu::CommandEncoder) -> anyhow::Result<LossLog> {
-        let words: Vec<u32> = self.context.download(encoder, &self.log.buffer, LOG_WORDS)?;
+        let words: Vec<u32> = self
+            .context
+            .download(encoder, &self.log.buffer, LOG_WORDS)?;
         let floats: Vec<f32> = words.iter().map(|&w| f32::from_bits(w)).collect();
         let iterations = words[16];
         let mut mean = LossValues::from_words(&floats[8..16]);

@@ -72,9 +72,12 @@ fn rect(x0: usize, y0: usize, x1: usize, y1: usize) -> Rect {
     Rect { x0, y0, x1, y1 }
 }
 
+/// One camera's (colour, alpha) gradients as the cpu path computes them.
+type CameraGradients = (Vec<f64>, Vec<f64>);
+
 /// What the cpu path computes for one iteration of `cases`: per camera the gradients times
 /// `1 / cameras`, and the iteration's averaged values.
-fn oracle(cases: &[Case], weights: ImageLossWeights) -> (Vec<(Vec<f64>, Vec<f64>)>, LossValues) {
+fn oracle(cases: &[Case], weights: ImageLossWeights) -> (Vec<CameraGradients>, LossValues) {
     let scale = 1.0 / cases.len() as f64;
     let mut values = LossValues::default();
     let mut gradients = Vec::new();
@@ -254,7 +257,13 @@ fn assert_close_gradient(
     }
 }
 
-fn check(context: &Arc<GpuContext>, what: &str, cases: &[Case], weights: ImageLossWeights, chunk_bytes: u64) {
+fn check(
+    context: &Arc<GpuContext>,
+    what: &str,
+    cases: &[Case],
+    weights: ImageLossWeights,
+    chunk_bytes: u64,
+) {
     let (want_gradients, want) = oracle(cases, weights);
     let run = run_device(context, cases, weights, chunk_bytes, 1);
     assert_close_values(what, run.log.last, want);
@@ -342,7 +351,13 @@ fn two_cameras_average_and_use_separate_chunks_and_offsets() {
     // Chunks of 26 x 19 x 4 bytes: each image in its own chunk.
     check(&context, "two cameras", &cases, WEIGHTS, 26 * 19 * 4);
     // Both images in one chunk.
-    check(&context, "two cameras, one chunk", &cases, WEIGHTS, u64::MAX);
+    check(
+        &context,
+        "two cameras, one chunk",
+        &cases,
+        WEIGHTS,
+        u64::MAX,
+    );
 }
 
 #[test]
@@ -482,18 +497,15 @@ fn bad_inputs_are_errors_naming_the_sizes() {
         .err()
         .unwrap()
         .to_string();
-    assert!(error.contains("8 x 6") && error.contains("192 bytes"), "{error}");
+    assert!(
+        error.contains("8 x 6") && error.contains("192 bytes"),
+        "{error}"
+    );
     // Mismatched byte counts.
-    let error = GroundTruth::upload(
-        &context,
-        &[Some(TruthImage {
-            width: 9,
-            ..image
-        })],
-    )
-    .err()
-    .unwrap()
-    .to_string();
+    let error = GroundTruth::upload(&context, &[Some(TruthImage { width: 9, ..image })])
+        .err()
+        .unwrap()
+        .to_string();
     assert!(error.contains("9 x 6"), "{error}");
     let truth = GroundTruth::upload(&context, &[Some(image)]).unwrap();
     let mut loss = ImageLoss::new(context.clone(), WEIGHTS, 0.0, 1, 48).unwrap();
@@ -515,8 +527,184 @@ fn bad_inputs_are_errors_naming_the_sizes() {
         .to_string();
     assert!(error.contains("2 cameras"), "{error}");
     let error = loss
-        .begin_iteration(&mut encoder, 1, &[LossCamera { image: 1, ..camera }], &truth)
+        .begin_iteration(
+            &mut encoder,
+            1,
+            &[LossCamera { image: 1, ..camera }],
+            &truth,
+        )
         .unwrap_err()
         .to_string();
     assert!(error.contains("image 1"), "{error}");
+}
+
+/// LPIPS on: the image losses with the resident LPIPS added per camera, against
+/// `image_loss` + `LpipsLoss::add_loss` (seeded VGG weights, the cpu trunk as the oracle) on
+/// two cameras whose rects are smaller than the trunk's input (the crop grows), one at the
+/// image border.
+#[test]
+fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
+    use crate::losses::LpipsLoss;
+    use seqavatar_compute::backend::{Backend, DeviceChoice};
+    use seqavatar_compute::lpips::gpu::{Crop, DeviceImage};
+    use seqavatar_compute::lpips::seeded::seeded_weights;
+    use seqavatar_compute::lpips::{Lpips, LpipsInput, LpipsNet};
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let mut rng = Rng::new(36);
+    let (w, h) = (30, 28);
+    let cases = [
+        case(&mut rng, w, h, rect(6, 5, 17, 20), Mask::Mixed),
+        case(&mut rng, w, h, rect(20, 0, 30, 9), Mask::Mixed),
+    ];
+    let lpips_weight = 0.4;
+    let input = LpipsInput::Unit;
+    let cpu = Backend::select(DeviceChoice::Cpu).unwrap();
+    let oracle_lpips = LpipsLoss::new(
+        Lpips::new(seeded_weights(LpipsNet::Vgg, 7), &cpu).unwrap(),
+        input,
+    );
+    // The cpu path: image_loss, then LPIPS added into its colour gradient, all times 1/2.
+    let (mut want_gradients, mut want) = oracle(&cases, WEIGHTS);
+    for (camera, case) in cases.iter().enumerate() {
+        let target = case.record.colour_on(case.background);
+        let mut lpips_gradient = vec![0.0; 3 * w * h];
+        let value = oracle_lpips
+            .add_loss(
+                &case.colour,
+                &target,
+                w,
+                h,
+                case.rect,
+                lpips_weight,
+                &mut lpips_gradient,
+            )
+            .unwrap();
+        want.lpips += 0.5 * value;
+        want.total += 0.5 * lpips_weight * value;
+        for (g, l) in want_gradients[camera].0.iter_mut().zip(&lpips_gradient) {
+            *g += 0.5 * l;
+        }
+    }
+    // The device path.
+    let device_lpips = Lpips::new(
+        seeded_weights(LpipsNet::Vgg, 7),
+        &Backend::Gpu(context.clone()),
+    )
+    .unwrap();
+    let gpu = device_lpips.gpu().unwrap();
+    let resident = gpu
+        .resident(device_lpips.weights(), input, h, w, 2)
+        .unwrap();
+    let images: Vec<Option<TruthImage<'_>>> = cases
+        .iter()
+        .map(|case| {
+            Some(TruthImage {
+                width: w,
+                height: h,
+                rgb: &case.record.rgb,
+                mask: &case.record.mask,
+            })
+        })
+        .collect();
+    let truth = GroundTruth::upload(&context, &images).unwrap();
+    let colour: Vec<f32> = cases
+        .iter()
+        .flat_map(|c| c.colour.iter().map(|&v| v as f32))
+        .collect();
+    let alpha: Vec<f32> = cases
+        .iter()
+        .flat_map(|c| c.alpha.iter().map(|&v| v as f32))
+        .collect();
+    let rendered = (
+        context.upload("colour", &colour).unwrap(),
+        context.upload("alpha", &alpha).unwrap(),
+    );
+    let gradients = (
+        context.zeros("colour gradient", colour.len(), 4).unwrap(),
+        context.zeros("alpha gradient", alpha.len(), 4).unwrap(),
+    );
+    let mut loss = ImageLoss::new(context.clone(), WEIGHTS, lpips_weight, 2, w * h).unwrap();
+    let cameras: Vec<LossCamera> = cases
+        .iter()
+        .enumerate()
+        .map(|(index, case)| LossCamera {
+            image: index,
+            pixel_offset: index * w * h,
+            rect: case.rect,
+            background: case.background,
+        })
+        .collect();
+    let mut encoder = context.encoder();
+    loss.begin_iteration(&mut encoder, 4, &cameras, &truth)
+        .unwrap();
+    for (camera, info) in cameras.iter().enumerate() {
+        loss.record_camera(
+            &mut encoder,
+            camera,
+            &truth,
+            DeviceImages {
+                colour: &rendered.0,
+                alpha: &rendered.1,
+            },
+            DeviceImages {
+                colour: &gradients.0,
+                alpha: &gradients.1,
+            },
+        )
+        .unwrap();
+        let target = loss.record_target(&mut encoder, camera, &truth).unwrap();
+        let crop = oracle_lpips.crop(info.rect, w, h).unwrap();
+        resident
+            .record(
+                gpu,
+                &mut encoder,
+                camera,
+                DeviceImage {
+                    buffer: &rendered.0,
+                    offset: info.pixel_offset,
+                    width: w,
+                    height: h,
+                },
+                DeviceImage {
+                    buffer: target,
+                    offset: 0,
+                    width: w,
+                    height: h,
+                },
+                Crop {
+                    x0: crop.x0,
+                    y0: crop.y0,
+                    width: crop.width(),
+                    height: crop.height(),
+                },
+                (lpips_weight / cameras.len() as f64) as f32,
+                &gradients.0,
+            )
+            .unwrap();
+        loss.record_lpips(&mut encoder, camera, resident.value(camera))
+            .unwrap();
+    }
+    loss.finish_iteration(&mut encoder);
+    context.submit_and_wait(encoder).unwrap();
+    let log = loss.download_log(context.encoder()).unwrap();
+    assert!(want.lpips > 0.0);
+    assert_close_values("with LPIPS", log.last, want);
+    let colour_gradient: Vec<f32> = context
+        .download(context.encoder(), &gradients.0.buffer, colour.len())
+        .unwrap();
+    let largest = want_gradients
+        .iter()
+        .flat_map(|(c, _)| c.iter())
+        .fold(0.0_f64, |m, g| m.max(g.abs()));
+    for (camera, (want_colour, _)) in want_gradients.iter().enumerate() {
+        let got = &colour_gradient[camera * 3 * w * h..(camera + 1) * 3 * w * h];
+        for (index, (&g, &want)) in got.iter().zip(want_colour).enumerate() {
+            assert!(
+                (f64::from(g) - want).abs() <= 1e-4 * largest,
+                "camera {camera} value {index}: device {g} cpu {want}"
+            );
+        }
+    }
 }
