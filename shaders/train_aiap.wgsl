@@ -111,12 +111,9 @@ fn covariances(
 // ---------------------------------------------------------------------------------------
 // The pair terms of Gaussian i (`aiap_term`): a zero distance has a zero subgradient.
 
+// The gradient scratch's atomic add (shaders/atomic_add_cas.wgsl; the host swaps in
+// atomic_add_float.wgsl when the adapter has native f32 atomics).
 // @atomic-add-begin
-// Portable f32 atomic add on the gradient buffer: a compare-exchange loop on the bit
-// pattern held in an atomic<u32>. Kernels that accumulate gradients carry this text between
-// the atomic-add begin and end marker lines; the host swaps in atomic_add_float.wgsl
-// when the adapter has native f32 atomics.
-
 @group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
 
 fn gradient_add(index: u32, value: f32) {

@@ -803,3 +803,47 @@ fn verlet_lists_follow_moving_gaussians_exactly_and_rebuild_only_when_needed() {
     );
     assert_eq!(aiap.download_searches().unwrap().0, rebuilds + 1);
 }
+
+/// What a full neighbour search costs next to an iteration that reuses the Verlet lists
+/// (`cargo test -p seqavatar-train --lib --release resident::tests::aiap_cost -- --ignored
+/// --nocapture`; prints milliseconds per call, set `AIAP_COST_N` for the count).
+#[test]
+#[ignore = "timing, run by hand"]
+fn aiap_cost_of_a_full_search_and_of_a_reused_list() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let n: usize = std::env::var("AIAP_COST_N")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8192);
+    let mut rng = Rng::new(13);
+    let case = aiap_case(&mut rng, n);
+    let mut state = case.state;
+    *state.values_mut(names::POSITION).unwrap() = random(&mut rng, 3 * n, -1.0, 1.0);
+    let gaussians = ResidentGaussians::upload(&context, &state).unwrap();
+    let centres = upload(&context, "deformed centres", &case.deformed_centres);
+    let covariances = upload(&context, "deformed covariances", &case.deformed_covariances);
+    let weights = AiapWeights {
+        centre: 1.0,
+        covariance: 100.0,
+        neighbours: 5,
+    };
+    let mut aiap = ResidentAiap::new(&context, weights).unwrap();
+    let mut time = |aiap: &mut ResidentAiap| {
+        let start = std::time::Instant::now();
+        let mut encoder = context.encoder();
+        aiap.record(&mut encoder, &gaussians, &centres, &covariances)
+            .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        start.elapsed().as_secs_f64() * 1e3
+    };
+    let full = time(&mut aiap);
+    let reused: f64 = (0..5).map(|_| time(&mut aiap)).sum::<f64>() / 5.0;
+    let (rebuilds, calls) = aiap.download_searches().unwrap();
+    eprintln!(
+        "AIAP at {n} Gaussians on {}: {full:.2} ms with a full search, {reused:.2} ms reusing the lists ({rebuilds} searches in {calls} calls)",
+        context.describe()
+    );
+    assert_eq!((rebuilds, calls), (1, 6));
+}
