@@ -830,7 +830,7 @@ fn aiap_cost_of_a_full_search_and_of_a_reused_list() {
         neighbours: 5,
     };
     let mut aiap = ResidentAiap::new(&context, weights).unwrap();
-    let mut time = |aiap: &mut ResidentAiap| {
+    let time = |aiap: &mut ResidentAiap| {
         let start = std::time::Instant::now();
         let mut encoder = context.encoder();
         aiap.record(&mut encoder, &gaussians, &centres, &covariances)
