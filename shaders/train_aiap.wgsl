@@ -5,23 +5,24 @@
 // centres and covariance upper triangles, its gradients into the canonical and deformed
 // centres and covariances (accumulated with `gradient_add`), the canonical covariances'
 // gradient carried back to log-scales and rotations, and the loss value reduced in a fixed
-// order into the log record. Entry points, in recording order: `nearest`,
-// `covariances`, `pairs`, `reduce_loss`, `finish`. One thread per Gaussian (`reduce_loss`:
-// one workgroup); grids may be 2D.
+// order into the log record. The neighbours come from train_aiap_knn.wgsl. Entry points, in
+// recording order: `covariances`, `pairs`, `reduce_loss`, `finish`. One thread per Gaussian
+// (`reduce_loss`: one workgroup); grids may be 2D.
 //
-// `params` (written when the count changes): x = N, y = k, z = the scratch's capacity C
-// (rows), w unused; second vector: centre weight / pairs, covariance weight / pairs, centre
-// weight, covariance weight (f32 bits). The gradient scratch holds, at row offsets of C:
+// `params` (shared with train_aiap_knn.wgsl, written when the count changes): [0] = N, k,
+// the scratch's capacity C (rows), the dispatch limit; [1] = centre weight / pairs,
+// covariance weight / pairs, centre weight, covariance weight (f32 bits); [2] = candidates
+// per Gaussian, unused x 3. The gradient scratch holds, at row offsets of C:
 // canonical centres 3C | deformed centres 3C | canonical covariances 6C | deformed
 // covariances 6C.
 
-@group(0) @binding(0) var<uniform> params: array<vec4<u32>, 2>;
+@group(0) @binding(0) var<uniform> params: array<vec4<u32>, 3>;
 @group(0) @binding(1) var<storage, read> xyz: array<f32>;
 @group(0) @binding(2) var<storage, read> log_scale: array<f32>;
 @group(0) @binding(3) var<storage, read> rotation: array<f32>;
 @group(0) @binding(4) var<storage, read> deformed_centres: array<f32>;
 @group(0) @binding(5) var<storage, read> deformed_covariances: array<f32>;
-@group(0) @binding(6) var<storage, read_write> neighbours: array<u32>;
+@group(0) @binding(6) var<storage, read> neighbours: array<u32>;
 @group(0) @binding(7) var<storage, read_write> canonical_covariances: array<f32>;
 // Per Gaussian: the sums of its pairs' centre and covariance terms.
 @group(0) @binding(8) var<storage, read_write> partials: array<f32>;
@@ -33,8 +34,6 @@
 @group(0) @binding(12) var<storage, read_write> d_log_scale: array<f32>;
 @group(0) @binding(13) var<storage, read_write> d_rotation: array<f32>;
 
-const MAX_K: u32 = 16u;
-const TILE: u32 = 256u;
 
 fn count() -> u32 {
     return params[0].x;
@@ -46,87 +45,6 @@ fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
 
 fn is_finite(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
-
-// ---------------------------------------------------------------------------------------
-// Exact k nearest by (squared distance, index), as `knn_brute_force` and `KnnGrid` order
-// them: a tiled brute-force search, non-finite reference points skipped.
-
-var<workgroup> tile_points: array<vec4<f32>, TILE>;
-
-fn nearer(d: f32, j: u32, best_d: f32, best_j: u32) -> bool {
-    return d < best_d || (d == best_d && j < best_j);
-}
-
-@compute @workgroup_size(256)
-fn nearest(
-    @builtin(workgroup_id) group: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) local: u32,
-) {
-    let n = count();
-    let k = params[0].y;
-    let i = gaussian_index(group, groups, local);
-    let in_range = i < n;
-    var query = vec3<f32>(0.0);
-    if (in_range) {
-        query = vec3<f32>(xyz[3u * i], xyz[3u * i + 1u], xyz[3u * i + 2u]);
-    }
-    var best_d: array<f32, MAX_K>;
-    var best_j: array<u32, MAX_K>;
-    var found = 0u;
-    for (var start = 0u; start < n; start = start + TILE) {
-        let load = start + local;
-        var point = vec4<f32>(0.0, 0.0, 0.0, 0.0);
-        if (load < n) {
-            let p = vec3<f32>(xyz[3u * load], xyz[3u * load + 1u], xyz[3u * load + 2u]);
-            if (is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) {
-                point = vec4<f32>(p, 1.0);
-            }
-        }
-        workgroupBarrier();
-        tile_points[local] = point;
-        workgroupBarrier();
-        if (in_range) {
-            let end = min(TILE, n - start);
-            for (var t = 0u; t < end; t = t + 1u) {
-                let p = tile_points[t];
-                if (p.w == 0.0) {
-                    continue;
-                }
-                let delta = query - p.xyz;
-                let d = delta.x * delta.x + delta.y * delta.y + delta.z * delta.z;
-                let j = start + t;
-                if (found == k && !nearer(d, j, best_d[k - 1u], best_j[k - 1u])) {
-                    continue;
-                }
-                // Insertion from the end of the sorted list.
-                var slot = min(found, k - 1u);
-                loop {
-                    if (slot == 0u || !nearer(d, j, best_d[slot - 1u], best_j[slot - 1u])) {
-                        break;
-                    }
-                    best_d[slot] = best_d[slot - 1u];
-                    best_j[slot] = best_j[slot - 1u];
-                    slot = slot - 1u;
-                }
-                best_d[slot] = d;
-                best_j[slot] = j;
-                found = min(found + 1u, k);
-            }
-        }
-    }
-    if (in_range) {
-        for (var s = 0u; s < k; s = s + 1u) {
-            // Fewer finite points than k (the cpu search refuses that): the Gaussian itself,
-            // whose pair terms are 0.
-            var j = i;
-            if (s < found) {
-                j = best_j[s];
-            }
-            neighbours[i * k + s] = j;
-        }
-    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -193,12 +111,9 @@ fn covariances(
 // ---------------------------------------------------------------------------------------
 // The pair terms of Gaussian i (`aiap_term`): a zero distance has a zero subgradient.
 
+// The gradient scratch's atomic add (shaders/atomic_add_cas.wgsl; the host swaps in
+// atomic_add_float.wgsl when the adapter has native f32 atomics).
 // @atomic-add-begin
-// Portable f32 atomic add on the gradient buffer: a compare-exchange loop on the bit
-// pattern held in an atomic<u32>. Kernels that accumulate gradients carry this text between
-// the atomic-add begin and end marker lines; the host swaps in atomic_add_float.wgsl
-// when the adapter has native f32 atomics.
-
 @group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
 
 fn gradient_add(index: u32, value: f32) {

@@ -463,6 +463,58 @@ impl GpuContext {
         pass.dispatch_workgroups(x, y, 1);
     }
 
+    /// Records one dispatch whose grid the device wrote into `indirect` at byte `offset`
+    /// (three u32: x, y, z workgroups), so that a kernel can decide on the device whether and
+    /// how widely another runs, without a read-back. A grid beyond the per-dimension limit
+    /// ([`GpuContext::dispatch_limit`]) must be written 2D; shaders recover the linear index
+    /// as `id.x + id.y * num.x`. `indirect` needs `INDIRECT` usage
+    /// ([`GpuContext::indirect_args`]).
+    pub fn dispatch_indirect(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        bindings: &[(u32, &wgpu::Buffer)],
+        indirect: &wgpu::Buffer,
+        offset: u64,
+    ) {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+            .iter()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: *binding,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(kernel.name),
+            layout: &kernel.layout,
+            entries: &entries,
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(kernel.name),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&kernel.pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups_indirect(indirect, offset);
+    }
+
+    /// A zero-filled buffer of `len` u32 that kernels write as storage and
+    /// [`GpuContext::dispatch_indirect`] reads as grids.
+    pub fn indirect_args(&self, what: &str, len: usize) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size: (4 * len as u64).max(16).div_ceil(4) * 4,
+            usage: storage_usage() | wgpu::BufferUsages::INDIRECT,
+            mapped_at_creation: false,
+        })
+    }
+
+    /// Workgroups per dimension before [`GpuContext::dispatch`] goes 2D (the adapter limit,
+    /// or a lower one in tests): what a kernel writing an indirect grid splits by.
+    pub fn dispatch_limit(&self) -> u32 {
+        self.dispatch_limit
+    }
+
     /// Submits `encoder` and waits for the GPU to finish.
     pub fn submit_and_wait(&self, encoder: wgpu::CommandEncoder) -> Result<(), BackendError> {
         let index = self.queue.submit([encoder.finish()]);

@@ -15,8 +15,11 @@
 //! - [`ResidentAiap::log`]: 3 f32, `[centre x centres + covariance x covariances, centres,
 //!   covariances]` (the weighted value and the unweighted mean terms).
 //!
-//! The neighbour search is a tiled brute force over all Gaussians each iteration (exact,
-//! ties included); see [`ResidentAiap::record`] for its cost.
+//! The neighbours are exact (ties included, the same lists as `MovingKnn`): Verlet candidate
+//! lists (the 32 nearest at the last full search) from which each iteration selects the `k`
+//! nearest at the current positions, rebuilt by a full tiled brute-force search when a
+//! kernel finds that some Gaussian moved too far for them to be sure (the argument is in
+//! `shaders/train_aiap_knn.wgsl`); the decision stays on the device (indirect dispatches).
 
 use std::borrow::Cow;
 use std::sync::Arc;
@@ -30,9 +33,14 @@ use crate::densify::names;
 use crate::losses::AiapWeights;
 
 const AIAP_WGSL: &str = include_str!("../../../../shaders/train_aiap.wgsl");
+const KNN_WGSL: &str = include_str!("../../../../shaders/train_aiap_knn.wgsl");
 
-/// The largest `k` the neighbour kernel keeps in registers.
+/// The largest `k` the neighbour kernels keep in registers.
 pub const MAX_NEIGHBOURS: usize = 16;
+
+/// Candidates per Gaussian in the Verlet lists (`MAX_CANDIDATES` of train_aiap_knn.wgsl):
+/// the `M = min(32, N)` nearest at the last full search.
+pub const CANDIDATES: usize = 32;
 
 /// The AIAP gradients, in the layouts of the module doc.
 #[derive(Debug)]
@@ -51,6 +59,14 @@ struct Workspace {
     neighbours: GpuBuffer,
     canonical_covariances: GpuBuffer,
     partials: GpuBuffer,
+    /// Verlet lists: anchors `N x 3`, candidates `N x CANDIDATES` u32, slack `N`.
+    anchors: GpuBuffer,
+    candidates: GpuBuffer,
+    slack: GpuBuffer,
+    /// `[valid, smallest slack (f32 bits), rebuilds, calls]` u32.
+    lists: GpuBuffer,
+    /// The grids of the rebuild and its finalisation, written by the check kernel.
+    grids: wgpu::Buffer,
     /// The atomic gradient scratch: canonical centres 3C | deformed centres 3C | canonical
     /// covariances 6C | deformed covariances 6C.
     scratch: GpuBuffer,
@@ -62,12 +78,15 @@ struct Workspace {
 pub struct ResidentAiap {
     context: Arc<GpuContext>,
     weights: AiapWeights,
-    neighbours_kernel: Arc<Kernel>,
+    check: Arc<Kernel>,
+    rebuild: Arc<Kernel>,
+    finalize: Arc<Kernel>,
+    select: Arc<Kernel>,
     covariances: Arc<Kernel>,
     pairs: Arc<Kernel>,
     reduce_loss: Arc<Kernel>,
     finish: Arc<Kernel>,
-    /// `params` of the shader (two `vec4<u32>`), written when the count changes.
+    /// `params` of the shaders (three `vec4<u32>`), written when the count changes.
     params: wgpu::Buffer,
     written_for: Option<(usize, usize)>,
     log: GpuBuffer,
@@ -117,14 +136,17 @@ impl ResidentAiap {
         };
         let params = context.device().create_buffer(&wgpu::BufferDescriptor {
             label: Some("aiap params"),
-            size: 32,
+            size: 48,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         Ok(ResidentAiap {
             context: context.clone(),
             weights,
-            neighbours_kernel: kernel(context, "train_aiap_nearest", AIAP_WGSL, "nearest")?,
+            check: kernel(context, "train_aiap_knn_check", KNN_WGSL, "check")?,
+            rebuild: kernel(context, "train_aiap_knn_rebuild", KNN_WGSL, "rebuild")?,
+            finalize: kernel(context, "train_aiap_knn_finalize", KNN_WGSL, "finalize")?,
+            select: kernel(context, "train_aiap_knn_select", KNN_WGSL, "select_nearest")?,
             covariances: kernel(context, "train_aiap_covariances", AIAP_WGSL, "covariances")?,
             pairs: kernel(context, pairs_name, &wgsl, "pairs")?,
             reduce_loss: kernel(context, "train_aiap_reduce_loss", AIAP_WGSL, "reduce_loss")?,
@@ -162,6 +184,11 @@ impl ResidentAiap {
             neighbours: zeros("aiap neighbours", capacity * MAX_NEIGHBOURS)?,
             canonical_covariances: zeros("aiap canonical covariances", 6 * capacity)?,
             partials: zeros("aiap partial sums", 2 * capacity)?,
+            anchors: zeros("aiap knn anchors", 3 * capacity)?,
+            candidates: zeros("aiap knn candidates", CANDIDATES * capacity)?,
+            slack: zeros("aiap knn slack", capacity)?,
+            lists: zeros("aiap knn lists", 4)?,
+            grids: self.context.indirect_args("aiap knn grids", 6),
             scratch: zeros("aiap gradient scratch", 18 * capacity)?,
             gradients: AiapGradients {
                 xyz: zeros("aiap d xyz", 3 * capacity)?,
@@ -181,8 +208,9 @@ impl ResidentAiap {
     /// records zero gradients and a zero log. Writes its parameters (32 bytes) only when the
     /// count changed; allocates only when the count exceeds the workspace's capacity.
     ///
-    /// Cost: the neighbour search compares every pair of Gaussians (`N^2` distances, tiled
-    /// through workgroup memory); the rest is linear in `N k`.
+    /// Cost: linear in `N` (the check, `N x 32` candidate distances, `N (k - 1)` pairs) while
+    /// the Verlet lists hold; a rebuild compares every pair of Gaussians (`N^2` distances,
+    /// tiled through workgroup memory).
     pub fn record(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
@@ -202,17 +230,24 @@ impl ResidentAiap {
         if self.written_for != Some((n, k)) {
             let pairs = (n * k.saturating_sub(1)).max(1) as f64;
             let float = |v: f64| (v as f32).to_bits();
-            let words: [u32; 8] = [
+            let words: [u32; 12] = [
                 u32::try_from(n).context("AIAP: Gaussian count")?,
                 k as u32,
                 self.workspace.as_ref().map_or(0, |w| w.capacity) as u32,
-                0,
+                self.context.dispatch_limit(),
                 float(self.weights.centre / pairs),
                 float(self.weights.covariance / pairs),
                 float(self.weights.centre),
                 float(self.weights.covariance),
+                n.min(CANDIDATES) as u32,
+                0,
+                0,
+                0,
             ];
             self.context.write(&self.params, 0, &words)?;
+            // Lists of another count are not valid (a grown one's anchors are zeros).
+            let lists = &self.workspace.as_ref().expect("allocated above").lists;
+            self.context.write(&lists.buffer, 0, &[0_u32])?;
             self.written_for = Some((n, k));
         }
         let workspace = self.workspace.as_ref().expect("allocated above");
@@ -236,13 +271,51 @@ impl ResidentAiap {
         let log_scale = &gaussians.column(names::LOG_SCALE)?.values.buffer;
         let rotation = &gaussians.column(names::ROTATION)?.values.buffer;
         let ctx = &self.context;
-        ctx.dispatch(
+        ctx.dispatch_grid(
             encoder,
-            &self.neighbours_kernel,
+            &self.check,
             &[
                 (0, &self.params),
                 (1, xyz),
-                (6, &workspace.neighbours.buffer),
+                (2, &workspace.anchors.buffer),
+                (5, &workspace.lists.buffer),
+                (6, &workspace.grids),
+            ],
+            1,
+            1,
+        );
+        ctx.dispatch_indirect(
+            encoder,
+            &self.rebuild,
+            &[
+                (0, &self.params),
+                (1, xyz),
+                (2, &workspace.anchors.buffer),
+                (3, &workspace.candidates.buffer),
+                (4, &workspace.slack.buffer),
+            ],
+            &workspace.grids,
+            0,
+        );
+        ctx.dispatch_indirect(
+            encoder,
+            &self.finalize,
+            &[
+                (0, &self.params),
+                (4, &workspace.slack.buffer),
+                (5, &workspace.lists.buffer),
+            ],
+            &workspace.grids,
+            12,
+        );
+        ctx.dispatch(
+            encoder,
+            &self.select,
+            &[
+                (0, &self.params),
+                (1, xyz),
+                (3, &workspace.candidates.buffer),
+                (7, &workspace.neighbours.buffer),
             ],
             groups,
         );
@@ -338,6 +411,18 @@ impl ResidentAiap {
             .context
             .download::<f32>(self.context.encoder(), &self.log.buffer, 3)?;
         Ok([values[0], values[1], values[2]])
+    }
+
+    /// Full neighbour searches and calls so far, `(rebuilds, calls)` (one read-back; the
+    /// `cpu` twin is `Trainer::aiap_neighbour_searches`).
+    pub fn download_searches(&self) -> anyhow::Result<(u64, u64)> {
+        let Some(workspace) = &self.workspace else {
+            return Ok((0, 0));
+        };
+        let words =
+            self.context
+                .download::<u32>(self.context.encoder(), &workspace.lists.buffer, 4)?;
+        Ok((u64::from(words[2]), u64::from(words[3])))
     }
 
     /// Reads the neighbour lists of `n` Gaussians back (tests).

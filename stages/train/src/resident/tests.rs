@@ -729,3 +729,121 @@ fn aiap_off_records_zeros_and_costs_no_traffic_in_the_steady_state() {
     .unwrap_err();
     assert!(error.to_string().contains("aiap_neighbours"), "{error}");
 }
+
+/// Gaussians moving a little every iteration (and once far): every iteration's neighbours
+/// are `MovingKnn`'s, the device rebuilt its lists only sometimes, and a call makes no
+/// transfer.
+#[test]
+fn verlet_lists_follow_moving_gaussians_exactly_and_rebuild_only_when_needed() {
+    let Some(context) = gpu_test_context_with_dispatch_limit(2) else {
+        return;
+    };
+    let n = 600;
+    let k = 5;
+    let mut rng = Rng::new(12);
+    let mut xyz = random(&mut rng, 3 * n, -1.0, 1.0);
+    let mut state = state_with_centres(&mut rng, &xyz);
+    let mut gaussians = ResidentGaussians::upload(&context, &state).unwrap();
+    let weights = AiapWeights {
+        centre: 1.0,
+        covariance: 100.0,
+        neighbours: k,
+    };
+    let mut aiap = ResidentAiap::new(&context, weights).unwrap();
+    let centres = upload(&context, "deformed centres", &vec![0.0; 3 * n]);
+    let covariances = upload(&context, "deformed covariances", &vec![0.0; 6 * n]);
+    let mut knn = MovingKnn::default();
+    let mut traffic = seqavatar_compute::backend::Transfers::default();
+    for iteration in 0..12 {
+        // Small steps (a fraction of the spacing), one large jump of a single Gaussian.
+        let step = if iteration == 8 { 0.0 } else { 2e-3 };
+        for v in &mut xyz {
+            *v = f64::from((*v + rng.uniform(-step, step)) as f32);
+        }
+        if iteration == 8 {
+            xyz[3 * 17] = 0.9;
+        }
+        *state.values_mut(names::POSITION).unwrap() = xyz.clone();
+        gaussians.reupload(&state).unwrap();
+        let before = context.transfers();
+        let mut encoder = context.encoder();
+        aiap.record(&mut encoder, &gaussians, &centres, &covariances)
+            .unwrap();
+        context.queue().submit([encoder.finish()]);
+        if iteration > 0 {
+            let t = context.transfers().since(&before);
+            traffic.readbacks += t.readbacks;
+            traffic.bytes_up += t.bytes_up;
+        }
+        let expected = knn.neighbours(&as_points(&xyz), k);
+        assert_eq!(
+            aiap.download_neighbours(n).unwrap(),
+            expected,
+            "iteration {iteration}"
+        );
+    }
+    assert_eq!((traffic.readbacks, traffic.bytes_up), (0, 0));
+    let (rebuilds, calls) = aiap.download_searches().unwrap();
+    assert_eq!(calls, 12);
+    assert!(
+        (2..12).contains(&rebuilds),
+        "{rebuilds} full searches in {calls} calls"
+    );
+    // A count change invalidates the lists.
+    let fewer = &xyz[..3 * (n - 50)];
+    let state = state_with_centres(&mut rng, fewer);
+    gaussians.reupload(&state).unwrap();
+    let mut encoder = context.encoder();
+    aiap.record(&mut encoder, &gaussians, &centres, &covariances)
+        .unwrap();
+    context.submit_and_wait(encoder).unwrap();
+    assert_eq!(
+        aiap.download_neighbours(n - 50).unwrap(),
+        MovingKnn::default().neighbours(&as_points(fewer), k)
+    );
+    assert_eq!(aiap.download_searches().unwrap().0, rebuilds + 1);
+}
+
+/// What a full neighbour search costs next to an iteration that reuses the Verlet lists
+/// (`cargo test -p seqavatar-train --lib --release resident::tests::aiap_cost -- --ignored
+/// --nocapture`; prints milliseconds per call, set `AIAP_COST_N` for the count).
+#[test]
+#[ignore = "timing, run by hand"]
+fn aiap_cost_of_a_full_search_and_of_a_reused_list() {
+    let Some(context) = gpu_test_context() else {
+        return;
+    };
+    let n: usize = std::env::var("AIAP_COST_N")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8192);
+    let mut rng = Rng::new(13);
+    let case = aiap_case(&mut rng, n);
+    let mut state = case.state;
+    *state.values_mut(names::POSITION).unwrap() = random(&mut rng, 3 * n, -1.0, 1.0);
+    let gaussians = ResidentGaussians::upload(&context, &state).unwrap();
+    let centres = upload(&context, "deformed centres", &case.deformed_centres);
+    let covariances = upload(&context, "deformed covariances", &case.deformed_covariances);
+    let weights = AiapWeights {
+        centre: 1.0,
+        covariance: 100.0,
+        neighbours: 5,
+    };
+    let mut aiap = ResidentAiap::new(&context, weights).unwrap();
+    let time = |aiap: &mut ResidentAiap| {
+        let start = std::time::Instant::now();
+        let mut encoder = context.encoder();
+        aiap.record(&mut encoder, &gaussians, &centres, &covariances)
+            .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        start.elapsed().as_secs_f64() * 1e3
+    };
+    let full = time(&mut aiap);
+    let reused: f64 = (0..5).map(|_| time(&mut aiap)).sum::<f64>() / 5.0;
+    let (rebuilds, calls) = aiap.download_searches().unwrap();
+    eprintln!(
+        "AIAP at {n} Gaussians on {}: {full:.2} ms with a full search, {reused:.2} ms reusing the lists ({rebuilds} searches in {calls} calls)",
+        context.describe()
+    );
+    assert_eq!((rebuilds, calls), (1, 6));
+}
