@@ -262,7 +262,11 @@ pub struct DeviceGaussians<'a> {
 }
 
 /// `Err(Length)` when `buffer` holds fewer than `needed` values.
-fn check_at_least(field: &'static str, buffer: &GpuBuffer, needed: usize) -> Result<(), SplatError> {
+fn check_at_least(
+    field: &'static str,
+    buffer: &GpuBuffer,
+    needed: usize,
+) -> Result<(), SplatError> {
     if buffer.len < needed {
         return Err(SplatError::Length {
             field,
@@ -339,7 +343,11 @@ struct GaussianParts {
 }
 
 impl GaussianParts {
-    fn new(context: &GpuContext, capacity: u32, sh_coefficients: u32) -> Result<Self, BackendError> {
+    fn new(
+        context: &GpuContext,
+        capacity: u32,
+        sh_coefficients: u32,
+    ) -> Result<Self, BackendError> {
         let n = capacity as usize;
         let k = sh_coefficients as usize;
         Ok(Self {
@@ -478,9 +486,7 @@ pub struct SplatWorkspace {
 /// Gaussian, else sixteen tiles per Gaussian (at least a few thousand).
 fn estimate_pairs(gaussians: u32, tiles: u32) -> u64 {
     let n = u64::from(gaussians);
-    (n * u64::from(tiles))
-        .min((16 * n).max(4096))
-        .max(1)
+    (n * u64::from(tiles)).min((16 * n).max(4096)).max(1)
 }
 
 impl SplatWorkspace {
@@ -658,11 +664,13 @@ impl SplatWorkspace {
             PROJECT_WGSL,
             "project_forward",
         ))?;
-        let count_kernel = context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
+        let count_kernel =
+            context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
         let emit_kernel = context.kernel(&kernel_source("emit_pairs", BIN_WGSL, "emit_pairs"))?;
         let finish_kernel =
             context.kernel(&kernel_source("finish_pairs", BIN_WGSL, "finish_pairs"))?;
-        let ranges_kernel = context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
+        let ranges_kernel =
+            context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
         let rasterize = context.kernel(&kernel_source(
             "rasterize_forward",
             RASTERIZE_WGSL,
@@ -680,7 +688,8 @@ impl SplatWorkspace {
             let band_count = self.bands.min(tiles_y).max(1);
             let rows: Vec<(u32, u32)> = (0..band_count)
                 .map(|band| {
-                    let row = |b: u32| (u64::from(b) * u64::from(tiles_y) / u64::from(band_count)) as u32;
+                    let row =
+                        |b: u32| (u64::from(b) * u64::from(tiles_y) / u64::from(band_count)) as u32;
                     (row(band), row(band + 1))
                 })
                 .collect();
@@ -805,7 +814,11 @@ impl SplatWorkspace {
                 context.dispatch(
                     encoder,
                     &ranges_kernel,
-                    &[(0, &band.bin_params), (4, sorted_keys), (6, &slot.ranges.buffer)],
+                    &[
+                        (0, &band.bin_params),
+                        (4, sorted_keys),
+                        (6, &slot.ranges.buffer),
+                    ],
                     pairs.div_ceil(GROUP),
                 );
             }

@@ -473,9 +473,18 @@ fn assert_images_identical(
     for (camera, (r, h)) in resident.iter().zip(reference).enumerate() {
         let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!((r.width, r.height), (h.width, h.height), "{what}: size");
-        assert!(bits(&r.colour) == bits(&h.colour), "{what}: camera {camera} colour");
-        assert!(bits(&r.alpha) == bits(&h.alpha), "{what}: camera {camera} alpha");
-        assert!(bits(&r.depth) == bits(&h.depth), "{what}: camera {camera} depth");
+        assert!(
+            bits(&r.colour) == bits(&h.colour),
+            "{what}: camera {camera} colour"
+        );
+        assert!(
+            bits(&r.alpha) == bits(&h.alpha),
+            "{what}: camera {camera} alpha"
+        );
+        assert!(
+            bits(&r.depth) == bits(&h.depth),
+            "{what}: camera {camera} depth"
+        );
     }
 }
 
@@ -564,7 +573,13 @@ fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
     let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), Some(16)).unwrap();
     let mut encoder = context.encoder();
     workspace
-        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .forward(
+            &context,
+            &mut encoder,
+            resident.view(),
+            &cameras,
+            &options(),
+        )
         .unwrap();
     context.submit_and_wait(encoder).unwrap();
     // The truncated render still counts every pair it needed.
@@ -592,7 +607,13 @@ fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
     );
     let mut encoder = context.encoder();
     workspace
-        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .forward(
+            &context,
+            &mut encoder,
+            resident.view(),
+            &cameras,
+            &options(),
+        )
         .unwrap();
     context.submit_and_wait(encoder).unwrap();
     let status = workspace.check_status(&context).unwrap();
@@ -642,7 +663,10 @@ fn an_overflow_beyond_the_band_limit_adds_bands_and_stays_exact() {
 
 #[test]
 fn a_steady_state_forward_and_backward_reads_nothing_back_and_writes_only_the_cameras() {
-    let Some(context) = gpu_test_context() else {
+    // A context of its own: tests running in parallel on the shared one add their traffic.
+    let Some(context) =
+        crate::backend::test_support::gpu_test_context_with_dispatch_limit(u32::MAX)
+    else {
         return;
     };
     let gaussians = scene(150, 3, 27);
@@ -651,7 +675,7 @@ fn a_steady_state_forward_and_backward_reads_nothing_back_and_writes_only_the_ca
     let resident = ResidentGaussians::upload(&context, &view).unwrap();
     let device_upstream = upload_gradients(&context, &upstream(&cameras, 5));
     let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), None).unwrap();
-    let mut step = |workspace: &mut SplatWorkspace, cameras: &[Camera]| {
+    let step = |workspace: &mut SplatWorkspace, cameras: &[Camera]| {
         let mut encoder = context.encoder();
         workspace
             .forward(&context, &mut encoder, resident.view(), cameras, &options())
@@ -668,7 +692,10 @@ fn a_steady_state_forward_and_backward_reads_nothing_back_and_writes_only_the_ca
     };
     // The first call sizes the workspace.
     step(&mut workspace, &cameras);
-    assert_eq!(workspace.check_status(&context).unwrap().overflowed_bands, 0);
+    assert_eq!(
+        workspace.check_status(&context).unwrap().overflowed_bands,
+        0
+    );
     // Cameras that move (same sizes) are the training steady state.
     let moved = vec![
         camera(70, 45, DVec3::new(0.35, -0.1, -2.4)),
@@ -712,7 +739,13 @@ fn device_inputs_of_the_wrong_size_are_rejected_with_the_field_named() {
         .unwrap_err();
     assert!(error.to_string().contains("before any forward"), "{error}");
     workspace
-        .forward(&context, &mut encoder, resident.view(), &cameras, &options())
+        .forward(
+            &context,
+            &mut encoder,
+            resident.view(),
+            &cameras,
+            &options(),
+        )
         .unwrap();
     let short = context.zeros("d colour", 20 * 20 * 3 - 1, 4).unwrap();
     let error = workspace
