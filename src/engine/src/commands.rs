@@ -12,7 +12,7 @@ use crate::array::Element;
 use crate::entry::EntryReader;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{COMPLETION_MARKER, EntryId, EntryState, open_store};
+use crate::store::{EntryId, EntryState, completion_marker, is_published, open_store};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -182,11 +182,11 @@ fn resolve_target(
     cache: &Path,
 ) -> anyhow::Result<(EntryReader, Option<String>)> {
     let as_path = Path::new(target);
-    if as_path.join(COMPLETION_MARKER).is_file() {
+    if is_published(as_path) {
         return Ok((open_entry_folder(as_path)?, None));
     }
     if let (Some(parent), Some(name)) = (as_path.parent(), as_path.file_name())
-        && parent.join(COMPLETION_MARKER).is_file()
+        && is_published(parent)
     {
         return Ok((
             open_entry_folder(parent)?,
@@ -195,7 +195,8 @@ fn resolve_target(
     }
     if as_path.is_dir() {
         anyhow::bail!(
-            "{target}: not a published cache entry (no {COMPLETION_MARKER} marker; the entry may be incomplete)"
+            "{target}: not a published cache entry (no {} marker; the entry may be incomplete)",
+            completion_marker(as_path).display()
         );
     }
     let split = [".yaml:", ".yml:"]

@@ -11,6 +11,7 @@ pub mod commands;
 mod config;
 mod entry;
 pub mod key;
+mod matrix;
 pub mod picture;
 mod pipeline;
 #[cfg(feature = "remote")]
