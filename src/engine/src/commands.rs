@@ -710,7 +710,14 @@ mod tests {
 
         // A run reading `other` holds a shared lease: gc leaves it.
         let lease = store.read_lease(&other_id).unwrap();
-        let report = gc(&registry, std::slice::from_ref(&kept_file), &[], false, &cache).unwrap();
+        let report = gc(
+            &registry,
+            std::slice::from_ref(&kept_file),
+            &[],
+            false,
+            &cache,
+        )
+        .unwrap();
         assert_eq!(report.kept, 1, "{report:?}");
         assert!(report.removed.is_empty(), "{report:?}");
         assert_eq!(report.skipped, std::slice::from_ref(&other_id));
@@ -782,7 +789,10 @@ mod tests {
         let error = crate::open_leased_verified(&store, &id)
             .unwrap_err()
             .to_string();
-        assert!(error.contains("corrupt") && error.contains("values/c/0"), "{error}");
+        assert!(
+            error.contains("corrupt") && error.contains("values/c/0"),
+            "{error}"
+        );
         std::fs::write(&chunk, original_chunk).unwrap();
         crate::open_leased_verified(&store, &id).unwrap();
 
@@ -795,7 +805,10 @@ mod tests {
         let error = crate::open_leased_verified(&store, &id)
             .unwrap_err()
             .to_string();
-        assert!(error.contains("corrupt") && error.contains("zarr.json"), "{error}");
+        assert!(
+            error.contains("corrupt") && error.contains("zarr.json"),
+            "{error}"
+        );
     }
 
     #[test]

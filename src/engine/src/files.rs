@@ -41,8 +41,7 @@ fn kind_of(file_type: &fs::FileType) -> &'static str {
 /// The metadata of `path` (through symbolic links), or an error naming it when it is not a
 /// regular file.
 pub fn regular_file_metadata(path: &Path) -> anyhow::Result<fs::Metadata> {
-    let metadata =
-        fs::metadata(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let metadata = fs::metadata(path).with_context(|| format!("cannot read {}", path.display()))?;
     if !metadata.is_file() {
         bail!(
             "{} is {}: only regular files can be read",
@@ -86,8 +85,8 @@ pub fn read_regular_file(path: &Path) -> anyhow::Result<Vec<u8>> {
 /// regular file nor a folder is an error naming it, as are a walk deeper than
 /// [`MAX_WALK_DEPTH`] and more than [`MAX_WALK_FILES`] files.
 pub fn walk_regular_files(root: &Path, excluded: &[PathBuf]) -> anyhow::Result<Vec<String>> {
-    let canonical_root = fs::canonicalize(root)
-        .with_context(|| format!("cannot resolve {}", root.display()))?;
+    let canonical_root =
+        fs::canonicalize(root).with_context(|| format!("cannot resolve {}", root.display()))?;
     let mut files = Vec::new();
     walk(&canonical_root, root, root, 0, excluded, &mut files)?;
     files.sort();
@@ -138,10 +137,7 @@ fn walk(
             walk(canonical_root, root, &path, depth + 1, excluded, files)?;
         } else if file_type.is_file() {
             if files.len() >= MAX_WALK_FILES {
-                bail!(
-                    "{} holds more than {MAX_WALK_FILES} files",
-                    root.display()
-                );
+                bail!("{} holds more than {MAX_WALK_FILES} files", root.display());
             }
             let relative = path.strip_prefix(root).unwrap_or(&path);
             files.push(relative.to_string_lossy().replace('\\', "/"));

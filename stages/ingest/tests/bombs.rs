@@ -302,7 +302,10 @@ fn a_deflate_bomb_is_refused_before_inflating() {
     );
     let (result, peak) = peak_of(|| npz::read_with(&lying, &limits));
     let error = result.unwrap_err();
-    assert!(error.to_string().contains("inflated to more than"), "{error}");
+    assert!(
+        error.to_string().contains("inflated to more than"),
+        "{error}"
+    );
     assert!(peak <= array_limit(&limits), "peak {peak}");
     assert!(peak < 30 << 20, "peak {peak}");
 
@@ -411,7 +414,10 @@ fn string_arrays_are_charged_per_element() {
     assert!(peak <= array_limit(&limits), "peak {peak}");
     drop(array);
     let (result, peak) = peak_of(|| {
-        npz::read_with(&zip(&[Member::stored("s.npy", file.clone())], None), &limits)
+        npz::read_with(
+            &zip(&[Member::stored("s.npy", file.clone())], None),
+            &limits,
+        )
     });
     assert_eq!(result.unwrap().len(), 1);
     assert!(peak <= array_limit(&limits) + 2 * file.len(), "peak {peak}");

@@ -468,7 +468,10 @@ fn a_compressed_body_model_with_zero_blend_shapes_loads() {
         let want = f64s(&expected[key]);
         let got = loaded.model.template_vertex(index);
         for axis in 0..3 {
-            assert!((got[axis] - want[axis]).abs() < 1e-12, "{key}: {got} vs {want:?}");
+            assert!(
+                (got[axis] - want[axis]).abs() < 1e-12,
+                "{key}: {got} vs {want:?}"
+            );
         }
     }
 }

@@ -322,7 +322,16 @@ impl BodyModel {
             .pose
             .iter()
             .enumerate()
-            .map(|(joint, v)| (if joint == 0 { "global_orient" } else { "body_pose" }, *v))
+            .map(|(joint, v)| {
+                (
+                    if joint == 0 {
+                        "global_orient"
+                    } else {
+                        "body_pose"
+                    },
+                    *v,
+                )
+            })
             .chain(std::iter::once(("Rh", params.world_rotation)));
         for (field, rotation) in rotations {
             let angle = rotation.length();

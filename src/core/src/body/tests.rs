@@ -343,7 +343,13 @@ fn params_are_validated() {
     params.world_translation.x = 2e4;
     let error = model.forward(&params).unwrap_err();
     assert!(
-        matches!(error, BodyParamsError::Absurd { field: "transl", .. }),
+        matches!(
+            error,
+            BodyParamsError::Absurd {
+                field: "transl",
+                ..
+            }
+        ),
         "{error}"
     );
     // Large but plausible values pass: several turns, a kilometre away.

@@ -128,7 +128,8 @@ pub fn decode_within(
             .min(file.left());
         let mut budget = Budget::with_limit(limit);
         let (value, _) = pickle::load_prefix_within(data, &mut budget)?;
-        file.charge(limit - budget.left()).map_err(NpyError::TooLarge)?;
+        file.charge(limit - budget.left())
+            .map_err(NpyError::TooLarge)?;
         let matches = match &value {
             Value::Array(a) => a.shape == header.shape && matches!(a.data, ArrayData::Object(_)),
             _ => false,

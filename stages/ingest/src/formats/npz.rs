@@ -350,7 +350,11 @@ pub fn extract_declared<'a>(
                     "member '{}': inflated to {}{} bytes, its header and the zip directory \
                      declare {expected}",
                     entry.name,
-                    if out.len() > expected { "more than " } else { "" },
+                    if out.len() > expected {
+                        "more than "
+                    } else {
+                        ""
+                    },
                     out.len().min(expected)
                 )));
             }

@@ -196,9 +196,7 @@ impl SyntheticConfig {
     /// ([`seqavatar_engine::memory_budget_bytes`]); errors name the config field.
     pub fn validate(&self) -> anyhow::Result<()> {
         self.validate_ranges()?;
-        if let Some(budget) =
-            seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?
-        {
+        if let Some(budget) = seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)? {
             self.check_memory(budget)?;
         }
         Ok(())
@@ -289,7 +287,11 @@ mod memory_tests {
         let start = std::time::Instant::now();
         let error = config.check_memory(16 << 30).unwrap_err().to_string();
         assert!(start.elapsed() < std::time::Duration::from_secs(1));
-        for field in ["dataset.width", "dataset.supersample", "SEQAVATAR_MEMORY_BUDGET"] {
+        for field in [
+            "dataset.width",
+            "dataset.supersample",
+            "SEQAVATAR_MEMORY_BUDGET",
+        ] {
             assert!(error.contains(field), "{error}");
         }
         assert!(config.memory_estimate_bytes() > 4096 * 4096 * 64 * 20);
@@ -300,7 +302,10 @@ mod memory_tests {
             ..SyntheticConfig::default()
         };
         let error = many.check_memory(4 << 30).unwrap_err().to_string();
-        assert!(error.contains("dataset.cameras x dataset.frames"), "{error}");
+        assert!(
+            error.contains("dataset.cameras x dataset.frames"),
+            "{error}"
+        );
         // The demo's scene fits a small budget.
         SyntheticConfig::default().check_memory(1 << 30).unwrap();
     }
