@@ -270,10 +270,11 @@ pub fn write_report_for(
         let spec = &pipeline.stages[index];
         let id = EntryId::new(&spec.kind, &keys[&spec.name].key);
         let entry = match store.entry_state(&id)? {
+            // Verified as `run` verifies it, under the read lease `gc` respects: a report
+            // never shows numbers from a tampered or damaged entry.
             EntryState::Complete => Some(
-                store
-                    .open_entry(&id)
-                    .with_context(|| format!("stage \"{}\": cannot open {id}", spec.name))?,
+                seqavatar_engine::open_leased_verified(store, &id)
+                    .with_context(|| format!("stage \"{}\": cannot report {id}", spec.name))?,
             ),
             _ => None,
         };
