@@ -138,6 +138,10 @@ enum Command {
         /// Pipelines whose entries are kept (repeatable).
         #[arg(long)]
         keep: Vec<PathBuf>,
+        /// Overrides `stage.key=value` applied to every `--keep` pipeline, as given to `run`
+        /// (repeatable), so the entries of `run FILE --set ...` are kept.
+        #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+        sets: Vec<String>,
         /// Only print what would be removed.
         #[arg(long)]
         dry_run: bool,
@@ -192,8 +196,12 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             };
             commands::inspect(&registry, &target, &options, &cache)?;
         }
-        Command::Gc { keep, dry_run } => {
-            commands::gc(&registry, &keep, dry_run, &cache)?;
+        Command::Gc {
+            keep,
+            sets,
+            dry_run,
+        } => {
+            commands::gc(&registry, &keep, &sets, dry_run, &cache)?;
         }
         Command::Render {
             avatar,

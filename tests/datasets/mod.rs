@@ -271,3 +271,57 @@ fn synthetic_pipelines_load() {
         assert!(status.contains(stage), "{stage}: {status}");
     }
 }
+
+/// Every stage's cache key of the pipeline file `file`, by stage name (the keys of a fresh
+/// local cache: nothing is run).
+fn stage_keys(file: &Path) -> std::collections::BTreeMap<String, (String, String)> {
+    let mut registry = seqavatar_engine::Registry::new();
+    seqavatar_ingest::register(&mut registry);
+    seqavatar_fit::register(&mut registry);
+    seqavatar_motion::register(&mut registry);
+    seqavatar_train::register(&mut registry);
+    seqavatar_eval::register(&mut registry);
+    let pipeline = seqavatar_engine::Pipeline::load(file, &registry, &[])
+        .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+    let cache = tempfile::tempdir().unwrap();
+    let store = seqavatar_engine::LocalStore::open(cache.path()).unwrap();
+    let keys = seqavatar_engine::compute_keys(&pipeline, &registry, &store).unwrap();
+    pipeline
+        .stages
+        .iter()
+        .map(|stage| {
+            let key = keys[&stage.name].key.clone();
+            (stage.name.clone(), (stage.kind.clone(), key))
+        })
+        .collect()
+}
+
+/// The sweeps written as `matrix:` stanzas expand to the runs that were written by hand (the
+/// committed `tests/fixtures/pipelines/*_by_hand.yaml`), with the same cache keys, so no
+/// cached entry is recomputed: the ablation with the same stage names, the trade-off study
+/// with the same set of train and eval keys (its seeded rows got systematic names).
+#[test]
+fn matrix_sweeps_keep_the_cache_keys_of_the_hand_written_runs() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let by_hand = |name: &str| root.join(format!("tests/fixtures/pipelines/{name}_by_hand.yaml"));
+
+    let ablation = stage_keys(&root.join("pipelines/ablation_synthetic.yaml"));
+    assert_eq!(ablation.len(), 3 + 2 * 15);
+    assert_eq!(ablation, stage_keys(&by_hand("ablation_synthetic")));
+    let ablation_text = std::fs::read_to_string(root.join("pipelines/ablation_synthetic.yaml"));
+    assert!(ablation_text.unwrap().lines().count() < 60);
+
+    let keys_by_kind = |keys: &std::collections::BTreeMap<String, (String, String)>| {
+        let mut pairs: Vec<(String, String)> = keys.values().cloned().collect();
+        pairs.sort();
+        pairs
+    };
+    let tradeoff = stage_keys(&root.join("pipelines/tradeoff_synthetic.yaml"));
+    let tradeoff_by_hand = stage_keys(&by_hand("tradeoff_synthetic"));
+    assert_eq!(tradeoff.len(), 3 + 2 * 27);
+    assert_eq!(keys_by_kind(&tradeoff), keys_by_kind(&tradeoff_by_hand));
+    // The shared entries are the ablation's.
+    for stage in ["ingest", "fit", "motion"] {
+        assert_eq!(tradeoff[stage], ablation[stage], "{stage}");
+    }
+}

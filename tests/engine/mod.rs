@@ -139,8 +139,7 @@ fn killed_run_leaves_no_entry_and_next_run_resumes() {
         !sandbox
             .cache()
             .join("test_arrays")
-            .join(&key)
-            .join(".complete")
+            .join(format!("{key}.complete"))
             .exists()
     );
     let output = sandbox.run(&["run", "p.yaml"]);
@@ -508,4 +507,54 @@ fn edited_attributes_and_missing_chunks_are_never_served() {
     assert_eq!(rerun[0], ("a".to_string(), "ran".to_string()));
     assert_eq!(rerun[1], ("b".to_string(), "cached".to_string()));
     sandbox.ok(&["status", "--verify", "p.yaml"]);
+}
+
+/// Every file under `dir` (recursively), relative to `root`, with `/` separators.
+fn files_under(root: &Path, dir: &Path, out: &mut Vec<String>) {
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            files_under(root, &path, out);
+        } else {
+            let relative = path.strip_prefix(root).unwrap();
+            out.push(relative.to_string_lossy().replace('\\', "/"));
+        }
+    }
+}
+
+/// A published entry folder is a Zarr v3 group that holds only Zarr nodes, so zarr-python
+/// and xarray open it without warnings: every file is a node's `zarr.json` or a chunk under
+/// an array's `c/` folder. Its completion marker is the file `<key>.complete` beside it.
+#[test]
+fn published_entries_hold_only_zarr_nodes() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("size: 8", "size: 8, seed: 3"));
+    sandbox.ok(&["run", "p.yaml"]);
+    for stage in ["a", "b"] {
+        let key = sandbox.key_of("p.yaml", stage);
+        let kind_dir = sandbox.cache().join("test_arrays");
+        let entry = kind_dir.join(&key);
+        assert!(
+            kind_dir.join(format!("{key}.complete")).is_file(),
+            "{stage}"
+        );
+        let mut files = Vec::new();
+        files_under(&entry, &entry, &mut files);
+        assert!(files.contains(&"zarr.json".to_string()), "{files:?}");
+        let strays: Vec<&String> = files
+            .iter()
+            .filter(|file| {
+                let is_metadata = file.rsplit('/').next() == Some("zarr.json");
+                let is_chunk = file.split('/').rev().skip(1).any(|part| part == "c");
+                !(is_metadata || is_chunk)
+            })
+            .collect();
+        assert!(strays.is_empty(), "{stage}: not Zarr nodes: {strays:?}");
+    }
+    // `inspect` takes the entry folder itself.
+    let folder = sandbox
+        .cache()
+        .join("test_arrays")
+        .join(sandbox.key_of("p.yaml", "a"));
+    sandbox.ok(&["inspect", folder.to_str().unwrap()]);
 }

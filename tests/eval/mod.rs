@@ -344,6 +344,10 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         "two evals make a sweep table:\n{markdown}"
     );
     assert!(markdown.contains("| ingest | ingest |"), "{markdown}");
+    assert!(
+        markdown.contains("Reproduce: `pipeline run test.yaml && pipeline report test.yaml`"),
+        "the command that reproduces the tables heads the report:\n{markdown}"
+    );
     assert!(markdown.contains("train, eval, eval_lpips"), "{markdown}");
     assert!(
         markdown.contains("eval_other_cameras"),

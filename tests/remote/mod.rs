@@ -368,8 +368,7 @@ fn two_machines_compute_each_stage_once_then_status_inspect_gc() {
         cluster
             .local("m3")
             .join("test_arrays")
-            .join(&key_b)
-            .join(".complete")
+            .join(format!("{key_b}.complete"))
             .is_file()
     );
     // A warm local run does not download again.

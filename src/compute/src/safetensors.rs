@@ -99,12 +99,21 @@ pub struct SafetensorsFile {
 }
 
 impl SafetensorsFile {
-    /// Reads and validates `path`.
+    /// Reads and validates `path`, a regular file (a device such as `/dev/zero` or a FIFO
+    /// would never end or would block: refused from its metadata).
     pub fn read(path: &Path) -> Result<Self, SafetensorsError> {
-        let bytes = std::fs::read(path).map_err(|error| SafetensorsError::Io {
+        let io = |error| SafetensorsError::Io {
             path: path.to_owned(),
             error,
-        })?;
+        };
+        if !std::fs::metadata(path).map_err(io)?.is_file() {
+            return Err(io(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a regular file (a device, FIFO, socket or folder): only regular files \
+                 can be read",
+            )));
+        }
+        let bytes = std::fs::read(path).map_err(io)?;
         Self::parse(path, bytes)
     }
 

@@ -12,7 +12,7 @@ use crate::array::Element;
 use crate::entry::EntryReader;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{COMPLETION_MARKER, EntryId, EntryState, open_store};
+use crate::store::{EntryId, EntryState, completion_marker, is_published, open_store};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -182,11 +182,11 @@ fn resolve_target(
     cache: &Path,
 ) -> anyhow::Result<(EntryReader, Option<String>)> {
     let as_path = Path::new(target);
-    if as_path.join(COMPLETION_MARKER).is_file() {
+    if is_published(as_path) {
         return Ok((open_entry_folder(as_path)?, None));
     }
     if let (Some(parent), Some(name)) = (as_path.parent(), as_path.file_name())
-        && parent.join(COMPLETION_MARKER).is_file()
+        && is_published(parent)
     {
         return Ok((
             open_entry_folder(parent)?,
@@ -195,7 +195,8 @@ fn resolve_target(
     }
     if as_path.is_dir() {
         anyhow::bail!(
-            "{target}: not a published cache entry (no {COMPLETION_MARKER} marker; the entry may be incomplete)"
+            "{target}: not a published cache entry (no {} marker; the entry may be incomplete)",
+            completion_marker(as_path).display()
         );
     }
     let split = [".yaml:", ".yml:"]
@@ -541,13 +542,14 @@ pub struct GcReport {
 pub fn gc(
     registry: &Registry,
     keep: &[PathBuf],
+    sets: &[String],
     dry_run: bool,
     cache: &Path,
 ) -> anyhow::Result<GcReport> {
     let store = open_store(cache)?;
     let mut referenced: BTreeSet<EntryId> = BTreeSet::new();
     for file in keep {
-        let pipeline = Pipeline::load(file, registry, &[])?;
+        let pipeline = Pipeline::load(file, registry, sets)?;
         let keys = runner::compute_keys(&pipeline, registry, store.as_ref())?;
         for stage in &pipeline.stages {
             referenced.insert(EntryId::new(&stage.kind, &keys[&stage.name].key));
@@ -709,7 +711,14 @@ mod tests {
 
         // A run reading `other` holds a shared lease: gc leaves it.
         let lease = store.read_lease(&other_id).unwrap();
-        let report = gc(&registry, std::slice::from_ref(&kept_file), false, &cache).unwrap();
+        let report = gc(
+            &registry,
+            std::slice::from_ref(&kept_file),
+            &[],
+            false,
+            &cache,
+        )
+        .unwrap();
         assert_eq!(report.kept, 1, "{report:?}");
         assert!(report.removed.is_empty(), "{report:?}");
         assert_eq!(report.skipped, std::slice::from_ref(&other_id));
@@ -719,10 +728,88 @@ mod tests {
 
         // Once the reader is gone (a dead process releases its lock too), gc removes it.
         drop(lease);
-        let report = gc(&registry, &[kept_file], false, &cache).unwrap();
+        let report = gc(&registry, &[kept_file], &[], false, &cache).unwrap();
         assert_eq!((report.kept, report.removed.len()), (1, 1), "{report:?}");
         assert_eq!(report.removed, std::slice::from_ref(&other_id));
         assert_eq!(store.entry_state(&other_id).unwrap(), EntryState::Missing);
+    }
+
+    /// `gc --keep FILE --set ...` keeps the entries `run FILE --set ...` made.
+    #[test]
+    fn gc_keeps_the_entries_of_a_pipeline_run_with_overrides() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("cache");
+        let registry = Registry::new();
+        let file = write_pipeline(dir.path(), "p.yaml", 1);
+        let sets = vec!["a.seed=7".to_string()];
+        let made = run(&registry, &file, &sets, &RunOptions::default(), &cache).unwrap();
+        let id = EntryId::new("test_arrays", &made[0].key);
+        let report = gc(&registry, std::slice::from_ref(&file), &sets, false, &cache).unwrap();
+        assert_eq!((report.kept, report.removed.len()), (1, 0), "{report:?}");
+        // Without the overrides the entry is not the pipeline's and goes.
+        let report = gc(&registry, std::slice::from_ref(&file), &[], false, &cache).unwrap();
+        assert_eq!(report.removed, [id]);
+    }
+
+    /// What `render`, `export` and `report` open: refused when tampered (an edited group
+    /// attribute, a chunk re-encoded validly with other values), and under the read lease
+    /// `gc` respects while the reader lives.
+    #[test]
+    fn leased_verified_readers_refuse_tampering_and_keep_gc_away() {
+        use crate::store::LocalStore;
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("cache");
+        let registry = Registry::new();
+        let file = write_pipeline(dir.path(), "p.yaml", 1);
+        let other = write_pipeline(dir.path(), "other.yaml", 2);
+        let made = run(&registry, &file, &[], &RunOptions::default(), &cache).unwrap();
+        let id = EntryId::new("test_arrays", &made[0].key);
+        let store = LocalStore::open(&cache).unwrap();
+
+        let reader = crate::open_leased_verified(&store, &id).unwrap();
+        assert!(reader.holds_lease());
+        let copy = reader.clone();
+        drop(reader);
+        let report = gc(&registry, std::slice::from_ref(&other), &[], true, &cache).unwrap();
+        assert_eq!(report.skipped, std::slice::from_ref(&id), "{report:?}");
+        drop(copy);
+        let report = gc(&registry, std::slice::from_ref(&other), &[], true, &cache).unwrap();
+        assert!(report.skipped.is_empty(), "{report:?}");
+
+        let entry = store.entry_dir(&id);
+        // A chunk re-encoded with valid zstd and CRC-32C but other values.
+        let chunk = entry.join("values/c/0");
+        let original_chunk = std::fs::read(&chunk).unwrap();
+        {
+            let storage = Arc::new(FilesystemStore::new(&entry).unwrap());
+            let array = zarrs::array::Array::open(storage, "/values").unwrap();
+            let mut values: Vec<f64> = array.retrieve_chunk(&[0]).unwrap();
+            values[0] += 3.0;
+            array.store_chunk(&[0], &values).unwrap();
+        }
+        let error = crate::open_leased_verified(&store, &id)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("corrupt") && error.contains("values/c/0"),
+            "{error}"
+        );
+        std::fs::write(&chunk, original_chunk).unwrap();
+        crate::open_leased_verified(&store, &id).unwrap();
+
+        // An edited attribute in the group's zarr.json.
+        let group = entry.join("zarr.json");
+        let mut metadata: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&group).unwrap()).unwrap();
+        metadata["attributes"]["background"] = serde_json::json!([1.0, 1.0, 1.0]);
+        std::fs::write(&group, serde_json::to_vec(&metadata).unwrap()).unwrap();
+        let error = crate::open_leased_verified(&store, &id)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("corrupt") && error.contains("zarr.json"),
+            "{error}"
+        );
     }
 
     #[test]

@@ -175,6 +175,39 @@ mod tests {
     }
 }
 
+/// Environment variable overriding [`memory_budget_bytes`] (bytes, or with a `K`, `M` or `G`
+/// suffix for KiB, MiB, GiB).
+pub const MEMORY_BUDGET_VAR: &str = "SEQAVATAR_MEMORY_BUDGET";
+
+/// The share of the machine's memory a stage may plan to use by default: three quarters.
+pub const DEFAULT_MEMORY_FRACTION: f64 = 0.75;
+
+/// The memory a stage's configuration may be estimated to need: [`MEMORY_BUDGET_VAR`] when
+/// set, else [`DEFAULT_MEMORY_FRACTION`] of [`machine_memory_bytes`]; `None` where neither
+/// is known (no check). A value that is not a size is an error naming the variable.
+pub fn memory_budget_bytes() -> Result<Option<u64>, String> {
+    if let Some(value) = std::env::var_os(MEMORY_BUDGET_VAR) {
+        let value = value.to_string_lossy();
+        return parse_size(&value).map(Some).ok_or_else(|| {
+            format!("{MEMORY_BUDGET_VAR}={value:?} is not a size in bytes (examples: 8G, 512M)")
+        });
+    }
+    Ok(machine_memory_bytes().map(|bytes| (bytes as f64 * DEFAULT_MEMORY_FRACTION) as u64))
+}
+
+/// `123`, `800K`, `800M`, `2G` (binary multiples) as bytes; `None` for anything else or 0.
+pub fn parse_size(text: &str) -> Option<u64> {
+    let text = text.trim();
+    let (digits, shift) = match text.char_indices().last()? {
+        (at, 'k' | 'K') => (&text[..at], 10),
+        (at, 'm' | 'M') => (&text[..at], 20),
+        (at, 'g' | 'G') => (&text[..at], 30),
+        _ => (text, 0),
+    };
+    let n: u64 = digits.trim().parse().ok()?;
+    n.checked_mul(1u64 << shift).filter(|&bytes| bytes > 0)
+}
+
 /// The machine's physical memory in bytes (`MemTotal` of `/proc/meminfo`), for the
 /// memory estimates that stage configs check when the pipeline loads; `None` where the
 /// system does not say (the estimate is then not checked).

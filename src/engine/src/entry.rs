@@ -488,6 +488,9 @@ pub struct EntryReader {
     location: String,
     manifest: Manifest,
     attributes: serde_json::Map<String, serde_json::Value>,
+    /// The read lease `gc` respects, held while this reader or a clone of it lives (set by
+    /// [`crate::open_leased_verified`]).
+    lease: Option<std::sync::Arc<std::sync::Mutex<Box<dyn crate::store::ReadLease>>>>,
 }
 
 impl std::fmt::Debug for EntryReader {
@@ -517,7 +520,19 @@ impl EntryReader {
             location: location.to_string(),
             manifest,
             attributes,
+            lease: None,
         })
+    }
+
+    /// This reader, holding `lease` until it and all its clones are dropped.
+    pub fn holding(mut self, lease: Box<dyn crate::store::ReadLease>) -> Self {
+        self.lease = Some(std::sync::Arc::new(std::sync::Mutex::new(lease)));
+        self
+    }
+
+    /// Whether this reader holds a read lease.
+    pub fn holds_lease(&self) -> bool {
+        self.lease.is_some()
     }
 
     /// Where the entry lives (a path or URL), for messages.

@@ -142,6 +142,9 @@ pub struct FileDigests {
     memo: BTreeMap<String, MemoRecord>,
     changed: bool,
     hashed: usize,
+    /// Canonical folders left out of folder digests (the cache, when it lies inside a
+    /// dataset folder: it changes on every run).
+    excluded: Vec<PathBuf>,
 }
 
 impl FileDigests {
@@ -156,6 +159,15 @@ impl FileDigests {
             memo,
             changed: false,
             hashed: 0,
+            excluded: Vec::new(),
+        }
+    }
+
+    /// Leaves `dir` (if it exists) out of every folder digest: the cache's own folder, which
+    /// a run changes, must not change the digest of a dataset folder that contains it.
+    pub fn exclude(&mut self, dir: &Path) {
+        if let Ok(canonical) = fs::canonicalize(dir) {
+            self.excluded.push(canonical);
         }
     }
 
@@ -164,14 +176,14 @@ impl FileDigests {
         self.hashed
     }
 
-    /// Digest of a file, or of a folder (every file under it, by relative path).
+    /// Digest of a regular file, or of a folder (every regular file under it, by relative
+    /// path, walked by [`crate::files::walk_regular_files`]: links out of the folder,
+    /// devices, FIFOs and sockets are errors; excluded folders are skipped).
     pub fn digest(&mut self, path: &Path) -> anyhow::Result<String> {
         let metadata = fs::metadata(path)
             .with_context(|| format!("external input {} cannot be read", path.display()))?;
         if metadata.is_dir() {
-            let mut files = Vec::new();
-            collect_files(path, path, &mut files)?;
-            files.sort();
+            let files = crate::files::walk_regular_files(path, &self.excluded)?;
             let mut hasher = blake3::Hasher::new();
             for relative in files {
                 let digest = self.digest(&path.join(&relative))?;
@@ -182,6 +194,8 @@ impl FileDigests {
             }
             return Ok(format!("dir:{}", hasher.finalize().to_hex()));
         }
+        let metadata = crate::files::regular_file_metadata(path)
+            .with_context(|| format!("external input {}", path.display()))?;
         let canonical = fs::canonicalize(path)
             .with_context(|| format!("external input {} cannot be resolved", path.display()))?;
         let memo_key = canonical.display().to_string();
@@ -229,23 +243,8 @@ impl FileDigests {
     }
 }
 
-fn collect_files(root: &Path, dir: &Path, files: &mut Vec<String>) -> anyhow::Result<()> {
-    for entry in fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
-        let entry = entry.with_context(|| format!("cannot list {}", dir.display()))?;
-        let path = entry.path();
-        if path.is_dir() {
-            collect_files(root, &path, files)?;
-        } else if path.is_file() {
-            let relative = path.strip_prefix(root).unwrap_or(&path);
-            files.push(relative.to_string_lossy().replace('\\', "/"));
-        }
-    }
-    Ok(())
-}
-
 fn hash_file(path: &Path) -> anyhow::Result<String> {
-    let mut file =
-        fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let mut file = crate::files::open_regular_file(path)?;
     let mut hasher = blake3::Hasher::new();
     let mut buffer = vec![0u8; 1 << 20];
     loop {
@@ -264,6 +263,52 @@ fn hash_file(path: &Path) -> anyhow::Result<String> {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    /// A cache kept inside a dataset folder (a run from inside the dataset) is left out of
+    /// the folder's digest: what a run writes there must not give the next run a new key.
+    #[test]
+    fn an_excluded_cache_inside_a_folder_does_not_change_its_digest() {
+        let dataset = tempfile::tempdir().unwrap();
+        std::fs::write(dataset.path().join("frame.jpg"), b"pixels").unwrap();
+        let cache = dataset.path().join("cache");
+        std::fs::create_dir(&cache).unwrap();
+        let mut digests = FileDigests::load(&cache.join("memo.json"));
+        digests.exclude(&cache);
+        let before = digests.digest(dataset.path()).unwrap();
+        std::fs::create_dir_all(cache.join("ingest/abc")).unwrap();
+        std::fs::write(cache.join("ingest/abc/zarr.json"), b"{}").unwrap();
+        digests.save().unwrap();
+        assert_eq!(digests.digest(dataset.path()).unwrap(), before);
+        // Without the exclusion the same cache changes the digest (what made every run a
+        // new key).
+        let mut plain = FileDigests::load(&cache.join("memo.json"));
+        assert_ne!(plain.digest(dataset.path()).unwrap(), before);
+        // The dataset's own files still count.
+        std::fs::write(dataset.path().join("frame.jpg"), b"other").unwrap();
+        assert_ne!(digests.digest(dataset.path()).unwrap(), before);
+    }
+
+    /// `/dev/zero` and a FIFO as external inputs are refused from their metadata, at once.
+    #[cfg(unix)]
+    #[test]
+    fn devices_and_fifos_are_not_hashed() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe");
+        assert!(
+            std::process::Command::new("mkfifo")
+                .arg(&fifo)
+                .status()
+                .unwrap()
+                .success()
+        );
+        let mut digests = FileDigests::load(&dir.path().join("memo.json"));
+        for path in [Path::new("/dev/zero"), fifo.as_path()] {
+            let start = std::time::Instant::now();
+            let error = format!("{:#}", digests.digest(path).unwrap_err());
+            assert!(start.elapsed() < std::time::Duration::from_secs(1));
+            assert!(error.contains("only regular files"), "{error}");
+        }
+    }
 
     fn key_of(config: serde_json::Value, inputs: &[&str], version: u32) -> String {
         let input_keys: Vec<String> = inputs.iter().map(|s| s.to_string()).collect();

@@ -10,7 +10,9 @@ mod builtin;
 pub mod commands;
 mod config;
 mod entry;
+pub mod files;
 pub mod key;
+mod matrix;
 pub mod picture;
 mod pipeline;
 #[cfg(feature = "remote")]
@@ -29,12 +31,15 @@ use std::path::PathBuf;
 pub use array::{Element, NdArray};
 #[cfg(any(test, feature = "test-stages"))]
 pub use builtin::TestArrays;
-pub use config::{ConfigError, ConfigPathSegment, machine_memory_bytes, resolve_typed};
+pub use config::{
+    ConfigError, ConfigPathSegment, MEMORY_BUDGET_VAR, machine_memory_bytes, memory_budget_bytes,
+    parse_size, resolve_typed,
+};
 pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray};
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
     BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
-    open_verified, run, selected_stages,
+    open_leased_verified, open_verified, run, selected_stages,
 };
 pub use store::{EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store, open_store};
 

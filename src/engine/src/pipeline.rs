@@ -1,6 +1,7 @@
 //! Pipeline files: YAML parsing, validation (unknown keys, wrong types, missing inputs,
-//! unknown kinds, cycles), `--set` overrides and `${VAR}` expansion; every error names the
-//! file, the line and the key, and all of it happens before anything runs.
+//! unknown kinds, cycles), `matrix:` sweeps (`crate::matrix`), `--set` overrides and `${VAR}`
+//! expansion; every error names the file, the line and the key, and all of it happens before
+//! anything runs.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -196,13 +197,19 @@ impl Pipeline {
             return Err(loader.at(&stages_path, "the pipeline has no stages".to_string()));
         }
 
+        // `matrix:` stanzas expand into stages; each stage keeps the path of the item (or
+        // template) it came from, for errors.
+        let (stage_values, stage_paths): (Vec<_>, Vec<_>) =
+            crate::matrix::expand_stage_list(&stage_values, &stages_path, &loader.lines)
+                .map_err(|error| loader.at(&error.path, error.message))?
+                .into_iter()
+                .unzip();
         let mut stages: Vec<StageSpec> = Vec::with_capacity(stage_values.len());
         let mut raw_configs = Vec::with_capacity(stage_values.len());
         let mut seen: BTreeMap<String, usize> = BTreeMap::new();
-        for (index, value) in stage_values.iter().enumerate() {
-            let mut path = stages_path.clone();
-            path.push(ConfigPathSegment::Index(index));
-            let (spec, raw_config) = loader.stage(value, &path)?;
+        for (value, path) in stage_values.iter().zip(&stage_paths) {
+            let index = stages.len();
+            let (spec, raw_config) = loader.stage(value, path)?;
             if let Some(&first) = seen.get(&spec.name) {
                 return Err(loader.at(
                     &[path.as_slice(), &[key("name")]].concat(),
@@ -222,12 +229,8 @@ impl Pipeline {
             let kind = registry.get(&stage.kind).expect("kind checked above");
             for (input_index, input) in stage.inputs.iter().enumerate() {
                 let path = [
-                    stages_path.as_slice(),
-                    &[
-                        ConfigPathSegment::Index(index),
-                        key("inputs"),
-                        ConfigPathSegment::Index(input_index),
-                    ],
+                    stage_paths[index].as_slice(),
+                    &[key("inputs"), ConfigPathSegment::Index(input_index)],
                 ]
                 .concat();
                 let Some(&upstream) = seen.get(input) else {
@@ -262,11 +265,7 @@ impl Pipeline {
         let order = topological_order(&stages).map_err(|cycle| {
             let first = seen[&cycle[0]];
             loader.at(
-                &[
-                    stages_path.as_slice(),
-                    &[ConfigPathSegment::Index(first), key("inputs")],
-                ]
-                .concat(),
+                &[stage_paths[first].as_slice(), &[key("inputs")]].concat(),
                 format!(
                     "the inputs form a cycle (data flows {})",
                     cycle.join(" -> ")
@@ -290,11 +289,7 @@ impl Pipeline {
             overridden.entry(index).or_default().push(config_path);
         }
         for (index, stage) in stages.iter_mut().enumerate() {
-            let config_root = [
-                stages_path.as_slice(),
-                &[ConfigPathSegment::Index(index), key("config")],
-            ]
-            .concat();
+            let config_root = [stage_paths[index].as_slice(), &[key("config")]].concat();
             let from_command_line = |path: &[ConfigPathSegment]| {
                 overridden
                     .get(&index)
@@ -347,11 +342,7 @@ impl Pipeline {
             kind.check_inputs(&stage.config, &inputs)
                 .map_err(|message| {
                     loader.at(
-                        &[
-                            stages_path.as_slice(),
-                            &[ConfigPathSegment::Index(index), key("inputs")],
-                        ]
-                        .concat(),
+                        &[stage_paths[index].as_slice(), &[key("inputs")]].concat(),
                         format!("stage \"{}\" (kind {}): {message}", stage.name, stage.kind),
                     )
                 })?;

@@ -192,6 +192,39 @@ pub struct StageKey {
     pub external_files: Vec<ManifestExternalFile>,
 }
 
+/// Checks that every external file still has the digest its stage's key was computed from;
+/// the error names the first that changed.
+fn external_files_unchanged(
+    store: &dyn Store,
+    files: &[ManifestExternalFile],
+) -> Result<(), String> {
+    if files.is_empty() {
+        return Ok(());
+    }
+    let mut digests = FileDigests::load(&store.local_state_dir().join(FILE_DIGEST_MEMO));
+    digests.exclude(&store.local_state_dir());
+    for file in files {
+        match digests.digest(Path::new(&file.path)) {
+            Ok(digest) if digest == file.digest => {}
+            Ok(_) => {
+                return Err(format!(
+                    "external input {} changed while the stage ran",
+                    file.path
+                ));
+            }
+            Err(error) => {
+                return Err(format!(
+                    "external input {} cannot be read again after the stage ({error:#})",
+                    file.path
+                ));
+            }
+        }
+    }
+    // Best effort: the memo only saves hashing next time.
+    let _ = digests.save();
+    Ok(())
+}
+
 /// Computes the keys of the stages at `indices` (and, needed for them, their ancestors).
 pub fn compute_keys(
     pipeline: &Pipeline,
@@ -199,6 +232,7 @@ pub fn compute_keys(
     store: &dyn Store,
 ) -> anyhow::Result<BTreeMap<String, StageKey>> {
     let mut digests = FileDigests::load(&store.local_state_dir().join(FILE_DIGEST_MEMO));
+    digests.exclude(&store.local_state_dir());
     let mut keys: BTreeMap<String, StageKey> = BTreeMap::new();
     for &index in pipeline.order() {
         let stage = &pipeline.stages[index];
@@ -327,6 +361,20 @@ pub fn open_verified(store: &dyn Store, id: &EntryId) -> Result<EntryReader, Str
     } else {
         Err(problems.join("; "))
     }
+}
+
+/// Opens a published entry for a command that reads it outside a run (`render`, `export`,
+/// `report`): takes the read lease `gc` respects (held as long as the returned reader or a
+/// clone of it lives) and verifies the entry as `run` does, so a tampered or damaged entry
+/// is refused rather than used.
+pub fn open_leased_verified(store: &dyn Store, id: &EntryId) -> anyhow::Result<EntryReader> {
+    let lease = store.read_lease(id)?;
+    let reader = open_verified(store, id).map_err(|problems| {
+        anyhow::anyhow!(
+            "entry {id} is corrupt ({problems}); `pipeline run` on its pipeline recomputes it"
+        )
+    })?;
+    Ok(reader.holding(lease))
 }
 
 /// Runs the pipeline: reuses verified entries and computes the missing ones.
@@ -509,6 +557,17 @@ pub fn run(
                 );
             }
         }
+        // External files (dataset files) edited while the stage read them: hashed again now
+        // (the memo re-hashes any file whose size, times or inode changed), so an entry is
+        // never published under the key of what the files were before.
+        if let Err(problem) = external_files_unchanged(store, &stage_key.external_files) {
+            let _ = std::fs::remove_dir_all(&staging.output_dir);
+            anyhow::bail!(
+                "stage \"{}\": {problem}; nothing was published (run it again once the \
+                 files are stable)",
+                stage.name
+            );
+        }
         let log = context.log.into_inner().expect("log poisoned");
         let warnings = context.warnings.into_inner().expect("warnings poisoned");
         let finished_at = SystemTime::now();
@@ -587,6 +646,7 @@ mod tests {
     use crate::builtin::TestArrays;
     use crate::config::ConfigError;
     use crate::store::LocalStore;
+    use std::path::PathBuf;
 
     /// `test_arrays` with another implementation version.
     struct Bumped;
@@ -664,6 +724,63 @@ mod tests {
         // again, so the stage fails again rather than publishing.
         let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
         assert!(format!("{error:#}").contains("changed while the stage ran"));
+    }
+
+    /// Depends on the external file named by its config, and appends to it while it runs
+    /// (a dataset edited during ingest).
+    struct Editor;
+
+    impl StageKind for Editor {
+        fn kind(&self) -> &'static str {
+            "editor"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &[]
+        }
+        fn resolve_config(
+            &self,
+            raw: &serde_json::Value,
+        ) -> Result<serde_json::Value, ConfigError> {
+            Ok(raw.clone())
+        }
+        fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
+            Ok(vec![PathBuf::from(config["file"].as_str().unwrap())])
+        }
+        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            let path = PathBuf::from(ctx.config_value()["file"].as_str().unwrap());
+            let before = std::fs::read(&path)?;
+            std::fs::write(&path, [before.as_slice(), b" edited"].concat())?;
+            ctx.output()
+                .write_array::<f64>("length", &["one"], &[1], &[1], &[before.len() as f64])
+        }
+    }
+
+    #[test]
+    fn an_external_file_edited_during_a_stage_is_not_published() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(&dir.path().join("cache")).unwrap();
+        let data = dir.path().join("dataset.txt");
+        std::fs::write(&data, b"frames").unwrap();
+        let mut registry = Registry::new();
+        registry.add(Box::new(Editor));
+        let text = format!(
+            "stages:\n  - name: e\n    kind: editor\n    config: {{file: {}}}\n",
+            data.display()
+        );
+        let pipeline = Pipeline::parse(&text, Path::new("p.yaml"), &registry, &[]).unwrap();
+        let keys = compute_keys(&pipeline, &registry, &store).unwrap();
+        let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
+        let message = format!("{error:#}");
+        assert!(
+            message.contains("dataset.txt changed while the stage ran")
+                && message.contains("nothing was published"),
+            "{message}"
+        );
+        let entry = EntryId::new("editor", &keys["e"].key);
+        assert_eq!(store.entry_state(&entry).unwrap(), EntryState::Missing);
     }
 
     /// Counts its attempts in its work folder, then fails.

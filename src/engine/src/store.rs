@@ -14,8 +14,66 @@ use zarrs::storage::ReadableListableStorage;
 
 use crate::entry::EntryReader;
 
-/// The file whose presence makes an entry visible.
+/// The suffix of the file whose presence makes an entry visible. In a local store the
+/// marker of the entry folder `<kind>/<key>/` is the file `<kind>/<key>.complete` beside it
+/// (see [`completion_marker`]); in the remote store it is the object `<kind>/<key>/.complete`,
+/// beside the uploads it names.
 pub const COMPLETION_MARKER: &str = ".complete";
+
+/// The completion marker of the local entry folder `entry_dir`: the file `<key>.complete`
+/// beside the folder, not inside it, so that the folder is a Zarr group holding only Zarr
+/// nodes (zarr-python and xarray warn about any other object in a group). The publish
+/// protocol is unchanged: the folder is renamed into place complete, the marker is written
+/// after it and removed before it.
+pub(crate) fn completion_marker(entry_dir: &Path) -> PathBuf {
+    let mut name = entry_dir.file_name().unwrap_or_default().to_os_string();
+    name.push(COMPLETION_MARKER);
+    entry_dir.with_file_name(name)
+}
+
+/// Where entries published before the marker moved out of the folder keep it: inside.
+/// Such entries stay readable (and are removed as usual); new ones never write it.
+fn legacy_completion_marker(entry_dir: &Path) -> PathBuf {
+    entry_dir.join(COMPLETION_MARKER)
+}
+
+/// Whether the local entry folder `entry_dir` is published (either marker exists).
+pub(crate) fn is_published(entry_dir: &Path) -> bool {
+    completion_marker(entry_dir).is_file() || legacy_completion_marker(entry_dir).is_file()
+}
+
+/// Writes the completion marker of `entry_dir` (already in place, complete) with `content`,
+/// durably: the file is synced, then the folder that holds it.
+pub(crate) fn write_completion_marker(entry_dir: &Path, content: &[u8]) -> anyhow::Result<()> {
+    let marker = completion_marker(entry_dir);
+    let mut file =
+        File::create(&marker).with_context(|| format!("cannot create {}", marker.display()))?;
+    file.write_all(content)
+        .and_then(|()| file.sync_all())
+        .with_context(|| format!("cannot write {}", marker.display()))?;
+    if let Some(parent) = marker.parent() {
+        fsync_dir(parent)?;
+    }
+    Ok(())
+}
+
+/// Removes the completion markers of `entry_dir` (first, so that a crash mid-way never
+/// leaves a visible half-removed entry), durably.
+fn remove_completion_markers(entry_dir: &Path) -> anyhow::Result<()> {
+    for (marker, holder) in [
+        (completion_marker(entry_dir), entry_dir.parent()),
+        (legacy_completion_marker(entry_dir), Some(entry_dir)),
+    ] {
+        if marker.exists() {
+            fs::remove_file(&marker)
+                .with_context(|| format!("cannot remove {}", marker.display()))?;
+            if let Some(holder) = holder {
+                fsync_dir(holder)?;
+            }
+        }
+    }
+    Ok(())
+}
 const STAGING_DIR: &str = ".staging";
 const LOCKS_DIR: &str = ".locks";
 const TRASH_DIR: &str = ".trash";
@@ -261,7 +319,7 @@ impl Store for LocalStore {
 
     fn entry_state(&self, id: &EntryId) -> anyhow::Result<EntryState> {
         let dir = self.entry_dir(id);
-        if dir.join(COMPLETION_MARKER).is_file() {
+        if is_published(&dir) {
             Ok(EntryState::Complete)
         } else if dir.exists() {
             Ok(EntryState::Incomplete)
@@ -273,7 +331,7 @@ impl Store for LocalStore {
     fn reader_storage(&self, id: &EntryId) -> anyhow::Result<(ReadableListableStorage, String)> {
         let dir = self.entry_dir(id);
         anyhow::ensure!(
-            dir.join(COMPLETION_MARKER).is_file(),
+            is_published(&dir),
             "entry {} is not published in {}",
             id,
             self.root.display()
@@ -400,19 +458,13 @@ impl Store for LocalStore {
             )
         })?;
         fsync_dir(&kind_dir)?;
-        let marker = target.join(COMPLETION_MARKER);
-        let mut file =
-            File::create(&marker).with_context(|| format!("cannot create {}", marker.display()))?;
-        writeln!(
-            file,
-            "{{\"kind\":\"{}\",\"key\":\"{}\",\"published_at\":\"{}\"}}",
+        let marker = format!(
+            "{{\"kind\":\"{}\",\"key\":\"{}\",\"published_at\":\"{}\"}}\n",
             id.kind,
             id.key,
             crate::timefmt::rfc3339(std::time::SystemTime::now())
-        )
-        .and_then(|()| file.sync_all())
-        .with_context(|| format!("cannot write {}", marker.display()))?;
-        fsync_dir(&target)?;
+        );
+        write_completion_marker(&target, marker.as_bytes())?;
         let staging_dir = self.staging_dir(id);
         fs::remove_dir_all(&staging_dir)
             .with_context(|| format!("cannot remove {}", staging_dir.display()))?;
@@ -428,12 +480,7 @@ impl Store for LocalStore {
                 .with_context(|| format!("cannot create {}", parent.display()))?;
         }
         // Remove the marker first so that a crash mid-way never leaves a visible bad entry.
-        let marker = source.join(COMPLETION_MARKER);
-        if marker.exists() {
-            fs::remove_file(&marker)
-                .with_context(|| format!("cannot remove {}", marker.display()))?;
-            fsync_dir(&source)?;
-        }
+        remove_completion_markers(&source)?;
         fs::rename(&source, &destination).with_context(|| {
             format!(
                 "cannot move {} to {}",
@@ -464,11 +511,7 @@ impl Store for LocalStore {
     fn remove(&self, lock: &dyn KeyLock) -> anyhow::Result<u64> {
         let dir = self.entry_dir(lock.id());
         let bytes = tree_bytes(&dir);
-        let marker = dir.join(COMPLETION_MARKER);
-        if marker.exists() {
-            fs::remove_file(&marker)
-                .with_context(|| format!("cannot remove {}", marker.display()))?;
-        }
+        remove_completion_markers(&dir)?;
         fs::remove_dir_all(&dir).with_context(|| format!("cannot remove {}", dir.display()))?;
         Ok(bytes)
     }
@@ -639,7 +682,54 @@ mod tests {
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Complete);
         assert!(!store.has_resumable_work(&id));
         assert_eq!(store.list().unwrap(), vec![id.clone()]);
+        // The marker sits beside the group, which holds only what the stage wrote.
+        let entry = store.entry_dir(&id);
+        assert!(entry.with_file_name("k1.complete").is_file());
+        let names: Vec<_> = fs::read_dir(&entry)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names, ["zarr.json"]);
         assert!(store.remove(lock.as_ref()).unwrap() > 0);
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+        assert!(!entry.with_file_name("k1.complete").exists());
+    }
+
+    /// Entries published with the marker inside the folder (before it moved beside it) stay
+    /// visible and readable, and are removed and quarantined like new ones.
+    #[test]
+    fn entries_with_the_marker_inside_stay_published() {
+        let (_dir, store) = temp_store();
+        for (key, quarantine) in [("old1", false), ("old2", true)] {
+            let id = EntryId::new("test_arrays", key);
+            let entry = store.entry_dir(&id);
+            fs::create_dir_all(&entry).unwrap();
+            fs::write(entry.join("zarr.json"), b"{}").unwrap();
+            fs::write(entry.join(COMPLETION_MARKER), b"{}").unwrap();
+            assert_eq!(store.entry_state(&id).unwrap(), EntryState::Complete);
+            assert!(store.reader_storage(&id).is_ok());
+            let lock = store.try_lock(&id).unwrap().unwrap();
+            if quarantine {
+                store.quarantine(lock.as_ref()).unwrap();
+            } else {
+                store.remove(lock.as_ref()).unwrap();
+            }
+            assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+        }
+    }
+
+    /// A crash after the folder was renamed into place but before its marker was written
+    /// leaves an entry that is never read and is cleaned up.
+    #[test]
+    fn a_folder_without_its_marker_is_not_published() {
+        let (_dir, store) = temp_store();
+        let id = EntryId::new("test_arrays", "k3");
+        let entry = store.entry_dir(&id);
+        fs::create_dir_all(&entry).unwrap();
+        fs::write(entry.join("zarr.json"), b"{}").unwrap();
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Incomplete);
+        assert!(store.reader_storage(&id).is_err());
+        assert_eq!(store.clean_leftovers().unwrap().len(), 1);
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
     }
 

@@ -749,7 +749,7 @@ mod tests {
         check_deformation_gradients(MotionContext::Multiscale, false);
     }
 
-    /// The same with the LBS weight offsets. Their input is detached (method.md), so the
+    /// The same with the LBS weight offsets. Their input is detached (docs/method.md), so the
     /// centres and the non-rigid network, which move that input, are checked without them.
     #[test]
     fn lbs_offset_gradients_match_finite_differences() {

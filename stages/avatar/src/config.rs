@@ -54,7 +54,7 @@ impl MotionContext {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Background {
-    /// Black, as method.md trains every dataset.
+    /// Black, as docs/method.md trains every dataset.
     Black,
     /// White.
     White,
@@ -85,7 +85,7 @@ impl Background {
     }
 }
 
-/// The evaluation protocol's background (method.md: black for every dataset). The held-out
+/// The evaluation protocol's background (docs/method.md: black for every dataset). The held-out
 /// PSNR renders the avatar on it and sets the truth outside the mask to it, whatever the
 /// training background, so it is the number eval reports with its default protocol.
 pub const PROTOCOL_BACKGROUND: [f64; 3] = [0.0; 3];

@@ -1,7 +1,7 @@
 //! Gaussian skinning: canonical (big-pose) Gaussians after the non-rigid offsets to world
 //! space, and its exact backward.
 //!
-//! Per Gaussian, following method.md ("Skinning"):
+//! Per Gaussian, following docs/method.md ("Skinning"):
 //! - `scale = clamp(exp(log_scale) + d_scale, min, max)` (linear space; the clamp keeps it
 //!   positive and bounded, its gradient is zero where it is active);
 //! - `rot = d_rot (x) rot_canonical` (Hamilton product, `[w, x, y, z]`), normalised inside the
@@ -21,7 +21,7 @@ use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
 use seqavatar_core::rotation::{quat_is_degenerate, quat_wxyz_to_matrix};
 
-/// Added inside the logarithm of template weights (method.md).
+/// Added inside the logarithm of template weights (docs/method.md).
 const WEIGHT_LOG_EPS: f64 = 1e-9;
 
 /// Per-frame skinning data shared by all Gaussians.

@@ -100,7 +100,7 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
             local.entry_state(&id)? == EntryState::Complete,
             "{spec}: not a published cache entry (no completion marker; the entry may be incomplete)"
         );
-        return local.open_entry(&id);
+        return seqavatar_engine::open_leased_verified(&local, &id);
     }
     let matches: Vec<EntryId> = store
         .list()?
@@ -108,7 +108,7 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
         .filter(|id| id.kind == kind && id.key.starts_with(spec))
         .collect();
     match matches.as_slice() {
-        [id] => store.open_entry(id),
+        [id] => seqavatar_engine::open_leased_verified(store, id),
         [] => anyhow::bail!(
             "{spec}: neither a folder nor the key of a \"{kind}\" entry in the cache {}",
             store.describe()
@@ -137,7 +137,7 @@ fn upstream(store: &dyn Store, train: &EntryReader, kind: &str) -> anyhow::Resul
         input.stage_name,
         store.describe()
     );
-    store.open_entry(&id)
+    seqavatar_engine::open_leased_verified(store, &id)
 }
 
 /// Reads a pose file: `body_pose` `(F, 3 K)` or `(F, K, 3)` (K = joints after the root, at
@@ -148,7 +148,7 @@ pub fn read_pose_file(
     num_joints: usize,
     default_betas: &[f64],
 ) -> anyhow::Result<Vec<BodyParams>> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let bytes = seqavatar_engine::files::read_regular_file(path)?;
     let arrays =
         npz::read(&bytes).with_context(|| format!("{}: not a readable .npz", path.display()))?;
     let file = path.display();

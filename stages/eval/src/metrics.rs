@@ -1,4 +1,4 @@
-//! PSNR and SSIM, and the paper's evaluation protocol (method.md "Evaluation protocol"):
+//! PSNR and SSIM, and the paper's evaluation protocol (docs/method.md "Evaluation protocol"):
 //! render pixels outside the bound mask become background, ground-truth pixels outside the
 //! foreground mask become background, PSNR is taken over the whole image.
 //!
@@ -172,7 +172,7 @@ impl Mask {
 pub struct Protocol {
     /// Background colour in [0, 1] (all three datasets train on black).
     pub background: [f32; 3],
-    /// Padding of the bound box around the foreground mask, in pixels (method.md: 5).
+    /// Padding of the bound box around the foreground mask, in pixels (docs/method.md: 5).
     pub bound_padding: usize,
     /// Score SSIM and LPIPS on the bound-box crop instead of the whole image (GauHuman's
     /// evaluation script crops; the paper's text does not say). PSNR is always whole-image.

@@ -236,6 +236,13 @@ fn save_png(image: &image::RgbImage, path: &Path) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
+/// The line above the report's tables: the one command that recomputes every entry they
+/// read (from the cache when present) and writes the report again.
+pub fn reproduce_line(file: &Path) -> String {
+    let file = file.display();
+    format!("Reproduce: `pipeline run {file} && pipeline report {file}`")
+}
+
 /// Writes `report.md` and its PNGs into `out` and returns the Markdown path.
 pub fn write_report(
     registry: &Registry,
@@ -263,10 +270,11 @@ pub fn write_report_for(
         let spec = &pipeline.stages[index];
         let id = EntryId::new(&spec.kind, &keys[&spec.name].key);
         let entry = match store.entry_state(&id)? {
+            // Verified as `run` verifies it, under the read lease `gc` respects: a report
+            // never shows numbers from a tampered or damaged entry.
             EntryState::Complete => Some(
-                store
-                    .open_entry(&id)
-                    .with_context(|| format!("stage \"{}\": cannot open {id}", spec.name))?,
+                seqavatar_engine::open_leased_verified(store, &id)
+                    .with_context(|| format!("stage \"{}\": cannot report {id}", spec.name))?,
             ),
             _ => None,
         };
@@ -278,6 +286,7 @@ pub fn write_report_for(
         .collect();
 
     let mut text = format!("# Report: {}\n\n", pipeline.file.display());
+    let _ = writeln!(text, "{}\n", reproduce_line(&pipeline.file));
     if let Some(description) = &pipeline.description {
         let _ = writeln!(text, "{}\n", description.trim());
     }
@@ -335,10 +344,10 @@ pub fn write_report_for(
         text.push_str("No eval stage of this pipeline is in the cache yet.\n\n");
     } else {
         text.push_str(
-            "Paper protocol (method.md): render outside the bound mask and ground truth outside \
-             the foreground mask set to background, PSNR over the whole image, SSIM with an \
-             11 px Gaussian window (sigma 1.5), LPIPS x 1000 (\"unavailable\" when no weights \
-             were configured).\n\n",
+            "Paper protocol (docs/method.md): render outside the bound mask and ground truth \
+             outside the foreground mask set to background, PSNR over the whole image, SSIM \
+             with an 11 px Gaussian window (sigma 1.5), LPIPS x 1000 (\"unavailable\" when no \
+             weights were configured).\n\n",
         );
         let mut headers = vec!["eval stage"];
         headers.extend(MEAN_TABLE_HEADERS);

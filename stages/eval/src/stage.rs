@@ -67,7 +67,7 @@ pub const TRAIN_IMAGE_PSNR_ATTRIBUTE: &str = "train_image_psnr_mean";
 pub struct EvalConfig {
     /// Backend for rendering and LPIPS (`auto`, `cpu`, `gpu`).
     pub device: DeviceChoice,
-    /// Background and bound-box rules (method.md "Evaluation protocol").
+    /// Background and bound-box rules (docs/method.md "Evaluation protocol").
     pub protocol: Protocol,
     /// LPIPS weights converted with `tests/lpips/convert_weights.py`; none: "unavailable".
     pub lpips_vgg_weights: Option<PathBuf>,

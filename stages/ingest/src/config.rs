@@ -84,7 +84,7 @@ impl Default for DatasetConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct IngestConfig {
     pub dataset: DatasetConfig,
-    /// Image rescale factor applied after undistortion (ZJU 0.5, DNA 0.25 in method.md).
+    /// Image rescale factor applied after undistortion (ZJU 0.5, DNA 0.25 in docs/method.md).
     pub resolution_scale: f64,
     pub split: SplitOverrides,
     /// How many past frames (in steps of the frame interval) before each used frame the

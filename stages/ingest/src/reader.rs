@@ -159,7 +159,7 @@ pub trait DatasetReader: Send + Sync {
     fn num_frames(&self) -> usize;
     /// The dataset's own number for frame-list index `frame` (file name number).
     fn frame_id(&self, frame: usize) -> i64;
-    /// The split method.md prescribes for this sequence.
+    /// The split docs/method.md prescribes for this sequence.
     fn default_split(&self) -> Split;
     /// The body model the fits refer to, and its kind.
     fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)>;

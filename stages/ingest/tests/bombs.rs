@@ -3,8 +3,10 @@
 //! truncated images. Each must be refused with an error (or read correctly), and a counting
 //! global allocator (this binary's own) measures the peak each reader allocates: no input
 //! file under 1 MB may make a reader allocate more than the documented limit
-//! (`formats::PEAK_LIMIT_FACTOR * formats::decode_budget(file size)` for the Python-side
-//! formats; `images::MAX_BYTES_PER_PIXEL` per checked pixel for images).
+//! (`formats::PEAK_LIMIT_FACTOR` times the per-file limit for `.npy`/`.npz`, and times
+//! `formats::decode_budget(file size)` for pickles; `images::MAX_BYTES_PER_PIXEL` per
+//! checked pixel for images). Arrays are judged by the size they declare, never by how well
+//! they compress.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::io::Write;
@@ -83,9 +85,14 @@ fn peak_of<T>(read: impl FnOnce() -> T) -> (T, usize) {
     (out, peak)
 }
 
-/// The documented peak limit of the pickle, `.npy` and `.npz` readers for a file.
+/// The documented peak limit of the pickle reader for a file.
 fn format_limit(file: &[u8]) -> usize {
     formats::PEAK_LIMIT_FACTOR * formats::decode_budget(file.len())
+}
+
+/// The documented peak limit of the `.npy` and `.npz` readers within `limits`.
+fn array_limit(limits: &formats::Limits) -> usize {
+    formats::PEAK_LIMIT_FACTOR * limits.max_file_bytes
 }
 
 const MB: usize = 1_000_000;
@@ -220,16 +227,13 @@ fn a_deflate_bomb_is_refused_before_inflating() {
     let _guard = MEASURING
         .lock()
         .unwrap_or_else(|poisoned| poisoned.into_inner());
+    let limits = formats::Limits::default();
     // 800 MiB of zeros in under 1 MB: the npy header deflated with a sync flush, then the
-    // deflated zeros.
+    // deflated zeros. The header declares the 800 MiB: over the per-array limit.
     let len = 800usize << 20;
+    assert!(len > limits.max_array_bytes);
     let header = zeros_npy_header(len);
-    let mut compress = flate2::Compress::new(flate2::Compression::best(), false);
-    let mut stream = Vec::with_capacity(1 << 20);
-    compress
-        .compress_vec(&header, &mut stream, flate2::FlushCompress::Sync)
-        .unwrap();
-    stream.extend(zeros_deflated(800));
+    let stream = header_then_zeros(&header, 800);
     let mut crc = crc32fast::Hasher::new();
     crc.update(&header);
     let zeros = vec![0u8; 1 << 20];
@@ -246,30 +250,96 @@ fn a_deflate_bomb_is_refused_before_inflating() {
     };
     let archive = zip(&[member], None);
     assert!(archive.len() < MB, "{} bytes", archive.len());
-    let (result, peak) = peak_of(|| npz::read(&archive));
+    let (result, peak) = peak_of(|| npz::read_with(&archive, &limits));
     let error = result.unwrap_err();
-    assert!(matches!(error, npz::NpzError::TooLarge { .. }), "{error}");
-    assert!(error.to_string().contains("memory limit"), "{error}");
-    assert!(peak <= format_limit(&archive), "peak {peak}");
+    assert!(
+        matches!(
+            error,
+            npz::NpzError::Member {
+                source: npy::NpyError::ArrayTooLarge { .. },
+                ..
+            }
+        ),
+        "{error}"
+    );
+    assert!(
+        error.to_string().contains(formats::MAX_ARRAY_BYTES_VAR),
+        "{error}"
+    );
+    assert!(peak <= array_limit(&limits), "peak {peak}");
     // Refused before inflating: nothing near the claimed size was allocated.
     assert!(peak < 1 << 20, "peak {peak}");
 
-    // The same stream with a small claim: inflating stops one byte past the claim.
+    // A header declaring 10 MiB under a directory that claims 20 MiB: a mismatch, refused
+    // before inflating the data.
+    let small = zeros_npy_header(10 << 20);
     let lying = zip(
         &[Member {
             name: "liar.npy".into(),
-            data: zip_member_data(&archive),
+            data: header_then_zeros(&small, 800),
             method: 8,
             crc: 0,
-            size: 10 << 20,
+            size: (small.len() + (20 << 20)) as u32,
         }],
         None,
     );
-    let (result, peak) = peak_of(|| npz::read(&lying));
+    let (result, peak) = peak_of(|| npz::read_with(&lying, &limits));
     let error = result.unwrap_err();
-    assert!(error.to_string().contains("inflated to"), "{error}");
-    assert!(peak <= format_limit(&lying), "peak {peak}");
+    assert!(error.to_string().contains("zip directory says"), "{error}");
+    assert!(peak < 1 << 20, "peak {peak}");
+
+    // A header and directory that agree on 10 MiB, over a stream of 800 MiB: inflating
+    // stops one byte past the declared size.
+    let lying = zip(
+        &[Member {
+            name: "liar.npy".into(),
+            data: header_then_zeros(&small, 800),
+            method: 8,
+            crc: 0,
+            size: (small.len() + (10 << 20)) as u32,
+        }],
+        None,
+    );
+    let (result, peak) = peak_of(|| npz::read_with(&lying, &limits));
+    let error = result.unwrap_err();
+    assert!(
+        error.to_string().contains("inflated to more than"),
+        "{error}"
+    );
+    assert!(peak <= array_limit(&limits), "peak {peak}");
     assert!(peak < 30 << 20, "peak {peak}");
+
+    // Honestly declared and within a raised limit, the 800 MiB are not refused for their
+    // compression ratio: the limits decide (here a per-file limit too small for them,
+    // refused from the header, so the test stays small).
+    let raised = formats::Limits {
+        max_array_bytes: 1 << 30,
+        max_file_bytes: 1 << 20,
+    };
+    let (result, peak) = peak_of(|| npz::read_with(&archive, &raised));
+    let error = result.unwrap_err();
+    assert!(
+        matches!(
+            error,
+            npz::NpzError::Member {
+                source: npy::NpyError::ArrayTooLarge { limit, .. },
+                ..
+            } if limit == 1 << 20
+        ),
+        "{error}"
+    );
+    assert!(peak < 1 << 20, "peak {peak}");
+}
+
+/// A raw deflate stream of `header` (sync-flushed) then `mebibytes` MiB of zeros.
+fn header_then_zeros(header: &[u8], mebibytes: usize) -> Vec<u8> {
+    let mut compress = flate2::Compress::new(flate2::Compression::best(), false);
+    let mut stream = Vec::with_capacity(1 << 20);
+    compress
+        .compress_vec(header, &mut stream, flate2::FlushCompress::Sync)
+        .unwrap();
+    stream.extend(zeros_deflated(mebibytes));
+    stream
 }
 
 /// The compressed data of the single member of an archive made by [`zip`].
@@ -307,42 +377,50 @@ fn string_arrays_are_charged_per_element() {
     let _guard = MEASURING
         .lock()
         .unwrap_or_else(|poisoned| poisoned.into_inner());
-    // 2 M one-byte strings inflate from a few KB to 2 MB (within the budget) but would
-    // decode to 2 M `Vec<u8>`s (about 50 MB): refused before decoding.
+    // 2 M one-byte strings inflate from a few KB to 2 MB (within a 16 MiB limit per
+    // array) but would decode to 2 M `Vec<u8>`s (about 50 MB): refused before inflating.
+    let limits = formats::Limits {
+        max_array_bytes: 16 << 20,
+        max_file_bytes: 16 << 20,
+    };
     let count = 2 * MB;
     let plain = npy_bytes("|S1", &[count], &vec![b'a'; count]);
     let archive = zip(&[Member::deflated("s.npy", &plain)], None);
     assert!(archive.len() < 64_000);
-    let (result, peak) = peak_of(|| npz::read(&archive));
+    let (result, peak) = peak_of(|| npz::read_with(&archive, &limits));
     let error = result.unwrap_err();
     assert!(
         matches!(
             &error,
             npz::NpzError::Member {
-                source: npy::NpyError::TooLarge(_),
+                source: npy::NpyError::ArrayTooLarge { .. },
                 ..
             }
         ),
         "{error}"
     );
-    assert!(peak <= format_limit(&archive), "peak {peak}");
-    assert!(peak < 8 << 20, "peak {peak}");
+    assert!(peak <= array_limit(&limits), "peak {peak}");
+    assert!(peak < 1 << 20, "peak {peak}");
 
     // Stored, the file must hold every byte: a 900 KB `|S1` npy decodes within the limit.
     let count = 900_000;
     let file = npy_bytes("|S1", &[count], &vec![b'b'; count]);
-    let (result, peak) = peak_of(|| npy::read(&file));
+    let (result, peak) = peak_of(|| npy::read_with(&file, &limits));
     let value = result.unwrap();
     let formats::Value::Array(array) = value else {
         panic!("not an array")
     };
     assert_eq!(array.len(), count);
-    assert!(peak <= format_limit(&file), "peak {peak}");
+    assert!(peak <= array_limit(&limits), "peak {peak}");
     drop(array);
-    let (result, peak) =
-        peak_of(|| npz::read(&zip(&[Member::stored("s.npy", file.clone())], None)));
+    let (result, peak) = peak_of(|| {
+        npz::read_with(
+            &zip(&[Member::stored("s.npy", file.clone())], None),
+            &limits,
+        )
+    });
     assert_eq!(result.unwrap().len(), 1);
-    assert!(peak <= format_limit(&file) + 2 * file.len(), "peak {peak}");
+    assert!(peak <= array_limit(&limits) + 2 * file.len(), "peak {peak}");
 }
 
 #[test]
@@ -425,11 +503,13 @@ fn image_bombs_are_refused_before_decoding() {
     assert!(result.is_err());
     assert!(peak < 1 << 20, "peak {peak}");
     // Claiming 8000 x 8000 (within the pixel limit) with 16 x 16 of data. The scan ends
-    // with its end-of-image marker, so the decoder pads the rest (only a scan cut short
-    // without that marker is detectably truncated): bounded by the bytes per pixel.
+    // with its end-of-image marker (the decoder would pad the rest), but it is far too short
+    // for the declared picture: refused before decoding.
     jpeg[sof + 5..sof + 9].copy_from_slice(&[0x1f, 0x40, 0x1f, 0x40]);
     let (result, peak) = peak_of(|| images::decode_rgb(&jpeg, None).map(|rgb| rgb.dimensions()));
-    assert!(matches!(result, Ok((8000, 8000)) | Err(_)));
+    let error = result.unwrap_err();
+    assert!(error.to_string().contains("runs short"), "{error}");
+    assert!(peak < 1 << 20, "peak {peak}");
     let limit = 8000 * 8000 * images::MAX_BYTES_PER_PIXEL as usize;
     assert!(peak <= limit, "peak {peak} > {limit}");
     // As a camera's 64 x 48 image: refused from the header.

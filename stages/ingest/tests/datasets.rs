@@ -443,6 +443,39 @@ fn dna_rendering_without_annotations_or_with_a_bad_image_fails_clearly() {
     );
 }
 
+/// A full-size body model saved with `np.savez_compressed` whose float64 blend shapes are
+/// all zeros (66 MB of `posedirs` from a file of a few hundred KB) loads: the readers judge
+/// arrays by the size they declare, not by their compression ratio (the old limit, 32 times
+/// the file's size plus 32 MiB, refused it).
+#[test]
+fn a_compressed_body_model_with_zero_blend_shapes_loads() {
+    let dir = dataset_fixture("smpl_compressed");
+    let expected = read_json(&dir.path().join("expected.json"));
+    let path = dir.path().join("model.npz");
+    let file_len = std::fs::metadata(&path).unwrap().len() as usize;
+    let decoded = expected["decoded_bytes"].as_u64().unwrap() as usize;
+    assert!(file_len < 1_000_000, "{file_len}");
+    assert!(
+        decoded > 32 * file_len + (32 << 20),
+        "the fixture must compress better than the old ratio limit: {decoded} from {file_len}"
+    );
+    let loaded = load_body_model_npz(&path, ComponentLimits::default()).unwrap();
+    assert_eq!(loaded.model.num_joints(), 24);
+    let vertices = expected["num_vertices"].as_u64().unwrap() as usize;
+    assert_eq!(loaded.model.num_vertices(), vertices);
+    assert!(loaded.model.arrays().pose_dirs.iter().all(|&x| x == 0.0));
+    for (index, key) in [(0, "first_vertex"), (vertices - 1, "last_vertex")] {
+        let want = f64s(&expected[key]);
+        let got = loaded.model.template_vertex(index);
+        for axis in 0..3 {
+            assert!(
+                (got[axis] - want[axis]).abs() < 1e-12,
+                "{key}: {got} vs {want:?}"
+            );
+        }
+    }
+}
+
 #[test]
 fn body_model_npz_loads_smpl_and_smplx() {
     for kind in ["smpl", "smplx"] {

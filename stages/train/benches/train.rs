@@ -11,7 +11,7 @@
 //! backward twice that, as `--bench nn` counts them). The last line is
 //! `cpu paper preset: <X> it/s, network phases at <P>% of the gemm peak measured in this run`.
 //!
-//! LPIPS: a row with the loss as method.md has it (VGG, weight 0.1, on the bound-box crop)
+//! LPIPS: a row with the loss as docs/method.md has it (VGG, weight 0.1, on the bound-box crop)
 //! with seeded VGG weights (the trained ones cannot be committed; the cost depends only on
 //! the architecture); `SEQAVATAR_BENCH_LPIPS=0` skips it.
 //!

@@ -27,7 +27,7 @@ pub enum Preset {
     Paper,
 }
 
-/// Learning rates (method.md, "Optimisation").
+/// Learning rates (docs/method.md, "Optimisation").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LearningRates {
@@ -177,7 +177,7 @@ pub struct TrainConfig {
     pub lpips_weights: Option<PathBuf>,
     /// The LPIPS trunk (`vgg` as in the paper, or `alex`).
     pub lpips_net: LpipsNet,
-    /// Feed images in [0, 1] to LPIPS unmapped, as the authors' code does (method.md); the
+    /// Feed images in [0, 1] to LPIPS unmapped, as the authors' code does (docs/method.md); the
     /// default maps them to [-1, 1] as the package expects.
     pub lpips_unnormalised_input: bool,
     pub aiap_centre_weight: f64,

@@ -66,7 +66,7 @@ pub struct TrainingData {
     pub params: Vec<BodyParams>,
     pub rig: BodyRig,
     pub motion: MotionTrack,
-    /// Extent of the camera rig (method.md: 1.1 x the largest distance of a training camera
+    /// Extent of the camera rig (docs/method.md: 1.1 x the largest distance of a training camera
     /// from their centroid).
     pub extent: f64,
     /// The body model kind attribute of the ingest entry.

@@ -2,7 +2,7 @@
 //! per-Gaussian quantity along: parameters, their Adam moments, template KNN rows and the
 //! view-space gradient statistics.
 //!
-//! Rules (method.md, "Densification", the standard 3DGS ones):
+//! Rules (docs/method.md, "Densification", the standard 3DGS ones):
 //! - average view-space gradient `accum / count >= grad_threshold` selects a Gaussian;
 //! - small ones (`max scale <= percent_dense x extent`) are cloned (an exact copy);
 //! - large ones are split into 2 Gaussians sampled from the Gaussian itself

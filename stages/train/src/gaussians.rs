@@ -27,7 +27,7 @@ pub const TRAINABLE: [(&str, usize); 5] = [
     (names::ROTATION, 4),
 ];
 
-/// Builds the initial state (method.md, "Init"): given centres, colours in `[0, 1]`, an
+/// Builds the initial state (docs/method.md, "Init"): given centres, colours in `[0, 1]`, an
 /// opacity and linear scales.
 pub fn initial_state(
     centres: &[f64],

@@ -195,7 +195,7 @@ fn crop_planes(image: &[f64], width: usize, rect: Rect) -> [Vec<f64>; 3] {
     })
 }
 
-/// The LPIPS loss on the bound-box crop (method.md "Losses": `w x LPIPS(render crop, target
+/// The LPIPS loss on the bound-box crop (docs/method.md "Losses": `w x LPIPS(render crop, target
 /// crop)`), with its gradient with respect to the rendered colour.
 pub struct LpipsLoss {
     lpips: Lpips,

@@ -19,7 +19,7 @@
 //!   box) and `gaussians` (count after the iteration);
 //! - `camera_K`, `camera_R`, `camera_t`, `camera_image_size`: the ingest entry's cameras
 //!   (ingest resolution; training rescales them by `resolution_scale`);
-//! - `test_psnr` f64 `(image)`: held-out PSNR per test image (method.md protocol), with
+//! - `test_psnr` f64 `(image)`: held-out PSNR per test image (docs/method.md protocol), with
 //!   `test_image` u32 `(image)` the ingest image index;
 //! - attributes `wall_seconds`, `iterations_per_second` (of the last session when resumed),
 //!   `resumed_from`, `final_train_psnr` (mean over the last tenth of the iterations),
@@ -78,7 +78,7 @@ pub fn check_motion_window(config: &TrainConfig, data: &TrainingData) -> anyhow:
     data.motion.check_window(config.sequence_length, &slots)
 }
 
-/// Held-out PSNR of one rendered image by the evaluation protocol of method.md: rendered
+/// Held-out PSNR of one rendered image by the evaluation protocol of docs/method.md: rendered
 /// pixels outside the bound box set to the background, ground-truth pixels outside the mask
 /// set to the background (the colour the image was rendered on), PSNR over the whole image.
 pub fn protocol_psnr(

@@ -5,7 +5,7 @@
 //! (photometric and, when configured, LPIPS against the ground truth composited with its mask
 //! onto that same background, [`crate::data::ImageRecord::colour_on`], and the
 //! as-isometric-as-possible loss, [`crate::losses::aiap_gaussians`]), `backward` (splatting,
-//! skinning, networks), `optimiser` (Adam with the method.md schedules) and `densify` (density
+//! skinning, networks), `optimiser` (Adam with the docs/method.md schedules) and `densify` (density
 //! statistics and control); the SH degree follows its schedule.
 //!
 //! A [`Trainer`] holds the complete resumable state; [`Trainer::checkpoint`] and
@@ -850,7 +850,7 @@ impl<'d> Trainer<'d> {
         Ok(gradients)
     }
 
-    /// Optimiser: Adam on the Gaussians' columns (method.md's schedules) and on the networks
+    /// Optimiser: Adam on the Gaussians' columns (docs/method.md's schedules) and on the networks
     /// (per-group rates decayed by `network_decay^(step / iterations)`).
     fn optimiser_phase(&mut self, iteration: u64, gradients: &Gradients) -> anyhow::Result<()> {
         let n = gradients.opacity_logit.len();

@@ -470,7 +470,7 @@ pub enum LpipsInput {
     /// Mapped by `2x - 1`: the package's `normalize=True`, the paper's meaning.
     #[default]
     Unit,
-    /// Fed unchanged as if they were in [-1, 1]: the authors' training code (method.md,
+    /// Fed unchanged as if they were in [-1, 1]: the authors' training code (docs/method.md,
     /// "inputs in [0,1] without normalisation").
     UnitAsSigned,
 }

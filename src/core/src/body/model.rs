@@ -318,9 +318,50 @@ impl BodyModel {
         if all.into_iter().any(|x| !x.is_finite()) {
             return Err(BodyParamsError::NotFinite);
         }
+        let rotations = params
+            .pose
+            .iter()
+            .enumerate()
+            .map(|(joint, v)| {
+                (
+                    if joint == 0 {
+                        "global_orient"
+                    } else {
+                        "body_pose"
+                    },
+                    *v,
+                )
+            })
+            .chain(std::iter::once(("Rh", params.world_rotation)));
+        for (field, rotation) in rotations {
+            let angle = rotation.length();
+            if angle > MAX_ROTATION_RADIANS {
+                return Err(BodyParamsError::Absurd {
+                    field,
+                    value: angle,
+                    limit: MAX_ROTATION_RADIANS,
+                    unit: "rad",
+                });
+            }
+        }
+        let distance = params.world_translation.length();
+        if distance > MAX_TRANSLATION_METRES {
+            return Err(BodyParamsError::Absurd {
+                field: "transl",
+                value: distance,
+                limit: MAX_TRANSLATION_METRES,
+                unit: "m",
+            });
+        }
         Ok(())
     }
 }
+
+/// The largest axis-angle rotation accepted (radians): any rotation is at most pi, so a
+/// larger one is a unit error or garbage, and far larger ones lose all precision.
+pub const MAX_ROTATION_RADIANS: f64 = 1e3;
+/// The largest world translation accepted (metres).
+pub const MAX_TRANSLATION_METRES: f64 = 1e4;
 
 /// Per-frame parameters of a body model.
 #[derive(Clone, Debug, PartialEq)]
@@ -350,4 +391,11 @@ pub enum BodyParamsError {
     },
     #[error("a body parameter is not finite")]
     NotFinite,
+    #[error("{field} has magnitude {value:e} {unit}, beyond the {limit:e} {unit} accepted")]
+    Absurd {
+        field: &'static str,
+        value: f64,
+        limit: f64,
+        unit: &'static str,
+    },
 }

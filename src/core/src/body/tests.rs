@@ -320,6 +320,43 @@ fn params_are_validated() {
         model.forward(&params).unwrap_err(),
         BodyParamsError::NotFinite
     );
+    // Absurd magnitudes (a pose file with global_orient = 1e30): refused, naming the field.
+    let mut params = model.zero_params();
+    params.pose[0].x = 1e30;
+    assert!(matches!(
+        model.forward(&params).unwrap_err(),
+        BodyParamsError::Absurd {
+            field: "global_orient",
+            ..
+        }
+    ));
+    let mut params = model.zero_params();
+    params.pose[3].z = -1.5e3;
+    assert!(matches!(
+        model.forward(&params).unwrap_err(),
+        BodyParamsError::Absurd {
+            field: "body_pose",
+            ..
+        }
+    ));
+    let mut params = model.zero_params();
+    params.world_translation.x = 2e4;
+    let error = model.forward(&params).unwrap_err();
+    assert!(
+        matches!(
+            error,
+            BodyParamsError::Absurd {
+                field: "transl",
+                ..
+            }
+        ),
+        "{error}"
+    );
+    // Large but plausible values pass: several turns, a kilometre away.
+    let mut params = model.zero_params();
+    params.pose[0].x = 20.0;
+    params.world_translation.x = 1e3;
+    model.forward(&params).unwrap();
     // Fewer betas than the model has: the rest are zero.
     let mut short = model.zero_params();
     short.betas = vec![0.5];

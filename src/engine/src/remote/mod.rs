@@ -32,7 +32,7 @@ use lease::{Acquired, Lease, LeaseSettings, unique_name};
 use crate::entry::EntryReader;
 use crate::store::{
     COMPLETION_MARKER, EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store,
-    check_component, fsync_tree, remove_dir_if_present,
+    check_component, fsync_tree, remove_dir_if_present, write_completion_marker,
 };
 
 /// Local folder (inside the local front) of downloads in progress.
@@ -282,11 +282,8 @@ impl RemoteStore {
                 "remote entry {location} is corrupt: {}",
                 problems.join("; ")
             );
-            let local_marker = temp.join(COMPLETION_MARKER);
-            fs::write(&local_marker, &marker_bytes)
-                .with_context(|| format!("cannot write {}", local_marker.display()))?;
             fsync_tree(&temp)?;
-            self.install(id, &temp)?;
+            self.install(id, &temp, &marker_bytes)?;
             eprintln!(
                 "downloaded {id} from {location} ({} files, {bytes} bytes)",
                 names.len()
@@ -299,15 +296,16 @@ impl RemoteStore {
         result
     }
 
-    /// Renames a complete downloaded folder (marker included) into place.
-    fn install(&self, id: &EntryId, folder: &Path) -> anyhow::Result<()> {
+    /// Renames a complete downloaded folder into place, then writes its local completion
+    /// marker (`marker`: the remote marker's bytes), as a local publish does.
+    fn install(&self, id: &EntryId, folder: &Path, marker: &[u8]) -> anyhow::Result<()> {
         let target = self.local.entry_dir(id);
         if let Some(parent) = target.parent() {
             fs::create_dir_all(parent)
                 .with_context(|| format!("cannot create {}", parent.display()))?;
         }
         if fs::rename(folder, &target).is_ok() {
-            return Ok(());
+            return write_completion_marker(&target, marker);
         }
         if self.local.entry_state(id)? == EntryState::Complete {
             remove_dir_if_present(folder)?; // Another run installed it first.
@@ -329,7 +327,8 @@ impl RemoteStore {
             self.local.quarantine(local_lock.as_ref())?;
         }
         fs::rename(folder, &target)
-            .with_context(|| format!("cannot move {} to {}", folder.display(), target.display()))
+            .with_context(|| format!("cannot move {} to {}", folder.display(), target.display()))?;
+        write_completion_marker(&target, marker)
     }
 
     /// Uploads the files of the local folder `source` (its completion marker excepted) as a

@@ -1,7 +1,7 @@
 //! The SeqAvatar networks on `cpu` (generic over f32/f64) and `gpu` (f32): non-rigid
 //! deformation conditioned on pose and motion context, body-pose refiner, LBS-weight offsets.
 //!
-//! # Architecture (`/work/shared/reference/method.md`, "Networks")
+//! # Architecture (`docs/method.md`, "Networks")
 //!
 //! - Canonical positions are NeRF-encoded (10 bands, input included: 63 values).
 //! - `PoseEncoder`: local pose without root (`3 (J - 1)`) -> 32 -> 32, ReLU. One row per frame.
@@ -142,7 +142,7 @@ pub enum ModelError {
     Gpu(String),
 }
 
-/// The optimiser group of a parameter; each has its own learning rate (method.md).
+/// The optimiser group of a parameter; each has its own learning rate (docs/method.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum NetworkGroup {
     /// Encoders and trunk of the non-rigid deformation (lr 1e-3).

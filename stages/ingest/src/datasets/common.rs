@@ -9,9 +9,10 @@ use image::{GrayImage, RgbImage};
 
 use crate::formats::{Value, images, npy, pickle};
 
-/// Reads a whole file, naming it in the error.
+/// Reads a whole regular file, naming it in the error (devices, FIFOs and sockets are
+/// refused: see [`seqavatar_engine::files`]).
 pub fn read_bytes(path: &Path) -> anyhow::Result<Vec<u8>> {
-    std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))
+    seqavatar_engine::files::read_regular_file(path)
 }
 
 /// Reads an `.npy` file; `np.save` of a dict comes back as the dict.

@@ -128,15 +128,13 @@ fn per_frame(
 
 /// Reads one member array of an `.npz` without loading the others.
 fn npz_member(path: &Path, name: &str) -> anyhow::Result<Option<Vec<f64>>> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let bytes = super::common::read_bytes(path)?;
     let entries =
         npz::list(&bytes).with_context(|| format!("{}: not a readable .npz", path.display()))?;
     let Some(entry) = entries.iter().find(|e| e.name == format!("{name}.npy")) else {
         return Ok(None);
     };
-    let data = npz::extract(&bytes, entry)
-        .with_context(|| format!("{}: member `{name}`", path.display()))?;
-    let value = crate::formats::npy::read(&data)
+    let value = npz::read_member(&bytes, entry)
         .with_context(|| format!("{}: member `{name}`", path.display()))?;
     let (_, values) = value
         .to_f64_array()

@@ -30,7 +30,7 @@ use super::common::{Field, decode_mask, decode_rgb, image_size, read_bytes, read
 use crate::formats::Value;
 use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
-/// The Dyco split: (sequence, train view ids, test view ids, frame interval) (method.md).
+/// The Dyco split: (sequence, train view ids, test view ids, frame interval) (docs/method.md).
 const SPLITS: [(&str, &[i64], &[i64], usize); 4] = [
     ("ID1_1", &[1, 3, 6, 8], &[2, 4, 7, 9], 1),
     ("ID1_2", &[0, 2, 5, 7], &[1, 6, 8, 9], 1),

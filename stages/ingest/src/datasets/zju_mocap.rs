@@ -27,7 +27,7 @@ use super::common::{
 };
 use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
-/// Frames used by the 3DGS-Avatar split, per sequence number (method.md).
+/// Frames used by the 3DGS-Avatar split, per sequence number (docs/method.md).
 const SPLIT_FRAMES: [(i64, usize); 6] = [
     (377, 570),
     (386, 540),
@@ -37,7 +37,7 @@ const SPLIT_FRAMES: [(i64, usize); 6] = [
     (394, 475),
 ];
 
-/// Test views are every view but the first, test frames every 30th (method.md).
+/// Test views are every view but the first, test frames every 30th (docs/method.md).
 const TEST_FRAME_STEP: usize = 30;
 
 /// An opened ZJU-MoCap sequence.

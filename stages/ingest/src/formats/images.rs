@@ -202,6 +202,7 @@ fn decode_jpeg_rgb(
     let mut decoder = jpeg_decoder(bytes);
     let size = jpeg_dimensions(&mut decoder)?;
     check_size(size, expected)?;
+    check_jpeg_scan_length(bytes, size)?;
     let pixels = decoder.decode().map_err(|e| ImageError::Corrupt {
         format: ImageFormat::Jpeg,
         message: e.to_string(),
@@ -217,6 +218,31 @@ fn decode_jpeg_rgb(
         });
     }
     Ok((width, height, pixels))
+}
+
+/// Refuses JPEG data too short for the picture its header declares. The decoder pads a
+/// scan that ends early (at its end-of-image marker) instead of failing, so the length is
+/// checked first: every 8 x 8 luma block codes at least its DC coefficient, one bit at
+/// the least (baseline or progressive), so the entropy-coded data from the first scan
+/// header on must hold at least one bit per block.
+fn check_jpeg_scan_length(bytes: &[u8], (width, height): (u32, u32)) -> Result<(), ImageError> {
+    let scan_start = bytes
+        .windows(2)
+        .position(|marker| marker == [0xff, 0xda])
+        .unwrap_or(bytes.len());
+    let scan_bytes = (bytes.len() - scan_start) as u64;
+    let blocks = u64::from(width.div_ceil(8)) * u64::from(height.div_ceil(8));
+    let needed = blocks.div_ceil(8);
+    if scan_bytes < needed {
+        return Err(ImageError::Corrupt {
+            format: ImageFormat::Jpeg,
+            message: format!(
+                "{scan_bytes} bytes of scan data cannot code the {blocks} blocks of a \
+                 {width}x{height} picture (at least {needed} bytes): the data runs short"
+            ),
+        });
+    }
+    Ok(())
 }
 
 fn png_decoder(bytes: &[u8]) -> Result<image::codecs::png::PngDecoder<Cursor<&[u8]>>, ImageError> {
@@ -333,6 +359,28 @@ mod tests {
             decode_rgb(&flipped, Some((40, 30))),
             Err(ImageError::Corrupt { .. })
         ));
+    }
+
+    /// Scan data that runs short but ends with its end-of-image marker (the decoder would
+    /// pad it): a 16 x 16 picture's scan under a header claiming 2000 x 2000.
+    #[test]
+    fn jpeg_data_too_short_for_its_header_is_an_error() {
+        let mut jpeg = jpeg_bytes(&RgbImage::new(16, 16));
+        assert!(jpeg.ends_with(&[0xff, 0xd9]), "ends with its EOI marker");
+        let sof = jpeg
+            .windows(2)
+            .position(|w| w == [0xff, 0xc0])
+            .expect("a baseline frame header");
+        jpeg[sof + 5..sof + 9].copy_from_slice(&[0x07, 0xd0, 0x07, 0xd0]);
+        let error = decode_rgb(&jpeg, None).unwrap_err();
+        assert!(
+            matches!(&error, ImageError::Corrupt { message, .. } if message.contains("runs short")),
+            "{error}"
+        );
+        assert!(decode_mask(&jpeg, None, true).is_err());
+        // The same picture at its own size decodes.
+        jpeg[sof + 5..sof + 9].copy_from_slice(&[0x00, 0x10, 0x00, 0x10]);
+        assert_eq!(decode_rgb(&jpeg, None).unwrap().dimensions(), (16, 16));
     }
 
     #[test]

@@ -4,7 +4,7 @@
 use super::dtype::{DType, Kind};
 use super::pickle::{self, ArrayError, PickleError, checked_product, numeric_array};
 use super::value::{ArrayData, Value};
-use super::{Budget, OverBudget};
+use super::{BadLimit, Budget, Limits, MAX_ARRAY_BYTES_VAR, MAX_FILE_BYTES_VAR, OverBudget};
 
 /// Why an `.npy` byte string was rejected.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -25,6 +25,19 @@ pub enum NpyError {
     TooLarge(OverBudget),
     #[error("object array pickle holds {found}, but the header says shape {shape:?}")]
     ObjectMismatch { found: String, shape: Vec<usize> },
+    #[error(
+        "the header declares shape {shape:?} of {dtype}, {bytes} bytes decoded: over the \
+         {limit}-byte limit (raise the limit per array with {MAX_ARRAY_BYTES_VAR}, per file \
+         with {MAX_FILE_BYTES_VAR})"
+    )]
+    ArrayTooLarge {
+        shape: Vec<usize>,
+        dtype: String,
+        bytes: usize,
+        limit: usize,
+    },
+    #[error(transparent)]
+    Limit(#[from] BadLimit),
 }
 
 /// The parsed header of an `.npy` file.
@@ -39,18 +52,84 @@ pub struct NpyHeader {
 
 /// Reads an `.npy` file's bytes: a numeric array as [`Value::Array`], an object array as the
 /// array the pickle holds (use [`Value::unwrap_object_scalar`] for `np.save` of a dict).
-/// Decoded values may take [`super::decode_budget`] of the file's size.
+/// The declared array must fit the [`Limits::from_env`] (see [`super`]).
 pub fn read(bytes: &[u8]) -> Result<Value, NpyError> {
-    read_within(bytes, &mut Budget::for_input(bytes.len()))
+    read_with(bytes, &Limits::from_env()?)
 }
 
-/// [`read`] with the decoded values charged to `budget` before they are allocated (an
-/// `.npz` archive shares one budget among its members).
-pub fn read_within(bytes: &[u8], budget: &mut Budget) -> Result<Value, NpyError> {
+/// [`read`] within explicit limits.
+pub fn read_with(bytes: &[u8], limits: &Limits) -> Result<Value, NpyError> {
     let header = read_header(bytes)?;
-    let data = &bytes[header.data_offset..];
+    let mut file = Budget::with_limit(limits.max_file_bytes);
+    decode_within(bytes, &header, limits, &mut file)
+}
+
+/// The bytes a numeric array of this header takes in the file after the header, and in
+/// memory once decoded (twice for a Fortran-order reorder, which copies); `None` for object
+/// arrays, whose pickle has no declared size.
+pub fn declared_sizes(header: &NpyHeader) -> Result<Option<(usize, usize)>, NpyError> {
     if header.dtype.kind == Kind::Object {
-        let (value, _) = pickle::load_prefix_within(data, budget)?;
+        return Ok(None);
+    }
+    let overflow = || NpyError::BadHeader(format!("shape {:?} overflows", header.shape));
+    let count = checked_product(&header.shape).ok_or_else(overflow)?;
+    let stored = count
+        .checked_mul(header.dtype.itemsize)
+        .ok_or_else(overflow)?;
+    let copies = if header.fortran_order && header.shape.len() > 1 {
+        2
+    } else {
+        1
+    };
+    let decoded = header
+        .dtype
+        .decoded_bytes(count)
+        .and_then(|n| n.checked_mul(copies))
+        .ok_or_else(overflow)?;
+    Ok(Some((stored, decoded)))
+}
+
+/// Refuses a header whose declared array exceeds the per-array limit or what is left of
+/// the per-file limit (`file_left`).
+pub fn check_declared(
+    header: &NpyHeader,
+    limits: &Limits,
+    file_left: usize,
+) -> Result<(), NpyError> {
+    if let Some((_, decoded)) = declared_sizes(header)? {
+        let limit = limits.max_array_bytes.min(file_left);
+        if decoded > limit {
+            return Err(NpyError::ArrayTooLarge {
+                shape: header.shape.clone(),
+                dtype: header.dtype.descr(),
+                bytes: decoded,
+                limit,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Decodes the array of `bytes` (a whole `.npy`, whose `header` was read) within the
+/// per-array limit, charging its decoded values to `file` (an `.npz` archive shares one
+/// among its members) before they are allocated.
+pub fn decode_within(
+    bytes: &[u8],
+    header: &NpyHeader,
+    limits: &Limits,
+    file: &mut Budget,
+) -> Result<Value, NpyError> {
+    check_declared(header, limits, file.left())?;
+    let data = &bytes[header.data_offset..];
+    let Some((needed, _)) = declared_sizes(header)? else {
+        // An object array: a pickle, whose values may expand (see `super`).
+        let limit = super::decode_budget(data.len())
+            .min(limits.max_array_bytes)
+            .min(file.left());
+        let mut budget = Budget::with_limit(limit);
+        let (value, _) = pickle::load_prefix_within(data, &mut budget)?;
+        file.charge(limit - budget.left())
+            .map_err(NpyError::TooLarge)?;
         let matches = match &value {
             Value::Array(a) => a.shape == header.shape && matches!(a.data, ArrayData::Object(_)),
             _ => false,
@@ -58,16 +137,11 @@ pub fn read_within(bytes: &[u8], budget: &mut Budget) -> Result<Value, NpyError>
         if !matches {
             return Err(NpyError::ObjectMismatch {
                 found: value.to_string(),
-                shape: header.shape,
+                shape: header.shape.clone(),
             });
         }
         return Ok(value);
-    }
-    let count = checked_product(&header.shape)
-        .ok_or_else(|| NpyError::BadHeader(format!("shape {:?} overflows", header.shape)))?;
-    let needed = count
-        .checked_mul(header.dtype.itemsize)
-        .ok_or_else(|| NpyError::BadHeader(format!("shape {:?} overflows", header.shape)))?;
+    };
     if data.len() < needed {
         return Err(NpyError::Truncated(format!(
             "shape {:?} of {} needs {} data bytes, the file has {}",
@@ -79,10 +153,10 @@ pub fn read_within(bytes: &[u8], budget: &mut Budget) -> Result<Value, NpyError>
     }
     let array = numeric_array(
         &header.dtype,
-        header.shape,
+        header.shape.clone(),
         header.fortran_order,
         &data[..needed],
-        budget,
+        file,
     )
     .map_err(|e| match e {
         ArrayError::Invalid(message) => NpyError::Dtype(message),

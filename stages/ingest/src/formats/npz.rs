@@ -4,9 +4,11 @@
 //! The zip reader is ours (a few hundred lines) so it can be fuzzed with the rest: sizes come
 //! from the central directory and are checked against the archive length before any
 //! allocation; deflated members are inflated with a bound on the output and their CRC-32 is
-//! verified. Members may not overlap, and what the archive inflates to and decodes to is
-//! charged to one [`Budget`] of the archive's size before it is allocated (limits: the
-//! [`super`] module docs).
+//! verified. Members may not overlap. Each member's `.npy` header is inflated first: the
+//! array it declares must fit the per-array limit, the arrays of the archive together the
+//! per-file limit, and the member's size must be what the directory records, all before
+//! its data is inflated; inflating stops one byte past that size (limits: the [`super`]
+//! module docs). Nothing depends on how well a member compresses.
 
 use std::borrow::Cow;
 use std::io::Read;
@@ -14,7 +16,7 @@ use std::ops::Range;
 
 use super::npy::{self, NpyError};
 use super::value::Value;
-use super::{Budget, OverBudget};
+use super::{BadLimit, Budget, Limits};
 
 /// Why an `.npz` archive was rejected.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -25,12 +27,8 @@ pub enum NpzError {
     Corrupt(String),
     #[error("unsupported zip feature in member '{member}': {what}")]
     Unsupported { member: String, what: String },
-    #[error("member '{member}': {source}")]
-    TooLarge {
-        member: String,
-        #[source]
-        source: OverBudget,
-    },
+    #[error(transparent)]
+    Limit(#[from] BadLimit),
     #[error("member '{member}': {source}")]
     Member {
         member: String,
@@ -51,20 +49,21 @@ pub struct ZipEntry {
     local_header_offset: u64,
 }
 
-/// Reads every array of an `.npz` archive, in archive order, named without the `.npy` suffix.
-/// The inflated members and their decoded arrays share one [`Budget`] of the archive's size
-/// (see [`super`]), and members may not overlap (one compressed stream listed many times).
+/// Reads every array of an `.npz` archive, in archive order, named without the `.npy` suffix,
+/// within the [`Limits::from_env`] (see [`super`]). Members may not overlap (one compressed
+/// stream listed many times).
 pub fn read(bytes: &[u8]) -> Result<Vec<(String, Value)>, NpzError> {
+    read_with(bytes, &Limits::from_env()?)
+}
+
+/// [`read`] within explicit limits.
+pub fn read_with(bytes: &[u8], limits: &Limits) -> Result<Vec<(String, Value)>, NpzError> {
     let entries = list(bytes)?;
     check_disjoint(bytes, &entries)?;
-    let mut budget = Budget::for_input(bytes.len());
+    let mut file = Budget::with_limit(limits.max_file_bytes);
     let mut out = Vec::with_capacity(entries.len());
     for entry in &entries {
-        let data = extract_within(bytes, entry, &mut budget)?;
-        let value = npy::read_within(&data, &mut budget).map_err(|source| NpzError::Member {
-            member: entry.name.clone(),
-            source,
-        })?;
+        let value = read_member_within(bytes, entry, limits, &mut file)?;
         let name = entry
             .name
             .strip_suffix(".npy")
@@ -73,6 +72,29 @@ pub fn read(bytes: &[u8]) -> Result<Vec<(String, Value)>, NpzError> {
         out.push((name, value));
     }
     Ok(out)
+}
+
+/// The array of one member (without reading the others), within the [`Limits::from_env`].
+pub fn read_member(bytes: &[u8], entry: &ZipEntry) -> Result<Value, NpzError> {
+    let limits = Limits::from_env()?;
+    let mut file = Budget::with_limit(limits.max_file_bytes);
+    read_member_within(bytes, entry, &limits, &mut file)
+}
+
+/// [`read_member`] with the decoded array charged to `file`, the archive's budget.
+fn read_member_within(
+    bytes: &[u8],
+    entry: &ZipEntry,
+    limits: &Limits,
+    file: &mut Budget,
+) -> Result<Value, NpzError> {
+    let member_error = |source| NpzError::Member {
+        member: entry.name.clone(),
+        source,
+    };
+    let data = extract_declared(bytes, entry, limits, file.left())?;
+    let header = npy::read_header(&data).map_err(member_error)?;
+    npy::decode_within(&data, &header, limits, file).map_err(member_error)
 }
 
 fn u16_at(b: &[u8], at: usize) -> Option<u16> {
@@ -253,20 +275,25 @@ fn check_disjoint(bytes: &[u8], entries: &[ZipEntry]) -> Result<(), NpzError> {
     Ok(())
 }
 
-/// The uncompressed bytes of one member, with its CRC-32 checked; inflating may take
-/// [`super::decode_budget`] of the archive's size.
-pub fn extract<'a>(bytes: &'a [u8], entry: &ZipEntry) -> Result<Cow<'a, [u8]>, NpzError> {
-    extract_within(bytes, entry, &mut Budget::for_input(bytes.len()))
-}
+/// The most bytes an `.npy` header may take (numpy itself reads at most 10000).
+pub const MAX_NPY_HEADER_BYTES: usize = 1 << 20;
 
-/// [`extract`] with the inflated bytes charged to `budget` before they are allocated
-/// (stored members are borrowed, not copied).
-pub fn extract_within<'a>(
+/// The uncompressed bytes of one member (an `.npy` file), with its CRC-32 checked. A
+/// deflated member's header is inflated first: the array it declares must fit `limits` (and
+/// `file_left`, what the archive's earlier members left of the per-file limit) and, with the
+/// header, make up exactly the size the directory records, before the rest is inflated;
+/// inflating stops one byte past that size. Stored members are borrowed.
+pub fn extract_declared<'a>(
     bytes: &'a [u8],
     entry: &ZipEntry,
-    budget: &mut Budget,
+    limits: &Limits,
+    file_left: usize,
 ) -> Result<Cow<'a, [u8]>, NpzError> {
     let member = || entry.name.clone();
+    let member_error = |source| NpzError::Member {
+        member: member(),
+        source,
+    };
     if entry.flags & 1 != 0 {
         return Err(NpzError::Unsupported {
             member: member(),
@@ -283,38 +310,52 @@ pub fn extract_within<'a>(
                     entry.name
                 )));
             }
+            let header = npy::read_header(compressed).map_err(member_error)?;
+            check_declared_size(entry, &header, limits, file_left)?;
             Cow::Borrowed(compressed)
         }
         8 => {
-            // Deflate expands at most about 1032 times: a larger claim is corrupt, and the
-            // claim bounds the output buffer.
-            let bound = (compressed.len() as u64)
-                .saturating_mul(1032)
-                .saturating_add(1024);
-            if entry.uncompressed_size > bound {
-                return Err(NpzError::Corrupt(format!(
-                    "member '{}': claims {} bytes from {} deflated bytes",
-                    entry.name,
-                    entry.uncompressed_size,
-                    compressed.len()
-                )));
-            }
-            let expected = entry.uncompressed_size as usize;
-            budget.charge(expected).map_err(|e| NpzError::TooLarge {
-                member: member(),
-                source: e,
-            })?;
-            let mut out = Vec::with_capacity(expected.min(compressed.len().saturating_mul(8)));
-            flate2::read::DeflateDecoder::new(compressed)
-                .take(entry.uncompressed_size + 1)
+            let mut inflate = flate2::read::DeflateDecoder::new(compressed);
+            let inflate_error =
+                |e: std::io::Error| NpzError::Corrupt(format!("member '{}': {e}", entry.name));
+            // The magic string, version and header length, then the header.
+            let mut out = Vec::with_capacity(256);
+            (&mut inflate)
+                .take(12)
                 .read_to_end(&mut out)
-                .map_err(|e| NpzError::Corrupt(format!("member '{}': {e}", entry.name)))?;
+                .map_err(inflate_error)?;
+            let header_end = npy_header_end(&out).map_err(member_error)?;
+            if header_end > MAX_NPY_HEADER_BYTES {
+                return Err(member_error(NpyError::BadHeader(format!(
+                    "the header is {header_end} bytes, more than the {MAX_NPY_HEADER_BYTES} \
+                     allowed"
+                ))));
+            }
+            (&mut inflate)
+                .take(header_end.saturating_sub(out.len()) as u64)
+                .read_to_end(&mut out)
+                .map_err(inflate_error)?;
+            let header = npy::read_header(&out).map_err(member_error)?;
+            check_declared_size(entry, &header, limits, file_left)?;
+            // Within the limits: at most the decoded size of the declared array.
+            let expected = usize::try_from(entry.uncompressed_size).unwrap_or(usize::MAX);
+            out.reserve_exact(expected.saturating_sub(out.len()));
+            let rest = (expected.saturating_sub(out.len()) as u64).saturating_add(1);
+            inflate
+                .take(rest)
+                .read_to_end(&mut out)
+                .map_err(inflate_error)?;
             if out.len() != expected {
                 return Err(NpzError::Corrupt(format!(
-                    "member '{}': inflated to {} bytes, expected {}",
+                    "member '{}': inflated to {}{} bytes, its header and the zip directory \
+                     declare {expected}",
                     entry.name,
-                    out.len(),
-                    expected
+                    if out.len() > expected {
+                        "more than "
+                    } else {
+                        ""
+                    },
+                    out.len().min(expected)
                 )));
             }
             Cow::Owned(out)
@@ -334,6 +375,76 @@ pub fn extract_within<'a>(
         )));
     }
     Ok(data)
+}
+
+/// Refuses a member whose declared array is over the limits (`file_left`: what the
+/// archive's earlier members left of the per-file limit), or whose numeric array and header
+/// do not make up the size the zip directory records. An object array's pickle has no
+/// declared size: the directory's must fit the limits (its values are charged as it
+/// decodes).
+fn check_declared_size(
+    entry: &ZipEntry,
+    header: &npy::NpyHeader,
+    limits: &Limits,
+    file_left: usize,
+) -> Result<(), NpzError> {
+    let member_error = |source| NpzError::Member {
+        member: entry.name.clone(),
+        source,
+    };
+    npy::check_declared(header, limits, file_left).map_err(member_error)?;
+    match npy::declared_sizes(header).map_err(member_error)? {
+        Some((stored, _)) => {
+            let declared = header.data_offset.checked_add(stored);
+            if declared.map(|n| n as u64) != Some(entry.uncompressed_size) {
+                return Err(NpzError::Corrupt(format!(
+                    "member '{}': its header declares shape {:?} of {} ({} bytes with the \
+                     header), the zip directory says {} bytes",
+                    entry.name,
+                    header.shape,
+                    header.dtype.descr(),
+                    declared.map_or_else(|| "too many".into(), |n| n.to_string()),
+                    entry.uncompressed_size
+                )));
+            }
+        }
+        None => {
+            let limit = limits.max_array_bytes.min(file_left);
+            if entry.uncompressed_size > limit as u64 {
+                return Err(member_error(NpyError::ArrayTooLarge {
+                    shape: header.shape.clone(),
+                    dtype: header.dtype.descr(),
+                    bytes: usize::try_from(entry.uncompressed_size).unwrap_or(usize::MAX),
+                    limit,
+                }));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Where the header of an `.npy` starting with `prefix` (at least its first 12 bytes, or
+/// all of a shorter file) ends.
+fn npy_header_end(prefix: &[u8]) -> Result<usize, NpyError> {
+    if prefix.len() < 8 || &prefix[..6] != b"\x93NUMPY" {
+        return Err(NpyError::NotNpy);
+    }
+    let truncated = || NpyError::Truncated("header length".into());
+    match prefix[6] {
+        1 => {
+            let b = prefix.get(8..10).ok_or_else(truncated)?;
+            Ok(10 + usize::from(u16::from_le_bytes([b[0], b[1]])))
+        }
+        2 | 3 => {
+            let b = prefix.get(8..12).ok_or_else(truncated)?;
+            let len = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            Ok(12usize.saturating_add(usize::try_from(len).unwrap_or(usize::MAX)))
+        }
+        major => Err(NpyError::UnsupportedVersion {
+            major,
+            minor: prefix[7],
+        }),
+    }
 }
 
 #[cfg(test)]

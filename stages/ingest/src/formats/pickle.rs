@@ -50,6 +50,8 @@ pub enum PickleError {
     TooDeep { limit: usize },
     #[error("pickle stream ended without a STOP opcode")]
     NoStop,
+    #[error(transparent)]
+    Limit(#[from] super::BadLimit),
 }
 
 /// Maximum nesting of containers in the decoded value.
@@ -61,9 +63,11 @@ pub fn load(bytes: &[u8]) -> Result<Value, PickleError> {
 }
 
 /// Decodes one pickle from the start of `bytes`; also returns how many bytes it used.
-/// Decoded values may take [`super::decode_budget`] of the input's size.
+/// Decoded values may take [`super::decode_budget`] of the input's size, within the
+/// per-file limit of [`super::Limits::from_env`].
 pub fn load_prefix(bytes: &[u8]) -> Result<(Value, usize), PickleError> {
-    load_prefix_within(bytes, &mut Budget::for_input(bytes.len()))
+    let limits = super::Limits::from_env()?;
+    load_prefix_within(bytes, &mut Budget::for_pickle(bytes.len(), &limits))
 }
 
 /// [`load_prefix`] with the decoded values (the machine's arrays and the final tree) charged

@@ -140,9 +140,70 @@ impl Default for SyntheticConfig {
     }
 }
 
+/// Bytes per supersample of the rasteriser's visibility buffer (triangle, barycentrics,
+/// depth).
+const VISIBILITY_BYTES_PER_SAMPLE: u64 = 4 + 12 + 4;
+/// Bytes per output pixel in flight while a view is rendered and stored (RGB and mask, and
+/// their encoded chunks).
+const IMAGE_BYTES_PER_PIXEL: u64 = 2 * (3 + 1);
+/// Bytes the ingest plan and the entry's per-image records hold per (camera, frame) image.
+const BYTES_PER_IMAGE: u64 = 64;
+/// Bytes of simulated state kept per frame (body parameters, garment particles): an upper
+/// bound for the procedural body at the finest grid spacing.
+const STATE_BYTES_PER_FRAME: u64 = 64 << 10;
+
 impl SyntheticConfig {
-    /// Checks ranges; errors name the config field.
+    /// The memory generating this scene is estimated to need at its peak: one visibility
+    /// buffer of `width x height x supersample^2` samples and one image per rendering
+    /// thread, records per camera and frame, and the per-frame simulation state.
+    pub fn memory_estimate_bytes(&self) -> u64 {
+        let threads = rayon::current_num_threads() as u64;
+        let pixels = u64::from(self.width) * u64::from(self.height);
+        let samples = pixels * u64::from(self.supersample).pow(2);
+        let per_render = samples
+            .saturating_mul(VISIBILITY_BYTES_PER_SAMPLE)
+            .saturating_add(pixels.saturating_mul(IMAGE_BYTES_PER_PIXEL));
+        let images = (self.cameras as u64).saturating_mul(self.frames as u64);
+        threads
+            .saturating_mul(per_render)
+            .saturating_add(images.saturating_mul(BYTES_PER_IMAGE))
+            .saturating_add((self.frames as u64).saturating_mul(STATE_BYTES_PER_FRAME))
+    }
+
+    /// Refuses a scene whose [`Self::memory_estimate_bytes`] exceeds `budget` bytes, naming
+    /// the fields that make it large.
+    pub fn check_memory(&self, budget: u64) -> anyhow::Result<()> {
+        let estimate = self.memory_estimate_bytes();
+        anyhow::ensure!(
+            estimate <= budget,
+            "dataset.width x dataset.height x dataset.supersample^2 ({} x {} x {}^2 samples \
+             per view, {} rendering threads) and dataset.cameras x dataset.frames ({} x {}) \
+             need about {:.1} GB, over the memory budget of {:.1} GB (set {} to raise it)",
+            self.width,
+            self.height,
+            self.supersample,
+            rayon::current_num_threads(),
+            self.cameras,
+            self.frames,
+            estimate as f64 / 1e9,
+            budget as f64 / 1e9,
+            seqavatar_engine::MEMORY_BUDGET_VAR
+        );
+        Ok(())
+    }
+
+    /// Checks ranges, then the memory estimate against the memory budget
+    /// ([`seqavatar_engine::memory_budget_bytes`]); errors name the config field.
     pub fn validate(&self) -> anyhow::Result<()> {
+        self.validate_ranges()?;
+        if let Some(budget) = seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)? {
+            self.check_memory(budget)?;
+        }
+        Ok(())
+    }
+
+    /// Checks ranges; errors name the config field.
+    fn validate_ranges(&self) -> anyhow::Result<()> {
         let field = |name: &str| format!("dataset.{name}");
         anyhow::ensure!(self.cameras >= 1, "{} must be at least 1", field("cameras"));
         anyhow::ensure!(self.frames >= 1, "{} must be at least 1", field("frames"));
@@ -205,5 +266,47 @@ impl SyntheticConfig {
             field("jitter")
         );
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod memory_tests {
+    use super::*;
+
+    /// 4096 x 4096 at 8 x 8 samples per pixel passes the range checks but would need tens
+    /// of GB per rendering thread: refused at once, from the config alone, naming the fields.
+    #[test]
+    fn a_scene_over_the_memory_budget_is_refused_before_any_work() {
+        let config = SyntheticConfig {
+            width: 4096,
+            height: 4096,
+            supersample: 8,
+            ..SyntheticConfig::default()
+        };
+        config.validate_ranges().unwrap();
+        let start = std::time::Instant::now();
+        let error = config.check_memory(16 << 30).unwrap_err().to_string();
+        assert!(start.elapsed() < std::time::Duration::from_secs(1));
+        for field in [
+            "dataset.width",
+            "dataset.supersample",
+            "SEQAVATAR_MEMORY_BUDGET",
+        ] {
+            assert!(error.contains(field), "{error}");
+        }
+        assert!(config.memory_estimate_bytes() > 4096 * 4096 * 64 * 20);
+        // Cameras x frames count too.
+        let many = SyntheticConfig {
+            cameras: 1024,
+            frames: 100_000,
+            ..SyntheticConfig::default()
+        };
+        let error = many.check_memory(4 << 30).unwrap_err().to_string();
+        assert!(
+            error.contains("dataset.cameras x dataset.frames"),
+            "{error}"
+        );
+        // The demo's scene fits a small budget.
+        SyntheticConfig::default().check_memory(1 << 30).unwrap();
     }
 }
