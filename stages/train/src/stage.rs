@@ -275,7 +275,7 @@ impl StageKind for TrainStage {
             ctx.log(&format!(
                 "ms per iteration: {per_phase}, checkpoints and logging {other:.1}"
             ));
-            let (searches, calls) = trainer.aiap_neighbour_searches();
+            let (searches, calls) = trainer.aiap_neighbour_searches()?;
             if calls > 0 {
                 ctx.log(&format!(
                     "AIAP neighbours: {searches} full searches in {calls} iterations (the others reused their candidate lists)"

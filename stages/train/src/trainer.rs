@@ -1128,8 +1128,11 @@ impl<'d> Trainer<'d> {
 
     /// Full neighbour searches of the AIAP loss and the iterations that asked for
     /// neighbours, since the trainer was built (the rest reused their candidate lists).
-    pub fn aiap_neighbour_searches(&self) -> (u64, u64) {
-        (self.aiap_knn.rebuilds(), self.aiap_knn.calls())
+    pub fn aiap_neighbour_searches(&self) -> anyhow::Result<(u64, u64)> {
+        match &self.resident {
+            Some(resident) => resident.aiap_searches(),
+            None => Ok((self.aiap_knn.rebuilds(), self.aiap_knn.calls())),
+        }
     }
 
     /// Wall time per phase since the trainer was built or the last

@@ -101,10 +101,6 @@ pub struct ResidentStep {
     aiap: ResidentAiap,
     statistics: GradientStats,
     log: LogRing,
-    /// Every frame's local pose without the root, `F x 3 (J - 1)`, and the current one.
-    local_poses: GpuBuffer,
-    local_pose: GpuBuffer,
-    local_pose_width: usize,
     /// Per camera slot, the image gradients the losses write and the splatting reads.
     image_gradients: Vec<(GpuBuffer, GpuBuffer)>,
     /// The canonical centres' total gradient (skinning's direct path plus the non-rigid
@@ -233,18 +229,6 @@ impl ResidentStep {
         )?;
         let statistics = GradientStats::new(&context)?;
         let log = LogRing::new(&context, LOG_CAPACITY)?;
-        let local_pose_width = 3 * (rig.joint_count() - 1);
-        let table: Vec<f32> = data
-            .params
-            .iter()
-            .flat_map(|p| {
-                seqavatar_avatar::avatar::local_pose(p)
-                    .into_iter()
-                    .map(|v| v as f32)
-            })
-            .collect();
-        let local_poses = context.upload("local poses", &table)?;
-        let local_pose = context.zeros("local pose", local_pose_width, 4)?;
         let image_gradients = (0..config.cameras_per_step)
             .map(|_| {
                 Ok((
@@ -274,9 +258,6 @@ impl ResidentStep {
             aiap,
             statistics,
             log,
-            local_poses,
-            local_pose,
-            local_pose_width,
             image_gradients,
             xyz_gradient,
             add,
@@ -342,16 +323,9 @@ impl ResidentStep {
             half_size: half_size(data, plan.images),
         })?;
 
-        // Pose: the refiner's forward (on the frame's unrefined local pose), forward
-        // kinematics and pose blend shapes.
-        let row = (plan.frame * self.local_pose_width * 4) as u64;
-        encoder.copy_buffer_to_buffer(
-            &self.local_poses.buffer,
-            row,
-            &self.local_pose.buffer,
-            0,
-            (self.local_pose_width * 4) as u64,
-        );
+        // Pose: the frame's unrefined local pose (the refiner's and the non-rigid network's
+        // input), the refiner's forward, forward kinematics and pose blend shapes.
+        self.pose.record_refiner_input(&mut encoder, plan.frame)?;
         let (has_non_rigid, has_lbs, has_refiner) =
             (self.has_non_rigid, self.has_lbs, self.has_refiner);
         if let Some(networks) = self.networks.as_mut() {
@@ -360,7 +334,8 @@ impl ResidentStep {
         let joints = data.rig.joint_count();
         let refinements = match (has_refiner, self.networks.as_mut()) {
             (true, Some(networks)) => Some(device_view(
-                networks.record_pose_refiner_forward(&mut encoder, &self.local_pose.buffer)?,
+                networks
+                    .record_pose_refiner_forward(&mut encoder, &self.pose.refiner_input().buffer)?,
                 9 * (joints - 1),
             )),
             _ => None,
@@ -390,7 +365,7 @@ impl ResidentStep {
                 &mut encoder,
                 n,
                 &NonRigidDeviceInputs {
-                    local_pose: &self.local_pose.buffer,
+                    local_pose: &self.pose.refiner_input().buffer,
                     skeleton_motion: config
                         .motion_context
                         .has_skeleton_motion()
@@ -691,6 +666,37 @@ impl ResidentStep {
                 .into());
             }
         }
+        if let Some(found) = self
+            .networks
+            .as_ref()
+            .map(GpuNetworks::download_non_finite)
+            .transpose()?
+            .flatten()
+        {
+            return Err(Divergence {
+                iteration: last_iteration,
+                what: if found.gradient {
+                    "gradient of"
+                } else {
+                    "parameter"
+                },
+                tensor: found.tensor,
+                detail: format!(" (value {}; found by iteration {last_iteration})", found.index),
+            }
+            .into());
+        }
+        let pose = self.pose.download_status()?;
+        anyhow::ensure!(
+            pose.is_clean(),
+            "iterations {first_iteration}-{last_iteration}: the pose path met non-finite values ({pose:?})"
+        );
+        let [forward, forward_at, backward, backward_at] = self.skinning.download_status()?;
+        anyhow::ensure!(
+            forward == 0 && backward == 0,
+            "iterations {first_iteration}-{last_iteration}: skinning met non-finite values \
+             ({forward} in the forward, first at Gaussian {forward_at}; {backward} in the \
+             backward, first at Gaussian {backward_at})"
+        );
         let status = self
             .splat
             .check_status(&self.context)
@@ -706,6 +712,11 @@ impl ResidentStep {
             );
         }
         Ok(logged)
+    }
+
+    /// The AIAP neighbour searches: `(full searches, calls)` (one read-back).
+    pub fn aiap_searches(&self) -> anyhow::Result<(u64, u64)> {
+        self.aiap.download_searches()
     }
 
     /// Copies the Gaussians (values, moments, densification statistics) back into `state`.
