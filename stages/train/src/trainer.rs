@@ -45,7 +45,7 @@ use crate::losses::{
     AiapGaussianGrads, AiapGaussians, AiapWeights, ImageLossWeights, ImagePair, LpipsLoss, Rect,
     aiap_gaussians, image_loss,
 };
-use crate::resident::step::{IterationPlan, LOG_CAPACITY, ResidentStep};
+use crate::resident::step::{IterationPlan, LOG_CAPACITY, ResidentRun, ResidentStep};
 use crate::rng::Rng;
 use seqavatar_avatar::skinning::skin_backward;
 use seqavatar_avatar::splatting::SplatPass;
@@ -332,12 +332,6 @@ pub struct Trainer<'d> {
 }
 
 /// The active SH degree at (1-based) iteration `iteration`: one more every `interval`.
-/// Whether the device-resident step covers a configuration (the LPIPS loss runs through the
-/// host path for now).
-fn resident_supported(config: &TrainConfig) -> bool {
-    !config.lpips_enabled()
-}
-
 pub fn sh_degree_at(config: &TrainConfig, iteration: u64) -> u32 {
     let steps = iteration / u64::from(config.sh_degree_interval.max(1));
     steps.min(u64::from(config.sh_degree)) as u32
@@ -431,21 +425,7 @@ impl<'d> Trainer<'d> {
             !train_images.is_empty(),
             "no training image has a non-empty foreground mask"
         );
-        let resident = match backend.gpu() {
-            Some(context) if resident_supported(&config) => Some(
-                ResidentStep::new(
-                    context.clone(),
-                    &config,
-                    data,
-                    &scales,
-                    &state,
-                    networks.as_ref(),
-                    &network_adam,
-                )
-                .context("the device-resident training step")?,
-            ),
-            _ => None,
-        };
+        let gpu_context = backend.gpu().cloned();
         let device = avatar_backend(backend, networks.as_ref())?;
         let lpips = load_lpips_loss(&config, device.compute())?;
         if let Some(loss) = &lpips {
@@ -460,6 +440,25 @@ impl<'d> Trainer<'d> {
                     })?;
             }
         }
+        // On the gpu backend the whole iteration lives on the device.
+        let resident = match gpu_context {
+            Some(context) => Some(
+                ResidentStep::new(
+                    context,
+                    &ResidentRun {
+                        config: &config,
+                        data,
+                        scales: &scales,
+                        state: &state,
+                        networks: networks.as_ref(),
+                        network_adam: &network_adam,
+                        lpips: lpips.as_ref(),
+                    },
+                )
+                .context("the device-resident training step")?,
+            ),
+            None => None,
+        };
         Ok(Self {
             lpips,
             template_grid: template_grid(&data.rig),
@@ -1017,7 +1016,7 @@ impl<'d> Trainer<'d> {
         };
         let resident = self.resident.as_mut().expect("resident step");
         resident
-            .record(&plan, self.data)
+            .record(&plan, self.data, self.lpips.as_ref())
             .with_context(|| format!("iteration {iteration} on the device"))?;
         clock.lap(&mut self.phase_times, Phase::Deform);
         self.iteration = iteration;

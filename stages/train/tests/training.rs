@@ -513,8 +513,18 @@ fn gpu_steps_with_networks_match_cpu() {
         let image = |s: &seqavatar_train::trainer::IterationStats| s.total - s.aiap;
         let image_relative = (image(&a) - image(&b)).abs() / image(&a).abs();
         let aiap_relative = (a.aiap - b.aiap).abs() / a.aiap.abs();
-        assert!(image_relative < 1e-3, "step {step}: image terms {} vs {}", image(&a), image(&b));
-        assert!(aiap_relative < 5e-3, "step {step}: aiap {} vs {}", a.aiap, b.aiap);
+        assert!(
+            image_relative < 1e-3,
+            "step {step}: image terms {} vs {}",
+            image(&a),
+            image(&b)
+        );
+        assert!(
+            aiap_relative < 5e-3,
+            "step {step}: aiap {} vs {}",
+            a.aiap,
+            b.aiap
+        );
     }
     eprintln!(
         "ms per iteration with the non-rigid network: cpu {:.1}, gpu {:.1}",
@@ -619,7 +629,13 @@ fn resident_paper_iteration_reads_nothing_back() {
     // Syncing reads the log and the state back, and the curve holds every iteration.
     trainer.sync().unwrap();
     assert_eq!(trainer.curve.total.len(), 7);
-    assert!(trainer.curve.total.iter().all(|v| v.is_finite() && *v > 0.0));
+    assert!(
+        trainer
+            .curve
+            .total
+            .iter()
+            .all(|v| v.is_finite() && *v > 0.0)
+    );
 }
 
 /// A short training run on the gpu backend (the device-resident step) ends at the held-out

@@ -26,6 +26,7 @@ use seqavatar_avatar::resident::skinning::{
     GaussianColumns, ResidentSkinning, SkinInputs, SkinningSetup,
 };
 use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use seqavatar_compute::lpips::gpu::{Crop, DeviceImage as LpipsImage, ResidentLpips};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
 use seqavatar_compute::splat::RasterOptions;
 use seqavatar_compute::splat::gpu::{
@@ -43,7 +44,7 @@ use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::SH;
-use crate::losses::{AiapWeights, ImageLossWeights};
+use crate::losses::{AiapWeights, ImageLossWeights, LpipsLoss};
 use crate::trainer::{Divergence, pad_rect};
 
 const STEP_WGSL: &str = include_str!("../../../../shaders/train_step.wgsl");
@@ -85,6 +86,22 @@ pub struct LoggedIteration {
     pub image_total: f64,
 }
 
+/// What a resident run is built from: the run's configuration and data, and its state (fresh
+/// or resumed) on the host.
+#[derive(Clone, Copy)]
+pub struct ResidentRun<'a> {
+    pub config: &'a TrainConfig,
+    pub data: &'a TrainingData,
+    /// Raw temporal scales the networks read, largest first.
+    pub scales: &'a [u32],
+    pub state: &'a GaussianState,
+    pub networks: Option<&'a Networks<f32>>,
+    /// The networks' Adam moments by parameter name (empty for a fresh run).
+    pub network_adam: &'a BTreeMap<String, AdamState<f32>>,
+    /// The LPIPS loss when it is on (its trunk on this run's gpu).
+    pub lpips: Option<&'a LpipsLoss>,
+}
+
 /// The device state and workspaces of a resident training run.
 pub struct ResidentStep {
     context: Arc<GpuContext>,
@@ -96,6 +113,8 @@ pub struct ResidentStep {
     splat: SplatWorkspace,
     truth: GroundTruth,
     losses: ImageLoss,
+    /// The LPIPS trunk's device workspace, when the loss is on.
+    lpips: Option<ResidentLpips>,
     gaussians: ResidentGaussians,
     adam: GaussianAdam,
     aiap: ResidentAiap,
@@ -127,26 +146,27 @@ impl ResidentStep {
     /// moments, the networks with theirs (`network_adam`, empty for a fresh run), the
     /// sequence's poses and motion arrays, the ground-truth images; allocates every
     /// workspace for the current Gaussian count.
-    pub fn new(
-        context: Arc<GpuContext>,
-        config: &TrainConfig,
-        data: &TrainingData,
-        scales: &[u32],
-        state: &GaussianState,
-        networks: Option<&Networks<f32>>,
-        network_adam: &BTreeMap<String, AdamState<f32>>,
-    ) -> anyhow::Result<Self> {
+    pub fn new(context: Arc<GpuContext>, run: &ResidentRun<'_>) -> anyhow::Result<Self> {
+        let ResidentRun {
+            config,
+            data,
+            scales,
+            state,
+            networks,
+            network_adam,
+            lpips,
+        } = *run;
         let n = state.len();
         let avatar = config.avatar();
         let context_kind = avatar.motion_context;
         let rig = &data.rig;
-        let pose = ResidentPose::new(context.clone(), rig, &data.params)
-            .context("resident pose path")?;
+        let pose =
+            ResidentPose::new(context.clone(), rig, &data.params).context("resident pose path")?;
         let networks = match networks {
             None => None,
             Some(net) => {
-                let mut gpu = GpuNetworks::upload(context.clone(), net)
-                    .context("uploading the networks")?;
+                let mut gpu =
+                    GpuNetworks::upload(context.clone(), net).context("uploading the networks")?;
                 if !network_adam.is_empty() {
                     let states: HashMap<String, AdamState<f32>> = network_adam
                         .iter()
@@ -217,6 +237,30 @@ impl ResidentStep {
             max_pixels,
         )
         .context("image losses")?;
+        let lpips = match lpips {
+            None => None,
+            Some(loss) => {
+                let gpu = loss
+                    .lpips()
+                    .gpu()
+                    .context("the LPIPS loss's trunk is not on the gpu")?;
+                let (max_height, max_width) = data
+                    .cameras
+                    .iter()
+                    .map(|c| (c.height as usize, c.width as usize))
+                    .fold((1, 1), |(h, w), (ch, cw)| (h.max(ch), w.max(cw)));
+                Some(
+                    gpu.resident(
+                        loss.lpips().weights(),
+                        config.lpips_input(),
+                        max_height,
+                        max_width,
+                        config.cameras_per_step,
+                    )
+                    .context("LPIPS on the device")?,
+                )
+            }
+        };
         let gaussians = ResidentGaussians::upload(&context, state).context("Gaussians")?;
         let adam = GaussianAdam::new(&context)?;
         let aiap = ResidentAiap::new(
@@ -253,6 +297,7 @@ impl ResidentStep {
             splat,
             truth,
             losses,
+            lpips,
             gaussians,
             adam,
             aiap,
@@ -303,6 +348,7 @@ impl ResidentStep {
         &mut self,
         plan: &IterationPlan<'_>,
         data: &TrainingData,
+        lpips: Option<&LpipsLoss>,
     ) -> anyhow::Result<()> {
         let config = &self.config;
         let n = self.gaussians.len();
@@ -344,9 +390,8 @@ impl ResidentStep {
             .forward(&mut encoder, plan.frame, refinements.as_ref())?;
 
         // Motion inputs and the non-rigid network.
-        let column = |name: &str| -> anyhow::Result<&GpuBuffer> {
-            Ok(&self.gaussians.column(name)?.values)
-        };
+        let column =
+            |name: &str| -> anyhow::Result<&GpuBuffer> { Ok(&self.gaussians.column(name)?.values) };
         let columns = GaussianColumns {
             xyz: column(names::POSITION)?,
             log_scale: column(names::LOG_SCALE)?,
@@ -356,24 +401,28 @@ impl ResidentStep {
         };
         let heads = if has_non_rigid {
             self.motion.record_skeleton_window(&mut encoder)?;
-            self.motion.record_canonical_knn(&mut encoder, columns.xyz)?;
+            self.motion
+                .record_canonical_knn(&mut encoder, columns.xyz)?;
             self.motion.record_velocity(&mut encoder)?;
             let velocity: Vec<&wgpu::Buffer> =
                 self.motion.velocity.iter().map(|b| &b.buffer).collect();
             let networks = self.networks.as_mut().expect("has a non-rigid network");
-            Some(device_view(networks.record_non_rigid_forward(
-                &mut encoder,
-                n,
-                &NonRigidDeviceInputs {
-                    local_pose: &self.pose.refiner_input().buffer,
-                    skeleton_motion: config
-                        .motion_context
-                        .has_skeleton_motion()
-                        .then_some(&self.motion.window.buffer),
-                    xyz: &columns.xyz.buffer,
-                    knn_velocity: &velocity,
-                },
-            )?, HEAD_WIDTH * n))
+            Some(device_view(
+                networks.record_non_rigid_forward(
+                    &mut encoder,
+                    n,
+                    &NonRigidDeviceInputs {
+                        local_pose: &self.pose.refiner_input().buffer,
+                        skeleton_motion: config
+                            .motion_context
+                            .has_skeleton_motion()
+                            .then_some(&self.motion.window.buffer),
+                        xyz: &columns.xyz.buffer,
+                        knn_velocity: &velocity,
+                    },
+                )?,
+                HEAD_WIDTH * n,
+            ))
         } else {
             None
         };
@@ -398,7 +447,8 @@ impl ResidentStep {
             target_joints: self.pose.target_joints(),
             vertex_offsets: self.pose.vertex_offsets(),
         };
-        self.skinning.record_forward(&mut encoder, &columns, &inputs)?;
+        self.skinning
+            .record_forward(&mut encoder, &columns, &inputs)?;
 
         // Splatting into the chosen cameras on the iteration's background.
         let cameras: Vec<Camera> = plan
@@ -444,18 +494,52 @@ impl ResidentStep {
             .collect();
         self.losses
             .begin_iteration(&mut encoder, plan.iteration, &loss_cameras, &self.truth)?;
-        for c in 0..cameras.len() {
+        for (c, (camera, loss_camera)) in cameras.iter().zip(&loss_cameras).enumerate() {
             let (colour, alpha) = &self.image_gradients[c];
+            let rendered = self.splat.colour(c).map_err(|e| anyhow::anyhow!("{e}"))?;
             self.losses.record_camera(
                 &mut encoder,
                 c,
                 &self.truth,
                 DeviceImages {
-                    colour: self.splat.colour(c).map_err(|e| anyhow::anyhow!("{e}"))?,
+                    colour: rendered,
                     alpha: self.splat.alpha(c).map_err(|e| anyhow::anyhow!("{e}"))?,
                 },
                 DeviceImages { colour, alpha },
             )?;
+            if let (Some(workspace), Some(loss)) = (&self.lpips, lpips) {
+                // Its image gradient joins the colour gradient before the splatting backward.
+                let (width, height) = (camera.width as usize, camera.height as usize);
+                let target = self.losses.record_target(&mut encoder, c, &self.truth)?;
+                let crop = loss.crop(loss_camera.rect, width, height)?;
+                let image = |buffer| LpipsImage {
+                    buffer,
+                    offset: 0,
+                    width,
+                    height,
+                };
+                let gpu = loss
+                    .lpips()
+                    .gpu()
+                    .context("the LPIPS trunk is not on the gpu")?;
+                workspace.record(
+                    gpu,
+                    &mut encoder,
+                    c,
+                    image(rendered),
+                    image(target),
+                    Crop {
+                        x0: crop.x0,
+                        y0: crop.y0,
+                        width: crop.width(),
+                        height: crop.height(),
+                    },
+                    (config.lpips_weight / cameras.len() as f64) as f32,
+                    colour,
+                )?;
+                self.losses
+                    .record_lpips(&mut encoder, c, workspace.value(c))?;
+            }
         }
         self.losses.finish_iteration(&mut encoder);
         self.aiap.record(
@@ -596,8 +680,13 @@ impl ResidentStep {
             self.log
                 .record(&mut encoder, slot, field, &loss_log.buffer, index);
         }
-        self.log
-            .record(&mut encoder, slot, LogField::Aiap, &self.aiap.log().buffer, 0);
+        self.log.record(
+            &mut encoder,
+            slot,
+            LogField::Aiap,
+            &self.aiap.log().buffer,
+            0,
+        );
         let submitted = context.queue().submit([encoder.finish()]);
         self.unread += 1;
         // At most `IN_FLIGHT` iterations queued ahead of the device: the host waits (no data
@@ -632,7 +721,9 @@ impl ResidentStep {
     /// trip, after they have run) and checks every piece's status: a non-finite value is a
     /// [`Divergence`] naming the iteration and tensor, as on `cpu`.
     pub fn read_log(&mut self, last_iteration: u64) -> anyhow::Result<Vec<LoggedIteration>> {
-        let slots = self.log.read(&self.context, self.first_unread, self.unread)?;
+        let slots = self
+            .log
+            .read(&self.context, self.first_unread, self.unread)?;
         let first_iteration = last_iteration + 1 - self.unread as u64;
         self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
         self.unread = 0;
@@ -681,7 +772,10 @@ impl ResidentStep {
                     "parameter"
                 },
                 tensor: found.tensor,
-                detail: format!(" (value {}; found by iteration {last_iteration})", found.index),
+                detail: format!(
+                    " (value {}; found by iteration {last_iteration})",
+                    found.index
+                ),
             }
             .into());
         }
