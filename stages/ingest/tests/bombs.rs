@@ -377,11 +377,11 @@ fn string_arrays_are_charged_per_element() {
     let _guard = MEASURING
         .lock()
         .unwrap_or_else(|poisoned| poisoned.into_inner());
-    // 2 M one-byte strings inflate from a few KB to 2 MB (within a 16 MiB limit per
+    // 2 M one-byte strings inflate from a few KB to 2 MB (within a 24 MiB limit per
     // array) but would decode to 2 M `Vec<u8>`s (about 50 MB): refused before inflating.
     let limits = formats::Limits {
-        max_array_bytes: 16 << 20,
-        max_file_bytes: 16 << 20,
+        max_array_bytes: 24 << 20,
+        max_file_bytes: 24 << 20,
     };
     let count = 2 * MB;
     let plain = npy_bytes("|S1", &[count], &vec![b'a'; count]);
