@@ -342,13 +342,6 @@ fn header_then_zeros(header: &[u8], mebibytes: usize) -> Vec<u8> {
     stream
 }
 
-/// The compressed data of the single member of an archive made by [`zip`].
-fn zip_member_data(archive: &[u8]) -> Vec<u8> {
-    let size = u32::from_le_bytes(archive[18..22].try_into().unwrap()) as usize;
-    let name_len = u16::from_le_bytes(archive[26..28].try_into().unwrap()) as usize;
-    archive[30 + name_len..30 + name_len + size].to_vec()
-}
-
 #[test]
 fn overlapping_members_are_refused() {
     let _guard = MEASURING
