@@ -8,32 +8,52 @@
 // template vertices V x 3; queries N x 3; neighbours N x k (nearest first); the window
 // L x S x J x 3; velocity block l: N x (tau S 3), `[neighbour][scale][xyz]` per Gaussian.
 
-struct MotionShape {
-    length: u32,
-    scales: u32,
-    joints: u32,
-    vertices: u32,
-    // Neighbours per query of this search, and the gather's window element.
-    k: u32,
-    element: u32,
-    // What a non-finite query gets (k times): the cpu search's first reference point.
-    fallback: u32,
-    _pad: u32,
+// The shape (a uniform written once, plain words so that no struct crosses the boundary):
+// [length L, scales S, joints J, vertices V], [k (neighbours per query of this search),
+// window element of this gather, fallback (what a non-finite query gets k times: the cpu
+// search's first reference point), 0].
+// The per-iteration record (16 bytes): [frame index, Gaussian count, 0, 0].
+fn shape_length() -> u32 {
+    return shape[0].x;
 }
 
-// The per-iteration record: frame index and Gaussian count.
-struct MotionRecord {
-    frame: u32,
-    count: u32,
-    _pad0: u32,
-    _pad1: u32,
+fn shape_scales() -> u32 {
+    return shape[0].y;
+}
+
+fn shape_joints() -> u32 {
+    return shape[0].z;
+}
+
+fn shape_vertices() -> u32 {
+    return shape[0].w;
+}
+
+fn shape_k() -> u32 {
+    return shape[1].x;
+}
+
+fn shape_element() -> u32 {
+    return shape[1].y;
+}
+
+fn shape_fallback() -> u32 {
+    return shape[1].z;
+}
+
+fn record_frame() -> u32 {
+    return record[0];
+}
+
+fn record_count() -> u32 {
+    return record[1];
 }
 
 const MAX_K: u32 = 64u;
 const TILE: u32 = 64u;
 
-@group(0) @binding(0) var<uniform> shape: MotionShape;
-@group(0) @binding(1) var<storage, read> record: MotionRecord;
+@group(0) @binding(0) var<uniform> shape: array<vec4<u32>, 2>;
+@group(0) @binding(1) var<storage, read> record: array<u32>;
 // Per scale slot in use: its step on the frame axis.
 @group(0) @binding(2) var<storage, read> steps: array<u32>;
 @group(0) @binding(3) var<storage, read> skeleton_motion: array<f32>;
@@ -56,7 +76,7 @@ fn finite(x: f32) -> bool {
 // checked that clamping is allowed: MotionTrack::gather's rule).
 fn window_row(l: u32, s: u32) -> u32 {
     let back = l * steps[s];
-    return select(0u, record.frame - back, record.frame >= back);
+    return select(0u, record_frame() - back, record_frame() >= back);
 }
 
 // The skeleton-motion window L x S x J x 3 of the record's frame.
@@ -67,19 +87,19 @@ fn gather_skeleton(
     @builtin(local_invocation_index) local: u32,
 ) {
     let o = linear_index(group, groups, local);
-    let per_scale = shape.joints * 3u;
-    if o >= shape.length * shape.scales * per_scale {
+    let per_scale = shape_joints() * 3u;
+    if o >= shape_length() * shape_scales() * per_scale {
         return;
     }
     let inner = o % per_scale;
-    let s = (o / per_scale) % shape.scales;
-    let l = o / (per_scale * shape.scales);
+    let s = (o / per_scale) % shape_scales();
+    let l = o / (per_scale * shape_scales());
     let row = window_row(l, s);
-    window[o] = skeleton_motion[(row * shape.scales + s) * per_scale + inner];
+    window[o] = skeleton_motion[(row * shape_scales() + s) * per_scale + inner];
 }
 
-// Velocity block of window element `shape.element`: for Gaussian i, neighbour n (of the
-// tau = shape.k nearest in `neighbours`) and scale s, the velocity of that vertex at the
+// Velocity block of window element `shape_element()`: for Gaussian i, neighbour n (of the
+// tau = shape_k() nearest in `neighbours`) and scale s, the velocity of that vertex at the
 // window row.
 @compute @workgroup_size(64)
 fn gather_velocity(
@@ -88,28 +108,28 @@ fn gather_velocity(
     @builtin(local_invocation_index) local: u32,
 ) {
     let o = linear_index(group, groups, local);
-    let width = shape.k * shape.scales * 3u;
-    if o >= record.count * width {
+    let width = shape_k() * shape_scales() * 3u;
+    if o >= record_count() * width {
         return;
     }
     let i = o / width;
     let inner = o % width;
     let c = inner % 3u;
-    let s = (inner / 3u) % shape.scales;
-    let n = inner / (3u * shape.scales);
-    let vertex = neighbours[i * shape.k + n];
-    let row = window_row(shape.element, s);
-    window[o] = vertex_velocity[((row * shape.scales + s) * shape.vertices + vertex) * 3u + c];
+    let s = (inner / 3u) % shape_scales();
+    let n = inner / (3u * shape_scales());
+    let vertex = neighbours[i * shape_k() + n];
+    let row = window_row(shape_element(), s);
+    window[o] = vertex_velocity[((row * shape_scales() + s) * shape_vertices() + vertex) * 3u + c];
 }
 
 var<workgroup> tile: array<vec3<f32>, 64>;
 
-// The shape.k nearest template vertices of each query, nearest first, ties by index: a tiled
+// The shape_k() nearest template vertices of each query, nearest first, ties by index: a tiled
 // brute force (every query against every vertex, vertices staged through workgroup memory).
 // Vertices are visited in index order and a candidate enters only when strictly nearer than
 // the current k-th, behind every kept one at the same distance, so equal distances keep the
 // lower index first, as the cpu grid search orders them. Non-finite vertices never enter; a
-// non-finite query gets `shape.fallback` k times.
+// non-finite query gets `shape_fallback()` k times.
 @compute @workgroup_size(64)
 fn knn(
     @builtin(workgroup_id) group: vec3<u32>,
@@ -117,8 +137,8 @@ fn knn(
     @builtin(local_invocation_index) local: u32,
 ) {
     let i = linear_index(group, groups, local);
-    let k = min(shape.k, MAX_K);
-    let active_query = i < record.count;
+    let k = min(shape_k(), MAX_K);
+    let active_query = i < record_count();
     var q = vec3<f32>(0.0);
     var valid = false;
     if active_query {
@@ -136,20 +156,20 @@ fn knn(
     var best_i: array<u32, 64>;
     for (var n = 0u; n < MAX_K; n++) {
         best_d[n] = 3.4e38;
-        best_i[n] = shape.fallback;
+        best_i[n] = shape_fallback();
     }
     var filled = 0u;
-    for (var base = 0u; base < shape.vertices; base += TILE) {
+    for (var base = 0u; base < shape_vertices(); base += TILE) {
         workgroupBarrier();
         let v = base + local;
-        if v < shape.vertices {
+        if v < shape_vertices() {
             tile[local] = vec3<f32>(template_vertices[3u * v], template_vertices[3u * v + 1u], template_vertices[3u * v + 2u]);
         }
         workgroupBarrier();
         if !valid {
             continue;
         }
-        let count = min(TILE, shape.vertices - base);
+        let count = min(TILE, shape_vertices() - base);
         for (var t = 0u; t < count; t++) {
             let p = tile[t];
             if !(finite(p.x) && finite(p.y) && finite(p.z)) {
@@ -182,7 +202,7 @@ fn knn(
     }
     if active_query {
         for (var n = 0u; n < k; n++) {
-            neighbours[i * shape.k + n] = best_i[n];
+            neighbours[i * shape_k() + n] = best_i[n];
         }
     }
 }

@@ -12,26 +12,45 @@
 // Per-Gaussian kernels run 64 threads per workgroup; the Gaussian index is
 // (group.x + group.y * groups.x) * 64 + local (2D dispatch beyond the per-dimension limit).
 
-struct SkinShape {
-    joints: u32,
-    vertices: u32,
-    // HAS_HEADS | HAS_WEIGHT_OFFSETS
-    flags: u32,
-    // Gaussians per chunk of the per-joint reduction.
-    chunk: u32,
-    scale_min: f32,
-    scale_max: f32,
-    _pad0: u32,
-    _pad1: u32,
+// The shape (a uniform written once, plain words so that no struct crosses the boundary):
+// [joints, vertices, flags (HAS_HEADS | HAS_WEIGHT_OFFSETS), Gaussians per chunk of the
+// per-joint reduction], [scale_min, scale_max (f32 bits), 0, 0].
+// The per-iteration record (16 bytes): [Gaussian count, SH coefficients per channel of the
+// active degree, chunks of the per-joint reduction, 0].
+fn shape_joints() -> u32 {
+    return shape[0].x;
 }
 
-// The per-iteration record: Gaussian count, SH coefficients per channel of the active degree,
-// and (for the reductions) the number of chunks.
-struct SkinRecord {
-    count: u32,
-    sh_coefficients: u32,
-    chunks: u32,
-    _pad: u32,
+fn shape_vertices() -> u32 {
+    return shape[0].y;
+}
+
+fn shape_flags() -> u32 {
+    return shape[0].z;
+}
+
+fn shape_chunk() -> u32 {
+    return shape[0].w;
+}
+
+fn scale_min() -> f32 {
+    return bitcast<f32>(shape[1].x);
+}
+
+fn scale_max() -> f32 {
+    return bitcast<f32>(shape[1].y);
+}
+
+fn record_count() -> u32 {
+    return record[0];
+}
+
+fn record_sh_coefficients() -> u32 {
+    return record[1];
+}
+
+fn record_chunks() -> u32 {
+    return record[2];
 }
 
 const HAS_HEADS: u32 = 1u;
@@ -46,8 +65,8 @@ const STATUS_FORWARD_FIRST: u32 = 1u;
 const STATUS_BACKWARD_COUNT: u32 = 2u;
 const STATUS_BACKWARD_FIRST: u32 = 3u;
 
-@group(0) @binding(0) var<uniform> shape: SkinShape;
-@group(0) @binding(1) var<storage, read> record: SkinRecord;
+@group(0) @binding(0) var<uniform> shape: array<vec4<u32>, 2>;
+@group(0) @binding(1) var<storage, read> record: array<u32>;
 // Canonical Gaussians (the optimiser's columns) and the non-rigid heads.
 @group(0) @binding(2) var<storage, read> xyz: array<f32>;
 @group(0) @binding(3) var<storage, read> log_scales: array<f32>;
@@ -270,9 +289,9 @@ fn scale_matrix(s: vec3<f32>) -> mat3x3<f32> {
 }
 
 fn logit(i: u32, v: u32, k: u32) -> f32 {
-    var l = template_log_weights[v * shape.joints + k];
-    if (shape.flags & HAS_WEIGHT_OFFSETS) != 0u {
-        l += weight_offsets[i * shape.joints + k];
+    var l = template_log_weights[v * shape_joints() + k];
+    if (shape_flags() & HAS_WEIGHT_OFFSETS) != 0u {
+        l += weight_offsets[i * shape_joints() + k];
     }
     return l;
 }
@@ -280,11 +299,11 @@ fn logit(i: u32, v: u32, k: u32) -> f32 {
 // Softmax normaliser of Gaussian i's logits: (max, sum of exp(logit - max)).
 fn softmax_normaliser(i: u32, v: u32) -> vec2<f32> {
     var m = -3.4e38;
-    for (var k = 0u; k < shape.joints; k++) {
+    for (var k = 0u; k < shape_joints(); k++) {
         m = max(m, logit(i, v, k));
     }
     var sum = 0.0;
-    for (var k = 0u; k < shape.joints; k++) {
+    for (var k = 0u; k < shape_joints(); k++) {
         sum += exp(logit(i, v, k) - m);
     }
     return vec2<f32>(m, sum);
@@ -313,7 +332,7 @@ fn forward_one(i: u32) -> Forward {
     var f: Forward;
     let log_scale = log_scale_at(i);
     f.raw_scale = exp(log_scale) + d_scale_at(i);
-    f.scale = clamp(f.raw_scale, vec3<f32>(shape.scale_min), vec3<f32>(shape.scale_max));
+    f.scale = clamp(f.raw_scale, vec3<f32>(scale_min()), vec3<f32>(scale_max()));
     f.rotation = quat_mul(d_rotation_at(i), rotation_at(i));
     let r = quat_matrix(f.rotation);
     f.sigma = r * scale_matrix(f.scale * f.scale) * transpose(r);
@@ -325,7 +344,7 @@ fn forward_one(i: u32) -> Forward {
         a[e] = 0.0;
         b[e] = 0.0;
     }
-    for (var k = 0u; k < shape.joints; k++) {
+    for (var k = 0u; k < shape_joints(); k++) {
         let w = weight(i, f.vertex, k, f.normaliser);
         for (var e = 0u; e < 12u; e++) {
             a[e] += w * target_joints[12u * k + e];
@@ -356,11 +375,11 @@ fn deform(
     @builtin(local_invocation_index) local: u32,
 ) {
     let i = gaussian_index(group, groups, local);
-    if i >= record.count {
+    if i >= record_count() {
         return;
     }
     let x = xyz_at(i);
-    if (shape.flags & HAS_HEADS) != 0u {
+    if (shape_flags() & HAS_HEADS) != 0u {
         let h = HEAD_WIDTH * i;
         for (var a = 0u; a < 3u; a++) {
             positions[3u * i + a] = x[a] + heads[h + a];
@@ -392,7 +411,7 @@ fn skin_forward(
     @builtin(local_invocation_index) local: u32,
 ) {
     let i = gaussian_index(group, groups, local);
-    if i >= record.count {
+    if i >= record_count() {
         return;
     }
     let f = forward_one(i);
@@ -412,7 +431,7 @@ fn skin_forward(
         flag(STATUS_FORWARD_COUNT, STATUS_FORWARD_FIRST, i);
     }
     opacities[i] = 1.0 / (1.0 + exp(-opacity_logits[i]));
-    let active_len = 3u * record.sh_coefficients;
+    let active_len = 3u * record_sh_coefficients();
     for (var e = 0u; e < active_len; e++) {
         sh_out[i * active_len + e] = sh[3u * SH_STORED * i + e];
     }
@@ -430,7 +449,7 @@ fn skin_backward(
     @builtin(local_invocation_index) local: u32,
 ) {
     let i = gaussian_index(group, groups, local);
-    if i >= record.count {
+    if i >= record_count() {
         return;
     }
     let f = forward_one(i);
@@ -476,24 +495,24 @@ fn skin_backward(
     }
     // Blend weights: dL/dw_k, then the softmax backward.
     var dot_w = 0.0;
-    for (var k = 0u; k < shape.joints; k++) {
+    for (var k = 0u; k < shape_joints(); k++) {
         let w = weight(i, f.vertex, k, f.normaliser);
         var d_w = 0.0;
         for (var e = 0u; e < 12u; e++) {
             d_w += d_a[e] * target_joints[12u * k + e] + d_b[e] * canonical_joints[12u * k + e];
         }
         dot_w += w * d_w;
-        blend_weights[i * shape.joints + k] = w;
+        blend_weights[i * shape_joints() + k] = w;
     }
-    if (shape.flags & HAS_WEIGHT_OFFSETS) != 0u {
-        for (var k = 0u; k < shape.joints; k++) {
-            let w = blend_weights[i * shape.joints + k];
+    if (shape_flags() & HAS_WEIGHT_OFFSETS) != 0u {
+        for (var k = 0u; k < shape_joints(); k++) {
+            let w = blend_weights[i * shape_joints() + k];
             var d_w = 0.0;
             for (var e = 0u; e < 12u; e++) {
                 d_w += d_a[e] * target_joints[12u * k + e] + d_b[e] * canonical_joints[12u * k + e];
             }
             let g = w * (d_w - dot_w);
-            grad_weight_offsets[i * shape.joints + k] = g;
+            grad_weight_offsets[i * shape_joints() + k] = g;
             ok = ok && finite(g);
         }
     }
@@ -504,7 +523,7 @@ fn skin_backward(
     let d_scale_clamped = 2.0 * f.scale * vec3<f32>(rt_g_r[0][0], rt_g_r[1][1], rt_g_r[2][2]);
     let d_r = gs * r * scale_matrix(f.scale * f.scale) * 2.0;
     let d_rot_product = quat_matrix_backward(f.rotation, d_r);
-    let inside = f.raw_scale > vec3<f32>(shape.scale_min) & f.raw_scale < vec3<f32>(shape.scale_max);
+    let inside = f.raw_scale > vec3<f32>(scale_min()) & f.raw_scale < vec3<f32>(scale_max());
     let d_scale = select(vec3<f32>(0.0), d_scale_clamped, inside);
     let d_log_scale = d_scale * exp(log_scale_at(i));
     let d_rot = d_rotation_at(i);
@@ -552,14 +571,14 @@ fn reduce_joints(
 ) {
     let chunk = group.x;
     let k = group.y;
-    let begin = chunk * shape.chunk;
-    let end = min(record.count, begin + shape.chunk);
+    let begin = chunk * shape_chunk();
+    let end = min(record_count(), begin + shape_chunk());
     var sums: array<f32, 12>;
     for (var e = 0u; e < 12u; e++) {
         sums[e] = 0.0;
     }
     for (var i = begin + local; i < end; i += 64u) {
-        let w = blend_weights[i * shape.joints + k];
+        let w = blend_weights[i * shape_joints() + k];
         for (var e = 0u; e < 12u; e++) {
             sums[e] += w * grad_blend[12u * i + e];
         }
@@ -576,7 +595,7 @@ fn reduce_joints(
     }
     if local == 0u {
         for (var e = 0u; e < 12u; e++) {
-            joint_partials[(chunk * shape.joints + k) * 12u + e] = partial_sums[0][e];
+            joint_partials[(chunk * shape_joints() + k) * 12u + e] = partial_sums[0][e];
         }
     }
 }
@@ -589,12 +608,12 @@ fn finish_joints(
     @builtin(local_invocation_index) local: u32,
 ) {
     let index = gaussian_index(group, groups, local);
-    let len = 12u * shape.joints;
+    let len = 12u * shape_joints();
     if index >= len {
         return;
     }
     var sum = 0.0;
-    for (var chunk = 0u; chunk < record.chunks; chunk++) {
+    for (var chunk = 0u; chunk < record_chunks(); chunk++) {
         sum += joint_partials[chunk * len + index];
     }
     grad_target_joints[index] = sum;
@@ -614,12 +633,12 @@ fn activations_backward(
     @builtin(local_invocation_index) local: u32,
 ) {
     let i = gaussian_index(group, groups, local);
-    if i >= record.count {
+    if i >= record_count() {
         return;
     }
     let s = 1.0 / (1.0 + exp(-opacity_logits[i]));
     grad_opacity_logits[i] = opacities[i] * s * (1.0 - s);
-    let active_len = 3u * record.sh_coefficients;
+    let active_len = 3u * record_sh_coefficients();
     for (var e = 0u; e < 3u * SH_STORED; e++) {
         var g = 0.0;
         if e < active_len {

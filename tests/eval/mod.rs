@@ -467,8 +467,16 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let mut bytes = original.clone();
     let middle = bytes.len() / 2;
     bytes[middle] ^= 0x55;
+    let folder = train_folder.display().to_string();
+    let reader = resolve_entry(&store, "train", &folder).unwrap();
     std::fs::write(&chunk, &bytes).unwrap();
-    let reader = resolve_entry(&store, "train", &train_folder.display().to_string()).unwrap();
+    // `render` and `export` open entries verified: the damaged chunk is refused at once.
+    let error = format!("{:#}", resolve_entry(&store, "train", &folder).unwrap_err());
+    assert!(
+        error.contains("corrupt") && error.contains("gaussian_opacity/c/0"),
+        "{error}"
+    );
+    // The loader's own checks, on a reader opened before the damage.
     let error = format!("{:#}", AvatarRenderer::load_avatar(&reader).err().unwrap());
     assert!(error.contains("gaussian_opacity"), "{error}");
     std::fs::write(&chunk, &bytes[..middle]).unwrap();

@@ -213,8 +213,9 @@ fn method_notes_are_cited_by_their_repository_path() {
     for file in files.iter().filter(|file| **file != this_file) {
         let text = std::fs::read_to_string(file).unwrap();
         for (number, line) in text.lines().enumerate() {
+            // Spelled in two parts so that this file is no citation itself.
             let bare_citation = line
-                .match_indices("method.md")
+                .match_indices(concat!("method", ".md"))
                 .any(|(at, _)| !line[..at].ends_with("docs/"));
             let absolute = ["/work/", "/home/", "/Users/"]
                 .iter()

@@ -130,7 +130,7 @@ fn walk(
                 .with_context(|| format!("cannot read {}", path.display()))?
                 .file_type();
         }
-        if excluded.iter().any(|skip| *skip == canonical) {
+        if excluded.contains(&canonical) {
             continue;
         }
         if file_type.is_dir() {

@@ -622,6 +622,7 @@ fn fixture_manifest() {
         }
     }
     assert_eq!(total, manifest["total_bytes"].as_u64().unwrap());
-    // Small enough to commit: well under 1 MB in all.
-    assert!(total < 800_000, "fixtures total {total} bytes");
+    // Small enough to commit: under 1 MB in all (the compressed body model, whose 66 MB
+    // of zero blend shapes cannot deflate below about 64 KB, takes 93 KB of it).
+    assert!(total < 900_000, "fixtures total {total} bytes");
 }

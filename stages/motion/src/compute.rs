@@ -9,8 +9,8 @@ use seqavatar_core::rotation::axis_angle_to_matrix;
 use seqavatar_fit::io::BodySequence;
 
 use crate::context::{self, InputScaling, Scales, VelocityNormalisation};
-use crate::knn::{KnnGraph, knn_graph};
 use crate::pose::pose_sequence;
+use seqavatar_knn::{KnnGraph, knn_graph};
 
 /// Per-frame motion arrays, row-major, frame-major.
 #[derive(Clone, Debug, PartialEq)]

@@ -5,13 +5,15 @@
 
 pub mod compute;
 pub mod context;
-pub mod knn;
 pub mod pose;
 pub mod schema;
 pub mod stage;
 
 pub use context::{InputScaling, Scales, VelocityNormalisation, Window, window};
 pub use schema::{FrameAxis, MotionTrack, read_input_scales};
+/// The grid KNN now lives in the library crate `seqavatar-knn`; this path keeps code written
+/// against `seqavatar_motion::knn` compiling until it imports `seqavatar_knn` directly.
+pub use seqavatar_knn as knn;
 pub use stage::{MotionConfig, MotionStage};
 
 /// Adds this crate's stage kinds to the registry.

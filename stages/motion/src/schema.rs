@@ -36,7 +36,7 @@ use seqavatar_engine::{EntryReader, EntryWriter};
 
 use crate::compute::{InputScales, MotionArrays};
 use crate::context::{InputScaling, Scales, VelocityNormalisation};
-use crate::knn::KnnGraph;
+use seqavatar_knn::KnnGraph;
 
 /// Where a frame axis sits in its recording, from the ingest entry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -8,6 +8,13 @@
 //! checkpoint behind, and a damaged newest checkpoint has a previous one to fall back to
 //! ([`resume_newest_good`]).
 //! f32 values survive the f64 round trip exactly, so a resumed `cpu` run is bit-identical.
+//!
+//! Integrity: a checkpoint carries a blake3 digest of its whole content (iteration,
+//! generator state, metadata, every tensor's name, shape and values) in attribute `digest`,
+//! checked when it is read. A checkpoint whose digest does not match (edited, even with a
+//! valid encoding), that cannot be read (a file in place of its folder included) or that
+//! holds a non-finite value is unusable: [`resume_newest_good`] deletes it, says which and
+//! why, and falls back to the previous one or starts over, so a rerun is never stuck.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -68,7 +75,8 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
 
 const PREFIX: &str = "ckpt-";
 const PARTIAL: &str = ".partial";
-const FORMAT: u64 = 1;
+/// Format 2 added the content digest; a format-1 checkpoint is unusable (no digest).
+const FORMAT: u64 = 2;
 /// Complete checkpoints kept: the newest and the one before it.
 const KEEP: usize = 2;
 
@@ -148,7 +156,13 @@ pub fn resume_newest_good<T>(
             },
             Err(error) => error.to_string(),
         };
-        fs::remove_dir_all(&path).map_err(io(&path))?;
+        // A file (or link) in place of the checkpoint's folder is removed as a file.
+        let is_dir = fs::symlink_metadata(&path).is_ok_and(|m| m.is_dir());
+        if is_dir {
+            fs::remove_dir_all(&path).map_err(io(&path))?;
+        } else {
+            fs::remove_file(&path).map_err(io(&path))?;
+        }
         notes.push(format!(
             "checkpoint {} is unusable and was deleted ({failure})",
             path.display()
@@ -187,6 +201,7 @@ fn write_group(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointErr
         .map(|t| t.name.clone().into())
         .collect();
     attributes.insert("tensors".into(), names.into());
+    attributes.insert("digest".into(), content_digest(checkpoint).into());
     GroupBuilder::new()
         .attributes(attributes)
         .build(store.clone(), "/")
@@ -217,6 +232,31 @@ fn write_group(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointErr
         }
     }
     Ok(())
+}
+
+/// The blake3 digest of everything a checkpoint restores, in a fixed order.
+pub fn content_digest(checkpoint: &Checkpoint) -> String {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(&checkpoint.iteration.to_le_bytes());
+    hasher.update(&checkpoint.rng_state.to_le_bytes());
+    let metadata = checkpoint.metadata.to_string();
+    hasher.update(&(metadata.len() as u64).to_le_bytes());
+    hasher.update(metadata.as_bytes());
+    hasher.update(&(checkpoint.tensors.len() as u64).to_le_bytes());
+    for tensor in &checkpoint.tensors {
+        hasher.update(&(tensor.name.len() as u64).to_le_bytes());
+        hasher.update(tensor.name.as_bytes());
+        hasher.update(&(tensor.shape.len() as u64).to_le_bytes());
+        for (&extent, name) in tensor.shape.iter().zip(&tensor.dimension_names) {
+            hasher.update(&(extent as u64).to_le_bytes());
+            hasher.update(&(name.len() as u64).to_le_bytes());
+            hasher.update(name.as_bytes());
+        }
+        for value in &tensor.values {
+            hasher.update(&value.to_le_bytes());
+        }
+    }
+    hasher.finalize().to_hex().to_string()
 }
 
 fn check_tensor(path: &Path, tensor: &Tensor) -> Result<(), CheckpointError> {
@@ -332,12 +372,37 @@ fn read_group(path: &Path) -> Result<Checkpoint, CheckpointError> {
             values,
         });
     }
-    Ok(Checkpoint {
+    let checkpoint = Checkpoint {
         iteration,
         rng_state,
         metadata,
         tensors,
-    })
+    };
+    let recorded = field("digest")?
+        .as_str()
+        .ok_or_else(|| invalid(path, "attribute `digest` is not a string"))?;
+    let actual = content_digest(&checkpoint);
+    if recorded != actual {
+        return Err(invalid(
+            path,
+            format!(
+                "its content digest is {actual}, the checkpoint records {recorded} (edited \
+                 or damaged)"
+            ),
+        ));
+    }
+    for tensor in &checkpoint.tensors {
+        if let Some(at) = tensor.values.iter().position(|v| !v.is_finite()) {
+            return Err(invalid(
+                path,
+                format!(
+                    "tensor {} holds the non-finite value {} at index {at}",
+                    tensor.name, tensor.values[at]
+                ),
+            ));
+        }
+    }
+    Ok(checkpoint)
 }
 
 #[cfg(test)]
@@ -453,6 +518,70 @@ mod tests {
         assert_eq!(resumed, None);
         assert!(notes[0].contains("does not match"), "{notes:?}");
         assert!(list(dir.path()).unwrap().is_empty());
+    }
+
+    /// Rewrites the chunk of `name` in the checkpoint of `iteration` with `values`, validly
+    /// encoded (zstd and CRC-32C recomputed): only the digest can tell.
+    fn reencode(dir: &Path, iteration: u64, name: &str, values: &[f64]) {
+        let path = dir.join(format!("ckpt-{iteration:010}"));
+        let store = Arc::new(FilesystemStore::new(&path).unwrap());
+        let array = Array::open(store, &format!("/{name}")).unwrap();
+        let zeros = vec![0u64; array.shape().len()];
+        array.store_chunk(&zeros, values).unwrap();
+    }
+
+    #[test]
+    fn an_edited_but_validly_encoded_checkpoint_fails_its_digest() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(10)).unwrap();
+        save(dir.path(), &sample(20)).unwrap();
+        let mut edited = sample(20).tensors[0].values.clone();
+        edited[0] += 3.0;
+        reencode(dir.path(), 20, "gaussians/xyz", &edited);
+        let error = load_latest(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("digest"), "{error}");
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, Some(10));
+        assert!(
+            notes[0].contains("ckpt-0000000020") && notes[0].contains("digest"),
+            "{notes:?}"
+        );
+    }
+
+    #[test]
+    fn a_checkpoint_with_a_non_finite_value_is_discarded() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(10)).unwrap();
+        // Written with its digest: only the value check can refuse it.
+        let mut poisoned = sample(20);
+        poisoned.tensors[0].values[3] = f64::NAN;
+        save(dir.path(), &poisoned).unwrap();
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, Some(10));
+        assert!(
+            notes[0].contains("ckpt-0000000020")
+                && notes[0].contains("gaussians/xyz")
+                && notes[0].contains("non-finite"),
+            "{notes:?}"
+        );
+        assert_eq!(list(dir.path()).unwrap().len(), 1);
+    }
+
+    #[test]
+    fn a_file_in_place_of_a_checkpoint_is_discarded_not_stuck() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join("ckpt-0000000020"), b"not a folder").unwrap();
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, None);
+        assert!(notes[0].contains("ckpt-0000000020"), "{notes:?}");
+        assert!(!dir.path().join("ckpt-0000000020").exists());
+        // The next run starts over without a note.
+        let (resumed, notes) =
+            resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!((resumed, notes.len()), (None, 0));
     }
 
     #[test]

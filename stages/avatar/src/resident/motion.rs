@@ -43,7 +43,7 @@ fn kernel(
     })?)
 }
 
-/// `MotionShape` of `avatar_knn.wgsl`: length, scales, joints, vertices, k, element,
+/// The shape words of `avatar_knn.wgsl`: length, scales, joints, vertices, k, element,
 /// fallback, padding.
 fn shape_uniform(context: &GpuContext, values: [u32; 8]) -> wgpu::Buffer {
     context.uniform("avatar motion shape", &values)

@@ -340,22 +340,22 @@ pub fn extract_declared<'a>(
             // Within the limits: at most the decoded size of the declared array.
             let expected = usize::try_from(entry.uncompressed_size).unwrap_or(usize::MAX);
             out.reserve_exact(expected.saturating_sub(out.len()));
-            let rest = (expected.saturating_sub(out.len()) as u64).saturating_add(1);
-            inflate
+            let rest = expected.saturating_sub(out.len()) as u64;
+            (&mut inflate)
                 .take(rest)
                 .read_to_end(&mut out)
                 .map_err(inflate_error)?;
-            if out.len() != expected {
+            // One byte more would be data past the declared size (read aside, so the buffer
+            // never grows past it).
+            let mut extra = [0u8; 1];
+            let more = inflate.read(&mut extra).map_err(inflate_error)? > 0;
+            if more || out.len() != expected {
                 return Err(NpzError::Corrupt(format!(
                     "member '{}': inflated to {}{} bytes, its header and the zip directory \
                      declare {expected}",
                     entry.name,
-                    if out.len() > expected {
-                        "more than "
-                    } else {
-                        ""
-                    },
-                    out.len().min(expected)
+                    if more { "more than " } else { "" },
+                    out.len()
                 )));
             }
             Cow::Owned(out)
