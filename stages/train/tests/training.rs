@@ -472,7 +472,7 @@ fn gpu_steps_match_cpu() {
 /// iteration runs on the device and a few steps follow the `cpu` run's losses closely.
 #[test]
 fn gpu_steps_with_networks_match_cpu() {
-    networks_follow_cpu(1e-5, 1e-3, 1e-2, 0.5);
+    networks_follow_cpu(1e-5, 1e-3, 1e-2, 0.5, 0.25);
 }
 
 /// The same from the reference initialisation (head weights at PyTorch's default: offsets of
@@ -482,7 +482,7 @@ fn gpu_steps_with_networks_match_cpu() {
 /// runs stay within a few 1e-3 (a wrong gradient departs by far more within a few steps).
 #[test]
 fn gpu_steps_with_large_offsets_follow_cpu() {
-    networks_follow_cpu(0.0, 1e-2, 1e-2, 0.5);
+    networks_follow_cpu(0.0, 1e-2, 1e-2, 0.5, 0.25);
 }
 
 /// Steps both backends with every network and compares the image terms and AIAP per step
@@ -491,12 +491,15 @@ fn gpu_steps_with_large_offsets_follow_cpu() {
 /// a full step of either sign, and the per-frame encoders' gradients are column sums over
 /// every Gaussian that cancel to near zero, so those tensors drift apart by up to a third of
 /// their motion in five steps; an unrelated gradient sends them about 1.4 times as far apart
-/// as they moved, a sign error twice); prints the milliseconds per iteration of both.
+/// as they moved, a sign error twice), and the canonical centres (`centre_tolerance`: their
+/// gradient joins the non-rigid network's through the positional encoding's high
+/// frequencies); prints the milliseconds per iteration of both.
 fn networks_follow_cpu(
     head_init: f64,
     image_tolerance: f64,
     aiap_tolerance: f64,
     parameter_tolerance: f64,
+    centre_tolerance: f64,
 ) {
     let Some(gpu) = gpu_backend() else { return };
     let dir = tempfile::tempdir().unwrap();
@@ -600,7 +603,7 @@ fn networks_follow_cpu(
     let (moved, apart) = (norm(xa, x0), norm(xa, xb));
     eprintln!("centres: moved {moved:.3e}, apart {apart:.3e}");
     assert!(
-        moved > 0.0 && apart <= 0.1 * moved,
+        moved > 0.0 && apart <= centre_tolerance * moved,
         "centres {apart} apart, moved {moved}"
     );
 }
