@@ -36,7 +36,7 @@ const SKIN_WGSL: &str = include_str!("../../../../shaders/avatar_skin.wgsl");
 const WORKGROUP: usize = 64;
 /// Gaussians per chunk of the per-joint reduction (partial sums `chunks x J x 12`).
 const JOINT_CHUNK: usize = 4096;
-/// Added inside the logarithm of template weights (method.md; as [`crate::skinning`]).
+/// Added inside the logarithm of template weights (`docs/method.md`; as [`crate::skinning`]).
 const WEIGHT_LOG_EPS: f64 = 1e-9;
 /// `SkinShape.flags` bits.
 const HAS_HEADS: u32 = 1;

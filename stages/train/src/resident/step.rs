@@ -595,13 +595,13 @@ impl ResidentStep {
             0,
             (3 * n * 4) as u64,
         );
-        if let Some(networks) = self.networks.as_mut() {
-            if has_lbs {
-                networks.record_lbs_offsets_backward(
-                    &mut encoder,
-                    &self.skinning.grad_weight_offsets.buffer,
-                )?;
-            }
+        if let Some(networks) = self.networks.as_mut()
+            && has_lbs
+        {
+            networks.record_lbs_offsets_backward(
+                &mut encoder,
+                &self.skinning.grad_weight_offsets.buffer,
+            )?;
         }
         if has_non_rigid {
             let networks = self.networks.as_mut().expect("has a non-rigid network");

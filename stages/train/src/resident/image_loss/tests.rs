@@ -590,7 +590,8 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
     // The device path.
     let device_lpips = Lpips::new(
         seeded_weights(LpipsNet::Vgg, 7),
-        &Backend::Gpu(context.clone()),
+        // The backend of the shared test context `context` is.
+        &seqavatar_compute::backend::test_support::gpu_test_backend().expect("a gpu context"),
     )
     .unwrap();
     let gpu = device_lpips.gpu().unwrap();
