@@ -136,7 +136,7 @@ pub struct ResidentStep {
     first_unread: usize,
 }
 
-/// `(n)` of `train_step.wgsl`'s `add_into`.
+/// The length uniform of `train_step.wgsl`'s `add_into` (`x`: the number of values).
 fn add_uniform(context: &GpuContext, len: usize) -> wgpu::Buffer {
     context.uniform("add length", &[len as u32, 0, 0, 0])
 }
