@@ -63,9 +63,10 @@ const TILE: u32 = 64u;
 @group(0) @binding(7) var<storage, read_write> neighbours: array<u32>;
 @group(0) @binding(8) var<storage, read_write> window: array<f32>;
 
-fn linear_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 64u + local;
-}
+// Threads per workgroup of every entry point here (`@workgroup_size(64)`).
+const WORKGROUP: u32 = 64u;
+
+//#include "linear_index.wgsl"
 
 fn finite(x: f32) -> bool {
     // A bit test, because compilers may assume `x == x`.

@@ -106,22 +106,7 @@ const STATUS_BACKWARD_FIRST: u32 = 3u;
 @group(0) @binding(31) var<storage, read_write> status: array<atomic<u32>>;
 
 // @atomic-add-begin
-@group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
-
-fn gradient_add(index: u32, value: f32) {
-    if value == 0.0 {
-        return;
-    }
-    var old = atomicLoad(&gradients[index]);
-    loop {
-        let new_bits = bitcast<u32>(bitcast<f32>(old) + value);
-        let result = atomicCompareExchangeWeak(&gradients[index], old, new_bits);
-        if result.exchanged {
-            break;
-        }
-        old = result.old_value;
-    }
-}
+//#include "atomic_add_cas.wgsl"
 // @atomic-add-end
 
 fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {

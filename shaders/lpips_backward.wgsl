@@ -27,9 +27,7 @@ const CHANNELS_PER_THREAD: u32 = 4u;
 // normalize_tensor's epsilon, added to the channel norm (the forward's 1e-10).
 const NORM_EPSILON: f32 = 1e-10;
 
-fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
-}
+//#include "linear_index.wgsl"
 
 // `a s - b t`, exactly 0 when `a = b` and `s = t` (as in lpips_forward.wgsl: without the
 // select a compiler may contract it into an fma that leaves the rounding error of `b t`, so

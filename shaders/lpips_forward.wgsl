@@ -18,9 +18,7 @@ const WORKGROUP: u32 = 64u;
 // Output channels per conv thread: one input load feeds four accumulators.
 const CHANNELS_PER_THREAD: u32 = 4u;
 
-fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
-}
+//#include "linear_index.wgsl"
 
 // One thread: output channels 4g..4g+3 of one pixel of one image (pixel index fastest).
 // Weights are (out, in, k, k) row-major.

@@ -52,9 +52,7 @@ const REDUCE: u32 = 256u;
 
 var<workgroup> partial: array<f32, 256>;
 
-fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
-}
+//#include "linear_index.wgsl"
 
 fn trunk_value(unit: f32, channel: u32) -> f32 {
     var signed = unit;

@@ -30,18 +30,7 @@ var<workgroup> batch_c: array<vec4<f32>, BATCH>;
 var<workgroup> done_count: atomic<u32>;
 var<workgroup> done_snapshot: u32;
 
-// Brush's C1 cutoff (tests only): s(u) = 3u^2 - 2u^3, u = clamp((alpha - t) / t, 0, 1).
-fn smooth_step(alpha: f32) -> f32 {
-    let u = clamp((alpha - ALPHA_THRESHOLD) / ALPHA_THRESHOLD, 0.0, 1.0);
-    return u * u * (3.0 - 2.0 * u);
-}
-
-// Whether the pixel lies in [floor(m - r - 1), ceil(m + r + 1)) on both axes.
-fn in_box(pixel: vec2<f32>, mean: vec2<f32>, radius: vec2<f32>) -> bool {
-    let low = floor(mean - radius - 1.0);
-    let high = ceil(mean + radius + 1.0);
-    return all(pixel >= low) && all(pixel < high);
-}
+//#include "splat_pixel.wgsl"
 
 @compute @workgroup_size(16, 16)
 fn rasterize_forward(
@@ -111,7 +100,7 @@ fn rasterize_forward(
                 continue;
             }
             if smooth_cutoff {
-                alpha = alpha * smooth_step(alpha);
+                alpha = alpha * smooth_step(alpha).x;
             }
             let next = transmittance * (1.0 - alpha);
             if next <= MIN_TRANSMITTANCE {

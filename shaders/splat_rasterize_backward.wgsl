@@ -25,22 +25,7 @@ const MAX_ALPHA: f32 = 0.99;
 @group(0) @binding(8) var<storage, read> contributors_in: array<u32>;
 
 // @atomic-add-begin
-@group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
-
-fn gradient_add(index: u32, value: f32) {
-    if value == 0.0 {
-        return;
-    }
-    var old = atomicLoad(&gradients[index]);
-    loop {
-        let new_bits = bitcast<u32>(bitcast<f32>(old) + value);
-        let result = atomicCompareExchangeWeak(&gradients[index], old, new_bits);
-        if result.exchanged {
-            break;
-        }
-        old = result.old_value;
-    }
-}
+//#include "atomic_add_cas.wgsl"
 // @atomic-add-end
 
 var<workgroup> batch_a: array<vec4<f32>, BATCH>;
@@ -50,17 +35,7 @@ var<workgroup> batch_gaussian: array<u32, BATCH>;
 var<workgroup> max_contributors: atomic<u32>;
 var<workgroup> max_snapshot: u32;
 
-// Brush's C1 cutoff (tests only) and its derivative.
-fn smooth_step(alpha: f32) -> vec2<f32> {
-    let u = clamp((alpha - ALPHA_THRESHOLD) / ALPHA_THRESHOLD, 0.0, 1.0);
-    return vec2<f32>(u * u * (3.0 - 2.0 * u), 6.0 * u * (1.0 - u) / ALPHA_THRESHOLD);
-}
-
-fn in_box(pixel: vec2<f32>, mean: vec2<f32>, radius: vec2<f32>) -> bool {
-    let low = floor(mean - radius - 1.0);
-    let high = ceil(mean + radius + 1.0);
-    return all(pixel >= low) && all(pixel < high);
-}
+//#include "splat_pixel.wgsl"
 
 @compute @workgroup_size(16, 16)
 fn rasterize_backward(

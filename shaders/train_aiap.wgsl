@@ -114,22 +114,7 @@ fn covariances(
 // The gradient scratch's atomic add (shaders/atomic_add_cas.wgsl; the host swaps in
 // atomic_add_float.wgsl when the adapter has native f32 atomics).
 // @atomic-add-begin
-@group(0) @binding(15) var<storage, read_write> gradients: array<atomic<u32>>;
-
-fn gradient_add(index: u32, value: f32) {
-    if value == 0.0 {
-        return;
-    }
-    var old = atomicLoad(&gradients[index]);
-    loop {
-        let new_bits = bitcast<u32>(bitcast<f32>(old) + value);
-        let result = atomicCompareExchangeWeak(&gradients[index], old, new_bits);
-        if result.exchanged {
-            break;
-        }
-        old = result.old_value;
-    }
-}
+//#include "atomic_add_cas.wgsl"
 // @atomic-add-end
 
 fn sign_of(v: f32) -> f32 {

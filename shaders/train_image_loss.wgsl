@@ -80,9 +80,7 @@ const HALF_WINDOW: i32 = 5;
 
 var<workgroup> shared_sums: array<vec4<f32>, 256>;
 
-fn linear_index(workgroup: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (workgroup.x + workgroup.y * groups.x) * WORKGROUP + local;
-}
+//#include "linear_index.wgsl"
 
 const LOG_SUM: u32 = 8u;
 const LOG_ITERATIONS: u32 = 16u;

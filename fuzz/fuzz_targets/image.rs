@@ -5,7 +5,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use seqavatar_ingest::formats::images;
+use seqavatar_formats::images;
 
 fuzz_target!(|data: &[u8]| {
     let Ok((width, height)) = images::dimensions(data) else {

@@ -4,7 +4,7 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    if let Ok(value) = seqavatar_ingest::formats::npy::read(data) {
+    if let Ok(value) = seqavatar_formats::npy::read(data) {
         // Exercise the accessors the dataset readers use on decoded values.
         let _ = value.unwrap_object_scalar().to_f64_array();
     }

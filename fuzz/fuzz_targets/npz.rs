@@ -4,5 +4,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = seqavatar_ingest::formats::npz::read(data);
+    let _ = seqavatar_formats::npz::read(data);
 });

@@ -5,5 +5,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = seqavatar_ingest::formats::pickle::load(data);
+    let _ = seqavatar_formats::pickle::load(data);
 });

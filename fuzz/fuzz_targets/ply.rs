@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use seqavatar_ingest::formats::ply::{coefficient_count, read_ply, write_ply};
+use seqavatar_formats::ply::{coefficient_count, read_ply, write_ply};
 
 fuzz_target!(|data: &[u8]| {
     let Ok(cloud) = read_ply(data) else {

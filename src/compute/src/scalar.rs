@@ -8,9 +8,13 @@ use std::fmt::{Debug, Display};
 use std::iter::Sum;
 use std::ops::{Add, AddAssign, Div, DivAssign, Mul, MulAssign, Neg, Sub, SubAssign};
 
-/// A real floating-point number: `f32` or `f64`.
+use seqavatar_core::matmul::MatmulScalar;
+
+/// A real floating-point number: `f32` or `f64` (both multiply through
+/// `seqavatar_core::matmul`).
 pub trait Scalar:
     Copy
+    + MatmulScalar
     + Send
     + Sync
     + Default

@@ -15,7 +15,7 @@
 //! - [`resident`]: the device-resident pieces of the `gpu` training step: motion inputs,
 //!   the pose path and skinning, recorded into the step's command encoder.
 //! - [`ply`]: the avatar's canonical and posed Gaussians as 3D Gaussian Splatting PLY
-//!   clouds, for `pipeline export` (the file format is `seqavatar_ingest::formats::ply`).
+//!   clouds, for `pipeline export` (the file format is `seqavatar_formats::ply`).
 
 // Numeric kernels index several parallel arrays with one loop variable; iterator chains
 // would hide the maths.

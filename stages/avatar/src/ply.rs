@@ -2,13 +2,13 @@
 //! canonical (trained) Gaussians ([`canonical_cloud`]), one frame's posed Gaussians with each
 //! world covariance as scales and a rotation ([`posed_cloud`], [`scale_rotation_of`]), and a
 //! cloud back to what the splatting draws ([`cloud_to_world`]). The file format itself (the
-//! writer and the strict reader of a plain cloud) is `seqavatar_ingest::formats::ply`,
+//! writer and the strict reader of a plain cloud) is `seqavatar_formats::ply`,
 //! re-exported here.
 
 use seqavatar_compute::splat::covariance::covariance_from_scale_rotation;
 use seqavatar_core::glam::{DMat3, DQuat, DVec3};
-pub use seqavatar_ingest::formats::ply::{PlyError, SplatCloud, read_ply, write_ply};
-use seqavatar_ingest::formats::ply::{check_degree, coefficient_count};
+pub use seqavatar_formats::ply::{PlyError, SplatCloud, read_ply, write_ply};
+use seqavatar_formats::ply::{check_degree, coefficient_count};
 
 use crate::avatar::{AvatarGaussians, SH_STORED};
 use crate::splatting::WorldGaussians;

@@ -14,7 +14,7 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryId, EntryReader, EntryState, LocalStore, Store, open_store};
 use seqavatar_fit::io::BodySequence;
-use seqavatar_ingest::formats::npz;
+use seqavatar_formats::npz;
 use seqavatar_motion::schema::{FrameAxis, MotionTrack};
 use seqavatar_motion::{Scales, VelocityNormalisation};
 

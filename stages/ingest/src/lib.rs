@@ -95,7 +95,9 @@
 pub mod config;
 pub mod contact_sheet;
 pub mod datasets;
-pub mod formats;
+/// The file formats, re-exported from the library crate `seqavatar-formats` so existing
+/// `seqavatar_ingest::formats` paths keep working.
+pub use seqavatar_formats as formats;
 pub mod plan;
 pub mod reader;
 pub mod resample;

@@ -7,7 +7,7 @@
 //! - the shaped template and rest joints are computed once per distinct shape (betas and
 //!   expression are usually constant over a sequence);
 //! - the pose blend-shape offsets of a batch of frames are one matrix product,
-//!   `(3V x P) pose_dirs . (P x frames) features`, in f32 with `gemm` (the blend shapes are
+//!   `(3V x P) pose_dirs . (P x frames) features`, in f32 with `seqavatar_core::matmul` (the blend shapes are
 //!   stored in f32, and the output arrays are f32);
 //! - the skinning transforms come from [`BodyModel::joint_transforms`] and the per-vertex
 //!   blend from [`BodyModel::blend_transform`] (core's forward kinematics and LBS), frames in
@@ -18,6 +18,7 @@
 use rayon::prelude::*;
 use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::glam::{DAffine3, DMat3, DVec3};
+use seqavatar_core::matmul::{Layout, Matrix, MatrixMut, matmul, parallelism_for};
 use seqavatar_core::rotation::axis_angle_to_matrix;
 use seqavatar_fit::io::BodySequence;
 
@@ -36,67 +37,6 @@ pub fn pose_feature(pose: &[DVec3]) -> Vec<f32> {
         }
     }
     out
-}
-
-/// `dst (m x n) = lhs (m x k) . rhs (k x n)` in f32; `*_rs`/`*_cs` are row and column
-/// strides in elements.
-#[allow(clippy::too_many_arguments)]
-fn matmul(
-    m: usize,
-    n: usize,
-    k: usize,
-    dst: &mut [f32],
-    (dst_rs, dst_cs): (usize, usize),
-    lhs: &[f32],
-    (lhs_rs, lhs_cs): (usize, usize),
-    rhs: &[f32],
-    (rhs_rs, rhs_cs): (usize, usize),
-) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    let last = |rs: usize, cs: usize, rows: usize, cols: usize| (rows - 1) * rs + (cols - 1) * cs;
-    assert!(
-        last(dst_rs, dst_cs, m, n) < dst.len()
-            && (k == 0 || last(lhs_rs, lhs_cs, m, k) < lhs.len())
-            && (k == 0 || last(rhs_rs, rhs_cs, k, n) < rhs.len()),
-        "matmul operands exceed their buffers (internal invariant)"
-    );
-    if k == 0 {
-        dst.fill(0.0);
-        return;
-    }
-    let threads = rayon::current_num_threads();
-    let parallelism = if threads > 1 && m * n * k > 1 << 20 {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
-    };
-    // SAFETY: the assertion above keeps every element gemm reads or writes inside the
-    // slices; `dst` is uniquely borrowed, so it cannot alias `lhs` or `rhs`.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            dst_cs as isize,
-            dst_rs as isize,
-            false,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            0.0,
-            1.0,
-            false,
-            false,
-            false,
-            parallelism,
-        );
-    }
 }
 
 /// The shape-dependent part of posing: shaped template and rest joints.
@@ -170,15 +110,14 @@ pub fn pose_sequence(
             }
             // offsets[b * 3V + r] = sum_p pose_dirs[r * P + p] features[b * P + p].
             matmul(
-                rows,
-                batch,
-                num_features,
-                &mut offsets[..rows * batch],
-                (1, rows),
-                pose_dirs,
-                (num_features, 1),
-                &features[..num_features * batch],
-                (1, num_features),
+                MatrixMut::new(&mut offsets, Layout::strided(rows, batch, 1, rows)),
+                Matrix::new(pose_dirs, Layout::row_major(rows, num_features)),
+                Matrix::new(
+                    &features,
+                    Layout::strided(num_features, batch, 1, num_features),
+                ),
+                false,
+                parallelism_for(rows * batch * num_features),
             );
         }
         out[batch_start * rows..(batch_start + batch) * rows]

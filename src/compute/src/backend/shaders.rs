@@ -3,16 +3,18 @@
 //! every `shaders/*.wgsl` and the layout check of every uniform and storage struct against
 //! its Rust `#[repr(C)]` twin.
 //!
-//! WGSL has no `#include`. A struct several kernels share is declared once in a header in
-//! `shaders/` ([`HEADERS`]) and a kernel names it on a line of its own,
+//! WGSL has no `#include`. A struct or helper function several kernels share is declared
+//! once in a header in `shaders/` ([`HEADERS`]) and a kernel names it on a line of its own,
 //! `//#include "splat_types.wgsl"`, which [`expand_includes`] replaces by the header's text.
 //! The step is strict: an unknown header, a malformed include line, a header included twice
-//! or an include inside a header are errors naming the kernel.
+//! or an include inside a header are errors naming the kernel. Every kernel is compiled
+//! through it (`GpuContext::kernel`, `NnGpu::new`), and a test checks that no kernel defines
+//! a function a header already defines.
 //!
-//! Kernels that accumulate gradients carry the portable compare-exchange `gradient_add`
-//! (the code of `shaders/atomic_add_cas.wgsl`) between `// @atomic-add-begin` and
-//! `// @atomic-add-end`; [`with_atomic_add`] swaps in the native `atomic<f32>` version when
-//! the adapter has it.
+//! Kernels that accumulate gradients include the portable compare-exchange `gradient_add`,
+//! `//#include "atomic_add_cas.wgsl"`, alone between `// @atomic-add-begin` and
+//! `// @atomic-add-end`; [`with_atomic_add`] swaps in the native `atomic<f32>` version of
+//! `shaders/atomic_add_float.wgsl` when the adapter has it.
 
 use super::BackendError;
 
@@ -29,6 +31,15 @@ pub const HEADERS: &[(&str, &str)] = &[
         "lpips_types.wgsl",
         include_str!("../../../../shaders/lpips_types.wgsl"),
     ),
+    (
+        "linear_index.wgsl",
+        include_str!("../../../../shaders/linear_index.wgsl"),
+    ),
+    (
+        "splat_pixel.wgsl",
+        include_str!("../../../../shaders/splat_pixel.wgsl"),
+    ),
+    ("atomic_add_cas.wgsl", ATOMIC_ADD_CAS_WGSL),
 ];
 
 const INCLUDE: &str = "//#include";
@@ -291,19 +302,29 @@ mod tests {
         files
     }
 
+    /// The shader files that are not headers: headers that are helpers need declarations of
+    /// their includer (`WORKGROUP`, `ALPHA_THRESHOLD`), so they are validated inside every
+    /// kernel that includes them (and a test checks each is included by one).
+    fn kernel_files() -> Vec<(String, String)> {
+        shader_files()
+            .into_iter()
+            .filter(|(name, _)| !HEADERS.iter().any(|(header, _)| header == name))
+            .collect()
+    }
+
     #[test]
     fn every_shader_parses_and_validates() {
-        let files = shader_files();
+        let files = kernel_files();
         let mut variants = 0;
         for (name, raw) in &files {
             let wgsl = expand_includes(name, raw).unwrap();
             validate(name, &wgsl);
-            if let Some((begin, end)) = region(&wgsl) {
-                // The inline fallback must be exactly the shared snippet.
+            if let Some((begin, end)) = region(raw) {
+                // The fallback is the shared header, never a copy of it.
                 assert_eq!(
-                    wgsl[begin..end].trim(),
-                    snippet_code(ATOMIC_ADD_CAS_WGSL),
-                    "{name}: the atomic-add region differs from atomic_add_cas.wgsl"
+                    raw[begin..end].trim(),
+                    r#"//#include "atomic_add_cas.wgsl""#,
+                    "{name}: the atomic-add region must only include atomic_add_cas.wgsl"
                 );
                 for mode in [AtomicAdd::NativeFloat, AtomicAdd::CompareExchange] {
                     validate(
@@ -318,6 +339,40 @@ mod tests {
             "validated {} shader files and {variants} atomic variants",
             files.len()
         );
+    }
+
+    /// The names of the functions `wgsl` defines (`fn NAME(` at the start of a line).
+    fn defined_functions(wgsl: &str) -> Vec<&str> {
+        wgsl.lines()
+            .filter_map(|line| line.strip_prefix("fn "))
+            .filter_map(|rest| rest.split('(').next())
+            .map(str::trim)
+            .collect()
+    }
+
+    #[test]
+    fn no_kernel_repeats_a_header_function() {
+        let files = shader_files();
+        let mut checked = 0;
+        for (header, text) in HEADERS {
+            for function in defined_functions(text) {
+                for (name, raw) in &files {
+                    // The headers themselves, and the native variant that replaces the
+                    // compare-exchange header, define them.
+                    if HEADERS.iter().any(|(known, _)| known == name)
+                        || name == "atomic_add_float.wgsl"
+                    {
+                        continue;
+                    }
+                    assert!(
+                        !defined_functions(raw).contains(&function),
+                        "{name} defines `{function}`, which {header} already has: include it"
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 0, "no header function was checked");
     }
 
     #[test]
@@ -416,7 +471,7 @@ mod tests {
                 }
             }
         }
-        assert!(structs >= HEADERS.len());
+        assert!(structs >= 2, "only {structs} header structs checked");
     }
 
     /// The scalar kind of a naga type's elements (`None` for structs and opaque types).
@@ -502,7 +557,7 @@ mod tests {
         .collect();
         let mut differences = Vec::new();
         let mut checked = Vec::new();
-        for (file, raw) in shader_files() {
+        for (file, raw) in kernel_files() {
             let wgsl = expand_includes(&file, &raw).unwrap();
             let module = naga::front::wgsl::parse_str(&wgsl)
                 .unwrap_or_else(|error| panic!("{file}: {}", error.emit_to_string(&wgsl)));

@@ -19,6 +19,7 @@ use std::any::Any;
 use std::borrow::Cow;
 
 use rayon::prelude::*;
+use seqavatar_core::matmul::{Layout, Matrix, MatrixMut, matmul, parallelism_for};
 
 use super::{
     ConvSpec, DistanceMaps, LpipsError, LpipsWeights, NORM_EPSILON, Step, TrunkInput, steps,
@@ -367,15 +368,6 @@ fn rows_per_block(depth: usize, out_width: usize, out_height: usize) -> usize {
     (COLUMN_BLOCK_VALUES / (depth * out_width).max(1)).clamp(1, out_height.max(1))
 }
 
-fn gemm_parallelism(work: usize) -> gemm::Parallelism {
-    let threads = rayon::current_num_threads();
-    if threads > 1 && work > 1 << 20 {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
-    }
-}
-
 /// `relu(conv2d(input, weight) + bias)` for every image; `input` is `(images, c, h, w)`.
 fn conv_relu<S: Scalar>(
     input: &[S],
@@ -427,38 +419,18 @@ fn conv_relu<S: Scalar>(
                         }
                     }
                 }
+                // out[:, block] (out x block) = W (out x depth) * columns (depth x block).
                 let offset = row_start * out_width;
-                assert!(
-                    conv.weight.len() == out_channels * depth
-                        && columns.len() >= depth * block
-                        && out.len() >= (out_channels - 1) * out_pixels + offset + block,
-                    "conv_relu: operand sizes (internal invariant)"
+                matmul(
+                    MatrixMut::new(
+                        &mut *out,
+                        Layout::strided(out_channels, block, out_pixels, 1).at(offset),
+                    ),
+                    Matrix::new(&conv.weight, Layout::row_major(out_channels, depth)),
+                    Matrix::new(&columns, Layout::row_major(depth, block)),
+                    false,
+                    parallelism_for(out_channels * block * depth),
                 );
-                // SAFETY: the assertion above shows every element gemm reads or writes lies
-                // inside `conv.weight`, `columns` and `out`; `out` is uniquely borrowed.
-                unsafe {
-                    gemm::gemm(
-                        out_channels,
-                        block,
-                        depth,
-                        out.as_mut_ptr().add(offset),
-                        1,
-                        out_pixels as isize,
-                        false,
-                        conv.weight.as_ptr(),
-                        1,
-                        depth as isize,
-                        columns.as_ptr(),
-                        1,
-                        block as isize,
-                        S::ZERO,
-                        S::ONE,
-                        false,
-                        false,
-                        false,
-                        gemm_parallelism(out_channels * block * depth),
-                    );
-                }
             }
             for (channel, plane) in out.chunks_exact_mut(out_pixels).enumerate() {
                 let bias = conv.bias[channel];
@@ -498,39 +470,17 @@ fn conv_data_backward<S: Scalar>(
                 let rows = rows_per_block.min(out_height - row_start);
                 let block = rows * out_width;
                 let offset = row_start * out_width;
-                assert!(
-                    conv.weight.len() == out_channels * depth
-                        && d_columns.len() >= depth * block
-                        && upstream.len() >= (out_channels - 1) * out_pixels + offset + block,
-                    "conv_data_backward: operand sizes (internal invariant)"
-                );
                 // d_columns (depth x block) = W^T (depth x out) * d_out[:, block] (out x block).
-                // SAFETY: the assertion above bounds every element gemm touches: W^T element
-                // (i, j) is weight[j * depth + i], upstream element (j, p) is
-                // upstream[j * out_pixels + offset + p]; `d_columns` is uniquely borrowed.
-                unsafe {
-                    gemm::gemm(
-                        depth,
-                        block,
-                        out_channels,
-                        d_columns.as_mut_ptr(),
-                        1,
-                        block as isize,
-                        false,
-                        conv.weight.as_ptr(),
-                        depth as isize,
-                        1,
-                        upstream.as_ptr().add(offset),
-                        1,
-                        out_pixels as isize,
-                        S::ZERO,
-                        S::ONE,
-                        false,
-                        false,
-                        false,
-                        gemm_parallelism(out_channels * block * depth),
-                    );
-                }
+                matmul(
+                    MatrixMut::new(&mut d_columns, Layout::row_major(depth, block)),
+                    Matrix::new(&conv.weight, Layout::strided(depth, out_channels, 1, depth)),
+                    Matrix::new(
+                        upstream,
+                        Layout::strided(out_channels, block, out_pixels, 1).at(offset),
+                    ),
+                    false,
+                    parallelism_for(out_channels * block * depth),
+                );
                 // col2im: every tap adds its column back onto the input pixel it read.
                 for channel in 0..in_channels {
                     for ky in 0..kernel {

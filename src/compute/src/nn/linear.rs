@@ -5,6 +5,7 @@
 //! mask taken from the output, weight and bias gradients accumulated.
 
 use rayon::prelude::*;
+use seqavatar_core::matmul::{Layout, Matrix, MatrixMut, Parallelism, matmul};
 
 use super::scalar::NnScalar;
 use super::{NnError, check_len};
@@ -147,7 +148,7 @@ struct Plan {
     /// Row blocks (and weight-gradient tasks) are parallel tasks.
     across_tasks: bool,
     /// The parallelism inside each `gemm` call.
-    inside_gemm: gemm::Parallelism,
+    inside_gemm: Parallelism,
 }
 
 impl Plan {
@@ -159,17 +160,17 @@ impl Plan {
         if threads <= 1 || multiply_adds < PARALLEL_THRESHOLD {
             Plan {
                 across_tasks: false,
-                inside_gemm: gemm::Parallelism::None,
+                inside_gemm: Parallelism::None,
             }
         } else if blocks >= threads {
             Plan {
                 across_tasks: true,
-                inside_gemm: gemm::Parallelism::None,
+                inside_gemm: Parallelism::None,
             }
         } else {
             Plan {
                 across_tasks: false,
-                inside_gemm: gemm::Parallelism::Rayon(threads),
+                inside_gemm: Parallelism::Rayon(threads),
             }
         }
     }
@@ -184,7 +185,7 @@ impl Plan {
     }
 }
 
-/// A strided read-only matrix view for `gemm`: element `(i, j)` is at
+/// A strided read-only matrix view: element `(i, j)` is at
 /// `data[offset + i * row_stride + j * col_stride]`. A transposed operand is the same
 /// buffer with the strides swapped; `gemm` packs from any strides.
 struct View<'a, T> {
@@ -194,18 +195,17 @@ struct View<'a, T> {
     col_stride: usize,
 }
 
-impl<T> View<'_, T> {
-    /// Whether every element of an `rows x cols` matrix lies inside `data`.
-    fn fits(&self, rows: usize, cols: usize) -> bool {
-        rows == 0
-            || cols == 0
-            || self.offset + (rows - 1) * self.row_stride + (cols - 1) * self.col_stride
-                < self.data.len()
+impl<'a, T> View<'a, T> {
+    /// The `rows x cols` matrix this view starts.
+    fn matrix(&self, rows: usize, cols: usize) -> Matrix<'a, T> {
+        Matrix::new(
+            self.data,
+            Layout::strided(rows, cols, self.row_stride, self.col_stride).at(self.offset),
+        )
     }
 }
 
-/// `dst (m x n, row-major with row stride dst_stride) (+)= lhs (m x k) * rhs (k x n)`,
-/// accumulating through `gemm`'s own `dst = alpha dst + beta lhs rhs` (alpha = beta = 1).
+/// `dst (m x n, row-major with row stride dst_stride) (+)= lhs (m x k) * rhs (k x n)`.
 ///
 /// Panics only on a violated internal invariant (views not covering their shape), which the
 /// public functions rule out by validating every length first.
@@ -219,47 +219,15 @@ fn gemm_into<T: NnScalar>(
     accumulate: bool,
     lhs: View<'_, T>,
     rhs: View<'_, T>,
-    parallelism: gemm::Parallelism,
+    parallelism: Parallelism,
 ) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    let dst_view = View {
-        data: &*dst,
-        offset: 0,
-        row_stride: dst_stride,
-        col_stride: 1,
-    };
-    assert!(
-        dst_view.fits(m, n) && lhs.fits(m, k) && rhs.fits(k, n),
-        "gemm_into: operand views exceed their buffers (internal invariant)"
+    matmul(
+        MatrixMut::new(dst, Layout::strided(m, n, dst_stride, 1)),
+        lhs.matrix(m, k),
+        rhs.matrix(k, n),
+        accumulate,
+        parallelism,
     );
-    // SAFETY: the assertion above guarantees every element gemm touches lies inside the
-    // slices; `dst` is uniquely borrowed and does not alias `lhs` or `rhs` (they are shared
-    // borrows, which Rust forbids to coexist with the `&mut`).
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            dst_stride as isize,
-            accumulate,
-            lhs.data.as_ptr().add(lhs.offset),
-            lhs.col_stride as isize,
-            lhs.row_stride as isize,
-            rhs.data.as_ptr().add(rhs.offset),
-            rhs.col_stride as isize,
-            rhs.row_stride as isize,
-            T::ONE,
-            T::ONE,
-            false,
-            false,
-            false,
-            parallelism,
-        );
-    }
 }
 
 fn check_shape<T>(
@@ -589,7 +557,7 @@ fn backward_block<T: NnScalar>(
     weight: &[T],
     inputs: &[InputPart<'_, T>],
     task: BackwardBlock<'_, T>,
-    parallelism: gemm::Parallelism,
+    parallelism: Parallelism,
 ) -> Vec<T> {
     let out = shape.out_features;
     let mut sums = vec![T::ZERO; out];

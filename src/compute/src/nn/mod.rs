@@ -19,26 +19,22 @@
 //! Modules:
 //! - [`scalar`]: the float trait the `cpu` code is generic over (the crate `Scalar` + sin/cos).
 //! - [`linear`]: the `cpu` layer forward and backward on `gemm`.
-//! - [`mlp`]: a layer stack with skip concatenation, activation caching and initialisation.
 //! - [`init`]: the seeded PRNG and PyTorch-default initialisation.
 //! - [`encoding`]: NeRF positional encoding, forward and backward.
 //! - [`adam`]: Adam with parameter groups and learning-rate schedules.
-//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above and `GpuMlp`, the
-//!   `Mlp` twin, f32 only.
+//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above, f32 only.
 
 pub mod adam;
 pub mod encoding;
 pub mod gpu;
 pub mod init;
 pub mod linear;
-pub mod mlp;
 pub mod scalar;
 
 pub use adam::{Adam, AdamConfig, AdamState, LrSchedule, ParamGroup};
 pub use encoding::{PositionalEncoding, positional_encoding_backward, positional_encoding_forward};
 pub use init::{Rng, kaiming_uniform, uniform_fill};
 pub use linear::{Activation, InputPart, LinearShape, linear_backward, linear_forward};
-pub use mlp::{LayerParams, Mlp, MlpCache, MlpLayerSpec, MlpSpec};
 pub use scalar::NnScalar;
 
 /// Errors of the dense-network operations: every one names the operand it is about.

@@ -394,7 +394,7 @@ impl LiteralParser<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formats::value::NpArray;
+    use crate::value::NpArray;
 
     fn npy(header: &str, data: &[u8]) -> Vec<u8> {
         let mut out = b"\x93NUMPY\x01\x00".to_vec();
