@@ -442,6 +442,17 @@ impl GpuContext {
         if x == 0 || y == 0 {
             return;
         }
+        self.begin_pass(encoder, kernel, bindings)
+            .dispatch_workgroups(x, y, 1);
+    }
+
+    /// A compute pass of `kernel` with `bindings` (group 0) bound, ready for its dispatch.
+    fn begin_pass<'e>(
+        &self,
+        encoder: &'e mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        bindings: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::ComputePass<'e> {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
             .map(|(binding, buffer)| wgpu::BindGroupEntry {
@@ -460,7 +471,7 @@ impl GpuContext {
         });
         pass.set_pipeline(&kernel.pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(x, y, 1);
+        pass
     }
 
     /// Records one dispatch whose grid the device wrote into `indirect` at byte `offset`
@@ -477,25 +488,8 @@ impl GpuContext {
         indirect: &wgpu::Buffer,
         offset: u64,
     ) {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
-            .iter()
-            .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                binding: *binding,
-                resource: buffer.as_entire_binding(),
-            })
-            .collect();
-        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(kernel.name),
-            layout: &kernel.layout,
-            entries: &entries,
-        });
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(kernel.name),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&kernel.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups_indirect(indirect, offset);
+        self.begin_pass(encoder, kernel, bindings)
+            .dispatch_workgroups_indirect(indirect, offset);
     }
 
     /// A zero-filled buffer of `len` u32 that kernels write as storage and
