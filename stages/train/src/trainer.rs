@@ -384,6 +384,15 @@ impl<'d> Trainer<'d> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let mut rng = Rng::new(config.seed);
         let centres = data.rig.canonical_vertices.clone();
+        // Density control never removes Gaussians to meet the cap, so a cap below the
+        // starting count would be silently ignored: refuse it instead.
+        let starting = centres.len() / 3;
+        anyhow::ensure!(
+            starting <= config.max_gaussians,
+            "train config field `max_gaussians` is {}, below the {starting} Gaussians training \
+             starts with (one per vertex of the body template): set it to at least {starting}",
+            config.max_gaussians
+        );
         let colours: Vec<f64> = (0..centres.len()).map(|_| rng.next_f64()).collect();
         let state = initial_state(&centres, &colours, 0.1, &initial_scales(&centres))?;
         let networks = build_networks(&config, data, scales.len())?;

@@ -713,6 +713,26 @@ fn resident_training_matches_cpu_held_out_psnr() {
     assert!((cpu - gpu).abs() <= 0.1, "cpu {cpu} dB, gpu {gpu} dB");
 }
 
+/// A Gaussian cap below the template's vertex count (the starting Gaussians) is refused,
+/// naming the field, instead of being silently exceeded.
+#[test]
+fn a_gaussian_cap_below_the_starting_count_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, mut config) = tiny_data(dir.path(), 10);
+    let vertices = data.rig.vertex_count();
+    config.max_gaussians = vertices - 1;
+    let error = Trainer::new(config.clone(), &data, cpu_backend())
+        .err()
+        .expect("a cap below the template is refused")
+        .to_string();
+    assert!(
+        error.contains("max_gaussians") && error.contains(&vertices.to_string()),
+        "{error}"
+    );
+    config.max_gaussians = vertices;
+    assert!(Trainer::new(config, &data, cpu_backend()).is_ok());
+}
+
 /// Child mode of the kill test: runs the pipeline in `SEQAVATAR_TRAIN_KILL_CACHE` (the
 /// parent kills this process while it trains).
 #[test]
