@@ -975,26 +975,37 @@ impl<'d> Trainer<'d> {
             let visible: Vec<bool> = gradients.mean_2d_norm.iter().map(|g| *g > 0.0).collect();
             self.state.accumulate_gradient_stats(&norms, &visible)?;
         }
-        if c.densify
+        if self.density_control_due(iteration) {
+            return self.density_control(iteration).map(Some);
+        }
+        Ok(None)
+    }
+
+    /// Whether iteration `iteration` runs the density control (clone, split, prune).
+    fn density_control_due(&self, iteration: u64) -> bool {
+        let c = &self.config;
+        c.densify
             && iteration > u64::from(c.densify_from)
             && iteration <= u64::from(c.densify_until)
             && iteration.is_multiple_of(u64::from(c.densify_interval))
-        {
-            let settings = DensifySettings {
-                grad_threshold: c.densify_grad_threshold,
-                percent_dense: c.percent_dense,
-                extent: self.data.extent,
-                min_opacity: c.prune_opacity,
-                max_gaussians: c.max_gaussians,
-            };
-            let report = densify_and_prune(&mut self.state, &settings, &mut self.rng)?;
-            anyhow::ensure!(
-                report.count > 0,
-                "iteration {iteration}: density control pruned every Gaussian"
-            );
-            return Ok(Some(report));
-        }
-        Ok(None)
+    }
+
+    /// Clone, split and prune the host state's Gaussians (their statistics accumulated).
+    fn density_control(&mut self, iteration: u64) -> anyhow::Result<DensifyReport> {
+        let c = &self.config;
+        let settings = DensifySettings {
+            grad_threshold: c.densify_grad_threshold,
+            percent_dense: c.percent_dense,
+            extent: self.data.extent,
+            min_opacity: c.prune_opacity,
+            max_gaussians: c.max_gaussians,
+        };
+        let report = densify_and_prune(&mut self.state, &settings, &mut self.rng)?;
+        anyhow::ensure!(
+            report.count > 0,
+            "iteration {iteration}: density control pruned every Gaussian"
+        );
+        Ok(report)
     }
 
     /// One iteration on the device ([`ResidentStep`]): the host makes the same draws as the
@@ -1009,11 +1020,7 @@ impl<'d> Trainer<'d> {
         let frame = self.data.images[chosen[0]].frame;
         let background = self.config.background.draw(&mut self.rng);
         self.adam_step += 1;
-        let c = self.config.clone();
-        let densify_now = c.densify
-            && iteration > u64::from(c.densify_from)
-            && iteration <= u64::from(c.densify_until)
-            && iteration.is_multiple_of(u64::from(c.densify_interval));
+        let densify_now = self.density_control_due(iteration);
         let plan = IterationPlan {
             iteration,
             frame,
@@ -1021,7 +1028,7 @@ impl<'d> Trainer<'d> {
             background,
             sh_degree,
             adam_step: self.adam_step,
-            density_statistics: iteration <= u64::from(c.densify_until),
+            density_statistics: iteration <= u64::from(self.config.densify_until),
         };
         let resident = self.resident.as_mut().expect("resident step");
         resident
@@ -1043,20 +1050,10 @@ impl<'d> Trainer<'d> {
             ..self.last_logged
         };
         if densify_now {
-            let resident = self.resident.as_mut().expect("resident step");
+            let resident = self.resident.as_ref().expect("resident step");
             resident.download_state(&mut self.state)?;
-            let settings = DensifySettings {
-                grad_threshold: c.densify_grad_threshold,
-                percent_dense: c.percent_dense,
-                extent: self.data.extent,
-                min_opacity: c.prune_opacity,
-                max_gaussians: c.max_gaussians,
-            };
-            let report = densify_and_prune(&mut self.state, &settings, &mut self.rng)?;
-            anyhow::ensure!(
-                report.count > 0,
-                "iteration {iteration}: density control pruned every Gaussian"
-            );
+            let report = self.density_control(iteration)?;
+            let resident = self.resident.as_mut().expect("resident step");
             resident.upload_state(&self.state)?;
             stats.densified = Some(report);
             stats.gaussians = self.state.len();

@@ -122,9 +122,6 @@ pub struct ResidentStep {
     log: LogRing,
     /// Per camera slot, the image gradients the losses write and the splatting reads.
     image_gradients: Vec<(GpuBuffer, GpuBuffer)>,
-    /// The canonical centres' total gradient (skinning's direct path plus the non-rigid
-    /// network's), `N x 3`.
-    xyz_gradient: GpuBuffer,
     add: Arc<Kernel>,
     has_non_rigid: bool,
     has_lbs: bool,
@@ -136,9 +133,23 @@ pub struct ResidentStep {
     first_unread: usize,
 }
 
-/// The length uniform of `train_step.wgsl`'s `add_into` (`x`: the number of values).
-fn add_uniform(context: &GpuContext, len: usize) -> wgpu::Buffer {
-    context.uniform("add length", &[len as u32, 0, 0, 0])
+/// Records `destination += source` over `len` values (`train_step.wgsl`'s `add_into`,
+/// compiled as `add`).
+fn record_add(
+    context: &GpuContext,
+    add: &Kernel,
+    encoder: &mut wgpu::CommandEncoder,
+    destination: &wgpu::Buffer,
+    source: &wgpu::Buffer,
+    len: usize,
+) {
+    let length = context.uniform("add length", &[len as u32, 0, 0, 0]);
+    context.dispatch(
+        encoder,
+        add,
+        &[(0, &length), (1, source), (2, destination)],
+        len.div_ceil(256) as u32,
+    );
 }
 
 impl ResidentStep {
@@ -281,7 +292,6 @@ impl ResidentStep {
                 ))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
-        let xyz_gradient = context.zeros("xyz gradient", 3 * n.max(1), 4)?;
         let add = context.kernel(&KernelSource {
             name: "train_step_add_into",
             wgsl: std::borrow::Cow::Borrowed(STEP_WGSL),
@@ -304,7 +314,6 @@ impl ResidentStep {
             statistics,
             log,
             image_gradients,
-            xyz_gradient,
             add,
             has_non_rigid,
             has_lbs,
@@ -323,23 +332,6 @@ impl ResidentStep {
     /// Iterations recorded since the log was last read.
     pub fn unread(&self) -> usize {
         self.unread
-    }
-
-    /// Records `b += a` over `len` values.
-    fn add_into(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        target: &GpuBuffer,
-        source: &wgpu::Buffer,
-        len: usize,
-    ) {
-        let uniform = add_uniform(&self.context, len);
-        self.context.dispatch(
-            encoder,
-            &self.add,
-            &[(0, &uniform), (1, source), (2, &target.buffer)],
-            len.div_ceil(256) as u32,
-        );
     }
 
     /// Records and submits one iteration (see the module documentation). Nothing is read
@@ -565,15 +557,19 @@ impl ResidentStep {
         let aiap_active = self.aiap.active(n);
         if aiap_active {
             let grads = self.aiap.gradients().context("AIAP gradients")?;
-            self.add_into(
+            record_add(
+                &context,
+                &self.add,
                 &mut encoder,
-                splat_grads.means(),
+                &splat_grads.means().buffer,
                 &grads.deformed_centres.buffer,
                 3 * n,
             );
-            self.add_into(
+            record_add(
+                &context,
+                &self.add,
                 &mut encoder,
-                splat_grads.covariances(),
+                &splat_grads.covariances().buffer,
                 &grads.deformed_covariances.buffer,
                 6 * n,
             );
@@ -588,13 +584,6 @@ impl ResidentStep {
 
         // Networks' backward: LBS offsets, the non-rigid network (its centre gradient joins
         // the direct path), the pose path and the pose refiner.
-        encoder.copy_buffer_to_buffer(
-            &self.skinning.grad_positions.buffer,
-            0,
-            &self.xyz_gradient.buffer,
-            0,
-            (3 * n * 4) as u64,
-        );
         if let Some(networks) = self.networks.as_mut()
             && has_lbs
         {
@@ -607,12 +596,15 @@ impl ResidentStep {
             let networks = self.networks.as_mut().expect("has a non-rigid network");
             let through = networks
                 .record_non_rigid_backward(&mut encoder, &self.skinning.grad_heads.buffer)?;
-            let uniform = add_uniform(&context, 3 * n);
-            context.dispatch(
-                &mut encoder,
+            // The skinning writes `grad_positions` afresh every backward: the sum is this
+            // iteration's total centre gradient.
+            record_add(
+                &context,
                 &self.add,
-                &[(0, &uniform), (1, through), (2, &self.xyz_gradient.buffer)],
-                (3 * n).div_ceil(256) as u32,
+                &mut encoder,
+                &self.skinning.grad_positions.buffer,
+                through,
+                3 * n,
             );
         }
         if has_refiner {
@@ -639,7 +631,7 @@ impl ResidentStep {
             &mut encoder,
             &self.gaussians,
             &GaussianGradients {
-                xyz: &self.xyz_gradient,
+                xyz: &self.skinning.grad_positions,
                 log_scale: &self.skinning.grad_log_scales,
                 rotation: &self.skinning.grad_rotations,
                 opacity: splat_grads.opacities(),
@@ -828,9 +820,6 @@ impl ResidentStep {
         }
         if n > self.skinning.capacity() {
             self.skinning.reserve(n)?;
-        }
-        if self.xyz_gradient.len < 3 * n {
-            self.xyz_gradient = self.context.zeros("xyz gradient", 3 * n, 4)?;
         }
         Ok(())
     }
