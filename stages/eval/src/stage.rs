@@ -218,7 +218,8 @@ impl StageKind for EvalStage {
         // 7: `summary.context_probes` (context zeroed / from another frame) and
         //    `summary.train_image_psnr` (from the train entry).
         // 8: on the cpu backend the avatar splats in f32 (the lane path).
-        8
+        // 9: on the gpu backend each frame is deformed and splatted on the device.
+        9
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {

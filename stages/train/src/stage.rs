@@ -37,6 +37,7 @@ use std::time::Instant;
 use anyhow::Context;
 use serde_json::json;
 
+use seqavatar_avatar::sequence::{History, SequenceRenderer};
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::picture;
 use seqavatar_engine::{
@@ -54,8 +55,9 @@ pub struct TrainStage;
 /// Bump whenever the code changes the result (6: the networks train and render in f32;
 /// 7: train-image PSNR, input RMS and first-layer weight norms per input block; 8: the cpu
 /// backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
-/// with the gpu copy of the per-Gaussian networks, as eval does).
-const VERSION: u32 = 8;
+/// with the gpu copy of the per-Gaussian networks, as eval does; 9: on the gpu backend the
+/// held-out PSNR renders each image on the device).
+const VERSION: u32 = 9;
 
 /// Training images (spread evenly over the training split) scored for the train-image PSNR.
 pub const TRAIN_PSNR_IMAGES: usize = 64;
@@ -283,15 +285,27 @@ impl StageKind for TrainStage {
             }
         }
         let avatar = trainer.avatar()?;
-        let device = avatar.backend(backend.clone())?;
+        // On the gpu the avatar and the sequence are uploaded once and each image is
+        // rendered on the device (one read-back per image).
+        let motion = avatar
+            .config
+            .motion_context
+            .has_skeleton_motion()
+            .then(|| data.motion.clone());
+        let mut frames = SequenceRenderer::new(&avatar, &backend, data.params.clone(), motion)
+            .context("the trained avatar's renderer")?;
 
         // Held-out PSNR on the test split, and on training images by the same protocol.
-        let protocol_psnr_of = |index: usize| -> anyhow::Result<f64> {
+        let mut protocol_psnr_of = |index: usize| -> anyhow::Result<f64> {
             let record = &data.images[index];
-            let inputs =
-                avatar.frame_inputs(&data.motion, &data.params[record.frame], record.frame)?;
             let camera = &data.cameras[record.view];
-            let image = avatar.render_on(&inputs, camera, &*device, PROTOCOL_BACKGROUND)?;
+            let image = frames.render(
+                &avatar,
+                record.frame,
+                History::Own,
+                camera,
+                PROTOCOL_BACKGROUND,
+            )?;
             let bound = record.bound.map(|b| {
                 crate::trainer::pad_rect(
                     b,

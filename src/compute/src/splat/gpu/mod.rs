@@ -482,6 +482,9 @@ pub struct SplatWorkspace {
     call: Option<Call>,
 }
 
+/// Per camera of a forward, its image and diagnostics as read back.
+pub type CameraImages = (Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>);
+
 /// Pair capacity of the first call when the caller gives none: at most every tile of every
 /// Gaussian, else sixteen tiles per Gaussian (at least a few thousand).
 fn estimate_pairs(gaussians: u32, tiles: u32) -> u64 {
@@ -860,6 +863,16 @@ impl SplatWorkspace {
     pub fn check_status(&mut self, context: &GpuContext) -> Result<SplatStatus, GpuSplatError> {
         let words: Vec<u32> =
             context.download(context.encoder(), &self.status.buffer, STATUS_WORDS)?;
+        self.apply_status(context, &words)
+    }
+
+    /// Acts on status words read back: resets the status buffer and grows the pair capacity
+    /// after an overflow ([`SplatWorkspace::check_status`]).
+    fn apply_status(
+        &mut self,
+        context: &GpuContext,
+        words: &[u32],
+    ) -> Result<SplatStatus, GpuSplatError> {
         let mut encoder = context.encoder();
         encoder.clear_buffer(&self.status.buffer, 0, None);
         context.queue().submit([encoder.finish()]);
@@ -1114,10 +1127,28 @@ impl SplatWorkspace {
 
     /// Copies every camera's images and diagnostics of the last forward to the host (one
     /// read-back). `intersections` counts every pair the bands needed, also past an overflow.
-    pub fn download_images(
+    pub fn download_images(&self, context: &GpuContext) -> Result<CameraImages, GpuSplatError> {
+        let (images, _) = self.download_images_and_status(context)?;
+        Ok(images)
+    }
+
+    /// The images of the last forward, submitted unchecked, with its status read in the same
+    /// read-back: `None` when a band overflowed its pair capacity (the images are incomplete;
+    /// the capacity has grown, record the forward again). One read-back per try, so a render
+    /// costs one round trip once the capacity fits.
+    pub fn download_checked_images(
+        &mut self,
+        context: &GpuContext,
+    ) -> Result<Option<CameraImages>, GpuSplatError> {
+        let (images, words) = self.download_images_and_status(context)?;
+        let status = self.apply_status(context, &words)?;
+        Ok((!status.grown).then_some(images))
+    }
+
+    fn download_images_and_status(
         &self,
         context: &GpuContext,
-    ) -> Result<(Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>), GpuSplatError> {
+    ) -> Result<(CameraImages, Vec<u32>), GpuSplatError> {
         let call = self.call()?;
         let mut sources: Vec<(&wgpu::Buffer, usize)> = Vec::new();
         for (slot, camera) in self.cameras.iter().zip(&call.cameras) {
@@ -1131,7 +1162,9 @@ impl SplatWorkspace {
         }
         let slots = call.cameras.len() * self.bands as usize;
         sources.push((&self.band_pairs.buffer, slots));
+        sources.push((&self.status.buffer, STATUS_WORDS));
         let mut words = context.download_all::<u32>(context.encoder(), &sources)?;
+        let status = words.pop().unwrap_or_default();
         let band_pairs = words.pop().unwrap_or_default();
         let floats = |bits: Vec<u32>| bits.into_iter().map(f32::from_bits).collect::<Vec<_>>();
         let mut words = words.into_iter();
@@ -1164,7 +1197,7 @@ impl SplatWorkspace {
                 intersections: intersections as usize,
             });
         }
-        Ok((images, diagnostics))
+        Ok(((images, diagnostics), status))
     }
 }
 
