@@ -15,6 +15,11 @@
 //! with seeded VGG weights (the trained ones cannot be committed; the cost depends only on
 //! the architecture); `SEQAVATAR_BENCH_LPIPS=0` skips it.
 //!
+//! On a gpu whose adapter has timestamps inside encoders, each row also prints the device
+//! time of every phase (`device ms per phase`), measured by timestamps between the phases of
+//! the recorded iteration; the host's own clock (`host ms per phase`) sees there only the
+//! recording and submission, charged to `deform`.
+//!
 //! Each row also prints the host-device traffic of its timed iterations
 //! (`transfers per iteration: <R> readbacks, <U> KiB up, <D> KiB down`, counted by the gpu
 //! context; zero on `cpu`).
@@ -165,6 +170,9 @@ fn main() -> anyhow::Result<()> {
                 trainer.step()?;
             }
             trainer.reset_phase_times();
+            // On the device, each phase is timed by timestamps between its commands (the
+            // host sees only the submission).
+            trainer.time_device_phases()?;
             let traffic_before = backend.transfers();
             let started = Instant::now();
             for _ in 0..timed {
@@ -180,16 +188,30 @@ fn main() -> anyhow::Result<()> {
                 "{name}, {variant}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
                 1e3 * seconds / timed as f64
             );
+            let device_times = trainer.device_phase_times()?;
             let times = trainer.phase_times();
-            let per_iteration = |phase: Phase| 1e3 * times.seconds(phase) / timed as f64;
-            println!(
-                "  ms per phase: {}",
+            let per_phase = |times: &seqavatar_train::trainer::PhaseTimes| {
+                let iterations = times.iterations().max(1) as f64;
                 Phase::ALL
                     .iter()
-                    .map(|&phase| format!("{} {:.1}", phase.name(), per_iteration(phase)))
+                    .map(|&phase| {
+                        format!(
+                            "{} {:.2}",
+                            phase.name(),
+                            1e3 * times.seconds(phase) / iterations
+                        )
+                    })
                     .collect::<Vec<_>>()
                     .join(", ")
-            );
+            };
+            println!("  host ms per phase: {}", per_phase(times));
+            if let Some(device) = &device_times {
+                println!(
+                    "  device ms per phase (timestamps over {} iterations): {}",
+                    device.iterations(),
+                    per_phase(device)
+                );
+            }
             println!(
                 "  transfers per iteration: {} readbacks, {:.1} KiB up, {:.1} KiB down",
                 traffic.readbacks as f64 / timed as f64,

@@ -1146,6 +1146,37 @@ impl<'d> Trainer<'d> {
         &self.phase_times
     }
 
+    /// Starts timing each phase of the iteration on the device (`gpu` backend, where the
+    /// adapter has timestamps inside encoders; see [`Trainer::device_phase_times`]). Returns
+    /// whether it does; `false` on `cpu`.
+    pub fn time_device_phases(&mut self) -> anyhow::Result<bool> {
+        self.read_log()?;
+        match self.resident.as_mut() {
+            Some(resident) => resident.time_phases(),
+            None => Ok(false),
+        }
+    }
+
+    /// Device time per phase (densification, which runs on the host, as zero) over the
+    /// iterations run since [`Trainer::time_device_phases`], read with the logged scalars
+    /// (this reads what is pending); `None` when the device does not time them.
+    pub fn device_phase_times(&mut self) -> anyhow::Result<Option<PhaseTimes>> {
+        self.read_log()?;
+        let Some((seconds, iterations)) = self
+            .resident
+            .as_ref()
+            .and_then(ResidentStep::device_phase_seconds)
+        else {
+            return Ok(None);
+        };
+        let mut times = PhaseTimes {
+            seconds: [0.0; 6],
+            iterations,
+        };
+        times.seconds[..seconds.len()].copy_from_slice(&seconds);
+        Ok(Some(times))
+    }
+
     /// Starts the phase times afresh (after warm-up iterations, say).
     pub fn reset_phase_times(&mut self) {
         self.phase_times = PhaseTimes::default();

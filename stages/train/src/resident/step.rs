@@ -22,7 +22,7 @@ use seqavatar_avatar::model::gpu::GpuNetworks;
 use seqavatar_avatar::model::{NetworkGroup, Networks};
 use seqavatar_avatar::resident::deform::{DeformerSetup, History, ResidentDeformer};
 use seqavatar_avatar::resident::skinning::GaussianColumns;
-use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, PhaseTimer};
 use seqavatar_compute::lpips::gpu::{Crop, DeviceImage as LpipsImage, ResidentLpips};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
 use seqavatar_compute::splat::RasterOptions;
@@ -116,11 +116,27 @@ pub struct ResidentStep {
     /// Per camera slot, the image gradients the losses write and the splatting reads.
     image_gradients: Vec<(GpuBuffer, GpuBuffer)>,
     add: Arc<Kernel>,
+    /// Device timestamps between the phases of each iteration, when timing is on
+    /// ([`ResidentStep::time_phases`]), and the seconds they add up to per phase.
+    timer: Option<PhaseTimer>,
+    device_seconds: [f64; TIMED_PHASES],
+    device_iterations: u64,
     /// Submissions the device may not have run yet, oldest first.
     in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
     /// Iterations recorded since the log was last read, and the first one's slot.
     unread: usize,
     first_unread: usize,
+}
+
+/// Phases timed on the device: deform, splat, losses (with AIAP), backward, optimiser (with
+/// the densification statistics).
+pub const TIMED_PHASES: usize = 5;
+
+/// Records timestamp `index` of the iteration in log slot `slot` when timing is on.
+fn mark(timer: &Option<PhaseTimer>, encoder: &mut wgpu::CommandEncoder, slot: usize, index: usize) {
+    if let Some(timer) = timer {
+        timer.mark(encoder, slot, index);
+    }
 }
 
 /// Records `destination += source` over `len` values (`train_step.wgsl`'s `add_into`,
@@ -276,10 +292,33 @@ impl ResidentStep {
             log,
             image_gradients,
             add,
+            timer: None,
+            device_seconds: [0.0; TIMED_PHASES],
+            device_iterations: 0,
             in_flight: std::collections::VecDeque::new(),
             unread: 0,
             first_unread: 0,
         })
+    }
+
+    /// Starts timing the phases of every iteration on the device from the next one (one
+    /// timestamp between phases; read with the log); `false` when the adapter has no
+    /// timestamps inside encoders. Clears the times so far.
+    pub fn time_phases(&mut self) -> anyhow::Result<bool> {
+        if self.timer.is_none() {
+            self.timer = PhaseTimer::new(&self.context, TIMED_PHASES + 1, LOG_CAPACITY)?;
+        }
+        self.device_seconds = [0.0; TIMED_PHASES];
+        self.device_iterations = 0;
+        Ok(self.timer.is_some())
+    }
+
+    /// Device seconds per phase (deform, splat, losses, backward, optimiser) summed over
+    /// the iterations timed and read so far, and their count; `None` when not timing.
+    pub fn device_phase_seconds(&self) -> Option<([f64; TIMED_PHASES], u64)> {
+        self.timer
+            .as_ref()
+            .map(|_| (self.device_seconds, self.device_iterations))
     }
 
     /// Iterations that can be recorded between two reads of the log.
@@ -306,6 +345,7 @@ impl ResidentStep {
         let mut encoder = context.encoder();
         let slot = self.first_unread + self.unread;
         self.log.clear_slot(&mut encoder, slot);
+        mark(&self.timer, &mut encoder, slot, 0);
 
         // Host-side per-iteration records (small writes, ordered before the submission).
         self.deformer
@@ -335,6 +375,8 @@ impl ResidentStep {
         self.deformer
             .record_forward(&mut encoder, plan.frame, History::Own, &columns)?;
 
+        mark(&self.timer, &mut encoder, slot, 1);
+
         // Splatting into the chosen cameras on the iteration's background.
         let cameras: Vec<Camera> = plan
             .images
@@ -349,6 +391,8 @@ impl ResidentStep {
         self.splat
             .forward(&context, &mut encoder, world, &cameras, &options)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+        mark(&self.timer, &mut encoder, slot, 2);
 
         // Image losses and their image gradients, then AIAP.
         let loss_cameras: Vec<LossCamera> = plan
@@ -426,6 +470,8 @@ impl ResidentStep {
             &self.deformer.skinning.means,
             &self.deformer.skinning.covariances,
         )?;
+
+        mark(&self.timer, &mut encoder, slot, 3);
 
         // Backward: splatting, AIAP's deformed-space gradients joined, skinning.
         let upstream: Vec<DeviceImageGradient<'_>> = self.image_gradients[..cameras.len()]
@@ -512,6 +558,8 @@ impl ResidentStep {
             )?;
         }
 
+        mark(&self.timer, &mut encoder, slot, 4);
+
         // Optimisers and densification statistics.
         let aiap_grads = if aiap_active {
             let grads = self.aiap.gradients().context("AIAP gradients")?;
@@ -549,6 +597,11 @@ impl ResidentStep {
         if plan.density_statistics {
             self.statistics
                 .record(&mut encoder, &self.gaussians, splat_grads.mean_2d_norm())?;
+        }
+
+        mark(&self.timer, &mut encoder, slot, 5);
+        if let Some(timer) = self.timer.as_mut() {
+            timer.finish_slot(&mut encoder, slot);
         }
 
         // The iteration's logged scalars into its slot of the ring.
@@ -612,6 +665,14 @@ impl ResidentStep {
         self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
         self.unread = 0;
         let logged: Vec<LoggedIteration> = slots.iter().map(logged_from).collect();
+        if let Some(timer) = self.timer.as_mut() {
+            for phases in timer.read(&self.context)? {
+                for (total, seconds) in self.device_seconds.iter_mut().zip(phases) {
+                    *total += seconds;
+                }
+                self.device_iterations += 1;
+            }
+        }
         let status = self.context.download::<u32>(
             self.context.encoder(),
             &self.gaussians.status().buffer,
