@@ -22,11 +22,11 @@ pub use crate::reader::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
     open_reader,
 };
-pub use crate::resample::resample;
 pub use crate::schema::{
     read_body_model, read_body_params, read_keypoints_3d, write_body_model, write_body_params,
     write_keypoints_3d,
 };
+pub use seqavatar_formats::resample::resample;
 
 /// The `ingest` stage kind.
 pub struct Ingest;

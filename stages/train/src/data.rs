@@ -8,7 +8,7 @@ use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::EntryReader;
-use seqavatar_ingest::stage::{SourceImage, resample};
+use seqavatar_formats::resample::{SourceImage, resample};
 use seqavatar_ingest::{read_body_model, read_body_params};
 
 use seqavatar_avatar::rig::BodyRig;
