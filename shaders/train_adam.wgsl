@@ -83,8 +83,13 @@ fn update(i: u32, g: f32, step_size: f32) {
     }
 }
 
-fn value_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 256u + local;
+const WORKGROUP: u32 = 256u;
+
+//#include "linear_index.wgsl"
+
+// The step size of the column (for SH, of its DC coefficient).
+fn column_step_size() -> f32 {
+    return record_f32(R_STEP_SIZE + column[C_STEP]);
 }
 
 fn values() -> u32 {
@@ -92,57 +97,57 @@ fn values() -> u32 {
 }
 
 // g = a + b (positions, log-scales, rotations: skinning plus AIAP).
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn sum_of_two(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
-    update(i, gradient_a[i] + gradient_b[i], record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i] + gradient_b[i], column_step_size());
 }
 
 // g = a.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn single(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
-    update(i, gradient_a[i], record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i], column_step_size());
 }
 
 // g = a * o * (1 - o), o = sigmoid(logit): `a` is the gradient of the activated opacity.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn opacity(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
     let o = 1.0 / (1.0 + exp(-parameters[i]));
-    update(i, gradient_a[i] * o * (1.0 - o), record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i] * o * (1.0 - o), column_step_size());
 }
 
 // The stored SH row `16 x 3` from the active degree's `k x 3` gradient rows; the DC
 // coefficient at the DC rate, the others at the rest rate.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn sh(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
