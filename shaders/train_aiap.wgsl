@@ -39,9 +39,9 @@ fn count() -> u32 {
     return params[0].x;
 }
 
-fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 256u + local;
-}
+const WORKGROUP: u32 = 256u;
+
+//#include "linear_index.wgsl"
 
 fn is_finite(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
@@ -86,13 +86,13 @@ fn scale_of(i: u32) -> vec3<f32> {
     return exp(vec3<f32>(log_scale[3u * i], log_scale[3u * i + 1u], log_scale[3u * i + 2u]));
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn covariances(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
@@ -127,13 +127,53 @@ fn sign_of(v: f32) -> f32 {
     return 0.0;
 }
 
-@compute @workgroup_size(256)
+// One pair's term `|d(a_i, a_j) - d(b_i, b_j)|` of vectors of `width` entries (3 for centres,
+// 6 for covariance upper triangles) from their differences `du = a_i - a_j` (canonical) and
+// `dv = b_i - b_j` (deformed), returned; its gradient times `scale` added into the scratch's
+// canonical rows from `canonical` and deformed rows from `deformed`.
+fn pair_term(
+    i: u32,
+    j: u32,
+    width: u32,
+    du: array<f32, 6>,
+    dv: array<f32, 6>,
+    scale: f32,
+    canonical: u32,
+    deformed: u32,
+) -> f32 {
+    var lu = 0.0;
+    var lv = 0.0;
+    for (var d = 0u; d < width; d = d + 1u) {
+        lu = lu + du[d] * du[d];
+        lv = lv + dv[d] * dv[d];
+    }
+    lu = sqrt(lu);
+    lv = sqrt(lv);
+    let g = scale * sign_of(lu - lv);
+    if (g != 0.0) {
+        for (var d = 0u; d < width; d = d + 1u) {
+            if (lu > 0.0) {
+                let t = g * du[d] / lu;
+                gradient_add(canonical + width * i + d, t);
+                gradient_add(canonical + width * j + d, -t);
+            }
+            if (lv > 0.0) {
+                let t = g * dv[d] / lv;
+                gradient_add(deformed + width * i + d, -t);
+                gradient_add(deformed + width * j + d, t);
+            }
+        }
+    }
+    return abs(lu - lv);
+}
+
+@compute @workgroup_size(WORKGROUP)
 fn pairs(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
@@ -148,59 +188,17 @@ fn pairs(
         // Centres.
         var du: array<f32, 6>;
         var dv: array<f32, 6>;
-        var lu = 0.0;
-        var lv = 0.0;
         for (var d = 0u; d < 3u; d = d + 1u) {
             du[d] = xyz[3u * i + d] - xyz[3u * j + d];
             dv[d] = deformed_centres[3u * i + d] - deformed_centres[3u * j + d];
-            lu = lu + du[d] * du[d];
-            lv = lv + dv[d] * dv[d];
         }
-        lu = sqrt(lu);
-        lv = sqrt(lv);
-        centre_sum = centre_sum + abs(lu - lv);
-        var g = centre_scale * sign_of(lu - lv);
-        if (g != 0.0) {
-            for (var d = 0u; d < 3u; d = d + 1u) {
-                if (lu > 0.0) {
-                    let t = g * du[d] / lu;
-                    gradient_add(3u * i + d, t);
-                    gradient_add(3u * j + d, -t);
-                }
-                if (lv > 0.0) {
-                    let t = g * dv[d] / lv;
-                    gradient_add(3u * c + 3u * i + d, -t);
-                    gradient_add(3u * c + 3u * j + d, t);
-                }
-            }
-        }
+        centre_sum = centre_sum + pair_term(i, j, 3u, du, dv, centre_scale, 0u, 3u * c);
         // Covariance upper triangles.
-        lu = 0.0;
-        lv = 0.0;
         for (var d = 0u; d < 6u; d = d + 1u) {
             du[d] = canonical_covariances[6u * i + d] - canonical_covariances[6u * j + d];
             dv[d] = deformed_covariances[6u * i + d] - deformed_covariances[6u * j + d];
-            lu = lu + du[d] * du[d];
-            lv = lv + dv[d] * dv[d];
         }
-        lu = sqrt(lu);
-        lv = sqrt(lv);
-        covariance_sum = covariance_sum + abs(lu - lv);
-        g = covariance_scale * sign_of(lu - lv);
-        if (g != 0.0) {
-            for (var d = 0u; d < 6u; d = d + 1u) {
-                if (lu > 0.0) {
-                    let t = g * du[d] / lu;
-                    gradient_add(6u * c + 6u * i + d, t);
-                    gradient_add(6u * c + 6u * j + d, -t);
-                }
-                if (lv > 0.0) {
-                    let t = g * dv[d] / lv;
-                    gradient_add(12u * c + 6u * i + d, -t);
-                    gradient_add(12u * c + 6u * j + d, t);
-                }
-            }
-        }
+        covariance_sum = covariance_sum + pair_term(i, j, 6u, du, dv, covariance_scale, 6u * c, 12u * c);
     }
     partials[2u * i] = centre_sum;
     partials[2u * i + 1u] = covariance_sum;
@@ -242,13 +240,13 @@ fn reduce_loss(@builtin(local_invocation_index) local: u32) {
 // The canonical gradients: the centres' copied out, the covariances' carried back to the
 // log-scales and rotations (`canonical_covariances_backward`).
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn finish(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
