@@ -22,8 +22,18 @@ fn joint_index(group: vec3<u32>, local: u32) -> u32 {
     return (group.x + group.y * params.groups_x) * 64u + local;
 }
 
-fn vector_at(j: u32) -> vec3<f32> {
-    return vec3<f32>(vectors[3u * j], vectors[3u * j + 1u], vectors[3u * j + 2u]);
+// The angle, axis and its sine and cosine of rotation vector j.
+struct AxisAngle {
+    theta: f32,
+    k: vec3<f32>,
+    s: f32,
+    c: f32,
+}
+
+fn axis_angle(j: u32) -> AxisAngle {
+    let v = vec3<f32>(vectors[3u * j], vectors[3u * j + 1u], vectors[3u * j + 2u]);
+    let theta = sqrt(params.epsilon + dot(v, v));
+    return AxisAngle(theta, v / theta, sin(theta), cos(theta));
 }
 
 // destination = R(v), count x 9.
@@ -36,11 +46,10 @@ fn forward(
     if (j >= params.count) {
         return;
     }
-    let v = vector_at(j);
-    let theta = sqrt(params.epsilon + dot(v, v));
-    let k = v / theta;
-    let s = sin(theta);
-    let c = cos(theta);
+    let r = axis_angle(j);
+    let k = r.k;
+    let s = r.s;
+    let c = r.c;
     let t = 1.0 - c;
     let base = 9u * j;
     destination[base + 0u] = c + t * k.x * k.x;
@@ -64,11 +73,10 @@ fn backward(
     if (j >= params.count) {
         return;
     }
-    let v = vector_at(j);
-    let theta = sqrt(params.epsilon + dot(v, v));
-    let k = v / theta;
-    let s = sin(theta);
-    let c = cos(theta);
+    let r = axis_angle(j);
+    let k = r.k;
+    let s = r.s;
+    let c = r.c;
     let base = 9u * j;
     // Rows of G.
     let g0 = vec3<f32>(gradient[base + 0u], gradient[base + 1u], gradient[base + 2u]);
@@ -81,7 +89,7 @@ fn backward(
     let gt_k = g0 * k.x + g1 * k.y + g2 * k.z;
     let d_theta = -s * trace + s * dot(k, g_k) + c * dot(k, a);
     let d_k = (g_k + gt_k) * (1.0 - c) + a * s;
-    let d_v = k * d_theta + (d_k - k * dot(k, d_k)) / theta;
+    let d_v = k * d_theta + (d_k - k * dot(k, d_k)) / r.theta;
     destination[3u * j] = d_v.x;
     destination[3u * j + 1u] = d_v.y;
     destination[3u * j + 2u] = d_v.z;
