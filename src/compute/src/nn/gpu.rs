@@ -1076,13 +1076,7 @@ impl NnGpu {
     ) -> Result<(), NnError> {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrices", matrices, 9 * count)?;
-        let (x, y) = self.grid(count.div_ceil(64))?;
-        let params = RodriguesParams {
-            count: to_u32("rotation count", count)?,
-            groups_x: x,
-            epsilon: epsilon as f32,
-            pad: 0,
-        };
+        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
         self.dispatch(
             encoder,
             &self.rodrigues_forward,
@@ -1108,13 +1102,7 @@ impl NnGpu {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrix gradient", d_matrices, 9 * count)?;
         self.check_buffer("rotation vector gradient", d_vectors, 3 * count)?;
-        let (x, y) = self.grid(count.div_ceil(64))?;
-        let params = RodriguesParams {
-            count: to_u32("rotation count", count)?,
-            groups_x: x,
-            epsilon: epsilon as f32,
-            pad: 0,
-        };
+        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
         self.dispatch(
             encoder,
             &self.rodrigues_backward,
@@ -1124,6 +1112,22 @@ impl NnGpu {
             y,
         );
         Ok(())
+    }
+
+    /// The uniform and grid of the Rodrigues kernels over `count` rotation vectors.
+    fn rodrigues_params(
+        &self,
+        epsilon: f64,
+        count: usize,
+    ) -> Result<(RodriguesParams, u32, u32), NnError> {
+        let (x, y) = self.grid(count.div_ceil(64))?;
+        let params = RodriguesParams {
+            count: to_u32("rotation count", count)?,
+            groups_x: x,
+            epsilon: epsilon as f32,
+            pad: 0,
+        };
+        Ok((params, x, y))
     }
 
     fn posenc_params(
