@@ -615,36 +615,30 @@ fn aiap_matches_cpu_on(context: &Arc<GpuContext>, mode: AtomicAdd, n: usize, nei
             .map(f64::from)
             .collect()
     };
-    assert_close_scaled(
-        &format!("{what}: xyz"),
-        &read(&g.xyz, 3 * n),
-        &cpu.xyz,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: log_scale"),
-        &read(&g.log_scale, 3 * n),
-        &cpu.log_scale,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: rotation"),
-        &read(&g.rotation, 4 * n),
-        &cpu.rotation,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: deformed centres"),
-        &read(&g.deformed_centres, 3 * n),
-        &cpu.deformed_centres,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: deformed covariances"),
-        &read(&g.deformed_covariances, 6 * n),
-        &cpu.deformed_covariances,
-        1e-4,
-    );
+    for (name, device, width, want) in [
+        ("xyz", &g.xyz, 3, &cpu.xyz),
+        ("log_scale", &g.log_scale, 3, &cpu.log_scale),
+        ("rotation", &g.rotation, 4, &cpu.rotation),
+        (
+            "deformed centres",
+            &g.deformed_centres,
+            3,
+            &cpu.deformed_centres,
+        ),
+        (
+            "deformed covariances",
+            &g.deformed_covariances,
+            6,
+            &cpu.deformed_covariances,
+        ),
+    ] {
+        assert_close_scaled(
+            &format!("{what}: {name}"),
+            &read(device, width * n),
+            want,
+            1e-4,
+        );
+    }
 }
 
 #[test]
