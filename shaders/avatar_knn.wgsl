@@ -67,11 +67,7 @@ const TILE: u32 = 64u;
 const WORKGROUP: u32 = 64u;
 
 //#include "linear_index.wgsl"
-
-fn finite(x: f32) -> bool {
-    // A bit test, because compilers may assume `x == x`.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // The frame row of window element l at scale slot s: frame - l step, clamped at 0 (the host
 // checked that clamping is allowed: MotionTrack::gather's rule).

@@ -57,8 +57,6 @@ const HAS_HEADS: u32 = 1u;
 const HAS_WEIGHT_OFFSETS: u32 = 2u;
 const HEAD_WIDTH: u32 = 10u;
 const SH_STORED: u32 = 16u;
-// Below this squared norm a quaternion is the identity rotation (core::rotation).
-const DEGENERATE_QUAT_NORM2: f32 = 1e-24;
 // Status words (indices into `status`).
 const STATUS_FORWARD_COUNT: u32 = 0u;
 const STATUS_FORWARD_FIRST: u32 = 1u;
@@ -112,11 +110,8 @@ const STATUS_BACKWARD_FIRST: u32 = 3u;
 const WORKGROUP: u32 = 64u;
 
 //#include "linear_index.wgsl"
-
-fn finite(x: f32) -> bool {
-    // A bit test, because compilers may assume `x == x`.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
+//#include "quaternion.wgsl"
 
 // Loads and stores of 3- and 4-vectors, one per buffer (WGSL has no pointer parameters
 // into storage without an extension).
@@ -160,60 +155,6 @@ fn quat_mul(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
         a.x * b.z - a.y * b.w + a.z * b.x + a.w * b.y,
         a.x * b.w + a.y * b.z - a.z * b.y + a.w * b.x,
     );
-}
-
-fn quat_degenerate(q: vec4<f32>) -> bool {
-    let n2 = dot(q, q);
-    return !(finite(n2) && n2 > DEGENERATE_QUAT_NORM2);
-}
-
-// R(q / |q|); the identity for a degenerate quaternion (core::rotation::quat_wxyz_to_matrix).
-fn quat_matrix(q: vec4<f32>) -> mat3x3<f32> {
-    if quat_degenerate(q) {
-        return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
-    }
-    let u = q / sqrt(dot(q, q));
-    let w = u.x;
-    let x = u.y;
-    let y = u.z;
-    let z = u.w;
-    // Columns of the standard unit-quaternion matrix.
-    return mat3x3<f32>(
-        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
-        vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
-        vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
-    );
-}
-
-// Entry (row, col) of a column-major WGSL matrix.
-fn at(m: mat3x3<f32>, row: u32, col: u32) -> f32 {
-    return m[col][row];
-}
-
-// Gradient of R(q / |q|) with respect to q given dL/dR (skinning.rs quat_matrix_backward).
-fn quat_matrix_backward(q: vec4<f32>, g: mat3x3<f32>) -> vec4<f32> {
-    if quat_degenerate(q) {
-        return vec4<f32>(0.0);
-    }
-    let norm = sqrt(dot(q, q));
-    let u = q / norm;
-    let w = u.x;
-    let x = u.y;
-    let y = u.z;
-    let z = u.w;
-    let dw = 2.0 * (-z * at(g, 0u, 1u) + y * at(g, 0u, 2u) + z * at(g, 1u, 0u) - x * at(g, 1u, 2u)
-        - y * at(g, 2u, 0u) + x * at(g, 2u, 1u));
-    let dx = 2.0 * (y * at(g, 0u, 1u) + z * at(g, 0u, 2u) + y * at(g, 1u, 0u)
-        - 2.0 * x * at(g, 1u, 1u) - w * at(g, 1u, 2u) + z * at(g, 2u, 0u) + w * at(g, 2u, 1u)
-        - 2.0 * x * at(g, 2u, 2u));
-    let dy = 2.0 * (-2.0 * y * at(g, 0u, 0u) + x * at(g, 0u, 1u) + w * at(g, 0u, 2u)
-        + x * at(g, 1u, 0u) + z * at(g, 1u, 2u) - w * at(g, 2u, 0u) + z * at(g, 2u, 1u)
-        - 2.0 * y * at(g, 2u, 2u));
-    let dz = 2.0 * (-2.0 * z * at(g, 0u, 0u) - w * at(g, 0u, 1u) + x * at(g, 0u, 2u)
-        + w * at(g, 1u, 0u) - 2.0 * z * at(g, 1u, 1u) + y * at(g, 1u, 2u) + x * at(g, 2u, 0u)
-        + y * at(g, 2u, 1u));
-    let gn = vec4<f32>(dw, dx, dy, dz);
-    return (gn - u * dot(gn, u)) / norm;
 }
 
 // Gradients of a (x) b for a and b given that of the product (the product is bilinear).

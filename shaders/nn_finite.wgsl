@@ -18,7 +18,7 @@ struct Params {
 @group(0) @binding(1) var<storage, read> values: array<f32>;
 @group(0) @binding(2) var<storage, read_write> status: array<atomic<u32>>;
 
-const EXPONENT: u32 = 0x7f800000u;
+//#include "finite.wgsl"
 
 @compute @workgroup_size(256)
 fn main(
@@ -29,7 +29,7 @@ fn main(
     if (i >= params.len) {
         return;
     }
-    if ((bitcast<u32>(values[i]) & EXPONENT) == EXPONENT) {
+    if (!finite(values[i])) {
         atomicMax(&status[params.slot], 0xffffffffu - i);
     }
 }

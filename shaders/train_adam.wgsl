@@ -52,9 +52,7 @@ fn record_f32(word: u32) -> f32 {
     return bitcast<f32>(record[word]);
 }
 
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // Records a non-finite value of Gaussian `gaussian` in `slot`: the first iteration wins
 // (later iterations have smaller keys), and within it the smallest Gaussian.
@@ -68,7 +66,7 @@ fn flag(slot: u32, gaussian: u32) {
 
 fn update(i: u32, g: f32, step_size: f32) {
     let gaussian = i / column[C_WIDTH];
-    if (!is_finite(g)) {
+    if (!finite(g)) {
         flag(column[C_ID], gaussian);
     }
     let m = record_f32(R_BETA1) * first_moment[i] + record_f32(R_ONE_MINUS_BETA1) * g;
@@ -78,7 +76,7 @@ fn update(i: u32, g: f32, step_size: f32) {
     let denominator = sqrt(v) / record_f32(R_CORRECTION) + record_f32(R_EPS);
     let p = parameters[i] - step_size * m / denominator;
     parameters[i] = p;
-    if (!is_finite(p)) {
+    if (!finite(p)) {
         flag(COLUMNS + column[C_ID], gaussian);
     }
 }

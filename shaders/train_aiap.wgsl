@@ -42,44 +42,16 @@ fn count() -> u32 {
 const WORKGROUP: u32 = 256u;
 
 //#include "linear_index.wgsl"
-
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
+//#include "quaternion.wgsl"
 
 // ---------------------------------------------------------------------------------------
 // Canonical covariances `R diag(exp(log_scale)^2) R^T` (`covariance_from_scale_rotation`:
-// the quaternion normalised, a degenerate one taken as the identity).
+// the quaternion normalised, a degenerate one taken as the identity: `quat_matrix`).
 
 fn quaternion(i: u32) -> vec4<f32> {
     return vec4<f32>(rotation[4u * i], rotation[4u * i + 1u], rotation[4u * i + 2u],
         rotation[4u * i + 3u]);
-}
-
-fn is_degenerate(q: vec4<f32>) -> bool {
-    let n2 = dot(q, q);
-    return !(is_finite(n2) && n2 > 1e-24);
-}
-
-// The rotation of a unit `w x y z` quaternion; `m[c][r]` is row r, column c.
-fn rotation_matrix(unit: vec4<f32>) -> mat3x3<f32> {
-    let w = unit.x;
-    let x = unit.y;
-    let y = unit.z;
-    let z = unit.w;
-    return transpose(mat3x3<f32>(
-        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-        vec3<f32>(2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-        vec3<f32>(2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
-    ));
-}
-
-fn rotation_of(q: vec4<f32>) -> mat3x3<f32> {
-    if (is_degenerate(q)) {
-        return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0),
-            vec3<f32>(0.0, 0.0, 1.0));
-    }
-    return rotation_matrix(q / sqrt(dot(q, q)));
 }
 
 fn scale_of(i: u32) -> vec3<f32> {
@@ -96,7 +68,7 @@ fn covariances(
     if (i >= count()) {
         return;
     }
-    let r = rotation_of(quaternion(i));
+    let r = quat_matrix(quaternion(i));
     let s = scale_of(i);
     let sigma = r * mat3x3<f32>(vec3<f32>(s.x * s.x, 0.0, 0.0), vec3<f32>(0.0, s.y * s.y, 0.0),
         vec3<f32>(0.0, 0.0, s.z * s.z)) * transpose(r);
@@ -265,38 +237,16 @@ fn finish(
         vec3<f32>(gxz, gyz, accumulated[u + 5u]),
     );
     let q = quaternion(i);
-    let r = rotation_of(q);
+    let r = quat_matrix(q);
     let s = scale_of(i);
     let rt_g_r = transpose(r) * g * r;
     d_log_scale[3u * i] = 2.0 * s.x * rt_g_r[0][0] * s.x;
     d_log_scale[3u * i + 1u] = 2.0 * s.y * rt_g_r[1][1] * s.y;
     d_log_scale[3u * i + 2u] = 2.0 * s.z * rt_g_r[2][2] * s.z;
-    if (is_degenerate(q)) {
-        for (var a = 0u; a < 4u; a = a + 1u) {
-            d_rotation[4u * i + a] = 0.0;
-        }
-        return;
-    }
-    // dL/dR = 2 G R D, then the derivative of R(q / |q|) (`quat_matrix_backward`).
+    // dL/dR = 2 G R D, then the derivative of R(q / |q|) (zero for a degenerate q).
     let e = g * r * mat3x3<f32>(vec3<f32>(2.0 * s.x * s.x, 0.0, 0.0),
         vec3<f32>(0.0, 2.0 * s.y * s.y, 0.0), vec3<f32>(0.0, 0.0, 2.0 * s.z * s.z));
-    let norm = sqrt(dot(q, q));
-    let unit = q / norm;
-    let w = unit.x;
-    let x = unit.y;
-    let y = unit.z;
-    let z = unit.w;
-    // e[c][r] is row r, column c.
-    let dw = 2.0 * (-z * e[1][0] + y * e[2][0] + z * e[0][1] - x * e[2][1] - y * e[0][2]
-        + x * e[1][2]);
-    let dx = 2.0 * (y * e[1][0] + z * e[2][0] + y * e[0][1] - 2.0 * x * e[1][1] - w * e[2][1]
-        + z * e[0][2] + w * e[1][2] - 2.0 * x * e[2][2]);
-    let dy = 2.0 * (-2.0 * y * e[0][0] + x * e[1][0] + w * e[2][0] + x * e[0][1] + z * e[2][1]
-        - w * e[0][2] + z * e[1][2] - 2.0 * y * e[2][2]);
-    let dz = 2.0 * (-2.0 * z * e[0][0] - w * e[1][0] + x * e[2][0] + w * e[0][1]
-        - 2.0 * z * e[1][1] + y * e[2][1] + x * e[0][2] + y * e[1][2]);
-    let gn = vec4<f32>(dw, dx, dy, dz);
-    let d_q = (gn - unit * dot(gn, unit)) / norm;
+    let d_q = quat_matrix_backward(q, e);
     d_rotation[4u * i] = d_q.x;
     d_rotation[4u * i + 1u] = d_q.y;
     d_rotation[4u * i + 2u] = d_q.z;

@@ -44,9 +44,7 @@ const_assert MAX_K <= MAX_CANDIDATES;
 const TILE: u32 = 256u;
 const INFINITY_BITS: u32 = 0x7f800000u;
 
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 fn position(i: u32) -> vec3<f32> {
     return vec3<f32>(xyz[3u * i], xyz[3u * i + 1u], xyz[3u * i + 2u]);
@@ -102,7 +100,7 @@ fn check(@builtin(local_invocation_index) local: u32) {
         let d = position(i) - vec3<f32>(anchors[3u * i], anchors[3u * i + 1u],
             anchors[3u * i + 2u]);
         let d2 = dot(d, d);
-        if (!is_finite(d2)) {
+        if (!finite(d2)) {
             moved = bitcast<f32>(INFINITY_BITS);
         } else {
             moved = max(moved, d2);
@@ -172,7 +170,7 @@ fn rebuild(
         var point = vec4<f32>(0.0, 0.0, 0.0, 0.0);
         if (load < n) {
             let p = position(load);
-            if (is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) {
+            if (finite(p.x) && finite(p.y) && finite(p.z)) {
                 point = vec4<f32>(p, 1.0);
             }
         }
@@ -209,7 +207,7 @@ fn rebuild(
     anchors[3u * i + 2u] = query.z;
     // A list holding every finite Gaussian stays valid while the count does.
     var room = bitcast<f32>(INFINITY_BITS);
-    if (!is_finite(query.x + query.y + query.z)) {
+    if (!finite(query.x + query.y + query.z)) {
         room = -1.0;
     } else if (best.found < finite_points) {
         let reach = sqrt(best.d[m - 1u]);
@@ -267,7 +265,7 @@ fn select_nearest(
     for (var c = 0u; c < m; c = c + 1u) {
         let j = candidates[i * MAX_CANDIDATES + c];
         let p = position(j);
-        if (!(is_finite(p.x) && is_finite(p.y) && is_finite(p.z))) {
+        if (!(finite(p.x) && finite(p.y) && finite(p.z))) {
             continue;
         }
         let delta = query - p;

@@ -391,9 +391,7 @@ fn sum_over_workgroup(local: u32, sums: vec4<f32>) {
     }
 }
 
-fn is_finite(value: f32) -> bool {
-    return (bitcast<u32>(value) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // One workgroup: sums the partials of `image_loss_gradient` in a fixed order, turns them into
 // the camera's terms and adds them, times the camera's scale, into the log's `current`.
@@ -459,17 +457,17 @@ fn add_lpips() {
 // iteration whose total is not finite remembered (the host reports it as a divergence).
 @compute @workgroup_size(1)
 fn finish_iteration() {
-    var finite = true;
+    var all_finite = true;
     for (var i = 0u; i < 8u; i++) {
         let value = bitcast<f32>(loss_log[i]);
         log_add(LOG_SUM + i, value);
         if (i < 6u) {
-            finite = finite && is_finite(value);
+            all_finite = all_finite && finite(value);
         }
     }
     loss_log[LOG_ITERATIONS] += 1u;
     loss_log[LOG_LAST_ITERATION] = iteration();
-    if (!finite) {
+    if (!all_finite) {
         if (loss_log[LOG_NONFINITE_ITERATIONS] == 0u) {
             loss_log[LOG_FIRST_NONFINITE] = iteration();
         }
