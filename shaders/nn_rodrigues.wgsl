@@ -4,13 +4,13 @@
 //   theta = sqrt(epsilon + |v|^2),  k = v / theta,
 //   R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x      (row-major 3 x 3)
 // One thread per rotation vector; `vectors` is count x 3, `matrices` count x 9. The grid may
-// be 2D (index = x + y * groups_x).
+// be 2D (`linear_index`).
 
 struct Params {
     count: u32,
-    groups_x: u32,
     epsilon: f32,
-    _pad: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -18,9 +18,9 @@ struct Params {
 @group(0) @binding(2) var<storage, read> gradient: array<f32>;
 @group(0) @binding(3) var<storage, read_write> destination: array<f32>;
 
-fn joint_index(group: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * params.groups_x) * 64u + local;
-}
+const WORKGROUP: u32 = 64u;
+
+//#include "linear_index.wgsl"
 
 // The angle, axis and its sine and cosine of rotation vector j.
 struct AxisAngle {
@@ -37,12 +37,13 @@ fn axis_angle(j: u32) -> AxisAngle {
 }
 
 // destination = R(v), count x 9.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn forward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let j = joint_index(group, local);
+    let j = linear_index(group, groups, local);
     if (j >= params.count) {
         return;
     }
@@ -64,12 +65,13 @@ fn forward(
 }
 
 // destination = dL/dv (count x 3, overwritten) from gradient = dL/dR (count x 9, row-major).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn backward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let j = joint_index(group, local);
+    let j = linear_index(group, groups, local);
     if (j >= params.count) {
         return;
     }
