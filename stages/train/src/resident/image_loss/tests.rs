@@ -379,23 +379,21 @@ fn resident_losses_match_image_loss_on_random_images_and_rects() {
     };
     let mut rng = Rng::new(31);
     let all = u64::MAX;
-    let inner = case(&mut rng, 23, 17, rect(3, 2, 20, 15), Mask::Mixed);
-    check(&context, "inner rect", &[inner], WEIGHTS, all);
-    // Touching the left, top and right borders, and the bottom row.
-    let border = case(&mut rng, 19, 13, rect(0, 0, 19, 9), Mask::Mixed);
-    check(&context, "border rect", &[border], WEIGHTS, all);
-    let bottom = case(&mut rng, 14, 16, rect(4, 5, 14, 16), Mask::Mixed);
-    check(&context, "bottom-right rect", &[bottom], WEIGHTS, all);
-    // One pixel wide, and one pixel high.
-    let column = case(&mut rng, 16, 12, rect(5, 1, 6, 11), Mask::Mixed);
-    check(&context, "1-px-wide rect", &[column], WEIGHTS, all);
-    let row = case(&mut rng, 16, 12, rect(2, 7, 15, 8), Mask::Mixed);
-    check(&context, "1-px-high rect", &[row], WEIGHTS, all);
-    let single = case(&mut rng, 5, 4, rect(2, 1, 3, 2), Mask::Mixed);
-    check(&context, "one-pixel rect", &[single], WEIGHTS, all);
-    // An all-zero mask: the target is the background.
-    let empty = case(&mut rng, 18, 15, rect(2, 3, 16, 12), Mask::Empty);
-    check(&context, "all-zero mask", &[empty], WEIGHTS, all);
+    for (what, width, height, rect, mask) in [
+        ("inner rect", 23, 17, rect(3, 2, 20, 15), Mask::Mixed),
+        // Touching the left, top and right borders, and the bottom row.
+        ("border rect", 19, 13, rect(0, 0, 19, 9), Mask::Mixed),
+        ("bottom-right rect", 14, 16, rect(4, 5, 14, 16), Mask::Mixed),
+        // One pixel wide, and one pixel high.
+        ("1-px-wide rect", 16, 12, rect(5, 1, 6, 11), Mask::Mixed),
+        ("1-px-high rect", 16, 12, rect(2, 7, 15, 8), Mask::Mixed),
+        ("one-pixel rect", 5, 4, rect(2, 1, 3, 2), Mask::Mixed),
+        // An all-zero mask: the target is the background.
+        ("all-zero mask", 18, 15, rect(2, 3, 16, 12), Mask::Empty),
+    ] {
+        let one = case(&mut rng, width, height, rect, mask);
+        check(&context, what, &[one], WEIGHTS, all);
+    }
     // SSIM off: no SSIM term, no SSIM gradient.
     let plain = case(&mut rng, 21, 11, rect(1, 1, 20, 10), Mask::Mixed);
     check(
