@@ -348,13 +348,23 @@ impl ResidentMotion {
         Ok(())
     }
 
+    /// Records the nearest template vertices of `queries` (`N x 3`, checked and named
+    /// `what` in errors) into `out`, as many per query as `shape` says.
     fn record_knn(
         &self,
         encoder: &mut wgpu::CommandEncoder,
+        what: &str,
         shape: &wgpu::Buffer,
         queries: &GpuBuffer,
         out: &GpuBuffer,
     ) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            queries.len >= 3 * self.count,
+            "{what}: {} values, {} Gaussians need {}",
+            queries.len,
+            self.count,
+            3 * self.count
+        );
         let groups = self.workgroups(self.count)?;
         self.context.dispatch(
             encoder,
@@ -381,8 +391,7 @@ impl ResidentMotion {
         if self.tau == 0 {
             return Ok(());
         }
-        self.check_queries("xyz", xyz)?;
-        self.record_knn(encoder, &self.tau_shape, xyz, &self.neighbours)
+        self.record_knn(encoder, "xyz", &self.tau_shape, xyz, &self.neighbours)
     }
 
     /// Records the velocity gather into the `L` blocks of [`ResidentMotion::velocity`] from
@@ -417,19 +426,13 @@ impl ResidentMotion {
         encoder: &mut wgpu::CommandEncoder,
         positions: &GpuBuffer,
     ) -> anyhow::Result<()> {
-        self.check_queries("positions", positions)?;
-        self.record_knn(encoder, &self.nearest_shape, positions, &self.nearest)
-    }
-
-    fn check_queries(&self, what: &str, queries: &GpuBuffer) -> anyhow::Result<()> {
-        anyhow::ensure!(
-            queries.len >= 3 * self.count,
-            "{what}: {} values, {} Gaussians need {}",
-            queries.len,
-            self.count,
-            3 * self.count
-        );
-        Ok(())
+        self.record_knn(
+            encoder,
+            "positions",
+            &self.nearest_shape,
+            positions,
+            &self.nearest,
+        )
     }
 
     /// Reads the window, neighbours, velocity blocks and nearest vertices back (tests and

@@ -261,6 +261,42 @@ pub struct DeviceGaussians<'a> {
     pub sh_degree: u32,
 }
 
+/// The projection's inputs, bound alike by `project_forward` and `project_backward`: the
+/// camera uniform (band 0's) and the Gaussians.
+fn project_inputs<'a>(
+    camera: &'a wgpu::Buffer,
+    gaussians: &DeviceGaussians<'a>,
+) -> [(u32, &'a wgpu::Buffer); 5] {
+    [
+        (0, camera),
+        (1, &gaussians.means.buffer),
+        (2, &gaussians.covariances.buffer),
+        (3, &gaussians.opacities.buffer),
+        (4, &gaussians.sh.buffer),
+    ]
+}
+
+/// The bindings of one band's rasterization, forward and backward alike: `images` are the
+/// colour, alpha and depth images (bindings 4-6) the forward writes and whose gradients the
+/// backward reads.
+fn rasterize_bindings<'a>(
+    band: &'a BandSlot,
+    slot: &'a CameraSlot,
+    images: [&'a GpuBuffer; 3],
+) -> [(u32, &'a wgpu::Buffer); 9] {
+    [
+        (0, &band.camera),
+        (1, &slot.ranges.buffer),
+        (2, &band.pair_gaussians.buffer),
+        (3, &slot.projected.buffer),
+        (4, &images[0].buffer),
+        (5, &images[1].buffer),
+        (6, &images[2].buffer),
+        (7, &slot.transmittance.buffer),
+        (8, &slot.contributors.buffer),
+    ]
+}
+
 /// `Err(Length)` when `buffer` holds fewer than `needed` values.
 fn check_at_least(
     field: &'static str,
@@ -705,23 +741,18 @@ impl SplatWorkspace {
             }
             encoder.clear_buffer(&slot.diagnostics.buffer, 0, None);
             encoder.clear_buffer(&slot.ranges.buffer, 0, None);
-            context.dispatch(
-                encoder,
-                &project,
+            let bindings = [
+                project_inputs(&slot.bands[0].camera, &gaussians).as_slice(),
                 &[
-                    (0, &slot.bands[0].camera),
-                    (1, &gaussians.means.buffer),
-                    (2, &gaussians.covariances.buffer),
-                    (3, &gaussians.opacities.buffer),
-                    (4, &gaussians.sh.buffer),
                     (5, &slot.projected.buffer),
                     (6, &parts.rects.buffer),
                     (7, &parts.depth_keys.buffer),
                     (8, &parts.depth_indices.buffer),
                     (9, &slot.diagnostics.buffer),
                 ],
-                n.div_ceil(GROUP),
-            );
+            ]
+            .concat();
+            context.dispatch(encoder, &project, &bindings, n.div_ceil(GROUP));
             // Stable sort by depth: culled Gaussians carry the largest key and sort last; ties
             // keep index order because the values start as 0..N.
             let in_scratch = parts.depth_sort.record(
@@ -826,20 +857,11 @@ impl SplatWorkspace {
                 );
             }
             for (band, rows) in slot.bands.iter().zip(&rows) {
+                let images = [&slot.colour, &slot.alpha, &slot.depth];
                 context.dispatch_grid(
                     encoder,
                     &rasterize,
-                    &[
-                        (0, &band.camera),
-                        (1, &slot.ranges.buffer),
-                        (2, &band.pair_gaussians.buffer),
-                        (3, &slot.projected.buffer),
-                        (4, &slot.colour.buffer),
-                        (5, &slot.alpha.buffer),
-                        (6, &slot.depth.buffer),
-                        (7, &slot.transmittance.buffer),
-                        (8, &slot.contributors.buffer),
-                    ],
+                    &rasterize_bindings(band, slot, images),
                     tiles_x,
                     rows.1 - rows.0,
                 );
@@ -1016,34 +1038,17 @@ impl SplatWorkspace {
             encoder.clear_buffer(&parts.screen.buffer, 0, None);
             for (band, rows) in slot.bands.iter().zip(rows) {
                 context.write(&band.camera, CAMERA_FLAGS_OFFSET, &[flags])?;
-                context.dispatch_grid(
-                    encoder,
-                    &rasterize,
-                    &[
-                        (0, &band.camera),
-                        (1, &slot.ranges.buffer),
-                        (2, &band.pair_gaussians.buffer),
-                        (3, &slot.projected.buffer),
-                        (4, &gradient.colour.buffer),
-                        (5, &d_alpha.buffer),
-                        (6, &d_depth.buffer),
-                        (7, &slot.transmittance.buffer),
-                        (8, &slot.contributors.buffer),
-                        (15, &parts.screen.buffer),
-                    ],
-                    tiles_x,
-                    rows.1 - rows.0,
-                );
+                let images = [gradient.colour, d_alpha, d_depth];
+                let bindings = [
+                    rasterize_bindings(band, slot, images).as_slice(),
+                    &[(15, &parts.screen.buffer)],
+                ]
+                .concat();
+                context.dispatch_grid(encoder, &rasterize, &bindings, tiles_x, rows.1 - rows.0);
             }
-            context.dispatch(
-                encoder,
-                &project,
+            let bindings = [
+                project_inputs(&slot.bands[0].camera, &gaussians).as_slice(),
                 &[
-                    (0, &slot.bands[0].camera),
-                    (1, &gaussians.means.buffer),
-                    (2, &gaussians.covariances.buffer),
-                    (3, &gaussians.opacities.buffer),
-                    (4, &gaussians.sh.buffer),
                     (9, &out.diagnostics.buffer),
                     (10, &parts.screen.buffer),
                     (11, &out.means.buffer),
@@ -1052,8 +1057,9 @@ impl SplatWorkspace {
                     (14, &out.sh.buffer),
                     (15, &out.mean_2d_norm.buffer),
                 ],
-                call.gaussians.div_ceil(GROUP),
-            );
+            ]
+            .concat();
+            context.dispatch(encoder, &project, &bindings, call.gaussians.div_ceil(GROUP));
         }
         Ok(())
     }
