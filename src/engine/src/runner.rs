@@ -534,11 +534,10 @@ impl Run<'_> {
         let (store, progress) = (self.store, self.progress);
         let StageJob {
             stage,
-            kind,
             stage_key,
             ref id,
             forced,
-            started,
+            ..
         } = *job;
         let inputs: Vec<EntryReader> = stage
             .inputs
@@ -554,89 +553,31 @@ impl Run<'_> {
             ));
         }
         let staging = store.begin_staging(lock.as_ref())?;
-        let resumed = std::fs::read_dir(&staging.work_dir)
-            .map(|mut read| read.next().is_some())
-            .unwrap_or(false);
         let writer = EntryWriter::create(&staging.output_dir)?;
-        let spinner = progress.spinner(format!(
-            "{} ({}, {})",
-            stage.name,
-            stage.kind,
-            &stage_key.key[..12]
-        ));
         let started_at = SystemTime::now();
-        let mut context = StageContext {
-            stage_name: &stage.name,
-            key: &stage_key.key,
-            config: &stage.config,
-            inputs: &inputs,
-            output: &writer,
-            work_dir: &staging.work_dir,
-            progress,
-            log: Mutex::new(Vec::new()),
-            warnings: Mutex::new(Vec::new()),
-        };
-        if resumed {
-            context.log("resuming from the work folder of an interrupted run");
-        }
-        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
-            .unwrap_or_else(|panic| {
-                let text = panic
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "unknown panic".to_string());
-                Err(anyhow::anyhow!("panicked: {text}"))
-            });
-        spinner.finish_and_clear();
-        if let Err(error) = result {
-            // A stage that failed (rather than a run that was killed) discards its partial
-            // output now, so the next run has nothing to clean up and report as a killed
-            // run; the work folder stays for resume.
-            drop(context);
-            drop(writer);
-            if let Err(e) = std::fs::remove_dir_all(&staging.output_dir) {
-                progress.println(&format!(
-                    "cannot remove the partial output {}: {e}",
-                    staging.output_dir.display()
-                ));
+        let (log, warnings) = match self.run_kind(job, &inputs, &writer, &staging) {
+            Ok(log_and_warnings) => log_and_warnings,
+            Err(error) => {
+                // A stage that failed (rather than a run that was killed) discards its partial
+                // output now, so the next run has nothing to clean up and report as a killed
+                // run; the work folder stays for resume.
+                drop(writer);
+                if let Err(e) = std::fs::remove_dir_all(&staging.output_dir) {
+                    progress.println(&format!(
+                        "cannot remove the partial output {}: {e}",
+                        staging.output_dir.display()
+                    ));
+                }
+                return Err(error.context(format!(
+                    "stage \"{}\" (kind {}, key {}) failed",
+                    stage.name,
+                    stage.kind,
+                    &stage_key.key[..12]
+                )));
             }
-            return Err(error.context(format!(
-                "stage \"{}\" (kind {}, key {}) failed",
-                stage.name,
-                stage.kind,
-                &stage_key.key[..12]
-            )));
-        }
-        check_reads_unchanged(store, job, &inputs, &staging)?;
-        let log = context.log.into_inner().expect("log poisoned");
-        let warnings = context.warnings.into_inner().expect("warnings poisoned");
-        let finished_at = SystemTime::now();
-        let mut manifest = Manifest {
-            kind: stage.kind.clone(),
-            version: kind.version(),
-            stage_name: stage.name.clone(),
-            key: stage_key.key.clone(),
-            config: stage.config.clone(),
-            inputs: inputs
-                .iter()
-                .map(|input| ManifestInput {
-                    stage_name: input.stage_name().to_string(),
-                    kind: input.kind().to_string(),
-                    key: input.key().to_string(),
-                })
-                .collect(),
-            external_files: stage_key.external_files.clone(),
-            tool_version: crate::TOOL_VERSION.to_string(),
-            // Filled in by `finish`, with the array digests.
-            metadata_digest: String::new(),
-            arrays: BTreeMap::new(),
-            wall_time_s: started.elapsed().as_secs_f64(),
-            started_at: crate::timefmt::rfc3339(started_at),
-            finished_at: crate::timefmt::rfc3339(finished_at),
-            log,
-            warnings,
         };
+        check_reads_unchanged(store, job, &inputs, &staging)?;
+        let mut manifest = manifest_of(job, &inputs, started_at, log, warnings);
         writer
             .finish(&mut manifest)
             .with_context(|| format!("stage \"{}\": cannot finish its entry", stage.name))?;
@@ -663,6 +604,103 @@ impl Run<'_> {
         self.reports.push(job.report(outcome, &manifest.log));
         self.readers.insert(stage.name.clone(), reader);
         Ok(())
+    }
+
+    /// Runs the stage kind (a panic is its error) behind a spinner; returns its log and
+    /// warnings.
+    fn run_kind(
+        &self,
+        job: &StageJob<'_>,
+        inputs: &[EntryReader],
+        writer: &EntryWriter,
+        staging: &Staging,
+    ) -> anyhow::Result<(Vec<String>, Vec<String>)> {
+        let StageJob {
+            stage,
+            kind,
+            stage_key,
+            ..
+        } = *job;
+        let resumed = std::fs::read_dir(&staging.work_dir)
+            .map(|mut read| read.next().is_some())
+            .unwrap_or(false);
+        let spinner = self.progress.spinner(format!(
+            "{} ({}, {})",
+            stage.name,
+            stage.kind,
+            &stage_key.key[..12]
+        ));
+        let mut context = StageContext {
+            stage_name: &stage.name,
+            key: &stage_key.key,
+            config: &stage.config,
+            inputs,
+            output: writer,
+            work_dir: &staging.work_dir,
+            progress: self.progress,
+            log: Mutex::new(Vec::new()),
+            warnings: Mutex::new(Vec::new()),
+        };
+        if resumed {
+            context.log("resuming from the work folder of an interrupted run");
+        }
+        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
+            .unwrap_or_else(|panic| {
+                let text = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "unknown panic".to_string());
+                Err(anyhow::anyhow!("panicked: {text}"))
+            });
+        spinner.finish_and_clear();
+        result?;
+        let log = context.log.into_inner().expect("log poisoned");
+        let warnings = context.warnings.into_inner().expect("warnings poisoned");
+        Ok((log, warnings))
+    }
+}
+
+/// The manifest of a stage's new entry (digests filled in by `EntryWriter::finish`).
+fn manifest_of(
+    job: &StageJob<'_>,
+    inputs: &[EntryReader],
+    started_at: SystemTime,
+    log: Vec<String>,
+    warnings: Vec<String>,
+) -> Manifest {
+    let StageJob {
+        stage,
+        kind,
+        stage_key,
+        started,
+        ..
+    } = *job;
+    let finished_at = SystemTime::now();
+    Manifest {
+        kind: stage.kind.clone(),
+        version: kind.version(),
+        stage_name: stage.name.clone(),
+        key: stage_key.key.clone(),
+        config: stage.config.clone(),
+        inputs: inputs
+            .iter()
+            .map(|input| ManifestInput {
+                stage_name: input.stage_name().to_string(),
+                kind: input.kind().to_string(),
+                key: input.key().to_string(),
+            })
+            .collect(),
+        external_files: stage_key.external_files.clone(),
+        tool_version: crate::TOOL_VERSION.to_string(),
+        // Filled in by `finish`, with the array digests.
+        metadata_digest: String::new(),
+        arrays: BTreeMap::new(),
+        wall_time_s: started.elapsed().as_secs_f64(),
+        started_at: crate::timefmt::rfc3339(started_at),
+        finished_at: crate::timefmt::rfc3339(finished_at),
+        log,
+        warnings,
     }
 }
 

@@ -284,6 +284,111 @@ fn jitter(
     }
 }
 
+/// The walk scene: ground-truth fits sampled from the motion script at each frame, and (with
+/// a garment) the skirt simulated over every substep and recorded at the frames; no drapes.
+fn walk_sequence(
+    config: &SyntheticConfig,
+    model: &BodyModel,
+    shaped: &[DVec3],
+    rest_joints: &[DVec3],
+    pelvis_height: f64,
+) -> anyhow::Result<(Vec<BodyParams>, Vec<Vec<DVec3>>, Vec<Vec<DVec3>>)> {
+    let duration = config.frames as f64 / config.fps;
+    let dt = 1.0 / SIMULATION_RATE;
+    let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
+    let frame_step =
+        |frame: usize| (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize;
+    let params_at = |sample: usize| {
+        let s = &samples[sample.min(samples.len() - 1)];
+        BodyParams {
+            pose: s.pose.clone(),
+            betas: config.betas.to_vec(),
+            expression: Vec::new(),
+            world_rotation: DVec3::ZERO,
+            // The pelvis joint of the shaped rest body sits at rest_joints[0].
+            world_translation: s.position - rest_joints[0],
+        }
+    };
+    let ground_truth: Vec<BodyParams> = (0..config.frames)
+        .map(|f| params_at(frame_step(f)))
+        .collect();
+
+    // Garment simulation over every substep, recording the frames.
+    let mut skirt_frames = Vec::new();
+    if config.garment {
+        let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
+        let mut skirt = Skirt::new(model, shaped, scale);
+        let transforms = |sample: usize| {
+            let p = params_at(sample);
+            (
+                model.joint_transforms(rest_joints, &p.pose),
+                DAffine3::from_translation(p.world_translation),
+            )
+        };
+        let (t0, w0) = transforms(0);
+        skirt.reset(&t0, w0);
+        let last = frame_step(config.frames - 1);
+        let mut next_frame = 0;
+        for step in 0..=last {
+            if step > 0 {
+                let (t, w) = transforms(step);
+                skirt.step(&t, w, dt);
+            }
+            while next_frame < config.frames && frame_step(next_frame) == step {
+                skirt_frames.push(skirt.positions().to_vec());
+                next_frame += 1;
+            }
+        }
+        anyhow::ensure!(
+            skirt_frames.len() == config.frames,
+            "garment simulation recorded {} of {} frames",
+            skirt_frames.len(),
+            config.frames
+        );
+        anyhow::ensure!(
+            skirt_frames.iter().flatten().all(|p| p.is_finite()),
+            "garment simulation diverged"
+        );
+    }
+    Ok((ground_truth, skirt_frames, Vec::new()))
+}
+
+/// 3D keypoints: every joint's true world position plus Gaussian noise (its own random
+/// stream).
+fn noisy_keypoints(
+    config: &SyntheticConfig,
+    model: &BodyModel,
+    ground_truth: &[BodyParams],
+) -> anyhow::Result<Vec<DVec3>> {
+    let mut keypoint_rng = super::rng::seeded(config.seed ^ KEYPOINT_STREAM);
+    let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
+    for params in ground_truth {
+        let posed = model.forward(params)?;
+        for joint in posed.joints {
+            let noise = DVec3::new(
+                keypoint_rng.normal(),
+                keypoint_rng.normal(),
+                keypoint_rng.normal(),
+            );
+            keypoints.push(joint + noise * config.jitter.keypoints_metres);
+        }
+    }
+    Ok(keypoints)
+}
+
+/// Each body vertex's colour: that of the region of its dominant joint.
+fn body_colours(model: &BodyModel) -> Vec<DVec3> {
+    (0..model.num_vertices())
+        .map(|v| {
+            let dominant = model
+                .vertex_weights(v)
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .map_or(0, |(j, _)| j);
+            region_colour(dominant)
+        })
+        .collect()
+}
+
 impl SyntheticScene {
     /// Builds the body, runs the motion script and the garment simulation, and places the
     /// cameras. Cost: about a second for the default sizes; images are rendered later.
@@ -302,67 +407,7 @@ impl SyntheticScene {
             SceneKind::History => {
                 history_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?
             }
-            SceneKind::Walk => {
-                let duration = config.frames as f64 / config.fps;
-                let dt = 1.0 / SIMULATION_RATE;
-                let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
-                let frame_step = |frame: usize| {
-                    (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize
-                };
-                let params_at = |sample: usize| {
-                    let s = &samples[sample.min(samples.len() - 1)];
-                    BodyParams {
-                        pose: s.pose.clone(),
-                        betas: config.betas.to_vec(),
-                        expression: Vec::new(),
-                        world_rotation: DVec3::ZERO,
-                        // The pelvis joint of the shaped rest body sits at rest_joints[0].
-                        world_translation: s.position - rest_joints[0],
-                    }
-                };
-                let ground_truth: Vec<BodyParams> = (0..config.frames)
-                    .map(|f| params_at(frame_step(f)))
-                    .collect();
-
-                // Garment simulation over every substep, recording the frames.
-                let mut skirt_frames = Vec::new();
-                if config.garment {
-                    let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
-                    let mut skirt = Skirt::new(&model, &shaped, scale);
-                    let transforms = |sample: usize| {
-                        let p = params_at(sample);
-                        (
-                            model.joint_transforms(&rest_joints, &p.pose),
-                            DAffine3::from_translation(p.world_translation),
-                        )
-                    };
-                    let (t0, w0) = transforms(0);
-                    skirt.reset(&t0, w0);
-                    let last = frame_step(config.frames - 1);
-                    let mut next_frame = 0;
-                    for step in 0..=last {
-                        if step > 0 {
-                            let (t, w) = transforms(step);
-                            skirt.step(&t, w, dt);
-                        }
-                        while next_frame < config.frames && frame_step(next_frame) == step {
-                            skirt_frames.push(skirt.positions().to_vec());
-                            next_frame += 1;
-                        }
-                    }
-                    anyhow::ensure!(
-                        skirt_frames.len() == config.frames,
-                        "garment simulation recorded {} of {} frames",
-                        skirt_frames.len(),
-                        config.frames
-                    );
-                    anyhow::ensure!(
-                        skirt_frames.iter().flatten().all(|p| p.is_finite()),
-                        "garment simulation diverged"
-                    );
-                }
-                (ground_truth, skirt_frames, Vec::new())
-            }
+            SceneKind::Walk => walk_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?,
         };
         anyhow::ensure!(
             skirt_frames.iter().flatten().all(|p| p.is_finite()),
@@ -380,31 +425,8 @@ impl SyntheticScene {
             .map(|p| jitter(p, &config.jitter, &mut rng, &fitted_betas))
             .collect();
 
-        // 3D keypoints: every joint's true world position plus Gaussian noise.
-        let mut keypoint_rng = super::rng::seeded(config.seed ^ KEYPOINT_STREAM);
-        let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
-        for params in &ground_truth {
-            let posed = model.forward(params)?;
-            for joint in posed.joints {
-                let noise = DVec3::new(
-                    keypoint_rng.normal(),
-                    keypoint_rng.normal(),
-                    keypoint_rng.normal(),
-                );
-                keypoints.push(joint + noise * config.jitter.keypoints_metres);
-            }
-        }
-
-        let body_colour = (0..model.num_vertices())
-            .map(|v| {
-                let dominant = model
-                    .vertex_weights(v)
-                    .max_by(|a, b| a.1.total_cmp(&b.1))
-                    .map_or(0, |(j, _)| j);
-                region_colour(dominant)
-            })
-            .collect();
-
+        let keypoints = noisy_keypoints(config, &model, &ground_truth)?;
+        let body_colour = body_colours(&model);
         let backdrops = match config.background {
             SyntheticBackground::Black => Vec::new(),
             SyntheticBackground::Textured => {
