@@ -136,19 +136,28 @@ impl Backdrop {
     }
 }
 
+/// What a scene's motion produces, per frame.
+struct SceneSequence {
+    /// The true body fits.
+    ground_truth: Vec<BodyParams>,
+    /// Skirt particle positions (empty without a garment).
+    skirt_frames: Vec<Vec<DVec3>>,
+    /// The skirt's static drape (history scene only, else empty).
+    drapes: Vec<Vec<DVec3>>,
+}
+
 /// Per-frame ground truth, simulated skirt and its static drape of the history scene
 /// ([`history`]): the script's poses, the heading as the world rotation, the path integrated
 /// from the interpolated speed and heading at the simulation rate, and the skirt's
 /// oscillator ([`Swing`]) stepped by the same samples, starting at rest (the script starts
 /// with a hold).
-#[allow(clippy::type_complexity)]
 fn history_sequence(
     config: &SyntheticConfig,
     model: &BodyModel,
     shaped: &[DVec3],
     rest_joints: &[DVec3],
     pelvis_height: f64,
-) -> anyhow::Result<(Vec<BodyParams>, Vec<Vec<DVec3>>, Vec<Vec<DVec3>>)> {
+) -> anyhow::Result<SceneSequence> {
     let (phases, headings) = history::frame_values();
     let n = config.frames;
     let phase_curve = MonotoneCubic::new(&phases.iter().map(|&p| p as f64).collect::<Vec<_>>());
@@ -199,7 +208,11 @@ fn history_sequence(
         })
         .collect();
     if !config.garment {
-        return Ok((ground_truth, Vec::new(), Vec::new()));
+        return Ok(SceneSequence {
+            ground_truth,
+            skirt_frames: Vec::new(),
+            drapes: Vec::new(),
+        });
     }
     let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
     let skirt = Skirt::new(model, shaped, scale);
@@ -216,7 +229,11 @@ fn history_sequence(
             (state.apply(&swing_params, &drape), drape)
         })
         .unzip();
-    Ok((ground_truth, simulated, drapes))
+    Ok(SceneSequence {
+        ground_truth,
+        skirt_frames: simulated,
+        drapes,
+    })
 }
 
 /// The albedo region colour of a body vertex from its dominant joint.
@@ -292,7 +309,7 @@ fn walk_sequence(
     shaped: &[DVec3],
     rest_joints: &[DVec3],
     pelvis_height: f64,
-) -> anyhow::Result<(Vec<BodyParams>, Vec<Vec<DVec3>>, Vec<Vec<DVec3>>)> {
+) -> anyhow::Result<SceneSequence> {
     let duration = config.frames as f64 / config.fps;
     let dt = 1.0 / SIMULATION_RATE;
     let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
@@ -350,7 +367,11 @@ fn walk_sequence(
             "garment simulation diverged"
         );
     }
-    Ok((ground_truth, skirt_frames, Vec::new()))
+    Ok(SceneSequence {
+        ground_truth,
+        skirt_frames,
+        drapes: Vec::new(),
+    })
 }
 
 /// 3D keypoints: every joint's true world position plus Gaussian noise (its own random
@@ -403,7 +424,11 @@ impl SyntheticScene {
         let sole = shaped.iter().map(|v| v.y).fold(f64::INFINITY, f64::min);
         let pelvis_height = rest_joints[0].y - sole;
 
-        let (ground_truth, skirt_frames, drapes) = match config.scene {
+        let SceneSequence {
+            ground_truth,
+            skirt_frames,
+            drapes,
+        } = match config.scene {
             SceneKind::History => {
                 history_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?
             }
