@@ -576,7 +576,7 @@ fn bad_inputs_are_errors_naming_the_sizes() {
 /// image border.
 #[test]
 fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
-    use crate::losses::LpipsLoss;
+    use crate::losses::{ColourPair, LpipsLoss};
     use seqavatar_compute::backend::{Backend, DeviceChoice};
     use seqavatar_compute::lpips::gpu::{Crop, DeviceImage};
     use seqavatar_compute::lpips::seeded::seeded_weights;
@@ -604,10 +604,12 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
         let mut lpips_gradient = vec![0.0; 3 * w * h];
         let value = oracle_lpips
             .add_loss(
-                &case.colour,
-                &target,
-                w,
-                h,
+                ColourPair {
+                    width: w,
+                    height: h,
+                    colour: &case.colour,
+                    target: &target,
+                },
                 case.rect,
                 lpips_weight,
                 &mut lpips_gradient,
