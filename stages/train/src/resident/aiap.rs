@@ -227,29 +227,7 @@ impl ResidentAiap {
         );
         self.ensure_workspace(n)?;
         let k = self.k(n);
-        if self.written_for != Some((n, k)) {
-            let pairs = (n * k.saturating_sub(1)).max(1) as f64;
-            let float = |v: f64| (v as f32).to_bits();
-            let words: [u32; 12] = [
-                u32::try_from(n).context("AIAP: Gaussian count")?,
-                k as u32,
-                self.workspace.as_ref().map_or(0, |w| w.capacity) as u32,
-                self.context.dispatch_limit(),
-                float(self.weights.centre / pairs),
-                float(self.weights.covariance / pairs),
-                float(self.weights.centre),
-                float(self.weights.covariance),
-                n.min(CANDIDATES) as u32,
-                0,
-                0,
-                0,
-            ];
-            self.context.write(&self.params, 0, &words)?;
-            // Lists of another count are not valid (a grown one's anchors are zeros).
-            let lists = &self.workspace.as_ref().expect("allocated above").lists;
-            self.context.write(&lists.buffer, 0, &[0_u32])?;
-            self.written_for = Some((n, k));
-        }
+        self.write_params(n, k)?;
         let workspace = self.workspace.as_ref().expect("allocated above");
         let g = &workspace.gradients;
         for buffer in [
@@ -270,55 +248,8 @@ impl ResidentAiap {
         let xyz = &gaussians.column(names::POSITION)?.values.buffer;
         let log_scale = &gaussians.column(names::LOG_SCALE)?.values.buffer;
         let rotation = &gaussians.column(names::ROTATION)?.values.buffer;
+        self.record_neighbours(encoder, xyz, groups);
         let ctx = &self.context;
-        ctx.dispatch_grid(
-            encoder,
-            &self.check,
-            &[
-                (0, &self.params),
-                (1, xyz),
-                (2, &workspace.anchors.buffer),
-                (5, &workspace.lists.buffer),
-                (6, &workspace.grids),
-            ],
-            1,
-            1,
-        );
-        ctx.dispatch_indirect(
-            encoder,
-            &self.rebuild,
-            &[
-                (0, &self.params),
-                (1, xyz),
-                (2, &workspace.anchors.buffer),
-                (3, &workspace.candidates.buffer),
-                (4, &workspace.slack.buffer),
-            ],
-            &workspace.grids,
-            0,
-        );
-        ctx.dispatch_indirect(
-            encoder,
-            &self.finalize,
-            &[
-                (0, &self.params),
-                (4, &workspace.slack.buffer),
-                (5, &workspace.lists.buffer),
-            ],
-            &workspace.grids,
-            12,
-        );
-        ctx.dispatch(
-            encoder,
-            &self.select,
-            &[
-                (0, &self.params),
-                (1, xyz),
-                (3, &workspace.candidates.buffer),
-                (7, &workspace.neighbours.buffer),
-            ],
-            groups,
-        );
         ctx.dispatch(
             encoder,
             &self.covariances,
@@ -387,6 +318,99 @@ impl ResidentAiap {
             4 * 6 * n as u64,
         );
         Ok(())
+    }
+
+    /// Writes the parameters (32 bytes) when the count or `k` changed; lists of another count
+    /// are invalidated (a grown one's anchors are zeros).
+    fn write_params(&mut self, n: usize, k: usize) -> anyhow::Result<()> {
+        if self.written_for == Some((n, k)) {
+            return Ok(());
+        }
+        let pairs = (n * k.saturating_sub(1)).max(1) as f64;
+        let float = |v: f64| (v as f32).to_bits();
+        let words: [u32; 12] = [
+            u32::try_from(n).context("AIAP: Gaussian count")?,
+            k as u32,
+            self.workspace.as_ref().map_or(0, |w| w.capacity) as u32,
+            self.context.dispatch_limit(),
+            float(self.weights.centre / pairs),
+            float(self.weights.covariance / pairs),
+            float(self.weights.centre),
+            float(self.weights.covariance),
+            n.min(CANDIDATES) as u32,
+            0,
+            0,
+            0,
+        ];
+        self.context.write(&self.params, 0, &words)?;
+        // Lists of another count are not valid (a grown one's anchors are zeros).
+        let lists = &self.workspace.as_ref().expect("allocated above").lists;
+        self.context.write(&lists.buffer, 0, &[0_u32])?;
+        self.written_for = Some((n, k));
+        Ok(())
+    }
+
+    /// Records the neighbour search: the Verlet check, the rebuild when it is due (indirect
+    /// dispatches sized by the check), and the `k` nearest from the candidate lists.
+    fn record_neighbours(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        xyz: &wgpu::Buffer,
+        groups: u32,
+    ) {
+        let workspace = self
+            .workspace
+            .as_ref()
+            .expect("allocated by ensure_workspace");
+        let ctx = &self.context;
+        ctx.dispatch_grid(
+            encoder,
+            &self.check,
+            &[
+                (0, &self.params),
+                (1, xyz),
+                (2, &workspace.anchors.buffer),
+                (5, &workspace.lists.buffer),
+                (6, &workspace.grids),
+            ],
+            1,
+            1,
+        );
+        ctx.dispatch_indirect(
+            encoder,
+            &self.rebuild,
+            &[
+                (0, &self.params),
+                (1, xyz),
+                (2, &workspace.anchors.buffer),
+                (3, &workspace.candidates.buffer),
+                (4, &workspace.slack.buffer),
+            ],
+            &workspace.grids,
+            0,
+        );
+        ctx.dispatch_indirect(
+            encoder,
+            &self.finalize,
+            &[
+                (0, &self.params),
+                (4, &workspace.slack.buffer),
+                (5, &workspace.lists.buffer),
+            ],
+            &workspace.grids,
+            12,
+        );
+        ctx.dispatch(
+            encoder,
+            &self.select,
+            &[
+                (0, &self.params),
+                (1, xyz),
+                (3, &workspace.candidates.buffer),
+                (7, &workspace.neighbours.buffer),
+            ],
+            groups,
+        );
     }
 
     /// The gradients of the last recorded iteration (allocated by the first

@@ -132,6 +132,66 @@ pub struct ResidentStep {
 /// the densification statistics).
 pub const TIMED_PHASES: usize = 5;
 
+/// The networks on the device with their Adam moments (`network_adam`, empty for a fresh
+/// run).
+fn upload_networks(
+    context: &Arc<GpuContext>,
+    config: &TrainConfig,
+    networks: Option<&Networks<f32>>,
+    network_adam: &BTreeMap<String, AdamState<f32>>,
+) -> anyhow::Result<Option<GpuNetworks>> {
+    let Some(net) = networks else {
+        return Ok(None);
+    };
+    let mut gpu = GpuNetworks::upload(context.clone(), net).context("uploading the networks")?;
+    if !network_adam.is_empty() {
+        let states: HashMap<String, AdamState<f32>> = network_adam
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        gpu.upload_adam(&adam_config(config), &states)
+            .context("uploading the networks' Adam moments")?;
+    }
+    Ok(Some(gpu))
+}
+
+/// The LPIPS trunk's device workspace for the run's largest camera.
+fn lpips_workspace(
+    config: &TrainConfig,
+    data: &TrainingData,
+    loss: &LpipsLoss,
+) -> anyhow::Result<ResidentLpips> {
+    let gpu = loss
+        .lpips()
+        .gpu()
+        .context("the LPIPS loss's trunk is not on the gpu")?;
+    let (max_height, max_width) = data
+        .cameras
+        .iter()
+        .map(|c| (c.height as usize, c.width as usize))
+        .fold((1, 1), |(h, w), (ch, cw)| (h.max(ch), w.max(cw)));
+    gpu.resident(
+        loss.lpips().weights(),
+        config.lpips_input(),
+        max_height,
+        max_width,
+        config.cameras_per_step,
+    )
+    .context("LPIPS on the device")
+}
+
+/// The canonical Gaussians' columns the deformation reads, from the optimiser's buffers.
+fn gaussian_columns(gaussians: &ResidentGaussians) -> anyhow::Result<GaussianColumns<'_>> {
+    let column = |name: &str| -> anyhow::Result<&GpuBuffer> { Ok(&gaussians.column(name)?.values) };
+    Ok(GaussianColumns {
+        xyz: column(names::POSITION)?,
+        log_scale: column(names::LOG_SCALE)?,
+        rotation: column(names::ROTATION)?,
+        opacity_logit: column(names::OPACITY_LOGIT)?,
+        sh: column(SH)?,
+    })
+}
+
 /// Records timestamp `index` of the iteration in log slot `slot` when timing is on.
 fn mark(timer: &Option<PhaseTimer>, encoder: &mut wgpu::CommandEncoder, slot: usize, index: usize) {
     if let Some(timer) = timer {
@@ -175,22 +235,7 @@ impl ResidentStep {
         } = *run;
         let n = state.len();
         let avatar = config.avatar();
-        let networks = match networks {
-            None => None,
-            Some(net) => {
-                let mut gpu =
-                    GpuNetworks::upload(context.clone(), net).context("uploading the networks")?;
-                if !network_adam.is_empty() {
-                    let states: HashMap<String, AdamState<f32>> = network_adam
-                        .iter()
-                        .map(|(k, v)| (k.clone(), v.clone()))
-                        .collect();
-                    gpu.upload_adam(&adam_config(config), &states)
-                        .context("uploading the networks' Adam moments")?;
-                }
-                Some(gpu)
-            }
-        };
+        let networks = upload_networks(&context, config, networks, network_adam)?;
         let deformer = ResidentDeformer::new(
             context.clone(),
             &DeformerSetup {
@@ -228,30 +273,9 @@ impl ResidentStep {
             max_pixels,
         )
         .context("image losses")?;
-        let lpips = match lpips {
-            None => None,
-            Some(loss) => {
-                let gpu = loss
-                    .lpips()
-                    .gpu()
-                    .context("the LPIPS loss's trunk is not on the gpu")?;
-                let (max_height, max_width) = data
-                    .cameras
-                    .iter()
-                    .map(|c| (c.height as usize, c.width as usize))
-                    .fold((1, 1), |(h, w), (ch, cw)| (h.max(ch), w.max(cw)));
-                Some(
-                    gpu.resident(
-                        loss.lpips().weights(),
-                        config.lpips_input(),
-                        max_height,
-                        max_width,
-                        config.cameras_per_step,
-                    )
-                    .context("LPIPS on the device")?,
-                )
-            }
-        };
+        let lpips = lpips
+            .map(|loss| lpips_workspace(config, data, loss))
+            .transpose()?;
         let gaussians = ResidentGaussians::upload(&context, state).context("Gaussians")?;
         let adam = GaussianAdam::new(&context)?;
         let aiap = ResidentAiap::new(
@@ -339,15 +363,37 @@ impl ResidentStep {
         data: &TrainingData,
         lpips: Option<&LpipsLoss>,
     ) -> anyhow::Result<()> {
-        let config = &self.config;
-        let n = self.gaussians.len();
-        let context = self.context.clone();
-        let mut encoder = context.encoder();
+        let mut encoder = self.context.encoder();
         let slot = self.first_unread + self.unread;
         self.log.clear_slot(&mut encoder, slot);
         mark(&self.timer, &mut encoder, slot, 0);
+        self.record_deformation(&mut encoder, plan, data)?;
+        mark(&self.timer, &mut encoder, slot, 1);
+        let cameras = self.record_splatting(&mut encoder, plan, data)?;
+        mark(&self.timer, &mut encoder, slot, 2);
+        self.record_losses(&mut encoder, plan, data, &cameras, lpips)?;
+        mark(&self.timer, &mut encoder, slot, 3);
+        let aiap_active = self.record_backward(&mut encoder, plan, cameras.len())?;
+        mark(&self.timer, &mut encoder, slot, 4);
+        self.record_optimisers(&mut encoder, plan, aiap_active)?;
+        mark(&self.timer, &mut encoder, slot, 5);
+        if let Some(timer) = self.timer.as_mut() {
+            timer.finish_slot(&mut encoder, slot);
+        }
+        self.record_log(&mut encoder, slot);
+        self.submit(encoder)
+    }
 
-        // Host-side per-iteration records (small writes, ordered before the submission).
+    /// The iteration's host-side records (small writes, ordered before the submission) and
+    /// the deformation: pose, motion inputs, networks, skinning.
+    fn record_deformation(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &IterationPlan<'_>,
+        data: &TrainingData,
+    ) -> anyhow::Result<()> {
+        let config = &self.config;
+        let n = self.gaussians.len();
         self.deformer
             .set_frame(plan.frame, History::Own, n, plan.sh_degree)?;
         self.gaussians.write_step(&OptimiserStep {
@@ -358,47 +404,57 @@ impl ResidentStep {
             sh_degree: plan.sh_degree as usize,
             half_size: half_size(data, plan.images),
         })?;
-
-        // The deformation: pose, motion inputs, networks, skinning.
         if let Some(networks) = self.deformer.networks.as_mut() {
-            networks.record_zero_grad(&mut encoder);
+            networks.record_zero_grad(encoder);
         }
-        let column =
-            |name: &str| -> anyhow::Result<&GpuBuffer> { Ok(&self.gaussians.column(name)?.values) };
-        let columns = GaussianColumns {
-            xyz: column(names::POSITION)?,
-            log_scale: column(names::LOG_SCALE)?,
-            rotation: column(names::ROTATION)?,
-            opacity_logit: column(names::OPACITY_LOGIT)?,
-            sh: column(SH)?,
-        };
+        let columns = gaussian_columns(&self.gaussians)?;
         self.deformer
-            .record_forward(&mut encoder, plan.frame, History::Own, &columns)?;
+            .record_forward(encoder, plan.frame, History::Own, &columns)
+    }
 
-        mark(&self.timer, &mut encoder, slot, 1);
-
-        // Splatting into the chosen cameras on the iteration's background.
+    /// Splatting into the chosen cameras on the iteration's background; returns the cameras.
+    fn record_splatting(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &IterationPlan<'_>,
+        data: &TrainingData,
+    ) -> anyhow::Result<Vec<Camera>> {
         let cameras: Vec<Camera> = plan
             .images
             .iter()
             .map(|&i| data.cameras[data.images[i].view].clone())
             .collect();
-        let world = self.deformer.world(plan.sh_degree);
         let options = RasterOptions {
             background: plan.background,
             smooth_cutoff: false,
         };
         self.splat
-            .forward(&context, &mut encoder, world, &cameras, &options)
+            .forward(
+                &self.context,
+                encoder,
+                self.deformer.world(plan.sh_degree),
+                &cameras,
+                &options,
+            )
             .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(cameras)
+    }
 
-        mark(&self.timer, &mut encoder, slot, 2);
-
-        // Image losses and their image gradients, then AIAP.
+    /// The image losses and their image gradients per camera (LPIPS's joined to the colour
+    /// gradient), then AIAP.
+    fn record_losses(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &IterationPlan<'_>,
+        data: &TrainingData,
+        cameras: &[Camera],
+        lpips: Option<&LpipsLoss>,
+    ) -> anyhow::Result<()> {
+        let config = &self.config;
         let loss_cameras: Vec<LossCamera> = plan
             .images
             .iter()
-            .zip(&cameras)
+            .zip(cameras)
             .map(|(&i, camera)| {
                 let record = &data.images[i];
                 LossCamera {
@@ -415,12 +471,12 @@ impl ResidentStep {
             })
             .collect();
         self.losses
-            .begin_iteration(&mut encoder, plan.iteration, &loss_cameras, &self.truth)?;
+            .begin_iteration(encoder, plan.iteration, &loss_cameras, &self.truth)?;
         for (c, (camera, loss_camera)) in cameras.iter().zip(&loss_cameras).enumerate() {
             let (colour, alpha) = &self.image_gradients[c];
             let rendered = self.splat.colour(c).map_err(|e| anyhow::anyhow!("{e}"))?;
             self.losses.record_camera(
-                &mut encoder,
+                encoder,
                 c,
                 &self.truth,
                 DeviceImages {
@@ -432,7 +488,7 @@ impl ResidentStep {
             if let (Some(workspace), Some(loss)) = (&self.lpips, lpips) {
                 // Its image gradient joins the colour gradient before the splatting backward.
                 let (width, height) = (camera.width as usize, camera.height as usize);
-                let target = self.losses.record_target(&mut encoder, c, &self.truth)?;
+                let target = self.losses.record_target(encoder, c, &self.truth)?;
                 let crop = loss.crop(loss_camera.rect, width, height)?;
                 let image = |buffer| LpipsImage {
                     buffer,
@@ -446,7 +502,7 @@ impl ResidentStep {
                     .context("the LPIPS trunk is not on the gpu")?;
                 workspace.record(
                     gpu,
-                    &mut encoder,
+                    encoder,
                     c,
                     image(rendered),
                     image(target),
@@ -459,22 +515,31 @@ impl ResidentStep {
                     (config.lpips_weight / cameras.len() as f64) as f32,
                     colour,
                 )?;
-                self.losses
-                    .record_lpips(&mut encoder, c, workspace.value(c))?;
+                self.losses.record_lpips(encoder, c, workspace.value(c))?;
             }
         }
-        self.losses.finish_iteration(&mut encoder);
+        self.losses.finish_iteration(encoder);
         self.aiap.record(
-            &mut encoder,
+            encoder,
             &self.gaussians,
             &self.deformer.skinning.means,
             &self.deformer.skinning.covariances,
-        )?;
+        )
+    }
 
-        mark(&self.timer, &mut encoder, slot, 3);
-
-        // Backward: splatting, AIAP's deformed-space gradients joined, skinning.
-        let upstream: Vec<DeviceImageGradient<'_>> = self.image_gradients[..cameras.len()]
+    /// The backward: splatting (AIAP's deformed-space gradients joined), skinning, the LBS
+    /// offsets, the non-rigid network (its centre gradient joins the direct path), the pose
+    /// path and the pose refiner. Returns whether AIAP ran.
+    fn record_backward(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &IterationPlan<'_>,
+        camera_count: usize,
+    ) -> anyhow::Result<bool> {
+        let context = &self.context;
+        let n = self.gaussians.len();
+        let world = self.deformer.world(plan.sh_degree);
+        let upstream: Vec<DeviceImageGradient<'_>> = self.image_gradients[..camera_count]
             .iter()
             .map(|(colour, alpha)| DeviceImageGradient {
                 colour,
@@ -483,63 +548,57 @@ impl ResidentStep {
             })
             .collect();
         self.splat
-            .backward(&context, &mut encoder, world, &upstream)
+            .backward(context, encoder, world, &upstream)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let splat_grads = self.splat.gradients().map_err(|e| anyhow::anyhow!("{e}"))?;
         let aiap_active = self.aiap.active(n);
         if aiap_active {
             let grads = self.aiap.gradients().context("AIAP gradients")?;
-            record_add(
-                &context,
-                &self.add,
-                &mut encoder,
-                &splat_grads.means().buffer,
-                &grads.deformed_centres.buffer,
-                3 * n,
-            );
-            record_add(
-                &context,
-                &self.add,
-                &mut encoder,
-                &splat_grads.covariances().buffer,
-                &grads.deformed_covariances.buffer,
-                6 * n,
-            );
+            for (into, from, len) in [
+                (splat_grads.means(), &grads.deformed_centres, 3 * n),
+                (
+                    splat_grads.covariances(),
+                    &grads.deformed_covariances,
+                    6 * n,
+                ),
+            ] {
+                record_add(context, &self.add, encoder, &into.buffer, &from.buffer, len);
+            }
         }
         let (has_non_rigid, has_lbs, has_refiner) = (
             self.deformer.has_non_rigid(),
             self.deformer.has_lbs_offsets(),
             self.deformer.has_pose_refiner(),
         );
+        let columns = gaussian_columns(&self.gaussians)?;
         let deformer = &mut self.deformer;
         deformer.skinning.record_backward(
-            &mut encoder,
+            encoder,
             &columns,
             &deformer.skin_inputs(),
             splat_grads.means(),
             splat_grads.covariances(),
         )?;
-
         // Networks' backward: LBS offsets, the non-rigid network (its centre gradient joins
         // the direct path), the pose path and the pose refiner.
         if let Some(networks) = deformer.networks.as_mut()
             && has_lbs
         {
             networks.record_lbs_offsets_backward(
-                &mut encoder,
+                encoder,
                 &deformer.skinning.grad_weight_offsets.buffer,
             )?;
         }
         if has_non_rigid {
             let networks = deformer.networks.as_mut().expect("has a non-rigid network");
             let through = networks
-                .record_non_rigid_backward(&mut encoder, &deformer.skinning.grad_heads.buffer)?;
+                .record_non_rigid_backward(encoder, &deformer.skinning.grad_heads.buffer)?;
             // The skinning writes `grad_positions` afresh every backward: the sum is this
             // iteration's total centre gradient.
             record_add(
-                &context,
+                context,
                 &self.add,
-                &mut encoder,
+                encoder,
                 &deformer.skinning.grad_positions.buffer,
                 through,
                 3 * n,
@@ -547,20 +606,30 @@ impl ResidentStep {
         }
         if has_refiner {
             deformer.pose.backward(
-                &mut encoder,
+                encoder,
                 &deformer.skinning.grad_target_joints,
                 &deformer.skinning.grad_vertex_offsets,
             )?;
             let networks = deformer.networks.as_mut().expect("has a pose refiner");
             networks.record_pose_refiner_backward(
-                &mut encoder,
+                encoder,
                 &deformer.pose.refinement_gradients().buffer,
             )?;
         }
 
-        mark(&self.timer, &mut encoder, slot, 4);
+        Ok(aiap_active)
+    }
 
-        // Optimisers and densification statistics.
+    /// Adam on the Gaussians and on the networks, and the densification statistics.
+    fn record_optimisers(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        plan: &IterationPlan<'_>,
+        aiap_active: bool,
+    ) -> anyhow::Result<()> {
+        let config = &self.config;
+        let deformer = &mut self.deformer;
+        let splat_grads = self.splat.gradients().map_err(|e| anyhow::anyhow!("{e}"))?;
         let aiap_grads = if aiap_active {
             let grads = self.aiap.gradients().context("AIAP gradients")?;
             Some([&grads.xyz, &grads.log_scale, &grads.rotation])
@@ -568,7 +637,7 @@ impl ResidentStep {
             None
         };
         self.adam.record(
-            &mut encoder,
+            encoder,
             &self.gaussians,
             &GaussianGradients {
                 xyz: &deformer.skinning.grad_positions,
@@ -585,7 +654,7 @@ impl ResidentStep {
             let decay = lr
                 .network_decay
                 .powf((plan.iteration - 1) as f64 / f64::from(config.iterations));
-            networks.record_adam(&mut encoder, &adam_config(config), |group| {
+            networks.record_adam(encoder, &adam_config(config), |group| {
                 decay
                     * match group {
                         NetworkGroup::NonRigid => lr.non_rigid,
@@ -596,15 +665,14 @@ impl ResidentStep {
         }
         if plan.density_statistics {
             self.statistics
-                .record(&mut encoder, &self.gaussians, splat_grads.mean_2d_norm())?;
+                .record(encoder, &self.gaussians, splat_grads.mean_2d_norm())?;
         }
 
-        mark(&self.timer, &mut encoder, slot, 5);
-        if let Some(timer) = self.timer.as_mut() {
-            timer.finish_slot(&mut encoder, slot);
-        }
+        Ok(())
+    }
 
-        // The iteration's logged scalars into its slot of the ring.
+    /// The iteration's logged scalars into its slot of the ring.
+    fn record_log(&mut self, encoder: &mut wgpu::CommandEncoder, slot: usize) {
         let loss_log = self.losses.log_buffer();
         for (field, index) in [
             (LogField::L1, 0),
@@ -615,16 +683,15 @@ impl ResidentStep {
             (LogField::ImageTotal, 5),
         ] {
             self.log
-                .record(&mut encoder, slot, field, &loss_log.buffer, index);
+                .record(encoder, slot, field, &loss_log.buffer, index);
         }
-        self.log.record(
-            &mut encoder,
-            slot,
-            LogField::Aiap,
-            &self.aiap.log().buffer,
-            0,
-        );
-        let submitted = context.queue().submit([encoder.finish()]);
+        self.log
+            .record(encoder, slot, LogField::Aiap, &self.aiap.log().buffer, 0);
+    }
+
+    /// Submits the recorded iteration.
+    fn submit(&mut self, encoder: wgpu::CommandEncoder) -> anyhow::Result<()> {
+        let submitted = self.context.queue().submit([encoder.finish()]);
         self.unread += 1;
         // At most `IN_FLIGHT` iterations queued ahead of the device: the host waits (no data
         // comes back) for the oldest before going on, so the queue and its staging memory
