@@ -31,6 +31,7 @@ pub mod rig;
 pub mod sequence;
 pub mod skinning;
 pub mod splatting;
+pub mod test_support;
 
 pub use avatar::{FrameInputs, TrainedAvatar};
 pub use config::AvatarConfig;

@@ -177,63 +177,29 @@ impl SequenceRenderer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::avatar::AvatarGaussians;
-    use crate::config::{AvatarConfig, Background, MotionContext};
-    use crate::model::{NetworkConfig, Networks};
-    use crate::rig::BodyRig;
+    use crate::config::MotionContext;
+    use crate::test_support::{TestAvatar, random_track, small_config};
     use seqavatar_compute::backend::DeviceChoice;
-    use seqavatar_compute::nn::Rng;
-    use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::camera::Intrinsics;
     use seqavatar_core::glam::DVec3;
-    use seqavatar_motion::schema::FrameAxis;
 
     /// An avatar with every network (multiscale motion context, pose refiner, LBS offsets)
     /// and heads well away from zero, on a 5-frame sequence of distinct poses and random
     /// motion values.
     fn avatar_and_sequence() -> (TrainedAvatar, Vec<BodyParams>, MotionTrack) {
-        let model = procedural_body(0.05);
-        let (j, v, frames) = (model.num_joints(), model.num_vertices(), 5);
-        let config = AvatarConfig {
-            motion_context: MotionContext::Multiscale,
-            trunk_width: 16,
-            trunk_depth: 2,
-            tau: 3,
-            sequence_length: 2,
-            pose_refiner: true,
-            lbs_offsets: true,
-            sh_degree: 1,
-            scale_min: 1e-5,
-            scale_max: 0.5,
-            background: Background::Black,
-        };
-        let rig = BodyRig::new(model.clone()).unwrap();
-        let net_config = NetworkConfig::from_avatar(&config, j, j, 2).unwrap();
-        let mut networks = Networks::<f32>::new(&net_config, 5).unwrap();
-        let mut rng = Rng::new(17);
-        for param in networks.parameters_mut() {
-            if param.name.starts_with("non_rigid.heads") || param.name.starts_with("lbs_offsets.4")
-            {
-                for x in param.values.iter_mut() {
-                    *x = rng.uniform(-0.05, 0.05) as f32;
-                }
-            }
+        let mut config = small_config(MotionContext::Multiscale);
+        config.tau = 3;
+        config.pose_refiner = true;
+        config.lbs_offsets = true;
+        config.sh_degree = 1;
+        let avatar = TestAvatar {
+            gaussians: 400,
+            seed: 17,
+            ..TestAvatar::new(config)
         }
-        let n = 400;
-        let xyz: Vec<f64> = (0..n)
-            .flat_map(|i| {
-                let k = 3 * ((i * 97) % v);
-                rig.canonical_vertices[k..k + 3].to_vec()
-            })
-            .collect();
-        let gaussians = AvatarGaussians {
-            xyz,
-            sh: (0..n * 48).map(|_| rng.uniform(-0.5, 0.5)).collect(),
-            opacity_logit: (0..n).map(|_| rng.uniform(0.0, 3.0)).collect(),
-            log_scale: (0..3 * n).map(|_| rng.uniform(-3.5, -2.5)).collect(),
-            rotation: (0..4 * n).map(|_| rng.uniform(-1.0, 1.0)).collect(),
-        };
-        let avatar = TrainedAvatar::new(config, rig, gaussians, 1, vec![2, 1], Some(networks));
+        .build();
+        let (model, frames) = (&avatar.rig.model, 5);
+        let j = model.num_joints();
         let params: Vec<BodyParams> = (0..frames)
             .map(|f| {
                 let mut params = model.zero_params();
@@ -244,19 +210,7 @@ mod tests {
                 params
             })
             .collect();
-        let mut random = |count: usize| -> Vec<f32> {
-            (0..count).map(|_| rng.uniform(-1.0, 1.0) as f32).collect()
-        };
-        let track = MotionTrack {
-            num_frames: frames,
-            num_joints: j,
-            num_vertices: v,
-            scales: vec![2, 1],
-            scale_steps: vec![2, 1],
-            skeleton_motion: random(frames * 2 * j * 3),
-            vertex_velocity: random(frames * 2 * v * 3),
-            axis: FrameAxis::FROM_START,
-        };
+        let track = random_track(&avatar, frames, 23);
         (avatar, params, track)
     }
 

@@ -385,67 +385,35 @@ mod tests {
     /// against f64 networks and cpu splatting).
     #[test]
     fn a_gpu_renderer_uses_gpu_networks_and_matches_cpu() {
-        use seqavatar_avatar::avatar::AvatarGaussians;
-        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
-        use seqavatar_avatar::model::{NetworkConfig, Networks};
-        use seqavatar_avatar::rig::BodyRig;
-        use seqavatar_core::body::procedural::procedural_body;
-        use seqavatar_core::rng::SplitMix64 as Rng;
+        use seqavatar_avatar::config::MotionContext;
+        use seqavatar_avatar::test_support::{TestAvatar, small_config};
         let Some(backend) = seqavatar_compute::backend::test_support::gpu_test_backend() else {
             return;
         };
-        let model = procedural_body(0.05);
-        let config = AvatarConfig {
-            motion_context: MotionContext::Pose,
-            trunk_width: 16,
-            trunk_depth: 2,
-            tau: 4,
-            sequence_length: 2,
-            pose_refiner: true,
-            lbs_offsets: true,
-            sh_degree: 1,
-            scale_min: 1e-5,
-            scale_max: 0.5,
-            background: Background::Black,
+        let mut config = small_config(MotionContext::Pose);
+        config.tau = 4;
+        config.pose_refiner = true;
+        config.lbs_offsets = true;
+        config.sh_degree = 1;
+        let description = TestAvatar {
+            scales: vec![1],
+            seed: 8,
+            ..TestAvatar::new(config)
         };
+        let model = description.build().rig.model.clone();
         let mut params = model.zero_params();
         params.pose[1] = DVec3::new(0.3, 0.0, 0.1);
         params.pose[16] = DVec3::new(0.0, 0.0, -0.8);
         params.world_translation = DVec3::new(0.0, 0.2, 0.0);
         let build = |backend: Backend| {
-            let rig = BodyRig::new(model.clone()).unwrap();
-            let j = rig.joint_count();
-            let net_config = NetworkConfig::from_avatar(&config, j, j, 1).unwrap();
-            let mut networks = Networks::<f32>::new(&net_config, 3).unwrap();
-            let mut rng = Rng::new(8);
-            // Outputs well away from the near-zero initialisation of the heads.
-            for param in networks.parameters_mut() {
-                if param.name.starts_with("non_rigid.heads")
-                    || param.name.starts_with("lbs_offsets.4")
-                {
-                    for x in param.values.iter_mut() {
-                        *x = rng.uniform(-0.05, 0.05) as f32;
-                    }
-                }
-            }
-            let v = rig.vertex_count();
-            let n = 300;
-            let xyz: Vec<f64> = (0..n)
-                .flat_map(|i| {
-                    let k = 3 * ((i * 97) % v);
-                    rig.canonical_vertices[k..k + 3].to_vec()
-                })
-                .collect();
-            let gaussians = AvatarGaussians {
-                xyz,
-                sh: (0..n * 48).map(|_| rng.uniform(-0.5, 0.5)).collect(),
-                opacity_logit: (0..n).map(|_| rng.uniform(0.0, 3.0)).collect(),
-                log_scale: (0..3 * n).map(|_| rng.uniform(-3.0, -2.0)).collect(),
-                rotation: (0..4 * n).map(|_| rng.uniform(-1.0, 1.0)).collect(),
-            };
-            let avatar =
-                TrainedAvatar::new(config.clone(), rig, gaussians, 1, vec![1], Some(networks));
-            AvatarRenderer::new(avatar, vec![params.clone()], None, backend, "test".into()).unwrap()
+            AvatarRenderer::new(
+                description.build(),
+                vec![params.clone()],
+                None,
+                backend,
+                "test".into(),
+            )
+            .unwrap()
         };
         let mut cpu = build(Backend::select(DeviceChoice::Cpu).unwrap());
         let mut gpu = build(backend);

@@ -161,73 +161,20 @@ mod tests {
     fn probes_change_what_the_avatar_renders_on(backend: seqavatar_compute::backend::Backend) {
         use crate::avatar_render::AvatarRenderer;
         use crate::evaluate::ViewRenderer;
-        use seqavatar_avatar::TrainedAvatar;
-        use seqavatar_avatar::avatar::AvatarGaussians;
-        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
-        use seqavatar_avatar::model::{NetworkConfig, Networks};
-        use seqavatar_avatar::rig::BodyRig;
-        use seqavatar_compute::nn::Rng;
-        use seqavatar_core::body::procedural::procedural_body;
+        use seqavatar_avatar::config::MotionContext;
+        use seqavatar_avatar::test_support::{TestAvatar, small_config, uniform_track};
         use seqavatar_core::camera::{Camera, Intrinsics};
-        use seqavatar_motion::schema::{FrameAxis, MotionTrack};
 
-        let model = procedural_body(0.05);
-        let (j, v, frames) = (model.num_joints(), model.num_vertices(), 4);
-        let config = AvatarConfig {
-            motion_context: MotionContext::Multiscale,
-            trunk_width: 16,
-            trunk_depth: 2,
-            tau: 2,
-            sequence_length: 2,
-            pose_refiner: false,
-            lbs_offsets: false,
-            sh_degree: 0,
-            scale_min: 1e-5,
-            scale_max: 0.5,
-            background: Background::Black,
-        };
-        let rig = BodyRig::new(model.clone()).unwrap();
-        let net_config = NetworkConfig::from_avatar(&config, j, j, 2).unwrap();
-        let mut networks = Networks::<f32>::new(&net_config, 5).unwrap();
-        let mut rng = Rng::new(11);
-        for param in networks.parameters_mut() {
-            if param.name.starts_with("non_rigid.heads") {
-                for x in param.values.iter_mut() {
-                    *x = rng.uniform(-0.05, 0.05) as f32;
-                }
-            }
+        let frames = 4;
+        let avatar = TestAvatar {
+            gaussians: 200,
+            seed: 11,
+            ..TestAvatar::new(small_config(MotionContext::Multiscale))
         }
-        let n = 200;
-        let xyz: Vec<f64> = (0..n)
-            .flat_map(|i| {
-                let k = 3 * ((i * 97) % v);
-                rig.canonical_vertices[k..k + 3].to_vec()
-            })
-            .collect();
-        let gaussians = AvatarGaussians {
-            xyz,
-            sh: (0..n * 48).map(|_| rng.uniform(0.0, 1.0)).collect(),
-            opacity_logit: vec![2.0; n],
-            log_scale: vec![-3.0; 3 * n],
-            rotation: (0..n).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect(),
-        };
-        let avatar = TrainedAvatar::new(config, rig, gaussians, 0, vec![2, 1], Some(networks));
+        .build();
+        let model = avatar.rig.model.clone();
         // Frame f's motion values are all f (frame 0: zero), at both scales.
-        let fill = |count: usize| -> Vec<f32> {
-            (0..frames)
-                .flat_map(|f| vec![f as f32; 2 * count * 3])
-                .collect()
-        };
-        let track = MotionTrack {
-            num_frames: frames,
-            num_joints: j,
-            num_vertices: v,
-            scales: vec![2, 1],
-            scale_steps: vec![2, 1],
-            skeleton_motion: fill(j),
-            vertex_velocity: fill(v),
-            axis: FrameAxis::FROM_START,
-        };
+        let track = uniform_track(&avatar, frames, |f| f as f32);
         let mut renderer = AvatarRenderer::new(
             avatar,
             vec![model.zero_params(); frames],
