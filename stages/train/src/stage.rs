@@ -610,7 +610,7 @@ mod tests {
     }
 
     /// Training holds every image of the split in memory: 64 cameras x 1000 frames at
-    /// 2048 x 2048 pass every range check but need about 1 TB. Refused when the pipeline
+    /// 2048 x 2048 pass every range check but need over 200 GB. Refused when the pipeline
     /// loads, from the configs alone, in well under a second, naming the fields.
     #[test]
     fn a_run_over_the_memory_budget_is_refused_at_load() {
@@ -623,8 +623,10 @@ mod tests {
         // The default split: 48 training views on every frame, 16 test views on every other.
         assert_eq!(images.count, 48 * 1000 + 16 * 500);
         let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        // The `fast` preset trains at half resolution: 1024 x 1024, RGB and mask bytes.
+        assert_eq!(config.resolution_scale, 0.5);
         let estimate = config.run_memory_estimate_bytes(Some(&images));
-        assert!(estimate > images.count * 2048 * 2048 * 4, "{estimate}");
+        assert!(estimate > images.count * 1024 * 1024 * 4, "{estimate}");
         let error = config.check_memory(Some(&images), 16 << 30).unwrap_err();
         for field in [
             "dataset.cameras",
@@ -652,7 +654,7 @@ mod tests {
     }
 
     /// The demo's run fits a small budget: its images, Gaussians and renders take about
-    /// 0.2 GB; the load-time check accepts it.
+    /// 0.1 GB; the load-time check accepts it.
     #[test]
     fn the_demo_run_is_within_the_memory_budget() {
         let (ingest, train) = demo_configs(json!({}));
@@ -665,12 +667,14 @@ mod tests {
             (6 * 48 + 2 * 24, 256, 256)
         );
         let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        // At the `fast` preset's half resolution: 128 x 128 pixels per image and render.
+        assert_eq!(config.resolution_scale, 0.5);
         let estimate = config.run_memory_estimate_bytes(Some(&images));
         assert_eq!(
             estimate,
             config.memory_estimate_bytes()
-                + images.count * 256 * 256 * 4
-                + config.cameras_per_step as u64 * 256 * 256 * 256
+                + images.count * 128 * 128 * 4
+                + config.cameras_per_step as u64 * 128 * 128 * 256
         );
         config.check_memory(Some(&images), 1 << 30).unwrap();
         if seqavatar_engine::memory_budget_bytes()
