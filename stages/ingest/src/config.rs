@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use seqavatar_engine::{ConfigError, ConfigPathSegment};
 
-use crate::plan::IngestPlan;
+use crate::plan::ImageCounts;
 use crate::reader::{FrameRange, Split};
 
 /// Split overrides from the stage config: any field left out keeps the dataset's default.
@@ -158,18 +158,19 @@ impl IngestConfig {
 }
 
 impl IngestConfig {
-    /// The split and plan the stage will follow, where the config alone determines them (a
-    /// synthetic scene: its cameras and frames are config fields); `None` for file-based
-    /// datasets, whose default split and counts come from their files.
-    pub fn plan_at_load(&self) -> Option<(Split, anyhow::Result<IngestPlan>)> {
+    /// The split and its image counts, where the config alone determines them (a synthetic
+    /// scene: its cameras and frames are config fields); `None` for file-based datasets,
+    /// whose default split and counts come from their files. Counted, not listed: cheap for
+    /// the largest scene the ranges allow.
+    pub fn image_counts_at_load(&self) -> Option<(Split, anyhow::Result<ImageCounts>)> {
         let DatasetConfig::Synthetic(scene) = &self.dataset else {
             return None;
         };
         let split = self
             .split
             .apply(crate::synthetic::scene::default_split(scene.cameras));
-        let plan = IngestPlan::new(&split, scene.cameras, scene.frames, self.past_frames);
-        Some((split, plan))
+        let counts = ImageCounts::of(&split, scene.cameras, scene.frames);
+        Some((split, counts))
     }
 
     /// For a stage that evaluates on the held-out images (eval): an error, naming the split
@@ -180,7 +181,7 @@ impl IngestConfig {
     pub fn check_test_images_at_load(&self) -> Result<(), String> {
         let advice = "set split.test_views (and split.test_frames) to views and frames not \
                       trained on, or split.held_out_frames";
-        let Some((split, plan)) = self.plan_at_load() else {
+        let Some((split, counts)) = self.image_counts_at_load() else {
             let no_test_views = self.split.test_views.as_ref().is_some_and(Vec::is_empty);
             if no_test_views && self.split.held_out_frames.is_none() {
                 return Err(format!(
@@ -191,8 +192,8 @@ impl IngestConfig {
             }
             return Ok(());
         };
-        let plan = plan.map_err(|e| format!("split: {e:#}"))?;
-        if plan.images.iter().any(|&(_, _, split)| split == 1) {
+        let counts = counts.map_err(|e| format!("split: {e:#}"))?;
+        if counts.test > 0 {
             return Ok(());
         }
         Err(format!(

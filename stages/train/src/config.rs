@@ -594,11 +594,11 @@ impl TrainingImages {
         let seqavatar_ingest::config::DatasetConfig::Synthetic(scene) = &ingest.dataset else {
             return None;
         };
-        let (_, plan) = ingest.plan_at_load()?;
-        let plan = plan.ok()?;
+        let (_, counts) = ingest.image_counts_at_load()?;
+        let counts = counts.ok()?;
         let side = |n: u32| ((f64::from(n) * ingest.resolution_scale).round() as u64).max(1);
         Some(Self {
-            count: plan.images.len() as u64,
+            count: (counts.train + counts.test) as u64,
             width: side(scene.width),
             height: side(scene.height),
             source: format!(
