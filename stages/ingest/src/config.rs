@@ -177,7 +177,8 @@ impl IngestConfig {
     /// fields, when the split yields no test image, so the pipeline is refused when it loads
     /// rather than after training. Checked wherever the config decides it: the whole plan
     /// of a synthetic scene; for file-based datasets an explicit empty `split.test_views`
-    /// without `split.held_out_frames` (their default splits all have test views).
+    /// without `split.held_out_frames` (their default splits come from their files, which
+    /// the pipeline does not open when it loads).
     pub fn check_test_images_at_load(&self) -> Result<(), String> {
         let advice = "set split.test_views (and split.test_frames) to views and frames not \
                       trained on, or split.held_out_frames";
