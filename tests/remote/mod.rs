@@ -531,7 +531,7 @@ fn server_stopped_mid_run_gives_a_clear_error_then_the_upload_is_retried() {
 /// entry.
 #[test]
 fn gc_on_another_machine_skips_an_entry_a_run_reads() {
-    let Some(cluster) = Cluster::new(2.0) else {
+    let Some(cluster) = Cluster::new(3.0) else {
         return;
     };
     cluster.write(
@@ -568,10 +568,14 @@ fn gc_on_another_machine_skips_an_entry_a_run_reads() {
     // The run's lease objects went with it.
     assert!(cluster.moto.list(".readers/").is_empty());
 
-    // A reader killed without deleting its object: once expired (2 s timeout, whole-second
-    // timestamps), gc deletes it and the entry.
+    // A reader killed without deleting its object: once expired (not renewed for the 3 s
+    // timeout, plus a second for whole-second timestamps), gc deletes it and the entry.
     let ghost = format!(".readers/test_arrays/{key_a}/ghost-1-1");
     cluster.moto.put(&ghost, b"{}");
+    let put_at = Instant::now();
+    // And one of a key never published (a killed run was computing it): swept by gc too.
+    let unpublished = format!(".readers/test_arrays/{}/ghost-2-2", "0".repeat(64));
+    cluster.moto.put(&unpublished, b"{}");
     let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
     assert!(
         gc.contains(&format!(
@@ -580,9 +584,25 @@ fn gc_on_another_machine_skips_an_entry_a_run_reads() {
         "a fresh lease object is a live reader: {gc}"
     );
     assert!(gc.contains("removed 1 entries"), "b has no reader: {gc}");
-    std::thread::sleep(Duration::from_millis(3500));
-    let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
-    assert!(gc.contains(&format!("removed test_arrays/{key_a}")), "{gc}");
+    // gc again every half second until the entry goes (a loaded machine may delay it).
+    let mut outputs = String::new();
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
+        outputs.push_str(&gc);
+        if gc.contains(&format!("removed test_arrays/{key_a}")) {
+            break;
+        }
+        assert!(
+            put_at.elapsed() < Duration::from_secs(30),
+            "the expired lease object kept the entry: {outputs}"
+        );
+    }
+    assert!(
+        put_at.elapsed() >= Duration::from_secs(3),
+        "removed while its reader's lease object was younger than the timeout: {outputs}"
+    );
+    assert!(outputs.contains("removed expired read lease"), "{outputs}");
     assert!(cluster.moto.list(".readers/").is_empty());
     assert!(cluster.moto.list("test_arrays/").is_empty());
 }

@@ -671,6 +671,12 @@ impl Store for RemoteStore {
             }
         }
         lines.extend(self.retry_pending_uploads()?);
+        for name in readers::remove_expired(&self.bucket, self.settings)? {
+            lines.push(format!(
+                "expired read lease {}",
+                self.bucket.describe(&name)
+            ));
+        }
         Ok(lines)
     }
 

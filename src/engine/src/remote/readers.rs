@@ -167,6 +167,31 @@ pub(crate) fn try_exclusive_read_lease(
     })))
 }
 
+/// Deletes the expired lease objects of every entry's readers folder (those of killed
+/// readers of entries `gc` never visits: unpublished keys a killed run was computing);
+/// returns their names. Ages are measured against a fresh probe object's timestamp.
+pub(crate) fn remove_expired(
+    bucket: &Arc<Bucket>,
+    settings: LeaseSettings,
+) -> anyhow::Result<Vec<String>> {
+    let probe = format!(".probe-{}", unique_name());
+    let probe_object = format!("{READERS_DIR}/{probe}");
+    bucket.put_create(&probe_object, Vec::new())?;
+    let listed = bucket.list_tree(READERS_DIR);
+    bucket.delete(&probe_object)?;
+    let objects = listed?;
+    let holders = classify(&objects, &probe, settings.timeout)?;
+    let mut removed = Vec::new();
+    for name in holders.expired {
+        // Only `<kind>/<key>/<object>`: anything else is not ours to judge.
+        if name.split('/').count() == 3 {
+            bucket.delete(&format!("{READERS_DIR}/{name}"))?;
+            removed.push(format!("{READERS_DIR}/{name}"));
+        }
+    }
+    Ok(removed)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
