@@ -63,15 +63,11 @@ const TILE: u32 = 64u;
 @group(0) @binding(7) var<storage, read_write> neighbours: array<u32>;
 @group(0) @binding(8) var<storage, read_write> window: array<f32>;
 
-// Threads per workgroup of every entry point here (`@workgroup_size(64)`).
+// Threads per workgroup of every entry point here.
 const WORKGROUP: u32 = 64u;
 
 //#include "linear_index.wgsl"
-
-fn finite(x: f32) -> bool {
-    // A bit test, because compilers may assume `x == x`.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // The frame row of window element l at scale slot s: frame - l step, clamped at 0 (the host
 // checked that clamping is allowed: MotionTrack::gather's rule).
@@ -81,7 +77,7 @@ fn window_row(l: u32, s: u32) -> u32 {
 }
 
 // The skeleton-motion window L x S x J x 3 of the record's frame.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn gather_skeleton(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -102,7 +98,7 @@ fn gather_skeleton(
 // Velocity block of window element `shape_element()`: for Gaussian i, neighbour n (of the
 // tau = shape_k() nearest in `neighbours`) and scale s, the velocity of that vertex at the
 // window row.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn gather_velocity(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -131,7 +127,7 @@ var<workgroup> tile: array<vec3<f32>, 64>;
 // the current k-th, behind every kept one at the same distance, so equal distances keep the
 // lower index first, as the cpu grid search orders them. Non-finite vertices never enter; a
 // non-finite query gets `shape_fallback()` k times.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn knn(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -178,9 +174,10 @@ fn knn(
             }
             let diff = ldexp(q - p, vec3<i32>(-exponent));
             let d = dot(diff, diff);
-            if filled < k {
-                // Fill phase: insert behind every kept one at a distance <= d.
-                var j = filled;
+            // While filling, every vertex enters; once full, one strictly nearer than the
+            // k-th replaces it. Either way it goes behind every kept one at a distance <= d.
+            if filled < k || d < best_d[k - 1u] {
+                var j = min(filled, k - 1u);
                 while j > 0u && best_d[j - 1u] > d {
                     best_d[j] = best_d[j - 1u];
                     best_i[j] = best_i[j - 1u];
@@ -188,16 +185,7 @@ fn knn(
                 }
                 best_d[j] = d;
                 best_i[j] = base + t;
-                filled += 1u;
-            } else if d < best_d[k - 1u] {
-                var j = k - 1u;
-                while j > 0u && best_d[j - 1u] > d {
-                    best_d[j] = best_d[j - 1u];
-                    best_i[j] = best_i[j - 1u];
-                    j -= 1u;
-                }
-                best_d[j] = d;
-                best_i[j] = base + t;
+                filled = min(filled + 1u, k);
             }
         }
     }

@@ -81,10 +81,7 @@ const BLEND_ROWS: u32 = 128u;
 @group(0) @binding(13) var<storage, read> d_target_joints: array<f32>;
 @group(0) @binding(14) var<storage, read_write> d_refinements: array<f32>;
 
-fn finite(x: f32) -> bool {
-    // A bit test: WGSL lets compilers assume floats are finite, so `x != x` may fold away.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 fn sequence_matrix(at: u32) -> mat3x3f {
     return transpose(mat3x3f(

@@ -9,8 +9,8 @@
 // (the splatting layout of the active degree), heads N x 10 ([d_xyz, d_rot - (1,0,0,0),
 // d_scale], the trunk's output).
 //
-// Per-Gaussian kernels run 64 threads per workgroup; the Gaussian index is
-// (group.x + group.y * groups.x) * 64 + local (2D dispatch beyond the per-dimension limit).
+// Per-Gaussian kernels run WORKGROUP threads per workgroup; the Gaussian index is
+// `linear_index` (2D dispatch beyond the per-dimension limit).
 
 // The shape (a uniform written once, plain words so that no struct crosses the boundary):
 // [joints, vertices, flags (HAS_HEADS | HAS_WEIGHT_OFFSETS), Gaussians per chunk of the
@@ -57,8 +57,6 @@ const HAS_HEADS: u32 = 1u;
 const HAS_WEIGHT_OFFSETS: u32 = 2u;
 const HEAD_WIDTH: u32 = 10u;
 const SH_STORED: u32 = 16u;
-// Below this squared norm a quaternion is the identity rotation (core::rotation).
-const DEGENERATE_QUAT_NORM2: f32 = 1e-24;
 // Status words (indices into `status`).
 const STATUS_FORWARD_COUNT: u32 = 0u;
 const STATUS_FORWARD_FIRST: u32 = 1u;
@@ -109,14 +107,11 @@ const STATUS_BACKWARD_FIRST: u32 = 3u;
 //#include "atomic_add_cas.wgsl"
 // @atomic-add-end
 
-fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 64u + local;
-}
+const WORKGROUP: u32 = 64u;
 
-fn finite(x: f32) -> bool {
-    // A bit test, because compilers may assume `x == x`.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "linear_index.wgsl"
+//#include "finite.wgsl"
+//#include "quaternion.wgsl"
 
 // Loads and stores of 3- and 4-vectors, one per buffer (WGSL has no pointer parameters
 // into storage without an extension).
@@ -160,60 +155,6 @@ fn quat_mul(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
         a.x * b.z - a.y * b.w + a.z * b.x + a.w * b.y,
         a.x * b.w + a.y * b.z - a.z * b.y + a.w * b.x,
     );
-}
-
-fn quat_degenerate(q: vec4<f32>) -> bool {
-    let n2 = dot(q, q);
-    return !(finite(n2) && n2 > DEGENERATE_QUAT_NORM2);
-}
-
-// R(q / |q|); the identity for a degenerate quaternion (core::rotation::quat_wxyz_to_matrix).
-fn quat_matrix(q: vec4<f32>) -> mat3x3<f32> {
-    if quat_degenerate(q) {
-        return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0), vec3<f32>(0.0, 0.0, 1.0));
-    }
-    let u = q / sqrt(dot(q, q));
-    let w = u.x;
-    let x = u.y;
-    let y = u.z;
-    let z = u.w;
-    // Columns of the standard unit-quaternion matrix.
-    return mat3x3<f32>(
-        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
-        vec3<f32>(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
-        vec3<f32>(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
-    );
-}
-
-// Entry (row, col) of a column-major WGSL matrix.
-fn at(m: mat3x3<f32>, row: u32, col: u32) -> f32 {
-    return m[col][row];
-}
-
-// Gradient of R(q / |q|) with respect to q given dL/dR (skinning.rs quat_matrix_backward).
-fn quat_matrix_backward(q: vec4<f32>, g: mat3x3<f32>) -> vec4<f32> {
-    if quat_degenerate(q) {
-        return vec4<f32>(0.0);
-    }
-    let norm = sqrt(dot(q, q));
-    let u = q / norm;
-    let w = u.x;
-    let x = u.y;
-    let y = u.z;
-    let z = u.w;
-    let dw = 2.0 * (-z * at(g, 0u, 1u) + y * at(g, 0u, 2u) + z * at(g, 1u, 0u) - x * at(g, 1u, 2u)
-        - y * at(g, 2u, 0u) + x * at(g, 2u, 1u));
-    let dx = 2.0 * (y * at(g, 0u, 1u) + z * at(g, 0u, 2u) + y * at(g, 1u, 0u)
-        - 2.0 * x * at(g, 1u, 1u) - w * at(g, 1u, 2u) + z * at(g, 2u, 0u) + w * at(g, 2u, 1u)
-        - 2.0 * x * at(g, 2u, 2u));
-    let dy = 2.0 * (-2.0 * y * at(g, 0u, 0u) + x * at(g, 0u, 1u) + w * at(g, 0u, 2u)
-        + x * at(g, 1u, 0u) + z * at(g, 1u, 2u) - w * at(g, 2u, 0u) + z * at(g, 2u, 1u)
-        - 2.0 * y * at(g, 2u, 2u));
-    let dz = 2.0 * (-2.0 * z * at(g, 0u, 0u) - w * at(g, 0u, 1u) + x * at(g, 0u, 2u)
-        + w * at(g, 1u, 0u) - 2.0 * z * at(g, 1u, 1u) + y * at(g, 1u, 2u) + x * at(g, 2u, 0u)
-        + y * at(g, 2u, 1u));
-    let gn = vec4<f32>(dw, dx, dy, dz);
-    return (gn - u * dot(gn, u)) / norm;
 }
 
 // Gradients of a (x) b for a and b given that of the product (the product is bilinear).
@@ -345,6 +286,16 @@ fn forward_one(i: u32) -> Forward {
     return f;
 }
 
+// dL/dw_k of joint k's blend weight, from the gradients of the blended target (d_a) and
+// canonical (d_b) transforms.
+fn blend_weight_gradient(k: u32, d_a: array<f32, 12>, d_b: array<f32, 12>) -> f32 {
+    var d_w = 0.0;
+    for (var e = 0u; e < 12u; e++) {
+        d_w += d_a[e] * target_joints[12u * k + e] + d_b[e] * canonical_joints[12u * k + e];
+    }
+    return d_w;
+}
+
 fn flag(count_word: u32, first_word: u32, i: u32) {
     atomicAdd(&status[count_word], 1u);
     atomicMin(&status[first_word], i);
@@ -353,49 +304,45 @@ fn flag(count_word: u32, first_word: u32, i: u32) {
 // Heads to deformed canonical Gaussians (avatar::deform with non_rigid::split_heads):
 // positions = xyz + d_xyz, d_rot = head + (1, 0, 0, 0), d_scale = head; without heads the
 // identity offsets.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn deform(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if i >= record_count() {
         return;
     }
-    let x = xyz_at(i);
+    // The identity offsets, replaced by the head's where there are heads.
+    var x = xyz_at(i);
+    var d_rot = vec4<f32>(1.0, 0.0, 0.0, 0.0);
+    var d_scale = vec3<f32>(0.0);
     if (shape_flags() & HAS_HEADS) != 0u {
         let h = HEAD_WIDTH * i;
-        for (var a = 0u; a < 3u; a++) {
-            positions[3u * i + a] = x[a] + heads[h + a];
-            d_scales[3u * i + a] = heads[h + 7u + a];
-        }
-        d_rotations[4u * i] = heads[h + 3u] + 1.0;
-        for (var a = 1u; a < 4u; a++) {
-            d_rotations[4u * i + a] = heads[h + 3u + a];
-        }
-    } else {
-        for (var a = 0u; a < 3u; a++) {
-            positions[3u * i + a] = x[a];
-            d_scales[3u * i + a] = 0.0;
-        }
-        d_rotations[4u * i] = 1.0;
-        for (var a = 1u; a < 4u; a++) {
-            d_rotations[4u * i + a] = 0.0;
-        }
+        x += vec3<f32>(heads[h], heads[h + 1u], heads[h + 2u]);
+        d_rot = vec4<f32>(heads[h + 3u] + 1.0, heads[h + 4u], heads[h + 5u], heads[h + 6u]);
+        d_scale = vec3<f32>(heads[h + 7u], heads[h + 8u], heads[h + 9u]);
+    }
+    for (var a = 0u; a < 3u; a++) {
+        positions[3u * i + a] = x[a];
+        d_scales[3u * i + a] = d_scale[a];
+    }
+    for (var a = 0u; a < 4u; a++) {
+        d_rotations[4u * i + a] = d_rot[a];
     }
 }
 
 // World means and covariances (skin_forward), opacities sigmoid(logit) and the SH of the
 // active degree in the splatting layout N x k x 3. A non-finite mean or covariance is counted
 // in the status words (forward count, first Gaussian).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn skin_forward(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if i >= record_count() {
         return;
     }
@@ -427,13 +374,13 @@ fn skin_forward(
 // deformed positions, log scales, rotations, the heads (d_xyz, d_rot, d_scale) and the weight
 // offsets; per-vertex offset gradients through `gradient_add`; the blend weights and blended-
 // target gradients that `reduce_joints` sums. A non-finite gradient is counted in the status.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn skin_backward(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if i >= record_count() {
         return;
     }
@@ -482,21 +429,13 @@ fn skin_backward(
     var dot_w = 0.0;
     for (var k = 0u; k < shape_joints(); k++) {
         let w = weight(i, f.vertex, k, f.normaliser);
-        var d_w = 0.0;
-        for (var e = 0u; e < 12u; e++) {
-            d_w += d_a[e] * target_joints[12u * k + e] + d_b[e] * canonical_joints[12u * k + e];
-        }
-        dot_w += w * d_w;
+        dot_w += w * blend_weight_gradient(k, d_a, d_b);
         blend_weights[i * shape_joints() + k] = w;
     }
     if (shape_flags() & HAS_WEIGHT_OFFSETS) != 0u {
         for (var k = 0u; k < shape_joints(); k++) {
             let w = blend_weights[i * shape_joints() + k];
-            var d_w = 0.0;
-            for (var e = 0u; e < 12u; e++) {
-                d_w += d_a[e] * target_joints[12u * k + e] + d_b[e] * canonical_joints[12u * k + e];
-            }
-            let g = w * (d_w - dot_w);
+            let g = w * (blend_weight_gradient(k, d_a, d_b) - dot_w);
             grad_weight_offsets[i * shape_joints() + k] = g;
             ok = ok && finite(g);
         }
@@ -586,13 +525,13 @@ fn reduce_joints(
 }
 
 // grad_target_joints[j] = sum over chunks of joint_partials, in chunk order.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn finish_joints(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let index = gaussian_index(group, groups, local);
+    let index = linear_index(group, groups, local);
     let len = 12u * shape_joints();
     if index >= len {
         return;
@@ -611,13 +550,13 @@ fn finish_joints(
 // N) and of the active SH (`sh_out`, N x k x 3): dL/dlogit = dL/dopacity s (1 - s) with
 // s = sigmoid(logit), and the SH gradient scattered into the stored layout N x 16 x 3 (zeros
 // beyond the active degree).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn activations_backward(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if i >= record_count() {
         return;
     }

@@ -5,8 +5,8 @@
 //
 // Images are interleaved `H x W x 3` f32 buffers; an image starts at pixel `*_offset` and has
 // rows of `*_width` pixels. The crop is `crop_width x crop_height` at (x0, y0) of both images.
-// Pixel kernels run 64 threads per workgroup over `(workgroup.x + workgroup.y * groups.x) * 64
-// + local` (GpuContext::dispatch goes 2D beyond the per-dimension limit).
+// Pixel kernels run WORKGROUP threads per workgroup over `linear_index` (GpuContext::dispatch
+// goes 2D beyond the per-dimension limit).
 
 struct LpipsResidentParams {
     render_offset: u32,
@@ -54,6 +54,14 @@ var<workgroup> partial: array<f32, 256>;
 
 //#include "linear_index.wgsl"
 
+// The first of the three values of crop pixel `index` in an image that starts at pixel
+// `offset` and has rows of `width` pixels.
+fn pixel_base(offset: u32, width: u32, index: u32) -> u32 {
+    let row = params.y0 + index / params.crop_width;
+    let col = params.x0 + index % params.crop_width;
+    return 3u * (offset + row * width + col);
+}
+
 fn trunk_value(unit: f32, channel: u32) -> f32 {
     var signed = unit;
     if (params.signed_mapping == 1u) {
@@ -63,7 +71,7 @@ fn trunk_value(unit: f32, channel: u32) -> f32 {
 }
 
 // One thread: one crop pixel; writes its three trunk input values of both images.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn crop_to_trunk(
     @builtin(workgroup_id) workgroup: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -74,10 +82,8 @@ fn crop_to_trunk(
     if (index >= pixels) {
         return;
     }
-    let row = params.y0 + index / params.crop_width;
-    let col = params.x0 + index % params.crop_width;
-    let render_base = 3u * (params.render_offset + row * params.render_width + col);
-    let target_base = 3u * (params.target_offset + row * params.target_width + col);
+    let render_base = pixel_base(params.render_offset, params.render_width, index);
+    let target_base = pixel_base(params.target_offset, params.target_width, index);
     for (var c = 0u; c < 3u; c++) {
         trunk_input[c * pixels + index] = trunk_value(render[render_base + c], c);
         trunk_input[(3u + c) * pixels + index] = trunk_value(target_image[target_base + c], c);
@@ -131,7 +137,7 @@ fn reduce_distance(@builtin(local_invocation_index) local: u32) {
 // One thread: one crop pixel; adds `gradient_factor` times the image gradient (the trunk
 // gradient through the scaling layer and the input mapping, lpips::trunk_gradient_to_image)
 // into the render's colour gradient.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn add_image_gradient(
     @builtin(workgroup_id) workgroup: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -142,9 +148,7 @@ fn add_image_gradient(
     if (index >= pixels) {
         return;
     }
-    let row = params.y0 + index / params.crop_width;
-    let col = params.x0 + index % params.crop_width;
-    let base = 3u * (params.render_offset + row * params.render_width + col);
+    let base = pixel_base(params.render_offset, params.render_width, index);
     var slope = 1.0;
     if (params.signed_mapping == 1u) {
         slope = 2.0;

@@ -6,21 +6,21 @@
 // the host. They change every update, so they are read from a storage record
 // (`factors[2 slot]`, `factors[2 slot + 1]`) that a resident step writes once per iteration
 // for all its tensors, while the per-tensor uniform block is created once. One thread per
-// value; the grid may be 2D (index = x + y * groups_x).
+// value; the grid may be 2D (`linear_index`).
 
 struct Params {
     len: u32,
-    groups_x: u32,
     slot: u32,
     _pad0: u32,
+    _pad1: u32,
     beta1: f32,
     beta2: f32,
     one_minus_beta1: f32,
     one_minus_beta2: f32,
     eps: f32,
-    _pad1: u32,
     _pad2: u32,
     _pad3: u32,
+    _pad4: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -30,12 +30,17 @@ struct Params {
 @group(0) @binding(4) var<storage, read_write> second_moment: array<f32>;
 @group(0) @binding(5) var<storage, read> factors: array<f32>;
 
-@compute @workgroup_size(256)
+const WORKGROUP: u32 = 256u;
+
+//#include "linear_index.wgsl"
+
+@compute @workgroup_size(WORKGROUP)
 fn main(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = (group.x + group.y * params.groups_x) * 256u + local;
+    let i = linear_index(group, groups, local);
     if (i >= params.len) {
         return;
     }

@@ -5,31 +5,35 @@
 // status[slot] = max(status[slot], 0xffffffff - i) over the non-finite values[i]: 0 means all
 // finite, else the first bad index is 0xffffffff - status[slot]. The test is on the bits (an
 // all-ones exponent is an infinity or a NaN), which no fast-math assumption can fold away.
-// One thread per value; the grid may be 2D (index = x + y * groups_x).
+// One thread per value; the grid may be 2D (`linear_index`).
 
 struct Params {
     len: u32,
-    groups_x: u32,
     slot: u32,
-    _pad: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> values: array<f32>;
 @group(0) @binding(2) var<storage, read_write> status: array<atomic<u32>>;
 
-const EXPONENT: u32 = 0x7f800000u;
+const WORKGROUP: u32 = 256u;
 
-@compute @workgroup_size(256)
+//#include "linear_index.wgsl"
+//#include "finite.wgsl"
+
+@compute @workgroup_size(WORKGROUP)
 fn main(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = (group.x + group.y * params.groups_x) * 256u + local;
+    let i = linear_index(group, groups, local);
     if (i >= params.len) {
         return;
     }
-    if ((bitcast<u32>(values[i]) & EXPONENT) == EXPONENT) {
+    if (!finite(values[i])) {
         atomicMax(&status[params.slot], 0xffffffffu - i);
     }
 }

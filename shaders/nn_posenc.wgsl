@@ -11,10 +11,10 @@ struct Params {
     in_features: u32,
     frequencies: u32,
     include_input: u32,
-    groups_x: u32,
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
 
 const TWO_PI_HI: f32 = 6.28125;
@@ -32,21 +32,22 @@ fn reduce_phase(phase: f32) -> f32 {
     return ((phase - turns * TWO_PI_HI) - turns * TWO_PI_MID) - turns * TWO_PI_LO;
 }
 
-fn thread_index(group: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * params.groups_x) * 64u + local;
-}
+const WORKGROUP: u32 = 64u;
+
+//#include "linear_index.wgsl"
 
 fn width() -> u32 {
     return params.in_features * (params.include_input + 2u * params.frequencies);
 }
 
 // source = input (rows x d), destination = encoding (rows x width).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn forward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let index = thread_index(group, local);
+    let index = linear_index(group, groups, local);
     let d = params.in_features;
     if (index >= params.rows * d) {
         return;
@@ -69,12 +70,13 @@ fn forward(
 }
 
 // source = the forward encoding, gradient = dL/d(encoding), destination = dL/dx (written).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn backward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let index = thread_index(group, local);
+    let index = linear_index(group, groups, local);
     let d = params.in_features;
     if (index >= params.rows * d) {
         return;

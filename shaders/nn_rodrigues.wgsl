@@ -4,13 +4,13 @@
 //   theta = sqrt(epsilon + |v|^2),  k = v / theta,
 //   R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x      (row-major 3 x 3)
 // One thread per rotation vector; `vectors` is count x 3, `matrices` count x 9. The grid may
-// be 2D (index = x + y * groups_x).
+// be 2D (`linear_index`).
 
 struct Params {
     count: u32,
-    groups_x: u32,
     epsilon: f32,
-    _pad: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -18,29 +18,39 @@ struct Params {
 @group(0) @binding(2) var<storage, read> gradient: array<f32>;
 @group(0) @binding(3) var<storage, read_write> destination: array<f32>;
 
-fn joint_index(group: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * params.groups_x) * 64u + local;
+const WORKGROUP: u32 = 64u;
+
+//#include "linear_index.wgsl"
+
+// The angle, axis and its sine and cosine of rotation vector j.
+struct AxisAngle {
+    theta: f32,
+    k: vec3<f32>,
+    s: f32,
+    c: f32,
 }
 
-fn vector_at(j: u32) -> vec3<f32> {
-    return vec3<f32>(vectors[3u * j], vectors[3u * j + 1u], vectors[3u * j + 2u]);
+fn axis_angle(j: u32) -> AxisAngle {
+    let v = vec3<f32>(vectors[3u * j], vectors[3u * j + 1u], vectors[3u * j + 2u]);
+    let theta = sqrt(params.epsilon + dot(v, v));
+    return AxisAngle(theta, v / theta, sin(theta), cos(theta));
 }
 
 // destination = R(v), count x 9.
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn forward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let j = joint_index(group, local);
+    let j = linear_index(group, groups, local);
     if (j >= params.count) {
         return;
     }
-    let v = vector_at(j);
-    let theta = sqrt(params.epsilon + dot(v, v));
-    let k = v / theta;
-    let s = sin(theta);
-    let c = cos(theta);
+    let r = axis_angle(j);
+    let k = r.k;
+    let s = r.s;
+    let c = r.c;
     let t = 1.0 - c;
     let base = 9u * j;
     destination[base + 0u] = c + t * k.x * k.x;
@@ -55,20 +65,20 @@ fn forward(
 }
 
 // destination = dL/dv (count x 3, overwritten) from gradient = dL/dR (count x 9, row-major).
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP)
 fn backward(
     @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let j = joint_index(group, local);
+    let j = linear_index(group, groups, local);
     if (j >= params.count) {
         return;
     }
-    let v = vector_at(j);
-    let theta = sqrt(params.epsilon + dot(v, v));
-    let k = v / theta;
-    let s = sin(theta);
-    let c = cos(theta);
+    let r = axis_angle(j);
+    let k = r.k;
+    let s = r.s;
+    let c = r.c;
     let base = 9u * j;
     // Rows of G.
     let g0 = vec3<f32>(gradient[base + 0u], gradient[base + 1u], gradient[base + 2u]);
@@ -81,7 +91,7 @@ fn backward(
     let gt_k = g0 * k.x + g1 * k.y + g2 * k.z;
     let d_theta = -s * trace + s * dot(k, g_k) + c * dot(k, a);
     let d_k = (g_k + gt_k) * (1.0 - c) + a * s;
-    let d_v = k * d_theta + (d_k - k * dot(k, d_k)) / theta;
+    let d_v = k * d_theta + (d_k - k * dot(k, d_k)) / r.theta;
     destination[3u * j] = d_v.x;
     destination[3u * j + 1u] = d_v.y;
     destination[3u * j + 2u] = d_v.z;

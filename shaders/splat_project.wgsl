@@ -52,11 +52,7 @@ fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
     return (group.x + group.y * groups.x) * 256u + local;
 }
 
-fn finite(x: f32) -> bool {
-    // Neither NaN nor infinite: the exponent bits are not all ones. (A bit test, because
-    // compilers may assume `x == x`.)
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 fn rotation() -> mat3x3<f32> {
     // Columns of R from its rows.

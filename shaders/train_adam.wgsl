@@ -52,9 +52,7 @@ fn record_f32(word: u32) -> f32 {
     return bitcast<f32>(record[word]);
 }
 
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // Records a non-finite value of Gaussian `gaussian` in `slot`: the first iteration wins
 // (later iterations have smaller keys), and within it the smallest Gaussian.
@@ -68,7 +66,7 @@ fn flag(slot: u32, gaussian: u32) {
 
 fn update(i: u32, g: f32, step_size: f32) {
     let gaussian = i / column[C_WIDTH];
-    if (!is_finite(g)) {
+    if (!finite(g)) {
         flag(column[C_ID], gaussian);
     }
     let m = record_f32(R_BETA1) * first_moment[i] + record_f32(R_ONE_MINUS_BETA1) * g;
@@ -78,13 +76,18 @@ fn update(i: u32, g: f32, step_size: f32) {
     let denominator = sqrt(v) / record_f32(R_CORRECTION) + record_f32(R_EPS);
     let p = parameters[i] - step_size * m / denominator;
     parameters[i] = p;
-    if (!is_finite(p)) {
+    if (!finite(p)) {
         flag(COLUMNS + column[C_ID], gaussian);
     }
 }
 
-fn value_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 256u + local;
+const WORKGROUP: u32 = 256u;
+
+//#include "linear_index.wgsl"
+
+// The step size of the column (for SH, of its DC coefficient).
+fn column_step_size() -> f32 {
+    return record_f32(R_STEP_SIZE + column[C_STEP]);
 }
 
 fn values() -> u32 {
@@ -92,57 +95,57 @@ fn values() -> u32 {
 }
 
 // g = a + b (positions, log-scales, rotations: skinning plus AIAP).
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn sum_of_two(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
-    update(i, gradient_a[i] + gradient_b[i], record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i] + gradient_b[i], column_step_size());
 }
 
 // g = a.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn single(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
-    update(i, gradient_a[i], record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i], column_step_size());
 }
 
 // g = a * o * (1 - o), o = sigmoid(logit): `a` is the gradient of the activated opacity.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn opacity(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }
     let o = 1.0 / (1.0 + exp(-parameters[i]));
-    update(i, gradient_a[i] * o * (1.0 - o), record_f32(R_STEP_SIZE + column[C_STEP]));
+    update(i, gradient_a[i] * o * (1.0 - o), column_step_size());
 }
 
 // The stored SH row `16 x 3` from the active degree's `k x 3` gradient rows; the DC
 // coefficient at the DC rate, the others at the rest rate.
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn sh(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = value_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= values()) {
         return;
     }

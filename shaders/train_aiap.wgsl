@@ -39,64 +39,36 @@ fn count() -> u32 {
     return params[0].x;
 }
 
-fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 256u + local;
-}
+const WORKGROUP: u32 = 256u;
 
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "linear_index.wgsl"
+//#include "finite.wgsl"
+//#include "quaternion.wgsl"
 
 // ---------------------------------------------------------------------------------------
 // Canonical covariances `R diag(exp(log_scale)^2) R^T` (`covariance_from_scale_rotation`:
-// the quaternion normalised, a degenerate one taken as the identity).
+// the quaternion normalised, a degenerate one taken as the identity: `quat_matrix`).
 
 fn quaternion(i: u32) -> vec4<f32> {
     return vec4<f32>(rotation[4u * i], rotation[4u * i + 1u], rotation[4u * i + 2u],
         rotation[4u * i + 3u]);
 }
 
-fn is_degenerate(q: vec4<f32>) -> bool {
-    let n2 = dot(q, q);
-    return !(is_finite(n2) && n2 > 1e-24);
-}
-
-// The rotation of a unit `w x y z` quaternion; `m[c][r]` is row r, column c.
-fn rotation_matrix(unit: vec4<f32>) -> mat3x3<f32> {
-    let w = unit.x;
-    let x = unit.y;
-    let y = unit.z;
-    let z = unit.w;
-    return transpose(mat3x3<f32>(
-        vec3<f32>(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-        vec3<f32>(2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-        vec3<f32>(2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
-    ));
-}
-
-fn rotation_of(q: vec4<f32>) -> mat3x3<f32> {
-    if (is_degenerate(q)) {
-        return mat3x3<f32>(vec3<f32>(1.0, 0.0, 0.0), vec3<f32>(0.0, 1.0, 0.0),
-            vec3<f32>(0.0, 0.0, 1.0));
-    }
-    return rotation_matrix(q / sqrt(dot(q, q)));
-}
-
 fn scale_of(i: u32) -> vec3<f32> {
     return exp(vec3<f32>(log_scale[3u * i], log_scale[3u * i + 1u], log_scale[3u * i + 2u]));
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn covariances(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
-    let r = rotation_of(quaternion(i));
+    let r = quat_matrix(quaternion(i));
     let s = scale_of(i);
     let sigma = r * mat3x3<f32>(vec3<f32>(s.x * s.x, 0.0, 0.0), vec3<f32>(0.0, s.y * s.y, 0.0),
         vec3<f32>(0.0, 0.0, s.z * s.z)) * transpose(r);
@@ -127,13 +99,53 @@ fn sign_of(v: f32) -> f32 {
     return 0.0;
 }
 
-@compute @workgroup_size(256)
+// One pair's term `|d(a_i, a_j) - d(b_i, b_j)|` of vectors of `width` entries (3 for centres,
+// 6 for covariance upper triangles) from their differences `du = a_i - a_j` (canonical) and
+// `dv = b_i - b_j` (deformed), returned; its gradient times `scale` added into the scratch's
+// canonical rows from `canonical` and deformed rows from `deformed`.
+fn pair_term(
+    i: u32,
+    j: u32,
+    width: u32,
+    du: array<f32, 6>,
+    dv: array<f32, 6>,
+    scale: f32,
+    canonical: u32,
+    deformed: u32,
+) -> f32 {
+    var lu = 0.0;
+    var lv = 0.0;
+    for (var d = 0u; d < width; d = d + 1u) {
+        lu = lu + du[d] * du[d];
+        lv = lv + dv[d] * dv[d];
+    }
+    lu = sqrt(lu);
+    lv = sqrt(lv);
+    let g = scale * sign_of(lu - lv);
+    if (g != 0.0) {
+        for (var d = 0u; d < width; d = d + 1u) {
+            if (lu > 0.0) {
+                let t = g * du[d] / lu;
+                gradient_add(canonical + width * i + d, t);
+                gradient_add(canonical + width * j + d, -t);
+            }
+            if (lv > 0.0) {
+                let t = g * dv[d] / lv;
+                gradient_add(deformed + width * i + d, -t);
+                gradient_add(deformed + width * j + d, t);
+            }
+        }
+    }
+    return abs(lu - lv);
+}
+
+@compute @workgroup_size(WORKGROUP)
 fn pairs(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
@@ -148,59 +160,17 @@ fn pairs(
         // Centres.
         var du: array<f32, 6>;
         var dv: array<f32, 6>;
-        var lu = 0.0;
-        var lv = 0.0;
         for (var d = 0u; d < 3u; d = d + 1u) {
             du[d] = xyz[3u * i + d] - xyz[3u * j + d];
             dv[d] = deformed_centres[3u * i + d] - deformed_centres[3u * j + d];
-            lu = lu + du[d] * du[d];
-            lv = lv + dv[d] * dv[d];
         }
-        lu = sqrt(lu);
-        lv = sqrt(lv);
-        centre_sum = centre_sum + abs(lu - lv);
-        var g = centre_scale * sign_of(lu - lv);
-        if (g != 0.0) {
-            for (var d = 0u; d < 3u; d = d + 1u) {
-                if (lu > 0.0) {
-                    let t = g * du[d] / lu;
-                    gradient_add(3u * i + d, t);
-                    gradient_add(3u * j + d, -t);
-                }
-                if (lv > 0.0) {
-                    let t = g * dv[d] / lv;
-                    gradient_add(3u * c + 3u * i + d, -t);
-                    gradient_add(3u * c + 3u * j + d, t);
-                }
-            }
-        }
+        centre_sum = centre_sum + pair_term(i, j, 3u, du, dv, centre_scale, 0u, 3u * c);
         // Covariance upper triangles.
-        lu = 0.0;
-        lv = 0.0;
         for (var d = 0u; d < 6u; d = d + 1u) {
             du[d] = canonical_covariances[6u * i + d] - canonical_covariances[6u * j + d];
             dv[d] = deformed_covariances[6u * i + d] - deformed_covariances[6u * j + d];
-            lu = lu + du[d] * du[d];
-            lv = lv + dv[d] * dv[d];
         }
-        lu = sqrt(lu);
-        lv = sqrt(lv);
-        covariance_sum = covariance_sum + abs(lu - lv);
-        g = covariance_scale * sign_of(lu - lv);
-        if (g != 0.0) {
-            for (var d = 0u; d < 6u; d = d + 1u) {
-                if (lu > 0.0) {
-                    let t = g * du[d] / lu;
-                    gradient_add(6u * c + 6u * i + d, t);
-                    gradient_add(6u * c + 6u * j + d, -t);
-                }
-                if (lv > 0.0) {
-                    let t = g * dv[d] / lv;
-                    gradient_add(12u * c + 6u * i + d, -t);
-                    gradient_add(12u * c + 6u * j + d, t);
-                }
-            }
-        }
+        covariance_sum = covariance_sum + pair_term(i, j, 6u, du, dv, covariance_scale, 6u * c, 12u * c);
     }
     partials[2u * i] = centre_sum;
     partials[2u * i + 1u] = covariance_sum;
@@ -242,13 +212,13 @@ fn reduce_loss(@builtin(local_invocation_index) local: u32) {
 // The canonical gradients: the centres' copied out, the covariances' carried back to the
 // log-scales and rotations (`canonical_covariances_backward`).
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn finish(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) local: u32,
 ) {
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= count()) {
         return;
     }
@@ -267,38 +237,16 @@ fn finish(
         vec3<f32>(gxz, gyz, accumulated[u + 5u]),
     );
     let q = quaternion(i);
-    let r = rotation_of(q);
+    let r = quat_matrix(q);
     let s = scale_of(i);
     let rt_g_r = transpose(r) * g * r;
     d_log_scale[3u * i] = 2.0 * s.x * rt_g_r[0][0] * s.x;
     d_log_scale[3u * i + 1u] = 2.0 * s.y * rt_g_r[1][1] * s.y;
     d_log_scale[3u * i + 2u] = 2.0 * s.z * rt_g_r[2][2] * s.z;
-    if (is_degenerate(q)) {
-        for (var a = 0u; a < 4u; a = a + 1u) {
-            d_rotation[4u * i + a] = 0.0;
-        }
-        return;
-    }
-    // dL/dR = 2 G R D, then the derivative of R(q / |q|) (`quat_matrix_backward`).
+    // dL/dR = 2 G R D, then the derivative of R(q / |q|) (zero for a degenerate q).
     let e = g * r * mat3x3<f32>(vec3<f32>(2.0 * s.x * s.x, 0.0, 0.0),
         vec3<f32>(0.0, 2.0 * s.y * s.y, 0.0), vec3<f32>(0.0, 0.0, 2.0 * s.z * s.z));
-    let norm = sqrt(dot(q, q));
-    let unit = q / norm;
-    let w = unit.x;
-    let x = unit.y;
-    let y = unit.z;
-    let z = unit.w;
-    // e[c][r] is row r, column c.
-    let dw = 2.0 * (-z * e[1][0] + y * e[2][0] + z * e[0][1] - x * e[2][1] - y * e[0][2]
-        + x * e[1][2]);
-    let dx = 2.0 * (y * e[1][0] + z * e[2][0] + y * e[0][1] - 2.0 * x * e[1][1] - w * e[2][1]
-        + z * e[0][2] + w * e[1][2] - 2.0 * x * e[2][2]);
-    let dy = 2.0 * (-2.0 * y * e[0][0] + x * e[1][0] + w * e[2][0] + x * e[0][1] + z * e[2][1]
-        - w * e[0][2] + z * e[1][2] - 2.0 * y * e[2][2]);
-    let dz = 2.0 * (-2.0 * z * e[0][0] - w * e[1][0] + x * e[2][0] + w * e[0][1]
-        - 2.0 * z * e[1][1] + y * e[2][1] + x * e[0][2] + y * e[1][2]);
-    let gn = vec4<f32>(dw, dx, dy, dz);
-    let d_q = (gn - unit * dot(gn, unit)) / norm;
+    let d_q = quat_matrix_backward(q, e);
     d_rotation[4u * i] = d_q.x;
     d_rotation[4u * i + 1u] = d_q.y;
     d_rotation[4u * i + 2u] = d_q.z;

@@ -36,14 +36,15 @@
 @group(0) @binding(6) var<storage, read_write> grids: array<u32>;
 @group(0) @binding(7) var<storage, read_write> neighbours: array<u32>;
 
+// The largest k (aiap.rs MAX_NEIGHBOURS) and M (aiap.rs CANDIDATES); `select_nearest`'s k
+// nearest fit in the `Nearest` list that `rebuild` fills with M.
 const MAX_K: u32 = 16u;
 const MAX_CANDIDATES: u32 = 32u;
+const_assert MAX_K <= MAX_CANDIDATES;
 const TILE: u32 = 256u;
 const INFINITY_BITS: u32 = 0x7f800000u;
 
-fn is_finite(x: f32) -> bool {
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 fn position(i: u32) -> vec3<f32> {
     return vec3<f32>(xyz[3u * i], xyz[3u * i + 1u], xyz[3u * i + 2u]);
@@ -53,8 +54,38 @@ fn nearer(d: f32, j: u32, best_d: f32, best_j: u32) -> bool {
     return d < best_d || (d == best_d && j < best_j);
 }
 
-fn gaussian_index(group: vec3<u32>, groups: vec3<u32>, local: u32) -> u32 {
-    return (group.x + group.y * groups.x) * 256u + local;
+const WORKGROUP: u32 = 256u;
+
+//#include "linear_index.wgsl"
+
+// A list of the nearest points seen so far, sorted by (squared distance, index) with
+// `nearer`: the first `found` entries of `d` and `j`. `rebuild` fills up to M of them,
+// `select_nearest` up to k.
+struct Nearest {
+    d: array<f32, MAX_CANDIDATES>,
+    j: array<u32, MAX_CANDIDATES>,
+    found: u32,
+}
+
+// Inserts point `j` at squared distance `d` into `list` of at most `capacity` entries (from
+// the end, shifting the farther ones); a point no nearer than the last of a full list is left.
+fn insert_nearest(list: ptr<function, Nearest>, capacity: u32, d: f32, j: u32) {
+    let found = (*list).found;
+    if (found == capacity && !nearer(d, j, (*list).d[capacity - 1u], (*list).j[capacity - 1u])) {
+        return;
+    }
+    var slot = min(found, capacity - 1u);
+    loop {
+        if (slot == 0u || !nearer(d, j, (*list).d[slot - 1u], (*list).j[slot - 1u])) {
+            break;
+        }
+        (*list).d[slot] = (*list).d[slot - 1u];
+        (*list).j[slot] = (*list).j[slot - 1u];
+        slot = slot - 1u;
+    }
+    (*list).d[slot] = d;
+    (*list).j[slot] = j;
+    (*list).found = min(found + 1u, capacity);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -69,7 +100,7 @@ fn check(@builtin(local_invocation_index) local: u32) {
         let d = position(i) - vec3<f32>(anchors[3u * i], anchors[3u * i + 1u],
             anchors[3u * i + 2u]);
         let d2 = dot(d, d);
-        if (!is_finite(d2)) {
+        if (!finite(d2)) {
             moved = bitcast<f32>(INFINITY_BITS);
         } else {
             moved = max(moved, d2);
@@ -116,7 +147,7 @@ fn check(@builtin(local_invocation_index) local: u32) {
 
 var<workgroup> tile_points: array<vec4<f32>, TILE>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn rebuild(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -125,22 +156,21 @@ fn rebuild(
     let n = params[0].x;
     let k = params[0].y;
     let m = params[2].x;
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     let in_range = i < n;
     var query = vec3<f32>(0.0);
     if (in_range) {
         query = position(i);
     }
-    var best_d: array<f32, MAX_CANDIDATES>;
-    var best_j: array<u32, MAX_CANDIDATES>;
-    var found = 0u;
+    var best: Nearest;
+    best.found = 0u;
     var finite_points = 0u;
     for (var start = 0u; start < n; start = start + TILE) {
         let load = start + local;
         var point = vec4<f32>(0.0, 0.0, 0.0, 0.0);
         if (load < n) {
             let p = position(load);
-            if (is_finite(p.x) && is_finite(p.y) && is_finite(p.z)) {
+            if (finite(p.x) && finite(p.y) && finite(p.z)) {
                 point = vec4<f32>(p, 1.0);
             }
         }
@@ -157,23 +187,7 @@ fn rebuild(
                 finite_points = finite_points + 1u;
                 let delta = query - p.xyz;
                 let d = delta.x * delta.x + delta.y * delta.y + delta.z * delta.z;
-                let j = start + t;
-                if (found == m && !nearer(d, j, best_d[m - 1u], best_j[m - 1u])) {
-                    continue;
-                }
-                // Insertion from the end of the sorted list.
-                var slot = min(found, m - 1u);
-                loop {
-                    if (slot == 0u || !nearer(d, j, best_d[slot - 1u], best_j[slot - 1u])) {
-                        break;
-                    }
-                    best_d[slot] = best_d[slot - 1u];
-                    best_j[slot] = best_j[slot - 1u];
-                    slot = slot - 1u;
-                }
-                best_d[slot] = d;
-                best_j[slot] = j;
-                found = min(found + 1u, m);
+                insert_nearest(&best, m, d, start + t);
             }
         }
     }
@@ -183,8 +197,8 @@ fn rebuild(
     for (var s = 0u; s < m; s = s + 1u) {
         // Fewer finite points than M: the Gaussian itself fills the rest.
         var j = i;
-        if (s < found) {
-            j = best_j[s];
+        if (s < best.found) {
+            j = best.j[s];
         }
         candidates[i * MAX_CANDIDATES + s] = j;
     }
@@ -193,11 +207,11 @@ fn rebuild(
     anchors[3u * i + 2u] = query.z;
     // A list holding every finite Gaussian stays valid while the count does.
     var room = bitcast<f32>(INFINITY_BITS);
-    if (!is_finite(query.x + query.y + query.z)) {
+    if (!finite(query.x + query.y + query.z)) {
         room = -1.0;
-    } else if (found < finite_points) {
-        let reach = sqrt(best_d[m - 1u]);
-        room = reach - sqrt(best_d[k - 1u]) - 1e-5 * reach;
+    } else if (best.found < finite_points) {
+        let reach = sqrt(best.d[m - 1u]);
+        room = reach - sqrt(best.d[k - 1u]) - 1e-5 * reach;
     }
     slack[i] = room;
 }
@@ -232,7 +246,7 @@ fn finalize(@builtin(local_invocation_index) local: u32) {
 
 // ---------------------------------------------------------------------------------------
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WORKGROUP)
 fn select_nearest(
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -241,42 +255,27 @@ fn select_nearest(
     let n = params[0].x;
     let k = params[0].y;
     let m = params[2].x;
-    let i = gaussian_index(group, groups, local);
+    let i = linear_index(group, groups, local);
     if (i >= n) {
         return;
     }
     let query = position(i);
-    var best_d: array<f32, MAX_K>;
-    var best_j: array<u32, MAX_K>;
-    var found = 0u;
+    var best: Nearest;
+    best.found = 0u;
     for (var c = 0u; c < m; c = c + 1u) {
         let j = candidates[i * MAX_CANDIDATES + c];
         let p = position(j);
-        if (!(is_finite(p.x) && is_finite(p.y) && is_finite(p.z))) {
+        if (!(finite(p.x) && finite(p.y) && finite(p.z))) {
             continue;
         }
         let delta = query - p;
         let d = delta.x * delta.x + delta.y * delta.y + delta.z * delta.z;
-        if (found == k && !nearer(d, j, best_d[k - 1u], best_j[k - 1u])) {
-            continue;
-        }
-        var slot = min(found, k - 1u);
-        loop {
-            if (slot == 0u || !nearer(d, j, best_d[slot - 1u], best_j[slot - 1u])) {
-                break;
-            }
-            best_d[slot] = best_d[slot - 1u];
-            best_j[slot] = best_j[slot - 1u];
-            slot = slot - 1u;
-        }
-        best_d[slot] = d;
-        best_j[slot] = j;
-        found = min(found + 1u, k);
+        insert_nearest(&best, k, d, j);
     }
     for (var s = 0u; s < k; s = s + 1u) {
         var j = i;
-        if (s < found) {
-            j = best_j[s];
+        if (s < best.found) {
+            j = best.j[s];
         }
         neighbours[i * k + s] = j;
     }

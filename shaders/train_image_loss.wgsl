@@ -160,6 +160,11 @@ fn target_mask(camera: LossCamera, pixel: u32) -> f32 {
     return f32(truth[camera.image_offset + pixel] >> 24u) / 255.0;
 }
 
+// The bound-box rect's (crop's) width and height.
+fn crop_size(camera: LossCamera) -> vec2<u32> {
+    return vec2<u32>(camera.x1 - camera.x0, camera.y1 - camera.y0);
+}
+
 fn rendered_colour(camera: LossCamera, pixel: u32) -> vec3<f32> {
     let base = 3u * (camera.render_offset + pixel);
     return vec3<f32>(colour[base], colour[base + 1u], colour[base + 2u]);
@@ -174,11 +179,11 @@ fn ssim_rows(
 ) {
     let index = linear_index(workgroup, groups, local);
     let camera = load_camera(slot_camera());
-    let crop_width = camera.x1 - camera.x0;
-    let crop_height = camera.y1 - camera.y0;
-    if (index >= crop_width * crop_height) {
+    let crop = crop_size(camera);
+    if (index >= crop.x * crop.y) {
         return;
     }
+    let crop_width = crop.x;
     let row = index / crop_width;
     let col = index % crop_width;
     var mu_x = vec3<f32>(0.0);
@@ -251,14 +256,14 @@ fn ssim_columns(
 ) {
     let index = linear_index(workgroup, groups, local);
     let camera = load_camera(slot_camera());
-    let crop_width = camera.x1 - camera.x0;
-    let crop_height = camera.y1 - camera.y0;
-    if (index >= crop_width * crop_height) {
+    let crop = crop_size(camera);
+    if (index >= crop.x * crop.y) {
         return;
     }
+    let crop_width = crop.x;
     var values: array<f32, 15>;
-    column_blur_planes(0u, index / crop_width, index % crop_width, crop_width, crop_height, &values, 15u);
-    let mean_factor = 1.0 / (3.0 * f32(crop_width * crop_height));
+    column_blur_planes(0u, index / crop_width, index % crop_width, crop_width, crop.y, &values, 15u);
+    let mean_factor = 1.0 / (3.0 * f32(crop.x * crop.y));
     let stride = plane_stride();
     var ssim_sum = 0.0;
     for (var c = 0u; c < 3u; c++) {
@@ -291,11 +296,11 @@ fn ssim_gradient_rows(
 ) {
     let index = linear_index(workgroup, groups, local);
     let camera = load_camera(slot_camera());
-    let crop_width = camera.x1 - camera.x0;
-    let crop_height = camera.y1 - camera.y0;
-    if (index >= crop_width * crop_height) {
+    let crop = crop_size(camera);
+    if (index >= crop.x * crop.y) {
         return;
     }
+    let crop_width = crop.x;
     let col = index % crop_width;
     let line = index - col;
     let stride = plane_stride();
@@ -336,9 +341,9 @@ fn image_loss_gradient(
         var gradient = vec3<f32>(0.0);
         var alpha_grad = 0.0;
         if (inside) {
-            let crop_width = camera.x1 - camera.x0;
-            let crop_height = camera.y1 - camera.y0;
-            let count = f32(crop_width * crop_height);
+            let crop = crop_size(camera);
+            let crop_width = crop.x;
+            let count = f32(crop.x * crop.y);
             let x = rendered_colour(camera, index);
             let y = target_colour(camera, index);
             let difference = x - y;
@@ -349,7 +354,7 @@ fn image_loss_gradient(
                 let crop_row = row - camera.y0;
                 let crop_col = col - camera.x0;
                 var values: array<f32, 15>;
-                column_blur_planes(0u, crop_row, crop_col, crop_width, crop_height, &values, 9u);
+                column_blur_planes(0u, crop_row, crop_col, crop_width, crop.y, &values, 9u);
                 let g_mu = vec3<f32>(values[0], values[1], values[2]);
                 let g_exx = vec3<f32>(values[3], values[4], values[5]);
                 let g_exy = vec3<f32>(values[6], values[7], values[8]);
@@ -366,6 +371,16 @@ fn image_loss_gradient(
         colour_gradient[base + 2u] = camera.scale * gradient.z;
         alpha_gradient[camera.render_offset + index] = camera.scale * alpha_grad;
     }
+    sum_over_workgroup(local, sums);
+    let partial_count = (pixels + WORKGROUP - 1u) / WORKGROUP;
+    if (local == 0u && group_index < partial_count) {
+        partials[group_index] = shared_sums[0];
+    }
+}
+
+// Leaves the sum of every thread's `sums` in `shared_sums[0]`, by a fixed tree (the result
+// does not depend on scheduling). Called by all threads of the workgroup.
+fn sum_over_workgroup(local: u32, sums: vec4<f32>) {
     shared_sums[local] = sums;
     workgroupBarrier();
     for (var width = WORKGROUP / 2u; width > 0u; width /= 2u) {
@@ -374,15 +389,9 @@ fn image_loss_gradient(
         }
         workgroupBarrier();
     }
-    let partial_count = (pixels + WORKGROUP - 1u) / WORKGROUP;
-    if (local == 0u && group_index < partial_count) {
-        partials[group_index] = shared_sums[0];
-    }
 }
 
-fn is_finite(value: f32) -> bool {
-    return (bitcast<u32>(value) & 0x7f800000u) != 0x7f800000u;
-}
+//#include "finite.wgsl"
 
 // One workgroup: sums the partials of `image_loss_gradient` in a fixed order, turns them into
 // the camera's terms and adds them, times the camera's scale, into the log's `current`.
@@ -394,17 +403,11 @@ fn image_loss_reduce(@builtin(local_invocation_index) local: u32) {
     for (var i = local; i < partial_count; i += WORKGROUP) {
         sums += partials[i];
     }
-    shared_sums[local] = sums;
-    workgroupBarrier();
-    for (var width = WORKGROUP / 2u; width > 0u; width /= 2u) {
-        if (local < width) {
-            shared_sums[local] += shared_sums[local + width];
-        }
-        workgroupBarrier();
-    }
+    sum_over_workgroup(local, sums);
     if (local == 0u) {
         let total_sums = shared_sums[0];
-        let count = f32((camera.x1 - camera.x0) * (camera.y1 - camera.y0));
+        let crop = crop_size(camera);
+        let count = f32(crop.x * crop.y);
         let l1 = total_sums.x / (3.0 * count);
         let mask_mse = total_sums.y / count;
         var dssim = 0.0;
@@ -454,17 +457,17 @@ fn add_lpips() {
 // iteration whose total is not finite remembered (the host reports it as a divergence).
 @compute @workgroup_size(1)
 fn finish_iteration() {
-    var finite = true;
+    var all_finite = true;
     for (var i = 0u; i < 8u; i++) {
         let value = bitcast<f32>(loss_log[i]);
         log_add(LOG_SUM + i, value);
         if (i < 6u) {
-            finite = finite && is_finite(value);
+            all_finite = all_finite && finite(value);
         }
     }
     loss_log[LOG_ITERATIONS] += 1u;
     loss_log[LOG_LAST_ITERATION] = iteration();
-    if (!finite) {
+    if (!all_finite) {
         if (loss_log[LOG_NONFINITE_ITERATIONS] == 0u) {
             loss_log[LOG_FIRST_NONFINITE] = iteration();
         }

@@ -436,13 +436,14 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         let cloud = read_ply(&std::fs::read(path).unwrap()).unwrap();
         assert_eq!(cloud.len(), canonical.len());
         let world = cloud_to_world(&cloud).unwrap();
-        let replayed = driven
-            .renderer
-            .device()
-            .splat_forward(&world, std::slice::from_ref(&camera), &raster)
-            .unwrap()
-            .images
-            .swap_remove(0);
+        let replayed = seqavatar_avatar::splatting::forward_cpu(
+            &world,
+            std::slice::from_ref(&camera),
+            &raster,
+        )
+        .unwrap()
+        .images
+        .swap_remove(0);
         let rendered = driven.renderer.render(frame, &camera).unwrap();
         assert_eq!(rendered.data.len(), replayed.colour.len());
         let squared: f64 = rendered

@@ -130,228 +130,34 @@ impl Pipeline {
             lines,
             registry,
         };
-        let document: serde_json::Value = if text.trim().is_empty() {
-            serde_json::Value::Null
-        } else {
-            serde_saphyr::from_str(text)
-                .map_err(|error| loader.at(&[], format!("YAML error: {error}")))?
-        };
-        let (description, stage_values, stages_path) = match &document {
-            serde_json::Value::Object(map) => {
-                for name in map.keys() {
-                    if !TOP_LEVEL_KEYS.contains(&name.as_str()) {
-                        return Err(loader.at(
-                            &[key(name)],
-                            format!(
-                                "unknown top-level key \"{name}\", expected one of: {}",
-                                TOP_LEVEL_KEYS.join(", ")
-                            ),
-                        ));
-                    }
-                }
-                let description = match map.get("description") {
-                    None | Some(serde_json::Value::Null) => None,
-                    Some(serde_json::Value::String(text)) => Some(text.clone()),
-                    Some(other) => {
-                        return Err(loader.at(
-                            &[key("description")],
-                            format!(
-                                "key \"description\": expected a string, found {}",
-                                type_name(other)
-                            ),
-                        ));
-                    }
-                };
-                match map.get("stages") {
-                    Some(serde_json::Value::Array(items)) => {
-                        (description, items.clone(), vec![key("stages")])
-                    }
-                    Some(other) => {
-                        return Err(loader.at(
-                            &[key("stages")],
-                            format!(
-                                "key \"stages\": expected a list of stages, found {}",
-                                type_name(other)
-                            ),
-                        ));
-                    }
-                    None => {
-                        return Err(
-                            loader.at(&[], "missing key \"stages\" (a list of stages)".to_string())
-                        );
-                    }
-                }
-            }
-            serde_json::Value::Array(items) => (None, items.clone(), vec![]),
-            other => {
-                return Err(loader.at(
-                    &[],
-                    format!(
-                        "expected a mapping with a \"stages\" list, found {}",
-                        type_name(other)
-                    ),
-                ));
-            }
-        };
+        let TopLevel {
+            description,
+            stage_values,
+            stages_path,
+        } = loader.top_level(text)?;
         if stage_values.is_empty() {
             return Err(loader.at(&stages_path, "the pipeline has no stages".to_string()));
         }
-
-        // `matrix:` stanzas expand into stages; each stage keeps the path of the item (or
-        // template) it came from, for errors.
-        let (stage_values, stage_paths): (Vec<_>, Vec<_>) =
-            crate::matrix::expand_stage_list(&stage_values, &stages_path, &loader.lines)
-                .map_err(|error| loader.at(&error.path, error.message))?
-                .into_iter()
-                .unzip();
-        let mut stages: Vec<StageSpec> = Vec::with_capacity(stage_values.len());
-        let mut raw_configs = Vec::with_capacity(stage_values.len());
-        let mut seen: BTreeMap<String, usize> = BTreeMap::new();
-        for (value, path) in stage_values.iter().zip(&stage_paths) {
-            let index = stages.len();
-            let (spec, raw_config) = loader.stage(value, path)?;
-            if let Some(&first) = seen.get(&spec.name) {
-                return Err(loader.at(
-                    &[path.as_slice(), &[key("name")]].concat(),
-                    format!(
-                        "stage name \"{}\" is used twice (first at line {})",
-                        spec.name, stages[first].line
-                    ),
-                ));
-            }
-            seen.insert(spec.name.clone(), index);
-            stages.push(spec);
-            raw_configs.push(raw_config);
-        }
-
-        // Inputs: they exist, and their kinds are accepted.
-        for (index, stage) in stages.iter().enumerate() {
-            let kind = registry.get(&stage.kind).expect("kind checked above");
-            for (input_index, input) in stage.inputs.iter().enumerate() {
-                let path = [
-                    stage_paths[index].as_slice(),
-                    &[key("inputs"), ConfigPathSegment::Index(input_index)],
-                ]
-                .concat();
-                let Some(&upstream) = seen.get(input) else {
-                    return Err(loader.at(
-                        &path,
-                        format!(
-                            "stage \"{}\": input \"{input}\" is not a stage of this pipeline (stages: {})",
-                            stage.name,
-                            seen.keys().cloned().collect::<Vec<_>>().join(", ")
-                        ),
-                    ));
-                };
-                let upstream_kind = &stages[upstream].kind;
-                if !kind.input_kinds().contains(&upstream_kind.as_str()) {
-                    return Err(loader.at(
-                        &path,
-                        format!(
-                            "stage \"{}\" (kind {}): input \"{input}\" has kind {upstream_kind}, accepted input kinds: {}",
-                            stage.name,
-                            stage.kind,
-                            if kind.input_kinds().is_empty() {
-                                "none".to_string()
-                            } else {
-                                kind.input_kinds().join(", ")
-                            }
-                        ),
-                    ));
-                }
-            }
-        }
-
-        let order = topological_order(&stages).map_err(|cycle| {
-            let first = seen[&cycle[0]];
+        let mut parsed = loader.stage_list(&stage_values, &stages_path)?;
+        loader.check_input_kinds(&parsed)?;
+        let order = topological_order(&parsed.stages).map_err(|cycle| {
+            let first = parsed.index_of[&cycle[0]];
             loader.at(
-                &[stage_paths[first].as_slice(), &[key("inputs")]].concat(),
+                &parsed.at_key(first, "inputs"),
                 format!(
                     "the inputs form a cycle (data flows {})",
                     cycle.join(" -> ")
                 ),
             )
         })?;
-
         // Overrides, then variable expansion, then the stage kind's own validation.
-        let mut overridden: BTreeMap<usize, Vec<Vec<ConfigPathSegment>>> = BTreeMap::new();
-        for assignment in overrides {
-            let (stage_name, config_path, value) = parse_override(assignment)
-                .map_err(|message| loader.general(format!("--set {assignment}: {message}")))?;
-            let Some(&index) = seen.get(&stage_name) else {
-                return Err(loader.general(format!(
-                    "--set {assignment}: no stage named \"{stage_name}\" (stages: {})",
-                    seen.keys().cloned().collect::<Vec<_>>().join(", ")
-                )));
-            };
-            set_path(&mut raw_configs[index], &config_path, value)
-                .map_err(|message| loader.general(format!("--set {assignment}: {message}")))?;
-            overridden.entry(index).or_default().push(config_path);
-        }
-        for (index, stage) in stages.iter_mut().enumerate() {
-            let config_root = [stage_paths[index].as_slice(), &[key("config")]].concat();
-            let from_command_line = |path: &[ConfigPathSegment]| {
-                overridden
-                    .get(&index)
-                    .is_some_and(|paths| paths.iter().any(|set| path.starts_with(set)))
-            };
-            let mut raw = raw_configs[index].clone();
-            expand_variables(&mut raw, &mut Vec::new()).map_err(|(path, message)| {
-                let text = format!(
-                    "stage \"{}\": config key \"{}\": {message}{}",
-                    stage.name,
-                    path_to_string(&path),
-                    if from_command_line(&path) {
-                        " (set with --set)"
-                    } else {
-                        ""
-                    }
-                );
-                loader.at(&[config_root.as_slice(), &path].concat(), text)
-            })?;
-            let kind = registry.get(&stage.kind).expect("kind checked above");
-            stage.config = kind.resolve_config(&raw).map_err(|error| {
-                let text = format!(
-                    "stage \"{}\": {error}{}",
-                    stage.name,
-                    if from_command_line(&error.path) {
-                        " (set with --set)"
-                    } else {
-                        ""
-                    }
-                );
-                loader.at(&[config_root.as_slice(), &error.path].concat(), text)
-            })?;
-        }
-
-        // Each stage's inputs give it what its run needs (with their effective configs).
-        for (index, stage) in stages.iter().enumerate() {
-            let kind = registry.get(&stage.kind).expect("kind checked above");
-            let inputs: Vec<crate::StageInput<'_>> = stage
-                .inputs
-                .iter()
-                .map(|name| {
-                    let upstream = &stages[seen[name]];
-                    crate::StageInput {
-                        name,
-                        kind: &upstream.kind,
-                        config: &upstream.config,
-                    }
-                })
-                .collect();
-            kind.check_inputs(&stage.config, &inputs)
-                .map_err(|message| {
-                    loader.at(
-                        &[stage_paths[index].as_slice(), &[key("inputs")]].concat(),
-                        format!("stage \"{}\" (kind {}): {message}", stage.name, stage.kind),
-                    )
-                })?;
-        }
-
+        let overridden = loader.apply_overrides(&mut parsed, overrides)?;
+        loader.resolve_configs(&mut parsed, &overridden)?;
+        loader.check_stage_inputs(&parsed)?;
         Ok(Self {
             file: file.to_path_buf(),
             description,
-            stages,
+            stages: parsed.stages,
             order,
         })
     }
@@ -387,14 +193,289 @@ impl Pipeline {
     }
 }
 
+/// The top level of a pipeline document: its description and its (unexpanded) stage list.
+struct TopLevel {
+    description: Option<String>,
+    stage_values: Vec<serde_json::Value>,
+    /// Where the stage list is in the document (empty for a bare list).
+    stages_path: Vec<ConfigPathSegment>,
+}
+
+/// The stages of a pipeline as validation goes: specs, raw configs and where each came from.
+struct ParsedStages {
+    /// Specs in file order (after `matrix:` expansion); configs resolved last.
+    stages: Vec<StageSpec>,
+    /// Each stage's config as written, then with `--set` overrides applied.
+    raw_configs: Vec<serde_json::Value>,
+    /// The path of the item (or template) each stage came from, for errors.
+    paths: Vec<Vec<ConfigPathSegment>>,
+    /// Stage index by name.
+    index_of: BTreeMap<String, usize>,
+}
+
+impl ParsedStages {
+    /// The path of key `name` in stage `index`.
+    fn at_key(&self, index: usize, name: &str) -> Vec<ConfigPathSegment> {
+        [self.paths[index].as_slice(), &[key(name)]].concat()
+    }
+
+    /// The stage names, sorted, for messages.
+    fn names(&self) -> String {
+        self.index_of.keys().cloned().collect::<Vec<_>>().join(", ")
+    }
+}
+
+/// Config paths set with `--set`, by stage index.
+type Overridden = BTreeMap<usize, Vec<Vec<ConfigPathSegment>>>;
+
 impl Loader<'_> {
+    /// Parses the YAML document and checks its top-level keys.
+    fn top_level(&self, text: &str) -> Result<TopLevel, PipelineError> {
+        let document: serde_json::Value = if text.trim().is_empty() {
+            serde_json::Value::Null
+        } else {
+            serde_saphyr::from_str(text)
+                .map_err(|error| self.at(&[], format!("YAML error: {error}")))?
+        };
+        match &document {
+            serde_json::Value::Object(map) => {
+                for name in map.keys() {
+                    if !TOP_LEVEL_KEYS.contains(&name.as_str()) {
+                        return Err(self.at(
+                            &[key(name)],
+                            format!(
+                                "unknown top-level key \"{name}\", expected one of: {}",
+                                TOP_LEVEL_KEYS.join(", ")
+                            ),
+                        ));
+                    }
+                }
+                let description = match map.get("description") {
+                    None | Some(serde_json::Value::Null) => None,
+                    Some(serde_json::Value::String(text)) => Some(text.clone()),
+                    Some(other) => {
+                        return Err(self.at(
+                            &[key("description")],
+                            format!(
+                                "key \"description\": expected a string, found {}",
+                                type_name(other)
+                            ),
+                        ));
+                    }
+                };
+                match map.get("stages") {
+                    Some(serde_json::Value::Array(items)) => Ok(TopLevel {
+                        description,
+                        stage_values: items.clone(),
+                        stages_path: vec![key("stages")],
+                    }),
+                    Some(other) => Err(self.at(
+                        &[key("stages")],
+                        format!(
+                            "key \"stages\": expected a list of stages, found {}",
+                            type_name(other)
+                        ),
+                    )),
+                    None => {
+                        Err(self.at(&[], "missing key \"stages\" (a list of stages)".to_string()))
+                    }
+                }
+            }
+            serde_json::Value::Array(items) => Ok(TopLevel {
+                description: None,
+                stage_values: items.clone(),
+                stages_path: vec![],
+            }),
+            other => Err(self.at(
+                &[],
+                format!(
+                    "expected a mapping with a \"stages\" list, found {}",
+                    type_name(other)
+                ),
+            )),
+        }
+    }
+
+    /// Expands `matrix:` stanzas and validates each stage mapping; names are unique.
+    fn stage_list(
+        &self,
+        stage_values: &[serde_json::Value],
+        stages_path: &[ConfigPathSegment],
+    ) -> Result<ParsedStages, PipelineError> {
+        // `matrix:` stanzas expand into stages; each stage keeps the path of the item (or
+        // template) it came from, for errors.
+        let (stage_values, paths): (Vec<_>, Vec<_>) =
+            crate::matrix::expand_stage_list(stage_values, stages_path, &self.lines)
+                .map_err(|error| self.at(&error.path, error.message))?
+                .into_iter()
+                .unzip();
+        let mut stages: Vec<StageSpec> = Vec::with_capacity(stage_values.len());
+        let mut raw_configs = Vec::with_capacity(stage_values.len());
+        let mut index_of: BTreeMap<String, usize> = BTreeMap::new();
+        for (value, path) in stage_values.iter().zip(&paths) {
+            let index = stages.len();
+            let (spec, raw_config) = self.stage(value, path)?;
+            if let Some(&first) = index_of.get(&spec.name) {
+                return Err(self.at(
+                    &[path.as_slice(), &[key("name")]].concat(),
+                    format!(
+                        "stage name \"{}\" is used twice (first at line {})",
+                        spec.name, stages[first].line
+                    ),
+                ));
+            }
+            index_of.insert(spec.name.clone(), index);
+            stages.push(spec);
+            raw_configs.push(raw_config);
+        }
+        Ok(ParsedStages {
+            stages,
+            raw_configs,
+            paths,
+            index_of,
+        })
+    }
+
+    /// Inputs: they exist, and their kinds are accepted.
+    fn check_input_kinds(&self, parsed: &ParsedStages) -> Result<(), PipelineError> {
+        let stages = &parsed.stages;
+        for (index, stage) in stages.iter().enumerate() {
+            let kind = self.registry.get(&stage.kind).expect("kind checked above");
+            for (input_index, input) in stage.inputs.iter().enumerate() {
+                let path = [
+                    parsed.paths[index].as_slice(),
+                    &[key("inputs"), ConfigPathSegment::Index(input_index)],
+                ]
+                .concat();
+                let Some(&upstream) = parsed.index_of.get(input) else {
+                    return Err(self.at(
+                        &path,
+                        format!(
+                            "stage \"{}\": input \"{input}\" is not a stage of this pipeline (stages: {})",
+                            stage.name,
+                            parsed.names()
+                        ),
+                    ));
+                };
+                let upstream_kind = &stages[upstream].kind;
+                if !kind.input_kinds().contains(&upstream_kind.as_str()) {
+                    return Err(self.at(
+                        &path,
+                        format!(
+                            "stage \"{}\" (kind {}): input \"{input}\" has kind {upstream_kind}, accepted input kinds: {}",
+                            stage.name,
+                            stage.kind,
+                            if kind.input_kinds().is_empty() {
+                                "none".to_string()
+                            } else {
+                                kind.input_kinds().join(", ")
+                            }
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Applies the `--set stage.key=value` overrides to the raw configs; returns what was set.
+    fn apply_overrides(
+        &self,
+        parsed: &mut ParsedStages,
+        overrides: &[String],
+    ) -> Result<Overridden, PipelineError> {
+        let mut overridden = Overridden::new();
+        for assignment in overrides {
+            let (stage_name, config_path, value) = parse_override(assignment)
+                .map_err(|message| self.general(format!("--set {assignment}: {message}")))?;
+            let Some(&index) = parsed.index_of.get(&stage_name) else {
+                return Err(self.general(format!(
+                    "--set {assignment}: no stage named \"{stage_name}\" (stages: {})",
+                    parsed.names()
+                )));
+            };
+            set_path(&mut parsed.raw_configs[index], &config_path, value)
+                .map_err(|message| self.general(format!("--set {assignment}: {message}")))?;
+            overridden.entry(index).or_default().push(config_path);
+        }
+        Ok(overridden)
+    }
+
+    /// Expands variables in each raw config and resolves it with the stage kind; errors on a
+    /// key set with `--set` say so.
+    fn resolve_configs(
+        &self,
+        parsed: &mut ParsedStages,
+        overridden: &Overridden,
+    ) -> Result<(), PipelineError> {
+        for index in 0..parsed.stages.len() {
+            let config_root = parsed.at_key(index, "config");
+            let from_command_line = |path: &[ConfigPathSegment]| {
+                overridden
+                    .get(&index)
+                    .is_some_and(|paths| paths.iter().any(|set| path.starts_with(set)))
+            };
+            let set_note = |path: &[ConfigPathSegment]| {
+                if from_command_line(path) {
+                    " (set with --set)"
+                } else {
+                    ""
+                }
+            };
+            let stage = &mut parsed.stages[index];
+            let mut raw = parsed.raw_configs[index].clone();
+            expand_variables(&mut raw, &mut Vec::new()).map_err(|(path, message)| {
+                let text = format!(
+                    "stage \"{}\": config key \"{}\": {message}{}",
+                    stage.name,
+                    path_to_string(&path),
+                    set_note(&path)
+                );
+                self.at(&[config_root.as_slice(), &path].concat(), text)
+            })?;
+            let kind = self.registry.get(&stage.kind).expect("kind checked above");
+            stage.config = kind.resolve_config(&raw).map_err(|error| {
+                let text = format!("stage \"{}\": {error}{}", stage.name, set_note(&error.path));
+                self.at(&[config_root.as_slice(), &error.path].concat(), text)
+            })?;
+        }
+        Ok(())
+    }
+
+    /// Each stage's inputs give it what its run needs (with their effective configs).
+    fn check_stage_inputs(&self, parsed: &ParsedStages) -> Result<(), PipelineError> {
+        let stages = &parsed.stages;
+        for (index, stage) in stages.iter().enumerate() {
+            let kind = self.registry.get(&stage.kind).expect("kind checked above");
+            let inputs: Vec<crate::StageInput<'_>> = stage
+                .inputs
+                .iter()
+                .map(|name| {
+                    let upstream = &stages[parsed.index_of[name]];
+                    crate::StageInput {
+                        name,
+                        kind: &upstream.kind,
+                        config: &upstream.config,
+                    }
+                })
+                .collect();
+            kind.check_inputs(&stage.config, &inputs)
+                .map_err(|message| {
+                    self.at(
+                        &parsed.at_key(index, "inputs"),
+                        format!("stage \"{}\" (kind {}): {message}", stage.name, stage.kind),
+                    )
+                })?;
+        }
+        Ok(())
+    }
+
     /// Validates one stage mapping; returns the spec (config unresolved) and the raw config.
     fn stage(
         &self,
         value: &serde_json::Value,
         path: &[ConfigPathSegment],
     ) -> Result<(StageSpec, serde_json::Value), PipelineError> {
-        let at_key = |name: &str| [path, &[key(name)]].concat();
         let serde_json::Value::Object(map) = value else {
             return Err(self.at(
                 path,
@@ -405,6 +486,29 @@ impl Loader<'_> {
                 ),
             ));
         };
+        self.check_stage_keys(map, path)?;
+        let name = self.stage_name(map, path)?;
+        let kind = self.stage_kind(map, path, &name)?;
+        let inputs = self.stage_inputs(map, path, &name)?;
+        let raw_config = self.stage_raw_config(map, path, &name)?;
+        Ok((
+            StageSpec {
+                name,
+                kind,
+                config: serde_json::Value::Null,
+                inputs,
+                line: self.lines.line_of(path),
+            },
+            raw_config,
+        ))
+    }
+
+    /// Every key of a stage mapping is one of `STAGE_KEYS`.
+    fn check_stage_keys(
+        &self,
+        map: &serde_json::Map<String, serde_json::Value>,
+        path: &[ConfigPathSegment],
+    ) -> Result<(), PipelineError> {
         for name in map.keys() {
             if !STAGE_KEYS.contains(&name.as_str()) {
                 let label = map
@@ -413,7 +517,7 @@ impl Loader<'_> {
                     .map(|n| format!("stage \"{n}\": "))
                     .unwrap_or_default();
                 return Err(self.at(
-                    &at_key(name),
+                    &[path, &[key(name)]].concat(),
                     format!(
                         "{label}unknown key \"{name}\", expected one of: {}",
                         STAGE_KEYS.join(", ")
@@ -421,30 +525,46 @@ impl Loader<'_> {
                 ));
             }
         }
-        let name = match map.get("name") {
-            Some(serde_json::Value::String(name)) if valid_stage_name(name) => name.clone(),
-            Some(serde_json::Value::String(name)) => {
-                return Err(self.at(
-                    &at_key("name"),
-                    format!("stage name \"{name}\" must be non-empty and use only ASCII letters, digits, '_' and '-'"),
-                ));
-            }
-            Some(other) => {
-                return Err(self.at(
-                    &at_key("name"),
-                    format!(
-                        "key \"name\": expected a string, found {}",
-                        type_name(other)
-                    ),
-                ));
-            }
-            None => return Err(self.at(path, "stage without a \"name\"".to_string())),
-        };
+        Ok(())
+    }
+
+    /// The stage's `name`: a valid stage name.
+    fn stage_name(
+        &self,
+        map: &serde_json::Map<String, serde_json::Value>,
+        path: &[ConfigPathSegment],
+    ) -> Result<String, PipelineError> {
+        let at_name = [path, &[key("name")]].concat();
+        match map.get("name") {
+            Some(serde_json::Value::String(name)) if valid_stage_name(name) => Ok(name.clone()),
+            Some(serde_json::Value::String(name)) => Err(self.at(
+                &at_name,
+                format!("stage name \"{name}\" must be non-empty and use only ASCII letters, digits, '_' and '-'"),
+            )),
+            Some(other) => Err(self.at(
+                &at_name,
+                format!(
+                    "key \"name\": expected a string, found {}",
+                    type_name(other)
+                ),
+            )),
+            None => Err(self.at(path, "stage without a \"name\"".to_string())),
+        }
+    }
+
+    /// The stage's `kind`: one the registry knows.
+    fn stage_kind(
+        &self,
+        map: &serde_json::Map<String, serde_json::Value>,
+        path: &[ConfigPathSegment],
+        name: &str,
+    ) -> Result<String, PipelineError> {
+        let at_kind = [path, &[key("kind")]].concat();
         let kind = match map.get("kind") {
             Some(serde_json::Value::String(kind)) => kind.clone(),
             Some(other) => {
                 return Err(self.at(
-                    &at_key("kind"),
+                    &at_kind,
                     format!(
                         "stage \"{name}\": key \"kind\": expected a string, found {}",
                         type_name(other)
@@ -457,46 +577,30 @@ impl Loader<'_> {
         };
         if self.registry.get(&kind).is_none() {
             return Err(self.at(
-                &at_key("kind"),
+                &at_kind,
                 format!(
                     "stage \"{name}\": unknown stage kind \"{kind}\", known kinds: {}",
                     self.registry.kind_names().join(", ")
                 ),
             ));
         }
-        let inputs = match map.get("inputs") {
-            None | Some(serde_json::Value::Null) => vec![],
-            Some(serde_json::Value::String(single)) => vec![single.clone()],
-            Some(serde_json::Value::Array(items)) => {
-                let mut inputs = Vec::with_capacity(items.len());
-                for (index, item) in items.iter().enumerate() {
-                    match item {
-                        serde_json::Value::String(input) => {
-                            if inputs.contains(input) {
-                                return Err(self.at(
-                                    &[path, &[key("inputs"), ConfigPathSegment::Index(index)]]
-                                        .concat(),
-                                    format!("stage \"{name}\": input \"{input}\" is listed twice"),
-                                ));
-                            }
-                            inputs.push(input.clone())
-                        }
-                        other => {
-                            return Err(self.at(
-                                &[path, &[key("inputs"), ConfigPathSegment::Index(index)]].concat(),
-                                format!(
-                                    "stage \"{name}\": key \"inputs\": expected stage names, found {}",
-                                    type_name(other)
-                                ),
-                            ));
-                        }
-                    }
-                }
-                inputs
-            }
+        Ok(kind)
+    }
+
+    /// The stage's `inputs`: none, one name, or a list of distinct names.
+    fn stage_inputs(
+        &self,
+        map: &serde_json::Map<String, serde_json::Value>,
+        path: &[ConfigPathSegment],
+        name: &str,
+    ) -> Result<Vec<String>, PipelineError> {
+        let items = match map.get("inputs") {
+            None | Some(serde_json::Value::Null) => return Ok(vec![]),
+            Some(serde_json::Value::String(single)) => return Ok(vec![single.clone()]),
+            Some(serde_json::Value::Array(items)) => items,
             Some(other) => {
                 return Err(self.at(
-                    &at_key("inputs"),
+                    &[path, &[key("inputs")]].concat(),
                     format!(
                         "stage \"{name}\": key \"inputs\": expected a list of stage names, found {}",
                         type_name(other)
@@ -504,31 +608,53 @@ impl Loader<'_> {
                 ));
             }
         };
-        let raw_config = match map.get("config") {
+        let mut inputs = Vec::with_capacity(items.len());
+        for (index, item) in items.iter().enumerate() {
+            let at_item = [path, &[key("inputs"), ConfigPathSegment::Index(index)]].concat();
+            match item {
+                serde_json::Value::String(input) => {
+                    if inputs.contains(input) {
+                        return Err(self.at(
+                            &at_item,
+                            format!("stage \"{name}\": input \"{input}\" is listed twice"),
+                        ));
+                    }
+                    inputs.push(input.clone())
+                }
+                other => {
+                    return Err(self.at(
+                        &at_item,
+                        format!(
+                            "stage \"{name}\": key \"inputs\": expected stage names, found {}",
+                            type_name(other)
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(inputs)
+    }
+
+    /// The stage's `config` as written: a mapping (empty when absent).
+    fn stage_raw_config(
+        &self,
+        map: &serde_json::Map<String, serde_json::Value>,
+        path: &[ConfigPathSegment],
+        name: &str,
+    ) -> Result<serde_json::Value, PipelineError> {
+        match map.get("config") {
             None | Some(serde_json::Value::Null) => {
-                serde_json::Value::Object(serde_json::Map::new())
+                Ok(serde_json::Value::Object(serde_json::Map::new()))
             }
-            Some(config @ serde_json::Value::Object(_)) => config.clone(),
-            Some(other) => {
-                return Err(self.at(
-                    &at_key("config"),
-                    format!(
-                        "stage \"{name}\": key \"config\": expected a mapping, found {}",
-                        type_name(other)
-                    ),
-                ));
-            }
-        };
-        Ok((
-            StageSpec {
-                name,
-                kind,
-                config: serde_json::Value::Null,
-                inputs,
-                line: self.lines.line_of(path),
-            },
-            raw_config,
-        ))
+            Some(config @ serde_json::Value::Object(_)) => Ok(config.clone()),
+            Some(other) => Err(self.at(
+                &[path, &[key("config")]].concat(),
+                format!(
+                    "stage \"{name}\": key \"config\": expected a mapping, found {}",
+                    type_name(other)
+                ),
+            )),
+        }
     }
 }
 

@@ -17,7 +17,7 @@ use crate::Registry;
 use crate::entry::{EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput};
 use crate::key::{FileDigests, KeyMaterial, stage_key};
 use crate::pipeline::{Pipeline, StageSpec};
-use crate::store::{EntryId, EntryState, ReadLease, Store};
+use crate::store::{EntryId, EntryState, KeyLock, ReadLease, Staging, Store};
 
 /// The file (in the store's local state folder) remembering external file digests.
 const FILE_DIGEST_MEMO: &str = ".file-digests.json";
@@ -398,26 +398,86 @@ pub fn run(
     }
     let keys = compute_keys(pipeline, registry, store)?;
     let stages = selected_stages(pipeline, options.until.as_deref())?;
-    let mut readers: HashMap<String, EntryReader> = HashMap::new();
-    // Shared read leases on every entry this run uses, held until it returns: `gc` skips
-    // entries that a run reads.
-    let mut leases: Vec<Box<dyn ReadLease>> = Vec::new();
-    let mut reports = Vec::new();
+    let mut run = Run {
+        registry,
+        store,
+        options,
+        progress: &progress,
+        reports: Vec::new(),
+        leases: Vec::new(),
+        readers: HashMap::new(),
+    };
     for stage in stages {
-        let kind = registry
+        run.stage(stage, &keys[&stage.name])?;
+    }
+    Ok(run.reports)
+}
+
+/// What the steps of one run share.
+struct Run<'r> {
+    registry: &'r Registry,
+    store: &'r dyn Store,
+    options: &'r RunOptions,
+    progress: &'r Progress,
+    reports: Vec<StageReport>,
+    /// Shared read leases on every entry this run uses, held until it returns: `gc` skips
+    /// entries that a run reads.
+    leases: Vec<Box<dyn ReadLease>>,
+    /// The entry of each stage done so far, by stage name.
+    readers: HashMap<String, EntryReader>,
+}
+
+/// One stage of a run, as its steps see it.
+struct StageJob<'j> {
+    stage: &'j StageSpec,
+    kind: &'j dyn crate::StageKind,
+    stage_key: &'j StageKey,
+    id: EntryId,
+    forced: bool,
+    started: Instant,
+}
+
+impl StageJob<'_> {
+    /// The summary row of this stage.
+    fn report(&self, outcome: Outcome, log: &[String]) -> StageReport {
+        StageReport {
+            name: self.stage.name.clone(),
+            kind: self.stage.kind.clone(),
+            key: self.stage_key.key.clone(),
+            outcome,
+            seconds: self.started.elapsed().as_secs_f64(),
+            backend: backend_of(log),
+        }
+    }
+}
+
+impl Run<'_> {
+    /// Reuses the stage's verified entry, or computes and publishes it under the key's lock.
+    fn stage(&mut self, stage: &StageSpec, stage_key: &StageKey) -> anyhow::Result<()> {
+        let (store, progress) = (self.store, self.progress);
+        let kind = self
+            .registry
             .get(&stage.kind)
             .ok_or_else(|| anyhow::anyhow!("unknown stage kind \"{}\"", stage.kind))?;
-        let stage_key = &keys[&stage.name];
-        let id = EntryId::new(&stage.kind, &stage_key.key);
-        let forced = options.force.contains(&stage.name);
-        let started = Instant::now();
+        let forced = self.options.force.contains(&stage.name);
+        let job = StageJob {
+            stage,
+            kind,
+            stage_key,
+            id: EntryId::new(&stage.kind, &stage_key.key),
+            forced,
+            started: Instant::now(),
+        };
+        let id = &job.id;
         let mut recompute_reason: Option<String> = forced.then(|| "forced".to_string());
 
-        let mut cached = None;
-        leases.push(store.read_lease(&id)?);
-        if !forced && store.entry_state(&id)? == EntryState::Complete {
-            match open_verified(store, &id) {
-                Ok(reader) => cached = Some(reader),
+        self.leases.push(store.read_lease(id)?);
+        if !forced && store.entry_state(id)? == EntryState::Complete {
+            match open_verified(store, id) {
+                Ok(reader) => {
+                    self.reuse(&job, reader);
+                    return Ok(());
+                }
                 Err(problems) => {
                     progress.println(&format!(
                         "[{}] cached entry {id} is corrupt ({problems}); recomputing",
@@ -427,39 +487,19 @@ pub fn run(
                 }
             }
         }
-        if let Some(reader) = cached {
-            reports.push(StageReport {
-                name: stage.name.clone(),
-                kind: stage.kind.clone(),
-                key: stage_key.key.clone(),
-                outcome: Outcome::Cached,
-                seconds: started.elapsed().as_secs_f64(),
-                backend: backend_of(&reader.manifest().log),
-            });
-            readers.insert(stage.name.clone(), reader);
-            continue;
-        }
 
-        let lock = store.lock(&id, &mut || {
+        let lock = store.lock(id, &mut || {
             progress.println(&format!(
                 "[{}] waiting for another run computing {id}",
                 stage.name
             ));
         })?;
         // Another run may have published it while we waited.
-        if !forced && store.entry_state(&id)? == EntryState::Complete {
-            match open_verified(store, &id) {
+        if !forced && store.entry_state(id)? == EntryState::Complete {
+            match open_verified(store, id) {
                 Ok(reader) => {
-                    reports.push(StageReport {
-                        name: stage.name.clone(),
-                        kind: stage.kind.clone(),
-                        key: stage_key.key.clone(),
-                        outcome: Outcome::Cached,
-                        seconds: started.elapsed().as_secs_f64(),
-                        backend: backend_of(&reader.manifest().log),
-                    });
-                    readers.insert(stage.name.clone(), reader);
-                    continue;
+                    self.reuse(&job, reader);
+                    return Ok(());
                 }
                 Err(problems) => {
                     let moved = store.quarantine(lock.as_ref())?;
@@ -470,16 +510,41 @@ pub fn run(
                     recompute_reason = Some("corrupt entry".to_string());
                 }
             }
-        } else if store.entry_state(&id)? != EntryState::Missing {
+        } else if store.entry_state(id)? != EntryState::Missing {
             store.quarantine(lock.as_ref())?;
         }
+        self.compute(&job, lock, recompute_reason)
+    }
 
+    /// Records a verified published entry as the stage's result.
+    fn reuse(&mut self, job: &StageJob<'_>, reader: EntryReader) {
+        self.reports
+            .push(job.report(Outcome::Cached, &reader.manifest().log));
+        self.readers.insert(job.stage.name.clone(), reader);
+    }
+
+    /// Runs the stage kind into a fresh staging area, checks what it read did not change, and
+    /// publishes the entry.
+    fn compute(
+        &mut self,
+        job: &StageJob<'_>,
+        lock: Box<dyn KeyLock>,
+        recompute_reason: Option<String>,
+    ) -> anyhow::Result<()> {
+        let (store, progress) = (self.store, self.progress);
+        let StageJob {
+            stage,
+            stage_key,
+            ref id,
+            forced,
+            ..
+        } = *job;
         let inputs: Vec<EntryReader> = stage
             .inputs
             .iter()
-            .map(|input| readers[input].clone())
+            .map(|input| self.readers[input].clone())
             .collect();
-        if forced && store.has_resumable_work(&id) {
+        if forced && store.has_resumable_work(id) {
             // `--force` starts over: the work folder (checkpoints) of an earlier run goes too.
             store.remove_staging(lock.as_ref())?;
             progress.println(&format!(
@@ -488,114 +553,31 @@ pub fn run(
             ));
         }
         let staging = store.begin_staging(lock.as_ref())?;
-        let resumed = std::fs::read_dir(&staging.work_dir)
-            .map(|mut read| read.next().is_some())
-            .unwrap_or(false);
         let writer = EntryWriter::create(&staging.output_dir)?;
-        let spinner = progress.spinner(format!(
-            "{} ({}, {})",
-            stage.name,
-            stage.kind,
-            &stage_key.key[..12]
-        ));
         let started_at = SystemTime::now();
-        let mut context = StageContext {
-            stage_name: &stage.name,
-            key: &stage_key.key,
-            config: &stage.config,
-            inputs: &inputs,
-            output: &writer,
-            work_dir: &staging.work_dir,
-            progress: &progress,
-            log: Mutex::new(Vec::new()),
-            warnings: Mutex::new(Vec::new()),
-        };
-        if resumed {
-            context.log("resuming from the work folder of an interrupted run");
-        }
-        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
-            .unwrap_or_else(|panic| {
-                let text = panic
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "unknown panic".to_string());
-                Err(anyhow::anyhow!("panicked: {text}"))
-            });
-        spinner.finish_and_clear();
-        if let Err(error) = result {
-            // A stage that failed (rather than a run that was killed) discards its partial
-            // output now, so the next run has nothing to clean up and report as a killed
-            // run; the work folder stays for resume.
-            drop(context);
-            drop(writer);
-            if let Err(e) = std::fs::remove_dir_all(&staging.output_dir) {
-                progress.println(&format!(
-                    "cannot remove the partial output {}: {e}",
-                    staging.output_dir.display()
-                ));
-            }
-            return Err(error.context(format!(
-                "stage \"{}\" (kind {}, key {}) failed",
-                stage.name,
-                stage.kind,
-                &stage_key.key[..12]
-            )));
-        }
-        // Inputs that changed while the stage read them (a chunk deleted or rewritten) must
-        // not produce a published entry; the partial output goes as for a failed stage.
-        for input in &inputs {
-            let problems = input.verify();
-            if !problems.is_empty() {
-                let _ = std::fs::remove_dir_all(&staging.output_dir);
-                anyhow::bail!(
-                    "stage \"{}\": input {} ({}) changed while the stage ran, nothing was published: {}",
+        let (log, warnings) = match self.run_kind(job, &inputs, &writer, &staging) {
+            Ok(log_and_warnings) => log_and_warnings,
+            Err(error) => {
+                // A stage that failed (rather than a run that was killed) discards its partial
+                // output now, so the next run has nothing to clean up and report as a killed
+                // run; the work folder stays for resume.
+                drop(writer);
+                if let Err(e) = std::fs::remove_dir_all(&staging.output_dir) {
+                    progress.println(&format!(
+                        "cannot remove the partial output {}: {e}",
+                        staging.output_dir.display()
+                    ));
+                }
+                return Err(error.context(format!(
+                    "stage \"{}\" (kind {}, key {}) failed",
                     stage.name,
-                    input.stage_name(),
-                    input.location(),
-                    problems.join("; ")
-                );
+                    stage.kind,
+                    &stage_key.key[..12]
+                )));
             }
-        }
-        // External files (dataset files) edited while the stage read them: hashed again now
-        // (the memo re-hashes any file whose size, times or inode changed), so an entry is
-        // never published under the key of what the files were before.
-        if let Err(problem) = external_files_unchanged(store, &stage_key.external_files) {
-            let _ = std::fs::remove_dir_all(&staging.output_dir);
-            anyhow::bail!(
-                "stage \"{}\": {problem}; nothing was published (run it again once the \
-                 files are stable)",
-                stage.name
-            );
-        }
-        let log = context.log.into_inner().expect("log poisoned");
-        let warnings = context.warnings.into_inner().expect("warnings poisoned");
-        let finished_at = SystemTime::now();
-        let mut manifest = Manifest {
-            kind: stage.kind.clone(),
-            version: kind.version(),
-            stage_name: stage.name.clone(),
-            key: stage_key.key.clone(),
-            config: stage.config.clone(),
-            inputs: inputs
-                .iter()
-                .map(|input| ManifestInput {
-                    stage_name: input.stage_name().to_string(),
-                    kind: input.kind().to_string(),
-                    key: input.key().to_string(),
-                })
-                .collect(),
-            external_files: stage_key.external_files.clone(),
-            tool_version: crate::TOOL_VERSION.to_string(),
-            // Filled in by `finish`, with the array digests.
-            metadata_digest: String::new(),
-            arrays: BTreeMap::new(),
-            wall_time_s: started.elapsed().as_secs_f64(),
-            started_at: crate::timefmt::rfc3339(started_at),
-            finished_at: crate::timefmt::rfc3339(finished_at),
-            log,
-            warnings,
         };
+        check_reads_unchanged(store, job, &inputs, &staging)?;
+        let mut manifest = manifest_of(job, &inputs, started_at, log, warnings);
         writer
             .finish(&mut manifest)
             .with_context(|| format!("stage \"{}\": cannot finish its entry", stage.name))?;
@@ -614,21 +596,150 @@ pub fn run(
             .publish(lock.as_ref(), &staging)
             .with_context(|| format!("stage \"{}\": cannot publish {id}", stage.name))?;
         drop(lock);
-        let reader = store.open_entry(&id)?;
-        reports.push(StageReport {
-            name: stage.name.clone(),
-            kind: stage.kind.clone(),
-            key: stage_key.key.clone(),
-            outcome: match recompute_reason {
-                Some(reason) => Outcome::Recomputed(reason),
-                None => Outcome::Ran,
-            },
-            seconds: started.elapsed().as_secs_f64(),
-            backend: backend_of(&manifest.log),
-        });
-        readers.insert(stage.name.clone(), reader);
+        let reader = store.open_entry(id)?;
+        let outcome = match recompute_reason {
+            Some(reason) => Outcome::Recomputed(reason),
+            None => Outcome::Ran,
+        };
+        self.reports.push(job.report(outcome, &manifest.log));
+        self.readers.insert(stage.name.clone(), reader);
+        Ok(())
     }
-    Ok(reports)
+
+    /// Runs the stage kind (a panic is its error) behind a spinner; returns its log and
+    /// warnings.
+    fn run_kind(
+        &self,
+        job: &StageJob<'_>,
+        inputs: &[EntryReader],
+        writer: &EntryWriter,
+        staging: &Staging,
+    ) -> anyhow::Result<(Vec<String>, Vec<String>)> {
+        let StageJob {
+            stage,
+            kind,
+            stage_key,
+            ..
+        } = *job;
+        let resumed = std::fs::read_dir(&staging.work_dir)
+            .map(|mut read| read.next().is_some())
+            .unwrap_or(false);
+        let spinner = self.progress.spinner(format!(
+            "{} ({}, {})",
+            stage.name,
+            stage.kind,
+            &stage_key.key[..12]
+        ));
+        let mut context = StageContext {
+            stage_name: &stage.name,
+            key: &stage_key.key,
+            config: &stage.config,
+            inputs,
+            output: writer,
+            work_dir: &staging.work_dir,
+            progress: self.progress,
+            log: Mutex::new(Vec::new()),
+            warnings: Mutex::new(Vec::new()),
+        };
+        if resumed {
+            context.log("resuming from the work folder of an interrupted run");
+        }
+        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
+            .unwrap_or_else(|panic| {
+                let text = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "unknown panic".to_string());
+                Err(anyhow::anyhow!("panicked: {text}"))
+            });
+        spinner.finish_and_clear();
+        result?;
+        let log = context.log.into_inner().expect("log poisoned");
+        let warnings = context.warnings.into_inner().expect("warnings poisoned");
+        Ok((log, warnings))
+    }
+}
+
+/// The manifest of a stage's new entry (digests filled in by `EntryWriter::finish`).
+fn manifest_of(
+    job: &StageJob<'_>,
+    inputs: &[EntryReader],
+    started_at: SystemTime,
+    log: Vec<String>,
+    warnings: Vec<String>,
+) -> Manifest {
+    let StageJob {
+        stage,
+        kind,
+        stage_key,
+        started,
+        ..
+    } = *job;
+    let finished_at = SystemTime::now();
+    Manifest {
+        kind: stage.kind.clone(),
+        version: kind.version(),
+        stage_name: stage.name.clone(),
+        key: stage_key.key.clone(),
+        config: stage.config.clone(),
+        inputs: inputs
+            .iter()
+            .map(|input| ManifestInput {
+                stage_name: input.stage_name().to_string(),
+                kind: input.kind().to_string(),
+                key: input.key().to_string(),
+            })
+            .collect(),
+        external_files: stage_key.external_files.clone(),
+        tool_version: crate::TOOL_VERSION.to_string(),
+        // Filled in by `finish`, with the array digests.
+        metadata_digest: String::new(),
+        arrays: BTreeMap::new(),
+        wall_time_s: started.elapsed().as_secs_f64(),
+        started_at: crate::timefmt::rfc3339(started_at),
+        finished_at: crate::timefmt::rfc3339(finished_at),
+        log,
+        warnings,
+    }
+}
+
+/// Refuses to publish when what the stage read changed while it ran; the partial output goes
+/// as for a failed stage.
+fn check_reads_unchanged(
+    store: &dyn Store,
+    job: &StageJob<'_>,
+    inputs: &[EntryReader],
+    staging: &Staging,
+) -> anyhow::Result<()> {
+    let stage = job.stage;
+    // Inputs that changed while the stage read them (a chunk deleted or rewritten) must
+    // not produce a published entry.
+    for input in inputs {
+        let problems = input.verify();
+        if !problems.is_empty() {
+            let _ = std::fs::remove_dir_all(&staging.output_dir);
+            anyhow::bail!(
+                "stage \"{}\": input {} ({}) changed while the stage ran, nothing was published: {}",
+                stage.name,
+                input.stage_name(),
+                input.location(),
+                problems.join("; ")
+            );
+        }
+    }
+    // External files (dataset files) edited while the stage read them: hashed again now
+    // (the memo re-hashes any file whose size, times or inode changed), so an entry is
+    // never published under the key of what the files were before.
+    if let Err(problem) = external_files_unchanged(store, &job.stage_key.external_files) {
+        let _ = std::fs::remove_dir_all(&staging.output_dir);
+        anyhow::bail!(
+            "stage \"{}\": {problem}; nothing was published (run it again once the \
+             files are stable)",
+            stage.name
+        );
+    }
+    Ok(())
 }
 
 /// The backend named by a `backend: NAME` log line, if any.

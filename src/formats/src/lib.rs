@@ -35,6 +35,7 @@ pub mod npy;
 pub mod npz;
 pub mod pickle;
 pub mod ply;
+pub mod resample;
 pub mod value;
 
 pub use value::{ArrayData, NpArray, Value};

@@ -26,7 +26,7 @@ use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_coun
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_engine::{EntryReader, EntryWriter};
-use seqavatar_ingest::stage::write_body_model;
+use seqavatar_ingest::schema::write_body_model;
 
 use seqavatar_motion::knn::{KnnGrid, as_points};
 use seqavatar_motion::schema::MotionTrack;

@@ -28,6 +28,7 @@ pub mod model;
 pub mod ply;
 pub mod resident;
 pub mod rig;
+pub mod sequence;
 pub mod skinning;
 pub mod splatting;
 

@@ -10,13 +10,11 @@ use std::process::Command;
 
 use anyhow::Context as _;
 use seqavatar_compute::backend::Backend;
-use seqavatar_core::body::{BodyModel, BodyParams};
+use seqavatar_core::body::BodyParams;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryId, EntryReader, EntryState, LocalStore, Store, open_store};
-use seqavatar_fit::io::BodySequence;
 use seqavatar_formats::npz;
-use seqavatar_motion::schema::{FrameAxis, MotionTrack};
-use seqavatar_motion::{Scales, VelocityNormalisation};
+use seqavatar_motion::schema::FrameAxis;
 
 use crate::avatar_render::AvatarRenderer;
 use crate::evaluate::ViewRenderer;
@@ -226,36 +224,6 @@ pub fn read_pose_file(
         .collect()
 }
 
-/// The motion track of `params` posed with `model`, at the raw `scales` of the motion entry,
-/// its velocity normalisation and its recorded input scales (the motion crate's computation;
-/// the scales are the trained-on entry's, not recomputed on `params`), on the frame `axis` of
-/// the poses' source.
-pub fn motion_track_for(
-    model: &BodyModel,
-    params: &[BodyParams],
-    raw_scales: &[u32],
-    interval: u32,
-    normalisation: VelocityNormalisation,
-    axis: FrameAxis,
-    input_scales: &seqavatar_motion::compute::InputScales,
-) -> anyhow::Result<MotionTrack> {
-    let scales = Scales::new(raw_scales, interval)?;
-    let sequence = BodySequence::from_params(params).map_err(anyhow::Error::msg)?;
-    let mut arrays =
-        seqavatar_motion::compute::compute_motion(model, &sequence, &scales, normalisation)?;
-    arrays.scale_inputs(input_scales);
-    Ok(MotionTrack {
-        num_frames: arrays.num_frames,
-        num_joints: arrays.num_joints,
-        num_vertices: arrays.num_vertices,
-        scales: scales.raw.clone(),
-        scale_steps: scales.steps.clone(),
-        skeleton_motion: arrays.skeleton_motion,
-        vertex_velocity: arrays.vertex_velocity,
-        axis,
-    })
-}
-
 /// Whether `program` is an executable file on `PATH`.
 pub fn on_path(program: &str) -> Option<PathBuf> {
     let path = std::env::var_os("PATH")?;
@@ -334,7 +302,7 @@ pub fn drive_avatar(
             .attribute("frame_interval")
             .and_then(|value| value.as_u64())
             .unwrap_or(1) as u32;
-        Some(motion_track_for(
+        Some(seqavatar_motion::compute::motion_track_for(
             &model,
             &params,
             &raw_scales,

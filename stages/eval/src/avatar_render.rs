@@ -4,7 +4,8 @@
 
 use anyhow::Context as _;
 use seqavatar_avatar::avatar::{FrameInputs, TrainedAvatar};
-use seqavatar_avatar::device::AvatarBackend;
+use seqavatar_avatar::sequence::{History, SequenceRenderer};
+use seqavatar_avatar::splatting::WorldGaussians;
 use seqavatar_compute::backend::Backend;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
@@ -157,10 +158,9 @@ pub fn check_cameras(train: &EntryReader, ingest: &EntryReader) -> anyhow::Resul
 /// A trained avatar with the per-frame body parameters and motion track of a sequence.
 pub struct AvatarRenderer {
     pub avatar: TrainedAvatar,
-    params: Vec<BodyParams>,
-    motion: Option<MotionTrack>,
-    /// The backend every render runs on, chosen when the renderer is built.
-    device: Box<dyn AvatarBackend>,
+    /// The frames and the backend every render runs on, chosen when the renderer is built
+    /// (on the gpu the avatar is uploaded then: change only its `background` afterwards).
+    frames: SequenceRenderer,
     location: String,
     /// Replaces the motion-history inputs of every frame (eval's context probes).
     context_probe: Option<ContextProbe>,
@@ -179,9 +179,10 @@ impl AvatarRenderer {
 
     /// An avatar driven by `params` (one per frame) and `motion` (needed when the avatar's
     /// motion context uses skeleton motion or velocities), rendered on `backend`, chosen
-    /// here once ([`TrainedAvatar::backend`]): on the gpu the avatar's per-Gaussian networks
-    /// are uploaded once (f32) and every render evaluates them there, so renders and the
-    /// frame rates measured on them include gpu networks.
+    /// here once ([`SequenceRenderer`]): on the gpu the avatar, its networks and the
+    /// sequence are uploaded once and every frame is deformed and splatted on the device
+    /// (one read-back, the image), so renders and the frame rates measured on them are the
+    /// device's.
     pub fn new(
         avatar: TrainedAvatar,
         params: Vec<BodyParams>,
@@ -219,14 +220,11 @@ impl AvatarRenderer {
                 )
             })?;
         }
-        let device = avatar
-            .backend(backend)
+        let frames = SequenceRenderer::new(&avatar, &backend, params, motion)
             .with_context(|| format!("the avatar of {location}"))?;
         Ok(Self {
             avatar,
-            params,
-            motion,
-            device,
+            frames,
             location,
             context_probe: None,
         })
@@ -260,7 +258,7 @@ impl AvatarRenderer {
     /// avatar gathers windows and the axis does not start its recording (then the frames
     /// before it cannot be drawn: their windows reach frames the source does not hold).
     pub fn first_frame(&self) -> usize {
-        match &self.motion {
+        match self.frames.motion() {
             Some(track) if !track.axis.starts_recording => track
                 .slots(&self.avatar.scales)
                 .map(|slots| track.reach(self.avatar.config.sequence_length, &slots))
@@ -270,56 +268,57 @@ impl AvatarRenderer {
     }
 
     /// The deformed Gaussians of frame `frame` (what [`ViewRenderer::render`] splats).
-    pub fn deform(&self, frame: usize) -> anyhow::Result<seqavatar_avatar::avatar::Deformed> {
-        let inputs = self.frame_inputs(frame)?;
-        self.avatar
-            .deform(&inputs, &*self.device)
+    pub fn deform(&mut self, frame: usize) -> anyhow::Result<WorldGaussians> {
+        let history = self.history(frame)?;
+        self.frames
+            .deform(&self.avatar, frame, history)
             .with_context(|| format!("avatar {}: frame {frame}", self.location))
     }
 
-    /// The backend the renderer runs on.
-    pub fn device(&self) -> &dyn AvatarBackend {
-        &*self.device
+    /// Whether frames are deformed and splatted on the device.
+    pub fn on_device(&self) -> bool {
+        self.frames.on_device()
+    }
+
+    /// Whether the per-Gaussian networks run on a gpu.
+    pub fn networks_on_gpu(&self) -> bool {
+        self.frames.networks_on_gpu()
     }
 
     /// Number of frames this renderer can draw.
     pub fn num_frames(&self) -> usize {
-        self.params.len()
+        self.frames.num_frames()
     }
 
-    /// The inputs of frame `frame`.
+    /// The motion-history inputs frame `frame` reads under the context probe.
+    fn history(&self, frame: usize) -> anyhow::Result<History> {
+        let frames = self.num_frames();
+        anyhow::ensure!(
+            frame < frames,
+            "frame {frame}: the sequence has {frames} frames"
+        );
+        Ok(match self.context_probe {
+            None => History::Own,
+            Some(ContextProbe::Zeroed) => History::Zeroed,
+            Some(probe) => match probe.donor(frame, self.first_frame(), frames) {
+                Some(donor) => History::Frame(donor),
+                None => History::Zeroed,
+            },
+        })
+    }
+
+    /// The host-side inputs of frame `frame` (under the context probe).
     pub fn frame_inputs(&self, frame: usize) -> anyhow::Result<FrameInputs> {
-        let params = self.params.get(frame).ok_or_else(|| {
-            anyhow::anyhow!(
-                "frame {frame}: the sequence has {} frames",
-                self.params.len()
-            )
-        })?;
-        let Some(track) = &self.motion else {
-            return Ok(FrameInputs {
-                params: params.clone(),
-                skeleton_motion: Vec::new(),
-                vertex_velocity: Vec::new(),
-            });
-        };
-        let mut inputs = self.avatar.frame_inputs(track, params, frame)?;
-        if let Some(probe) = self.context_probe {
-            let donor = match probe.donor(frame, self.first_frame(), self.params.len()) {
-                Some(donor) => Some(
-                    self.avatar
-                        .frame_inputs(track, &self.params[donor], donor)?,
-                ),
-                None => None,
-            };
-            crate::context_probe::apply(probe, &mut inputs, donor.as_ref())?;
-        }
-        Ok(inputs)
+        let history = self.history(frame)?;
+        self.frames.frame_inputs(&self.avatar, frame, history)
     }
 }
 
 impl ViewRenderer for AvatarRenderer {
     fn set_context_probe(&mut self, probe: Option<ContextProbe>) -> bool {
-        if !self.avatar.config.motion_context.has_skeleton_motion() || self.motion.is_none() {
+        if !self.avatar.config.motion_context.has_skeleton_motion()
+            || self.frames.motion().is_none()
+        {
             return false;
         }
         self.context_probe = probe;
@@ -327,10 +326,10 @@ impl ViewRenderer for AvatarRenderer {
     }
 
     fn render(&mut self, frame: usize, camera: &Camera) -> anyhow::Result<ImageF32> {
-        let inputs = self.frame_inputs(frame)?;
+        let history = self.history(frame)?;
         let image = self
-            .avatar
-            .render(&inputs, camera, &*self.device)
+            .frames
+            .render(&self.avatar, frame, history, camera, self.avatar.background)
             .with_context(|| format!("avatar {}: frame {frame}", self.location))?;
         let colour: Vec<f32> = image.colour.iter().map(|&value| value as f32).collect();
         ImageF32::from_f32(
@@ -450,8 +449,8 @@ mod tests {
         };
         let mut cpu = build(Backend::select(DeviceChoice::Cpu).unwrap());
         let mut gpu = build(backend);
-        assert!(!cpu.device().networks_on_gpu());
-        assert!(gpu.device().networks_on_gpu());
+        assert!(!cpu.networks_on_gpu() && !cpu.on_device());
+        assert!(gpu.networks_on_gpu() && gpu.on_device());
         let camera = Camera::look_at(
             48,
             64,

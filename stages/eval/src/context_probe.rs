@@ -6,13 +6,12 @@
 //! - [`ContextProbe::FromFrame`]: frame `i` gets frame `(i + offset) mod n`'s history inputs,
 //!   its own pose (a plausible context from another moment of the same sequence).
 //!
-//! The replacement happens on the inputs, outside the avatar's networks, so the probes apply
-//! to every backend and network implementation alike. Avatars whose motion context has no
+//! The replacement happens on the inputs, outside the avatar's networks
+//! ([`seqavatar_avatar::sequence::History`]: gathered on the host on `cpu`, on the device on
+//! the `gpu`), so the probes apply to every backend and network implementation alike. Avatars whose motion context has no
 //! history inputs (`none`, `pose`) are not probed: their renders could not change.
 
 use serde::{Deserialize, Serialize};
-
-use seqavatar_avatar::avatar::FrameInputs;
 
 use crate::evaluate::{ImageScore, MeanScores};
 use crate::subsets::SubsetScores;
@@ -53,44 +52,6 @@ impl ContextProbe {
             }
         }
     }
-}
-
-/// Replaces the history inputs of `inputs` as `probe` says; `donor` holds the inputs of the
-/// donor frame ([`ContextProbe::donor`]) for [`ContextProbe::FromFrame`]. The body
-/// parameters are never changed.
-pub fn apply(
-    probe: ContextProbe,
-    inputs: &mut FrameInputs,
-    donor: Option<&FrameInputs>,
-) -> anyhow::Result<()> {
-    match probe {
-        ContextProbe::Zeroed => {
-            inputs.skeleton_motion.fill(0.0);
-            inputs.vertex_velocity.fill(0.0);
-        }
-        ContextProbe::FromFrame { offset } => {
-            let donor = donor.ok_or_else(|| {
-                anyhow::anyhow!("context probe from frame i + {offset}: no donor inputs given")
-            })?;
-            anyhow::ensure!(
-                donor.skeleton_motion.len() == inputs.skeleton_motion.len()
-                    && donor.vertex_velocity.len() == inputs.vertex_velocity.len(),
-                "context probe: the donor frame's inputs have {} skeleton-motion and {} velocity \
-                 values, the frame's {} and {}",
-                donor.skeleton_motion.len(),
-                donor.vertex_velocity.len(),
-                inputs.skeleton_motion.len(),
-                inputs.vertex_velocity.len()
-            );
-            inputs
-                .skeleton_motion
-                .copy_from_slice(&donor.skeleton_motion);
-            inputs
-                .vertex_velocity
-                .copy_from_slice(&donor.vertex_velocity);
-        }
-    }
-    Ok(())
 }
 
 /// The scores of one probe and their change against the unprobed renders of the same images.
@@ -170,35 +131,10 @@ pub fn probe_result(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use seqavatar_core::body::BodyParams;
     use seqavatar_core::glam::DVec3;
 
-    fn inputs(value: f32) -> FrameInputs {
-        FrameInputs {
-            params: BodyParams {
-                pose: vec![DVec3::new(0.1, -0.2, 0.3); 4],
-                betas: vec![0.5],
-                expression: Vec::new(),
-                world_rotation: DVec3::ZERO,
-                world_translation: DVec3::new(0.0, 1.0, 0.0),
-            },
-            skeleton_motion: vec![value; 6],
-            vertex_velocity: vec![2.0 * value; 4],
-        }
-    }
-
     #[test]
-    fn zeroing_clears_the_history_inputs_and_keeps_the_pose() {
-        let mut frame = inputs(1.5);
-        let pose = frame.params.clone();
-        apply(ContextProbe::Zeroed, &mut frame, None).unwrap();
-        assert!(frame.skeleton_motion.iter().all(|&v| v == 0.0));
-        assert!(frame.vertex_velocity.iter().all(|&v| v == 0.0));
-        assert_eq!(frame.params, pose);
-    }
-
-    #[test]
-    fn another_frame_gives_its_history_inputs() {
+    fn donors_are_drawn_from_the_frames_with_a_whole_window() {
         let probe = ContextProbe::FromFrame { offset: 5 };
         assert_eq!(probe.donor(0, 0, 8), Some(5));
         assert_eq!(probe.donor(6, 0, 8), Some(3));
@@ -206,24 +142,23 @@ mod tests {
         assert_eq!(probe.donor(6, 4, 8), Some(7));
         assert_eq!(probe.donor(7, 4, 8), Some(4));
         assert_eq!(ContextProbe::Zeroed.donor(3, 0, 8), None);
-        let mut frame = inputs(1.0);
-        let donor = inputs(-3.0);
-        apply(probe, &mut frame, Some(&donor)).unwrap();
-        assert_eq!(frame.skeleton_motion, donor.skeleton_motion);
-        assert_eq!(frame.vertex_velocity, donor.vertex_velocity);
-        // Without donor inputs, or with inputs of another shape, it is an error.
-        assert!(apply(probe, &mut inputs(1.0), None).is_err());
-        let mut short = inputs(1.0);
-        short.vertex_velocity.pop();
-        assert!(apply(probe, &mut inputs(1.0), Some(&short)).is_err());
     }
 
     /// An avatar with skeleton motion and velocity inputs (multiscale, non-trivial heads) on
     /// a track whose frames differ only in their motion values (every pose is the rest pose):
     /// zeroing must change the render and equal a frame whose track values are zero; the
-    /// context of frame `i + k` must render exactly as frame `i + k` itself.
+    /// context of frame `i + k` must render exactly as frame `i + k` itself. On `cpu` (the
+    /// inputs replaced on the host) and on the gpu (on the device).
     #[test]
     fn probes_change_what_the_avatar_renders() {
+        use seqavatar_compute::backend::{Backend, DeviceChoice};
+        probes_change_what_the_avatar_renders_on(Backend::select(DeviceChoice::Cpu).unwrap());
+        if let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend() {
+            probes_change_what_the_avatar_renders_on(gpu);
+        }
+    }
+
+    fn probes_change_what_the_avatar_renders_on(backend: seqavatar_compute::backend::Backend) {
         use crate::avatar_render::AvatarRenderer;
         use crate::evaluate::ViewRenderer;
         use seqavatar_avatar::TrainedAvatar;
@@ -231,7 +166,6 @@ mod tests {
         use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
         use seqavatar_avatar::model::{NetworkConfig, Networks};
         use seqavatar_avatar::rig::BodyRig;
-        use seqavatar_compute::backend::{Backend, DeviceChoice};
         use seqavatar_compute::nn::Rng;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_core::camera::{Camera, Intrinsics};
@@ -298,7 +232,7 @@ mod tests {
             avatar,
             vec![model.zero_params(); frames],
             Some(track),
-            Backend::select(DeviceChoice::Cpu).unwrap(),
+            backend,
             "test".into(),
         )
         .unwrap();

@@ -67,7 +67,7 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
             seconds: started.elapsed().as_secs_f64(),
         });
     };
-    let DrivenAvatar { renderer, .. } =
+    let DrivenAvatar { mut renderer, .. } =
         drive_avatar(store.as_ref(), &options.avatar, poses, &options.backend)?;
     let range = frames_to_draw(&renderer, options.max_frames);
     let skipped = range.start;
@@ -80,12 +80,12 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
         indicatif::ProgressStyle::with_template("exporting {bar:30} {pos}/{len} frames {eta}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let logits = &renderer.avatar.gaussians.opacity_logit;
+    let logits = renderer.avatar.gaussians.opacity_logit.clone();
     let mut frames = Vec::with_capacity(range.len());
     for frame in range {
-        let deformed = renderer.deform(frame)?;
-        let cloud = posed_cloud(&deformed.world, logits)
-            .with_context(|| format!("frame {frame} of the poses"))?;
+        let world = renderer.deform(frame)?;
+        let cloud =
+            posed_cloud(&world, &logits).with_context(|| format!("frame {frame} of the poses"))?;
         let path = options.out.join(format!("frame_{frame:05}.ply"));
         write_file(&path, &cloud)?;
         frames.push(path);

@@ -264,6 +264,63 @@ pub fn write_report_for(
     out: &Path,
 ) -> anyhow::Result<PathBuf> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let states = stage_states(registry, pipeline, store)?;
+    let mut text = format!("# Report: {}\n\n", pipeline.file.display());
+    let _ = writeln!(text, "{}\n", reproduce_line(&pipeline.file));
+    if let Some(description) = &pipeline.description {
+        let _ = writeln!(text, "{}\n", description.trim());
+    }
+    let _ = writeln!(text, "Cache: {}\n", store.describe());
+
+    let (rows, seed_runs) = eval_rows(&states)?;
+    let missing_evals: Vec<&str> = states
+        .iter()
+        .filter(|state| state.spec.kind == EVAL_KIND && state.entry.is_none())
+        .map(|state| state.spec.name.as_str())
+        .collect();
+
+    write_metrics(&mut text, &rows)?;
+    if let Some(table) = ablation_table(&seed_runs)? {
+        text.push_str(
+            "## Per row: subsets and context probes (mean ± std over seeds)\n\n\
+             Eval stages whose train stages differ only in `seed` form one row (a row of one \
+             seed shows its values without a spread): PSNR (dB) on all test images, the \
+             history frames, each protocol and the training images, and the PSNR change when \
+             the motion context (skeleton motion, velocities) is zeroed or taken from another \
+             frame (`-`: the row has no such inputs or subset), and the training time.\n\n",
+        );
+        text.push_str(&table);
+        text.push('\n');
+    }
+    if !missing_evals.is_empty() {
+        let _ = writeln!(
+            text,
+            "Not in the cache (run the pipeline first): {}\n",
+            missing_evals.join(", ")
+        );
+    }
+
+    write_pictures(&mut text, &states, out)?;
+    if rows.len() > 1 {
+        write_tradeoff(&mut text, &rows, out)?;
+    }
+    let curve_section = loss_curve_section(&states, out)?;
+    if !curve_section.is_empty() {
+        text.push_str("## Loss curves\n\n");
+        text.push_str(&curve_section);
+    }
+    write_stages(&mut text, &states)?;
+    let path = out.join("report.md");
+    std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(path)
+}
+
+/// Each stage of the pipeline in topological order, with its entry when it is in the cache.
+fn stage_states<'p>(
+    registry: &Registry,
+    pipeline: &'p Pipeline,
+    store: &dyn Store,
+) -> anyhow::Result<Vec<StageState<'p>>> {
     let keys = compute_keys(pipeline, registry, store)?;
     let mut states = Vec::new();
     for &index in pipeline.order() {
@@ -280,19 +337,16 @@ pub fn write_report_for(
         };
         states.push(StageState { spec, id, entry });
     }
+    Ok(states)
+}
+
+/// Metrics of every eval stage in the cache: a row each, and a seed run each where a train
+/// stage feeds it.
+fn eval_rows(states: &[StageState<'_>]) -> anyhow::Result<(Vec<EvalRow>, Vec<SeedRun>)> {
     let by_name: BTreeMap<&str, &StageState> = states
         .iter()
         .map(|state| (state.spec.name.as_str(), state))
         .collect();
-
-    let mut text = format!("# Report: {}\n\n", pipeline.file.display());
-    let _ = writeln!(text, "{}\n", reproduce_line(&pipeline.file));
-    if let Some(description) = &pipeline.description {
-        let _ = writeln!(text, "{}\n", description.trim());
-    }
-    let _ = writeln!(text, "Cache: {}\n", store.describe());
-
-    // Metrics of every eval stage.
     let mut rows: Vec<EvalRow> = Vec::new();
     let mut seed_runs: Vec<SeedRun> = Vec::new();
     for state in states.iter().filter(|state| state.spec.kind == EVAL_KIND) {
@@ -333,12 +387,11 @@ pub fn write_report_for(
             speed,
         });
     }
-    let missing_evals: Vec<&str> = states
-        .iter()
-        .filter(|state| state.spec.kind == EVAL_KIND && state.entry.is_none())
-        .map(|state| state.spec.name.as_str())
-        .collect();
+    Ok((rows, seed_runs))
+}
 
+/// The "Metrics" section: the mean scores of each eval stage and its rendering speed.
+fn write_metrics(text: &mut String, rows: &[EvalRow]) -> anyhow::Result<()> {
     text.push_str("## Metrics\n\n");
     if rows.is_empty() {
         text.push_str("No eval stage of this pipeline is in the cache yet.\n\n");
@@ -361,7 +414,7 @@ pub fn write_report_for(
             .collect();
         text.push_str(&markdown_table(&headers, &table).map_err(anyhow::Error::msg)?);
         text.push('\n');
-        for row in &rows {
+        for row in rows {
             if row.speed.is_empty() {
                 continue;
             }
@@ -389,27 +442,12 @@ pub fn write_report_for(
             text.push('\n');
         }
     }
-    if let Some(table) = ablation_table(&seed_runs)? {
-        text.push_str(
-            "## Per row: subsets and context probes (mean ± std over seeds)\n\n\
-             Eval stages whose train stages differ only in `seed` form one row (a row of one \
-             seed shows its values without a spread): PSNR (dB) on all test images, the \
-             history frames, each protocol and the training images, and the PSNR change when \
-             the motion context (skeleton motion, velocities) is zeroed or taken from another \
-             frame (`-`: the row has no such inputs or subset), and the training time.\n\n",
-        );
-        text.push_str(&table);
-        text.push('\n');
-    }
-    if !missing_evals.is_empty() {
-        let _ = writeln!(
-            text,
-            "Not in the cache (run the pipeline first): {}\n",
-            missing_evals.join(", ")
-        );
-    }
+    Ok(())
+}
 
-    // Pictures of each eval entry.
+/// Pictures of each eval entry: its PNGs in a folder named after the stage, the contact sheet
+/// shown.
+fn write_pictures(text: &mut String, states: &[StageState<'_>], out: &Path) -> anyhow::Result<()> {
     for state in states.iter().filter(|state| state.spec.kind == EVAL_KIND) {
         let Some(entry) = &state.entry else {
             continue;
@@ -424,94 +462,98 @@ pub fn write_report_for(
             state.spec.name, state.spec.name, state.spec.name, written, state.spec.name
         );
     }
+    Ok(())
+}
 
-    // Sweep: one row per eval stage with the knobs, and the Pareto plots.
-    if rows.len() > 1 {
-        text.push_str("## Trade-off\n\n");
-        let settings = varying_settings(&rows);
-        let table: Vec<Vec<String>> = rows
+/// Sweep: one row per eval stage with the knobs that differ, and the Pareto plots.
+fn write_tradeoff(text: &mut String, rows: &[EvalRow], out: &Path) -> anyhow::Result<()> {
+    text.push_str("## Trade-off\n\n");
+    let settings = varying_settings(rows);
+    let table: Vec<Vec<String>> = rows
+        .iter()
+        .zip(&settings)
+        .map(|(row, settings)| {
+            vec![
+                row.train_stage.clone().unwrap_or_else(|| "-".to_owned()),
+                settings.clone(),
+                format_metric(Some(row.means.psnr), 2),
+                format_metric(Some(row.means.ssim), 4),
+                format_lpips_x1000(row.means.lpips_vgg),
+                row.train_seconds
+                    .map(format_seconds)
+                    .unwrap_or_else(|| "n/a".to_owned()),
+                format_metric(row.fps, 2),
+            ]
+        })
+        .collect();
+    text.push_str(
+        &markdown_table(
+            &[
+                "train stage",
+                "settings (those that differ)",
+                "PSNR",
+                "SSIM",
+                "LPIPS-VGG x1000",
+                "train time",
+                "FPS",
+            ],
+            &table,
+        )
+        .map_err(anyhow::Error::msg)?,
+    );
+    text.push('\n');
+    let time_points: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|row| (row.train_seconds.unwrap_or(f64::NAN), row.means.psnr))
+        .collect();
+    // Cost axis of the FPS plot: milliseconds per frame (lower is better).
+    let fps_points: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|row| (row.fps.map_or(f64::NAN, |fps| 1000.0 / fps), row.means.psnr))
+        .collect();
+    for (points, name, what) in [
+        (
+            &time_points,
+            "pareto_psnr_time.png",
+            "PSNR (dB, y) vs training time (s, x)",
+        ),
+        (
+            &fps_points,
+            "pareto_psnr_fps.png",
+            "PSNR (dB, y) vs render time per frame (ms, x; 1000 / FPS)",
+        ),
+    ] {
+        let front = pareto_front(points);
+        let plot = pareto_plot(points, &front);
+        save_png(&plot, &out.join(name))?;
+        let names: Vec<String> = front
             .iter()
-            .zip(&settings)
-            .map(|(row, settings)| {
-                vec![
-                    row.train_stage.clone().unwrap_or_else(|| "-".to_owned()),
-                    settings.clone(),
-                    format_metric(Some(row.means.psnr), 2),
-                    format_metric(Some(row.means.ssim), 4),
-                    format_lpips_x1000(row.means.lpips_vgg),
-                    row.train_seconds
-                        .map(format_seconds)
-                        .unwrap_or_else(|| "n/a".to_owned()),
-                    format_metric(row.fps, 2),
-                ]
-            })
+            .map(|&index| rows[index].train_stage.clone().unwrap_or_default())
             .collect();
-        text.push_str(
-            &markdown_table(
-                &[
-                    "train stage",
-                    "settings (those that differ)",
-                    "PSNR",
-                    "SSIM",
-                    "LPIPS-VGG x1000",
-                    "train time",
-                    "FPS",
-                ],
-                &table,
-            )
-            .map_err(anyhow::Error::msg)?,
+        let _ = writeln!(
+            text,
+            "![{what}]({name})\n\n{what}; one colour per run in table order, the Pareto front joined in black: {}.\n",
+            names.join(", ")
         );
-        text.push('\n');
-        let time_points: Vec<(f64, f64)> = rows
-            .iter()
-            .map(|row| (row.train_seconds.unwrap_or(f64::NAN), row.means.psnr))
-            .collect();
-        // Cost axis of the FPS plot: milliseconds per frame (lower is better).
-        let fps_points: Vec<(f64, f64)> = rows
-            .iter()
-            .map(|row| (row.fps.map_or(f64::NAN, |fps| 1000.0 / fps), row.means.psnr))
-            .collect();
-        for (points, name, what) in [
-            (
-                &time_points,
-                "pareto_psnr_time.png",
-                "PSNR (dB, y) vs training time (s, x)",
-            ),
-            (
-                &fps_points,
-                "pareto_psnr_fps.png",
-                "PSNR (dB, y) vs render time per frame (ms, x; 1000 / FPS)",
-            ),
-        ] {
-            let front = pareto_front(points);
-            let plot = pareto_plot(points, &front);
-            save_png(&plot, &out.join(name))?;
-            let names: Vec<String> = front
-                .iter()
-                .map(|&index| rows[index].train_stage.clone().unwrap_or_default())
-                .collect();
-            let _ = writeln!(
-                text,
-                "![{what}]({name})\n\n{what}; one colour per run in table order, the Pareto front joined in black: {}.\n",
-                names.join(", ")
-            );
-        }
-        let legend: Vec<Vec<String>> = rows
-            .iter()
-            .enumerate()
-            .map(|(index, row)| {
-                let color = palette(index).0;
-                vec![
-                    row.train_stage.clone().unwrap_or_default(),
-                    format!("#{:02x}{:02x}{:02x}", color[0], color[1], color[2]),
-                ]
-            })
-            .collect();
-        text.push_str(&markdown_table(&["run", "colour"], &legend).map_err(anyhow::Error::msg)?);
-        text.push('\n');
     }
+    let legend: Vec<Vec<String>> = rows
+        .iter()
+        .enumerate()
+        .map(|(index, row)| {
+            let color = palette(index).0;
+            vec![
+                row.train_stage.clone().unwrap_or_default(),
+                format!("#{:02x}{:02x}{:02x}", color[0], color[1], color[2]),
+            ]
+        })
+        .collect();
+    text.push_str(&markdown_table(&["run", "colour"], &legend).map_err(anyhow::Error::msg)?);
+    text.push('\n');
+    Ok(())
+}
 
-    // Loss curves of every train entry.
+/// Loss curves of every train entry (empty when none has any).
+fn loss_curve_section(states: &[StageState<'_>], out: &Path) -> anyhow::Result<String> {
     let mut curve_section = String::new();
     for state in states.iter().filter(|state| state.spec.kind == "train") {
         let Some(entry) = &state.entry else {
@@ -585,15 +627,14 @@ pub fn write_report_for(
             );
         }
     }
-    if !curve_section.is_empty() {
-        text.push_str("## Loss curves\n\n");
-        text.push_str(&curve_section);
-    }
+    Ok(curve_section)
+}
 
-    // Timing and cache reuse.
+/// Timing and cache reuse: the "Stages" section.
+fn write_stages(text: &mut String, states: &[StageState<'_>]) -> anyhow::Result<()> {
     text.push_str("## Stages\n\n");
     let mut references: BTreeMap<&EntryId, Vec<&str>> = BTreeMap::new();
-    for state in &states {
+    for state in states {
         references
             .entry(&state.id)
             .or_default()
@@ -691,9 +732,7 @@ pub fn write_report_for(
     if !shared.is_empty() {
         let _ = writeln!(text, "Shared entries (cache hits): {}.", shared.join("; "));
     }
-    let path = out.join("report.md");
-    std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(path)
+    Ok(())
 }
 
 /// A scatter of (cost, PSNR) points, one colour per run, with the Pareto front in black.

@@ -43,14 +43,14 @@ use seqavatar_engine::{
 
 use crate::context_probe::{ContextProbe, ProbeResult, probe_result};
 use crate::evaluate::{
-    LpipsModels, MEAN_TABLE_HEADERS, MeanScores, SpeedRow, ViewRenderer, contact_sheet_rows,
-    mean_scores, mean_table_row, measure_speed, pad_to, score_image, spread,
+    ImageScore, LpipsModels, MEAN_TABLE_HEADERS, MeanScores, SpeedRow, ViewRenderer,
+    contact_sheet_rows, mean_scores, mean_table_row, measure_speed, pad_to, score_image, spread,
 };
 use crate::image::ImageF32;
 use crate::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::metrics::Protocol;
 use crate::report::{error_map, markdown_table};
-use crate::testset::TestSet;
+use crate::testset::{TestImage, TestSet};
 
 /// The kind name in pipeline files.
 pub const EVAL_KIND: &str = "eval";
@@ -218,7 +218,8 @@ impl StageKind for EvalStage {
         // 7: `summary.context_probes` (context zeroed / from another frame) and
         //    `summary.train_image_psnr` (from the train entry).
         // 8: on the cpu backend the avatar splats in f32 (the lane path).
-        8
+        // 9: on the gpu backend each frame is deformed and splatted on the device.
+        9
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -471,187 +472,29 @@ pub fn evaluate_entry(
     } else {
         spread(testset.images.len(), config.max_images)
     };
-    let count = selected.len();
-    let (height, width) = (testset.stored_height, testset.stored_width);
-    let out = ctx.output();
-    let image_dims = ["image", "height", "width", "rgb"];
-    let image_shape = [count as u64, height as u64, width as u64, 3];
-    let image_chunk = [1, height as u64, width as u64, 3];
-    let renders_array =
-        out.create_array::<u8>("renders", &image_dims, &image_shape, &image_chunk)?;
-    let errors_array =
-        out.create_array::<u8>("error_maps", &image_dims, &image_shape, &image_chunk)?;
-    let sheet_picks: Vec<usize> = spread(count, config.contact_sheet_rows);
-    let mut sheet_images = Vec::new();
-    let mut scores = Vec::with_capacity(count);
-    let mut render_seconds = Vec::with_capacity(count);
-    let progress = ctx.progress_bar(count as u64, "render and score test images");
-    for (slot, &pick) in selected.iter().enumerate() {
-        let test = testset.images[pick];
-        let camera = &testset.cameras[test.view];
-        let started = Instant::now();
-        let render = renderer.render(test.frame, camera).with_context(|| {
-            format!(
-                "rendering test image {} (view {}, frame {})",
-                test.index, test.view, test.frame
-            )
-        })?;
-        render_seconds.push(started.elapsed().as_secs_f64());
-        anyhow::ensure!(
-            render.width == camera.width as usize && render.height == camera.height as usize,
-            "the avatar rendered {} x {} for view {} of {} x {}",
-            render.width,
-            render.height,
-            test.view,
-            camera.width,
-            camera.height
-        );
-        let (truth, mask) = testset.load(ingest, &test)?;
-        let scored = score_image(&config.protocol, lpips, &render, &truth, &mask)
-            .with_context(|| format!("scoring test image {}", test.index))?;
-        let render_rgb = scored.pair.render.to_rgb_image();
-        let error_rgb = error_map(
-            &scored.pair.render,
-            &scored.pair.truth,
-            config.error_full_scale,
-        )?;
-        renders_array.write_chunk(
-            &[slot as u64, 0, 0, 0],
-            pad_to(&render_rgb, width as u32, height as u32).as_raw(),
-        )?;
-        errors_array.write_chunk(
-            &[slot as u64, 0, 0, 0],
-            pad_to(&error_rgb, width as u32, height as u32).as_raw(),
-        )?;
-        if sheet_picks.contains(&slot) {
-            sheet_images.push((scored.pair.truth.to_rgb_image(), render_rgb, error_rgb));
-        }
-        scores.push(scored.score);
-        progress.inc(1);
-    }
-    progress.finish_and_clear();
-
-    let column = |name: &str, values: &[f64]| -> anyhow::Result<()> {
-        out.write_array::<f64>(name, &["image"], &[count as u64], &[count as u64], values)
+    let tests: Vec<TestImage> = selected.iter().map(|&pick| testset.images[pick]).collect();
+    let evaluation = Evaluation {
+        ctx,
+        config,
+        ingest,
+        testset: &testset,
+        tests: &tests,
     };
-    column("psnr", &scores.iter().map(|s| s.psnr).collect::<Vec<_>>())?;
-    column("ssim", &scores.iter().map(|s| s.ssim).collect::<Vec<_>>())?;
-    if lpips.vgg.is_some() {
-        let values: Vec<f64> = scores
-            .iter()
-            .map(|s| s.lpips_vgg.unwrap_or(f64::NAN))
-            .collect();
-        column("lpips_vgg", &values)?;
-    }
-    if lpips.alex.is_some() {
-        let values: Vec<f64> = scores
-            .iter()
-            .map(|s| s.lpips_alex.unwrap_or(f64::NAN))
-            .collect();
-        column("lpips_alex", &values)?;
-    }
-    column("render_seconds", &render_seconds)?;
-    let tests: Vec<_> = selected.iter().map(|&pick| testset.images[pick]).collect();
-    for (name, values) in [
-        (
-            "image_index",
-            tests.iter().map(|t| t.index as u32).collect::<Vec<_>>(),
-        ),
-        ("image_view", tests.iter().map(|t| t.view as u32).collect()),
-        (
-            "image_frame",
-            tests.iter().map(|t| t.frame as u32).collect(),
-        ),
-    ] {
-        out.write_array::<u32>(name, &["image"], &[count as u64], &[count as u64], &values)?;
-    }
-    let sheet = contact_sheet_rows(&sheet_images, width as u32, height as u32)?;
-    let (sheet_width, sheet_height) = sheet.dimensions();
-    out.write_array::<u8>(
-        "contact_sheet",
-        &["sheet_height", "sheet_width", "rgb"],
-        &[u64::from(sheet_height), u64::from(sheet_width), 3],
-        &[u64::from(sheet_height), u64::from(sheet_width), 3],
-        sheet.as_raw(),
-    )?;
-
-    // Rendering speed, the whole render path, on the first scored view.
-    let first = tests[0];
-    let frames: Vec<usize> = (0..config.speed_frames)
-        .map(|k| tests[k % tests.len()].frame)
-        .collect();
-    let mut speed: Vec<SpeedRow> = Vec::new();
-    for &scale in &config.speed_scales {
-        let camera = testset.cameras[first.view].rescaled(scale);
-        let row = measure_speed(renderer, &camera, &frames).with_context(|| {
-            format!("speed measurement at {} x {}", camera.width, camera.height)
-        })?;
-        ctx.log(&format!(
-            "speed: {} x {}: {:.2} FPS ({:.1} ms per frame, networks included)",
-            row.width,
-            row.height,
-            row.fps,
-            1000.0 / row.fps
-        ));
-        speed.push(row);
-    }
-    let resolutions = speed.len() as u64;
-    if resolutions > 0 {
-        for (name, values) in [
-            (
-                "speed_width",
-                speed.iter().map(|r| r.width).collect::<Vec<_>>(),
-            ),
-            ("speed_height", speed.iter().map(|r| r.height).collect()),
-        ] {
-            out.write_array::<u32>(
-                name,
-                &["resolution"],
-                &[resolutions],
-                &[resolutions],
-                &values,
-            )?;
-        }
-        out.write_array::<f64>(
-            "speed_fps",
-            &["resolution"],
-            &[resolutions],
-            &[resolutions],
-            &speed.iter().map(|r| r.fps).collect::<Vec<_>>(),
-        )?;
-    }
-
-    let means = mean_scores(&scores);
-    // Scores on the history frames and per protocol (held-out cameras / held-out frames).
-    let subsets = crate::subsets::subset_scores(
-        &crate::subsets::frame_flags(ingest)?,
-        &tests.iter().map(|t| t.frame).collect::<Vec<_>>(),
-        &scores,
-    )?;
-    for (name, subset) in [
-        ("history frames", &subsets.history),
-        ("other frames", &subsets.not_history),
-        ("held-out cameras", &subsets.held_out_cameras),
-        ("held-out frames", &subsets.held_out_frames),
-        ("held-out history frames", &subsets.held_out_history_frames),
-    ] {
-        if let Some(m) = subset {
-            ctx.log(&format!(
-                "{name}: {} images, PSNR {:.2} dB, SSIM {:.4}",
-                m.images, m.psnr, m.ssim
-            ));
-        }
-    }
+    let scored = evaluation.score_test_images(renderer, lpips)?;
+    evaluation.write_per_image_arrays(&scored, lpips)?;
+    let speed = evaluation.measure_speeds(renderer)?;
+    let scores = &scored.scores;
+    let means = mean_scores(scores);
+    let subsets = evaluation.subset_scores(scores)?;
     if let Some(value) = train_image_psnr {
         ctx.log(&format!("train images (train entry): PSNR {value:.2} dB"));
     }
     let probes = if config.context_probes {
-        run_context_probes(
-            ctx, config, ingest, &testset, &tests, renderer, &means, &subsets,
-        )?
+        evaluation.run_context_probes(renderer, &means, &subsets)?
     } else {
         Vec::new()
     };
+    let out = ctx.output();
     let sequence = sequence_name(ingest);
     let table = markdown_table(&MEAN_TABLE_HEADERS, &[mean_table_row(&sequence, &means)])
         .map_err(anyhow::Error::msg)?;
@@ -680,76 +523,300 @@ pub fn evaluate_entry(
     Ok(())
 }
 
-/// Scores `tests` again under each context probe ([`crate::context_probe`]), PSNR and SSIM
-/// (no LPIPS), and logs the PSNR change per subset; empty when the renderer has no motion
-/// history inputs.
-#[allow(clippy::too_many_arguments)]
-fn run_context_probes(
-    ctx: &StageContext<'_>,
-    config: &EvalConfig,
-    ingest: &EntryReader,
-    testset: &TestSet,
-    tests: &[crate::testset::TestImage],
-    renderer: &mut dyn ViewRenderer,
-    means: &MeanScores,
-    subsets: &crate::subsets::SubsetScores,
-) -> anyhow::Result<Vec<ProbeResult>> {
-    let flags = crate::subsets::frame_flags(ingest)?;
-    let frames: Vec<usize> = tests.iter().map(|t| t.frame).collect();
-    let mut results = Vec::new();
-    for probe in [
-        ContextProbe::Zeroed,
-        ContextProbe::FromFrame {
-            offset: config.context_probe_offset,
-        },
-    ] {
-        if !renderer.set_context_probe(Some(probe)) {
-            ctx.log("context probes: the avatar has no motion-history inputs, nothing to probe");
-            return Ok(Vec::new());
-        }
-        let progress = ctx.progress_bar(tests.len() as u64, &probe.describe());
-        let mut scores = Vec::with_capacity(tests.len());
-        for test in tests {
+/// What the steps of [`evaluate_entry`] share: the stage, its config, the ingest entry, its
+/// test set and the test images selected from it.
+struct Evaluation<'a, 'c> {
+    ctx: &'a StageContext<'c>,
+    config: &'a EvalConfig,
+    ingest: &'a EntryReader,
+    testset: &'a TestSet,
+    tests: &'a [TestImage],
+}
+
+/// The scores of the selected test images, with what the entry keeps of them.
+struct ScoredImages {
+    scores: Vec<ImageScore>,
+    render_seconds: Vec<f64>,
+    /// (truth, render, error map) of the contact sheet's rows.
+    sheet_images: Vec<(image::RgbImage, image::RgbImage, image::RgbImage)>,
+}
+
+impl Evaluation<'_, '_> {
+    /// Renders and scores each selected test image, writing the `renders` and `error_maps`
+    /// arrays (one chunk per image, padded to the stored size).
+    fn score_test_images(
+        &self,
+        renderer: &mut dyn ViewRenderer,
+        lpips: &LpipsModels,
+    ) -> anyhow::Result<ScoredImages> {
+        let (ctx, config, testset) = (self.ctx, self.config, self.testset);
+        let count = self.tests.len();
+        let (height, width) = (testset.stored_height, testset.stored_width);
+        let out = ctx.output();
+        let image_dims = ["image", "height", "width", "rgb"];
+        let image_shape = [count as u64, height as u64, width as u64, 3];
+        let image_chunk = [1, height as u64, width as u64, 3];
+        let renders_array =
+            out.create_array::<u8>("renders", &image_dims, &image_shape, &image_chunk)?;
+        let errors_array =
+            out.create_array::<u8>("error_maps", &image_dims, &image_shape, &image_chunk)?;
+        let sheet_picks: Vec<usize> = spread(count, config.contact_sheet_rows);
+        let mut sheet_images = Vec::new();
+        let mut scores = Vec::with_capacity(count);
+        let mut render_seconds = Vec::with_capacity(count);
+        let progress = ctx.progress_bar(count as u64, "render and score test images");
+        for (slot, &test) in self.tests.iter().enumerate() {
             let camera = &testset.cameras[test.view];
+            let started = Instant::now();
             let render = renderer.render(test.frame, camera).with_context(|| {
                 format!(
-                    "{}: rendering test image {} (view {}, frame {})",
-                    probe.describe(),
-                    test.index,
-                    test.view,
-                    test.frame
+                    "rendering test image {} (view {}, frame {})",
+                    test.index, test.view, test.frame
                 )
             })?;
-            let (truth, mask) = testset.load(ingest, test)?;
-            let scored = score_image(
-                &config.protocol,
-                &LpipsModels::default(),
-                &render,
-                &truth,
-                &mask,
+            render_seconds.push(started.elapsed().as_secs_f64());
+            anyhow::ensure!(
+                render.width == camera.width as usize && render.height == camera.height as usize,
+                "the avatar rendered {} x {} for view {} of {} x {}",
+                render.width,
+                render.height,
+                test.view,
+                camera.width,
+                camera.height
+            );
+            let (truth, mask) = testset.load(self.ingest, &test)?;
+            let scored = score_image(&config.protocol, lpips, &render, &truth, &mask)
+                .with_context(|| format!("scoring test image {}", test.index))?;
+            let render_rgb = scored.pair.render.to_rgb_image();
+            let error_rgb = error_map(
+                &scored.pair.render,
+                &scored.pair.truth,
+                config.error_full_scale,
             )?;
+            renders_array.write_chunk(
+                &[slot as u64, 0, 0, 0],
+                pad_to(&render_rgb, width as u32, height as u32).as_raw(),
+            )?;
+            errors_array.write_chunk(
+                &[slot as u64, 0, 0, 0],
+                pad_to(&error_rgb, width as u32, height as u32).as_raw(),
+            )?;
+            if sheet_picks.contains(&slot) {
+                sheet_images.push((scored.pair.truth.to_rgb_image(), render_rgb, error_rgb));
+            }
             scores.push(scored.score);
             progress.inc(1);
         }
         progress.finish_and_clear();
-        let probe_subsets = crate::subsets::subset_scores(&flags, &frames, &scores)?;
-        let result = probe_result(probe, &scores, probe_subsets, means, subsets);
-        let change = &result.psnr_change;
-        let show =
-            |value: Option<f64>| value.map_or_else(|| "-".to_owned(), |v| format!("{v:+.2}"));
-        ctx.log(&format!(
-            "{}: PSNR change {:+.2} dB on all {} images, history frames {}, other frames {}, held-out frames {}",
-            probe.describe(),
-            change.all,
-            scores.len(),
-            show(change.history),
-            show(change.not_history),
-            show(change.held_out_frames)
-        ));
-        results.push(result);
+        Ok(ScoredImages {
+            scores,
+            render_seconds,
+            sheet_images,
+        })
     }
-    renderer.set_context_probe(None);
-    Ok(results)
+
+    /// The per-image columns (metrics, render time, which image) and the contact sheet.
+    fn write_per_image_arrays(
+        &self,
+        scored: &ScoredImages,
+        lpips: &LpipsModels,
+    ) -> anyhow::Result<()> {
+        let (out, tests) = (self.ctx.output(), self.tests);
+        let scores = &scored.scores;
+        let count = tests.len();
+        let column = |name: &str, values: &[f64]| -> anyhow::Result<()> {
+            out.write_array::<f64>(name, &["image"], &[count as u64], &[count as u64], values)
+        };
+        column("psnr", &scores.iter().map(|s| s.psnr).collect::<Vec<_>>())?;
+        column("ssim", &scores.iter().map(|s| s.ssim).collect::<Vec<_>>())?;
+        if lpips.vgg.is_some() {
+            let values: Vec<f64> = scores
+                .iter()
+                .map(|s| s.lpips_vgg.unwrap_or(f64::NAN))
+                .collect();
+            column("lpips_vgg", &values)?;
+        }
+        if lpips.alex.is_some() {
+            let values: Vec<f64> = scores
+                .iter()
+                .map(|s| s.lpips_alex.unwrap_or(f64::NAN))
+                .collect();
+            column("lpips_alex", &values)?;
+        }
+        column("render_seconds", &scored.render_seconds)?;
+        for (name, values) in [
+            (
+                "image_index",
+                tests.iter().map(|t| t.index as u32).collect::<Vec<_>>(),
+            ),
+            ("image_view", tests.iter().map(|t| t.view as u32).collect()),
+            (
+                "image_frame",
+                tests.iter().map(|t| t.frame as u32).collect(),
+            ),
+        ] {
+            out.write_array::<u32>(name, &["image"], &[count as u64], &[count as u64], &values)?;
+        }
+        let (width, height) = (self.testset.stored_width, self.testset.stored_height);
+        let sheet = contact_sheet_rows(&scored.sheet_images, width as u32, height as u32)?;
+        let (sheet_width, sheet_height) = sheet.dimensions();
+        out.write_array::<u8>(
+            "contact_sheet",
+            &["sheet_height", "sheet_width", "rgb"],
+            &[u64::from(sheet_height), u64::from(sheet_width), 3],
+            &[u64::from(sheet_height), u64::from(sheet_width), 3],
+            sheet.as_raw(),
+        )?;
+        Ok(())
+    }
+
+    /// Rendering speed, the whole render path, on the first scored view at each configured
+    /// scale; written as the `speed_*` arrays.
+    fn measure_speeds(&self, renderer: &mut dyn ViewRenderer) -> anyhow::Result<Vec<SpeedRow>> {
+        let (ctx, config, tests) = (self.ctx, self.config, self.tests);
+        let out = ctx.output();
+        let first = tests[0];
+        let frames: Vec<usize> = (0..config.speed_frames)
+            .map(|k| tests[k % tests.len()].frame)
+            .collect();
+        let mut speed: Vec<SpeedRow> = Vec::new();
+        for &scale in &config.speed_scales {
+            let camera = self.testset.cameras[first.view].rescaled(scale);
+            let row = measure_speed(renderer, &camera, &frames).with_context(|| {
+                format!("speed measurement at {} x {}", camera.width, camera.height)
+            })?;
+            ctx.log(&format!(
+                "speed: {} x {}: {:.2} FPS ({:.1} ms per frame, networks included)",
+                row.width,
+                row.height,
+                row.fps,
+                1000.0 / row.fps
+            ));
+            speed.push(row);
+        }
+        let resolutions = speed.len() as u64;
+        if resolutions > 0 {
+            for (name, values) in [
+                (
+                    "speed_width",
+                    speed.iter().map(|r| r.width).collect::<Vec<_>>(),
+                ),
+                ("speed_height", speed.iter().map(|r| r.height).collect()),
+            ] {
+                out.write_array::<u32>(
+                    name,
+                    &["resolution"],
+                    &[resolutions],
+                    &[resolutions],
+                    &values,
+                )?;
+            }
+            out.write_array::<f64>(
+                "speed_fps",
+                &["resolution"],
+                &[resolutions],
+                &[resolutions],
+                &speed.iter().map(|r| r.fps).collect::<Vec<_>>(),
+            )?;
+        }
+        Ok(speed)
+    }
+
+    /// Scores on the history frames and per protocol (held-out cameras / held-out frames),
+    /// logged.
+    fn subset_scores(&self, scores: &[ImageScore]) -> anyhow::Result<crate::subsets::SubsetScores> {
+        let subsets = crate::subsets::subset_scores(
+            &crate::subsets::frame_flags(self.ingest)?,
+            &self.tests.iter().map(|t| t.frame).collect::<Vec<_>>(),
+            scores,
+        )?;
+        for (name, subset) in [
+            ("history frames", &subsets.history),
+            ("other frames", &subsets.not_history),
+            ("held-out cameras", &subsets.held_out_cameras),
+            ("held-out frames", &subsets.held_out_frames),
+            ("held-out history frames", &subsets.held_out_history_frames),
+        ] {
+            if let Some(m) = subset {
+                self.ctx.log(&format!(
+                    "{name}: {} images, PSNR {:.2} dB, SSIM {:.4}",
+                    m.images, m.psnr, m.ssim
+                ));
+            }
+        }
+        Ok(subsets)
+    }
+
+    /// Scores the test images again under each context probe ([`crate::context_probe`]), PSNR
+    /// and SSIM (no LPIPS), and logs the PSNR change per subset; empty when the renderer has
+    /// no motion history inputs.
+    fn run_context_probes(
+        &self,
+        renderer: &mut dyn ViewRenderer,
+        means: &MeanScores,
+        subsets: &crate::subsets::SubsetScores,
+    ) -> anyhow::Result<Vec<ProbeResult>> {
+        let (ctx, config, ingest, testset, tests) =
+            (self.ctx, self.config, self.ingest, self.testset, self.tests);
+        let flags = crate::subsets::frame_flags(ingest)?;
+        let frames: Vec<usize> = tests.iter().map(|t| t.frame).collect();
+        let mut results = Vec::new();
+        for probe in [
+            ContextProbe::Zeroed,
+            ContextProbe::FromFrame {
+                offset: config.context_probe_offset,
+            },
+        ] {
+            if !renderer.set_context_probe(Some(probe)) {
+                ctx.log(
+                    "context probes: the avatar has no motion-history inputs, nothing to probe",
+                );
+                return Ok(Vec::new());
+            }
+            let progress = ctx.progress_bar(tests.len() as u64, &probe.describe());
+            let mut scores = Vec::with_capacity(tests.len());
+            for test in tests {
+                let camera = &testset.cameras[test.view];
+                let render = renderer.render(test.frame, camera).with_context(|| {
+                    format!(
+                        "{}: rendering test image {} (view {}, frame {})",
+                        probe.describe(),
+                        test.index,
+                        test.view,
+                        test.frame
+                    )
+                })?;
+                let (truth, mask) = testset.load(ingest, test)?;
+                let scored = score_image(
+                    &config.protocol,
+                    &LpipsModels::default(),
+                    &render,
+                    &truth,
+                    &mask,
+                )?;
+                scores.push(scored.score);
+                progress.inc(1);
+            }
+            progress.finish_and_clear();
+            let probe_subsets = crate::subsets::subset_scores(&flags, &frames, &scores)?;
+            let result = probe_result(probe, &scores, probe_subsets, means, subsets);
+            let change = &result.psnr_change;
+            let show =
+                |value: Option<f64>| value.map_or_else(|| "-".to_owned(), |v| format!("{v:+.2}"));
+            ctx.log(&format!(
+                "{}: PSNR change {:+.2} dB on all {} images, history frames {}, other frames {}, held-out frames {}",
+                probe.describe(),
+                change.all,
+                scores.len(),
+                show(change.history),
+                show(change.not_history),
+                show(change.held_out_frames)
+            ));
+            results.push(result);
+        }
+        renderer.set_context_probe(None);
+        Ok(results)
+    }
 }
 
 /// Converts a render to the metrics' image type, naming the source in errors.

@@ -21,7 +21,7 @@ use seqavatar_core::body::BodyModel;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::EntryReader;
-use seqavatar_ingest::stage::{SourceImage, resample};
+use seqavatar_formats::resample::{SourceImage, resample};
 use seqavatar_ingest::synthetic::raster::{EMPTY, rasterize};
 
 use crate::io::BodySequence;

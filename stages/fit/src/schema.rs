@@ -32,7 +32,7 @@
 use seqavatar_core::body::BodyModel;
 use seqavatar_engine::{EntryReader, EntryWriter};
 use seqavatar_ingest::read_body_params;
-use seqavatar_ingest::stage::write_body_params;
+use seqavatar_ingest::schema::write_body_params;
 
 use crate::evidence::TrackVerdict;
 use crate::io::BodySequence;

@@ -100,7 +100,6 @@ pub mod datasets;
 pub use seqavatar_formats as formats;
 pub mod plan;
 pub mod reader;
-pub mod resample;
 pub mod schema;
 pub mod stage;
 pub mod synthetic;

@@ -24,13 +24,7 @@ pub struct SourceCamera {
     pub camera: Camera,
 }
 
-/// One captured image and its foreground mask, both at the camera's full resolution.
-#[derive(Clone, Debug, PartialEq)]
-pub struct SourceImage {
-    pub rgb: image::RgbImage,
-    /// 0 = background, 255 = foreground; soft values allowed.
-    pub mask: image::GrayImage,
-}
+pub use seqavatar_formats::resample::SourceImage;
 
 /// Which body model a dataset's fits use (written as the `body_model_kind` attribute).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -22,11 +22,11 @@ pub use crate::reader::{
     BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
     open_reader,
 };
-pub use crate::resample::resample;
 pub use crate::schema::{
     read_body_model, read_body_params, read_keypoints_3d, write_body_model, write_body_params,
     write_keypoints_3d,
 };
+pub use seqavatar_formats::resample::resample;
 
 /// The `ingest` stage kind.
 pub struct Ingest;
@@ -102,89 +102,8 @@ impl StageKind for Ingest {
             crate::schema::write_garment_history(out, &history)?;
         }
 
-        // Images, in parallel, one chunk each; nothing but the images in flight is held.
-        let max_h = cameras.iter().map(|c| c.height).max().unwrap_or(1) as u64;
-        let max_w = cameras.iter().map(|c| c.width).max().unwrap_or(1) as u64;
-        let n = plan.images.len() as u64;
-        let images = out.create_array::<u8>(
-            "images",
-            &["image", "height", "width", "rgb"],
-            &[n, max_h, max_w, 3],
-            &[1, max_h, max_w, 3],
-        )?;
-        let masks = out.create_array::<u8>(
-            "masks",
-            &["image", "height", "width"],
-            &[n, max_h, max_w],
-            &[1, max_h, max_w],
-        )?;
-        let bar = ctx.progress_bar(n, "images");
-        plan.images.par_iter().enumerate().try_for_each(
-            |(index, &(view, frame, _))| -> anyhow::Result<()> {
-                let source_view = plan.views[view];
-                let source_frame = plan.frames[frame];
-                let source = reader
-                    .read_image(source_view, source_frame)
-                    .with_context(|| {
-                        format!(
-                            "{}: camera {} frame {}",
-                            reader.describe(),
-                            reader.cameras()[source_view].id,
-                            reader.frame_id(source_frame)
-                        )
-                    })?;
-                let source_camera = &reader.cameras()[source_view].camera;
-                let (rgb, mask) =
-                    resample(&source, source_camera, &cameras[view]).with_context(|| {
-                        format!(
-                            "{}: camera {} frame {}",
-                            reader.describe(),
-                            reader.cameras()[source_view].id,
-                            reader.frame_id(source_frame)
-                        )
-                    })?;
-                let (w, h) = (cameras[view].width as usize, cameras[view].height as usize);
-                let (mw, mh) = (max_w as usize, max_h as usize);
-                let mut rgb_chunk = vec![0u8; mh * mw * 3];
-                let mut mask_chunk = vec![0u8; mh * mw];
-                for row in 0..h {
-                    rgb_chunk[row * mw * 3..row * mw * 3 + w * 3]
-                        .copy_from_slice(&rgb[row * w * 3..(row + 1) * w * 3]);
-                    mask_chunk[row * mw..row * mw + w]
-                        .copy_from_slice(&mask[row * w..(row + 1) * w]);
-                }
-                images.write_chunk(&[index as u64, 0, 0, 0], &rgb_chunk)?;
-                masks.write_chunk(&[index as u64, 0, 0], &mask_chunk)?;
-                bar.inc(1);
-                Ok(())
-            },
-        )?;
-        bar.finish_and_clear();
-        let image_view: Vec<u32> = plan.images.iter().map(|i| i.0 as u32).collect();
-        let image_frame: Vec<u32> = plan.images.iter().map(|i| i.1 as u32).collect();
-        let image_split: Vec<u8> = plan.images.iter().map(|i| i.2).collect();
-        let chunk = [n.max(1)];
-        out.write_array("image_view", &["image"], &[n], &chunk, &image_view)?;
-        out.write_array("image_frame", &["image"], &[n], &chunk, &image_frame)?;
-        out.write_array("image_split", &["image"], &[n], &chunk, &image_split)?;
-
-        let dataset = serde_json::to_value(&config.dataset)?
-            .get("kind")
-            .cloned()
-            .unwrap_or(serde_json::Value::Null);
-        out.set_attribute("dataset", dataset)?;
-        out.set_attribute("body_model_kind", kind.as_str().into())?;
-        out.set_attribute("frame_interval", plan.frame_interval.into())?;
-        out.set_attribute("resolution_scale", config.resolution_scale.into())?;
-        out.set_attribute("past_frames", config.past_frames.into())?;
-        // Where the frame axis starts in the recording, so that motion windows clamp only at
-        // the recording's true start (`seqavatar_motion::schema::FrameAxis`).
-        out.set_attribute("first_frame_index", plan.frames[0].into())?;
-        let train = image_split.iter().filter(|s| **s == 0).count();
-        out.set_attribute("num_train_images", train.into())?;
-        out.set_attribute("num_test_images", (image_split.len() - train).into())?;
-        out.set_attribute("background", serde_json::json!([0, 0, 0]))?;
-        Ok(())
+        let image_split = write_images(ctx, reader.as_ref(), &plan, &cameras)?;
+        write_attributes(out, &config, &plan, kind, &image_split)
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
@@ -212,6 +131,110 @@ impl StageKind for Ingest {
             _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
     }
+}
+
+/// Resamples every planned image (and its mask) to its ingested camera and writes them, in
+/// parallel, one chunk each (nothing but the images in flight is held), then the per-image
+/// view, frame and split arrays; returns the split of each image.
+fn write_images(
+    ctx: &StageContext<'_>,
+    reader: &dyn DatasetReader,
+    plan: &IngestPlan,
+    cameras: &[Camera],
+) -> anyhow::Result<Vec<u8>> {
+    let out = ctx.output();
+    let max_h = cameras.iter().map(|c| c.height).max().unwrap_or(1) as u64;
+    let max_w = cameras.iter().map(|c| c.width).max().unwrap_or(1) as u64;
+    let n = plan.images.len() as u64;
+    let images = out.create_array::<u8>(
+        "images",
+        &["image", "height", "width", "rgb"],
+        &[n, max_h, max_w, 3],
+        &[1, max_h, max_w, 3],
+    )?;
+    let masks = out.create_array::<u8>(
+        "masks",
+        &["image", "height", "width"],
+        &[n, max_h, max_w],
+        &[1, max_h, max_w],
+    )?;
+    let bar = ctx.progress_bar(n, "images");
+    plan.images.par_iter().enumerate().try_for_each(
+        |(index, &(view, frame, _))| -> anyhow::Result<()> {
+            let source_view = plan.views[view];
+            let source_frame = plan.frames[frame];
+            let source = reader
+                .read_image(source_view, source_frame)
+                .with_context(|| {
+                    format!(
+                        "{}: camera {} frame {}",
+                        reader.describe(),
+                        reader.cameras()[source_view].id,
+                        reader.frame_id(source_frame)
+                    )
+                })?;
+            let source_camera = &reader.cameras()[source_view].camera;
+            let (rgb, mask) =
+                resample(&source, source_camera, &cameras[view]).with_context(|| {
+                    format!(
+                        "{}: camera {} frame {}",
+                        reader.describe(),
+                        reader.cameras()[source_view].id,
+                        reader.frame_id(source_frame)
+                    )
+                })?;
+            let (w, h) = (cameras[view].width as usize, cameras[view].height as usize);
+            let (mw, mh) = (max_w as usize, max_h as usize);
+            let mut rgb_chunk = vec![0u8; mh * mw * 3];
+            let mut mask_chunk = vec![0u8; mh * mw];
+            for row in 0..h {
+                rgb_chunk[row * mw * 3..row * mw * 3 + w * 3]
+                    .copy_from_slice(&rgb[row * w * 3..(row + 1) * w * 3]);
+                mask_chunk[row * mw..row * mw + w].copy_from_slice(&mask[row * w..(row + 1) * w]);
+            }
+            images.write_chunk(&[index as u64, 0, 0, 0], &rgb_chunk)?;
+            masks.write_chunk(&[index as u64, 0, 0], &mask_chunk)?;
+            bar.inc(1);
+            Ok(())
+        },
+    )?;
+    bar.finish_and_clear();
+    let image_view: Vec<u32> = plan.images.iter().map(|i| i.0 as u32).collect();
+    let image_frame: Vec<u32> = plan.images.iter().map(|i| i.1 as u32).collect();
+    let image_split: Vec<u8> = plan.images.iter().map(|i| i.2).collect();
+    let chunk = [n.max(1)];
+    out.write_array("image_view", &["image"], &[n], &chunk, &image_view)?;
+    out.write_array("image_frame", &["image"], &[n], &chunk, &image_frame)?;
+    out.write_array("image_split", &["image"], &[n], &chunk, &image_split)?;
+
+    Ok(image_split)
+}
+
+/// The entry's attributes: where the data came from and how it was sampled.
+fn write_attributes(
+    out: &EntryWriter,
+    config: &IngestConfig,
+    plan: &IngestPlan,
+    kind: BodyModelKind,
+    image_split: &[u8],
+) -> anyhow::Result<()> {
+    let dataset = serde_json::to_value(&config.dataset)?
+        .get("kind")
+        .cloned()
+        .unwrap_or(serde_json::Value::Null);
+    out.set_attribute("dataset", dataset)?;
+    out.set_attribute("body_model_kind", kind.as_str().into())?;
+    out.set_attribute("frame_interval", plan.frame_interval.into())?;
+    out.set_attribute("resolution_scale", config.resolution_scale.into())?;
+    out.set_attribute("past_frames", config.past_frames.into())?;
+    // Where the frame axis starts in the recording, so that motion windows clamp only at
+    // the recording's true start (`seqavatar_motion::schema::FrameAxis`).
+    out.set_attribute("first_frame_index", plan.frames[0].into())?;
+    let train = image_split.iter().filter(|s| **s == 0).count();
+    out.set_attribute("num_train_images", train.into())?;
+    out.set_attribute("num_test_images", (image_split.len() - train).into())?;
+    out.set_attribute("background", serde_json::json!([0, 0, 0]))?;
+    Ok(())
 }
 
 /// The rescaled, distortion-free camera of every ingested view.

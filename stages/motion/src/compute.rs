@@ -10,6 +10,7 @@ use seqavatar_fit::io::BodySequence;
 
 use crate::context::{self, InputScaling, Scales, VelocityNormalisation};
 use crate::pose::pose_sequence;
+use crate::schema::{FrameAxis, MotionTrack};
 use seqavatar_knn::{KnnGraph, knn_graph};
 
 /// Per-frame motion arrays, row-major, frame-major.
@@ -191,6 +192,36 @@ pub fn canonical_template(
         .collect();
     let graph = knn_graph(&vertices, k)?;
     Ok((vertices, graph))
+}
+
+/// The motion track of `params` posed with `model`, at the raw `scales` of the motion entry,
+/// its velocity normalisation and its recorded input scales (the motion crate's computation;
+/// the scales are the trained-on entry's, not recomputed on `params`), on the frame `axis` of
+/// the poses' source: how `pipeline render`, `export` and `view` drive an avatar with other
+/// poses.
+pub fn motion_track_for(
+    model: &BodyModel,
+    params: &[BodyParams],
+    raw_scales: &[u32],
+    interval: u32,
+    normalisation: VelocityNormalisation,
+    axis: FrameAxis,
+    input_scales: &InputScales,
+) -> anyhow::Result<MotionTrack> {
+    let scales = Scales::new(raw_scales, interval)?;
+    let sequence = BodySequence::from_params(params).map_err(anyhow::Error::msg)?;
+    let mut arrays = compute_motion(model, &sequence, &scales, normalisation)?;
+    arrays.scale_inputs(input_scales);
+    Ok(MotionTrack {
+        num_frames: arrays.num_frames,
+        num_joints: arrays.num_joints,
+        num_vertices: arrays.num_vertices,
+        scales: scales.raw.clone(),
+        scale_steps: scales.steps.clone(),
+        skeleton_motion: arrays.skeleton_motion,
+        vertex_velocity: arrays.vertex_velocity,
+        axis,
+    })
 }
 
 #[cfg(test)]

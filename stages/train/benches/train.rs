@@ -15,6 +15,11 @@
 //! with seeded VGG weights (the trained ones cannot be committed; the cost depends only on
 //! the architecture); `SEQAVATAR_BENCH_LPIPS=0` skips it.
 //!
+//! On a gpu whose adapter has timestamps inside encoders, each row also prints the device
+//! time of every phase (`device ms per phase`), measured by timestamps between the phases of
+//! the recorded iteration; the host's own clock (`host ms per phase`) sees there only the
+//! recording and submission, charged to `deform`.
+//!
 //! Each row also prints the host-device traffic of its timed iterations
 //! (`transfers per iteration: <R> readbacks, <U> KiB up, <D> KiB down`, counted by the gpu
 //! context; zero on `cpu`).
@@ -33,10 +38,12 @@ use std::time::Instant;
 use seqavatar_compute::backend::{AdapterChoice, Backend, DeviceChoice};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
-use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
+use seqavatar_engine::{
+    EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
+};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
-use seqavatar_train::trainer::{Phase, Trainer};
+use seqavatar_train::trainer::{Phase, PhaseTimes, Trainer};
 
 const UPSTREAM: &str = r#"
 stages:
@@ -93,30 +100,25 @@ fn gemm_peak(rows: usize, in_features: usize, out_features: usize) -> f64 {
     shape.forward_flops(rows) / median(seconds) / 1e9
 }
 
-fn main() -> anyhow::Result<()> {
-    // As the `pipeline` binary does, so the figures are the ones users get.
-    seqavatar_compute::memory::retain_freed_memory();
-    let dir = tempfile::tempdir()?;
+/// The ingest and motion entries of [`UPSTREAM`], computed by the real stages into a cache
+/// under `cache`.
+fn upstream_entries(cache: &Path) -> anyhow::Result<(EntryReader, EntryReader)> {
     let mut registry = Registry::new();
     seqavatar_ingest::register(&mut registry);
     seqavatar_motion::register(&mut registry);
-    let store = LocalStore::open(dir.path())?;
+    let store = LocalStore::open(cache)?;
     let pipeline = Pipeline::parse(UPSTREAM, Path::new("bench.yaml"), &registry, &[])?;
     let reports = run(&pipeline, &registry, &store, &RunOptions::default())?;
     let open = |name: &str| {
         let r = reports.iter().find(|r| r.name == name).expect("stage ran");
         store.open_entry(&EntryId::new(&r.kind, &r.key))
     };
-    let (ingest, motion) = (open("ingest")?, open("motion")?);
-    let mut config = TrainConfig::preset(Preset::Paper);
-    config.sequence_length = 8;
-    let data = TrainingData::read(&ingest, &ingest, &motion, 1.0)?;
-    // The `fast` preset at the demo's training resolution (128 x 128).
-    let mut fast = TrainConfig::preset(Preset::Fast);
-    fast.resolution_scale = 0.25;
-    let fast_data = TrainingData::read(&ingest, &ingest, &motion, fast.resolution_scale)?;
-    let warmup = env_usize("SEQAVATAR_BENCH_WARMUP", 2);
-    let timed = env_usize("SEQAVATAR_BENCH_ITERATIONS", 10);
+    Ok((open("ingest")?, open("motion")?))
+}
+
+/// The backends timed: `cpu`, and `gpu` when an adapter is found (hardware unless
+/// `SEQAVATAR_BENCH_SOFTWARE_GPU` is set).
+fn bench_backends() -> anyhow::Result<Vec<(&'static str, Backend)>> {
     let mut backends = vec![("cpu", Backend::select(DeviceChoice::Cpu)?)];
     let choice = if std::env::var_os("SEQAVATAR_BENCH_SOFTWARE_GPU").is_some() {
         AdapterChoice::AllowSoftware
@@ -127,6 +129,123 @@ fn main() -> anyhow::Result<()> {
         Ok(gpu) => backends.push(("gpu", gpu)),
         Err(e) => println!("gpu: not measured ({e})"),
     }
+    Ok(backends)
+}
+
+/// How many iterations each row runs untimed and timed, and the gemm peak the network
+/// phases are compared with.
+#[derive(Clone, Copy)]
+struct Timing {
+    warmup: usize,
+    timed: usize,
+    /// GFLOP/s.
+    peak: f64,
+}
+
+/// Times one row (a backend and a variant) and prints it; returns its iterations per second
+/// and, when it trains networks, the percentage of the gemm peak its network phases reach.
+/// Milliseconds per iteration of every phase.
+fn per_phase(times: &PhaseTimes) -> String {
+    let iterations = times.iterations().max(1) as f64;
+    Phase::ALL
+        .iter()
+        .map(|&phase| {
+            format!(
+                "{} {:.2}",
+                phase.name(),
+                1e3 * times.seconds(phase) / iterations
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn time_row(
+    row: &str,
+    config: &TrainConfig,
+    data: &TrainingData,
+    backend: &Backend,
+    timing: Timing,
+) -> anyhow::Result<(f64, Option<f64>)> {
+    let Timing {
+        warmup,
+        timed,
+        peak,
+    } = timing;
+    let description = backend.describe();
+    let mut trainer = Trainer::new(config.clone(), data, backend.clone())?;
+    for _ in 0..warmup {
+        trainer.step()?;
+    }
+    trainer.reset_phase_times();
+    // On the device, each phase is timed by timestamps between its commands (the host sees
+    // only the recording and the submission).
+    trainer.time_device_phases()?;
+    let traffic_before = backend.transfers();
+    let started = Instant::now();
+    for _ in 0..timed {
+        trainer.step()?;
+    }
+    // A device-resident step returns once submitted: the time includes the device
+    // finishing the last one.
+    trainer.wait_for_device()?;
+    let seconds = started.elapsed().as_secs_f64();
+    let traffic = backend.transfers().since(&traffic_before);
+    let it_s = timed as f64 / seconds;
+    println!(
+        "{row}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
+        1e3 * seconds / timed as f64
+    );
+    let device_times = trainer.device_phase_times()?;
+    let host_times = *trainer.phase_times();
+    println!("  host ms per phase: {}", per_phase(&host_times));
+    if let Some(device) = &device_times {
+        println!(
+            "  device ms per phase (timestamps over {} iterations): {}",
+            device.iterations(),
+            per_phase(device)
+        );
+    }
+    println!(
+        "  transfers per iteration: {} readbacks, {:.1} KiB up, {:.1} KiB down",
+        traffic.readbacks as f64 / timed as f64,
+        traffic.bytes_up as f64 / 1024.0 / timed as f64,
+        traffic.bytes_down as f64 / 1024.0 / timed as f64
+    );
+    let Some(networks) = &trainer.networks else {
+        return Ok((it_s, None));
+    };
+    // Forward + backward (dX and dW, twice the forward) of every layer, counted from the
+    // networks' descriptions at the Gaussian count of the timed iterations' end; timed by
+    // the device where it times its phases.
+    let times = device_times.unwrap_or(host_times);
+    let flops = 3.0 * networks.config().forward_flops(trainer.state.len());
+    let network_seconds = (times.seconds(Phase::Deform) + times.seconds(Phase::Backward))
+        / times.iterations().max(1) as f64;
+    let achieved = flops / network_seconds / 1e9;
+    let percent = 100.0 * achieved / peak;
+    println!(
+        "  network phases (deform + backward): {:.2} GFLOP per iteration at {achieved:.1} GFLOP/s, {percent:.0}% of the gemm peak",
+        flops / 1e9
+    );
+    Ok((it_s, Some(percent)))
+}
+
+fn main() -> anyhow::Result<()> {
+    // As the `pipeline` binary does, so the figures are the ones users get.
+    seqavatar_compute::memory::retain_freed_memory();
+    let dir = tempfile::tempdir()?;
+    let (ingest, motion) = upstream_entries(dir.path())?;
+    let mut config = TrainConfig::preset(Preset::Paper);
+    config.sequence_length = 8;
+    let data = TrainingData::read(&ingest, &ingest, &motion, 1.0)?;
+    // The `fast` preset at the demo's training resolution (128 x 128).
+    let mut fast = TrainConfig::preset(Preset::Fast);
+    fast.resolution_scale = 0.25;
+    let fast_data = TrainingData::read(&ingest, &ingest, &motion, fast.resolution_scale)?;
+    let warmup = env_usize("SEQAVATAR_BENCH_WARMUP", 2);
+    let timed = env_usize("SEQAVATAR_BENCH_ITERATIONS", 10);
+    let backends = bench_backends()?;
     let gaussians = data.rig.vertex_count();
     println!(
         "paper preset at 512x512: {gaussians} Gaussians, trunk {}x{}, L = {}, tau = {}, scales {:?}",
@@ -156,62 +275,21 @@ fn main() -> anyhow::Result<()> {
         ));
     }
     variants.push(("fast preset at 128x128", fast, &fast_data));
+    let timing = Timing {
+        warmup,
+        timed,
+        peak,
+    };
     let mut headline = None;
     for (name, backend) in backends {
-        let description = backend.describe();
         for (variant, config, data) in &variants {
-            let mut trainer = Trainer::new(config.clone(), data, backend.clone())?;
-            for _ in 0..warmup {
-                trainer.step()?;
-            }
-            trainer.reset_phase_times();
-            let traffic_before = backend.transfers();
-            let started = Instant::now();
-            for _ in 0..timed {
-                trainer.step()?;
-            }
-            // A device-resident step returns once submitted: the time includes the device
-            // finishing the last one.
-            trainer.wait_for_device()?;
-            let seconds = started.elapsed().as_secs_f64();
-            let traffic = backend.transfers().since(&traffic_before);
-            let it_s = timed as f64 / seconds;
-            println!(
-                "{name}, {variant}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
-                1e3 * seconds / timed as f64
-            );
-            let times = trainer.phase_times();
-            let per_iteration = |phase: Phase| 1e3 * times.seconds(phase) / timed as f64;
-            println!(
-                "  ms per phase: {}",
-                Phase::ALL
-                    .iter()
-                    .map(|&phase| format!("{} {:.1}", phase.name(), per_iteration(phase)))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-            println!(
-                "  transfers per iteration: {} readbacks, {:.1} KiB up, {:.1} KiB down",
-                traffic.readbacks as f64 / timed as f64,
-                traffic.bytes_up as f64 / 1024.0 / timed as f64,
-                traffic.bytes_down as f64 / 1024.0 / timed as f64
-            );
-            if let Some(networks) = &trainer.networks {
-                // Forward + backward (dX and dW, twice the forward) of every layer, counted
-                // from the networks' descriptions at the Gaussian count of the timed
-                // iterations' end.
-                let flops = 3.0 * networks.config().forward_flops(trainer.state.len());
-                let network_seconds =
-                    (times.seconds(Phase::Deform) + times.seconds(Phase::Backward)) / timed as f64;
-                let achieved = flops / network_seconds / 1e9;
-                let percent = 100.0 * achieved / peak;
-                println!(
-                    "  network phases (deform + backward): {:.2} GFLOP per iteration at {achieved:.1} GFLOP/s, {percent:.0}% of the gemm peak",
-                    flops / 1e9
-                );
-                if name == "cpu" && variant.starts_with("paper preset, no LPIPS") {
-                    headline = Some((it_s, percent));
-                }
+            let row = format!("{name}, {variant}");
+            let (it_s, percent) = time_row(&row, config, data, &backend, timing)?;
+            if let Some(percent) = percent
+                && name == "cpu"
+                && variant.starts_with("paper preset, no LPIPS")
+            {
+                headline = Some((it_s, percent));
             }
         }
     }

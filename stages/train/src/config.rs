@@ -193,6 +193,14 @@ pub struct TrainConfig {
     pub background: Background,
 }
 
+/// A config error naming `field`.
+fn bad(field: &str, message: String) -> Result<(), ConfigError> {
+    Err(ConfigError::Field {
+        field: field.into(),
+        message,
+    })
+}
+
 impl TrainConfig {
     /// The preset's full configuration.
     pub fn preset(preset: Preset) -> Self {
@@ -292,14 +300,9 @@ impl TrainConfig {
         Ok(config)
     }
 
-    /// Checks ranges and cross-field rules.
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |field: &str, message: String| {
-            Err(ConfigError::Field {
-                field: field.into(),
-                message,
-            })
-        };
+    /// Iterations, resolution, the avatar's fields and the size bounds (Gaussians, cameras,
+    /// neighbours, padding, scales).
+    fn validate_sizes(&self) -> Result<(), ConfigError> {
         if self.iterations == 0 {
             return bad("iterations", "must be at least 1".into());
         }
@@ -338,6 +341,11 @@ impl TrainConfig {
         if self.cameras_per_step == 0 {
             return bad("cameras_per_step", "must be at least 1".into());
         }
+        Ok(())
+    }
+
+    /// Intervals, densification and pruning thresholds, and the loss weights.
+    fn validate_schedule_and_weights(&self) -> Result<(), ConfigError> {
         for (name, value) in [
             ("sh_degree_interval", self.sh_degree_interval),
             ("densify_interval", self.densify_interval),
@@ -397,6 +405,13 @@ impl TrainConfig {
                 ),
             );
         }
+        Ok(())
+    }
+
+    /// Checks ranges and cross-field rules.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.validate_sizes()?;
+        self.validate_schedule_and_weights()?;
         self.learning_rates.validate()?;
         // The Gaussians alone against the budget; the images join the estimate where they are
         // known (`check_memory`: at load for a synthetic scene, else when the stage starts).

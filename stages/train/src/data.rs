@@ -4,11 +4,11 @@
 //! arrays from which every training window is a gather.
 
 use anyhow::Context;
-use seqavatar_core::body::BodyParams;
+use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::EntryReader;
-use seqavatar_ingest::stage::{SourceImage, resample};
+use seqavatar_formats::resample::{SourceImage, resample};
 use seqavatar_ingest::{read_body_model, read_body_params};
 
 use seqavatar_avatar::rig::BodyRig;
@@ -73,6 +73,116 @@ pub struct TrainingData {
     pub body_model_kind: String,
 }
 
+/// The body parameters (of `params_entry`), the body model (of `ingest`) and the motion
+/// track, checked against each other.
+fn read_body_and_motion(
+    ingest: &EntryReader,
+    params_entry: &EntryReader,
+    motion: &EntryReader,
+) -> anyhow::Result<(Vec<BodyParams>, BodyModel, MotionTrack)> {
+    let params = read_body_params(params_entry, "body")?;
+    let model = read_body_model(ingest)?;
+    let motion_track = MotionTrack::read(motion)?;
+    anyhow::ensure!(
+        motion_track.num_frames == params.len(),
+        "entry {}: {} motion frames, but entry {} has body parameters for {} frames",
+        motion.location(),
+        motion_track.num_frames,
+        params_entry.location(),
+        params.len()
+    );
+    anyhow::ensure!(
+        motion_track.num_vertices == model.num_vertices()
+            && motion_track.num_joints == model.num_joints(),
+        "entry {}: motion arrays have {} vertices and {} joints, the body model {} and {}",
+        motion.location(),
+        motion_track.num_vertices,
+        motion_track.num_joints,
+        model.num_vertices(),
+        model.num_joints()
+    );
+    for (i, p) in params.iter().enumerate() {
+        model.check_params(p).with_context(|| {
+            format!(
+                "entry {}: body parameters of frame {i}",
+                params_entry.location()
+            )
+        })?;
+    }
+    Ok((params, model, motion_track))
+}
+
+/// The per-image arrays of an ingest entry, read into [`ImageRecord`]s one image at a time.
+struct ImageTable<'a> {
+    ingest: &'a EntryReader,
+    location: &'a str,
+    /// The ingest entry's cameras, at the stored resolution.
+    source_cameras: &'a [Camera],
+    /// The cameras training renders with (after `resolution_scale`).
+    cameras: &'a [Camera],
+    /// Frames with body parameters.
+    frames: usize,
+    view_of: &'a [u32],
+    frame_of: &'a [u32],
+    split_of: &'a [u8],
+    /// Stored size of the `images` array.
+    height: u64,
+    width: u64,
+}
+
+impl ImageTable<'_> {
+    /// Image `i`, resampled to its training camera, with its mask's bound box.
+    fn record(&self, i: usize) -> anyhow::Result<ImageRecord> {
+        let (location, cameras) = (self.location, self.cameras);
+        let (height, width) = (self.height, self.width);
+        let view = self.view_of[i] as usize;
+        let frame = self.frame_of[i] as usize;
+        anyhow::ensure!(
+            view < cameras.len() && frame < self.frames,
+            "entry {location}: image {i} names view {view} and frame {frame}, but there are {} views and {} frames",
+            cameras.len(),
+            self.frames
+        );
+        anyhow::ensure!(
+            self.split_of[i] <= 1,
+            "entry {location}: `image_split` of image {i} is {}, expected 0 or 1",
+            self.split_of[i]
+        );
+        let source = &self.source_cameras[view];
+        let (w, h) = (u64::from(source.width), u64::from(source.height));
+        anyhow::ensure!(
+            w <= width && h <= height,
+            "entry {location}: view {view} is {w}x{h} but `images` is {width}x{height}"
+        );
+        let rgb = self
+            .ingest
+            .read_region::<u8>("images", &[i as u64, 0, 0, 0], &[1, h, w, 3])?
+            .data;
+        let mask = self
+            .ingest
+            .read_region::<u8>("masks", &[i as u64, 0, 0], &[1, h, w])?
+            .data;
+        let source_image = SourceImage {
+            rgb: image::RgbImage::from_raw(w as u32, h as u32, rgb).context("image buffer size")?,
+            mask: image::GrayImage::from_raw(w as u32, h as u32, mask)
+                .context("mask buffer size")?,
+        };
+        let target = &cameras[view];
+        let (rgb, mask) = resample(&source_image, source, target)
+            .with_context(|| format!("entry {location}: resampling image {i}"))?;
+        let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
+        let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
+        Ok(ImageRecord {
+            view,
+            frame,
+            split: self.split_of[i],
+            rgb,
+            mask,
+            bound,
+        })
+    }
+}
+
 impl TrainingData {
     /// Reads the entries. `params_entry` is the fit entry if the pipeline has one, else the
     /// ingest entry.
@@ -107,84 +217,22 @@ impl TrainingData {
             "entry {location}: array `masks` has shape {mask_shape:?}, expected {:?}",
             &shape[..3]
         );
-        let params = read_body_params(params_entry, "body")?;
-        let model = read_body_model(ingest)?;
-        let motion_track = MotionTrack::read(motion)?;
-        anyhow::ensure!(
-            motion_track.num_frames == params.len(),
-            "entry {}: {} motion frames, but entry {} has body parameters for {} frames",
-            motion.location(),
-            motion_track.num_frames,
-            params_entry.location(),
-            params.len()
-        );
-        anyhow::ensure!(
-            motion_track.num_vertices == model.num_vertices()
-                && motion_track.num_joints == model.num_joints(),
-            "entry {}: motion arrays have {} vertices and {} joints, the body model {} and {}",
-            motion.location(),
-            motion_track.num_vertices,
-            motion_track.num_joints,
-            model.num_vertices(),
-            model.num_joints()
-        );
-        for (i, p) in params.iter().enumerate() {
-            model.check_params(p).with_context(|| {
-                format!(
-                    "entry {}: body parameters of frame {i}",
-                    params_entry.location()
-                )
-            })?;
-        }
+        let (params, model, motion_track) = read_body_and_motion(ingest, params_entry, motion)?;
         let rig = BodyRig::new(model)?;
-        let (height, width) = (shape[1], shape[2]);
+        let table = ImageTable {
+            ingest,
+            location,
+            source_cameras: &source_cameras,
+            cameras: &cameras,
+            frames: params.len(),
+            view_of: &view_of,
+            frame_of: &frame_of,
+            split_of: &split_of,
+            height: shape[1],
+            width: shape[2],
+        };
         let images = (0..count)
-            .map(|i| -> anyhow::Result<ImageRecord> {
-                let view = view_of[i] as usize;
-                let frame = frame_of[i] as usize;
-                anyhow::ensure!(
-                    view < cameras.len() && frame < params.len(),
-                    "entry {location}: image {i} names view {view} and frame {frame}, but there are {} views and {} frames",
-                    cameras.len(),
-                    params.len()
-                );
-                anyhow::ensure!(
-                    split_of[i] <= 1,
-                    "entry {location}: `image_split` of image {i} is {}, expected 0 or 1",
-                    split_of[i]
-                );
-                let source = &source_cameras[view];
-                let (w, h) = (u64::from(source.width), u64::from(source.height));
-                anyhow::ensure!(
-                    w <= width && h <= height,
-                    "entry {location}: view {view} is {w}x{h} but `images` is {width}x{height}"
-                );
-                let rgb = ingest
-                    .read_region::<u8>("images", &[i as u64, 0, 0, 0], &[1, h, w, 3])?
-                    .data;
-                let mask = ingest
-                    .read_region::<u8>("masks", &[i as u64, 0, 0], &[1, h, w])?
-                    .data;
-                let source_image = SourceImage {
-                    rgb: image::RgbImage::from_raw(w as u32, h as u32, rgb)
-                        .context("image buffer size")?,
-                    mask: image::GrayImage::from_raw(w as u32, h as u32, mask)
-                        .context("mask buffer size")?,
-                };
-                let target = &cameras[view];
-                let (rgb, mask) = resample(&source_image, source, target)
-                    .with_context(|| format!("entry {location}: resampling image {i}"))?;
-                let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
-                let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
-                Ok(ImageRecord {
-                    view,
-                    frame,
-                    split: split_of[i],
-                    rgb,
-                    mask,
-                    bound,
-                })
-            })
+            .map(|i| table.record(i))
             .collect::<anyhow::Result<Vec<_>>>()?;
         let train_views: Vec<usize> = {
             let mut v: Vec<usize> = images

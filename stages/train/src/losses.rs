@@ -92,6 +92,17 @@ pub struct ImageLossGrads {
     pub alpha: Vec<f64>,
 }
 
+/// A rendered and a target colour image of one camera, `H x W x 3` each (the LPIPS loss).
+#[derive(Clone, Copy)]
+pub struct ColourPair<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// Rendered colour.
+    pub colour: &'a [f64],
+    /// Ground-truth colour.
+    pub target: &'a [f64],
+}
+
 /// One camera's images for the photometric loss.
 pub struct ImagePair<'a> {
     pub width: usize,
@@ -264,19 +275,21 @@ impl LpipsLoss {
         Ok(Rect { x0, y0, x1, y1 })
     }
 
-    /// LPIPS between the crops of the rendered and the target colour (`H x W x 3`), and
-    /// `weight x` its gradient with respect to `colour` added into `gradient` (`H x W x 3`).
-    #[allow(clippy::too_many_arguments)]
+    /// LPIPS between the crops of the rendered and the target colour, and `weight x` its
+    /// gradient with respect to `images.colour` added into `gradient` (`H x W x 3`).
     pub fn add_loss(
         &self,
-        colour: &[f64],
-        target: &[f64],
-        width: usize,
-        height: usize,
+        images: ColourPair<'_>,
         rect: Rect,
         weight: f64,
         gradient: &mut [f64],
     ) -> Result<f64, LpipsError> {
+        let ColourPair {
+            width,
+            height,
+            colour,
+            target,
+        } = images;
         assert!(
             colour.len() == width * height * 3
                 && target.len() == colour.len()
@@ -745,7 +758,17 @@ mod tests {
             let weights = loss.lpips().weights();
             let mut gradient = vec![0.5; w * h * 3];
             let value = loss
-                .add_loss(&colour, &target, w, h, rect, 0.1, &mut gradient)
+                .add_loss(
+                    ColourPair {
+                        width: w,
+                        height: h,
+                        colour: &colour,
+                        target: &target,
+                    },
+                    rect,
+                    0.1,
+                    &mut gradient,
+                )
                 .unwrap();
             // The reference: the f64 trunk on the f64 crop.
             let total = |image: &[f64]| {

@@ -37,10 +37,12 @@ use std::time::Instant;
 use anyhow::Context;
 use serde_json::json;
 
+use seqavatar_avatar::avatar::TrainedAvatar;
+use seqavatar_avatar::sequence::{History, SequenceRenderer};
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::picture;
 use seqavatar_engine::{
-    ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
+    ConfigError, EntryReader, EntryWriter, PictureKind, PictureOptions, StageContext, StageKind,
 };
 
 use crate::checkpoint;
@@ -54,8 +56,9 @@ pub struct TrainStage;
 /// Bump whenever the code changes the result (6: the networks train and render in f32;
 /// 7: train-image PSNR, input RMS and first-layer weight norms per input block; 8: the cpu
 /// backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
-/// with the gpu copy of the per-Gaussian networks, as eval does).
-const VERSION: u32 = 8;
+/// with the gpu copy of the per-Gaussian networks, as eval does; 9: on the gpu backend the
+/// held-out PSNR renders each image on the device).
+const VERSION: u32 = 9;
 
 /// Training images (spread evenly over the training split) scored for the train-image PSNR.
 pub const TRAIN_PSNR_IMAGES: usize = 64;
@@ -201,187 +204,40 @@ impl StageKind for TrainStage {
         let backend = Backend::select(config.device)
             .with_context(|| format!("config `device: {}`", config.device))?;
         ctx.log(&format!("backend: {}", backend.describe()));
-        if config.lpips_enabled() {
-            ctx.log(&format!(
-                "LPIPS loss on: weight {}, {} trunk from {}, inputs {}",
-                config.lpips_weight,
-                config.lpips_net.name(),
-                config
-                    .lpips_weights
-                    .as_ref()
-                    .map_or_else(String::new, |p| p.display().to_string()),
-                if config.lpips_unnormalised_input {
-                    "in [0, 1] unmapped (the authors' code)"
-                } else {
-                    "mapped to [-1, 1]"
-                }
-            ));
-        } else {
-            ctx.log(
-                "LPIPS loss off: lpips_weight is 0 (set lpips_weight and lpips_weights to enable it)",
-            );
-        }
-        let work = ctx.work_dir().join("checkpoints");
-        // A damaged checkpoint is deleted and the previous one used (or training restarts),
-        // so one bad file never blocks the stage.
-        let (resumed, notes) = checkpoint::resume_newest_good(&work, |ckpt| {
-            Trainer::resume(config.clone(), &data, backend.clone(), &ckpt)
-        })?;
-        for note in &notes {
-            ctx.warn(note);
-        }
-        let mut trainer = match resumed {
-            Some(t) => {
-                ctx.log(&format!("resumed from iteration {}", t.iteration));
-                t
-            }
-            None => {
-                if !notes.is_empty() {
-                    ctx.warn("no usable checkpoint left: training starts over");
-                }
-                Trainer::new(config.clone(), &data, backend.clone())?
-            }
-        };
-        let resumed_from = trainer.iteration;
-        let total = u64::from(config.iterations);
-        let bar = ctx.progress_bar(total, "training");
-        bar.set_position(trainer.iteration);
-        let started = Instant::now();
-        while trainer.iteration < total {
-            let stats = trainer.step()?;
-            let elapsed = started.elapsed().as_secs_f64();
-            let rate = (trainer.iteration - resumed_from) as f64 / elapsed.max(1e-9);
-            bar.set_position(trainer.iteration);
-            let lpips = if trainer.lpips_active() {
-                format!(", LPIPS {:.4}", stats.lpips)
-            } else {
-                String::new()
-            };
-            bar.set_message(format!(
-                "{}: training, loss {:.4}{lpips}, PSNR {:.2}, {} Gaussians, {:.2} it/s",
-                ctx.stage_name(),
-                stats.total,
-                stats.psnr,
-                stats.gaussians,
-                rate
-            ));
-            if let Some(report) = stats.densified {
-                ctx.log(&format!(
-                    "iteration {}: densified ({} cloned, {} split, {} pruned) -> {} Gaussians",
-                    stats.iteration, report.cloned, report.split, report.pruned, report.count
-                ));
-            }
-            if trainer
-                .iteration
-                .is_multiple_of(u64::from(config.checkpoint_every))
-                && trainer.iteration < total
-            {
-                checkpoint::save(&work, &trainer.checkpoint()?)?;
-            }
-        }
-        bar.finish_and_clear();
-        let wall = started.elapsed().as_secs_f64();
-        let ran = trainer.iteration - resumed_from;
-        let rate = ran as f64 / wall.max(1e-9);
-        if ran > 0 {
-            let times = trainer.phase_times();
-            let per_phase = Phase::ALL
-                .iter()
-                .map(|&phase| {
-                    format!(
-                        "{} {:.1}",
-                        phase.name(),
-                        1e3 * times.seconds(phase) / ran as f64
-                    )
-                })
-                .collect::<Vec<_>>()
-                .join(", ");
-            // The rest of the loop's wall time: checkpoints, progress and logging.
-            let other = 1e3 * (wall - times.total()).max(0.0) / ran as f64;
-            ctx.log(&format!(
-                "ms per iteration: {per_phase}, checkpoints and logging {other:.1}"
-            ));
-            let (searches, calls) = trainer.aiap_neighbour_searches()?;
-            if calls > 0 {
-                ctx.log(&format!(
-                    "AIAP neighbours: {searches} full searches in {calls} iterations (the others reused their candidate lists)"
-                ));
-            }
+        log_lpips_setting(ctx, &config);
+        let mut trainer = start_or_resume(ctx, &config, &data, &backend)?;
+        let timing = train_to_the_end(ctx, &config, &mut trainer)?;
+        if timing.ran > 0 {
+            log_iteration_costs(ctx, &trainer, &timing)?;
         }
         let avatar = trainer.avatar()?;
-        let device = avatar.backend(backend.clone())?;
+        // On the gpu the avatar and the sequence are uploaded once and each image is
+        // rendered on the device (one read-back per image).
+        let motion = avatar
+            .config
+            .motion_context
+            .has_skeleton_motion()
+            .then(|| data.motion.clone());
+        let mut frames = SequenceRenderer::new(&avatar, &backend, data.params.clone(), motion)
+            .context("the trained avatar's renderer")?;
 
         // Held-out PSNR on the test split, and on training images by the same protocol.
-        let protocol_psnr_of = |index: usize| -> anyhow::Result<f64> {
-            let record = &data.images[index];
-            let inputs =
-                avatar.frame_inputs(&data.motion, &data.params[record.frame], record.frame)?;
-            let camera = &data.cameras[record.view];
-            let image = avatar.render_on(&inputs, camera, &*device, PROTOCOL_BACKGROUND)?;
-            let bound = record.bound.map(|b| {
-                crate::trainer::pad_rect(
-                    b,
-                    config.bound_padding,
-                    camera.width as usize,
-                    camera.height as usize,
-                )
-            });
-            Ok(protocol_psnr(
-                &image.colour,
-                &record.rgb,
-                &record.mask,
-                camera.width as usize,
-                camera.height as usize,
-                bound,
-                PROTOCOL_BACKGROUND,
-            ))
+        let mut scorer = ProtocolScorer {
+            config: &config,
+            data: &data,
+            avatar: &avatar,
+            frames: &mut frames,
         };
         let test = data.split(1);
-        let test_psnr = test
-            .iter()
-            .map(|&i| protocol_psnr_of(i))
-            .collect::<anyhow::Result<Vec<f64>>>()?;
+        let test_psnr = scorer.psnrs(&test)?;
         let train_split = data.split(0);
         let train_picks: Vec<usize> = (0..TRAIN_PSNR_IMAGES.min(train_split.len()))
             .map(|k| train_split[k * train_split.len() / TRAIN_PSNR_IMAGES.min(train_split.len())])
             .collect();
-        let train_psnr = train_picks
-            .iter()
-            .map(|&i| protocol_psnr_of(i))
-            .collect::<anyhow::Result<Vec<f64>>>()?;
+        let train_psnr = scorer.psnrs(&train_picks)?;
         let train_image_psnr = (!train_psnr.is_empty())
             .then(|| train_psnr.iter().sum::<f64>() / train_psnr.len() as f64);
-        // Diagnostics of the non-rigid network's inputs (issue 17).
-        let mut train_frames: Vec<usize> =
-            train_split.iter().map(|&i| data.images[i].frame).collect();
-        train_frames.sort_unstable();
-        train_frames.dedup();
-        let input_rms = crate::diagnostics::input_rms(
-            &config.avatar(),
-            &trainer.scales,
-            &data.motion,
-            &data.params,
-            &train_frames,
-        )?;
-        let first_layer_norms = match &trainer.networks {
-            Some(networks) => crate::diagnostics::first_layer_norms(networks, &trainer.scales)?,
-            None => crate::diagnostics::FirstLayerNorms::default(),
-        };
-        if let Some(pose) = input_rms.pose {
-            ctx.log(&format!(
-                "input RMS over {} training frames: pose {pose:.3}, skeleton motion {:?}, vertex velocity {:?} (scales {:?})",
-                train_frames.len(),
-                input_rms.skeleton_motion,
-                input_rms.vertex_velocity,
-                input_rms.scales
-            ));
-        }
-        for block in &first_layer_norms.blocks {
-            ctx.log(&format!(
-                "first-layer weights of {} ({}, {} rows): norm {:.4}, RMS {:.5}",
-                block.block, block.layer, block.rows, block.norm, block.rms
-            ));
-        }
+        let diagnostics = network_diagnostics(ctx, &config, &data, &trainer, &train_split)?;
         let test_mean = if test_psnr.is_empty() {
             f64::NAN
         } else {
@@ -392,6 +248,12 @@ impl StageKind for TrainStage {
             .iter()
             .sum::<f64>()
             / tail as f64;
+        let TrainingTiming {
+            resumed_from,
+            wall,
+            ran,
+            rate,
+        } = timing;
         ctx.log(&format!(
             "{} iterations in {wall:.1} s ({rate:.2} it/s), {} Gaussians, train PSNR {final_train_psnr:.2} dB, held-out PSNR {test_mean:.2} dB over {} test images, train-image PSNR {} over {} training images (same protocol)",
             ran,
@@ -404,40 +266,7 @@ impl StageKind for TrainStage {
         let out = ctx.output();
         avatar.write(out, data.extent, &data.body_model_kind)?;
         out.set_attribute("config", serde_json::to_value(&config)?)?;
-        let iterations = trainer.curve.total.len() as u64;
-        for name in LossCurve::NAMES {
-            let values = trainer.curve.get(name).expect("known curve");
-            out.write_array(
-                &format!("loss_{name}"),
-                &["iteration"],
-                &[iterations],
-                &[iterations.max(1)],
-                values,
-            )?;
-        }
-        // The cameras of the ingest entry (its resolution), so that renders and checks of the
-        // avatar need only this entry.
-        for name in ["camera_K", "camera_R", "camera_t"] {
-            let a = ingest.read::<f64>(name)?;
-            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-            let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
-            let dims: &[&str] = if name == "camera_t" {
-                &["view", "xyz"]
-            } else {
-                &["view", "row", "col"]
-            };
-            out.write_array(name, dims, &shape, &chunk, &a.data)?;
-        }
-        let sizes = ingest.read::<u32>("camera_image_size")?;
-        let shape: Vec<u64> = sizes.shape.iter().map(|&x| x as u64).collect();
-        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
-        out.write_array(
-            "camera_image_size",
-            &["view", "hw"],
-            &shape,
-            &chunk,
-            &sizes.data,
-        )?;
+        write_curves_and_cameras(out, &trainer.curve, &ingest)?;
         let t = test.len() as u64;
         out.write_array("test_psnr", &["image"], &[t], &[t.max(1)], &test_psnr)?;
         let indices: Vec<u32> = test.iter().map(|&i| i as u32).collect();
@@ -456,10 +285,10 @@ impl StageKind for TrainStage {
         )?;
         out.set_attribute("train_image_psnr_mean", json!(train_image_psnr))?;
         out.set_attribute("train_image_psnr_images", json!(train_psnr.len()))?;
-        out.set_attribute("input_rms", serde_json::to_value(&input_rms)?)?;
+        out.set_attribute("input_rms", serde_json::to_value(&diagnostics.input_rms)?)?;
         out.set_attribute(
             "first_layer_norms",
-            serde_json::to_value(&first_layer_norms.blocks)?,
+            serde_json::to_value(&diagnostics.first_layer_norms.blocks)?,
         )?;
         out.set_attribute("backend", json!(backend.describe()))?;
         out.set_attribute("gaussians", json!(avatar.gaussians.len()))?;
@@ -484,6 +313,304 @@ impl StageKind for TrainStage {
             _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
     }
+}
+
+/// Logs whether the LPIPS loss is on, and with what.
+fn log_lpips_setting(ctx: &StageContext<'_>, config: &TrainConfig) {
+    if config.lpips_enabled() {
+        ctx.log(&format!(
+            "LPIPS loss on: weight {}, {} trunk from {}, inputs {}",
+            config.lpips_weight,
+            config.lpips_net.name(),
+            config
+                .lpips_weights
+                .as_ref()
+                .map_or_else(String::new, |p| p.display().to_string()),
+            if config.lpips_unnormalised_input {
+                "in [0, 1] unmapped (the authors' code)"
+            } else {
+                "mapped to [-1, 1]"
+            }
+        ));
+    } else {
+        ctx.log(
+            "LPIPS loss off: lpips_weight is 0 (set lpips_weight and lpips_weights to enable it)",
+        );
+    }
+}
+
+/// The trainer resumed from the newest good checkpoint of the work folder, else a fresh one.
+/// A damaged checkpoint is deleted and the previous one used (or training restarts), so one
+/// bad file never blocks the stage.
+fn start_or_resume<'d>(
+    ctx: &StageContext<'_>,
+    config: &TrainConfig,
+    data: &'d TrainingData,
+    backend: &Backend,
+) -> anyhow::Result<Trainer<'d>> {
+    let work = ctx.work_dir().join("checkpoints");
+    let (resumed, notes) = checkpoint::resume_newest_good(&work, |ckpt| {
+        Trainer::resume(config.clone(), data, backend.clone(), &ckpt)
+    })?;
+    for note in &notes {
+        ctx.warn(note);
+    }
+    Ok(match resumed {
+        Some(t) => {
+            ctx.log(&format!("resumed from iteration {}", t.iteration));
+            t
+        }
+        None => {
+            if !notes.is_empty() {
+                ctx.warn("no usable checkpoint left: training starts over");
+            }
+            Trainer::new(config.clone(), data, backend.clone())?
+        }
+    })
+}
+
+/// How long this run of the training loop took.
+#[derive(Clone, Copy)]
+struct TrainingTiming {
+    /// The iteration the loop started from (0, or a checkpoint's).
+    resumed_from: u64,
+    /// Wall seconds of the loop.
+    wall: f64,
+    /// Iterations run.
+    ran: u64,
+    /// Iterations per second.
+    rate: f64,
+}
+
+/// Runs the training loop to `config.iterations` behind a progress bar, saving a checkpoint
+/// every `checkpoint_every` iterations.
+fn train_to_the_end(
+    ctx: &StageContext<'_>,
+    config: &TrainConfig,
+    trainer: &mut Trainer<'_>,
+) -> anyhow::Result<TrainingTiming> {
+    let work = ctx.work_dir().join("checkpoints");
+    let resumed_from = trainer.iteration;
+    let total = u64::from(config.iterations);
+    let bar = ctx.progress_bar(total, "training");
+    bar.set_position(trainer.iteration);
+    let started = Instant::now();
+    while trainer.iteration < total {
+        let stats = trainer.step()?;
+        let elapsed = started.elapsed().as_secs_f64();
+        let rate = (trainer.iteration - resumed_from) as f64 / elapsed.max(1e-9);
+        bar.set_position(trainer.iteration);
+        let lpips = if trainer.lpips_active() {
+            format!(", LPIPS {:.4}", stats.lpips)
+        } else {
+            String::new()
+        };
+        bar.set_message(format!(
+            "{}: training, loss {:.4}{lpips}, PSNR {:.2}, {} Gaussians, {:.2} it/s",
+            ctx.stage_name(),
+            stats.total,
+            stats.psnr,
+            stats.gaussians,
+            rate
+        ));
+        if let Some(report) = stats.densified {
+            ctx.log(&format!(
+                "iteration {}: densified ({} cloned, {} split, {} pruned) -> {} Gaussians",
+                stats.iteration, report.cloned, report.split, report.pruned, report.count
+            ));
+        }
+        if trainer
+            .iteration
+            .is_multiple_of(u64::from(config.checkpoint_every))
+            && trainer.iteration < total
+        {
+            checkpoint::save(&work, &trainer.checkpoint()?)?;
+        }
+    }
+    bar.finish_and_clear();
+    let wall = started.elapsed().as_secs_f64();
+    let ran = trainer.iteration - resumed_from;
+    let rate = ran as f64 / wall.max(1e-9);
+    Ok(TrainingTiming {
+        resumed_from,
+        wall,
+        ran,
+        rate,
+    })
+}
+
+/// Logs the milliseconds per iteration of each phase, and how often AIAP searched its
+/// neighbours afresh.
+fn log_iteration_costs(
+    ctx: &StageContext<'_>,
+    trainer: &Trainer<'_>,
+    timing: &TrainingTiming,
+) -> anyhow::Result<()> {
+    let (wall, ran) = (timing.wall, timing.ran);
+    let times = trainer.phase_times();
+    let per_phase = Phase::ALL
+        .iter()
+        .map(|&phase| {
+            format!(
+                "{} {:.1}",
+                phase.name(),
+                1e3 * times.seconds(phase) / ran as f64
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(", ");
+    // The rest of the loop's wall time: checkpoints, progress and logging.
+    let other = 1e3 * (wall - times.total()).max(0.0) / ran as f64;
+    ctx.log(&format!(
+        "ms per iteration: {per_phase}, checkpoints and logging {other:.1}"
+    ));
+    let (searches, calls) = trainer.aiap_neighbour_searches()?;
+    if calls > 0 {
+        ctx.log(&format!(
+            "AIAP neighbours: {searches} full searches in {calls} iterations (the others reused their candidate lists)"
+        ));
+    }
+    Ok(())
+}
+
+/// Renders images of the training data with the trained avatar and scores them by the
+/// evaluation protocol.
+struct ProtocolScorer<'a> {
+    config: &'a TrainConfig,
+    data: &'a TrainingData,
+    avatar: &'a TrainedAvatar,
+    /// The avatar's renderer over the training sequence (on the device on the gpu).
+    frames: &'a mut SequenceRenderer,
+}
+
+impl ProtocolScorer<'_> {
+    /// The protocol PSNR of each image of `indices`.
+    fn psnrs(&mut self, indices: &[usize]) -> anyhow::Result<Vec<f64>> {
+        indices.iter().map(|&i| self.psnr(i)).collect()
+    }
+
+    /// The protocol PSNR of image `index`, within its padded bound box.
+    fn psnr(&mut self, index: usize) -> anyhow::Result<f64> {
+        let data = self.data;
+        let record = &data.images[index];
+        let camera = &data.cameras[record.view];
+        let image = self.frames.render(
+            self.avatar,
+            record.frame,
+            History::Own,
+            camera,
+            PROTOCOL_BACKGROUND,
+        )?;
+        let bound = record.bound.map(|b| {
+            crate::trainer::pad_rect(
+                b,
+                self.config.bound_padding,
+                camera.width as usize,
+                camera.height as usize,
+            )
+        });
+        Ok(protocol_psnr(
+            &image.colour,
+            &record.rgb,
+            &record.mask,
+            camera.width as usize,
+            camera.height as usize,
+            bound,
+            PROTOCOL_BACKGROUND,
+        ))
+    }
+}
+
+/// Diagnostics of the non-rigid network's inputs.
+struct NetworkDiagnostics {
+    input_rms: crate::diagnostics::InputRms,
+    first_layer_norms: crate::diagnostics::FirstLayerNorms,
+}
+
+/// The RMS of the network inputs over the training frames and the norms of the first-layer
+/// weights per input block, logged.
+fn network_diagnostics(
+    ctx: &StageContext<'_>,
+    config: &TrainConfig,
+    data: &TrainingData,
+    trainer: &Trainer<'_>,
+    train_split: &[usize],
+) -> anyhow::Result<NetworkDiagnostics> {
+    let mut train_frames: Vec<usize> = train_split.iter().map(|&i| data.images[i].frame).collect();
+    train_frames.sort_unstable();
+    train_frames.dedup();
+    let input_rms = crate::diagnostics::input_rms(
+        &config.avatar(),
+        &trainer.scales,
+        &data.motion,
+        &data.params,
+        &train_frames,
+    )?;
+    let first_layer_norms = match &trainer.networks {
+        Some(networks) => crate::diagnostics::first_layer_norms(networks, &trainer.scales)?,
+        None => crate::diagnostics::FirstLayerNorms::default(),
+    };
+    if let Some(pose) = input_rms.pose {
+        ctx.log(&format!(
+            "input RMS over {} training frames: pose {pose:.3}, skeleton motion {:?}, vertex velocity {:?} (scales {:?})",
+            train_frames.len(),
+            input_rms.skeleton_motion,
+            input_rms.vertex_velocity,
+            input_rms.scales
+        ));
+    }
+    for block in &first_layer_norms.blocks {
+        ctx.log(&format!(
+            "first-layer weights of {} ({}, {} rows): norm {:.4}, RMS {:.5}",
+            block.block, block.layer, block.rows, block.norm, block.rms
+        ));
+    }
+    Ok(NetworkDiagnostics {
+        input_rms,
+        first_layer_norms,
+    })
+}
+
+/// The loss curves, and the cameras of the ingest entry (its resolution), so that renders
+/// and checks of the avatar need only this entry.
+fn write_curves_and_cameras(
+    out: &EntryWriter,
+    curve: &LossCurve,
+    ingest: &EntryReader,
+) -> anyhow::Result<()> {
+    let iterations = curve.total.len() as u64;
+    for name in LossCurve::NAMES {
+        let values = curve.get(name).expect("known curve");
+        out.write_array(
+            &format!("loss_{name}"),
+            &["iteration"],
+            &[iterations],
+            &[iterations.max(1)],
+            values,
+        )?;
+    }
+    for name in ["camera_K", "camera_R", "camera_t"] {
+        let a = ingest.read::<f64>(name)?;
+        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+        let dims: &[&str] = if name == "camera_t" {
+            &["view", "xyz"]
+        } else {
+            &["view", "row", "col"]
+        };
+        out.write_array(name, dims, &shape, &chunk, &a.data)?;
+    }
+    let sizes = ingest.read::<u32>("camera_image_size")?;
+    let shape: Vec<u64> = sizes.shape.iter().map(|&x| x as u64).collect();
+    let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+    out.write_array(
+        "camera_image_size",
+        &["view", "hw"],
+        &shape,
+        &chunk,
+        &sizes.data,
+    )?;
+    Ok(())
 }
 
 /// Moving average over a trailing window of `window` values.

@@ -42,8 +42,8 @@ use crate::gaussians::{
     SH, SH_STORED, TRAINABLE, avatar_gaussians, exponential_lr, initial_state, psnr,
 };
 use crate::losses::{
-    AiapGaussianGrads, AiapGaussians, AiapWeights, ImageLossWeights, ImagePair, LpipsLoss, Rect,
-    aiap_gaussians, image_loss,
+    AiapGaussianGrads, AiapGaussians, AiapWeights, ColourPair, ImageLossWeights, ImagePair,
+    LpipsLoss, Rect, aiap_gaussians, image_loss,
 };
 use crate::resident::step::{IterationPlan, LOG_CAPACITY, ResidentRun, ResidentStep};
 use crate::rng::Rng;
@@ -331,6 +331,20 @@ pub struct Trainer<'d> {
     last_logged: IterationStats,
 }
 
+/// Where a run stands: fresh ([`Trainer::new`]) or read from a checkpoint
+/// ([`Trainer::resume`]).
+struct RunState {
+    state: GaussianState,
+    /// Iterations done.
+    iteration: u64,
+    /// The Gaussians' Adam step count.
+    adam_step: u64,
+    rng: Rng,
+    curve: LossCurve,
+    networks: Option<Networks<f32>>,
+    network_adam: BTreeMap<String, AdamState<f32>>,
+}
+
 /// The active SH degree at (1-based) iteration `iteration`: one more every `interval`.
 pub fn sh_degree_at(config: &TrainConfig, iteration: u64) -> u32 {
     let steps = iteration / u64::from(config.sh_degree_interval.max(1));
@@ -400,31 +414,37 @@ impl<'d> Trainer<'d> {
             config,
             data,
             backend,
-            state,
-            0,
-            0,
-            rng,
-            LossCurve::default(),
             scales,
-            networks,
-            BTreeMap::new(),
+            RunState {
+                state,
+                iteration: 0,
+                adam_step: 0,
+                rng,
+                curve: LossCurve::default(),
+                networks,
+                network_adam: BTreeMap::new(),
+            },
         )
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// The trainer of `config` on `data` from `run` (fresh or a checkpoint's), checking the
+    /// training images and building the device step on the gpu backend.
     fn assemble(
         config: TrainConfig,
         data: &'d TrainingData,
         backend: Backend,
-        state: GaussianState,
-        iteration: u64,
-        adam_step: u64,
-        rng: Rng,
-        curve: LossCurve,
         scales: Vec<u32>,
-        networks: Option<Networks<f32>>,
-        network_adam: BTreeMap<String, AdamState<f32>>,
+        run: RunState,
     ) -> anyhow::Result<Self> {
+        let RunState {
+            state,
+            iteration,
+            adam_step,
+            rng,
+            curve,
+            networks,
+            network_adam,
+        } = run;
         let train_images: Vec<usize> = data
             .split(0)
             .into_iter()
@@ -687,10 +707,12 @@ impl<'d> Trainer<'d> {
                 let weight = self.config.lpips_weight;
                 let value = lpips
                     .add_loss(
-                        &image.colour,
-                        &target_colour,
-                        w,
-                        h,
+                        ColourPair {
+                            width: w,
+                            height: h,
+                            colour: &image.colour,
+                            target: &target_colour,
+                        },
                         bound,
                         weight,
                         &mut grads.colour,
@@ -1146,6 +1168,37 @@ impl<'d> Trainer<'d> {
         &self.phase_times
     }
 
+    /// Starts timing each phase of the iteration on the device (`gpu` backend, where the
+    /// adapter has timestamps inside encoders; see [`Trainer::device_phase_times`]). Returns
+    /// whether it does; `false` on `cpu`.
+    pub fn time_device_phases(&mut self) -> anyhow::Result<bool> {
+        self.read_log()?;
+        match self.resident.as_mut() {
+            Some(resident) => resident.time_phases(),
+            None => Ok(false),
+        }
+    }
+
+    /// Device time per phase (densification, which runs on the host, as zero) over the
+    /// iterations run since [`Trainer::time_device_phases`], read with the logged scalars
+    /// (this reads what is pending); `None` when the device does not time them.
+    pub fn device_phase_times(&mut self) -> anyhow::Result<Option<PhaseTimes>> {
+        self.read_log()?;
+        let Some((seconds, iterations)) = self
+            .resident
+            .as_ref()
+            .and_then(ResidentStep::device_phase_seconds)
+        else {
+            return Ok(None);
+        };
+        let mut times = PhaseTimes {
+            seconds: [0.0; 6],
+            iterations,
+        };
+        times.seconds[..seconds.len()].copy_from_slice(&seconds);
+        Ok(Some(times))
+    }
+
     /// Starts the phase times afresh (after warm-up iterations, say).
     pub fn reset_phase_times(&mut self) {
         self.phase_times = PhaseTimes::default();
@@ -1325,14 +1378,16 @@ impl<'d> Trainer<'d> {
             config,
             data,
             backend,
-            state,
-            checkpoint.iteration,
-            adam_step,
-            Rng::from_state(checkpoint.rng_state),
-            curve,
             scales,
-            networks,
-            network_adam,
+            RunState {
+                state,
+                iteration: checkpoint.iteration,
+                adam_step,
+                rng: Rng::from_state(checkpoint.rng_state),
+                curve,
+                networks,
+                network_adam,
+            },
         )
     }
 }

@@ -16,7 +16,7 @@ use seqavatar_train::TrainStage;
 use seqavatar_train::checkpoint;
 use seqavatar_train::config::{Background, TrainConfig};
 use seqavatar_train::data::TrainingData;
-use seqavatar_train::trainer::{Divergence, Trainer};
+use seqavatar_train::trainer::{Divergence, Phase, Trainer};
 
 const UPSTREAM: &str = r#"
 stages:
@@ -649,9 +649,27 @@ fn resident_paper_iteration_reads_nothing_back() {
         "{} bytes up in {steps} iterations",
         moved.bytes_up
     );
+    // Timed on the device (where the adapter has timestamps): every phase of the recorded
+    // iteration but densification takes device time; reading the times reads the log.
+    if trainer.time_device_phases().unwrap() {
+        for _ in 0..2 {
+            trainer.step().unwrap();
+        }
+        let times = trainer.device_phase_times().unwrap().expect("timing is on");
+        assert_eq!(times.iterations(), 2);
+        for phase in [Phase::Deform, Phase::Splat, Phase::Losses, Phase::Backward] {
+            assert!(times.seconds(phase) > 0.0, "{phase:?}: {times:?}");
+        }
+        assert_eq!(times.seconds(Phase::Densify), 0.0);
+    } else {
+        eprintln!("device phase times skipped: the adapter has no timestamps inside encoders");
+        for _ in 0..2 {
+            trainer.step().unwrap();
+        }
+    }
     // Syncing reads the log and the state back, and the curve holds every iteration.
     trainer.sync().unwrap();
-    assert_eq!(trainer.curve.total.len(), 7);
+    assert_eq!(trainer.curve.total.len(), 9);
     assert!(
         trainer
             .curve

@@ -50,6 +50,8 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     limits: wgpu::Limits,
     float_atomics: bool,
+    /// Whether timestamp queries inside encoders are on.
+    timestamps: bool,
     /// Workgroups per dimension a dispatch may use before it goes 2D: the adapter limit,
     /// lowered in tests to exercise the 2D index arithmetic of every kernel.
     dispatch_limit: u32,
@@ -165,11 +167,18 @@ impl GpuContext {
         let float_atomics = adapter
             .features()
             .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
-        let required_features = if float_atomics {
-            wgpu::Features::SHADER_FLOAT32_ATOMIC
-        } else {
-            wgpu::Features::empty()
-        };
+        // Timestamps between the commands of an encoder time the phases of a recorded
+        // training iteration (`--bench train`); asked for where the adapter has them.
+        let timestamp_features =
+            wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let timestamps = adapter.features().contains(timestamp_features);
+        let mut required_features = wgpu::Features::empty();
+        if float_atomics {
+            required_features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
+        }
+        if timestamps {
+            required_features |= timestamp_features;
+        }
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("seqavatar"),
@@ -189,6 +198,7 @@ impl GpuContext {
             queue,
             limits: limits.clone(),
             float_atomics,
+            timestamps,
             dispatch_limit: limits.max_compute_workgroups_per_dimension,
             kernels: Mutex::new(HashMap::new()),
             transfers: TransferCounters::default(),
@@ -243,6 +253,12 @@ impl GpuContext {
     /// Whether the device was opened with `SHADER_FLOAT32_ATOMIC`.
     pub fn has_float_atomics(&self) -> bool {
         self.float_atomics
+    }
+
+    /// Whether timestamps can be written between the commands of an encoder
+    /// (`TIMESTAMP_QUERY` and `TIMESTAMP_QUERY_INSIDE_ENCODERS`; see [`super::PhaseTimer`]).
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamps
     }
 
     /// The largest storage buffer one binding may hold, in bytes.

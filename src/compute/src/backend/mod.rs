@@ -8,11 +8,13 @@ mod context;
 pub mod primitives;
 pub mod shaders;
 pub mod test_support;
+mod timer;
 
 pub use context::{
     AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, Transfers,
     split_workgroups,
 };
+pub use timer::PhaseTimer;
 
 use std::fmt;
 use std::str::FromStr;

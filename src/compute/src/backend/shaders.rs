@@ -39,6 +39,14 @@ pub const HEADERS: &[(&str, &str)] = &[
         "splat_pixel.wgsl",
         include_str!("../../../../shaders/splat_pixel.wgsl"),
     ),
+    (
+        "finite.wgsl",
+        include_str!("../../../../shaders/finite.wgsl"),
+    ),
+    (
+        "quaternion.wgsl",
+        include_str!("../../../../shaders/quaternion.wgsl"),
+    ),
     ("atomic_add_cas.wgsl", ATOMIC_ADD_CAS_WGSL),
 ];
 

@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use crate::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
 
-use super::{DistanceMaps, LpipsError, LpipsNet, LpipsWeights, Step, TrunkInput, steps};
+use super::{ConvSpec, DistanceMaps, LpipsError, LpipsNet, LpipsWeights, Step, TrunkInput, steps};
 
 const FORWARD_WGSL: &str = include_str!("../../../../shaders/lpips_forward.wgsl");
 const BACKWARD_WGSL: &str = include_str!("../../../../shaders/lpips_backward.wgsl");
@@ -121,6 +121,41 @@ pub(super) struct PoolShape {
     pub out_width: usize,
     pub kernel: usize,
     pub stride: usize,
+}
+
+impl ConvShape {
+    /// Convolution `spec` over `images` inputs of `channels x height x width` (an empty
+    /// output where the kernel does not fit).
+    fn of(spec: &ConvSpec, images: usize, channels: usize, height: usize, width: usize) -> Self {
+        Self {
+            images,
+            in_channels: channels,
+            in_height: height,
+            in_width: width,
+            out_channels: spec.out_channels,
+            out_height: spec.output_extent(height).unwrap_or(0),
+            out_width: spec.output_extent(width).unwrap_or(0),
+            kernel: spec.kernel,
+            stride: spec.stride,
+            padding: spec.padding,
+        }
+    }
+}
+
+impl PoolShape {
+    /// A `kernel`/`stride` max pool over `planes` planes of `height x width` (an empty output
+    /// where the kernel does not fit).
+    fn of(kernel: usize, stride: usize, planes: usize, height: usize, width: usize) -> Self {
+        Self {
+            planes,
+            in_height: height,
+            in_width: width,
+            out_height: Step::pool_extent(kernel, stride, height).unwrap_or(0),
+            out_width: Step::pool_extent(kernel, stride, width).unwrap_or(0),
+            kernel,
+            stride,
+        }
+    }
 }
 
 /// One forward step as the backward needs it: which activation buffers it read and wrote.
@@ -321,18 +356,7 @@ impl GpuLpips {
                             .ok_or_else(|| LpipsError::Input {
                                 message: "missing convolution weights".to_owned(),
                             })?;
-                    let shape = ConvShape {
-                        images,
-                        in_channels: channels,
-                        in_height: h,
-                        in_width: w,
-                        out_channels: spec.out_channels,
-                        out_height: spec.output_extent(h).unwrap_or(0),
-                        out_width: spec.output_extent(w).unwrap_or(0),
-                        kernel: spec.kernel,
-                        stride: spec.stride,
-                        padding: spec.padding,
-                    };
+                    let shape = ConvShape::of(&spec, images, channels, h, w);
                     let output = context.zeros(
                         &spec.name,
                         images * shape.out_channels * shape.out_height * shape.out_width,
@@ -359,15 +383,7 @@ impl GpuLpips {
                     (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
                 }
                 Step::MaxPool { kernel, stride } => {
-                    let shape = PoolShape {
-                        planes: images * channels,
-                        in_height: h,
-                        in_width: w,
-                        out_height: Step::pool_extent(kernel, stride, h).unwrap_or(0),
-                        out_width: Step::pool_extent(kernel, stride, w).unwrap_or(0),
-                        kernel,
-                        stride,
-                    };
+                    let shape = PoolShape::of(kernel, stride, images * channels, h, w);
                     let output = context.zeros(
                         "lpips max pool",
                         shape.planes * shape.out_height * shape.out_width,
@@ -1006,40 +1022,13 @@ impl GpuLpips {
         super::tap_sizes(self.net, height, width)?;
         let mut plan = Vec::new();
         // Forward, with what the backward needs.
-        enum Trace {
-            Conv {
-                conv: usize,
-                shape: ConvShape,
-                output: usize,
-            },
-            Pool {
-                shape: PoolShape,
-                input: usize,
-            },
-            Tap {
-                layer: usize,
-                features: usize,
-                dims: [usize; 3],
-            },
-        }
         let mut trace = Vec::new();
         let (mut channels, mut h, mut w) = (3_usize, height, width);
         let (mut conv_index, mut layer, mut current) = (0, 0, 0);
         for step in steps(self.net) {
             match step {
                 Step::Conv(spec) => {
-                    let shape = ConvShape {
-                        images: 2,
-                        in_channels: channels,
-                        in_height: h,
-                        in_width: w,
-                        out_channels: spec.out_channels,
-                        out_height: spec.output_extent(h).unwrap_or(0),
-                        out_width: spec.output_extent(w).unwrap_or(0),
-                        kernel: spec.kernel,
-                        stride: spec.stride,
-                        padding: spec.padding,
-                    };
+                    let shape = ConvShape::of(&spec, 2, channels, h, w);
                     let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
                     let total = to_u32(
                         "conv threads",
@@ -1053,7 +1042,7 @@ impl GpuLpips {
                         params: conv_params(shape, total)?,
                         workgroups: total.div_ceil(WORKGROUP),
                     });
-                    trace.push(Trace::Conv {
+                    trace.push(Traced::Conv {
                         conv: conv_index,
                         shape: ConvShape { images: 1, ..shape },
                         output: current + 1,
@@ -1063,15 +1052,7 @@ impl GpuLpips {
                     (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
                 }
                 Step::MaxPool { kernel, stride } => {
-                    let shape = PoolShape {
-                        planes: 2 * channels,
-                        in_height: h,
-                        in_width: w,
-                        out_height: Step::pool_extent(kernel, stride, h).unwrap_or(0),
-                        out_width: Step::pool_extent(kernel, stride, w).unwrap_or(0),
-                        kernel,
-                        stride,
-                    };
+                    let shape = PoolShape::of(kernel, stride, 2 * channels, h, w);
                     let total = to_u32(
                         "pool threads",
                         shape.planes * shape.out_height * shape.out_width,
@@ -1081,7 +1062,7 @@ impl GpuLpips {
                         params: pool_params(shape, total)?,
                         workgroups: total.div_ceil(WORKGROUP),
                     });
-                    trace.push(Trace::Pool {
+                    trace.push(Traced::Pool {
                         shape: PoolShape {
                             planes: channels,
                             ..shape
@@ -1108,10 +1089,12 @@ impl GpuLpips {
                         },
                         workgroups: total.div_ceil(WORKGROUP),
                     });
-                    trace.push(Trace::Tap {
+                    trace.push(Traced::Tap {
                         layer,
                         features: current,
-                        dims: [channels, h, w],
+                        channels,
+                        height: h,
+                        width: w,
                     });
                     layer += 1;
                 }
@@ -1122,10 +1105,12 @@ impl GpuLpips {
         let mut at: Option<usize> = None;
         for traced in trace.iter().rev() {
             match *traced {
-                Trace::Tap {
+                Traced::Tap {
                     layer,
                     features,
-                    dims: [channels, height, width],
+                    channels,
+                    height,
+                    width,
                 } => {
                     let target = match at {
                         Some(target) => target,
@@ -1160,7 +1145,7 @@ impl GpuLpips {
                     });
                     at = Some(target);
                 }
-                Trace::Conv {
+                Traced::Conv {
                     conv,
                     shape,
                     output,
@@ -1196,7 +1181,7 @@ impl GpuLpips {
                     });
                     at = Some(1 - upstream);
                 }
-                Trace::Pool { shape, input } => {
+                Traced::Pool { shape, input } => {
                     let Some(upstream) = at else {
                         continue;
                     };

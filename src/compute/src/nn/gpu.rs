@@ -240,9 +240,8 @@ pub(crate) struct MatmulParams {
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct AdamParams {
     len: u32,
-    groups_x: u32,
     slot: u32,
-    pad0: u32,
+    pad0: [u32; 2],
     beta1: f32,
     beta2: f32,
     one_minus_beta1: f32,
@@ -256,9 +255,8 @@ pub(crate) struct AdamParams {
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct FiniteParams {
     len: u32,
-    groups_x: u32,
     slot: u32,
-    pad: u32,
+    pad: [u32; 2],
 }
 
 /// `Params` in `nn_rodrigues.wgsl`.
@@ -266,9 +264,8 @@ pub(crate) struct FiniteParams {
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct RodriguesParams {
     count: u32,
-    groups_x: u32,
     epsilon: f32,
-    pad: u32,
+    pad: [u32; 2],
 }
 
 /// `Params` in `nn_posenc.wgsl`.
@@ -279,8 +276,7 @@ pub(crate) struct PosencParams {
     in_features: u32,
     frequencies: u32,
     include_input: u32,
-    groups_x: u32,
-    pad: [u32; 3],
+    pad: [u32; 4],
 }
 
 /// `Params` in `nn_reduce.wgsl`: `p0..p4` read per entry point (see the WGSL).
@@ -316,39 +312,39 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
         }),
         wgsl_twin!(AdamParams as "Params" in ["nn_adam.wgsl"] {
             "len" => len,
-            "groups_x" => groups_x,
             "slot" => slot,
-            "_pad0" => pad0,
+            "_pad0" => pad0[0],
+            "_pad1" => pad0[1],
             "beta1" => beta1,
             "beta2" => beta2,
             "one_minus_beta1" => one_minus_beta1,
             "one_minus_beta2" => one_minus_beta2,
             "eps" => eps,
-            "_pad1" => pad[0],
-            "_pad2" => pad[1],
-            "_pad3" => pad[2],
+            "_pad2" => pad[0],
+            "_pad3" => pad[1],
+            "_pad4" => pad[2],
         }),
         wgsl_twin!(FiniteParams as "Params" in ["nn_finite.wgsl"] {
             "len" => len,
-            "groups_x" => groups_x,
             "slot" => slot,
-            "_pad" => pad,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
         }),
         wgsl_twin!(RodriguesParams as "Params" in ["nn_rodrigues.wgsl"] {
             "count" => count,
-            "groups_x" => groups_x,
             "epsilon" => epsilon,
-            "_pad" => pad,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
         }),
         wgsl_twin!(PosencParams as "Params" in ["nn_posenc.wgsl"] {
             "rows" => rows,
             "in_features" => in_features,
             "frequencies" => frequencies,
             "include_input" => include_input,
-            "groups_x" => groups_x,
             "_pad0" => pad[0],
             "_pad1" => pad[1],
             "_pad2" => pad[2],
+            "_pad3" => pad[3],
         }),
         wgsl_twin!(ReduceParams as "Params" in ["nn_reduce.wgsl"] {
             "p0" => p[0],
@@ -1004,9 +1000,8 @@ impl NnGpu {
         let (x, y) = self.grid(len.div_ceil(256))?;
         let uniform = AdamParams {
             len: to_u32("adam length", len)?,
-            groups_x: x,
             slot: to_u32("adam factor slot", slot)?,
-            pad0: 0,
+            pad0: [0; 2],
             beta1: config.beta1 as f32,
             beta2: config.beta2 as f32,
             one_minus_beta1: (1.0 - config.beta1) as f32,
@@ -1048,9 +1043,8 @@ impl NnGpu {
         let (x, y) = self.grid(len.div_ceil(256))?;
         let params = FiniteParams {
             len: to_u32("checked length", len)?,
-            groups_x: x,
             slot: to_u32("status slot", slot)?,
-            pad: 0,
+            pad: [0; 2],
         };
         self.dispatch(
             encoder,
@@ -1076,13 +1070,7 @@ impl NnGpu {
     ) -> Result<(), NnError> {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrices", matrices, 9 * count)?;
-        let (x, y) = self.grid(count.div_ceil(64))?;
-        let params = RodriguesParams {
-            count: to_u32("rotation count", count)?,
-            groups_x: x,
-            epsilon: epsilon as f32,
-            pad: 0,
-        };
+        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
         self.dispatch(
             encoder,
             &self.rodrigues_forward,
@@ -1108,13 +1096,7 @@ impl NnGpu {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrix gradient", d_matrices, 9 * count)?;
         self.check_buffer("rotation vector gradient", d_vectors, 3 * count)?;
-        let (x, y) = self.grid(count.div_ceil(64))?;
-        let params = RodriguesParams {
-            count: to_u32("rotation count", count)?,
-            groups_x: x,
-            epsilon: epsilon as f32,
-            pad: 0,
-        };
+        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
         self.dispatch(
             encoder,
             &self.rodrigues_backward,
@@ -1124,6 +1106,21 @@ impl NnGpu {
             y,
         );
         Ok(())
+    }
+
+    /// The uniform and grid of the Rodrigues kernels over `count` rotation vectors.
+    fn rodrigues_params(
+        &self,
+        epsilon: f64,
+        count: usize,
+    ) -> Result<(RodriguesParams, u32, u32), NnError> {
+        let (x, y) = self.grid(count.div_ceil(64))?;
+        let params = RodriguesParams {
+            count: to_u32("rotation count", count)?,
+            epsilon: epsilon as f32,
+            pad: [0; 2],
+        };
+        Ok((params, x, y))
     }
 
     fn posenc_params(
@@ -1144,8 +1141,7 @@ impl NnGpu {
             in_features: to_u32("in_features", in_features)?,
             frequencies: encoding.frequencies as u32,
             include_input: u32::from(encoding.include_input),
-            groups_x: x,
-            pad: [0; 3],
+            pad: [0; 4],
         };
         to_u32("encoding size", rows * encoding.out_features(in_features))?;
         Ok((params, x, y))

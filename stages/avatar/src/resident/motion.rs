@@ -51,8 +51,9 @@ fn shape_uniform(context: &GpuContext, values: [u32; 8]) -> wgpu::Buffer {
 
 /// What a resident motion input is made of, fixed for a training run.
 pub struct MotionSetup<'a> {
-    /// The motion entry's arrays.
-    pub track: &'a MotionTrack,
+    /// The motion entry's arrays; `None` for a motion context without history inputs (then
+    /// only the nearest-vertex search runs, on any frame).
+    pub track: Option<&'a MotionTrack>,
     /// Raw temporal scales the networks use, largest first (as [`crate::avatar::gather_frame_inputs`]).
     pub scales: &'a [u32],
     /// Window length `L`.
@@ -116,15 +117,34 @@ impl ResidentMotion {
         setup: &MotionSetup<'_>,
         capacity: usize,
     ) -> anyhow::Result<Self> {
-        let track = setup.track;
-        let slots = track.slots(setup.scales)?;
-        let (s_all, s, j, v, f) = (
-            track.scales.len(),
-            slots.len(),
-            track.num_joints,
-            track.num_vertices,
-            track.num_frames,
-        );
+        // Without a track (no history inputs) only the template is used, on any frame.
+        let (slots, s_all, j, v, f, starts_recording, past_frames) = match setup.track {
+            Some(track) => (
+                track.slots(setup.scales)?,
+                track.scales.len(),
+                track.num_joints,
+                track.num_vertices,
+                track.num_frames,
+                track.axis.starts_recording,
+                track.axis.past_frames,
+            ),
+            None => {
+                anyhow::ensure!(
+                    !setup.skeleton_motion && setup.tau == 0,
+                    "a motion context with skeleton motion or velocities needs a motion track"
+                );
+                (
+                    Vec::new(),
+                    0,
+                    0,
+                    setup.template.len() / 3,
+                    usize::MAX,
+                    true,
+                    0,
+                )
+            }
+        };
+        let s = slots.len();
         anyhow::ensure!(
             setup.template.len() == 3 * v,
             "template: {} values for the motion track's {v} vertices",
@@ -155,15 +175,23 @@ impl ResidentMotion {
             }
             out
         };
-        let skeleton_motion = setup
-            .skeleton_motion
-            .then(|| context.upload("skeleton motion", &repack(&track.skeleton_motion, 3 * j)))
-            .transpose()?;
-        let vertex_velocity = (setup.tau > 0)
-            .then(|| context.upload("vertex velocity", &repack(&track.vertex_velocity, 3 * v)))
-            .transpose()?;
+        let skeleton_motion = match setup.track {
+            Some(track) if setup.skeleton_motion => {
+                Some(context.upload("skeleton motion", &repack(&track.skeleton_motion, 3 * j))?)
+            }
+            _ => None,
+        };
+        let vertex_velocity = match setup.track {
+            Some(track) if setup.tau > 0 => {
+                Some(context.upload("vertex velocity", &repack(&track.vertex_velocity, 3 * v))?)
+            }
+            _ => None,
+        };
         let template: Vec<f32> = setup.template.iter().map(|&x| x as f32).collect();
-        let scale_steps: Vec<usize> = slots.iter().map(|&slot| track.scale_steps[slot]).collect();
+        let scale_steps: Vec<usize> = match setup.track {
+            Some(track) => slots.iter().map(|&slot| track.scale_steps[slot]).collect(),
+            None => Vec::new(),
+        };
         let steps: Vec<u32> = scale_steps.iter().map(|&k| k as u32).collect();
         let base = [setup.length as u32, s as u32, j as u32, v as u32];
         let shape = |k: usize, element: usize| {
@@ -184,8 +212,8 @@ impl ResidentMotion {
         let mut motion = Self {
             num_frames: f,
             length: setup.length,
-            starts_recording: track.axis.starts_recording,
-            past_frames: track.axis.past_frames,
+            starts_recording,
+            past_frames,
             joints: j,
             vertices: v,
             tau: setup.tau,
@@ -320,13 +348,23 @@ impl ResidentMotion {
         Ok(())
     }
 
+    /// Records the nearest template vertices of `queries` (`N x 3`, checked and named
+    /// `what` in errors) into `out`, as many per query as `shape` says.
     fn record_knn(
         &self,
         encoder: &mut wgpu::CommandEncoder,
+        what: &str,
         shape: &wgpu::Buffer,
         queries: &GpuBuffer,
         out: &GpuBuffer,
     ) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            queries.len >= 3 * self.count,
+            "{what}: {} values, {} Gaussians need {}",
+            queries.len,
+            self.count,
+            3 * self.count
+        );
         let groups = self.workgroups(self.count)?;
         self.context.dispatch(
             encoder,
@@ -353,8 +391,7 @@ impl ResidentMotion {
         if self.tau == 0 {
             return Ok(());
         }
-        self.check_queries("xyz", xyz)?;
-        self.record_knn(encoder, &self.tau_shape, xyz, &self.neighbours)
+        self.record_knn(encoder, "xyz", &self.tau_shape, xyz, &self.neighbours)
     }
 
     /// Records the velocity gather into the `L` blocks of [`ResidentMotion::velocity`] from
@@ -389,19 +426,13 @@ impl ResidentMotion {
         encoder: &mut wgpu::CommandEncoder,
         positions: &GpuBuffer,
     ) -> anyhow::Result<()> {
-        self.check_queries("positions", positions)?;
-        self.record_knn(encoder, &self.nearest_shape, positions, &self.nearest)
-    }
-
-    fn check_queries(&self, what: &str, queries: &GpuBuffer) -> anyhow::Result<()> {
-        anyhow::ensure!(
-            queries.len >= 3 * self.count,
-            "{what}: {} values, {} Gaussians need {}",
-            queries.len,
-            self.count,
-            3 * self.count
-        );
-        Ok(())
+        self.record_knn(
+            encoder,
+            "positions",
+            &self.nearest_shape,
+            positions,
+            &self.nearest,
+        )
     }
 
     /// Reads the window, neighbours, velocity blocks and nearest vertices back (tests and
@@ -507,7 +538,7 @@ mod tests {
         let mut motion = ResidentMotion::new(
             &context,
             &MotionSetup {
-                track: &track,
+                track: Some(&track),
                 scales: &scales,
                 length: config.sequence_length,
                 template: &template,
@@ -631,7 +662,7 @@ mod tests {
             ResidentMotion::new(
                 &context,
                 &MotionSetup {
-                    track: &track,
+                    track: Some(&track),
                     scales: &[1],
                     length: 1,
                     template: &template,
@@ -681,7 +712,7 @@ mod tests {
         assert_eq!(got.nearest, grid.query_all(&queries, 1));
         // Settings the device cannot serve are errors naming them.
         let setup = |tau| MotionSetup {
-            track: &track,
+            track: Some(&track),
             scales: &[1],
             length: 1,
             template: &template,
@@ -725,7 +756,7 @@ mod tests {
         let mut motion = ResidentMotion::new(
             &context,
             &MotionSetup {
-                track: &track,
+                track: Some(&track),
                 scales: &[2, 1],
                 length: 2,
                 template: &template,

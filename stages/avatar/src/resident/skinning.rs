@@ -386,6 +386,32 @@ impl ResidentSkinning {
         Ok(())
     }
 
+    /// The bindings `skin_forward` and `skin_backward` share (shape, record, the deformed
+    /// canonical Gaussians and the skinning inputs), after checking the inputs.
+    fn skin_bindings<'a>(
+        &'a self,
+        columns: &GaussianColumns<'a>,
+        inputs: &SkinInputs<'a>,
+    ) -> anyhow::Result<[(u32, &'a wgpu::Buffer); 13]> {
+        self.check_inputs(columns, inputs)?;
+        let offsets = inputs.weight_offsets.unwrap_or(&self.placeholder);
+        Ok([
+            (0, &self.shape),
+            (1, &self.record.buffer),
+            (3, &columns.log_scale.buffer),
+            (4, &columns.rotation.buffer),
+            (6, &self.positions.buffer),
+            (7, &self.d_rotations.buffer),
+            (8, &self.d_scales.buffer),
+            (9, &offsets.buffer),
+            (10, &inputs.nearest.buffer),
+            (11, &self.canonical_joints.buffer),
+            (12, &inputs.target_joints.buffer),
+            (13, &self.template_log_weights.buffer),
+            (14, &inputs.vertex_offsets.buffer),
+        ])
+    }
+
     /// Records the deformation: [`ResidentSkinning::positions`] `= xyz + d_xyz`,
     /// [`ResidentSkinning::d_rotations`], [`ResidentSkinning::d_scales`] from the trunk's
     /// `heads` (`N x 10`), given exactly when the setup has heads; identity offsets without.
@@ -431,25 +457,9 @@ impl ResidentSkinning {
         columns: &GaussianColumns<'_>,
         inputs: &SkinInputs<'_>,
     ) -> anyhow::Result<()> {
-        self.check_inputs(columns, inputs)?;
-        let offsets = inputs.weight_offsets.unwrap_or(&self.placeholder);
-        self.context.dispatch(
-            encoder,
-            &self.forward,
+        let bindings = [
+            self.skin_bindings(columns, inputs)?.as_slice(),
             &[
-                (0, &self.shape),
-                (1, &self.record.buffer),
-                (3, &columns.log_scale.buffer),
-                (4, &columns.rotation.buffer),
-                (6, &self.positions.buffer),
-                (7, &self.d_rotations.buffer),
-                (8, &self.d_scales.buffer),
-                (9, &offsets.buffer),
-                (10, &inputs.nearest.buffer),
-                (11, &self.canonical_joints.buffer),
-                (12, &inputs.target_joints.buffer),
-                (13, &self.template_log_weights.buffer),
-                (14, &inputs.vertex_offsets.buffer),
                 (16, &self.means.buffer),
                 (17, &self.covariances.buffer),
                 (18, &self.opacities.buffer),
@@ -458,8 +468,10 @@ impl ResidentSkinning {
                 (21, &columns.sh.buffer),
                 (31, &self.status.buffer),
             ],
-            self.workgroups()?,
-        );
+        ]
+        .concat();
+        self.context
+            .dispatch(encoder, &self.forward, &bindings, self.workgroups()?);
         Ok(())
     }
 
@@ -476,28 +488,13 @@ impl ResidentSkinning {
         grad_means: &GpuBuffer,
         grad_covariances: &GpuBuffer,
     ) -> anyhow::Result<()> {
-        self.check_inputs(columns, inputs)?;
+        let skin = self.skin_bindings(columns, inputs)?;
         self.check("grad_means", grad_means, 3)?;
         self.check("grad_covariances", grad_covariances, 6)?;
-        let offsets = inputs.weight_offsets.unwrap_or(&self.placeholder);
         encoder.clear_buffer(&self.grad_vertex_offsets.buffer, 0, None);
-        self.context.dispatch(
-            encoder,
-            &self.backward,
+        let bindings = [
+            skin.as_slice(),
             &[
-                (0, &self.shape),
-                (1, &self.record.buffer),
-                (3, &columns.log_scale.buffer),
-                (4, &columns.rotation.buffer),
-                (6, &self.positions.buffer),
-                (7, &self.d_rotations.buffer),
-                (8, &self.d_scales.buffer),
-                (9, &offsets.buffer),
-                (10, &inputs.nearest.buffer),
-                (11, &self.canonical_joints.buffer),
-                (12, &inputs.target_joints.buffer),
-                (13, &self.template_log_weights.buffer),
-                (14, &inputs.vertex_offsets.buffer),
                 (15, &self.grad_vertex_offsets.buffer),
                 (16, &grad_means.buffer),
                 (17, &grad_covariances.buffer),
@@ -510,8 +507,10 @@ impl ResidentSkinning {
                 (28, &self.grad_blend.buffer),
                 (31, &self.status.buffer),
             ],
-            self.workgroups()?,
-        );
+        ]
+        .concat();
+        self.context
+            .dispatch(encoder, &self.backward, &bindings, self.workgroups()?);
         let chunks = self.count.div_ceil(JOINT_CHUNK).max(1) as u32;
         self.context.dispatch_grid(
             encoder,

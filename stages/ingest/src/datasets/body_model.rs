@@ -49,123 +49,35 @@ pub fn load_body_model_npz(
     let bytes = read_bytes(path)?;
     let arrays =
         npz::read(&bytes).with_context(|| format!("{}: not a readable .npz", path.display()))?;
-    let file = path.display();
-    let get = |key: &str| -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
-        let value = arrays
-            .iter()
-            .find(|(name, _)| name == key)
-            .map(|(_, v)| v)
-            .with_context(|| format!("{file}: missing array `{key}`"))?;
-        array_f64(value).with_context(|| format!("{file}: array `{key}`"))
+    let npz = NpzArrays {
+        arrays: &arrays,
+        file: path.display(),
     };
-    let has = |key: &str| arrays.iter().any(|(name, _)| name == key);
+    let file = &npz.file;
 
-    let (shape, template) = get("v_template")?;
-    expect_shape(&shape, &[None, Some(3)], "v_template", &file)?;
+    let (shape, template) = npz.get("v_template")?;
+    expect_shape(&shape, &[None, Some(3)], "v_template", file)?;
     let num_vertices = shape[0];
-    let (shape, kintree) = get("kintree_table")?;
-    expect_shape(&shape, &[Some(2), None], "kintree_table", &file)?;
-    let num_joints = shape[1];
-    let kind = match num_joints {
-        24 => BodyModelKind::Smpl,
-        55 => BodyModelKind::Smplx,
-        n => {
-            bail!("{file}: array `kintree_table` has {n} joints; expected 24 (SMPL) or 55 (SMPL-X)")
-        }
-    };
-    let mut parents = Vec::with_capacity(num_joints);
-    for j in 0..num_joints {
-        if kintree[num_joints + j] != j as f64 {
-            bail!(
-                "{file}: array `kintree_table` row 1 must list the joints 0..{num_joints} in order"
-            );
-        }
-        // The root's parent is stored as -1 or as 2^32 - 1 (unsigned).
-        let parent = kintree[j];
-        parents.push(if j == 0 { -1 } else { parent as i64 });
-    }
-    let (shape, faces) = get("f")?;
-    expect_shape(&shape, &[None, Some(3)], "f", &file)?;
-    let faces = faces
-        .chunks_exact(3)
-        .map(|c| {
-            let index = |x: f64| {
-                if x >= 0.0 && x < u32::MAX as f64 && x.fract() == 0.0 {
-                    Ok(x as u32)
-                } else {
-                    Err(anyhow::anyhow!(
-                        "{file}: array `f` holds {x}, not a vertex index"
-                    ))
-                }
-            };
-            Ok([index(c[0])?, index(c[1])?, index(c[2])?])
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let (shape, weights) = get("weights")?;
+    let (kind, parents) = npz.kinematic_tree()?;
+    let num_joints = parents.len();
+    let faces = npz.faces()?;
+    let (shape, weights) = npz.get("weights")?;
     expect_shape(
         &shape,
         &[Some(num_vertices), Some(num_joints)],
         "weights",
-        &file,
+        file,
     )?;
-    let (shape, joint_regressor) = get("J_regressor")?;
+    let (shape, joint_regressor) = npz.get("J_regressor")?;
     expect_shape(
         &shape,
         &[Some(num_joints), Some(num_vertices)],
         "J_regressor",
-        &file,
+        file,
     )?;
-    let (shape, shapedirs) = get("shapedirs")?;
-    expect_shape(
-        &shape,
-        &[Some(num_vertices), Some(3), None],
-        "shapedirs",
-        &file,
-    )?;
-    let components = shape[2];
-    let (num_shape, expression_in_shapedirs) = match (kind, has("exprdirs"), components) {
-        (BodyModelKind::Smplx, false, 400) => (300, 100),
-        (BodyModelKind::Smplx, false, 20) => (10, 10),
-        _ => (components, 0),
-    };
-    let num_betas = num_shape.min(limits.max_betas);
-    let shape_dirs = take_components(&shapedirs, components, 0, num_betas);
-    let (expression_dirs, num_expression) = if has("exprdirs") {
-        let (shape, exprdirs) = get("exprdirs")?;
-        expect_shape(
-            &shape,
-            &[Some(num_vertices), Some(3), None],
-            "exprdirs",
-            &file,
-        )?;
-        let n = shape[2].min(limits.max_expression);
-        (take_components(&exprdirs, shape[2], 0, n), n)
-    } else {
-        let n = expression_in_shapedirs.min(limits.max_expression);
-        (take_components(&shapedirs, components, num_shape, n), n)
-    };
-    let pose_dirs = if has("posedirs") {
-        let (shape, posedirs) = get("posedirs")?;
-        let features = 9 * (num_joints - 1);
-        if posedirs.len() != num_vertices * 3 * features {
-            bail!(
-                "{file}: array `posedirs` has shape {shape:?}; expected ({num_vertices}, 3, {features})"
-            );
-        }
-        posedirs.iter().map(|&x| x as f32).collect()
-    } else {
-        Vec::new()
-    };
-    let hands_mean = if kind == BodyModelKind::Smplx && has("hands_meanl") && has("hands_meanr") {
-        let (_, left) = get("hands_meanl")?;
-        let (_, right) = get("hands_meanr")?;
-        if left.len() != 45 || right.len() != 45 {
-            bail!("{file}: arrays `hands_meanl`/`hands_meanr` must hold 45 values each");
-        }
-        Some(left.into_iter().chain(right).collect())
-    } else {
-        None
-    };
+    let dirs = npz.shape_and_expression_dirs(kind, num_vertices, limits)?;
+    let pose_dirs = npz.pose_dirs(num_vertices, num_joints)?;
+    let hands_mean = npz.hands_mean(kind)?;
     let model = BodyModel::new(BodyModelArrays {
         template: template
             .chunks_exact(3)
@@ -175,10 +87,10 @@ pub fn load_body_model_npz(
         parents,
         weights,
         joint_regressor,
-        shape_dirs,
-        num_betas,
-        expression_dirs,
-        num_expression,
+        shape_dirs: dirs.shape_dirs,
+        num_betas: dirs.num_betas,
+        expression_dirs: dirs.expression_dirs,
+        num_expression: dirs.num_expression,
         pose_dirs,
     })
     .with_context(|| format!("{file}: invalid body model"))?;
@@ -187,6 +99,167 @@ pub fn load_body_model_npz(
         kind,
         hands_mean,
     })
+}
+
+/// The arrays of a body model `.npz`, with the file named in errors.
+struct NpzArrays<'a> {
+    arrays: &'a [(String, Value)],
+    file: std::path::Display<'a>,
+}
+
+/// The shape and expression blend shapes kept (at most `ComponentLimits` of each).
+struct ShapeAndExpressionDirs {
+    shape_dirs: Vec<f64>,
+    num_betas: usize,
+    expression_dirs: Vec<f64>,
+    num_expression: usize,
+}
+
+impl NpzArrays<'_> {
+    /// Shape and values (as f64) of array `key`, which must be present.
+    fn get(&self, key: &str) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+        let file = &self.file;
+        let value = self
+            .arrays
+            .iter()
+            .find(|(name, _)| name == key)
+            .map(|(_, v)| v)
+            .with_context(|| format!("{file}: missing array `{key}`"))?;
+        array_f64(value).with_context(|| format!("{file}: array `{key}`"))
+    }
+
+    fn has(&self, key: &str) -> bool {
+        self.arrays.iter().any(|(name, _)| name == key)
+    }
+
+    /// The model kind (from the joint count) and each joint's parent (-1 for the root), from
+    /// `kintree_table`.
+    fn kinematic_tree(&self) -> anyhow::Result<(BodyModelKind, Vec<i64>)> {
+        let file = &self.file;
+        let (shape, kintree) = self.get("kintree_table")?;
+        expect_shape(&shape, &[Some(2), None], "kintree_table", file)?;
+        let num_joints = shape[1];
+        let kind = match num_joints {
+            24 => BodyModelKind::Smpl,
+            55 => BodyModelKind::Smplx,
+            n => {
+                bail!(
+                    "{file}: array `kintree_table` has {n} joints; expected 24 (SMPL) or 55 (SMPL-X)"
+                )
+            }
+        };
+        let mut parents = Vec::with_capacity(num_joints);
+        for j in 0..num_joints {
+            if kintree[num_joints + j] != j as f64 {
+                bail!(
+                    "{file}: array `kintree_table` row 1 must list the joints 0..{num_joints} in order"
+                );
+            }
+            // The root's parent is stored as -1 or as 2^32 - 1 (unsigned).
+            let parent = kintree[j];
+            parents.push(if j == 0 { -1 } else { parent as i64 });
+        }
+        Ok((kind, parents))
+    }
+
+    /// The triangles of `f`, as vertex indices.
+    fn faces(&self) -> anyhow::Result<Vec<[u32; 3]>> {
+        let file = &self.file;
+        let (shape, faces) = self.get("f")?;
+        expect_shape(&shape, &[None, Some(3)], "f", file)?;
+        faces
+            .chunks_exact(3)
+            .map(|c| {
+                let index = |x: f64| {
+                    if x >= 0.0 && x < u32::MAX as f64 && x.fract() == 0.0 {
+                        Ok(x as u32)
+                    } else {
+                        Err(anyhow::anyhow!(
+                            "{file}: array `f` holds {x}, not a vertex index"
+                        ))
+                    }
+                };
+                Ok([index(c[0])?, index(c[1])?, index(c[2])?])
+            })
+            .collect::<anyhow::Result<Vec<_>>>()
+    }
+
+    /// The shape blend shapes of `shapedirs`, and the expression ones of `exprdirs` or (SMPL-X
+    /// without it) of the tail of `shapedirs`.
+    fn shape_and_expression_dirs(
+        &self,
+        kind: BodyModelKind,
+        num_vertices: usize,
+        limits: ComponentLimits,
+    ) -> anyhow::Result<ShapeAndExpressionDirs> {
+        let file = &self.file;
+        let (shape, shapedirs) = self.get("shapedirs")?;
+        expect_shape(
+            &shape,
+            &[Some(num_vertices), Some(3), None],
+            "shapedirs",
+            file,
+        )?;
+        let components = shape[2];
+        let (num_shape, expression_in_shapedirs) = match (kind, self.has("exprdirs"), components) {
+            (BodyModelKind::Smplx, false, 400) => (300, 100),
+            (BodyModelKind::Smplx, false, 20) => (10, 10),
+            _ => (components, 0),
+        };
+        let num_betas = num_shape.min(limits.max_betas);
+        let shape_dirs = take_components(&shapedirs, components, 0, num_betas);
+        let (expression_dirs, num_expression) = if self.has("exprdirs") {
+            let (shape, exprdirs) = self.get("exprdirs")?;
+            expect_shape(
+                &shape,
+                &[Some(num_vertices), Some(3), None],
+                "exprdirs",
+                file,
+            )?;
+            let n = shape[2].min(limits.max_expression);
+            (take_components(&exprdirs, shape[2], 0, n), n)
+        } else {
+            let n = expression_in_shapedirs.min(limits.max_expression);
+            (take_components(&shapedirs, components, num_shape, n), n)
+        };
+        Ok(ShapeAndExpressionDirs {
+            shape_dirs,
+            num_betas,
+            expression_dirs,
+            num_expression,
+        })
+    }
+
+    /// The pose blend shapes of `posedirs` (empty when absent).
+    fn pose_dirs(&self, num_vertices: usize, num_joints: usize) -> anyhow::Result<Vec<f32>> {
+        let file = &self.file;
+        if !self.has("posedirs") {
+            return Ok(Vec::new());
+        }
+        let (shape, posedirs) = self.get("posedirs")?;
+        let features = 9 * (num_joints - 1);
+        if posedirs.len() != num_vertices * 3 * features {
+            bail!(
+                "{file}: array `posedirs` has shape {shape:?}; expected ({num_vertices}, 3, {features})"
+            );
+        }
+        Ok(posedirs.iter().map(|&x| x as f32).collect())
+    }
+
+    /// SMPL-X's mean hand pose (`hands_meanl` then `hands_meanr`), when the file has it.
+    fn hands_mean(&self, kind: BodyModelKind) -> anyhow::Result<Option<Vec<f64>>> {
+        let file = &self.file;
+        if kind == BodyModelKind::Smplx && self.has("hands_meanl") && self.has("hands_meanr") {
+            let (_, left) = self.get("hands_meanl")?;
+            let (_, right) = self.get("hands_meanr")?;
+            if left.len() != 45 || right.len() != 45 {
+                bail!("{file}: arrays `hands_meanl`/`hands_meanr` must hold 45 values each");
+            }
+            Ok(Some(left.into_iter().chain(right).collect()))
+        } else {
+            Ok(None)
+        }
+    }
 }
 
 fn array_f64(value: &Value) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {

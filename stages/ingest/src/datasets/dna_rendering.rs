@@ -186,39 +186,49 @@ pub fn parse_keypoints(
     })
 }
 
-impl DnaRendering {
-    /// Opens a take from its main file; the annotation file is `annotations` or found next
-    /// to the main file ([`annotation_candidates`]).
-    pub fn open(
-        main: &Path,
-        annotations: Option<&Path>,
-        body_model: Option<&Path>,
-    ) -> anyhow::Result<Self> {
-        let mut warnings = Vec::new();
-        let annotations = match annotations {
-            Some(a) => a.to_owned(),
-            None => {
-                let candidates = annotation_candidates(main);
-                candidates.iter().find(|c| c.is_file()).cloned().with_context(|| {
-                    format!(
-                        "{}: the annotation file is missing (looked for {}); DNA-Rendering needs both \
-                         the main and the annotation .smc",
-                        main.display(),
-                        candidates
-                            .iter()
-                            .map(|c| c.display().to_string())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )
-                })?
-            }
-        };
-        let main_file = SmcFile::open(main)?;
-        let annot_file = SmcFile::open(&annotations)?;
-        let gender = main_file.string_attr("", "gender")?;
+/// The annotation file found next to `main` ([`annotation_candidates`]).
+fn find_annotations(main: &Path) -> anyhow::Result<PathBuf> {
+    let candidates = annotation_candidates(main);
+    candidates
+        .iter()
+        .find(|c| c.is_file())
+        .cloned()
+        .with_context(|| {
+            format!(
+                "{}: the annotation file is missing (looked for {}); DNA-Rendering needs both \
+             the main and the annotation .smc",
+                main.display(),
+                candidates
+                    .iter()
+                    .map(|c| c.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })
+}
 
-        // Cameras: every calibrated camera that has images in the main file.
-        let mut ids: Vec<(i64, String)> = annot_file
+/// The two files of a take, as the steps of [`DnaRendering::open`] read them.
+struct TakeFiles<'a> {
+    main: &'a Path,
+    annotations: &'a Path,
+    main_file: &'a SmcFile,
+    annot_file: &'a SmcFile,
+}
+
+/// The cameras of a take that have images, and the frames they all hold.
+struct TakeCameras {
+    cameras: Vec<SourceCamera>,
+    /// The main-file group (`Camera_5mp`, `Camera_12mp`) of each camera.
+    camera_groups: Vec<&'static str>,
+    num_frames: usize,
+}
+
+impl TakeFiles<'_> {
+    /// Cameras: every calibrated camera that has images in the main file.
+    fn cameras(&self, warnings: &mut Vec<String>) -> anyhow::Result<TakeCameras> {
+        let (main, annotations) = (self.main, self.annotations);
+        let mut ids: Vec<(i64, String)> = self
+            .annot_file
             .members("Camera_Parameter")?
             .into_iter()
             .filter_map(|name| name.parse::<i64>().ok().map(|id| (id, name)))
@@ -230,14 +240,14 @@ impl DnaRendering {
         for (id, key) in ids {
             let mut found = None;
             for group_name in CAMERA_GROUPS {
-                if main_file.has_group(&format!("{group_name}/{id}"))? {
+                if self.main_file.has_group(&format!("{group_name}/{id}"))? {
                     found = Some(group_name);
                     break;
                 }
             }
             let Some(group_name) = found else {
                 warn(
-                    &mut warnings,
+                    warnings,
                     format!(
                         "{}: camera {key} is calibrated but has no images in {}",
                         annotations.display(),
@@ -246,74 +256,13 @@ impl DnaRendering {
                 );
                 continue;
             };
-            let resolution = main_file
-                .f64s_attr(group_name, "resolution")?
-                .with_context(|| {
-                    h5_context(
-                        main,
-                        &format!("group `{group_name}` has no attribute `resolution`"),
-                    )
-                })?;
-            let [height, width] = resolution[..] else {
-                bail!(
-                    "{}",
-                    h5_context(
-                        main,
-                        &format!(
-                            "group `{group_name}` attribute `resolution` must be (height, width)"
-                        )
-                    )
-                );
-            };
-            let pixels = |v: f64| {
-                (v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v)).then_some(v as u32)
-            };
-            let (Some(width), Some(height)) = (pixels(width), pixels(height)) else {
-                bail!(
-                    "{}",
-                    h5_context(
-                        main,
-                        &format!(
-                            "group `{group_name}` attribute `resolution` {resolution:?} is not \
-                             two pixel counts"
-                        )
-                    )
-                );
-            };
-            let frames = main_file
+            let (width, height) = self.resolution(group_name)?;
+            let frames = self
+                .main_file
                 .members(&format!("{group_name}/{id}/color"))?
                 .len();
             num_frames = Some(num_frames.map_or(frames, |n| n.min(frames)));
-            let prefix = format!("Camera_Parameter/{key}");
-            let (_, k) = read_f64s(&annot_file, &format!("{prefix}/K"))?;
-            let (_, d) = read_f64s(&annot_file, &format!("{prefix}/D"))?;
-            let (_, rt) = read_f64s(&annot_file, &format!("{prefix}/RT"))?;
-            if k.len() != 9 || rt.len() != 16 || d.len() < 4 || d.len() > 5 {
-                bail!(
-                    "{}",
-                    h5_context(
-                        &annotations,
-                        &format!(
-                            "`{prefix}`: K must be 3x3, RT 4x4 and D 5 values; got {}, {}, {} values",
-                            k.len(),
-                            rt.len(),
-                            d.len()
-                        )
-                    )
-                );
-            }
-            let mut distortion = [0.0; 5];
-            distortion[..d.len()].copy_from_slice(&d);
-            // Camera-to-world: rotation columns are the camera axes in world coordinates.
-            let cam_to_world = DMat3::from_cols_array(&[
-                rt[0], rt[4], rt[8], rt[1], rt[5], rt[9], rt[2], rt[6], rt[10],
-            ]);
-            let centre = DVec3::new(rt[3], rt[7], rt[11]);
-            let rotation = cam_to_world.transpose();
-            let translation = -(rotation * centre);
-            let kk = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
-            let camera = Camera::from_opencv(width, height, kk, rotation, translation, distortion)
-                .with_context(|| h5_context(&annotations, &format!("`{prefix}`")))?;
+            let camera = self.calibration(&key, width, height)?;
             cameras.push(SourceCamera { id, camera });
             camera_groups.push(group_name);
         }
@@ -321,7 +270,7 @@ impl DnaRendering {
             bail!(
                 "{}",
                 h5_context(
-                    &annotations,
+                    annotations,
                     "no camera in `Camera_Parameter` has images in the main file"
                 )
             );
@@ -330,23 +279,109 @@ impl DnaRendering {
         if num_frames == 0 {
             bail!("{}", h5_context(main, "the cameras hold no frame"));
         }
+        Ok(TakeCameras {
+            cameras,
+            camera_groups,
+            num_frames,
+        })
+    }
 
-        // SMPL-X fits.
+    /// The image size (width, height) of a camera group's `resolution` attribute.
+    fn resolution(&self, group_name: &str) -> anyhow::Result<(u32, u32)> {
+        let main = self.main;
+        let resolution = self
+            .main_file
+            .f64s_attr(group_name, "resolution")?
+            .with_context(|| {
+                h5_context(
+                    main,
+                    &format!("group `{group_name}` has no attribute `resolution`"),
+                )
+            })?;
+        let [height, width] = resolution[..] else {
+            bail!(
+                "{}",
+                h5_context(
+                    main,
+                    &format!("group `{group_name}` attribute `resolution` must be (height, width)")
+                )
+            );
+        };
+        let pixels = |v: f64| {
+            (v.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&v)).then_some(v as u32)
+        };
+        let (Some(width), Some(height)) = (pixels(width), pixels(height)) else {
+            bail!(
+                "{}",
+                h5_context(
+                    main,
+                    &format!(
+                        "group `{group_name}` attribute `resolution` {resolution:?} is not \
+                         two pixel counts"
+                    )
+                )
+            );
+        };
+        Ok((width, height))
+    }
+
+    /// The camera of `Camera_Parameter/<key>` (`K`, `D`, camera-to-world `RT`).
+    fn calibration(&self, key: &str, width: u32, height: u32) -> anyhow::Result<Camera> {
+        let annotations = self.annotations;
+        let prefix = format!("Camera_Parameter/{key}");
+        let (_, k) = read_f64s(self.annot_file, &format!("{prefix}/K"))?;
+        let (_, d) = read_f64s(self.annot_file, &format!("{prefix}/D"))?;
+        let (_, rt) = read_f64s(self.annot_file, &format!("{prefix}/RT"))?;
+        if k.len() != 9 || rt.len() != 16 || d.len() < 4 || d.len() > 5 {
+            bail!(
+                "{}",
+                h5_context(
+                    annotations,
+                    &format!(
+                        "`{prefix}`: K must be 3x3, RT 4x4 and D 5 values; got {}, {}, {} values",
+                        k.len(),
+                        rt.len(),
+                        d.len()
+                    )
+                )
+            );
+        }
+        let mut distortion = [0.0; 5];
+        distortion[..d.len()].copy_from_slice(&d);
+        // Camera-to-world: rotation columns are the camera axes in world coordinates.
+        let cam_to_world = DMat3::from_cols_array(&[
+            rt[0], rt[4], rt[8], rt[1], rt[5], rt[9], rt[2], rt[6], rt[10],
+        ]);
+        let centre = DVec3::new(rt[3], rt[7], rt[11]);
+        let rotation = cam_to_world.transpose();
+        let translation = -(rotation * centre);
+        let kk = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
+        Camera::from_opencv(width, height, kk, rotation, translation, distortion)
+            .with_context(|| h5_context(annotations, &format!("`{prefix}`")))
+    }
+
+    /// The SMPL-X fits of the first `num_frames` frames (`SMPLx/*`).
+    fn smplx_params(
+        &self,
+        num_frames: usize,
+        warnings: &mut Vec<String>,
+    ) -> anyhow::Result<Vec<BodyParams>> {
+        let (annotations, annot_file) = (self.annotations, self.annot_file);
         if !annot_file.has_group("SMPLx")? {
             bail!(
                 "{}",
                 h5_context(
-                    &annotations,
+                    annotations,
                     "missing group `SMPLx` (fits exist for parts 1 and 2 only)",
                 )
             );
         }
-        let (pose_shape, fullpose) = read_f64s(&annot_file, "SMPLx/fullpose")?;
+        let (pose_shape, fullpose) = read_f64s(annot_file, "SMPLx/fullpose")?;
         if fullpose.len() % 165 != 0 {
             bail!(
                 "{}",
                 h5_context(
-                    &annotations,
+                    annotations,
                     &format!(
                         "dataset `SMPLx/fullpose` has shape {pose_shape:?}; expected (frames, 55, 3)"
                     )
@@ -358,7 +393,7 @@ impl DnaRendering {
             bail!(
                 "{}",
                 h5_context(
-                    &annotations,
+                    annotations,
                     &format!(
                         "dataset `SMPLx/fullpose` has {pose_frames} frames but the main file has {num_frames}"
                     )
@@ -366,19 +401,19 @@ impl DnaRendering {
             );
         }
         let file_what = |path: &str| format!("{} dataset `{path}`", annotations.display());
-        let (transl_shape, transl) = read_f64s(&annot_file, "SMPLx/transl")?;
+        let (transl_shape, transl) = read_f64s(annot_file, "SMPLx/transl")?;
         if transl.len() / 3 < num_frames || transl.len() % 3 != 0 {
             bail!(
                 "{}",
                 h5_context(
-                    &annotations,
+                    annotations,
                     &format!(
                         "dataset `SMPLx/transl` has shape {transl_shape:?}; expected ({num_frames}, 3)"
                     )
                 )
             );
         }
-        let (betas_shape, betas) = read_f64s(&annot_file, "SMPLx/betas")?;
+        let (betas_shape, betas) = read_f64s(annot_file, "SMPLx/betas")?;
         let beta_width = *betas_shape.last().unwrap_or(&0);
         let betas = per_frame(
             betas,
@@ -386,10 +421,10 @@ impl DnaRendering {
             beta_width,
             num_frames,
             &file_what("SMPLx/betas"),
-            &mut warnings,
+            warnings,
         )?;
         let expression = if annot_file.has_dataset("SMPLx/expression")? {
-            let (shape, values) = read_f64s(&annot_file, "SMPLx/expression")?;
+            let (shape, values) = read_f64s(annot_file, "SMPLx/expression")?;
             let width = *shape.last().unwrap_or(&0);
             per_frame(
                 values,
@@ -397,16 +432,16 @@ impl DnaRendering {
                 width,
                 num_frames,
                 &file_what("SMPLx/expression"),
-                &mut warnings,
+                warnings,
             )?
         } else {
             vec![Vec::new(); num_frames]
         };
         if annot_file.has_dataset("SMPLx/scale")? {
-            let (_, scale) = read_f64s(&annot_file, "SMPLx/scale")?;
+            let (_, scale) = read_f64s(annot_file, "SMPLx/scale")?;
             if scale.iter().any(|s| (s - 1.0).abs() > 1e-6) {
                 warn(
-                    &mut warnings,
+                    warnings,
                     format!(
                         "{}: SMPL-X scale {scale:?} is not applied (the body model has no scale)",
                         file_what("SMPLx/scale")
@@ -414,7 +449,7 @@ impl DnaRendering {
                 );
             }
         }
-        let params = (0..num_frames)
+        Ok((0..num_frames)
             .map(|f| BodyParams {
                 pose: fullpose[f * 165..(f + 1) * 165]
                     .chunks_exact(3)
@@ -425,39 +460,77 @@ impl DnaRendering {
                 world_rotation: DVec3::ZERO,
                 world_translation: DVec3::new(transl[3 * f], transl[3 * f + 1], transl[3 * f + 2]),
             })
-            .collect();
-        let keypoints = if annot_file.has_dataset("Keypoints_3D/keypoints3d")? {
-            // Not checked finite: a missing keypoint is NaN (module docs).
-            let (shape, values) = annot_file.read_f64s("Keypoints_3D/keypoints3d")?;
-            Some(parse_keypoints(
-                &shape,
-                &values,
-                num_frames,
-                &file_what("Keypoints_3D/keypoints3d"),
-            )?)
-        } else {
+            .collect())
+    }
+
+    /// The 3D keypoints of the first `num_frames` frames, when the take has them.
+    fn keypoints(&self, num_frames: usize) -> anyhow::Result<Option<Keypoints3d>> {
+        if !self.annot_file.has_dataset("Keypoints_3D/keypoints3d")? {
+            return Ok(None);
+        }
+        // Not checked finite: a missing keypoint is NaN (module docs).
+        let (shape, values) = self.annot_file.read_f64s("Keypoints_3D/keypoints3d")?;
+        let what = format!(
+            "{} dataset `Keypoints_3D/keypoints3d`",
+            self.annotations.display()
+        );
+        Ok(Some(parse_keypoints(&shape, &values, num_frames, &what)?))
+    }
+}
+
+/// The SMPL-X mean hand pose of the body model file at `path` (`hands_meanl` then
+/// `hands_meanr`); without it (a warning) the hand poses are used as they are.
+fn hands_mean(path: &Path, warnings: &mut Vec<String>) -> anyhow::Result<Option<Vec<f64>>> {
+    let left = npz_member(path, "hands_meanl")?;
+    let right = npz_member(path, "hands_meanr")?;
+    Ok(match (left, right) {
+        (Some(l), Some(r)) if l.len() == 45 && r.len() == 45 => {
+            Some(l.into_iter().chain(r).collect())
+        }
+        _ => {
+            warn(
+                warnings,
+                format!(
+                    "{}: no 45-value `hands_meanl`/`hands_meanr`; the DNA-Rendering hand poses are used without the SMPL-X mean hand pose",
+                    path.display()
+                ),
+            );
             None
+        }
+    })
+}
+
+impl DnaRendering {
+    /// Opens a take from its main file; the annotation file is `annotations` or found next
+    /// to the main file ([`annotation_candidates`]).
+    pub fn open(
+        main: &Path,
+        annotations: Option<&Path>,
+        body_model: Option<&Path>,
+    ) -> anyhow::Result<Self> {
+        let mut warnings = Vec::new();
+        let annotations = match annotations {
+            Some(a) => a.to_owned(),
+            None => find_annotations(main)?,
         };
+        let main_file = SmcFile::open(main)?;
+        let annot_file = SmcFile::open(&annotations)?;
+        let gender = main_file.string_attr("", "gender")?;
+        let take = TakeFiles {
+            main,
+            annotations: &annotations,
+            main_file: &main_file,
+            annot_file: &annot_file,
+        };
+        let TakeCameras {
+            cameras,
+            camera_groups,
+            num_frames,
+        } = take.cameras(&mut warnings)?;
+        let params = take.smplx_params(num_frames, &mut warnings)?;
+        let keypoints = take.keypoints(num_frames)?;
         let hands_mean = match body_model {
-            Some(path) => {
-                let left = npz_member(path, "hands_meanl")?;
-                let right = npz_member(path, "hands_meanr")?;
-                match (left, right) {
-                    (Some(l), Some(r)) if l.len() == 45 && r.len() == 45 => {
-                        Some(l.into_iter().chain(r).collect())
-                    }
-                    _ => {
-                        warn(
-                            &mut warnings,
-                            format!(
-                                "{}: no 45-value `hands_meanl`/`hands_meanr`; the DNA-Rendering hand poses are used without the SMPL-X mean hand pose",
-                                path.display()
-                            ),
-                        );
-                        None
-                    }
-                }
-            }
+            Some(path) => hands_mean(path, &mut warnings)?,
             None => None,
         };
         Ok(Self {

@@ -206,7 +206,6 @@ fn params_from_frameid_pose(
 impl I3dHuman {
     /// Opens sequence `sequence` (e.g. `ID1_1`) under `root`.
     pub fn open(root: &Path, sequence: &str, body_model: Option<&Path>) -> anyhow::Result<Self> {
-        let mut warnings = Vec::new();
         let folders = sequence_folders(root, sequence);
         if folders.is_empty() {
             bail!(
@@ -215,93 +214,26 @@ impl I3dHuman {
                 root.display()
             );
         }
-        // view id -> (camera, source file and key for messages)
-        let mut views: BTreeMap<i64, (Camera, String)> = BTreeMap::new();
-        let mut images_by_id: Vec<(usize, i64, ImageRef)> = Vec::new();
-        let mut params: BTreeMap<usize, BodyParams> = BTreeMap::new();
-        let mut nonzero_root = false;
-        let mut frameid_pose: Option<(PathBuf, Value)> = None;
-        let mut train_frames = BTreeSet::new();
-        let mut test_frames = BTreeSet::new();
+        let mut scan = SequenceScan::default();
         for (part, folder) in &folders {
-            let cameras_path = folder.join("cameras.pkl");
-            let cameras_value = read_pickle(&cameras_path)?;
-            for (key, entry) in dict_items(&cameras_path, &cameras_value)? {
-                let (name, frame, view) = key_name(&cameras_path, key)?;
-                let image = ImageRef {
-                    folder: folder.clone(),
-                    name: name.to_owned(),
-                };
-                match views.entry(view) {
-                    std::collections::btree_map::Entry::Vacant(slot) => {
-                        let image_path = folder.join("images").join(format!("{name}.png"));
-                        let size = image_size(&image_path)?;
-                        let camera = camera_from_entry(&cameras_path, name, entry, size)?;
-                        slot.insert((camera, format!("{} `{name}`", cameras_path.display())));
-                    }
-                    std::collections::btree_map::Entry::Occupied(known) => {
-                        let (first, origin) = known.get();
-                        let camera = camera_from_entry(
-                            &cameras_path,
-                            name,
-                            entry,
-                            (first.width, first.height),
-                        )?;
-                        if !same_camera(first, &camera) {
-                            warn(
-                                &mut warnings,
-                                format!(
-                                    "{}: camera `{name}` of view {view} differs from {origin}, which the reader uses",
-                                    cameras_path.display()
-                                ),
-                            );
-                        }
-                    }
-                }
-                match part {
-                    0 => {
-                        train_frames.insert(frame);
-                    }
-                    1 => {
-                        test_frames.insert(frame);
-                    }
-                    _ => {}
-                }
-                images_by_id.push((frame, view, image));
-            }
-            let mesh_path = folder.join("mesh_infos.pkl");
-            let mesh_value = read_pickle(&mesh_path)?;
-            for (key, entry) in dict_items(&mesh_path, &mesh_value)? {
-                let (name, frame, _) = key_name(&mesh_path, key)?;
-                let p = params_from_mesh_info(&mesh_path, name, entry)?;
-                nonzero_root |= p.pose[0] != DVec3::ZERO;
-                params.entry(frame).or_insert(p);
-            }
+            scan.read_cameras(*part, folder)?;
+            scan.read_mesh_infos(folder)?;
             let pose_path = folder.join("frameid_pose.pkl");
-            if frameid_pose.is_none() && pose_path.is_file() {
+            if scan.frameid_pose.is_none() && pose_path.is_file() {
                 let value = read_pickle(&pose_path)?;
-                frameid_pose = Some((pose_path, value));
+                scan.frameid_pose = Some((pose_path, value));
             }
         }
-        if let Some((path, value)) = &frameid_pose {
-            let list = Field::root(path, value).sequence()?;
-            let mut filled = 0;
-            for (index, entry) in list.iter().enumerate() {
-                if let std::collections::btree_map::Entry::Vacant(slot) = params.entry(index) {
-                    slot.insert(params_from_frameid_pose(path, index, entry)?);
-                    filled += 1;
-                }
-            }
-            if filled > 0 && nonzero_root {
-                warn(
-                    &mut warnings,
-                    format!(
-                        "{}: {filled} frames take their fit from this file, which has no root rotation (taken as zero) while mesh_infos.pkl has non-zero root rotations",
-                        path.display()
-                    ),
-                );
-            }
-        }
+        scan.fill_from_frameid_pose()?;
+        let SequenceScan {
+            views,
+            images_by_id,
+            params,
+            train_frames,
+            test_frames,
+            warnings,
+            ..
+        } = scan;
         let ids: Vec<i64> = views.keys().copied().collect();
         let cameras: Vec<SourceCamera> = views
             .into_iter()
@@ -332,6 +264,110 @@ impl I3dHuman {
             body_model_path: body_model.map(Path::to_owned),
             warnings,
         })
+    }
+}
+
+/// What [`I3dHuman::open`] gathers from the folders of a sequence, in folder order.
+#[derive(Default)]
+struct SequenceScan {
+    /// view id -> (camera, source file and key for messages)
+    views: BTreeMap<i64, (Camera, String)>,
+    /// (frame, view id, image) of every image.
+    images_by_id: Vec<(usize, i64, ImageRef)>,
+    params: BTreeMap<usize, BodyParams>,
+    /// Whether a `mesh_infos.pkl` fit has a non-zero root rotation.
+    nonzero_root: bool,
+    /// The first `frameid_pose.pkl` found, and its path.
+    frameid_pose: Option<(PathBuf, Value)>,
+    train_frames: BTreeSet<usize>,
+    test_frames: BTreeSet<usize>,
+    warnings: Vec<String>,
+}
+
+impl SequenceScan {
+    /// The cameras and images of `folder`'s `cameras.pkl`; a view keeps its first camera (a
+    /// later, different one is a warning).
+    fn read_cameras(&mut self, part: usize, folder: &Path) -> anyhow::Result<()> {
+        let cameras_path = folder.join("cameras.pkl");
+        let cameras_value = read_pickle(&cameras_path)?;
+        for (key, entry) in dict_items(&cameras_path, &cameras_value)? {
+            let (name, frame, view) = key_name(&cameras_path, key)?;
+            let image = ImageRef {
+                folder: folder.to_owned(),
+                name: name.to_owned(),
+            };
+            match self.views.entry(view) {
+                std::collections::btree_map::Entry::Vacant(slot) => {
+                    let image_path = folder.join("images").join(format!("{name}.png"));
+                    let size = image_size(&image_path)?;
+                    let camera = camera_from_entry(&cameras_path, name, entry, size)?;
+                    slot.insert((camera, format!("{} `{name}`", cameras_path.display())));
+                }
+                std::collections::btree_map::Entry::Occupied(known) => {
+                    let (first, origin) = known.get();
+                    let camera =
+                        camera_from_entry(&cameras_path, name, entry, (first.width, first.height))?;
+                    if !same_camera(first, &camera) {
+                        warn(
+                            &mut self.warnings,
+                            format!(
+                                "{}: camera `{name}` of view {view} differs from {origin}, which the reader uses",
+                                cameras_path.display()
+                            ),
+                        );
+                    }
+                }
+            }
+            match part {
+                0 => {
+                    self.train_frames.insert(frame);
+                }
+                1 => {
+                    self.test_frames.insert(frame);
+                }
+                _ => {}
+            }
+            self.images_by_id.push((frame, view, image));
+        }
+        Ok(())
+    }
+
+    /// The fits of `folder`'s `mesh_infos.pkl`; a frame keeps its first fit.
+    fn read_mesh_infos(&mut self, folder: &Path) -> anyhow::Result<()> {
+        let mesh_path = folder.join("mesh_infos.pkl");
+        let mesh_value = read_pickle(&mesh_path)?;
+        for (key, entry) in dict_items(&mesh_path, &mesh_value)? {
+            let (name, frame, _) = key_name(&mesh_path, key)?;
+            let p = params_from_mesh_info(&mesh_path, name, entry)?;
+            self.nonzero_root |= p.pose[0] != DVec3::ZERO;
+            self.params.entry(frame).or_insert(p);
+        }
+        Ok(())
+    }
+
+    /// Frames without a `mesh_infos.pkl` fit take theirs from `frameid_pose.pkl`.
+    fn fill_from_frameid_pose(&mut self) -> anyhow::Result<()> {
+        let Some((path, value)) = &self.frameid_pose else {
+            return Ok(());
+        };
+        let list = Field::root(path, value).sequence()?;
+        let mut filled = 0;
+        for (index, entry) in list.iter().enumerate() {
+            if let std::collections::btree_map::Entry::Vacant(slot) = self.params.entry(index) {
+                slot.insert(params_from_frameid_pose(path, index, entry)?);
+                filled += 1;
+            }
+        }
+        if filled > 0 && self.nonzero_root {
+            warn(
+                &mut self.warnings,
+                format!(
+                    "{}: {filled} frames take their fit from this file, which has no root rotation (taken as zero) while mesh_infos.pkl has non-zero root rotations",
+                    path.display()
+                ),
+            );
+        }
+        Ok(())
     }
 }
 

@@ -25,6 +25,7 @@ use super::common::{
     Field, decode_mask, decode_rgb, image_size, join_relative, read_bytes, read_npy,
     trailing_number,
 };
+use crate::formats::Value;
 use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 
 /// Frames used by the 3DGS-Avatar split, per sequence number (docs/method.md).
@@ -59,62 +60,9 @@ impl ZjuMocap {
         let annots_path = root.join("annots.npy");
         let annots = read_npy(&annots_path)?;
         let annots_field = Field::root(&annots_path, &annots);
-        let cams = annots_field.get("cams", "cams")?;
-        let ks = cams.get("K", "cams.K")?.sequence()?;
-        let rs = cams.get("R", "cams.R")?.sequence()?;
-        let ts = cams.get("T", "cams.T")?.sequence()?;
-        let ds = match cams.value.get("D") {
-            Some(_) => Some(cams.get("D", "cams.D")?.sequence()?),
-            None => None,
-        };
-        let num_cameras = ks.len();
-        if num_cameras == 0 {
-            bail!("{}: field `cams.K` lists no camera", annots_path.display());
-        }
-        for (name, list) in [("cams.R", rs.len()), ("cams.T", ts.len())]
-            .into_iter()
-            .chain(ds.map(|d| ("cams.D", d.len())))
-        {
-            if list != num_cameras {
-                bail!(
-                    "{}: field `{name}` has {list} cameras but `cams.K` has {num_cameras}",
-                    annots_path.display()
-                );
-            }
-        }
-        let ims = annots_field.get("ims", "ims")?.sequence()?;
-        if ims.is_empty() {
-            bail!("{}: field `ims` lists no frame", annots_path.display());
-        }
-        let mut images = Vec::with_capacity(ims.len());
-        for (f, frame) in ims.iter().enumerate() {
-            let path = format!("ims[{f}].ims");
-            let frame_field = Field {
-                file: &annots_path,
-                path: "ims[]",
-                value: frame,
-            };
-            let list = frame_field.get("ims", &path)?.sequence()?;
-            if list.len() != num_cameras {
-                bail!(
-                    "{}: field `{path}` has {} images but there are {num_cameras} cameras",
-                    annots_path.display(),
-                    list.len()
-                );
-            }
-            let names = list
-                .iter()
-                .map(|v| {
-                    v.as_str().map(str::to_owned).with_context(|| {
-                        format!(
-                            "{}: field `{path}` holds {v}, not a path",
-                            annots_path.display()
-                        )
-                    })
-                })
-                .collect::<anyhow::Result<Vec<_>>>()?;
-            images.push(names);
-        }
+        let cams = CameraLists::read(&annots_field)?;
+        let num_cameras = cams.k.len();
+        let images = image_lists(&annots_field, num_cameras)?;
         let frame_ids = images
             .iter()
             .enumerate()
@@ -127,69 +75,9 @@ impl ZjuMocap {
                 stem.parse::<i64>().unwrap_or(f as i64)
             })
             .collect();
-
-        let mut cameras = Vec::with_capacity(num_cameras);
-        for c in 0..num_cameras {
-            let k = Field {
-                file: &annots_path,
-                path: "",
-                value: &ks[c],
-            };
-            let at = |name: &str| format!("{name}[{c}]");
-            let k_path = at("cams.K");
-            let k = Field { path: &k_path, ..k }.matrix3()?;
-            let r_path = at("cams.R");
-            let r = Field {
-                file: &annots_path,
-                path: &r_path,
-                value: &rs[c],
-            }
-            .matrix3()?;
-            let t_path = at("cams.T");
-            let t = Field {
-                file: &annots_path,
-                path: &t_path,
-                value: &ts[c],
-            }
-            .finite_f64s(3)?;
-            let distortion = match ds {
-                Some(ds) => {
-                    let d_path = at("cams.D");
-                    let d = Field {
-                        file: &annots_path,
-                        path: &d_path,
-                        value: &ds[c],
-                    }
-                    .finite_array()?
-                    .1;
-                    if d.len() != 5 && d.len() != 4 {
-                        bail!(
-                            "{}: field `{d_path}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
-                            annots_path.display(),
-                            d.len()
-                        );
-                    }
-                    let mut out = [0.0; 5];
-                    out[..d.len()].copy_from_slice(&d);
-                    out
-                }
-                None => [0.0; 5],
-            };
-            let first_image = join_relative(root, &images[0][c], &annots_path, "ims[0].ims")?;
-            let (width, height) = image_size(&first_image)?;
-            let rotation = DMat3::from_cols_array_2d(&r).transpose();
-            let translation = DVec3::new(t[0], t[1], t[2]) / 1000.0;
-            let camera = Camera::from_opencv(width, height, k, rotation, translation, distortion)
-                .with_context(|| {
-                format!("{}: camera {c} (`cams.*[{c}]`)", annots_path.display())
-            })?;
-            let dir_name = Path::new(&images[0][c])
-                .parent()
-                .and_then(|p| p.to_str())
-                .unwrap_or_default();
-            let id = trailing_number(dir_name).unwrap_or(c as i64 + 1);
-            cameras.push(SourceCamera { id, camera });
-        }
+        let cameras = (0..num_cameras)
+            .map(|c| cams.camera(root, &images, c))
+            .collect::<anyhow::Result<Vec<_>>>()?;
 
         let params_dir = ["new_params", "params"]
             .iter()
@@ -232,6 +120,158 @@ impl ZjuMocap {
         self.params_dir
             .join(format!("{}.npy", self.frame_ids[frame]))
     }
+}
+
+/// The per-camera lists of `annots.npy` `cams` (`K`, `R`, `T`, optional `D`), of one length.
+struct CameraLists<'a> {
+    annots_path: &'a Path,
+    k: &'a [Value],
+    r: &'a [Value],
+    t: &'a [Value],
+    d: Option<&'a [Value]>,
+}
+
+impl<'a> CameraLists<'a> {
+    /// Reads `cams` and checks that it lists at least one camera, the same in every list.
+    fn read(annots_field: &Field<'a>) -> anyhow::Result<Self> {
+        let annots_path = annots_field.file;
+        let cams = annots_field.get("cams", "cams")?;
+        let ks = cams.get("K", "cams.K")?.sequence()?;
+        let rs = cams.get("R", "cams.R")?.sequence()?;
+        let ts = cams.get("T", "cams.T")?.sequence()?;
+        let ds = match cams.value.get("D") {
+            Some(_) => Some(cams.get("D", "cams.D")?.sequence()?),
+            None => None,
+        };
+        let num_cameras = ks.len();
+        if num_cameras == 0 {
+            bail!("{}: field `cams.K` lists no camera", annots_path.display());
+        }
+        for (name, list) in [("cams.R", rs.len()), ("cams.T", ts.len())]
+            .into_iter()
+            .chain(ds.map(|d| ("cams.D", d.len())))
+        {
+            if list != num_cameras {
+                bail!(
+                    "{}: field `{name}` has {list} cameras but `cams.K` has {num_cameras}",
+                    annots_path.display()
+                );
+            }
+        }
+        Ok(Self {
+            annots_path,
+            k: ks,
+            r: rs,
+            t: ts,
+            d: ds,
+        })
+    }
+
+    /// Camera `c`, sized by its first image (`images[0][c]`), numbered by its image folder.
+    fn camera(
+        &self,
+        root: &Path,
+        images: &[Vec<String>],
+        c: usize,
+    ) -> anyhow::Result<SourceCamera> {
+        let annots_path = self.annots_path;
+        let at = |name: &str| format!("{name}[{c}]");
+        let k_path = at("cams.K");
+        let k = Field {
+            file: annots_path,
+            path: &k_path,
+            value: &self.k[c],
+        }
+        .matrix3()?;
+        let r_path = at("cams.R");
+        let r = Field {
+            file: annots_path,
+            path: &r_path,
+            value: &self.r[c],
+        }
+        .matrix3()?;
+        let t_path = at("cams.T");
+        let t = Field {
+            file: annots_path,
+            path: &t_path,
+            value: &self.t[c],
+        }
+        .finite_f64s(3)?;
+        let distortion = match self.d {
+            Some(ds) => {
+                let d_path = at("cams.D");
+                let d = Field {
+                    file: annots_path,
+                    path: &d_path,
+                    value: &ds[c],
+                }
+                .finite_array()?
+                .1;
+                if d.len() != 5 && d.len() != 4 {
+                    bail!(
+                        "{}: field `{d_path}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
+                        annots_path.display(),
+                        d.len()
+                    );
+                }
+                let mut out = [0.0; 5];
+                out[..d.len()].copy_from_slice(&d);
+                out
+            }
+            None => [0.0; 5],
+        };
+        let first_image = join_relative(root, &images[0][c], annots_path, "ims[0].ims")?;
+        let (width, height) = image_size(&first_image)?;
+        let rotation = DMat3::from_cols_array_2d(&r).transpose();
+        let translation = DVec3::new(t[0], t[1], t[2]) / 1000.0;
+        let camera = Camera::from_opencv(width, height, k, rotation, translation, distortion)
+            .with_context(|| format!("{}: camera {c} (`cams.*[{c}]`)", annots_path.display()))?;
+        let dir_name = Path::new(&images[0][c])
+            .parent()
+            .and_then(|p| p.to_str())
+            .unwrap_or_default();
+        let id = trailing_number(dir_name).unwrap_or(c as i64 + 1);
+        Ok(SourceCamera { id, camera })
+    }
+}
+
+/// Per frame, per camera: the image paths of `ims[].ims` (one per camera).
+fn image_lists(annots_field: &Field<'_>, num_cameras: usize) -> anyhow::Result<Vec<Vec<String>>> {
+    let annots_path = annots_field.file;
+    let ims = annots_field.get("ims", "ims")?.sequence()?;
+    if ims.is_empty() {
+        bail!("{}: field `ims` lists no frame", annots_path.display());
+    }
+    let mut images = Vec::with_capacity(ims.len());
+    for (f, frame) in ims.iter().enumerate() {
+        let path = format!("ims[{f}].ims");
+        let frame_field = Field {
+            file: annots_path,
+            path: "ims[]",
+            value: frame,
+        };
+        let list = frame_field.get("ims", &path)?.sequence()?;
+        if list.len() != num_cameras {
+            bail!(
+                "{}: field `{path}` has {} images but there are {num_cameras} cameras",
+                annots_path.display(),
+                list.len()
+            );
+        }
+        let names = list
+            .iter()
+            .map(|v| {
+                v.as_str().map(str::to_owned).with_context(|| {
+                    format!(
+                        "{}: field `{path}` holds {v}, not a path",
+                        annots_path.display()
+                    )
+                })
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        images.push(names);
+    }
+    Ok(images)
 }
 
 /// Reads one ZJU/EasyMocap fits dict (`poses`, `Rh`, `Th`, `shapes`) into body parameters.

@@ -136,19 +136,28 @@ impl Backdrop {
     }
 }
 
+/// What a scene's motion produces, per frame.
+struct SceneSequence {
+    /// The true body fits.
+    ground_truth: Vec<BodyParams>,
+    /// Skirt particle positions (empty without a garment).
+    skirt_frames: Vec<Vec<DVec3>>,
+    /// The skirt's static drape (history scene only, else empty).
+    drapes: Vec<Vec<DVec3>>,
+}
+
 /// Per-frame ground truth, simulated skirt and its static drape of the history scene
 /// ([`history`]): the script's poses, the heading as the world rotation, the path integrated
 /// from the interpolated speed and heading at the simulation rate, and the skirt's
 /// oscillator ([`Swing`]) stepped by the same samples, starting at rest (the script starts
 /// with a hold).
-#[allow(clippy::type_complexity)]
 fn history_sequence(
     config: &SyntheticConfig,
     model: &BodyModel,
     shaped: &[DVec3],
     rest_joints: &[DVec3],
     pelvis_height: f64,
-) -> anyhow::Result<(Vec<BodyParams>, Vec<Vec<DVec3>>, Vec<Vec<DVec3>>)> {
+) -> anyhow::Result<SceneSequence> {
     let (phases, headings) = history::frame_values();
     let n = config.frames;
     let phase_curve = MonotoneCubic::new(&phases.iter().map(|&p| p as f64).collect::<Vec<_>>());
@@ -199,7 +208,11 @@ fn history_sequence(
         })
         .collect();
     if !config.garment {
-        return Ok((ground_truth, Vec::new(), Vec::new()));
+        return Ok(SceneSequence {
+            ground_truth,
+            skirt_frames: Vec::new(),
+            drapes: Vec::new(),
+        });
     }
     let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
     let skirt = Skirt::new(model, shaped, scale);
@@ -216,7 +229,11 @@ fn history_sequence(
             (state.apply(&swing_params, &drape), drape)
         })
         .unzip();
-    Ok((ground_truth, simulated, drapes))
+    Ok(SceneSequence {
+        ground_truth,
+        skirt_frames: simulated,
+        drapes,
+    })
 }
 
 /// The albedo region colour of a body vertex from its dominant joint.
@@ -284,6 +301,115 @@ fn jitter(
     }
 }
 
+/// The walk scene: ground-truth fits sampled from the motion script at each frame, and (with
+/// a garment) the skirt simulated over every substep and recorded at the frames; no drapes.
+fn walk_sequence(
+    config: &SyntheticConfig,
+    model: &BodyModel,
+    shaped: &[DVec3],
+    rest_joints: &[DVec3],
+    pelvis_height: f64,
+) -> anyhow::Result<SceneSequence> {
+    let duration = config.frames as f64 / config.fps;
+    let dt = 1.0 / SIMULATION_RATE;
+    let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
+    let frame_step =
+        |frame: usize| (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize;
+    let params_at = |sample: usize| {
+        let s = &samples[sample.min(samples.len() - 1)];
+        BodyParams {
+            pose: s.pose.clone(),
+            betas: config.betas.to_vec(),
+            expression: Vec::new(),
+            world_rotation: DVec3::ZERO,
+            // The pelvis joint of the shaped rest body sits at rest_joints[0].
+            world_translation: s.position - rest_joints[0],
+        }
+    };
+    let ground_truth: Vec<BodyParams> = (0..config.frames)
+        .map(|f| params_at(frame_step(f)))
+        .collect();
+
+    // Garment simulation over every substep, recording the frames.
+    let mut skirt_frames = Vec::new();
+    if config.garment {
+        let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
+        let mut skirt = Skirt::new(model, shaped, scale);
+        let transforms = |sample: usize| {
+            let p = params_at(sample);
+            (
+                model.joint_transforms(rest_joints, &p.pose),
+                DAffine3::from_translation(p.world_translation),
+            )
+        };
+        let (t0, w0) = transforms(0);
+        skirt.reset(&t0, w0);
+        let last = frame_step(config.frames - 1);
+        let mut next_frame = 0;
+        for step in 0..=last {
+            if step > 0 {
+                let (t, w) = transforms(step);
+                skirt.step(&t, w, dt);
+            }
+            while next_frame < config.frames && frame_step(next_frame) == step {
+                skirt_frames.push(skirt.positions().to_vec());
+                next_frame += 1;
+            }
+        }
+        anyhow::ensure!(
+            skirt_frames.len() == config.frames,
+            "garment simulation recorded {} of {} frames",
+            skirt_frames.len(),
+            config.frames
+        );
+        anyhow::ensure!(
+            skirt_frames.iter().flatten().all(|p| p.is_finite()),
+            "garment simulation diverged"
+        );
+    }
+    Ok(SceneSequence {
+        ground_truth,
+        skirt_frames,
+        drapes: Vec::new(),
+    })
+}
+
+/// 3D keypoints: every joint's true world position plus Gaussian noise (its own random
+/// stream).
+fn noisy_keypoints(
+    config: &SyntheticConfig,
+    model: &BodyModel,
+    ground_truth: &[BodyParams],
+) -> anyhow::Result<Vec<DVec3>> {
+    let mut keypoint_rng = super::rng::seeded(config.seed ^ KEYPOINT_STREAM);
+    let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
+    for params in ground_truth {
+        let posed = model.forward(params)?;
+        for joint in posed.joints {
+            let noise = DVec3::new(
+                keypoint_rng.normal(),
+                keypoint_rng.normal(),
+                keypoint_rng.normal(),
+            );
+            keypoints.push(joint + noise * config.jitter.keypoints_metres);
+        }
+    }
+    Ok(keypoints)
+}
+
+/// Each body vertex's colour: that of the region of its dominant joint.
+fn body_colours(model: &BodyModel) -> Vec<DVec3> {
+    (0..model.num_vertices())
+        .map(|v| {
+            let dominant = model
+                .vertex_weights(v)
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .map_or(0, |(j, _)| j);
+            region_colour(dominant)
+        })
+        .collect()
+}
+
 impl SyntheticScene {
     /// Builds the body, runs the motion script and the garment simulation, and places the
     /// cameras. Cost: about a second for the default sizes; images are rendered later.
@@ -298,71 +424,15 @@ impl SyntheticScene {
         let sole = shaped.iter().map(|v| v.y).fold(f64::INFINITY, f64::min);
         let pelvis_height = rest_joints[0].y - sole;
 
-        let (ground_truth, skirt_frames, drapes) = match config.scene {
+        let SceneSequence {
+            ground_truth,
+            skirt_frames,
+            drapes,
+        } = match config.scene {
             SceneKind::History => {
                 history_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?
             }
-            SceneKind::Walk => {
-                let duration = config.frames as f64 / config.fps;
-                let dt = 1.0 / SIMULATION_RATE;
-                let samples = sample_script(duration, WARMUP_SECONDS, dt, pelvis_height);
-                let frame_step = |frame: usize| {
-                    (((frame as f64 / config.fps) + WARMUP_SECONDS) / dt).round() as usize
-                };
-                let params_at = |sample: usize| {
-                    let s = &samples[sample.min(samples.len() - 1)];
-                    BodyParams {
-                        pose: s.pose.clone(),
-                        betas: config.betas.to_vec(),
-                        expression: Vec::new(),
-                        world_rotation: DVec3::ZERO,
-                        // The pelvis joint of the shaped rest body sits at rest_joints[0].
-                        world_translation: s.position - rest_joints[0],
-                    }
-                };
-                let ground_truth: Vec<BodyParams> = (0..config.frames)
-                    .map(|f| params_at(frame_step(f)))
-                    .collect();
-
-                // Garment simulation over every substep, recording the frames.
-                let mut skirt_frames = Vec::new();
-                if config.garment {
-                    let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
-                    let mut skirt = Skirt::new(&model, &shaped, scale);
-                    let transforms = |sample: usize| {
-                        let p = params_at(sample);
-                        (
-                            model.joint_transforms(&rest_joints, &p.pose),
-                            DAffine3::from_translation(p.world_translation),
-                        )
-                    };
-                    let (t0, w0) = transforms(0);
-                    skirt.reset(&t0, w0);
-                    let last = frame_step(config.frames - 1);
-                    let mut next_frame = 0;
-                    for step in 0..=last {
-                        if step > 0 {
-                            let (t, w) = transforms(step);
-                            skirt.step(&t, w, dt);
-                        }
-                        while next_frame < config.frames && frame_step(next_frame) == step {
-                            skirt_frames.push(skirt.positions().to_vec());
-                            next_frame += 1;
-                        }
-                    }
-                    anyhow::ensure!(
-                        skirt_frames.len() == config.frames,
-                        "garment simulation recorded {} of {} frames",
-                        skirt_frames.len(),
-                        config.frames
-                    );
-                    anyhow::ensure!(
-                        skirt_frames.iter().flatten().all(|p| p.is_finite()),
-                        "garment simulation diverged"
-                    );
-                }
-                (ground_truth, skirt_frames, Vec::new())
-            }
+            SceneKind::Walk => walk_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?,
         };
         anyhow::ensure!(
             skirt_frames.iter().flatten().all(|p| p.is_finite()),
@@ -380,31 +450,8 @@ impl SyntheticScene {
             .map(|p| jitter(p, &config.jitter, &mut rng, &fitted_betas))
             .collect();
 
-        // 3D keypoints: every joint's true world position plus Gaussian noise.
-        let mut keypoint_rng = super::rng::seeded(config.seed ^ KEYPOINT_STREAM);
-        let mut keypoints = Vec::with_capacity(config.frames * model.num_joints());
-        for params in &ground_truth {
-            let posed = model.forward(params)?;
-            for joint in posed.joints {
-                let noise = DVec3::new(
-                    keypoint_rng.normal(),
-                    keypoint_rng.normal(),
-                    keypoint_rng.normal(),
-                );
-                keypoints.push(joint + noise * config.jitter.keypoints_metres);
-            }
-        }
-
-        let body_colour = (0..model.num_vertices())
-            .map(|v| {
-                let dominant = model
-                    .vertex_weights(v)
-                    .max_by(|a, b| a.1.total_cmp(&b.1))
-                    .map_or(0, |(j, _)| j);
-                region_colour(dominant)
-            })
-            .collect();
-
+        let keypoints = noisy_keypoints(config, &model, &ground_truth)?;
+        let body_colour = body_colours(&model);
         let backdrops = match config.background {
             SyntheticBackground::Black => Vec::new(),
             SyntheticBackground::Textured => {

@@ -500,6 +500,15 @@ impl ImageLoss {
         Ok(())
     }
 
+    /// Camera `camera` of the iteration and its ground truth slot; an error when
+    /// [`Self::begin_iteration`] did not begin it.
+    fn begun(&self, camera: usize) -> anyhow::Result<(LossCamera, TruthSlot)> {
+        self.cameras
+            .get(camera)
+            .copied()
+            .with_context(|| format!("image losses: camera {camera} was not begun"))
+    }
+
     /// Records camera `camera`'s losses (in [`Self::begin_iteration`]'s order): its
     /// gradients written into `gradients` (`=`, full image at the camera's pixel offset,
     /// zeros outside the rect, times `1 / cameras`) and its terms added into the log.
@@ -511,10 +520,7 @@ impl ImageLoss {
         rendered: DeviceImages<'_>,
         gradients: DeviceImages<'_>,
     ) -> anyhow::Result<()> {
-        let (info, slot) = *self
-            .cameras
-            .get(camera)
-            .with_context(|| format!("image losses: camera {camera} was not begun"))?;
+        let (info, slot) = self.begun(camera)?;
         let pixels = slot.width * slot.height;
         let end = info.pixel_offset + pixels;
         for (what, images) in [("rendered", rendered), ("gradient", gradients)] {
@@ -545,28 +551,20 @@ impl ImageLoss {
                 ],
                 crop_groups,
             );
-            context.dispatch(
-                encoder,
-                &self.kernels.ssim_columns,
-                &[
-                    (0, uniform),
-                    (1, &self.record.buffer),
-                    (5, &self.planes.buffer),
-                    (6, &self.adjoints.buffer),
-                ],
-                crop_groups,
-            );
-            context.dispatch(
-                encoder,
-                &self.kernels.ssim_gradient_rows,
-                &[
-                    (0, uniform),
-                    (1, &self.record.buffer),
-                    (5, &self.planes.buffer),
-                    (6, &self.adjoints.buffer),
-                ],
-                crop_groups,
-            );
+            // Both read one of the two plane workspaces and write the other.
+            for kernel in [&self.kernels.ssim_columns, &self.kernels.ssim_gradient_rows] {
+                context.dispatch(
+                    encoder,
+                    kernel,
+                    &[
+                        (0, uniform),
+                        (1, &self.record.buffer),
+                        (5, &self.planes.buffer),
+                        (6, &self.adjoints.buffer),
+                    ],
+                    crop_groups,
+                );
+            }
         }
         context.dispatch(
             encoder,
@@ -609,10 +607,7 @@ impl ImageLoss {
         camera: usize,
         truth: &GroundTruth,
     ) -> anyhow::Result<&GpuBuffer> {
-        let (_, slot) = *self
-            .cameras
-            .get(camera)
-            .with_context(|| format!("image losses: camera {camera} was not begun"))?;
+        let (_, slot) = self.begun(camera)?;
         ensure!(
             self.targets.len >= 3 * slot.width * slot.height,
             "image losses: the workspace was made without LPIPS (lpips_weight 0), it holds no target"
@@ -639,10 +634,7 @@ impl ImageLoss {
         camera: usize,
         value: &GpuBuffer,
     ) -> anyhow::Result<()> {
-        ensure!(
-            camera < self.cameras.len(),
-            "image losses: camera {camera} was not begun"
-        );
+        self.begun(camera)?;
         self.context.dispatch(
             encoder,
             &self.kernels.add_lpips,

@@ -6,10 +6,10 @@
 //! submits; it reads back only the log ring (every [`ResidentStep::log_capacity`] iterations
 //! at most) and, when densification runs, the Gaussians.
 //!
-//! Phases, in recording order: pose (the refiner's forward, forward kinematics and pose
-//! blend shapes), motion inputs (skeleton window, canonical KNN, velocity gather), the
-//! non-rigid network, the heads applied, the LBS offsets, the nearest template vertices,
-//! skinning and activations, splatting, the image losses with their image gradients, AIAP,
+//! Phases, in recording order: the deformation ([`ResidentDeformer`], shared with rendering:
+//! pose with the refiner's forward, forward kinematics and pose blend shapes, motion inputs,
+//! the non-rigid network, the heads applied, the LBS offsets, the nearest template vertices,
+//! skinning and activations), splatting, the image losses with their image gradients, AIAP,
 //! then the backward in reverse (splatting, skinning, LBS offsets, non-rigid network, pose,
 //! pose refiner), Adam on the Gaussians and on the networks, and the densification
 //! statistics.
@@ -18,20 +18,15 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 use anyhow::Context;
-use seqavatar_avatar::model::gpu::{GpuNetworks, NonRigidDeviceInputs};
-use seqavatar_avatar::model::{HEAD_WIDTH, NetworkGroup, Networks};
-use seqavatar_avatar::resident::motion::{MotionSetup, ResidentMotion};
-use seqavatar_avatar::resident::pose::ResidentPose;
-use seqavatar_avatar::resident::skinning::{
-    GaussianColumns, ResidentSkinning, SkinInputs, SkinningSetup,
-};
-use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use seqavatar_avatar::model::gpu::GpuNetworks;
+use seqavatar_avatar::model::{NetworkGroup, Networks};
+use seqavatar_avatar::resident::deform::{DeformerSetup, History, ResidentDeformer};
+use seqavatar_avatar::resident::skinning::GaussianColumns;
+use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, PhaseTimer};
 use seqavatar_compute::lpips::gpu::{Crop, DeviceImage as LpipsImage, ResidentLpips};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
 use seqavatar_compute::splat::RasterOptions;
-use seqavatar_compute::splat::gpu::{
-    DeviceGaussians, DeviceImageGradient, GpuOptions, SplatWorkspace,
-};
+use seqavatar_compute::splat::gpu::{DeviceImageGradient, GpuOptions, SplatWorkspace};
 use seqavatar_core::camera::Camera;
 
 use super::adam::{GaussianAdam, GaussianGradients};
@@ -106,10 +101,8 @@ pub struct ResidentRun<'a> {
 pub struct ResidentStep {
     context: Arc<GpuContext>,
     config: TrainConfig,
-    pose: ResidentPose,
-    motion: ResidentMotion,
-    networks: Option<GpuNetworks>,
-    skinning: ResidentSkinning,
+    /// Pose, motion inputs, networks and skinning: the deformation's forward.
+    deformer: ResidentDeformer,
     splat: SplatWorkspace,
     truth: GroundTruth,
     losses: ImageLoss,
@@ -123,14 +116,27 @@ pub struct ResidentStep {
     /// Per camera slot, the image gradients the losses write and the splatting reads.
     image_gradients: Vec<(GpuBuffer, GpuBuffer)>,
     add: Arc<Kernel>,
-    has_non_rigid: bool,
-    has_lbs: bool,
-    has_refiner: bool,
+    /// Device timestamps between the phases of each iteration, when timing is on
+    /// ([`ResidentStep::time_phases`]), and the seconds they add up to per phase.
+    timer: Option<PhaseTimer>,
+    device_seconds: [f64; TIMED_PHASES],
+    device_iterations: u64,
     /// Submissions the device may not have run yet, oldest first.
     in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
     /// Iterations recorded since the log was last read, and the first one's slot.
     unread: usize,
     first_unread: usize,
+}
+
+/// Phases timed on the device: deform, splat, losses (with AIAP), backward, optimiser (with
+/// the densification statistics).
+pub const TIMED_PHASES: usize = 5;
+
+/// Records timestamp `index` of the iteration in log slot `slot` when timing is on.
+fn mark(timer: &Option<PhaseTimer>, encoder: &mut wgpu::CommandEncoder, slot: usize, index: usize) {
+    if let Some(timer) = timer {
+        timer.mark(encoder, slot, index);
+    }
 }
 
 /// Records `destination += source` over `len` values (`train_step.wgsl`'s `add_into`,
@@ -169,10 +175,6 @@ impl ResidentStep {
         } = *run;
         let n = state.len();
         let avatar = config.avatar();
-        let context_kind = avatar.motion_context;
-        let rig = &data.rig;
-        let pose =
-            ResidentPose::new(context.clone(), rig, &data.params).context("resident pose path")?;
         let networks = match networks {
             None => None,
             Some(net) => {
@@ -189,40 +191,18 @@ impl ResidentStep {
                 Some(gpu)
             }
         };
-        let has_non_rigid = networks.is_some() && context_kind.has_non_rigid();
-        let has_lbs = networks.is_some() && config.lbs_offsets;
-        let has_refiner = networks.is_some() && config.pose_refiner;
-        let motion = ResidentMotion::new(
-            &context,
-            &MotionSetup {
-                track: &data.motion,
+        let deformer = ResidentDeformer::new(
+            context.clone(),
+            &DeformerSetup {
+                config: &avatar,
+                rig: &data.rig,
+                frames: &data.params,
+                motion: Some(&data.motion),
                 scales,
-                length: config.sequence_length,
-                template: &rig.canonical_vertices,
-                tau: if has_non_rigid && context_kind.has_velocity() {
-                    config.tau
-                } else {
-                    0
-                },
-                skeleton_motion: has_non_rigid && context_kind.has_skeleton_motion(),
+                gaussians: n,
             },
-            n,
-        )
-        .context("resident motion inputs")?;
-        let skinning = ResidentSkinning::new(
-            &context,
-            &SkinningSetup {
-                canonical_joints: &rig.canonical_joints,
-                template_weights: &rig.template_weights,
-                scale_min: config.scale_min,
-                scale_max: config.scale_max,
-                heads: has_non_rigid,
-                weight_offsets: has_lbs,
-                atomic_add: None,
-            },
-            n,
-        )
-        .context("resident skinning")?;
+            networks,
+        )?;
         let splat = SplatWorkspace::new(&context, GpuOptions::default(), None)
             .map_err(|e| anyhow::anyhow!("{e}"))
             .context("splatting workspace")?;
@@ -300,10 +280,7 @@ impl ResidentStep {
         Ok(Self {
             context,
             config: config.clone(),
-            pose,
-            motion,
-            networks,
-            skinning,
+            deformer,
             splat,
             truth,
             losses,
@@ -315,13 +292,33 @@ impl ResidentStep {
             log,
             image_gradients,
             add,
-            has_non_rigid,
-            has_lbs,
-            has_refiner,
+            timer: None,
+            device_seconds: [0.0; TIMED_PHASES],
+            device_iterations: 0,
             in_flight: std::collections::VecDeque::new(),
             unread: 0,
             first_unread: 0,
         })
+    }
+
+    /// Starts timing the phases of every iteration on the device from the next one (one
+    /// timestamp between phases; read with the log); `false` when the adapter has no
+    /// timestamps inside encoders. Clears the times so far.
+    pub fn time_phases(&mut self) -> anyhow::Result<bool> {
+        if self.timer.is_none() {
+            self.timer = PhaseTimer::new(&self.context, TIMED_PHASES + 1, LOG_CAPACITY)?;
+        }
+        self.device_seconds = [0.0; TIMED_PHASES];
+        self.device_iterations = 0;
+        Ok(self.timer.is_some())
+    }
+
+    /// Device seconds per phase (deform, splat, losses, backward, optimiser) summed over
+    /// the iterations timed and read so far, and their count; `None` when not timing.
+    pub fn device_phase_seconds(&self) -> Option<([f64; TIMED_PHASES], u64)> {
+        self.timer
+            .as_ref()
+            .map(|_| (self.device_seconds, self.device_iterations))
     }
 
     /// Iterations that can be recorded between two reads of the log.
@@ -348,10 +345,11 @@ impl ResidentStep {
         let mut encoder = context.encoder();
         let slot = self.first_unread + self.unread;
         self.log.clear_slot(&mut encoder, slot);
+        mark(&self.timer, &mut encoder, slot, 0);
 
         // Host-side per-iteration records (small writes, ordered before the submission).
-        self.motion.set_iteration(plan.frame, n)?;
-        self.skinning.set_iteration(n, plan.sh_degree)?;
+        self.deformer
+            .set_frame(plan.frame, History::Own, n, plan.sh_degree)?;
         self.gaussians.write_step(&OptimiserStep {
             iteration: plan.iteration,
             adam_step: plan.adam_step,
@@ -361,27 +359,10 @@ impl ResidentStep {
             half_size: half_size(data, plan.images),
         })?;
 
-        // Pose: the frame's unrefined local pose (the refiner's and the non-rigid network's
-        // input), the refiner's forward, forward kinematics and pose blend shapes.
-        self.pose.record_refiner_input(&mut encoder, plan.frame)?;
-        let (has_non_rigid, has_lbs, has_refiner) =
-            (self.has_non_rigid, self.has_lbs, self.has_refiner);
-        if let Some(networks) = self.networks.as_mut() {
+        // The deformation: pose, motion inputs, networks, skinning.
+        if let Some(networks) = self.deformer.networks.as_mut() {
             networks.record_zero_grad(&mut encoder);
         }
-        let joints = data.rig.joint_count();
-        let refinements = match (has_refiner, self.networks.as_mut()) {
-            (true, Some(networks)) => Some(device_view(
-                networks
-                    .record_pose_refiner_forward(&mut encoder, &self.pose.refiner_input().buffer)?,
-                9 * (joints - 1),
-            )),
-            _ => None,
-        };
-        self.pose
-            .forward(&mut encoder, plan.frame, refinements.as_ref())?;
-
-        // Motion inputs and the non-rigid network.
         let column =
             |name: &str| -> anyhow::Result<&GpuBuffer> { Ok(&self.gaussians.column(name)?.values) };
         let columns = GaussianColumns {
@@ -391,56 +372,10 @@ impl ResidentStep {
             opacity_logit: column(names::OPACITY_LOGIT)?,
             sh: column(SH)?,
         };
-        let heads = if has_non_rigid {
-            self.motion.record_skeleton_window(&mut encoder)?;
-            self.motion
-                .record_canonical_knn(&mut encoder, columns.xyz)?;
-            self.motion.record_velocity(&mut encoder)?;
-            let velocity: Vec<&wgpu::Buffer> =
-                self.motion.velocity.iter().map(|b| &b.buffer).collect();
-            let networks = self.networks.as_mut().expect("has a non-rigid network");
-            Some(device_view(
-                networks.record_non_rigid_forward(
-                    &mut encoder,
-                    n,
-                    &NonRigidDeviceInputs {
-                        local_pose: &self.pose.refiner_input().buffer,
-                        skeleton_motion: config
-                            .motion_context
-                            .has_skeleton_motion()
-                            .then_some(&self.motion.window.buffer),
-                        xyz: &columns.xyz.buffer,
-                        knn_velocity: &velocity,
-                    },
-                )?,
-                HEAD_WIDTH * n,
-            ))
-        } else {
-            None
-        };
-        self.skinning
-            .record_deform(&mut encoder, columns.xyz, heads.as_ref())?;
-        let weight_offsets = match self.networks.as_mut() {
-            Some(networks) if has_lbs => Some(device_view(
-                networks.record_lbs_offsets_forward(
-                    &mut encoder,
-                    n,
-                    &self.skinning.positions.buffer,
-                )?,
-                joints * n,
-            )),
-            _ => None,
-        };
-        self.motion
-            .record_nearest(&mut encoder, &self.skinning.positions)?;
-        let inputs = SkinInputs {
-            nearest: &self.motion.nearest,
-            weight_offsets: weight_offsets.as_ref(),
-            target_joints: self.pose.target_joints(),
-            vertex_offsets: self.pose.vertex_offsets(),
-        };
-        self.skinning
-            .record_forward(&mut encoder, &columns, &inputs)?;
+        self.deformer
+            .record_forward(&mut encoder, plan.frame, History::Own, &columns)?;
+
+        mark(&self.timer, &mut encoder, slot, 1);
 
         // Splatting into the chosen cameras on the iteration's background.
         let cameras: Vec<Camera> = plan
@@ -448,14 +383,7 @@ impl ResidentStep {
             .iter()
             .map(|&i| data.cameras[data.images[i].view].clone())
             .collect();
-        let world = DeviceGaussians {
-            means: &self.skinning.means,
-            covariances: &self.skinning.covariances,
-            opacities: &self.skinning.opacities,
-            sh: &self.skinning.sh,
-            count: n as u32,
-            sh_degree: plan.sh_degree,
-        };
+        let world = self.deformer.world(plan.sh_degree);
         let options = RasterOptions {
             background: plan.background,
             smooth_cutoff: false,
@@ -463,6 +391,8 @@ impl ResidentStep {
         self.splat
             .forward(&context, &mut encoder, world, &cameras, &options)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+        mark(&self.timer, &mut encoder, slot, 2);
 
         // Image losses and their image gradients, then AIAP.
         let loss_cameras: Vec<LossCamera> = plan
@@ -537,9 +467,11 @@ impl ResidentStep {
         self.aiap.record(
             &mut encoder,
             &self.gaussians,
-            &self.skinning.means,
-            &self.skinning.covariances,
+            &self.deformer.skinning.means,
+            &self.deformer.skinning.covariances,
         )?;
+
+        mark(&self.timer, &mut encoder, slot, 3);
 
         // Backward: splatting, AIAP's deformed-space gradients joined, skinning.
         let upstream: Vec<DeviceImageGradient<'_>> = self.image_gradients[..cameras.len()]
@@ -574,51 +506,59 @@ impl ResidentStep {
                 6 * n,
             );
         }
-        self.skinning.record_backward(
+        let (has_non_rigid, has_lbs, has_refiner) = (
+            self.deformer.has_non_rigid(),
+            self.deformer.has_lbs_offsets(),
+            self.deformer.has_pose_refiner(),
+        );
+        let deformer = &mut self.deformer;
+        deformer.skinning.record_backward(
             &mut encoder,
             &columns,
-            &inputs,
+            &deformer.skin_inputs(),
             splat_grads.means(),
             splat_grads.covariances(),
         )?;
 
         // Networks' backward: LBS offsets, the non-rigid network (its centre gradient joins
         // the direct path), the pose path and the pose refiner.
-        if let Some(networks) = self.networks.as_mut()
+        if let Some(networks) = deformer.networks.as_mut()
             && has_lbs
         {
             networks.record_lbs_offsets_backward(
                 &mut encoder,
-                &self.skinning.grad_weight_offsets.buffer,
+                &deformer.skinning.grad_weight_offsets.buffer,
             )?;
         }
         if has_non_rigid {
-            let networks = self.networks.as_mut().expect("has a non-rigid network");
+            let networks = deformer.networks.as_mut().expect("has a non-rigid network");
             let through = networks
-                .record_non_rigid_backward(&mut encoder, &self.skinning.grad_heads.buffer)?;
+                .record_non_rigid_backward(&mut encoder, &deformer.skinning.grad_heads.buffer)?;
             // The skinning writes `grad_positions` afresh every backward: the sum is this
             // iteration's total centre gradient.
             record_add(
                 &context,
                 &self.add,
                 &mut encoder,
-                &self.skinning.grad_positions.buffer,
+                &deformer.skinning.grad_positions.buffer,
                 through,
                 3 * n,
             );
         }
         if has_refiner {
-            self.pose.backward(
+            deformer.pose.backward(
                 &mut encoder,
-                &self.skinning.grad_target_joints,
-                &self.skinning.grad_vertex_offsets,
+                &deformer.skinning.grad_target_joints,
+                &deformer.skinning.grad_vertex_offsets,
             )?;
-            let networks = self.networks.as_mut().expect("has a pose refiner");
+            let networks = deformer.networks.as_mut().expect("has a pose refiner");
             networks.record_pose_refiner_backward(
                 &mut encoder,
-                &self.pose.refinement_gradients().buffer,
+                &deformer.pose.refinement_gradients().buffer,
             )?;
         }
+
+        mark(&self.timer, &mut encoder, slot, 4);
 
         // Optimisers and densification statistics.
         let aiap_grads = if aiap_active {
@@ -631,16 +571,16 @@ impl ResidentStep {
             &mut encoder,
             &self.gaussians,
             &GaussianGradients {
-                xyz: &self.skinning.grad_positions,
-                log_scale: &self.skinning.grad_log_scales,
-                rotation: &self.skinning.grad_rotations,
+                xyz: &deformer.skinning.grad_positions,
+                log_scale: &deformer.skinning.grad_log_scales,
+                rotation: &deformer.skinning.grad_rotations,
                 opacity: splat_grads.opacities(),
                 sh: splat_grads.sh(),
                 aiap: aiap_grads,
             },
             plan.sh_degree as usize,
         )?;
-        if let Some(networks) = self.networks.as_mut() {
+        if let Some(networks) = deformer.networks.as_mut() {
             let lr = &config.learning_rates;
             let decay = lr
                 .network_decay
@@ -657,6 +597,11 @@ impl ResidentStep {
         if plan.density_statistics {
             self.statistics
                 .record(&mut encoder, &self.gaussians, splat_grads.mean_2d_norm())?;
+        }
+
+        mark(&self.timer, &mut encoder, slot, 5);
+        if let Some(timer) = self.timer.as_mut() {
+            timer.finish_slot(&mut encoder, slot);
         }
 
         // The iteration's logged scalars into its slot of the ring.
@@ -720,6 +665,14 @@ impl ResidentStep {
         self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
         self.unread = 0;
         let logged: Vec<LoggedIteration> = slots.iter().map(logged_from).collect();
+        if let Some(timer) = self.timer.as_mut() {
+            for phases in timer.read(&self.context)? {
+                for (total, seconds) in self.device_seconds.iter_mut().zip(phases) {
+                    *total += seconds;
+                }
+                self.device_iterations += 1;
+            }
+        }
         let status = self.context.download::<u32>(
             self.context.encoder(),
             &self.gaussians.status().buffer,
@@ -750,6 +703,7 @@ impl ResidentStep {
             }
         }
         if let Some(found) = self
+            .deformer
             .networks
             .as_ref()
             .map(GpuNetworks::download_non_finite)
@@ -771,12 +725,13 @@ impl ResidentStep {
             }
             .into());
         }
-        let pose = self.pose.download_status()?;
+        let pose = self.deformer.pose.download_status()?;
         anyhow::ensure!(
             pose.is_clean(),
             "iterations {first_iteration}-{last_iteration}: the pose path met non-finite values ({pose:?})"
         );
-        let [forward, forward_at, backward, backward_at] = self.skinning.download_status()?;
+        let [forward, forward_at, backward, backward_at] =
+            self.deformer.skinning.download_status()?;
         anyhow::ensure!(
             forward == 0 && backward == 0,
             "iterations {first_iteration}-{last_iteration}: skinning met non-finite values \
@@ -815,12 +770,7 @@ impl ResidentStep {
     pub fn upload_state(&mut self, state: &GaussianState) -> anyhow::Result<()> {
         self.gaussians.reupload(state)?;
         let n = state.len();
-        if n > self.motion.capacity() {
-            self.motion.reserve(n)?;
-        }
-        if n > self.skinning.capacity() {
-            self.skinning.reserve(n)?;
-        }
+        self.deformer.reserve(n)?;
         Ok(())
     }
 
@@ -830,21 +780,12 @@ impl ResidentStep {
         networks: &mut Networks<f32>,
         adam: &mut BTreeMap<String, AdamState<f32>>,
     ) -> anyhow::Result<()> {
-        if let Some(gpu) = &self.networks {
+        if let Some(gpu) = &self.deformer.networks {
             gpu.download_into(networks)?;
             adam.clear();
             adam.extend(gpu.download_adam()?);
         }
         Ok(())
-    }
-}
-
-/// A `GpuBuffer` handle of the first `len` values of a network's device buffer (the same
-/// buffer: wgpu buffers are shared handles).
-fn device_view(buffer: &wgpu::Buffer, len: usize) -> GpuBuffer {
-    GpuBuffer {
-        buffer: buffer.clone(),
-        len,
     }
 }
 

@@ -265,6 +265,21 @@ fn adam_matches_cpu_over_steps_with_schedules_and_sh_degrees() {
     adam_matches_cpu_on(&limited, 1000);
 }
 
+/// The status's first non-finite value: (iteration, "parameter" or "gradient of", tensor,
+/// Gaussian).
+fn assert_flagged(gaussians: &ResidentGaussians, expected: (u64, &str, &str, usize)) {
+    let found = gaussians.download_status().unwrap().expect("flagged");
+    assert_eq!(
+        (
+            found.iteration,
+            found.what,
+            found.tensor.as_str(),
+            found.gaussian
+        ),
+        expected
+    );
+}
+
 #[test]
 fn non_finite_gradients_and_values_are_flagged_with_the_first_iteration_and_gaussian() {
     let Some(context) = gpu_test_context() else {
@@ -286,16 +301,7 @@ fn non_finite_gradients_and_values_are_flagged_with_the_first_iteration_and_gaus
         context.submit_and_wait(encoder).unwrap();
     };
     run(&gaussians, 1, &host_gradients(&mut rng, n, 16));
-    let found = gaussians.download_status().unwrap().expect("flagged");
-    assert_eq!(
-        (
-            found.iteration,
-            found.what,
-            found.tensor.as_str(),
-            found.gaussian
-        ),
-        (1, "parameter", "gaussians/rotation", 11)
-    );
+    assert_flagged(&gaussians, (1, "parameter", "gaussians/rotation", 11));
     // Gradients: NaN in the SH of Gaussians 30 and 9, infinite AIAP xyz of Gaussian 17.
     state.values_mut(names::ROTATION).unwrap()[4 * 11 + 2] = 0.5;
     gaussians = ResidentGaussians::upload(&context, &state).unwrap();
@@ -304,16 +310,7 @@ fn non_finite_gradients_and_values_are_flagged_with_the_first_iteration_and_gaus
     host.sh[48 * 9 + 40] = f64::NAN;
     host.aiap[0][3 * 17 + 1] = f64::INFINITY;
     run(&gaussians, 7, &host);
-    let found = gaussians.download_status().unwrap().expect("flagged");
-    assert_eq!(
-        (
-            found.iteration,
-            found.what,
-            found.tensor.as_str(),
-            found.gaussian
-        ),
-        (7, "gradient of", "gaussians/xyz", 17)
-    );
+    assert_flagged(&gaussians, (7, "gradient of", "gaussians/xyz", 17));
     // A later iteration with an earlier Gaussian does not replace the first report.
     let mut later = host_gradients(&mut rng, n, 16);
     later.xyz[0] = f64::NAN;
@@ -615,36 +612,30 @@ fn aiap_matches_cpu_on(context: &Arc<GpuContext>, mode: AtomicAdd, n: usize, nei
             .map(f64::from)
             .collect()
     };
-    assert_close_scaled(
-        &format!("{what}: xyz"),
-        &read(&g.xyz, 3 * n),
-        &cpu.xyz,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: log_scale"),
-        &read(&g.log_scale, 3 * n),
-        &cpu.log_scale,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: rotation"),
-        &read(&g.rotation, 4 * n),
-        &cpu.rotation,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: deformed centres"),
-        &read(&g.deformed_centres, 3 * n),
-        &cpu.deformed_centres,
-        1e-4,
-    );
-    assert_close_scaled(
-        &format!("{what}: deformed covariances"),
-        &read(&g.deformed_covariances, 6 * n),
-        &cpu.deformed_covariances,
-        1e-4,
-    );
+    for (name, device, width, want) in [
+        ("xyz", &g.xyz, 3, &cpu.xyz),
+        ("log_scale", &g.log_scale, 3, &cpu.log_scale),
+        ("rotation", &g.rotation, 4, &cpu.rotation),
+        (
+            "deformed centres",
+            &g.deformed_centres,
+            3,
+            &cpu.deformed_centres,
+        ),
+        (
+            "deformed covariances",
+            &g.deformed_covariances,
+            6,
+            &cpu.deformed_covariances,
+        ),
+    ] {
+        assert_close_scaled(
+            &format!("{what}: {name}"),
+            &read(device, width * n),
+            want,
+            1e-4,
+        );
+    }
 }
 
 #[test]

@@ -261,6 +261,42 @@ pub struct DeviceGaussians<'a> {
     pub sh_degree: u32,
 }
 
+/// The projection's inputs, bound alike by `project_forward` and `project_backward`: the
+/// camera uniform (band 0's) and the Gaussians.
+fn project_inputs<'a>(
+    camera: &'a wgpu::Buffer,
+    gaussians: &DeviceGaussians<'a>,
+) -> [(u32, &'a wgpu::Buffer); 5] {
+    [
+        (0, camera),
+        (1, &gaussians.means.buffer),
+        (2, &gaussians.covariances.buffer),
+        (3, &gaussians.opacities.buffer),
+        (4, &gaussians.sh.buffer),
+    ]
+}
+
+/// The bindings of one band's rasterization, forward and backward alike: `images` are the
+/// colour, alpha and depth images (bindings 4-6) the forward writes and whose gradients the
+/// backward reads.
+fn rasterize_bindings<'a>(
+    band: &'a BandSlot,
+    slot: &'a CameraSlot,
+    images: [&'a GpuBuffer; 3],
+) -> [(u32, &'a wgpu::Buffer); 9] {
+    [
+        (0, &band.camera),
+        (1, &slot.ranges.buffer),
+        (2, &band.pair_gaussians.buffer),
+        (3, &slot.projected.buffer),
+        (4, &images[0].buffer),
+        (5, &images[1].buffer),
+        (6, &images[2].buffer),
+        (7, &slot.transmittance.buffer),
+        (8, &slot.contributors.buffer),
+    ]
+}
+
 /// `Err(Length)` when `buffer` holds fewer than `needed` values.
 fn check_at_least(
     field: &'static str,
@@ -482,6 +518,9 @@ pub struct SplatWorkspace {
     call: Option<Call>,
 }
 
+/// Per camera of a forward, its image and diagnostics as read back.
+pub type CameraImages = (Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>);
+
 /// Pair capacity of the first call when the caller gives none: at most every tile of every
 /// Gaussian, else sixteen tiles per Gaussian (at least a few thousand).
 fn estimate_pairs(gaussians: u32, tiles: u32) -> u64 {
@@ -702,23 +741,18 @@ impl SplatWorkspace {
             }
             encoder.clear_buffer(&slot.diagnostics.buffer, 0, None);
             encoder.clear_buffer(&slot.ranges.buffer, 0, None);
-            context.dispatch(
-                encoder,
-                &project,
+            let bindings = [
+                project_inputs(&slot.bands[0].camera, &gaussians).as_slice(),
                 &[
-                    (0, &slot.bands[0].camera),
-                    (1, &gaussians.means.buffer),
-                    (2, &gaussians.covariances.buffer),
-                    (3, &gaussians.opacities.buffer),
-                    (4, &gaussians.sh.buffer),
                     (5, &slot.projected.buffer),
                     (6, &parts.rects.buffer),
                     (7, &parts.depth_keys.buffer),
                     (8, &parts.depth_indices.buffer),
                     (9, &slot.diagnostics.buffer),
                 ],
-                n.div_ceil(GROUP),
-            );
+            ]
+            .concat();
+            context.dispatch(encoder, &project, &bindings, n.div_ceil(GROUP));
             // Stable sort by depth: culled Gaussians carry the largest key and sort last; ties
             // keep index order because the values start as 0..N.
             let in_scratch = parts.depth_sort.record(
@@ -823,20 +857,11 @@ impl SplatWorkspace {
                 );
             }
             for (band, rows) in slot.bands.iter().zip(&rows) {
+                let images = [&slot.colour, &slot.alpha, &slot.depth];
                 context.dispatch_grid(
                     encoder,
                     &rasterize,
-                    &[
-                        (0, &band.camera),
-                        (1, &slot.ranges.buffer),
-                        (2, &band.pair_gaussians.buffer),
-                        (3, &slot.projected.buffer),
-                        (4, &slot.colour.buffer),
-                        (5, &slot.alpha.buffer),
-                        (6, &slot.depth.buffer),
-                        (7, &slot.transmittance.buffer),
-                        (8, &slot.contributors.buffer),
-                    ],
+                    &rasterize_bindings(band, slot, images),
                     tiles_x,
                     rows.1 - rows.0,
                 );
@@ -860,6 +885,16 @@ impl SplatWorkspace {
     pub fn check_status(&mut self, context: &GpuContext) -> Result<SplatStatus, GpuSplatError> {
         let words: Vec<u32> =
             context.download(context.encoder(), &self.status.buffer, STATUS_WORDS)?;
+        self.apply_status(context, &words)
+    }
+
+    /// Acts on status words read back: resets the status buffer and grows the pair capacity
+    /// after an overflow ([`SplatWorkspace::check_status`]).
+    fn apply_status(
+        &mut self,
+        context: &GpuContext,
+        words: &[u32],
+    ) -> Result<SplatStatus, GpuSplatError> {
         let mut encoder = context.encoder();
         encoder.clear_buffer(&self.status.buffer, 0, None);
         context.queue().submit([encoder.finish()]);
@@ -1003,34 +1038,17 @@ impl SplatWorkspace {
             encoder.clear_buffer(&parts.screen.buffer, 0, None);
             for (band, rows) in slot.bands.iter().zip(rows) {
                 context.write(&band.camera, CAMERA_FLAGS_OFFSET, &[flags])?;
-                context.dispatch_grid(
-                    encoder,
-                    &rasterize,
-                    &[
-                        (0, &band.camera),
-                        (1, &slot.ranges.buffer),
-                        (2, &band.pair_gaussians.buffer),
-                        (3, &slot.projected.buffer),
-                        (4, &gradient.colour.buffer),
-                        (5, &d_alpha.buffer),
-                        (6, &d_depth.buffer),
-                        (7, &slot.transmittance.buffer),
-                        (8, &slot.contributors.buffer),
-                        (15, &parts.screen.buffer),
-                    ],
-                    tiles_x,
-                    rows.1 - rows.0,
-                );
+                let images = [gradient.colour, d_alpha, d_depth];
+                let bindings = [
+                    rasterize_bindings(band, slot, images).as_slice(),
+                    &[(15, &parts.screen.buffer)],
+                ]
+                .concat();
+                context.dispatch_grid(encoder, &rasterize, &bindings, tiles_x, rows.1 - rows.0);
             }
-            context.dispatch(
-                encoder,
-                &project,
+            let bindings = [
+                project_inputs(&slot.bands[0].camera, &gaussians).as_slice(),
                 &[
-                    (0, &slot.bands[0].camera),
-                    (1, &gaussians.means.buffer),
-                    (2, &gaussians.covariances.buffer),
-                    (3, &gaussians.opacities.buffer),
-                    (4, &gaussians.sh.buffer),
                     (9, &out.diagnostics.buffer),
                     (10, &parts.screen.buffer),
                     (11, &out.means.buffer),
@@ -1039,8 +1057,9 @@ impl SplatWorkspace {
                     (14, &out.sh.buffer),
                     (15, &out.mean_2d_norm.buffer),
                 ],
-                call.gaussians.div_ceil(GROUP),
-            );
+            ]
+            .concat();
+            context.dispatch(encoder, &project, &bindings, call.gaussians.div_ceil(GROUP));
         }
         Ok(())
     }
@@ -1114,10 +1133,28 @@ impl SplatWorkspace {
 
     /// Copies every camera's images and diagnostics of the last forward to the host (one
     /// read-back). `intersections` counts every pair the bands needed, also past an overflow.
-    pub fn download_images(
+    pub fn download_images(&self, context: &GpuContext) -> Result<CameraImages, GpuSplatError> {
+        let (images, _) = self.download_images_and_status(context)?;
+        Ok(images)
+    }
+
+    /// The images of the last forward, submitted unchecked, with its status read in the same
+    /// read-back: `None` when a band overflowed its pair capacity (the images are incomplete;
+    /// the capacity has grown, record the forward again). One read-back per try, so a render
+    /// costs one round trip once the capacity fits.
+    pub fn download_checked_images(
+        &mut self,
+        context: &GpuContext,
+    ) -> Result<Option<CameraImages>, GpuSplatError> {
+        let (images, words) = self.download_images_and_status(context)?;
+        let status = self.apply_status(context, &words)?;
+        Ok((!status.grown).then_some(images))
+    }
+
+    fn download_images_and_status(
         &self,
         context: &GpuContext,
-    ) -> Result<(Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>), GpuSplatError> {
+    ) -> Result<(CameraImages, Vec<u32>), GpuSplatError> {
         let call = self.call()?;
         let mut sources: Vec<(&wgpu::Buffer, usize)> = Vec::new();
         for (slot, camera) in self.cameras.iter().zip(&call.cameras) {
@@ -1131,7 +1168,9 @@ impl SplatWorkspace {
         }
         let slots = call.cameras.len() * self.bands as usize;
         sources.push((&self.band_pairs.buffer, slots));
+        sources.push((&self.status.buffer, STATUS_WORDS));
         let mut words = context.download_all::<u32>(context.encoder(), &sources)?;
+        let status = words.pop().unwrap_or_default();
         let band_pairs = words.pop().unwrap_or_default();
         let floats = |bits: Vec<u32>| bits.into_iter().map(f32::from_bits).collect::<Vec<_>>();
         let mut words = words.into_iter();
@@ -1164,7 +1203,7 @@ impl SplatWorkspace {
                 intersections: intersections as usize,
             });
         }
-        Ok((images, diagnostics))
+        Ok(((images, diagnostics), status))
     }
 }
 

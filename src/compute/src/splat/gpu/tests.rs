@@ -491,6 +491,32 @@ fn assert_images_identical(
 /// One workspace reused over calls whose Gaussian count goes up and down: every forward
 /// recorded into the caller's encoder equals the host path bitwise (images and
 /// diagnostics), and every backward matches the cpu backend.
+/// Records one unchecked forward of `gaussians` (as a training step does) and runs it.
+fn forward_unchecked(
+    context: &GpuContext,
+    workspace: &mut SplatWorkspace,
+    gaussians: DeviceGaussians<'_>,
+    cameras: &[Camera],
+) {
+    let mut encoder = context.encoder();
+    workspace
+        .forward(context, &mut encoder, gaussians, cameras, &options())
+        .unwrap();
+    context.submit_and_wait(encoder).unwrap();
+}
+
+/// The workspace's last render has the reference's diagnostics and bit-identical images.
+fn assert_renders_reference(
+    what: &str,
+    context: &GpuContext,
+    workspace: &SplatWorkspace,
+    reference: &GpuForward,
+) {
+    let (images, diagnostics) = workspace.download_images(context).unwrap();
+    assert_eq!(diagnostics, reference.diagnostics, "{what}");
+    assert_images_identical(what, &images, &reference.images);
+}
+
 fn check_reused_workspace(context: &GpuContext, scenes: &[GaussianBuffers<f32>]) {
     let cameras = two_cameras();
     let mut workspace = SplatWorkspace::new(context, GpuOptions::default(), None).unwrap();
@@ -519,9 +545,7 @@ fn check_reused_workspace(context: &GpuContext, scenes: &[GaussianBuffers<f32>])
             .unwrap();
         context.submit_and_wait(encoder).unwrap();
         assert_eq!(workspace.check_status(context).unwrap().overflowed_bands, 0);
-        let (images, diagnostics) = workspace.download_images(context).unwrap();
-        assert_eq!(diagnostics, reference.diagnostics, "call {call}");
-        assert_images_identical(&format!("call {call}"), &images, &reference.images);
+        assert_renders_reference(&format!("call {call}"), context, &workspace, &reference);
         let cpu_forward = cpu::forward(&view, &cameras, &options()).unwrap();
         let cpu_gradients = cpu::backward(
             &cpu_forward,
@@ -571,17 +595,7 @@ fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
         .unwrap();
     let resident = ResidentGaussians::upload(&context, &view).unwrap();
     let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), Some(16)).unwrap();
-    let mut encoder = context.encoder();
-    workspace
-        .forward(
-            &context,
-            &mut encoder,
-            resident.view(),
-            &cameras,
-            &options(),
-        )
-        .unwrap();
-    context.submit_and_wait(encoder).unwrap();
+    forward_unchecked(&context, &mut workspace, resident.view(), &cameras);
     // The truncated render still counts every pair it needed.
     let (truncated, diagnostics) = workspace.download_images(&context).unwrap();
     assert_eq!(diagnostics, reference.diagnostics);
@@ -605,22 +619,11 @@ fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
             grown: false,
         }
     );
-    let mut encoder = context.encoder();
-    workspace
-        .forward(
-            &context,
-            &mut encoder,
-            resident.view(),
-            &cameras,
-            &options(),
-        )
-        .unwrap();
-    context.submit_and_wait(encoder).unwrap();
+    forward_unchecked(&context, &mut workspace, resident.view(), &cameras);
     let status = workspace.check_status(&context).unwrap();
     assert_eq!(status.overflowed_bands, 0);
     assert_eq!(status.largest_band_pairs as usize, needed);
-    let (images, _) = workspace.download_images(&context).unwrap();
-    assert_images_identical("after growing", &images, &reference.images);
+    assert_renders_reference("after growing", &context, &workspace, &reference);
 
     // The checked call does the same at once.
     let mut workspace = SplatWorkspace::new(&context, GpuOptions::default(), Some(16)).unwrap();
@@ -628,9 +631,7 @@ fn an_overflowed_pair_capacity_is_flagged_grown_and_exact_after_the_rerun() {
         .forward_checked(&context, resident.view(), &cameras, &options())
         .unwrap();
     assert_eq!(status.overflowed_bands, 0);
-    let (images, diagnostics) = workspace.download_images(&context).unwrap();
-    assert_eq!(diagnostics, reference.diagnostics);
-    assert_images_identical("checked", &images, &reference.images);
+    assert_renders_reference("checked", &context, &workspace, &reference);
 }
 
 #[test]
@@ -656,9 +657,7 @@ fn an_overflow_beyond_the_band_limit_adds_bands_and_stays_exact() {
     assert!(workspace.bands() > 1, "bands {}", workspace.bands());
     assert!(workspace.pairs_per_band() <= 400);
     assert!(workspace.band_counts()[0] > 1);
-    let (images, diagnostics) = workspace.download_images(&context).unwrap();
-    assert_eq!(diagnostics, reference.diagnostics);
-    assert_images_identical("banded", &images, &reference.images);
+    assert_renders_reference("banded", &context, &workspace, &reference);
 }
 
 #[test]

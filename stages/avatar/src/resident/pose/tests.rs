@@ -132,6 +132,16 @@ fn run(
     context.submit_and_wait(encoder).unwrap();
 }
 
+/// The procedural body with pose blend shapes drawn from seed `dirs_seed`, its rig, and
+/// test frames drawn from a generator seeded `seed`, returned to draw on.
+fn blended_body_frames(dirs_seed: u64, seed: u64) -> (BodyRig, Vec<BodyParams>, SplitMix64) {
+    let model = with_pose_dirs(&procedural_body(0.05), dirs_seed);
+    let rig = BodyRig::new(model.clone()).unwrap();
+    let mut rng = SplitMix64::new(seed);
+    let frames = test_frames(&model, &mut rng);
+    (rig, frames, rng)
+}
+
 /// Forward and backward of every test frame against the rig, with no refiner, identity
 /// refinements and random ones.
 fn check_against_rig(context: Arc<GpuContext>, model: BodyModel, seed: u64) {
@@ -325,10 +335,7 @@ fn resident_pose_backward_matches_finite_differences() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let model = with_pose_dirs(&procedural_body(0.05), 4);
-    let rig = BodyRig::new(model.clone()).unwrap();
-    let mut rng = SplitMix64::new(31);
-    let frames = test_frames(&model, &mut rng);
+    let (rig, frames, mut rng) = blended_body_frames(4, 31);
     let pose = ResidentPose::new(context.clone(), &rig, &frames).unwrap();
     let joints = rig.joint_count();
     let a: Vec<f32> = (0..12 * joints)
@@ -386,10 +393,7 @@ fn resident_pose_steady_state_uploads_only_its_record() {
     }
     // A context of its own: other tests share the common one and would be counted.
     let context = Arc::new(GpuContext::new(AdapterChoice::AllowSoftware).unwrap());
-    let model = with_pose_dirs(&procedural_body(0.05), 5);
-    let rig = BodyRig::new(model.clone()).unwrap();
-    let mut rng = SplitMix64::new(41);
-    let frames = test_frames(&model, &mut rng);
+    let (rig, frames, mut rng) = blended_body_frames(5, 41);
     let pose = ResidentPose::new(context.clone(), &rig, &frames).unwrap();
     let joints = rig.joint_count();
     let refinements = context
@@ -449,10 +453,7 @@ fn resident_pose_dispatches_in_two_dimensions() {
     let Some(limited) = gpu_test_context_with_dispatch_limit(2) else {
         return;
     };
-    let model = with_pose_dirs(&procedural_body(0.05), 6);
-    let rig = BodyRig::new(model.clone()).unwrap();
-    let mut rng = SplitMix64::new(51);
-    let frames = test_frames(&model, &mut rng);
+    let (rig, frames, mut rng) = blended_body_frames(6, 51);
     let joints = rig.joint_count();
     let refinements = flatten(&random_rotations(&mut rng, joints - 1, 1.0));
     let a: Vec<f32> = (0..12 * joints)
@@ -483,10 +484,7 @@ fn resident_pose_flags_non_finite_values() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let model = with_pose_dirs(&procedural_body(0.05), 7);
-    let rig = BodyRig::new(model.clone()).unwrap();
-    let mut rng = SplitMix64::new(61);
-    let frames = test_frames(&model, &mut rng);
+    let (rig, frames, _) = blended_body_frames(7, 61);
     let pose = ResidentPose::new(context.clone(), &rig, &frames).unwrap();
     let joints = rig.joint_count();
     let mut refinements = flatten(&vec![DMat3::IDENTITY; joints - 1]);

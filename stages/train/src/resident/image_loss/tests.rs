@@ -115,6 +115,85 @@ struct DeviceRun {
     log: LossLog,
 }
 
+/// Case `case`'s ground truth image.
+fn truth_image(case: &Case) -> TruthImage<'_> {
+    TruthImage {
+        width: case.width,
+        height: case.height,
+        rgb: &case.record.rgb,
+        mask: &case.record.mask,
+    }
+}
+
+/// A colour and an alpha buffer on the device: rendered images or their gradients.
+struct ImageBuffers {
+    colour: GpuBuffer,
+    alpha: GpuBuffer,
+}
+
+impl ImageBuffers {
+    fn images(&self) -> DeviceImages<'_> {
+        DeviceImages {
+            colour: &self.colour,
+            alpha: &self.alpha,
+        }
+    }
+}
+
+/// What a test that records the losses itself starts from: see [`upload_cases`].
+struct Uploaded {
+    truth: GroundTruth,
+    rendered: ImageBuffers,
+    gradients: ImageBuffers,
+    cameras: Vec<LossCamera>,
+}
+
+/// The cases on the device: ground truth image `i` is case `i`'s, the renders lie back to
+/// back from pixel 0, the gradient buffers are zeros, and camera `i` reads image `i` at its
+/// render's offset.
+fn upload_cases(context: &GpuContext, cases: &[Case]) -> Uploaded {
+    let images: Vec<Option<TruthImage<'_>>> =
+        cases.iter().map(|case| Some(truth_image(case))).collect();
+    let truth = GroundTruth::upload(context, &images).unwrap();
+    let colour: Vec<f32> = cases
+        .iter()
+        .flat_map(|c| c.colour.iter().map(|&v| v as f32))
+        .collect();
+    let alpha: Vec<f32> = cases
+        .iter()
+        .flat_map(|c| c.alpha.iter().map(|&v| v as f32))
+        .collect();
+    let rendered = ImageBuffers {
+        colour: context.upload("colour", &colour).unwrap(),
+        alpha: context.upload("alpha", &alpha).unwrap(),
+    };
+    let gradients = ImageBuffers {
+        colour: context.zeros("colour gradient", colour.len(), 4).unwrap(),
+        alpha: context.zeros("alpha gradient", alpha.len(), 4).unwrap(),
+    };
+    let mut pixel_offset = 0;
+    let cameras = cases
+        .iter()
+        .enumerate()
+        .map(|(index, case)| {
+            let camera = LossCamera {
+                image: index,
+                pixel_offset,
+                rect: case.rect,
+                background: case.background,
+            };
+            pixel_offset += case.width * case.height;
+            camera
+        })
+        .collect();
+    Uploaded {
+        truth,
+        rendered,
+        gradients,
+        cameras,
+    }
+}
+
 /// Uploads the cases' ground truth (with `chunk_bytes` chunks), renders them into shared
 /// buffers at consecutive offsets (after `lead` unused pixels) and runs `iterations`
 /// identical iterations.
@@ -127,14 +206,7 @@ fn run_device(
 ) -> DeviceRun {
     let lead = 7;
     let images: Vec<Option<TruthImage<'_>>> = std::iter::once(None)
-        .chain(cases.iter().map(|case| {
-            Some(TruthImage {
-                width: case.width,
-                height: case.height,
-                rgb: &case.record.rgb,
-                mask: &case.record.mask,
-            })
-        }))
+        .chain(cases.iter().map(|case| Some(truth_image(case))))
         .collect();
     let truth = GroundTruth::upload_with_chunk_limit(context, &images, chunk_bytes).unwrap();
     assert!(truth.slot(0).is_none());
@@ -307,23 +379,21 @@ fn resident_losses_match_image_loss_on_random_images_and_rects() {
     };
     let mut rng = Rng::new(31);
     let all = u64::MAX;
-    let inner = case(&mut rng, 23, 17, rect(3, 2, 20, 15), Mask::Mixed);
-    check(&context, "inner rect", &[inner], WEIGHTS, all);
-    // Touching the left, top and right borders, and the bottom row.
-    let border = case(&mut rng, 19, 13, rect(0, 0, 19, 9), Mask::Mixed);
-    check(&context, "border rect", &[border], WEIGHTS, all);
-    let bottom = case(&mut rng, 14, 16, rect(4, 5, 14, 16), Mask::Mixed);
-    check(&context, "bottom-right rect", &[bottom], WEIGHTS, all);
-    // One pixel wide, and one pixel high.
-    let column = case(&mut rng, 16, 12, rect(5, 1, 6, 11), Mask::Mixed);
-    check(&context, "1-px-wide rect", &[column], WEIGHTS, all);
-    let row = case(&mut rng, 16, 12, rect(2, 7, 15, 8), Mask::Mixed);
-    check(&context, "1-px-high rect", &[row], WEIGHTS, all);
-    let single = case(&mut rng, 5, 4, rect(2, 1, 3, 2), Mask::Mixed);
-    check(&context, "one-pixel rect", &[single], WEIGHTS, all);
-    // An all-zero mask: the target is the background.
-    let empty = case(&mut rng, 18, 15, rect(2, 3, 16, 12), Mask::Empty);
-    check(&context, "all-zero mask", &[empty], WEIGHTS, all);
+    for (what, width, height, rect, mask) in [
+        ("inner rect", 23, 17, rect(3, 2, 20, 15), Mask::Mixed),
+        // Touching the left, top and right borders, and the bottom row.
+        ("border rect", 19, 13, rect(0, 0, 19, 9), Mask::Mixed),
+        ("bottom-right rect", 14, 16, rect(4, 5, 14, 16), Mask::Mixed),
+        // One pixel wide, and one pixel high.
+        ("1-px-wide rect", 16, 12, rect(5, 1, 6, 11), Mask::Mixed),
+        ("1-px-high rect", 16, 12, rect(2, 7, 15, 8), Mask::Mixed),
+        ("one-pixel rect", 5, 4, rect(2, 1, 3, 2), Mask::Mixed),
+        // An all-zero mask: the target is the background.
+        ("all-zero mask", 18, 15, rect(2, 3, 16, 12), Mask::Empty),
+    ] {
+        let one = case(&mut rng, width, height, rect, mask);
+        check(&context, what, &[one], WEIGHTS, all);
+    }
     // SSIM off: no SSIM term, no SSIM gradient.
     let plain = case(&mut rng, 21, 11, rect(1, 1, 20, 10), Mask::Mixed);
     check(
@@ -404,46 +474,14 @@ fn a_steady_state_iteration_reads_nothing_back_and_writes_only_its_record() {
         case(&mut rng, 24, 20, rect(2, 2, 22, 18), Mask::Mixed),
         case(&mut rng, 24, 20, rect(0, 3, 20, 20), Mask::Mixed),
     ];
-    let images: Vec<Option<TruthImage<'_>>> = cases
-        .iter()
-        .map(|case| {
-            Some(TruthImage {
-                width: case.width,
-                height: case.height,
-                rgb: &case.record.rgb,
-                mask: &case.record.mask,
-            })
-        })
-        .collect();
-    let truth = GroundTruth::upload(&context, &images).unwrap();
+    let Uploaded {
+        truth,
+        rendered,
+        gradients,
+        cameras,
+    } = upload_cases(&context, &cases);
     assert_eq!(truth.bytes(), 2 * 24 * 20 * 4);
-    let colour: Vec<f32> = cases
-        .iter()
-        .flat_map(|c| c.colour.iter().map(|&v| v as f32))
-        .collect();
-    let alpha: Vec<f32> = cases
-        .iter()
-        .flat_map(|c| c.alpha.iter().map(|&v| v as f32))
-        .collect();
-    let rendered = (
-        context.upload("colour", &colour).unwrap(),
-        context.upload("alpha", &alpha).unwrap(),
-    );
-    let gradients = (
-        context.zeros("colour gradient", colour.len(), 4).unwrap(),
-        context.zeros("alpha gradient", alpha.len(), 4).unwrap(),
-    );
     let mut loss = ImageLoss::new(context.clone(), WEIGHTS, 0.0, 2, 24 * 20).unwrap();
-    let cameras: Vec<LossCamera> = cases
-        .iter()
-        .enumerate()
-        .map(|(index, case)| LossCamera {
-            image: index,
-            pixel_offset: index * 24 * 20,
-            rect: case.rect,
-            background: case.background,
-        })
-        .collect();
     let mut iterate = |iteration: u64| {
         let mut encoder = context.encoder();
         loss.begin_iteration(&mut encoder, iteration, &cameras, &truth)
@@ -453,14 +491,8 @@ fn a_steady_state_iteration_reads_nothing_back_and_writes_only_its_record() {
                 &mut encoder,
                 camera,
                 &truth,
-                DeviceImages {
-                    colour: &rendered.0,
-                    alpha: &rendered.1,
-                },
-                DeviceImages {
-                    colour: &gradients.0,
-                    alpha: &gradients.1,
-                },
+                rendered.images(),
+                gradients.images(),
             )
             .unwrap();
         }
@@ -544,7 +576,7 @@ fn bad_inputs_are_errors_naming_the_sizes() {
 /// image border.
 #[test]
 fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
-    use crate::losses::LpipsLoss;
+    use crate::losses::{ColourPair, LpipsLoss};
     use seqavatar_compute::backend::{Backend, DeviceChoice};
     use seqavatar_compute::lpips::gpu::{Crop, DeviceImage};
     use seqavatar_compute::lpips::seeded::seeded_weights;
@@ -572,10 +604,12 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
         let mut lpips_gradient = vec![0.0; 3 * w * h];
         let value = oracle_lpips
             .add_loss(
-                &case.colour,
-                &target,
-                w,
-                h,
+                ColourPair {
+                    width: w,
+                    height: h,
+                    colour: &case.colour,
+                    target: &target,
+                },
                 case.rect,
                 lpips_weight,
                 &mut lpips_gradient,
@@ -598,45 +632,13 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
     let resident = gpu
         .resident(device_lpips.weights(), input, h, w, 2)
         .unwrap();
-    let images: Vec<Option<TruthImage<'_>>> = cases
-        .iter()
-        .map(|case| {
-            Some(TruthImage {
-                width: w,
-                height: h,
-                rgb: &case.record.rgb,
-                mask: &case.record.mask,
-            })
-        })
-        .collect();
-    let truth = GroundTruth::upload(&context, &images).unwrap();
-    let colour: Vec<f32> = cases
-        .iter()
-        .flat_map(|c| c.colour.iter().map(|&v| v as f32))
-        .collect();
-    let alpha: Vec<f32> = cases
-        .iter()
-        .flat_map(|c| c.alpha.iter().map(|&v| v as f32))
-        .collect();
-    let rendered = (
-        context.upload("colour", &colour).unwrap(),
-        context.upload("alpha", &alpha).unwrap(),
-    );
-    let gradients = (
-        context.zeros("colour gradient", colour.len(), 4).unwrap(),
-        context.zeros("alpha gradient", alpha.len(), 4).unwrap(),
-    );
+    let Uploaded {
+        truth,
+        rendered,
+        gradients,
+        cameras,
+    } = upload_cases(&context, &cases);
     let mut loss = ImageLoss::new(context.clone(), WEIGHTS, lpips_weight, 2, w * h).unwrap();
-    let cameras: Vec<LossCamera> = cases
-        .iter()
-        .enumerate()
-        .map(|(index, case)| LossCamera {
-            image: index,
-            pixel_offset: index * w * h,
-            rect: case.rect,
-            background: case.background,
-        })
-        .collect();
     let mut encoder = context.encoder();
     loss.begin_iteration(&mut encoder, 4, &cameras, &truth)
         .unwrap();
@@ -645,14 +647,8 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
             &mut encoder,
             camera,
             &truth,
-            DeviceImages {
-                colour: &rendered.0,
-                alpha: &rendered.1,
-            },
-            DeviceImages {
-                colour: &gradients.0,
-                alpha: &gradients.1,
-            },
+            rendered.images(),
+            gradients.images(),
         )
         .unwrap();
         let target = loss.record_target(&mut encoder, camera, &truth).unwrap();
@@ -663,7 +659,7 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
                 &mut encoder,
                 camera,
                 DeviceImage {
-                    buffer: &rendered.0,
+                    buffer: &rendered.colour,
                     offset: info.pixel_offset,
                     width: w,
                     height: h,
@@ -681,7 +677,7 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
                     height: crop.height(),
                 },
                 (lpips_weight / cameras.len() as f64) as f32,
-                &gradients.0,
+                &gradients.colour,
             )
             .unwrap();
         loss.record_lpips(&mut encoder, camera, resident.value(camera))
@@ -693,7 +689,11 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
     assert!(want.lpips > 0.0);
     assert_close_values("with LPIPS", log.last, want);
     let colour_gradient: Vec<f32> = context
-        .download(context.encoder(), &gradients.0.buffer, colour.len())
+        .download(
+            context.encoder(),
+            &gradients.colour.buffer,
+            gradients.colour.len,
+        )
         .unwrap();
     let largest = want_gradients
         .iter()

@@ -1,10 +1,29 @@
-//! Undistortion and rescaling of dataset images onto the ingested cameras.
+//! Undistortion and rescaling of dataset images onto the ingested cameras (ingest stages
+//! them; training and the fit's evidence resample them to their own resolution).
 
 use rayon::prelude::*;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec2;
 
-use crate::reader::SourceImage;
+/// An image that does not match its camera or mask.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ResampleError {
+    #[error("image is {}x{} but the camera calibration says {}x{}", image.0, image.1, camera.0, camera.1)]
+    ImageSize {
+        image: (u32, u32),
+        camera: (u32, u32),
+    },
+    #[error("mask is {}x{} but the image is {}x{}", mask.0, mask.1, image.0, image.1)]
+    MaskSize { mask: (u32, u32), image: (u32, u32) },
+}
+
+/// One captured image and its foreground mask, both at the camera's full resolution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SourceImage {
+    pub rgb: image::RgbImage,
+    /// 0 = background, 255 = foreground; soft values allowed.
+    pub mask: image::GrayImage,
+}
 
 /// Undistorts and rescales one image and mask onto `target` (a distortion-free camera with
 /// the same pose as `source`, its intrinsics scaled). Each output pixel averages `n x n`
@@ -13,20 +32,20 @@ pub fn resample(
     image: &SourceImage,
     source: &Camera,
     target: &Camera,
-) -> anyhow::Result<(Vec<u8>, Vec<u8>)> {
+) -> Result<(Vec<u8>, Vec<u8>), ResampleError> {
     let (sw, sh) = (image.rgb.width(), image.rgb.height());
-    anyhow::ensure!(
-        (sw, sh) == (source.width, source.height),
-        "image is {sw}x{sh} but the camera calibration says {}x{}",
-        source.width,
-        source.height
-    );
-    anyhow::ensure!(
-        image.mask.dimensions() == (sw, sh),
-        "mask is {}x{} but the image is {sw}x{sh}",
-        image.mask.width(),
-        image.mask.height()
-    );
+    if (sw, sh) != (source.width, source.height) {
+        return Err(ResampleError::ImageSize {
+            image: (sw, sh),
+            camera: (source.width, source.height),
+        });
+    }
+    if image.mask.dimensions() != (sw, sh) {
+        return Err(ResampleError::MaskSize {
+            mask: image.mask.dimensions(),
+            image: (sw, sh),
+        });
+    }
     let (tw, th) = (target.width as usize, target.height as usize);
     let identity =
         (tw, th) == (sw as usize, sh as usize) && source.distortion.iter().all(|d| *d == 0.0);

@@ -1,0 +1,406 @@
+//! A trained avatar driven by one sequence's frames (body parameters and motion track) and
+//! rendered on the backend chosen once: on `cpu` the frame inputs are gathered on the host
+//! and the avatar's [`crate::device::AvatarBackend`] deforms and splats; on the `gpu` the
+//! whole frame runs on the device ([`ResidentRenderer`]) and only the image comes back. Eval,
+//! the held-out PSNR of training, `pipeline render`, `pipeline export` and `pipeline view`
+//! render through it.
+
+use seqavatar_compute::backend::Backend;
+use seqavatar_compute::splat::RenderedImage;
+use seqavatar_core::body::BodyParams;
+use seqavatar_core::camera::Camera;
+use seqavatar_motion::schema::MotionTrack;
+
+use crate::avatar::{FrameInputs, TrainedAvatar};
+use crate::device::AvatarBackend;
+pub use crate::resident::deform::History;
+use crate::resident::render::ResidentRenderer;
+use crate::splatting::WorldGaussians;
+
+enum RenderPath {
+    /// Frame inputs on the host, the avatar's backend for networks and splatting.
+    Host(Box<dyn AvatarBackend>),
+    /// Everything on the device.
+    Resident(Box<ResidentRenderer>),
+}
+
+/// An avatar's renderer over the frames of one sequence. Every call takes the avatar it was
+/// built for (the device path holds a snapshot of it made at [`SequenceRenderer::new`]).
+pub struct SequenceRenderer {
+    params: Vec<BodyParams>,
+    motion: Option<MotionTrack>,
+    path: RenderPath,
+}
+
+impl SequenceRenderer {
+    /// The renderer of `avatar` on `backend` over the frames `params` (one per frame) with
+    /// their motion `track` (required when the motion context has history inputs). On the
+    /// gpu the avatar, its networks, the poses and the motion arrays are uploaded here, once.
+    pub fn new(
+        avatar: &TrainedAvatar,
+        backend: &Backend,
+        params: Vec<BodyParams>,
+        motion: Option<MotionTrack>,
+    ) -> anyhow::Result<Self> {
+        let path = match backend.gpu() {
+            Some(context) => RenderPath::Resident(Box::new(ResidentRenderer::new(
+                context.clone(),
+                avatar,
+                &params,
+                motion.as_ref(),
+            )?)),
+            None => RenderPath::Host(avatar.backend(backend.clone())?),
+        };
+        Ok(Self {
+            params,
+            motion,
+            path,
+        })
+    }
+
+    /// Frames of the sequence.
+    pub fn num_frames(&self) -> usize {
+        self.params.len()
+    }
+
+    /// The frames' body parameters.
+    pub fn params(&self) -> &[BodyParams] {
+        &self.params
+    }
+
+    /// The motion track, when the renderer has one.
+    pub fn motion(&self) -> Option<&MotionTrack> {
+        self.motion.as_ref()
+    }
+
+    /// Whether frames are deformed and splatted on the device.
+    pub fn on_device(&self) -> bool {
+        matches!(self.path, RenderPath::Resident(_))
+    }
+
+    /// Whether the per-Gaussian networks run on a gpu (on either path).
+    pub fn networks_on_gpu(&self) -> bool {
+        match &self.path {
+            RenderPath::Host(device) => device.networks_on_gpu(),
+            RenderPath::Resident(_) => true,
+        }
+    }
+
+    /// The host-side inputs of frame `frame` with `history` (the `cpu` path's; the device
+    /// path gathers the same on the device).
+    pub fn frame_inputs(
+        &self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+    ) -> anyhow::Result<FrameInputs> {
+        let params = self.frame_params(frame)?;
+        let Some(track) = &self.motion else {
+            return Ok(FrameInputs {
+                params: params.clone(),
+                skeleton_motion: Vec::new(),
+                vertex_velocity: Vec::new(),
+            });
+        };
+        let mut inputs = avatar.frame_inputs(track, params, frame)?;
+        match history {
+            History::Own => {}
+            History::Zeroed => {
+                inputs.skeleton_motion.fill(0.0);
+                inputs.vertex_velocity.fill(0.0);
+            }
+            History::Frame(donor) => {
+                let donor = avatar.frame_inputs(track, self.frame_params(donor)?, donor)?;
+                inputs.skeleton_motion = donor.skeleton_motion;
+                inputs.vertex_velocity = donor.vertex_velocity;
+            }
+        }
+        Ok(inputs)
+    }
+
+    fn frame_params(&self, frame: usize) -> anyhow::Result<&BodyParams> {
+        self.params.get(frame).ok_or_else(|| {
+            anyhow::anyhow!(
+                "frame {frame}: the sequence has {} frames",
+                self.params.len()
+            )
+        })
+    }
+
+    /// Renders frame `frame` (with `history`) from `camera` on `background`.
+    pub fn render(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+        camera: &Camera,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>> {
+        self.frame_params(frame)?;
+        if let RenderPath::Resident(device) = &mut self.path {
+            let image = device.render(frame, history, camera, background)?;
+            let widen = |values: Vec<f32>| values.into_iter().map(f64::from).collect();
+            return Ok(RenderedImage {
+                width: image.width,
+                height: image.height,
+                colour: widen(image.colour),
+                alpha: widen(image.alpha),
+                depth: widen(image.depth),
+            });
+        }
+        let inputs = self.frame_inputs(avatar, frame, history)?;
+        let RenderPath::Host(device) = &self.path else {
+            unreachable!("the device path returned above")
+        };
+        avatar.render_on(&inputs, camera, &**device, background)
+    }
+
+    /// The deformed Gaussians of frame `frame` (with `history`), as the splatting reads them.
+    pub fn deform(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+    ) -> anyhow::Result<WorldGaussians> {
+        self.frame_params(frame)?;
+        if let RenderPath::Resident(device) = &mut self.path {
+            return device.deform(frame, history);
+        }
+        let inputs = self.frame_inputs(avatar, frame, history)?;
+        let RenderPath::Host(device) = &self.path else {
+            unreachable!("the device path returned above")
+        };
+        Ok(avatar.deform(&inputs, &**device)?.world)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::avatar::AvatarGaussians;
+    use crate::config::{AvatarConfig, Background, MotionContext};
+    use crate::model::{NetworkConfig, Networks};
+    use crate::rig::BodyRig;
+    use seqavatar_compute::backend::DeviceChoice;
+    use seqavatar_compute::nn::Rng;
+    use seqavatar_core::body::procedural::procedural_body;
+    use seqavatar_core::camera::Intrinsics;
+    use seqavatar_core::glam::DVec3;
+    use seqavatar_motion::schema::FrameAxis;
+
+    /// An avatar with every network (multiscale motion context, pose refiner, LBS offsets)
+    /// and heads well away from zero, on a 5-frame sequence of distinct poses and random
+    /// motion values.
+    fn avatar_and_sequence() -> (TrainedAvatar, Vec<BodyParams>, MotionTrack) {
+        let model = procedural_body(0.05);
+        let (j, v, frames) = (model.num_joints(), model.num_vertices(), 5);
+        let config = AvatarConfig {
+            motion_context: MotionContext::Multiscale,
+            trunk_width: 16,
+            trunk_depth: 2,
+            tau: 3,
+            sequence_length: 2,
+            pose_refiner: true,
+            lbs_offsets: true,
+            sh_degree: 1,
+            scale_min: 1e-5,
+            scale_max: 0.5,
+            background: Background::Black,
+        };
+        let rig = BodyRig::new(model.clone()).unwrap();
+        let net_config = NetworkConfig::from_avatar(&config, j, j, 2).unwrap();
+        let mut networks = Networks::<f32>::new(&net_config, 5).unwrap();
+        let mut rng = Rng::new(17);
+        for param in networks.parameters_mut() {
+            if param.name.starts_with("non_rigid.heads") || param.name.starts_with("lbs_offsets.4")
+            {
+                for x in param.values.iter_mut() {
+                    *x = rng.uniform(-0.05, 0.05) as f32;
+                }
+            }
+        }
+        let n = 400;
+        let xyz: Vec<f64> = (0..n)
+            .flat_map(|i| {
+                let k = 3 * ((i * 97) % v);
+                rig.canonical_vertices[k..k + 3].to_vec()
+            })
+            .collect();
+        let gaussians = AvatarGaussians {
+            xyz,
+            sh: (0..n * 48).map(|_| rng.uniform(-0.5, 0.5)).collect(),
+            opacity_logit: (0..n).map(|_| rng.uniform(0.0, 3.0)).collect(),
+            log_scale: (0..3 * n).map(|_| rng.uniform(-3.5, -2.5)).collect(),
+            rotation: (0..4 * n).map(|_| rng.uniform(-1.0, 1.0)).collect(),
+        };
+        let avatar = TrainedAvatar::new(config, rig, gaussians, 1, vec![2, 1], Some(networks));
+        let params: Vec<BodyParams> = (0..frames)
+            .map(|f| {
+                let mut params = model.zero_params();
+                params.pose[1] = DVec3::new(0.1 * f as f64, 0.0, 0.2);
+                params.pose[16 % j] = DVec3::new(0.0, -0.15 * f as f64, 0.3);
+                params.world_rotation = DVec3::new(0.0, 0.2 * f as f64, 0.0);
+                params.world_translation = DVec3::new(0.02 * f as f64, 0.1, 0.0);
+                params
+            })
+            .collect();
+        let mut random = |count: usize| -> Vec<f32> {
+            (0..count).map(|_| rng.uniform(-1.0, 1.0) as f32).collect()
+        };
+        let track = MotionTrack {
+            num_frames: frames,
+            num_joints: j,
+            num_vertices: v,
+            scales: vec![2, 1],
+            scale_steps: vec![2, 1],
+            skeleton_motion: random(frames * 2 * j * 3),
+            vertex_velocity: random(frames * 2 * v * 3),
+            axis: FrameAxis::FROM_START,
+        };
+        (avatar, params, track)
+    }
+
+    fn camera(width: u32, height: u32) -> Camera {
+        Camera::look_at(
+            width,
+            height,
+            Intrinsics {
+                fx: 1.2 * f64::from(width),
+                fy: 1.2 * f64::from(width),
+                cx: 0.5 * f64::from(width),
+                cy: 0.5 * f64::from(height),
+            },
+            DVec3::new(0.4, 0.2, 2.4),
+            DVec3::new(0.0, 0.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.0),
+        )
+    }
+
+    fn psnr(a: &[f64], b: &[f64]) -> f64 {
+        let mse = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len() as f64;
+        10.0 * (1.0 / mse.max(1e-20)).log10()
+    }
+
+    /// The device path (deformation and splatting on the gpu, f32) renders and deforms what
+    /// the `cpu` path does, for the frame's own history, zeroed history and another frame's
+    /// history; the history changes the render on both.
+    #[test]
+    fn the_device_path_renders_and_deforms_as_the_cpu_path() {
+        let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend() else {
+            return;
+        };
+        let cpu = Backend::select(DeviceChoice::Cpu).unwrap();
+        let (avatar, params, track) = avatar_and_sequence();
+        let mut on_cpu =
+            SequenceRenderer::new(&avatar, &cpu, params.clone(), Some(track.clone())).unwrap();
+        let mut on_gpu = SequenceRenderer::new(&avatar, &gpu, params, Some(track)).unwrap();
+        assert!(!on_cpu.on_device() && on_gpu.on_device());
+        let view = camera(64, 48);
+        let background = [0.2, 0.5, 0.9];
+        let mut own = None;
+        for history in [History::Own, History::Zeroed, History::Frame(1)] {
+            let a = on_cpu
+                .render(&avatar, 3, history, &view, background)
+                .unwrap();
+            let b = on_gpu
+                .render(&avatar, 3, history, &view, background)
+                .unwrap();
+            assert_eq!((a.width, a.height), (b.width, b.height));
+            let colour = psnr(&a.colour, &b.colour);
+            let alpha = psnr(&a.alpha, &b.alpha);
+            assert!(
+                colour > 50.0 && alpha > 50.0,
+                "{history:?}: {colour} / {alpha} dB"
+            );
+            match &own {
+                None => own = Some(a.colour.clone()),
+                Some(own) => {
+                    let change = own
+                        .iter()
+                        .zip(&a.colour)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0, f64::max);
+                    assert!(
+                        change > 1e-3,
+                        "{history:?} renders as the frame's own history"
+                    );
+                }
+            }
+            let x = on_cpu.deform(&avatar, 3, history).unwrap();
+            let y = on_gpu.deform(&avatar, 3, history).unwrap();
+            for (name, p, q, tolerance) in [
+                ("means", &x.means, &y.means, 1e-4),
+                ("covariances", &x.covariances, &y.covariances, 1e-5),
+                ("opacities", &x.opacities, &y.opacities, 1e-5),
+                ("sh", &x.sh, &y.sh, 1e-5),
+            ] {
+                assert_eq!(p.len(), q.len(), "{name}");
+                let worst = p
+                    .iter()
+                    .zip(q)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(worst <= tolerance, "{history:?} {name}: {worst}");
+            }
+        }
+        // Another frame's history is exactly that frame's own on the device.
+        let borrowed = on_gpu
+            .render(&avatar, 3, History::Frame(1), &view, background)
+            .unwrap();
+        let mut again = SequenceRenderer::new(
+            &avatar,
+            &gpu,
+            vec![on_gpu.params()[3].clone(); 5],
+            on_gpu.motion().cloned(),
+        )
+        .unwrap();
+        let direct = again
+            .render(&avatar, 1, History::Own, &view, background)
+            .unwrap();
+        assert_eq!(borrowed.colour, direct.colour);
+        // A frame outside the sequence is an error naming it, on both paths.
+        for renderer in [&mut on_cpu, &mut on_gpu] {
+            let error = format!(
+                "{:#}",
+                renderer
+                    .render(&avatar, 5, History::Own, &view, background)
+                    .unwrap_err()
+            );
+            assert!(error.contains("frame 5"), "{error}");
+        }
+    }
+
+    /// On the device a frame costs one submission and one read-back (the image and the
+    /// splatting status), and uploads only its small per-frame records.
+    #[test]
+    fn a_device_frame_reads_back_once_and_uploads_only_records() {
+        let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend_alone() else {
+            return;
+        };
+        let (avatar, params, track) = avatar_and_sequence();
+        let mut renderer = SequenceRenderer::new(&avatar, &gpu, params, Some(track)).unwrap();
+        let view = camera(96, 64);
+        // The first frames size the splatting's pair capacity.
+        for frame in 0..3 {
+            renderer
+                .render(&avatar, frame, History::Own, &view, [0.0; 3])
+                .unwrap();
+        }
+        let before = gpu.transfers();
+        for frame in [3, 4, 2] {
+            renderer
+                .render(&avatar, frame, History::Own, &view, [0.0; 3])
+                .unwrap();
+        }
+        let traffic = gpu.transfers().since(&before);
+        assert_eq!(traffic.readbacks, 3, "{traffic:?}");
+        // Per frame: colour, alpha, depth (5 floats per pixel) and a few hundred bytes of
+        // diagnostics and status.
+        let image_bytes = 96 * 64 * 5 * 4;
+        assert!(
+            traffic.bytes_down <= 3 * (image_bytes + 1024),
+            "{traffic:?}"
+        );
+        assert!(traffic.bytes_up <= 3 * 1024, "{traffic:?}");
+    }
+}
