@@ -4,8 +4,10 @@
 //! body models, corrupt and partial avatar arrays, `pipeline render` on another sequence's
 //! poses and on a pose file, and the report of the run.
 //!
-//! Library-level (not through the binary): it lives in the root crate because it trains
-//! through `seqavatar-train`, which the eval crate must not depend on (not even for tests).
+//! Library-level (not through the binary) except where a command's own checks are the
+//! subject (`pipeline report` on an edited entry): it lives in the root crate because it
+//! trains through `seqavatar-train`, which the eval crate must not depend on (not even for
+//! tests).
 
 use std::path::Path;
 
@@ -544,4 +546,47 @@ fn pose_files_are_read_and_checked() {
         .unwrap_err()
         .to_string();
     assert!(error.contains("absent.npz"), "{error}");
+}
+
+/// `pipeline report` verifies the entries it reports as `run` does: after an eval entry's
+/// summary is edited to 99 dB (its `zarr.json` rewritten as valid JSON), the report is
+/// refused, naming the stage, the entry and the file, and no report shows the edited number;
+/// the unedited run reports fine, and a rerun recomputes the entry.
+#[test]
+fn report_refuses_an_edited_eval_summary() {
+    let sandbox = crate::support::Sandbox::new();
+    sandbox.write("p.yaml", &pipeline_text(""));
+    sandbox.ok(&["run", "p.yaml"]);
+    let out = sandbox.path().join("report");
+    let out_arg = out.to_str().unwrap();
+    sandbox.ok(&["report", "p.yaml", "--out", out_arg]);
+    let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(!reported.contains("99.00"), "{reported}");
+
+    let key = sandbox.key_of("p.yaml", "eval");
+    let group = sandbox.cache().join("eval").join(&key).join("zarr.json");
+    let mut metadata: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&group).unwrap()).unwrap();
+    let psnr = &mut metadata["attributes"]["summary"]["means"]["psnr"];
+    assert!(psnr.is_number(), "{metadata}");
+    *psnr = serde_json::json!(99.0);
+    std::fs::write(&group, serde_json::to_vec_pretty(&metadata).unwrap()).unwrap();
+
+    std::fs::remove_dir_all(&out).unwrap();
+    let error = sandbox.fails(&["report", "p.yaml", "--out", out_arg]);
+    for part in [
+        "stage \"eval\"",
+        &format!("eval/{key}"),
+        "corrupt",
+        "zarr.json",
+    ] {
+        assert!(error.contains(part), "`{part}` missing from: {error}");
+    }
+    assert!(!out.join("report.md").exists());
+    // `run` finds the same entry corrupt and recomputes it; the report then works again.
+    let rerun = sandbox.ok(&["run", "p.yaml"]);
+    assert!(rerun.contains("corrupt"), "{rerun}");
+    sandbox.ok(&["report", "p.yaml", "--out", out_arg]);
+    let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(!reported.contains("99.00"), "{reported}");
 }

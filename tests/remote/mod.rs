@@ -524,3 +524,85 @@ fn server_stopped_mid_run_gives_a_clear_error_then_the_upload_is_retried() {
     assert!(out.contains("1 stages: 0 ran, 1 cached"), "{out}\n{err}");
     assert!(err.contains("downloaded"), "{err}");
 }
+
+/// Read leases are objects in the bucket: `gc` on one machine skips an entry a run on
+/// another machine reads (it deleted it when the leases were machine-local), and deletes
+/// the lease objects of readers that stopped renewing them (killed) before removing the
+/// entry.
+#[test]
+fn gc_on_another_machine_skips_an_entry_a_run_reads() {
+    let Some(cluster) = Cluster::new(3.0) else {
+        return;
+    };
+    cluster.write(
+        "p.yaml",
+        "stages:\n  - name: a\n    kind: test_arrays\n    config: {seed: 5}\n  - name: b\n    kind: test_arrays\n    inputs: [a]\n    config: {sleep_ms: 6000, steps: 30, count_file: count.txt}\n",
+    );
+    cluster.write(
+        "other.yaml",
+        "stages:\n  - name: x\n    kind: test_arrays\n",
+    );
+    cluster.ok("m1", &["run", "p.yaml", "--until", "a"]);
+    let key_a = cluster.key_of("p.yaml", "a");
+    // m1 computes b, reading a, for 6 s; m2 collects garbage meanwhile.
+    let reader = cluster.spawn("m1", &["run", "p.yaml"]);
+    cluster.wait_for_lines("count.txt", 1);
+    let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
+    assert!(
+        gc.contains(&format!(
+            "skipped test_arrays/{key_a}: a running pipeline reads it"
+        )),
+        "{gc}"
+    );
+    assert!(
+        cluster
+            .moto
+            .list(&format!(".readers/test_arrays/{key_a}/"))
+            .iter()
+            .all(|name| !name.ends_with("/.gc")),
+        "the skipping gc removed its own lease object"
+    );
+    let (ok, out, err) = wait_output(reader);
+    assert!(ok, "{out}\n{err}");
+    assert_eq!(cluster.status("m3", "p.yaml")[0].2, "cached");
+    // The run's lease objects went with it.
+    assert!(cluster.moto.list(".readers/").is_empty());
+
+    // A reader killed without deleting its object: once expired (not renewed for the 3 s
+    // timeout, plus a second for whole-second timestamps), gc deletes it and the entry.
+    let ghost = format!(".readers/test_arrays/{key_a}/ghost-1-1");
+    cluster.moto.put(&ghost, b"{}");
+    let put_at = Instant::now();
+    // And one of a key never published (a killed run was computing it): swept by gc too.
+    let unpublished = format!(".readers/test_arrays/{}/ghost-2-2", "0".repeat(64));
+    cluster.moto.put(&unpublished, b"{}");
+    let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
+    assert!(
+        gc.contains(&format!(
+            "skipped test_arrays/{key_a}: a running pipeline reads it"
+        )),
+        "a fresh lease object is a live reader: {gc}"
+    );
+    assert!(gc.contains("removed 1 entries"), "b has no reader: {gc}");
+    // gc again every half second until the entry goes (a loaded machine may delay it).
+    let mut outputs = String::new();
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let (gc, _) = cluster.ok("m2", &["gc", "--keep", "other.yaml"]);
+        outputs.push_str(&gc);
+        if gc.contains(&format!("removed test_arrays/{key_a}")) {
+            break;
+        }
+        assert!(
+            put_at.elapsed() < Duration::from_secs(30),
+            "the expired lease object kept the entry: {outputs}"
+        );
+    }
+    assert!(
+        put_at.elapsed() >= Duration::from_secs(3),
+        "removed while its reader's lease object was younger than the timeout: {outputs}"
+    );
+    assert!(outputs.contains("removed expired read lease"), "{outputs}");
+    assert!(cluster.moto.list(".readers/").is_empty());
+    assert!(cluster.moto.list("test_arrays/").is_empty());
+}

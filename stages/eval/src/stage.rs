@@ -232,6 +232,18 @@ impl StageKind for EvalStage {
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["train", "ingest"])?;
+        // Evaluation measures the test images: a split without any is refused now, not
+        // after training.
+        let ingest = inputs
+            .iter()
+            .find(|input| input.kind == "ingest")
+            .expect("checked above");
+        let ingest_config: seqavatar_ingest::config::IngestConfig =
+            serde_json::from_value(ingest.config.clone())
+                .map_err(|e| format!("input {}: ingest config: {e}", ingest.name))?;
+        ingest_config
+            .check_test_images_at_load()
+            .map_err(|e| format!("input {}: {e}", ingest.name))?;
         // An avatar with skeleton-motion context renders from the motion entry.
         let train = inputs
             .iter()
@@ -840,5 +852,39 @@ mod tests {
         for part in ["device", "cuda", "auto", "cpu", "gpu"] {
             assert!(err.contains(part), "`{err}` lacks {part}");
         }
+    }
+
+    /// An eval whose ingest split yields no test image is refused when the pipeline loads
+    /// (before training runs), naming the input and the split field; the demo's split loads.
+    #[test]
+    fn an_ingest_split_without_test_images_is_refused_at_load() {
+        let check = |cameras: u64| {
+            let ingest = seqavatar_ingest::Ingest
+                .resolve_config(&json!({
+                    "dataset": {"kind": "synthetic", "cameras": cameras, "frames": 4, "width": 16, "height": 16}
+                }))
+                .unwrap();
+            let train = json!({"motion_context": "none"});
+            let inputs = [
+                seqavatar_engine::StageInput {
+                    name: "train",
+                    kind: "train",
+                    config: &train,
+                },
+                seqavatar_engine::StageInput {
+                    name: "ingest",
+                    kind: "ingest",
+                    config: &ingest,
+                },
+            ];
+            EvalStage.check_inputs(&json!({}), &inputs)
+        };
+        // One camera: the default split has no test view.
+        let error = check(1).unwrap_err();
+        assert!(
+            error.contains("input ingest") && error.contains("split.test_views"),
+            "{error}"
+        );
+        check(8).unwrap();
     }
 }

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use seqavatar_engine::{ConfigError, ConfigPathSegment};
 
+use crate::plan::ImageCounts;
 use crate::reader::{FrameRange, Split};
 
 /// Split overrides from the stage config: any field left out keeps the dataset's default.
@@ -156,6 +157,68 @@ impl IngestConfig {
     }
 }
 
+impl IngestConfig {
+    /// The split and its image counts, where the config alone determines them (a synthetic
+    /// scene: its cameras and frames are config fields); `None` for file-based datasets,
+    /// whose default split and counts come from their files. Counted, not listed: cheap for
+    /// the largest scene the ranges allow.
+    pub fn image_counts_at_load(&self) -> Option<(Split, anyhow::Result<ImageCounts>)> {
+        let DatasetConfig::Synthetic(scene) = &self.dataset else {
+            return None;
+        };
+        let split = self
+            .split
+            .apply(crate::synthetic::scene::default_split(scene.cameras));
+        let counts = ImageCounts::of(&split, scene.cameras, scene.frames);
+        Some((split, counts))
+    }
+
+    /// For a stage that evaluates on the held-out images (eval): an error, naming the split
+    /// fields, when the split yields no test image, so the pipeline is refused when it loads
+    /// rather than after training. Checked wherever the config decides it: the whole plan
+    /// of a synthetic scene; for file-based datasets an explicit empty `split.test_views`
+    /// without `split.held_out_frames` (their default splits come from their files, which
+    /// the pipeline does not open when it loads).
+    pub fn check_test_images_at_load(&self) -> Result<(), String> {
+        let advice = "set split.test_views (and split.test_frames) to views and frames not \
+                      trained on, or split.held_out_frames";
+        let Some((split, counts)) = self.image_counts_at_load() else {
+            let no_test_views = self.split.test_views.as_ref().is_some_and(Vec::is_empty);
+            if no_test_views && self.split.held_out_frames.is_none() {
+                return Err(format!(
+                    "the split yields no test images (split.test_views is empty and \
+                     split.held_out_frames is not set): evaluation would have nothing to \
+                     measure; {advice}"
+                ));
+            }
+            return Ok(());
+        };
+        let counts = counts.map_err(|e| format!("split: {e:#}"))?;
+        if counts.test > 0 {
+            return Ok(());
+        }
+        Err(format!(
+            "the split yields no test images (split.test_views {:?}, split.test_frames {}, \
+             split.held_out_frames {}; a (view, frame) also in split.train_views x \
+             split.train_frames is a training image): evaluation would have nothing to \
+             measure; {advice}",
+            split.test_views,
+            describe_range(&split.test_frames),
+            split
+                .held_out_frames
+                .as_ref()
+                .map_or_else(|| "not set".to_owned(), describe_range),
+        ))
+    }
+}
+
+fn describe_range(range: &FrameRange) -> String {
+    match range.end {
+        Some(end) => format!("{}..{end} step {}", range.start, range.step),
+        None => format!("{}.. step {}", range.start, range.step),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use crate::stage::Ingest;
@@ -197,5 +260,68 @@ mod tests {
             let err = resolve(raw.clone()).unwrap_err();
             assert!(err.contains(field), "{raw} gave `{err}`");
         }
+    }
+
+    /// A split without test images is refused from the config alone (eval calls this when
+    /// the pipeline loads): one synthetic camera (no test view), test images all inside the
+    /// training split (stored once, as training images), an explicit empty `test_views` of a
+    /// file-based dataset; a temporal hold-out or the defaults give test images.
+    #[test]
+    fn a_split_without_test_images_is_refused_at_load() {
+        use super::IngestConfig;
+        let config = |raw: serde_json::Value| -> IngestConfig {
+            let resolved = seqavatar_engine::resolve_typed::<IngestConfig>(&raw).unwrap();
+            serde_json::from_value(resolved).unwrap()
+        };
+        let synthetic = |extra: serde_json::Value| {
+            let mut raw = serde_json::json!({
+                "dataset": {"kind": "synthetic", "cameras": 8, "frames": 6, "width": 16, "height": 16}
+            });
+            for (key, value) in extra.as_object().unwrap() {
+                if key == "cameras" {
+                    raw["dataset"]["cameras"] = value.clone();
+                } else {
+                    raw[key] = value.clone();
+                }
+            }
+            config(raw)
+        };
+        // The demo's shape (8 cameras, default split) has test views.
+        synthetic(serde_json::json!({}))
+            .check_test_images_at_load()
+            .unwrap();
+        let refused = [
+            synthetic(serde_json::json!({"cameras": 1})),
+            synthetic(serde_json::json!({"split": {"test_views": []}})),
+            // Test view 1 on frames all trained on by view 1 too: no image left for testing.
+            synthetic(serde_json::json!({"split": {"train_views": [0, 1], "test_views": [1]}})),
+            config(serde_json::json!({
+                "dataset": {"kind": "zju_mocap", "root": "/nowhere"},
+                "split": {"test_views": []}
+            })),
+        ];
+        for (i, c) in refused.iter().enumerate() {
+            let err = c.check_test_images_at_load().unwrap_err();
+            assert!(
+                err.contains("no test images") && err.contains("split.test_views"),
+                "case {i}: {err}"
+            );
+        }
+        // A temporal hold-out gives every view a test image at its frames.
+        synthetic(serde_json::json!({
+            "cameras": 1,
+            "split": {"held_out_frames": {"start": 5, "end": null, "step": 10}}
+        }))
+        .check_test_images_at_load()
+        .unwrap();
+        // A file-based dataset's default split comes from its files: not refused here.
+        config(serde_json::json!({"dataset": {"kind": "zju_mocap", "root": "/nowhere"}}))
+            .check_test_images_at_load()
+            .unwrap();
+        // A split the plan itself refuses is reported naming its field.
+        let err = synthetic(serde_json::json!({"split": {"test_views": [99]}}))
+            .check_test_images_at_load()
+            .unwrap_err();
+        assert!(err.contains("split.test_views"), "{err}");
     }
 }

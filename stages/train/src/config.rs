@@ -413,24 +413,19 @@ impl TrainConfig {
         self.validate_sizes()?;
         self.validate_schedule_and_weights()?;
         self.learning_rates.validate()?;
-        if let Some(machine) = seqavatar_engine::machine_memory_bytes() {
-            let estimate = self.memory_estimate_bytes();
-            if estimate > machine {
-                return bad(
-                    "max_gaussians",
-                    format!(
-                        "training would need at least {:.1} GB (max_gaussians {} x trunk \
-                         {}x{}, tau {}, sequence_length {}), more than this machine's {:.1} GB",
-                        estimate as f64 / 1e9,
-                        self.max_gaussians,
-                        self.trunk_width,
-                        self.trunk_depth,
-                        self.tau,
-                        self.sequence_length,
-                        machine as f64 / 1e9
-                    ),
-                );
-            }
+        // The Gaussians alone against the budget; the images join the estimate where they are
+        // known (`check_memory`: at load for a synthetic scene, else when the stage starts).
+        let budget =
+            seqavatar_engine::memory_budget_bytes().map_err(|message| ConfigError::Field {
+                field: "max_gaussians".into(),
+                message,
+            })?;
+        if let Some(budget) = budget {
+            self.check_memory(None, budget)
+                .map_err(|message| ConfigError::Field {
+                    field: "max_gaussians".into(),
+                    message,
+                })?;
         }
         Ok(())
     }
@@ -455,6 +450,57 @@ impl TrainConfig {
         gaussians
             .saturating_mul(per_gaussian)
             .saturating_add(weights)
+    }
+
+    /// The memory a run needs at its peak, in bytes: [`Self::memory_estimate_bytes`], the
+    /// images held in memory for the whole run (every image of the ingest entry, training and
+    /// test, RGB and mask bytes at the training resolution), and the per-pixel state of the
+    /// `cameras_per_step` renders of one iteration (forward, losses and backward).
+    pub fn run_memory_estimate_bytes(&self, images: Option<&TrainingImages>) -> u64 {
+        let Some(images) = images else {
+            return self.memory_estimate_bytes();
+        };
+        let pixels = images.pixels_at(self.resolution_scale);
+        let held = images
+            .count
+            .saturating_mul(pixels)
+            .saturating_mul(HELD_IMAGE_BYTES_PER_PIXEL);
+        let renders = (self.cameras_per_step as u64)
+            .saturating_mul(pixels)
+            .saturating_mul(RENDER_BYTES_PER_PIXEL);
+        self.memory_estimate_bytes()
+            .saturating_add(held)
+            .saturating_add(renders)
+    }
+
+    /// Refuses a run whose [`Self::run_memory_estimate_bytes`] exceeds `budget` bytes,
+    /// naming the fields that make it large and how to raise the budget.
+    pub fn check_memory(&self, images: Option<&TrainingImages>, budget: u64) -> Result<(), String> {
+        let estimate = self.run_memory_estimate_bytes(images);
+        if estimate <= budget {
+            return Ok(());
+        }
+        let images_part = images.map_or_else(String::new, |images| {
+            let pixels = images.pixels_at(self.resolution_scale);
+            format!(
+                ", {} images of the ingest split ({}) at train.resolution_scale {} \
+                 ({pixels} pixels each) and train.cameras_per_step {} renders",
+                images.count, images.source, self.resolution_scale, self.cameras_per_step
+            )
+        });
+        Err(format!(
+            "training would need about {:.1} GB (train.max_gaussians {} x trunk {}x{}, tau {}, \
+             sequence_length {}{images_part}), over the memory budget of {:.1} GB (set {} to \
+             raise it)",
+            estimate as f64 / 1e9,
+            self.max_gaussians,
+            self.trunk_width,
+            self.trunk_depth,
+            self.tau,
+            self.sequence_length,
+            budget as f64 / 1e9,
+            seqavatar_engine::MEMORY_BUDGET_VAR
+        ))
     }
 
     /// What rendering the trained avatar needs of this configuration (written into the
@@ -534,6 +580,72 @@ fn merge(base: &mut serde_json::Value, patch: &serde_json::Value) {
             }
         }
         (b, p) => *b = p.clone(),
+    }
+}
+
+/// Bytes per pixel of an image held for the whole run: RGB and mask, one byte each.
+const HELD_IMAGE_BYTES_PER_PIXEL: u64 = 4;
+/// Bytes per pixel of one render in flight during an iteration: the composited colour, the
+/// ground truth on the background, their gradient and the SSIM statistics (f64 maps, 216
+/// bytes), and the splatting's per-pixel compositing state.
+const RENDER_BYTES_PER_PIXEL: u64 = 256;
+
+/// The images a training run holds, as far as known before reading them: how many, and the
+/// largest view's size at the ingest entry's resolution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainingImages {
+    pub count: u64,
+    pub width: u64,
+    pub height: u64,
+    /// Where the numbers come from, for messages (the ingest stage's fields, or its entry).
+    pub source: String,
+}
+
+impl TrainingImages {
+    /// From the ingest stage's config where it determines them (a synthetic scene: its
+    /// split's images at `dataset.width x dataset.height` times `resolution_scale`); `None`
+    /// for file-based datasets or a split the plan refuses (ingest reports that).
+    pub fn from_ingest_config(ingest: &seqavatar_ingest::config::IngestConfig) -> Option<Self> {
+        let seqavatar_ingest::config::DatasetConfig::Synthetic(scene) = &ingest.dataset else {
+            return None;
+        };
+        let (_, counts) = ingest.image_counts_at_load()?;
+        let counts = counts.ok()?;
+        let side = |n: u32| ((f64::from(n) * ingest.resolution_scale).round() as u64).max(1);
+        Some(Self {
+            count: (counts.train + counts.test) as u64,
+            width: side(scene.width),
+            height: side(scene.height),
+            source: format!(
+                "dataset.cameras {} x dataset.frames {} split, dataset.width x dataset.height \
+                 {} x {} at resolution_scale {}",
+                scene.cameras, scene.frames, scene.width, scene.height, ingest.resolution_scale
+            ),
+        })
+    }
+
+    /// From the ingest entry's `images` array (count, height, width), read from its metadata
+    /// before any image is.
+    pub fn from_entry(ingest: &seqavatar_engine::EntryReader) -> anyhow::Result<Self> {
+        let shape = ingest.shape("images")?;
+        anyhow::ensure!(
+            shape.len() == 4,
+            "entry {}: array `images` has shape {shape:?}, expected (N, H, W, 3)",
+            ingest.location()
+        );
+        Ok(Self {
+            count: shape[0],
+            width: shape[2],
+            height: shape[1],
+            source: format!("entry {}", ingest.location()),
+        })
+    }
+
+    /// Pixels of one image at the training resolution (`scale` of the entry's, rounded as
+    /// cameras are rescaled).
+    fn pixels_at(&self, scale: f64) -> u64 {
+        let side = |n: u64| ((n as f64 * scale).round() as u64).max(1);
+        side(self.width).saturating_mul(side(self.height))
     }
 }
 
@@ -676,7 +788,10 @@ mod tests {
         c.max_gaussians = MAX_GAUSSIANS;
         c.trunk_width = MAX_TRUNK_WIDTH;
         assert!(c.memory_estimate_bytes() > 1 << 39);
-        if seqavatar_engine::machine_memory_bytes().is_some_and(|m| m < 1 << 39) {
+        if seqavatar_engine::memory_budget_bytes()
+            .unwrap()
+            .is_some_and(|m| m < 1 << 39)
+        {
             let err = c.validate().unwrap_err().to_string();
             assert!(err.contains("max_gaussians") && err.contains("GB"), "{err}");
         }

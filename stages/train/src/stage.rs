@@ -46,7 +46,7 @@ use seqavatar_engine::{
 };
 
 use crate::checkpoint;
-use crate::config::TrainConfig;
+use crate::config::{TrainConfig, TrainingImages};
 use crate::data::TrainingData;
 use crate::trainer::{LossCurve, Phase, Trainer};
 
@@ -130,10 +130,29 @@ impl StageKind for TrainStage {
 
     fn check_inputs(
         &self,
-        _config: &serde_json::Value,
+        config: &serde_json::Value,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
-        seqavatar_engine::require_one_input_of_each(inputs, &["ingest", "motion"])
+        seqavatar_engine::require_one_input_of_each(inputs, &["ingest", "motion"])?;
+        // The images join the memory estimate where the ingest config determines them.
+        let ingest = inputs
+            .iter()
+            .find(|input| input.kind == "ingest")
+            .expect("checked above");
+        let ingest_config: seqavatar_ingest::IngestConfig =
+            serde_json::from_value(ingest.config.clone())
+                .map_err(|e| format!("input {}: ingest config: {e}", ingest.name))?;
+        let Some(images) = TrainingImages::from_ingest_config(&ingest_config) else {
+            return Ok(());
+        };
+        let config: TrainConfig = serde_json::from_value(config.clone())
+            .map_err(|e| format!("train config does not deserialize: {e}"))?;
+        match seqavatar_engine::memory_budget_bytes()? {
+            Some(budget) => config
+                .check_memory(Some(&images), budget)
+                .map_err(|e| format!("{e} (images from input {})", ingest.name)),
+            None => Ok(()),
+        }
     }
 
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
@@ -167,6 +186,13 @@ impl StageKind for TrainStage {
         let motion = ctx.input("motion")?.clone();
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
         let params_entry = fit.as_ref().unwrap_or(&ingest);
+        // Refused before any image is read when the run would not fit the memory budget.
+        if let Some(budget) = seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)? {
+            let images = TrainingImages::from_entry(&ingest)?;
+            config
+                .check_memory(Some(&images), budget)
+                .map_err(anyhow::Error::msg)?;
+        }
         let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
         check_motion_window(&config, &data).with_context(|| {
             format!(
@@ -672,5 +698,117 @@ mod tests {
     #[test]
     fn smoothing_is_a_trailing_mean() {
         assert_eq!(smooth(&[1.0, 3.0, 5.0, 7.0], 2), vec![1.0, 2.0, 4.0, 6.0]);
+    }
+
+    /// The ingest and train configs of `pipelines/synthetic.yaml` (the demo), resolved, with
+    /// the ingest's scene size replaced by `scene`.
+    fn demo_configs(scene: serde_json::Value) -> (serde_json::Value, serde_json::Value) {
+        use seqavatar_engine::StageKind as _;
+        let mut dataset =
+            json!({"kind": "synthetic", "cameras": 8, "frames": 48, "width": 256, "height": 256});
+        for (key, value) in scene.as_object().unwrap() {
+            dataset[key] = value.clone();
+        }
+        let ingest = seqavatar_ingest::Ingest
+            .resolve_config(
+                &json!({"dataset": dataset, "resolution_scale": 1.0, "past_frames": 18}),
+            )
+            .unwrap();
+        let train = TrainStage
+            .resolve_config(&json!({"preset": "fast", "device": "auto"}))
+            .unwrap();
+        (ingest, train)
+    }
+
+    fn check(ingest: &serde_json::Value, train: &serde_json::Value) -> Result<(), String> {
+        let inputs = [
+            seqavatar_engine::StageInput {
+                name: "ingest",
+                kind: "ingest",
+                config: ingest,
+            },
+            seqavatar_engine::StageInput {
+                name: "motion",
+                kind: "motion",
+                config: &serde_json::Value::Null,
+            },
+        ];
+        TrainStage.check_inputs(train, &inputs)
+    }
+
+    /// Training holds every image of the split in memory: 64 cameras x 1000 frames at
+    /// 2048 x 2048 pass every range check but need over 200 GB. Refused when the pipeline
+    /// loads, from the configs alone, in well under a second, naming the fields.
+    #[test]
+    fn a_run_over_the_memory_budget_is_refused_at_load() {
+        let started = Instant::now();
+        let (ingest, train) =
+            demo_configs(json!({"cameras": 64, "frames": 1000, "width": 2048, "height": 2048}));
+        let ingest_config: seqavatar_ingest::IngestConfig =
+            serde_json::from_value(ingest.clone()).unwrap();
+        let images = TrainingImages::from_ingest_config(&ingest_config).unwrap();
+        // The default split: 48 training views on every frame, 16 test views on every other.
+        assert_eq!(images.count, 48 * 1000 + 16 * 500);
+        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        // The `fast` preset trains at half resolution: 1024 x 1024, RGB and mask bytes.
+        assert_eq!(config.resolution_scale, 0.5);
+        let estimate = config.run_memory_estimate_bytes(Some(&images));
+        assert!(estimate > images.count * 1024 * 1024 * 4, "{estimate}");
+        let error = config.check_memory(Some(&images), 16 << 30).unwrap_err();
+        for field in [
+            "dataset.cameras",
+            "dataset.frames",
+            "dataset.width",
+            "train.resolution_scale",
+            "train.max_gaussians",
+            "train.cameras_per_step",
+            "SEQAVATAR_MEMORY_BUDGET",
+        ] {
+            assert!(error.contains(field), "{field}: {error}");
+        }
+        // Through the stage's load-time check, against this machine's budget.
+        if seqavatar_engine::memory_budget_bytes()
+            .unwrap()
+            .is_some_and(|budget| budget < estimate)
+        {
+            let error = check(&ingest, &train).unwrap_err();
+            assert!(
+                error.contains("SEQAVATAR_MEMORY_BUDGET") && error.contains("input ingest"),
+                "{error}"
+            );
+        }
+        assert!(started.elapsed() < std::time::Duration::from_secs(1));
+    }
+
+    /// The demo's run fits a small budget: its images, Gaussians and renders take about
+    /// 0.1 GB; the load-time check accepts it.
+    #[test]
+    fn the_demo_run_is_within_the_memory_budget() {
+        let (ingest, train) = demo_configs(json!({}));
+        let ingest_config: seqavatar_ingest::IngestConfig =
+            serde_json::from_value(ingest.clone()).unwrap();
+        let images = TrainingImages::from_ingest_config(&ingest_config).unwrap();
+        // 6 training views on 48 frames, 2 test views on 24.
+        assert_eq!(
+            (images.count, images.width, images.height),
+            (6 * 48 + 2 * 24, 256, 256)
+        );
+        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        // At the `fast` preset's half resolution: 128 x 128 pixels per image and render.
+        assert_eq!(config.resolution_scale, 0.5);
+        let estimate = config.run_memory_estimate_bytes(Some(&images));
+        assert_eq!(
+            estimate,
+            config.memory_estimate_bytes()
+                + images.count * 128 * 128 * 4
+                + config.cameras_per_step as u64 * 128 * 128 * 256
+        );
+        config.check_memory(Some(&images), 1 << 30).unwrap();
+        if seqavatar_engine::memory_budget_bytes()
+            .unwrap()
+            .is_none_or(|budget| budget >= 1 << 30)
+        {
+            check(&ingest, &train).unwrap();
+        }
     }
 }

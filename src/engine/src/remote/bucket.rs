@@ -88,11 +88,13 @@ impl std::fmt::Display for S3Url {
     }
 }
 
-/// One stored object: its path relative to the listed folder and its size.
+/// One stored object: its path relative to the listed folder, its size and when it was last
+/// written (the server's clock).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) struct ObjectInfo {
     pub name: String,
     pub size: u64,
+    pub modified: std::time::SystemTime,
 }
 
 /// Blocking operations on the objects under one prefix of a bucket. Paths given to the methods
@@ -278,6 +280,7 @@ impl Bucket {
                 meta.location.filename().map(|name| ObjectInfo {
                     name: name.to_string(),
                     size: meta.size,
+                    modified: meta.last_modified.into(),
                 })
             })
             .collect();
@@ -307,6 +310,7 @@ impl Bucket {
                 Some(ObjectInfo {
                     name,
                     size: meta.size,
+                    modified: meta.last_modified.into(),
                 })
             })
             .collect();

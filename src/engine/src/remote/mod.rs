@@ -9,10 +9,13 @@
 //!   after every file of the upload is stored; it names the upload. Readers follow only the
 //!   marker, so a half-uploaded entry is never read and the first publisher wins even when two
 //!   workers computed the same key;
-//! - `.leases/<kind>/<key>`: the lease of a worker computing the key (see [`lease`]).
+//! - `.leases/<kind>/<key>`: the lease of a worker computing the key (see [`lease`]);
+//! - `.readers/<kind>/<key>/<reader>` and `.readers/<kind>/<key>/.gc`: the read leases of
+//!   the runs and commands reading the entry, and of a `gc` deleting it (see [`readers`]).
 
 mod bucket;
 mod lease;
+mod readers;
 
 use std::collections::BTreeSet;
 use std::fs;
@@ -492,12 +495,16 @@ impl Store for RemoteStore {
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
         Self::check_id(id)?;
-        self.local.read_lease(id)
+        let local = self.local.read_lease(id)?;
+        readers::read_lease(&self.bucket, self.settings, id, local)
     }
 
     fn try_exclusive_read_lease(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn ReadLease>>> {
         Self::check_id(id)?;
-        self.local.try_exclusive_read_lease(id)
+        let Some(local) = self.local.try_exclusive_read_lease(id)? else {
+            return Ok(None);
+        };
+        readers::try_exclusive_read_lease(&self.bucket, self.settings, id, local)
     }
 
     fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>> {
@@ -664,6 +671,12 @@ impl Store for RemoteStore {
             }
         }
         lines.extend(self.retry_pending_uploads()?);
+        for name in readers::remove_expired(&self.bucket, self.settings)? {
+            lines.push(format!(
+                "expired read lease {}",
+                self.bucket.describe(&name)
+            ));
+        }
         Ok(lines)
     }
 

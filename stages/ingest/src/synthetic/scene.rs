@@ -753,6 +753,30 @@ impl SyntheticScene {
     }
 }
 
+/// The synthetic scene's split for `n` cameras (what `default_split` gives; also resolved
+/// from the config alone when the pipeline loads): every fourth camera (1, 5, ...) is a test
+/// view, the others train; training uses every frame, testing every second frame.
+pub(crate) fn default_split(n: usize) -> Split {
+    let test_views: Vec<usize> = if n >= 2 {
+        (1..n).step_by(4).collect()
+    } else {
+        Vec::new()
+    };
+    let train_views = (0..n).filter(|v| !test_views.contains(v)).collect();
+    Split {
+        train_views,
+        test_views,
+        train_frames: FrameRange::all(),
+        test_frames: FrameRange {
+            start: 0,
+            end: None,
+            step: 2,
+        },
+        frame_interval: 1,
+        held_out_frames: None,
+    }
+}
+
 impl DatasetReader for SyntheticScene {
     fn describe(&self) -> String {
         format!(
@@ -776,25 +800,7 @@ impl DatasetReader for SyntheticScene {
     /// Every fourth camera (1, 5, ...) is a test view, the others train; training uses every
     /// frame, testing every second frame.
     fn default_split(&self) -> Split {
-        let n = self.cameras.len();
-        let test_views: Vec<usize> = if n >= 2 {
-            (1..n).step_by(4).collect()
-        } else {
-            Vec::new()
-        };
-        let train_views = (0..n).filter(|v| !test_views.contains(v)).collect();
-        Split {
-            train_views,
-            test_views,
-            train_frames: FrameRange::all(),
-            test_frames: FrameRange {
-                start: 0,
-                end: None,
-                step: 2,
-            },
-            frame_interval: 1,
-            held_out_frames: None,
-        }
+        default_split(self.cameras.len())
     }
 
     fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
