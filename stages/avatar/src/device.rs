@@ -9,8 +9,10 @@
 //! `pipeline export` build one when they are built and call through it; none of them
 //! asks which backend it is (as Brush picks its backend once and never asks again).
 //!
-//! The pose refiner is not a backend operation: it runs on `cpu` on every backend (one row
-//! per frame; see [`crate::avatar::deform`]).
+//! On this host path the pose refiner is not a backend operation: it runs on `cpu` (one row
+//! per frame; see [`crate::avatar::deform`]). [`render_path`] chooses, with the same
+//! backend, how a sequence is rendered: through the `cpu` backend with the frame inputs on
+//! the host, or entirely on the device (refiner included).
 
 use std::sync::Arc;
 
@@ -18,15 +20,18 @@ use anyhow::Context;
 use seqavatar_compute::backend::{Backend, GpuContext};
 use seqavatar_compute::nn::NnScalar;
 use seqavatar_compute::splat::{RasterOptions, SplatGradients};
+use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_motion::knn::KnnGrid;
+use seqavatar_motion::schema::MotionTrack;
 
-use crate::avatar::{Deformed, knn_velocity, to_f64, to_scalar};
+use crate::avatar::{Deformed, TrainedAvatar, knn_velocity, to_f64, to_scalar};
 use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
 use crate::model::{
     FrameInputs, GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks,
     NonRigidCache,
 };
+use crate::resident::render::ResidentRenderer;
 use crate::skinning::SkinningGrads;
 use crate::splatting::{self, SplatPass, WorldGaussians};
 
@@ -442,4 +447,33 @@ impl<S: NnScalar> AvatarBackend<S> for GpuBackend {
     ) -> anyhow::Result<SplatGradients<f64>> {
         splatting::backward_gpu(&self.context, pass, colour, alpha)
     }
+}
+
+/// How a [`crate::sequence::SequenceRenderer`] renders, chosen by [`render_path`].
+pub enum RenderPath {
+    /// Frame inputs on the host, the avatar's backend ([`avatar_backend`]) for networks and
+    /// splatting (`cpu`).
+    Host(Box<dyn AvatarBackend>),
+    /// Everything on the device (gpu): the avatar, its networks and the sequence uploaded
+    /// once, one read-back per frame.
+    Resident(Box<ResidentRenderer>),
+}
+
+/// The render path of `avatar` over the frames `params` (with their motion `track`) on
+/// `backend`: the host path on `cpu`, the device path on the gpu.
+pub fn render_path(
+    avatar: &TrainedAvatar,
+    backend: &Backend,
+    params: &[BodyParams],
+    track: Option<&MotionTrack>,
+) -> anyhow::Result<RenderPath> {
+    Ok(match backend.gpu() {
+        Some(context) => RenderPath::Resident(Box::new(ResidentRenderer::new(
+            context.clone(),
+            avatar,
+            params,
+            track,
+        )?)),
+        None => RenderPath::Host(avatar.backend(backend.clone())?),
+    })
 }

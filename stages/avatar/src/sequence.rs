@@ -12,17 +12,9 @@ use seqavatar_core::camera::Camera;
 use seqavatar_motion::schema::MotionTrack;
 
 use crate::avatar::{FrameInputs, TrainedAvatar};
-use crate::device::AvatarBackend;
+use crate::device::{RenderPath, render_path};
 pub use crate::resident::deform::History;
-use crate::resident::render::ResidentRenderer;
 use crate::splatting::WorldGaussians;
-
-enum RenderPath {
-    /// Frame inputs on the host, the avatar's backend for networks and splatting.
-    Host(Box<dyn AvatarBackend>),
-    /// Everything on the device.
-    Resident(Box<ResidentRenderer>),
-}
 
 /// An avatar's renderer over the frames of one sequence. Every call takes the avatar it was
 /// built for (the device path holds a snapshot of it made at [`SequenceRenderer::new`]).
@@ -42,15 +34,7 @@ impl SequenceRenderer {
         params: Vec<BodyParams>,
         motion: Option<MotionTrack>,
     ) -> anyhow::Result<Self> {
-        let path = match backend.gpu() {
-            Some(context) => RenderPath::Resident(Box::new(ResidentRenderer::new(
-                context.clone(),
-                avatar,
-                &params,
-                motion.as_ref(),
-            )?)),
-            None => RenderPath::Host(avatar.backend(backend.clone())?),
-        };
+        let path = render_path(avatar, backend, &params, motion.as_ref())?;
         Ok(Self {
             params,
             motion,
