@@ -6,6 +6,8 @@
 //!
 //! Routes: `GET /` (the page), `GET /info` (the scene: frames, cameras, the orbit's home view,
 //! limits, as JSON), `GET /frame?...` (one image, see [`request`]); anything else is 404.
+//! The page's own query (`/?size=256&speed=4&camera=1&compare=1&play=1`) sets its controls'
+//! starting state.
 //! Plain HTTP requests rather than a WebSocket: each frame is one cacheable-free GET whose
 //! status says what happened (200, 400 with a message, 409 superseded, 503 busy), the page
 //! keeps at most two requests in flight, and there is no connection state to validate.
@@ -304,7 +306,7 @@ fn info_json(scene: &Scene, limits: &Limits, backend: &Backend) -> String {
             serde_json::json!({
                 "width": camera.width,
                 "height": camera.height,
-                "az": azimuth.rem_euclid(360.0),
+                "az": orbit::wrap_degrees(azimuth),
                 "el": elevation.clamp(-limit, limit),
                 "dist": distance.clamp(request::DISTANCE_RANGE.0, request::DISTANCE_RANGE.1),
                 "fov": orbit::vertical_fov_deg(camera)
@@ -362,19 +364,17 @@ fn secured(mut response: Response) -> Response {
     response
 }
 
-/// 421 when a loopback-bound server is reached under another host name.
-fn check_host(state: &AppState, headers: &HeaderMap) -> Result<(), Response> {
-    let Some(allowed) = &state.allowed_hosts else {
-        return Ok(());
-    };
+/// The 421 answer when a loopback-bound server is reached under another host name.
+fn wrong_host(state: &AppState, headers: &HeaderMap) -> Option<Response> {
+    let allowed = state.allowed_hosts.as_ref()?;
     let host = headers
         .get(header::HOST)
         .and_then(|value| value.to_str().ok())
         .unwrap_or("");
     if allowed.iter().any(|name| name.eq_ignore_ascii_case(host)) {
-        Ok(())
+        None
     } else {
-        Err(secured(text(
+        Some(secured(text(
             StatusCode::MISDIRECTED_REQUEST,
             "this viewer listens on a loopback address and answers only Host 127.0.0.1, localhost or [::1] with its port",
         )))
@@ -382,7 +382,7 @@ fn check_host(state: &AppState, headers: &HeaderMap) -> Result<(), Response> {
 }
 
 async fn page(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
-    if let Err(response) = check_host(&state, &headers) {
+    if let Some(response) = wrong_host(&state, &headers) {
         return response;
     }
     let mut response = PAGE.into_response();
@@ -394,7 +394,7 @@ async fn page(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Respons
 }
 
 async fn info_route(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
-    if let Err(response) = check_host(&state, &headers) {
+    if let Some(response) = wrong_host(&state, &headers) {
         return response;
     }
     let mut response = state.info.clone().into_response();
@@ -410,7 +410,7 @@ async fn frame(
     headers: HeaderMap,
     query: Result<Query<Vec<(String, String)>>, axum::extract::rejection::QueryRejection>,
 ) -> Response {
-    if let Err(response) = check_host(&state, &headers) {
+    if let Some(response) = wrong_host(&state, &headers) {
         return response;
     }
     let pairs = match query {

@@ -98,6 +98,13 @@ impl OrbitFrame {
     }
 }
 
+/// `degrees` wrapped into `[0, 360)` (`rem_euclid` alone rounds tiny negative angles up to
+/// 360).
+pub fn wrap_degrees(degrees: f64) -> f64 {
+    let wrapped = degrees.rem_euclid(360.0);
+    if wrapped >= 360.0 { 0.0 } else { wrapped }
+}
+
 /// The vertical field of view (degrees) of `camera`.
 pub fn vertical_fov_deg(camera: &Camera) -> f64 {
     (2.0 * (0.5 * f64::from(camera.height) / camera.intrinsics.fy).atan()).to_degrees()
@@ -227,5 +234,13 @@ mod tests {
         // Both cameras roll-free about the pole: their mean image up leans towards the pole.
         assert!(up.dot(DVec3::Y) > 0.8);
         assert!(mean_image_up(&[]).is_none());
+    }
+
+    #[test]
+    fn angles_wrap_into_one_turn() {
+        assert_eq!(wrap_degrees(-1e-15), 0.0);
+        assert_eq!(wrap_degrees(360.0), 0.0);
+        assert_eq!(wrap_degrees(-90.0), 270.0);
+        assert_eq!(wrap_degrees(725.0), 5.0);
     }
 }

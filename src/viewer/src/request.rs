@@ -60,9 +60,9 @@ pub fn parse_frame_request(
     pairs: &[(String, String)],
     limits: &Limits,
 ) -> Result<FrameRequest, String> {
-    const KNOWN: [&str; 14] = [
+    const KNOWN: [&str; 13] = [
         "tab", "frame", "camera", "az", "el", "dist", "fov", "px", "py", "w", "h", "context",
-        "compare", "t",
+        "compare",
     ];
     for (index, (name, _)) in pairs.iter().enumerate() {
         if !KNOWN.contains(&name.as_str()) {
@@ -187,7 +187,7 @@ pub fn parse_frame_request(
         let width = width.ok_or("missing parameter `w` (the image width)")?;
         let height = height.ok_or("missing parameter `h` (the image height)")?;
         View::Orbit(OrbitView {
-            azimuth_deg: azimuth_deg.rem_euclid(360.0),
+            azimuth_deg: crate::orbit::wrap_degrees(azimuth_deg),
             elevation_deg,
             distance,
             fov_deg,
@@ -230,10 +230,6 @@ pub fn parse_frame_request(
     };
     if compare && matches!(view, View::Orbit(_)) {
         return Err("`compare` needs a dataset `camera` (the ground truth is seen from it)".into());
-    }
-    // `t` is the page's cache-buster: any short value.
-    if get("t").is_some_and(|t| t.len() > 32) {
-        return Err("`t` is longer than 32 characters".to_owned());
     }
     Ok(FrameRequest {
         tab: tab.to_owned(),

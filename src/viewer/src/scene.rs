@@ -183,7 +183,7 @@ impl Scene {
         let (azimuth, elevation, distance) = orbit.angles_of(cameras[0].center());
         let limit = crate::request::MAX_ELEVATION_DEG;
         let home = [
-            azimuth.rem_euclid(360.0),
+            crate::orbit::wrap_degrees(azimuth),
             elevation.clamp(-limit, limit),
             distance.clamp(
                 crate::request::DISTANCE_RANGE.0,
