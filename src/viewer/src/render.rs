@@ -15,6 +15,7 @@ use image::RgbImage;
 use seqavatar_compute::image::ImageF32;
 use seqavatar_eval::context_probe::ContextProbe;
 use seqavatar_eval::evaluate::ViewRenderer;
+use seqavatar_eval::metrics::{Mask, Protocol};
 use tokio::sync::oneshot;
 
 use crate::request::{FrameRequest, View};
@@ -24,7 +25,8 @@ use crate::scene::Scene;
 pub const MAX_PENDING_TABS: usize = 32;
 /// JPEG quality of the frames.
 pub const JPEG_QUALITY: u8 = 90;
-/// Absolute error (mean over RGB) drawn white in the error map, as eval's default.
+/// Absolute error (mean over RGB) drawn white in the error map, eval's default
+/// `error_full_scale`.
 pub const ERROR_FULL_SCALE: f64 = 0.25;
 
 /// A rendered frame, encoded.
@@ -204,15 +206,14 @@ fn render_request(
         .map_err(|error| JobError::Failed(format!("{error:#}")))?;
     let render_seconds = started.elapsed().as_secs_f64();
     let failed = |error: anyhow::Error| JobError::Failed(format!("{error:#}"));
-    let render_rgb = render.to_rgb_image();
     let (image, compare) = match (request.compare, dataset_view) {
         (true, Some(view)) => {
-            match comparison(scene, view, request.frame, &render, &render_rgb).map_err(failed)? {
+            match comparison(scene, view, request.frame, &render).map_err(failed)? {
                 Ok(sheet) => (sheet, Some(Ok(()))),
-                Err(why) => (render_rgb, Some(Err(why))),
+                Err(why) => (render.to_rgb_image(), Some(Err(why))),
             }
         }
-        _ => (render_rgb, None),
+        _ => (render.to_rgb_image(), None),
     };
     let mut jpeg = Vec::new();
     image::codecs::jpeg::JpegEncoder::new_with_quality(Cursor::new(&mut jpeg), JPEG_QUALITY)
@@ -227,43 +228,53 @@ fn render_request(
     })
 }
 
-/// Ground truth | render | error map of `view` at `frame`, the truth resampled to the render's
-/// size; `Ok(Err(why))` when there is no ground truth to compare with.
+/// Ground truth | render | error map of `view` at `frame`, as eval's contact sheet shows them:
+/// both prepared by eval's protocol (ground truth outside its foreground mask and render
+/// outside the mask's bound box on the protocol background), the truth and mask resampled to
+/// the render's size when it is smaller than the camera's. `Ok(Err(why))` when there is no
+/// ground truth to compare with.
 fn comparison(
     scene: &Scene,
     view: usize,
     frame: usize,
     render: &ImageF32,
-    render_rgb: &RgbImage,
 ) -> anyhow::Result<Result<RgbImage, String>> {
     let Some(truth) = &scene.truth else {
         return Ok(Err(
             "no ground truth: the poses are not the trained sequence's".to_owned(),
         ));
     };
-    let Some(truth) = truth.image(view, frame)? else {
+    let Some((truth, mask)) = truth.image(view, frame)? else {
         return Ok(Err(format!("no image of camera {view} at frame {frame}")));
     };
-    let (width, height) = (render_rgb.width(), render_rgb.height());
-    let mut truth_rgb = truth.to_rgb_image();
-    if (truth_rgb.width(), truth_rgb.height()) != (width, height) {
-        truth_rgb = image::imageops::resize(
-            &truth_rgb,
-            width,
-            height,
+    let (width, height) = (render.width, render.height);
+    let (truth, mask) = if (truth.width, truth.height) == (width, height) {
+        (truth, mask)
+    } else {
+        let (w, h) = (width as u32, height as u32);
+        let truth_rgb = image::imageops::resize(
+            &truth.to_rgb_image(),
+            w,
+            h,
             image::imageops::FilterType::Triangle,
         );
-    }
-    let truth = ImageF32::from_rgb8(
-        "ground truth",
-        width as usize,
-        height as usize,
-        truth_rgb.as_raw(),
-    )?;
-    let error = seqavatar_eval::report::error_map(render, &truth, ERROR_FULL_SCALE)?;
-    let mut sheet = RgbImage::new(width * 3, height);
-    for (slot, part) in [&truth_rgb, render_rgb, &error].into_iter().enumerate() {
-        image::imageops::replace(&mut sheet, part, i64::from(width) * slot as i64, 0);
+        let mask_image =
+            image::GrayImage::from_raw(mask.width as u32, mask.height as u32, mask.data)
+                .ok_or_else(|| anyhow::anyhow!("camera {view}: the mask's size is wrong"))?;
+        let mask_small =
+            image::imageops::resize(&mask_image, w, h, image::imageops::FilterType::Nearest);
+        (
+            ImageF32::from_rgb8("ground truth", width, height, truth_rgb.as_raw())?,
+            Mask::new("ground-truth mask", width, height, mask_small.into_raw())?,
+        )
+    };
+    let pair = Protocol::default().prepare(render, &truth, &mask)?;
+    let error = seqavatar_eval::report::error_map(&pair.render, &pair.truth, ERROR_FULL_SCALE)?;
+    let (w, h) = (width as u32, height as u32);
+    let mut sheet = RgbImage::new(w * 3, h);
+    let parts = [pair.truth.to_rgb_image(), pair.render.to_rgb_image(), error];
+    for (slot, part) in parts.iter().enumerate() {
+        image::imageops::replace(&mut sheet, part, i64::from(w) * slot as i64, 0);
     }
     Ok(Ok(sheet))
 }

@@ -13,6 +13,7 @@ use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryId, EntryReader, EntryState, Store};
 use seqavatar_eval::animate::{DrivenAvatar, PoseSource, drive_avatar, resolve_entry};
 use seqavatar_eval::avatar_render::AvatarRenderer;
+use seqavatar_eval::metrics::Mask;
 use seqavatar_eval::testset::{TestImage, TestSet};
 
 use crate::orbit::{OrbitFrame, mean_image_up, vertical_fov_deg};
@@ -72,14 +73,14 @@ impl GroundTruth {
         })
     }
 
-    /// The image of `view` at `frame` at the camera's size, `None` when the entry has none.
-    pub fn image(&self, view: usize, frame: usize) -> anyhow::Result<Option<ImageF32>> {
+    /// The image and foreground mask of `view` at `frame` at the camera's size, `None` when
+    /// the entry has none.
+    pub fn image(&self, view: usize, frame: usize) -> anyhow::Result<Option<(ImageF32, Mask)>> {
         let Some(&index) = self.by_view_frame.get(&(view, frame)) else {
             return Ok(None);
         };
         let image = TestImage { index, view, frame };
-        let (truth, _mask) = self.testset.load(&self.ingest, &image)?;
-        Ok(Some(truth))
+        Ok(Some(self.testset.load(&self.ingest, &image)?))
     }
 }
 
