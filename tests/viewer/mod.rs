@@ -451,6 +451,41 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         }
     });
 
+    // On the gpu backend (lavapipe in CI) the viewer draws what the cpu one draws.
+    if let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend() {
+        let on_gpu = Viewer::start(ViewerOptions {
+            cache: cache.clone(),
+            avatar: key.clone(),
+            poses: None,
+            backend: gpu,
+            host: "127.0.0.1".to_owned(),
+            port: 0,
+            max_size: 256,
+        })
+        .unwrap();
+        let target = format!("/frame?frame={frame}&camera=0");
+        let (cpu_image, gpu_image) = (
+            decode_jpeg(&get(&viewer, &target)),
+            decode_jpeg(&get(&on_gpu, &target)),
+        );
+        let difference: f64 = cpu_image
+            .as_raw()
+            .iter()
+            .zip(gpu_image.as_raw())
+            .map(|(a, b)| f64::from(a.abs_diff(*b)))
+            .sum::<f64>()
+            / cpu_image.as_raw().len() as f64;
+        assert!(
+            difference < 1.0,
+            "gpu frame differs from cpu by {difference} on average"
+        );
+        let info: serde_json::Value = serde_json::from_slice(&get(&on_gpu, "/info").body).unwrap();
+        assert!(
+            info["device"].as_str().unwrap().starts_with("gpu"),
+            "{info}"
+        );
+    }
+
     command_line_serves_a_pipeline_stage_on_loopback(dir.path(), &cache);
 
     // The browser, on this avatar or on the viewer the environment names.

@@ -156,7 +156,20 @@ impl Scheduler {
 pub fn render_loop(scene: &mut Scene, scheduler: &Scheduler) {
     let mut probe: Option<ContextProbe> = None;
     while let Some(job) = scheduler.next() {
-        let result = render_request(scene, &mut probe, &job.request);
+        // A panic in the render code answers 500 instead of taking the viewer down.
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            render_request(scene, &mut probe, &job.request)
+        }))
+        .unwrap_or_else(|panic| {
+            let message = panic
+                .downcast_ref::<&str>()
+                .map(|text| (*text).to_owned())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "no message".to_owned());
+            Err(JobError::Failed(format!(
+                "the renderer panicked: {message}"
+            )))
+        });
         let _ = job.reply.send(result);
     }
 }
