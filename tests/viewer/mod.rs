@@ -229,6 +229,22 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
     let dir = tempfile::tempdir().unwrap();
     let cache = dir.path().join("cache");
     let key = train_tiny_avatar(&cache);
+    for max_size in [15, 8193] {
+        let refused = Viewer::start(ViewerOptions {
+            cache: cache.clone(),
+            avatar: key.clone(),
+            poses: None,
+            backend: cpu(),
+            host: "127.0.0.1".to_owned(),
+            port: 0,
+            max_size,
+        });
+        let error = refused.err().unwrap().to_string();
+        assert!(
+            error.contains(&format!("--max-size {max_size} must be in 16..=8192")),
+            "{error}"
+        );
+    }
     let viewer = start(&cache, &key[..12], 256);
     let address = viewer.address();
     assert!(address.ip().is_loopback());

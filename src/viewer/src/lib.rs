@@ -47,6 +47,8 @@ pub const PAGE: &str = include_str!("page.html");
 
 /// The default `--max-size`: the largest image side rendered.
 pub const DEFAULT_MAX_SIZE: u32 = 1024;
+/// The largest `--max-size`: an 8192 x 8192 render is about 1 GiB of f64 colour.
+pub const LARGEST_MAX_SIZE: u32 = 8192;
 
 /// What `pipeline view` serves and where.
 #[derive(Clone, Debug)]
@@ -133,8 +135,8 @@ impl Viewer {
     /// the server accepts connections.
     pub fn start(options: ViewerOptions) -> anyhow::Result<Self> {
         anyhow::ensure!(
-            options.max_size >= MIN_SIDE,
-            "--max-size {} must be at least {MIN_SIDE}",
+            (MIN_SIDE..=LARGEST_MAX_SIZE).contains(&options.max_size),
+            "--max-size {} must be in {MIN_SIDE}..={LARGEST_MAX_SIZE}",
             options.max_size
         );
         let scheduler = Arc::new(Scheduler::default());
@@ -180,11 +182,10 @@ impl Viewer {
                 anyhow::bail!("the render thread stopped while opening the avatar");
             }
         };
-        let stop_renderer = |scheduler: &Scheduler| scheduler.close();
         let listener = match TcpListener::bind((options.host.as_str(), options.port)) {
             Ok(listener) => listener,
             Err(error) => {
-                stop_renderer(&scheduler);
+                scheduler.close();
                 let _ = renderer.join();
                 return Err(error).with_context(|| {
                     format!("cannot listen on {}:{}", options.host, options.port)
