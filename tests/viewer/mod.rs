@@ -500,6 +500,10 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
             info["device"].as_str().unwrap().starts_with("gpu"),
             "{info}"
         );
+        println!(
+            "the viewer on {} draws the cpu viewer's frame (mean difference {difference:.3})",
+            info["device"]
+        );
     }
 
     command_line_serves_a_pipeline_stage_on_loopback(dir.path(), &cache);
