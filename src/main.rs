@@ -121,6 +121,36 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         max_frames: usize,
     },
+    /// Serve a web page that shows a trained avatar rendered live: orbit, pan and zoom,
+    /// the dataset cameras, a timeline with play, ground truth and error map, the motion
+    /// context on, zeroed or from another frame.
+    View {
+        /// FILE.yaml:TRAIN_STAGE (its cached entry), unless --avatar names the entry.
+        target: Option<String>,
+        /// The train entry: its cache folder, its key or a unique key prefix.
+        #[arg(long, conflicts_with = "target")]
+        avatar: Option<String>,
+        /// Drive the avatar with these poses: an ingest entry (folder, key or key prefix) or
+        /// a pose file (.npz); default: its trained sequence, with its ground-truth images.
+        #[arg(long)]
+        poses: Option<String>,
+        /// Address to listen on; anything but a loopback address exposes the viewer to the
+        /// network.
+        #[arg(long, default_value = "127.0.0.1")]
+        host: String,
+        /// Port to listen on (0: a free port; the URL is printed).
+        #[arg(long, default_value_t = 8080)]
+        port: u16,
+        /// Backend: auto, cpu or gpu.
+        #[arg(long, default_value_t = DeviceChoice::Auto)]
+        device: DeviceChoice,
+        /// The largest image side the page may ask for.
+        #[arg(long, default_value_t = seqavatar_viewer::DEFAULT_MAX_SIZE)]
+        max_size: u32,
+        /// Override a config value when TARGET is FILE.yaml:STAGE.
+        #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+        sets: Vec<String>,
+    },
     /// Write a Markdown report with PNG plots (metrics, loss curves, stage timing, cache
     /// reuse, trade-off and Pareto plots for sweeps) from a pipeline's cached entries.
     Report {
@@ -276,6 +306,46 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                     summary.skipped
                 );
             }
+        }
+        Command::View {
+            target,
+            avatar,
+            poses,
+            host,
+            port,
+            device,
+            max_size,
+            sets,
+        } => {
+            let avatar = match (target, avatar) {
+                (_, Some(avatar)) => avatar,
+                (Some(target), None) => {
+                    let (file, stage) = seqavatar_viewer::split_pipeline_target(&target)
+                        .ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "{target}: expected FILE.yaml:TRAIN_STAGE (or give --avatar)"
+                            )
+                        })?;
+                    seqavatar_viewer::train_key_of_stage(&registry, file, stage, &sets, &cache)?
+                }
+                (None, None) => {
+                    anyhow::bail!("give FILE.yaml:TRAIN_STAGE or --avatar <train entry>")
+                }
+            };
+            let options = seqavatar_viewer::ViewerOptions {
+                cache,
+                avatar,
+                poses: poses
+                    .as_deref()
+                    .map(seqavatar_eval::animate::PoseSource::parse),
+                backend: Backend::select(device)?,
+                host,
+                port,
+                max_size,
+            };
+            let viewer = seqavatar_viewer::Viewer::start(options)?;
+            println!("viewer: {} (Ctrl-C to stop)", viewer.url());
+            viewer.wait()?;
         }
         Command::Report { file, out, sets } => {
             let out = out.unwrap_or_else(|| {

@@ -6,3 +6,4 @@ mod eval;
 mod remote;
 mod support;
 mod tidy;
+mod viewer;

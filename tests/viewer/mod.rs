@@ -1,0 +1,834 @@
+//! `pipeline view` on a tiny avatar trained through the real ingest, motion and train stages:
+//! the endpoints over plain HTTP (statuses, validation, hostile paths, the Host check, several
+//! tabs at once), the frames against eval's renderer, the command line (FILE.yaml:STAGE, port
+//! 0, loopback by default), and the page in headless Chromium driven over WebDriver: a frame
+//! arrives, the canvas is not blank, play advances the frame counter, the page's FPS is
+//! printed and a screenshot saved.
+//!
+//! The browser part needs `chromium` and `chromedriver` on PATH (Debian `chromium
+//! chromium-driver`); without them it is skipped with a printed reason, unless `CI` is set,
+//! where it fails. `SEQAVATAR_VIEWER_E2E_URL` points the browser part at a viewer already
+//! running (e.g. a release `pipeline view pipelines/synthetic.yaml:train`, to measure the
+//! demo avatar's frame rate); `SEQAVATAR_VIEWER_SCREENSHOT` names where the screenshot goes
+//! (default: the test's temporary folder).
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, StageReport};
+use seqavatar_eval::avatar_render::AvatarRenderer;
+use seqavatar_eval::evaluate::ViewRenderer;
+use seqavatar_viewer::{Viewer, ViewerOptions};
+
+const PIPELINE: &str = r#"description: tiny viewer test
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {kind: synthetic, cameras: 3, frames: 10, width: 48, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}
+      past_frames: 0
+  - name: motion
+    kind: motion
+    inputs: [ingest]
+    config: {scales: [1, 2], knn: 4}
+  - name: train
+    kind: train
+    inputs: [ingest, motion]
+    config: {"preset": "fast", "device": "cpu", "seed": 5, "iterations": 30, "motion_context": "multiscale", "checkpoint_every": 100, "sh_degree": 1, "sh_degree_interval": 10}
+"#;
+
+fn registry() -> Registry {
+    let mut registry = Registry::new();
+    seqavatar_ingest::register(&mut registry);
+    seqavatar_fit::register(&mut registry);
+    seqavatar_motion::register(&mut registry);
+    seqavatar_train::register(&mut registry);
+    seqavatar_eval::register(&mut registry);
+    registry
+}
+
+fn cpu() -> Backend {
+    Backend::select(DeviceChoice::Cpu).unwrap()
+}
+
+/// Trains the tiny avatar into `cache`; returns the train entry's key.
+fn train_tiny_avatar(cache: &Path) -> String {
+    let registry = registry();
+    let store = LocalStore::open(cache).unwrap();
+    let pipeline = Pipeline::parse(PIPELINE, Path::new("viewer.yaml"), &registry, &[]).unwrap();
+    let options = RunOptions {
+        until: Some("train".to_owned()),
+        force: Vec::new(),
+    };
+    let reports: Vec<StageReport> =
+        seqavatar_engine::run(&pipeline, &registry, &store, &options).unwrap();
+    reports
+        .iter()
+        .find(|r| r.name == "train")
+        .unwrap()
+        .key
+        .clone()
+}
+
+fn start(cache: &Path, avatar: &str, max_size: u32) -> Viewer {
+    Viewer::start(ViewerOptions {
+        cache: cache.to_owned(),
+        avatar: avatar.to_owned(),
+        poses: None,
+        backend: cpu(),
+        host: "127.0.0.1".to_owned(),
+        port: 0,
+        max_size,
+    })
+    .unwrap()
+}
+
+/// One HTTP/1.1 exchange over a fresh connection (`Connection: close`).
+struct Reply {
+    status: u16,
+    headers: Vec<(String, String)>,
+    body: Vec<u8>,
+}
+
+impl Reply {
+    fn header(&self, name: &str) -> Option<&str> {
+        self.headers
+            .iter()
+            .find(|(key, _)| key.eq_ignore_ascii_case(name))
+            .map(|(_, value)| value.as_str())
+    }
+
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+}
+
+fn http(address: SocketAddr, method: &str, target: &str, host: &str, body: &str) -> Reply {
+    let mut stream = TcpStream::connect(address).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(300)))
+        .unwrap();
+    let mut head = format!("{method} {target} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n");
+    if !body.is_empty() || method == "POST" {
+        head.push_str(&format!(
+            "Content-Type: application/json\r\nContent-Length: {}\r\n",
+            body.len()
+        ));
+    }
+    head.push_str("\r\n");
+    stream.write_all(head.as_bytes()).unwrap();
+    stream.write_all(body.as_bytes()).unwrap();
+    // Read the head, then the body by its Content-Length or chunks (chromedriver keeps the
+    // connection open despite `Connection: close`), else to the end of the stream.
+    let mut raw = Vec::new();
+    let mut buffer = [0u8; 16384];
+    let mut read_more = |raw: &mut Vec<u8>| -> bool {
+        let count = stream.read(&mut buffer).unwrap();
+        raw.extend_from_slice(&buffer[..count]);
+        count > 0
+    };
+    let split = loop {
+        if let Some(at) = raw.windows(4).position(|window| window == b"\r\n\r\n") {
+            break at;
+        }
+        assert!(
+            read_more(&mut raw),
+            "no header end in {:?}",
+            String::from_utf8_lossy(&raw)
+        );
+    };
+    let head = String::from_utf8_lossy(&raw[..split]).into_owned();
+    let mut lines = head.split("\r\n");
+    let status: u16 = lines
+        .next()
+        .unwrap()
+        .split(' ')
+        .nth(1)
+        .unwrap()
+        .parse()
+        .unwrap();
+    let headers: Vec<(String, String)> = lines
+        .filter_map(|line| line.split_once(':'))
+        .map(|(key, value)| (key.trim().to_owned(), value.trim().to_owned()))
+        .collect();
+    let find = |name: &str| {
+        headers
+            .iter()
+            .find(|(key, _)| key.eq_ignore_ascii_case(name))
+            .map(|(_, value)| value.to_ascii_lowercase())
+    };
+    let start = split + 4;
+    let body = if let Some(length) = find("content-length") {
+        let length: usize = length.parse().unwrap();
+        while raw.len() < start + length {
+            assert!(read_more(&mut raw), "the body ended early");
+        }
+        raw[start..start + length].to_vec()
+    } else if find("transfer-encoding").as_deref() == Some("chunked") {
+        let mut decoded = Vec::new();
+        let mut at = start;
+        loop {
+            let line_end = loop {
+                if let Some(end) = raw[at..].windows(2).position(|w| w == b"\r\n") {
+                    break at + end;
+                }
+                assert!(read_more(&mut raw), "a chunk ended early");
+            };
+            let size_text = String::from_utf8_lossy(&raw[at..line_end]).into_owned();
+            let size =
+                usize::from_str_radix(size_text.split(';').next().unwrap().trim(), 16).unwrap();
+            at = line_end + 2;
+            if size == 0 {
+                break;
+            }
+            while raw.len() < at + size + 2 {
+                assert!(read_more(&mut raw), "a chunk ended early");
+            }
+            decoded.extend_from_slice(&raw[at..at + size]);
+            at += size + 2;
+        }
+        decoded
+    } else {
+        while read_more(&mut raw) {}
+        raw[start..].to_vec()
+    };
+    Reply {
+        status,
+        headers,
+        body,
+    }
+}
+
+fn get(viewer: &Viewer, target: &str) -> Reply {
+    let address = viewer.address();
+    http(address, "GET", target, &address.to_string(), "")
+}
+
+fn decode_jpeg(reply: &Reply) -> image::RgbImage {
+    assert_eq!(reply.status, 200, "{}", reply.text());
+    assert_eq!(reply.header("content-type"), Some("image/jpeg"));
+    image::load_from_memory_with_format(&reply.body, image::ImageFormat::Jpeg)
+        .unwrap()
+        .to_rgb8()
+}
+
+/// Pixels brighter than a dark background in any channel.
+fn lit_pixels(image: &image::RgbImage) -> usize {
+    image
+        .pixels()
+        .filter(|pixel| pixel.0.iter().any(|&channel| channel > 24))
+        .count()
+}
+
+#[test]
+fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let key = train_tiny_avatar(&cache);
+    for max_size in [15, 8193] {
+        let refused = Viewer::start(ViewerOptions {
+            cache: cache.clone(),
+            avatar: key.clone(),
+            poses: None,
+            backend: cpu(),
+            host: "127.0.0.1".to_owned(),
+            port: 0,
+            max_size,
+        });
+        let error = refused.err().unwrap().to_string();
+        assert!(
+            error.contains(&format!("--max-size {max_size} must be in 16..=8192")),
+            "{error}"
+        );
+    }
+    let viewer = start(&cache, &key[..12], 256);
+    let address = viewer.address();
+    assert!(address.ip().is_loopback());
+    assert_eq!(
+        viewer.url(),
+        format!("http://127.0.0.1:{}/", address.port())
+    );
+
+    // The page: self-contained, nothing fetched from elsewhere.
+    let page = get(&viewer, "/");
+    assert_eq!(page.status, 200);
+    assert_eq!(
+        page.header("content-type"),
+        Some("text/html; charset=utf-8")
+    );
+    let html = page.text();
+    assert!(html.contains("<canvas id=\"view\""));
+    assert!(!html.contains("://"), "the page names another origin");
+    assert!(!html.contains("src=") && !html.contains("href="));
+    assert!(
+        page.header("content-security-policy")
+            .is_some_and(|policy| policy.starts_with("default-src 'none'"))
+    );
+
+    // The scene.
+    let info: serde_json::Value = serde_json::from_slice(&get(&viewer, "/info").body).unwrap();
+    assert_eq!(info["num_frames"], 10);
+    assert_eq!(info["cameras"].as_array().unwrap().len(), 3);
+    assert_eq!(info["cameras"][0]["width"], 48);
+    assert_eq!(info["ground_truth"], true);
+    assert_eq!(info["context_probes"], true);
+    assert_eq!(info["max_size"], 256);
+    let first = info["first_frame"].as_u64().unwrap() as usize;
+    assert!(first < 10, "{info}");
+
+    // A dataset camera's frame is eval's render of it (up to JPEG rounding).
+    let frame = first + 1;
+    let image = decode_jpeg(&get(&viewer, &format!("/frame?frame={frame}&camera=0")));
+    assert_eq!(image.dimensions(), (48, 40));
+    let expected = {
+        let store = LocalStore::open(&cache).unwrap();
+        let open = |kind: &str, key: &str| {
+            seqavatar_engine::open_leased_verified(&store, &EntryId::new(kind, key)).unwrap()
+        };
+        let train = open("train", &key);
+        let input = |kind: &str| {
+            let input = train
+                .manifest()
+                .inputs
+                .iter()
+                .find(|input| input.kind == kind)
+                .unwrap()
+                .clone();
+            open(kind, &input.key)
+        };
+        let (ingest, motion) = (input("ingest"), input("motion"));
+        let mut renderer =
+            AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
+        let camera = &seqavatar_ingest::read_cameras(&ingest).unwrap()[0];
+        renderer.render(frame, camera).unwrap().to_rgb_image()
+    };
+    let difference: f64 = image
+        .as_raw()
+        .iter()
+        .zip(expected.as_raw())
+        .map(|(a, b)| f64::from(a.abs_diff(*b)))
+        .sum::<f64>()
+        / image.as_raw().len() as f64;
+    assert!(
+        difference < 2.0,
+        "mean difference {difference} from eval's render"
+    );
+    assert!(lit_pixels(&expected) > 20, "the avatar is not visible");
+
+    // Orbit views at the asked size, comparison sheets, context probes.
+    let home = &info["home"];
+    let orbit = format!(
+        "/frame?frame={frame}&az={}&el={}&dist={}&fov={}&w=64&h=32",
+        home["az"], home["el"], home["dist"], home["fov"]
+    );
+    let image = decode_jpeg(&get(&viewer, &orbit));
+    assert_eq!(image.dimensions(), (64, 32));
+    assert!(lit_pixels(&image) > 10, "the orbit view is blank");
+    // Ground truth | render | error where the ingest entry has an image of (camera, frame);
+    // the render alone, saying why, where it has none.
+    let (mut compared, mut without) = (0, 0);
+    for camera in 0..3 {
+        for frame in first..10 {
+            let sheet = get(
+                &viewer,
+                &format!("/frame?frame={frame}&camera={camera}&compare=1"),
+            );
+            let note = sheet.header("x-compare").unwrap().to_owned();
+            if note == "truth|render|error" {
+                assert_eq!(decode_jpeg(&sheet).dimensions(), (3 * 48, 40));
+                compared += 1;
+            } else {
+                assert_eq!(
+                    note,
+                    format!("unavailable: no image of camera {camera} at frame {frame}")
+                );
+                assert_eq!(decode_jpeg(&sheet).dimensions(), (48, 40));
+                without += 1;
+            }
+        }
+    }
+    assert!(
+        compared > 0,
+        "no (camera, frame) has a ground-truth image ({without} without)"
+    );
+    let small = get(&viewer, &format!("/frame?frame={frame}&camera=1&w=24"));
+    assert_eq!(decode_jpeg(&small).dimensions(), (24, 20));
+    assert_eq!(small.header("x-frame"), Some(frame.to_string().as_str()));
+    for context in ["zeroed", "from:2", "on"] {
+        let reply = get(
+            &viewer,
+            &format!("/frame?frame={frame}&camera=0&context={context}"),
+        );
+        decode_jpeg(&reply);
+    }
+
+    // Bad parameters: 400 naming the parameter.
+    for (target, needle) in [
+        ("/frame", "missing parameter `frame`"),
+        ("/frame?frame=10&camera=0", "`frame` 10 is out of range"),
+        (
+            "/frame?frame=abc&camera=0",
+            "`frame` must be a non-negative integer",
+        ),
+        ("/frame?frame=5&camera=3", "`camera` 3 is out of range"),
+        (
+            "/frame?frame=5&az=0&el=0&dist=2&w=257&h=64",
+            "`w` 257 is out of range 16..=256",
+        ),
+        (
+            "/frame?frame=5&az=NaN&el=0&dist=2&w=64&h=64",
+            "`az` must be finite",
+        ),
+        (
+            "/frame?frame=5&az=0&el=0&dist=-1&w=64&h=64",
+            "`dist` -1 is out of range",
+        ),
+        (
+            "/frame?frame=5&az=0&el=0&dist=2&w=64&h=64&compare=1",
+            "needs a dataset `camera`",
+        ),
+        (
+            "/frame?frame=5&camera=0&file=/etc/passwd",
+            "unknown parameter `file`",
+        ),
+        (
+            "/frame?frame=5&camera=0&context=from:99",
+            "offset 99 is out of range",
+        ),
+        ("/frame?frame=5&camera=0&frame=6", "given more than once"),
+        ("/frame?frame=%FF&camera=0", "`frame` must be"),
+    ] {
+        let reply = get(&viewer, target);
+        assert_eq!(reply.status, 400, "{target}: {}", reply.text());
+        assert!(reply.text().contains(needle), "{target}: {}", reply.text());
+    }
+    // Hostile paths and unknown routes: 404, nothing from the file system.
+    for target in [
+        "/../../etc/passwd",
+        "/%2e%2e/%2e%2e/etc/passwd",
+        "/frame/../../../etc/passwd",
+        "/frame/%2e%2e%2f%2e%2e%2fetc%2fpasswd",
+        "//etc/passwd",
+        "/etc/passwd",
+        "/info/../Cargo.toml",
+        "/page.html",
+        "/index.html",
+    ] {
+        let reply = get(&viewer, target);
+        assert_eq!(reply.status, 404, "{target}: {}", reply.text());
+        assert!(!reply.text().contains("root:"), "{target}");
+    }
+    assert_eq!(
+        http(
+            address,
+            "POST",
+            "/frame?frame=5&camera=0",
+            &address.to_string(),
+            ""
+        )
+        .status,
+        405
+    );
+    // A loopback server answers only loopback host names (no DNS rebinding).
+    let rebound = http(address, "GET", "/info", "attacker.example", "");
+    assert_eq!(rebound.status, 421, "{}", rebound.text());
+    let by_name = http(
+        address,
+        "GET",
+        "/info",
+        &format!("localhost:{}", address.port()),
+        "",
+    );
+    assert_eq!(by_name.status, 200);
+
+    // Several tabs at once: every one gets its frame.
+    std::thread::scope(|scope| {
+        let tabs: Vec<_> = (0..4)
+            .map(|tab| {
+                let viewer = &viewer;
+                scope.spawn(move || {
+                    get(
+                        viewer,
+                        &format!(
+                            "/frame?tab=tab{tab}&frame={}&camera={}",
+                            first + tab % 2,
+                            tab % 3
+                        ),
+                    )
+                })
+            })
+            .collect();
+        for tab in tabs {
+            decode_jpeg(&tab.join().unwrap());
+        }
+    });
+
+    // On the gpu backend (lavapipe in CI) the viewer draws what the cpu one draws.
+    if let Some(gpu) = seqavatar_compute::backend::test_support::gpu_test_backend() {
+        let on_gpu = Viewer::start(ViewerOptions {
+            cache: cache.clone(),
+            avatar: key.clone(),
+            poses: None,
+            backend: gpu,
+            host: "127.0.0.1".to_owned(),
+            port: 0,
+            max_size: 256,
+        })
+        .unwrap();
+        let target = format!("/frame?frame={frame}&camera=0");
+        let (cpu_image, gpu_image) = (
+            decode_jpeg(&get(&viewer, &target)),
+            decode_jpeg(&get(&on_gpu, &target)),
+        );
+        let difference: f64 = cpu_image
+            .as_raw()
+            .iter()
+            .zip(gpu_image.as_raw())
+            .map(|(a, b)| f64::from(a.abs_diff(*b)))
+            .sum::<f64>()
+            / cpu_image.as_raw().len() as f64;
+        assert!(
+            difference < 1.0,
+            "gpu frame differs from cpu by {difference} on average"
+        );
+        let info: serde_json::Value = serde_json::from_slice(&get(&on_gpu, "/info").body).unwrap();
+        assert!(
+            info["device"].as_str().unwrap().starts_with("gpu"),
+            "{info}"
+        );
+        println!(
+            "the viewer on {} draws the cpu viewer's frame (mean difference {difference:.3})",
+            info["device"]
+        );
+    }
+
+    command_line_serves_a_pipeline_stage_on_loopback(dir.path(), &cache);
+
+    // The browser, on this avatar or on the viewer the environment names.
+    let screenshot = std::env::var_os("SEQAVATAR_VIEWER_SCREENSHOT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| dir.path().join("viewer.png"));
+    match std::env::var("SEQAVATAR_VIEWER_E2E_URL") {
+        Ok(url) => browser_end_to_end(&url, &screenshot),
+        Err(_) => browser_end_to_end(&viewer.url(), &screenshot),
+    }
+}
+
+/// `pipeline view FILE.yaml:train --port 0` prints a loopback URL that serves the avatar.
+fn command_line_serves_a_pipeline_stage_on_loopback(dir: &Path, cache: &Path) {
+    let file = dir.join("viewer.yaml");
+    std::fs::write(&file, PIPELINE).unwrap();
+    let help = Command::new(env!("CARGO_BIN_EXE_pipeline"))
+        .args(["view", "--help"])
+        .output()
+        .unwrap();
+    let help = String::from_utf8_lossy(&help.stdout).into_owned();
+    assert!(help.contains("[default: 127.0.0.1]"), "{help}");
+    let mut child = ChildGuard(
+        Command::new(env!("CARGO_BIN_EXE_pipeline"))
+            .arg("--cache")
+            .arg(cache)
+            .arg("view")
+            .arg(format!("{}:train", file.display()))
+            .args(["--port", "0", "--device", "cpu"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let mut line = String::new();
+    BufReader::new(child.0.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .strip_prefix("viewer: ")
+        .and_then(|rest| rest.split_whitespace().next())
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"));
+    let address: SocketAddr = url
+        .strip_prefix("http://")
+        .and_then(|rest| rest.strip_suffix('/'))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert_eq!(address.ip().to_string(), "127.0.0.1");
+    let reply = http(address, "GET", "/info", &address.to_string(), "");
+    assert_eq!(reply.status, 200, "{}", reply.text());
+    // A stage that is not a train stage is refused.
+    let output = Command::new(env!("CARGO_BIN_EXE_pipeline"))
+        .arg("--cache")
+        .arg(cache)
+        .args(["view", &format!("{}:motion", file.display()), "--port", "0"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("stage \"motion\" is a motion stage"),
+        "{stderr}"
+    );
+}
+
+/// Kills and reaps the child process it holds when dropped.
+struct ChildGuard(Child);
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn on_path(program: &str) -> Option<PathBuf> {
+    seqavatar_eval::animate::on_path(program)
+}
+
+/// A WebDriver session of chromedriver.
+struct Driver {
+    address: SocketAddr,
+    session: String,
+}
+
+impl Driver {
+    fn call(&self, method: &str, path: &str, body: serde_json::Value) -> serde_json::Value {
+        let target = format!("/session/{}{path}", self.session);
+        let body = if method == "GET" {
+            String::new()
+        } else {
+            body.to_string()
+        };
+        let reply = http(
+            self.address,
+            method,
+            &target,
+            &self.address.to_string(),
+            &body,
+        );
+        let value: serde_json::Value = serde_json::from_slice(&reply.body)
+            .unwrap_or_else(|_| panic!("{method} {path}: {}", reply.text()));
+        assert_eq!(reply.status, 200, "{method} {path}: {value}");
+        value["value"].clone()
+    }
+
+    fn script(&self, script: &str) -> serde_json::Value {
+        self.call(
+            "POST",
+            "/execute/sync",
+            serde_json::json!({"script": script, "args": []}),
+        )
+    }
+
+    /// Polls `script` until it returns true.
+    fn wait_for(&self, what: &str, script: &str, timeout: Duration) {
+        let started = Instant::now();
+        while self.script(script) != serde_json::Value::Bool(true) {
+            assert!(
+                started.elapsed() < timeout,
+                "waited {timeout:?} for {what}; page state {}",
+                self.script("return window.viewer")
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn click(&self, css: &str) {
+        let element = self.call(
+            "POST",
+            "/element",
+            serde_json::json!({"using": "css selector", "value": css}),
+        );
+        let id = element["element-6066-11e4-a52e-4f735466cecf"]
+            .as_str()
+            .unwrap()
+            .to_owned();
+        self.call(
+            "POST",
+            &format!("/element/{id}/click"),
+            serde_json::json!({}),
+        );
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn base64_decode(text: &str) -> Vec<u8> {
+    let value = |byte: u8| -> u32 {
+        match byte {
+            b'A'..=b'Z' => u32::from(byte - b'A'),
+            b'a'..=b'z' => u32::from(byte - b'a') + 26,
+            b'0'..=b'9' => u32::from(byte - b'0') + 52,
+            b'+' => 62,
+            b'/' => 63,
+            _ => panic!("not base64: {byte}"),
+        }
+    };
+    let digits: Vec<u8> = text
+        .bytes()
+        .filter(|byte| !byte.is_ascii_whitespace() && *byte != b'=')
+        .collect();
+    let mut out = Vec::with_capacity(digits.len() * 3 / 4);
+    for chunk in digits.chunks(4) {
+        let bits = chunk
+            .iter()
+            .fold(0u32, |acc, &byte| (acc << 6) | value(byte))
+            << (6 * (4 - chunk.len()));
+        let bytes = bits.to_be_bytes();
+        out.extend_from_slice(&bytes[1..chunk.len()]);
+    }
+    out
+}
+
+/// The page in headless Chromium: a frame at 256 x 256, a canvas that is not blank, play
+/// advancing the frame counter; prints the FPS the page measures while playing.
+fn browser_end_to_end(url: &str, screenshot: &Path) {
+    let browser = ["chromium", "chromium-browser", "google-chrome"]
+        .into_iter()
+        .find_map(on_path);
+    let (Some(browser), Some(chromedriver)) = (browser, on_path("chromedriver")) else {
+        let reason =
+            "chromium and chromedriver are not on PATH (apt-get install chromium chromium-driver)";
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI is set: the browser test must run, but {reason}"
+        );
+        eprintln!("skipped the browser test: {reason}");
+        return;
+    };
+    let port = free_port();
+    let _driver_process = ChildGuard(
+        Command::new(&chromedriver)
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let address: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let started = Instant::now();
+    loop {
+        if TcpStream::connect(address).is_ok() {
+            let status = http(address, "GET", "/status", &address.to_string(), "");
+            let ready = serde_json::from_slice::<serde_json::Value>(&status.body)
+                .map(|value| value["value"]["ready"] == true)
+                .unwrap_or(false);
+            if ready {
+                break;
+            }
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "chromedriver did not start"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let profile = tempfile::tempdir().unwrap();
+    let capabilities = serde_json::json!({"capabilities": {"alwaysMatch": {
+        "browserName": "chrome",
+        "goog:chromeOptions": {
+            "binary": browser,
+            "args": [
+                "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync",
+                "--disable-dev-shm-usage", "--window-size=900,720",
+                format!("--user-data-dir={}", profile.path().display()),
+            ],
+        },
+    }}});
+    let reply = http(
+        address,
+        "POST",
+        "/session",
+        &address.to_string(),
+        &capabilities.to_string(),
+    );
+    let created: serde_json::Value = serde_json::from_slice(&reply.body).unwrap();
+    assert_eq!(reply.status, 200, "new session: {created}");
+    let driver = Driver {
+        address,
+        session: created["value"]["sessionId"].as_str().unwrap().to_owned(),
+    };
+    driver.call(
+        "POST",
+        "/url",
+        serde_json::json!({"url": format!("{url}?size=256&speed=4")}),
+    );
+    driver.wait_for(
+        "the first frame",
+        "return window.viewer && window.viewer.framesShown >= 1",
+        Duration::from_secs(120),
+    );
+    let canvas = driver.script(
+        "const c = document.getElementById('view');
+         const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+         let lit = 0; const colours = new Set();
+         for (let i = 0; i < d.length; i += 4) {
+           if (Math.max(d[i], d[i + 1], d[i + 2]) > 24) lit++;
+           colours.add((d[i] << 16) | (d[i + 1] << 8) | d[i + 2]);
+         }
+         return {width: c.width, height: c.height, lit, colours: colours.size};",
+    );
+    assert_eq!(canvas["width"], 256, "{canvas}");
+    assert_eq!(canvas["height"], 256, "{canvas}");
+    assert!(
+        canvas["lit"].as_u64().unwrap() > 100 && canvas["colours"].as_u64().unwrap() > 16,
+        "the canvas is blank: {canvas}"
+    );
+    let before = driver
+        .script("return window.viewer.frame")
+        .as_u64()
+        .unwrap();
+    let shown = driver
+        .script("return window.viewer.framesShown")
+        .as_u64()
+        .unwrap();
+    driver.click("#play");
+    driver.wait_for(
+        "the frame counter to advance",
+        &format!(
+            "return window.viewer.frame !== {before} && window.viewer.framesShown >= {}",
+            shown + 2
+        ),
+        Duration::from_secs(60),
+    );
+    let counter = driver
+        .script("return [document.getElementById('counter').textContent, window.viewer.frame];");
+    assert!(
+        counter[0]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("frame {} / ", counter[1])),
+        "{counter}"
+    );
+    // Measure over a few seconds of playback (the page's FPS covers the last two seconds).
+    std::thread::sleep(Duration::from_secs(4));
+    let state = driver.script("return window.viewer");
+    let fps = state["fps"].as_f64().unwrap();
+    println!(
+        "viewer in headless Chromium: {fps:.1} FPS at {} while playing (render {} ms per frame, {} frames shown, {} errors: {})",
+        state["size"], state["renderMs"], state["framesShown"], state["errors"], state["lastError"]
+    );
+    assert!(fps > 0.0, "{state}");
+    assert_eq!(state["errors"], 0, "{state}");
+    let png = driver.call("GET", "/screenshot", serde_json::Value::Null);
+    let bytes = base64_decode(png.as_str().unwrap());
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).unwrap();
+    std::fs::write(screenshot, &bytes).unwrap();
+    println!("screenshot: {}", screenshot.display());
+    let _ = http(
+        address,
+        "DELETE",
+        &format!("/session/{}", driver.session),
+        &address.to_string(),
+        "",
+    );
+}
