@@ -39,7 +39,10 @@ fn legacy_completion_marker(entry_dir: &Path) -> PathBuf {
 
 /// Whether the local entry folder `entry_dir` is published (either marker exists).
 pub(crate) fn is_published(entry_dir: &Path) -> bool {
-    completion_marker(entry_dir).is_file() || legacy_completion_marker(entry_dir).is_file()
+    // A marker whose folder is gone (deleted by hand, or moved away by another tool) marks
+    // nothing: the entry is missing and is computed again.
+    entry_dir.is_dir()
+        && (completion_marker(entry_dir).is_file() || legacy_completion_marker(entry_dir).is_file())
 }
 
 /// Writes the completion marker of `entry_dir` (already in place, complete) with `content`,
@@ -481,6 +484,9 @@ impl Store for LocalStore {
         }
         // Remove the marker first so that a crash mid-way never leaves a visible bad entry.
         remove_completion_markers(&source)?;
+        if !source.exists() {
+            return Ok(format!("nowhere ({} was already gone)", source.display()));
+        }
         fs::rename(&source, &destination).with_context(|| {
             format!(
                 "cannot move {} to {}",
@@ -716,6 +722,26 @@ mod tests {
             }
             assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
         }
+    }
+
+    /// A marker whose folder is gone (deleted by hand, or moved away by an older version of
+    /// the tool) marks nothing: the entry is missing, and quarantining it removes the marker
+    /// instead of failing on the absent folder.
+    #[test]
+    fn a_marker_without_its_folder_is_not_published() {
+        let (_dir, store) = temp_store();
+        let id = EntryId::new("test_arrays", "k4");
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        fs::write(staging.output_dir.join("zarr.json"), b"{}").unwrap();
+        store.publish(lock.as_ref(), &staging).unwrap();
+        let entry = store.entry_dir(&id);
+        fs::remove_dir_all(&entry).unwrap();
+        assert!(entry.with_file_name("k4.complete").is_file());
+        assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+        assert!(store.reader_storage(&id).is_err());
+        store.quarantine(lock.as_ref()).unwrap();
+        assert!(!entry.with_file_name("k4.complete").exists());
     }
 
     /// A crash after the folder was renamed into place but before its marker was written

@@ -119,7 +119,7 @@ impl Scene {
         poses: Option<&PoseSource>,
         backend: &Backend,
     ) -> anyhow::Result<Self> {
-        let (renderer, ingest, truth, poses_text, entries) = match poses {
+        let (mut renderer, ingest, truth, poses_text, entries) = match poses {
             Some(source) => {
                 let DrivenAvatar {
                     train,
@@ -173,7 +173,7 @@ impl Scene {
         );
         // The avatar's centre: the mean of its Gaussians at the first drawable frame.
         let deformed = renderer.deform(first)?;
-        let means = &deformed.world.means;
+        let means = &deformed.means;
         anyhow::ensure!(!means.is_empty(), "the avatar has no Gaussians");
         let centre =
             means.chunks_exact(3).map(DVec3::from_slice).sum::<DVec3>() / (means.len() / 3) as f64;
