@@ -10,8 +10,10 @@ use seqavatar_compute::backend::Backend;
 use seqavatar_compute::image::ImageF32;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
-use seqavatar_engine::{EntryId, EntryReader, EntryState, Store};
-use seqavatar_eval::animate::{DrivenAvatar, PoseSource, drive_avatar, resolve_entry};
+use seqavatar_engine::{EntryReader, Store};
+use seqavatar_eval::animate::{
+    DrivenAvatar, PoseSource, drive_avatar, resolve_entry, upstream_input,
+};
 use seqavatar_eval::avatar_render::AvatarRenderer;
 use seqavatar_eval::metrics::Mask;
 use seqavatar_eval::testset::{TestImage, TestSet};
@@ -84,30 +86,6 @@ impl GroundTruth {
     }
 }
 
-/// The entry of `kind` that `train` read, opened verified and under a read lease.
-fn input_of(
-    store: &dyn Store,
-    train: &EntryReader,
-    kind: &str,
-) -> anyhow::Result<Option<EntryReader>> {
-    let Some(input) = train
-        .manifest()
-        .inputs
-        .iter()
-        .find(|input| input.kind == kind)
-    else {
-        return Ok(None);
-    };
-    let id = EntryId::new(kind, &input.key);
-    anyhow::ensure!(
-        store.entry_state(&id)? == EntryState::Complete,
-        "the avatar's {kind} entry {id} (stage \"{}\") is not in the cache {}",
-        input.stage_name,
-        store.describe()
-    );
-    Ok(Some(seqavatar_engine::open_leased_verified(store, &id)?))
-}
-
 impl Scene {
     /// Opens the avatar of the train entry `avatar` (folder, key or key prefix). Without
     /// `poses` it is driven as eval drives it (the body parameters of its fit entry, or of its
@@ -135,11 +113,11 @@ impl Scene {
             }
             None => {
                 let train = resolve_entry(store, "train", avatar)?;
-                let ingest = input_of(store, &train, "ingest")?.ok_or_else(|| {
+                let ingest = upstream_input(store, &train, "ingest")?.ok_or_else(|| {
                     anyhow::anyhow!("train entry {} records no ingest input", train.location())
                 })?;
-                let fit = input_of(store, &train, "fit")?;
-                let motion = input_of(store, &train, "motion")?;
+                let fit = upstream_input(store, &train, "fit")?;
+                let motion = upstream_input(store, &train, "motion")?;
                 let renderer = AvatarRenderer::open(
                     &train,
                     &ingest,

@@ -120,14 +120,25 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
 
 /// The entry of `kind` the avatar's train entry read, opened from `store`.
 fn upstream(store: &dyn Store, train: &EntryReader, kind: &str) -> anyhow::Result<EntryReader> {
-    let input = train
+    upstream_input(store, train, kind)?
+        .ok_or_else(|| anyhow::anyhow!("train entry {} records no {kind} input", train.location()))
+}
+
+/// The entry of `kind` that `train` read (`None` when it read none), opened verified and
+/// under a read lease; an input missing from the cache is an error naming it.
+pub fn upstream_input(
+    store: &dyn Store,
+    train: &EntryReader,
+    kind: &str,
+) -> anyhow::Result<Option<EntryReader>> {
+    let Some(input) = train
         .manifest()
         .inputs
         .iter()
         .find(|input| input.kind == kind)
-        .ok_or_else(|| {
-            anyhow::anyhow!("train entry {} records no {kind} input", train.location())
-        })?;
+    else {
+        return Ok(None);
+    };
     let id = EntryId::new(kind, &input.key);
     anyhow::ensure!(
         store.entry_state(&id)? == EntryState::Complete,
@@ -135,7 +146,7 @@ fn upstream(store: &dyn Store, train: &EntryReader, kind: &str) -> anyhow::Resul
         input.stage_name,
         store.describe()
     );
-    seqavatar_engine::open_leased_verified(store, &id)
+    Ok(Some(seqavatar_engine::open_leased_verified(store, &id)?))
 }
 
 /// Reads a pose file: `body_pose` `(F, 3 K)` or `(F, K, 3)` (K = joints after the root, at
