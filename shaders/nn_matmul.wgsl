@@ -14,6 +14,12 @@
 // rows ty + 16 u and columns tx + 16 v (strided, so neighbouring threads read neighbouring
 // shared-memory words), stepping through k 16 at a time via workgroup-shared tiles. No
 // subgroup operations, no f16.
+//
+// The 16 accumulators are four vec4 values, never an array indexed in a loop: a private
+// array indexed by a loop counter stays in registers only if the driver unrolls the loop,
+// which is not guaranteed for naga's output. The shared tiles' rows are TILE_STRIDE = 65
+// words apart, so the loads that write a tile along k (stride one row) fall in different
+// banks instead of one.
 
 struct Params {
     m: u32,
@@ -44,6 +50,7 @@ const MASK_B: u32 = 16u;      // B[k][j] *= (mask[same index] > 0)
 const TILE_M: u32 = 64u;
 const TILE_N: u32 = 64u;
 const TILE_K: u32 = 16u;
+const TILE_STRIDE: u32 = 65u;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> a: array<f32>;
@@ -52,9 +59,9 @@ const TILE_K: u32 = 16u;
 @group(0) @binding(4) var<storage, read> bias: array<f32>;
 @group(0) @binding(5) var<storage, read_write> c: array<f32>;
 
-// Shared tiles, k-major: a_tile[kk * TILE_M + i], b_tile[kk * TILE_N + j].
-var<workgroup> a_tile: array<f32, 1024>;
-var<workgroup> b_tile: array<f32, 1024>;
+// Shared tiles, k-major: a_tile[kk * TILE_STRIDE + i], b_tile[kk * TILE_STRIDE + j].
+var<workgroup> a_tile: array<f32, 1040>;
+var<workgroup> b_tile: array<f32, 1040>;
 
 fn load_a(row: u32, kk: u32, k_end: u32) -> f32 {
     if (row >= params.m || kk >= k_end) {
@@ -94,10 +101,11 @@ fn main(
     let tx = local % 16u;
     let ty = local / 16u;
 
-    var acc: array<f32, 16>;
-    for (var e = 0u; e < 16u; e++) {
-        acc[e] = 0.0;
-    }
+    // acc_u[v] is C at row ty + 16 u, column tx + 16 v.
+    var acc_0 = vec4<f32>(0.0);
+    var acc_1 = vec4<f32>(0.0);
+    var acc_2 = vec4<f32>(0.0);
+    var acc_3 = vec4<f32>(0.0);
 
     // Which of the tile's dimensions runs along memory decides the load mapping, so that
     // consecutive threads read consecutive addresses (uniform branches).
@@ -116,7 +124,7 @@ fn main(
                 kk = e / TILE_M;
                 i = e % TILE_M;
             }
-            a_tile[kk * TILE_M + i] = load_a(row0 + i, k0 + kk, k_end);
+            a_tile[kk * TILE_STRIDE + i] = load_a(row0 + i, k0 + kk, k_end);
             var j: u32;
             if (b_n_contiguous) {
                 kk = e / TILE_N;
@@ -125,48 +133,54 @@ fn main(
                 j = e / TILE_K;
                 kk = e % TILE_K;
             }
-            b_tile[kk * TILE_N + j] = load_b(k0 + kk, col0 + j, k_end);
+            b_tile[kk * TILE_STRIDE + j] = load_b(k0 + kk, col0 + j, k_end);
         }
         workgroupBarrier();
         for (var kk = 0u; kk < TILE_K; kk++) {
-            var a_values: array<f32, 4>;
-            var b_values: array<f32, 4>;
-            for (var u = 0u; u < 4u; u++) {
-                a_values[u] = a_tile[kk * TILE_M + ty + 16u * u];
-                b_values[u] = b_tile[kk * TILE_N + tx + 16u * u];
-            }
-            for (var u = 0u; u < 4u; u++) {
-                for (var v = 0u; v < 4u; v++) {
-                    acc[u * 4u + v] = fma(a_values[u], b_values[v], acc[u * 4u + v]);
-                }
-            }
+            let a_row = kk * TILE_STRIDE + ty;
+            let b_row = kk * TILE_STRIDE + tx;
+            let b_values = vec4<f32>(b_tile[b_row], b_tile[b_row + 16u], b_tile[b_row + 32u],
+                b_tile[b_row + 48u]);
+            acc_0 = fma(vec4<f32>(a_tile[a_row]), b_values, acc_0);
+            acc_1 = fma(vec4<f32>(a_tile[a_row + 16u]), b_values, acc_1);
+            acc_2 = fma(vec4<f32>(a_tile[a_row + 32u]), b_values, acc_2);
+            acc_3 = fma(vec4<f32>(a_tile[a_row + 48u]), b_values, acc_3);
         }
         workgroupBarrier();
     }
 
     let c_base = params.c_offset + split * params.split_stride;
-    for (var u = 0u; u < 4u; u++) {
-        let row = row0 + ty + 16u * u;
-        if (row >= params.m) {
-            continue;
-        }
-        for (var v = 0u; v < 4u; v++) {
-            let col = col0 + tx + 16u * v;
-            if (col >= params.n) {
-                continue;
-            }
-            let index = c_base + row * params.c_row_stride + col;
-            var value = acc[u * 4u + v];
-            if ((params.flags & ACCUMULATE) != 0u) {
-                value += c[index];
-            }
-            if ((params.flags & ADD_BIAS) != 0u) {
-                value += bias[col];
-            }
-            if ((params.flags & RELU) != 0u) {
-                value = max(value, 0.0);
-            }
-            c[index] = value;
-        }
+    store_row(c_base, row0 + ty, col0 + tx, acc_0);
+    store_row(c_base, row0 + ty + 16u, col0 + tx, acc_1);
+    store_row(c_base, row0 + ty + 32u, col0 + tx, acc_2);
+    store_row(c_base, row0 + ty + 48u, col0 + tx, acc_3);
+}
+
+// Writes a thread's four values of C row `row`, at columns col + 16 v, through the epilogue.
+fn store_row(c_base: u32, row: u32, col: u32, values: vec4<f32>) {
+    if (row >= params.m) {
+        return;
     }
+    store(c_base, row, col, values.x);
+    store(c_base, row, col + 16u, values.y);
+    store(c_base, row, col + 32u, values.z);
+    store(c_base, row, col + 48u, values.w);
+}
+
+fn store(c_base: u32, row: u32, col: u32, product: f32) {
+    if (col >= params.n) {
+        return;
+    }
+    let index = c_base + row * params.c_row_stride + col;
+    var value = product;
+    if ((params.flags & ACCUMULATE) != 0u) {
+        value += c[index];
+    }
+    if ((params.flags & ADD_BIAS) != 0u) {
+        value += bias[col];
+    }
+    if ((params.flags & RELU) != 0u) {
+        value = max(value, 0.0);
+    }
+    c[index] = value;
 }

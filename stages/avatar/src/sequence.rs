@@ -266,8 +266,13 @@ mod tests {
             }
             let x = on_cpu.deform(&avatar, 3, history).unwrap();
             let y = on_gpu.deform(&avatar, 3, history).unwrap();
+            // Means in metres: 1 mm, because Vulkan guarantees GPU sin and cos only to 2^-11
+            // absolute (the positional encoding and the Rodrigues rotations use them), and an
+            // NVIDIA H100 measured 0.19 mm here where lavapipe's libm-grade functions give
+            // under 0.1 mm; a wrong frame, history or joint moves means by centimetres.
+            let mut report = Vec::new();
             for (name, p, q, tolerance) in [
-                ("means", &x.means, &y.means, 1e-4),
+                ("means", &x.means, &y.means, 1e-3),
                 ("covariances", &x.covariances, &y.covariances, 1e-5),
                 ("opacities", &x.opacities, &y.opacities, 1e-5),
                 ("sh", &x.sh, &y.sh, 1e-5),
@@ -278,8 +283,14 @@ mod tests {
                     .zip(q)
                     .map(|(a, b)| (a - b).abs())
                     .fold(0.0, f64::max);
-                assert!(worst <= tolerance, "{history:?} {name}: {worst}");
+                eprintln!(
+                    "{history:?} {name}: worst gpu - cpu {worst:.3e} (tolerance {tolerance:.0e})"
+                );
+                if worst > tolerance {
+                    report.push(format!("{name}: {worst:.3e} > {tolerance:.0e}"));
+                }
             }
+            assert!(report.is_empty(), "{history:?}: {}", report.join("; "));
         }
         // Another frame's history is exactly that frame's own on the device.
         let borrowed = on_gpu

@@ -279,12 +279,7 @@ impl GpuContext {
         }
         let wgsl = super::shaders::expand_includes(source.name, &source.wgsl)?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(source.name),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-            });
+        let module = super::shaders::compile_module(&self.device, source.name, wgsl);
         let pipeline = self
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {

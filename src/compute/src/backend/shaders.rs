@@ -18,6 +18,40 @@
 
 use super::BackendError;
 
+/// wgpu's runtime checks for this project's kernels: every check on but naga's forced loop
+/// bounding. That check adds a hidden iteration counter to every loop, so drivers cannot
+/// unroll even a four-iteration constant loop; on NVIDIA's Vulkan driver it made the
+/// network kernels about 25x slower (gpu `paper` iterations at 5.5 it/s on an H100, device
+/// time in the matrix products; gfx-rs/wgpu issue 7698 reports the same 100x regression).
+/// Its only purpose is to keep an infinite loop from being undefined behaviour, and every
+/// loop in `shaders/` ends: counted loops over bounded sizes, the nearest-neighbour
+/// insertion whose slot decreases, and the compare-exchange add, which ends when its
+/// exchange succeeds (GPUs guarantee the forward progress it needs). Buffer bounds checks
+/// stay on.
+pub fn runtime_checks() -> wgpu::ShaderRuntimeChecks {
+    wgpu::ShaderRuntimeChecks {
+        force_loop_bounding: false,
+        ..wgpu::ShaderRuntimeChecks::checked()
+    }
+}
+
+/// Compiles one kernel's expanded WGSL (see [`expand_includes`]) with [`runtime_checks`].
+/// Every kernel goes through this function (`GpuContext::kernel`, `NnGpu::new`).
+pub fn compile_module(device: &wgpu::Device, name: &str, wgsl: String) -> wgpu::ShaderModule {
+    // SAFETY: the one check turned off, loop bounding, guards only against infinite loops,
+    // and no kernel in `shaders/` has one (see `runtime_checks`); the source is this
+    // project's own WGSL, never user input.
+    unsafe {
+        device.create_shader_module_trusted(
+            wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            },
+            runtime_checks(),
+        )
+    }
+}
+
 pub const ATOMIC_ADD_FLOAT_WGSL: &str = include_str!("../../../../shaders/atomic_add_float.wgsl");
 pub const ATOMIC_ADD_CAS_WGSL: &str = include_str!("../../../../shaders/atomic_add_cas.wgsl");
 

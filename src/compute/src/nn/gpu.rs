@@ -21,7 +21,7 @@ use super::NnError;
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
-use crate::backend::shaders::expand_includes;
+use crate::backend::shaders::{compile_module, expand_includes};
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -396,10 +396,7 @@ impl NnGpu {
             let wgsl =
                 expand_includes(name, wgsl).map_err(|error| NnError::Gpu(error.to_string()))?;
             let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(name),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
-            });
+            let module = compile_module(device, name, wgsl);
             let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(name),
                 layout: None,
