@@ -266,14 +266,17 @@ mod tests {
             }
             let x = on_cpu.deform(&avatar, 3, history).unwrap();
             let y = on_gpu.deform(&avatar, 3, history).unwrap();
-            // Means in metres: 1 mm, because Vulkan guarantees GPU sin and cos only to 2^-11
-            // absolute (the positional encoding and the Rodrigues rotations use them), and an
-            // NVIDIA H100 measured 0.19 mm here where lavapipe's libm-grade functions give
-            // under 0.1 mm; a wrong frame, history or joint moves means by centimetres.
+            // f32 on the device against the f64 oracle. Lavapipe stays within 2e-5 on means
+            // (metres) and 1e-6 on covariances; an NVIDIA H100 measured 1.9e-4 and 2.0e-5
+            // (its transcendentals are looser, and Vulkan guarantees sin and cos only to
+            // 2^-11; fused multiply-adds can also tip a nearest-vertex choice between two
+            // near-equidistant vertices). The tolerances leave 5x over the H100: 1 mm on
+            // means and 1e-4 on covariances (the largest is 1.5e-2 here); a wrong frame,
+            // history or joint moves means by centimetres.
             let mut report = Vec::new();
             for (name, p, q, tolerance) in [
                 ("means", &x.means, &y.means, 1e-3),
-                ("covariances", &x.covariances, &y.covariances, 1e-5),
+                ("covariances", &x.covariances, &y.covariances, 1e-4),
                 ("opacities", &x.opacities, &y.opacities, 1e-5),
                 ("sh", &x.sh, &y.sh, 1e-5),
             ] {
@@ -283,8 +286,9 @@ mod tests {
                     .zip(q)
                     .map(|(a, b)| (a - b).abs())
                     .fold(0.0, f64::max);
+                let largest = p.iter().fold(0.0f64, |m, v| m.max(v.abs()));
                 eprintln!(
-                    "{history:?} {name}: worst gpu - cpu {worst:.3e} (tolerance {tolerance:.0e})"
+                    "{history:?} {name}: worst gpu - cpu {worst:.3e} (tolerance {tolerance:.0e}, largest value {largest:.3e})"
                 );
                 if worst > tolerance {
                     report.push(format!("{name}: {worst:.3e} > {tolerance:.0e}"));

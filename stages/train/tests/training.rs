@@ -1121,6 +1121,16 @@ fn targets_are_composited_onto_the_background() {
                     sb.total
                 );
                 assert!(sa.lpips > 0.0 && sa.dssim > 0.0 && sa.l1 > 0.0);
+                // The first step is bit-identical on both backends, later steps
+                // on cpu only: a gpu's backward adds gradients with float atomics in whatever order
+                // its threads run, so two runs differ in the last bits of the parameters after
+                // one update (an H100 measured 1 ulp of LPIPS at step 1); a backdrop that
+                // leaked into a loss changes it in the third digit.
+                let tolerance = if step == 0 || backend.gpu().is_none() {
+                    1e-12
+                } else {
+                    1e-5
+                };
                 for (name, x, y) in [
                     ("l1", sa.l1, sb.l1),
                     ("mask_mse", sa.mask_mse, sb.mask_mse),
@@ -1130,7 +1140,7 @@ fn targets_are_composited_onto_the_background() {
                     ("total", sa.total, sb.total),
                 ] {
                     assert!(
-                        (x - y).abs() <= 1e-12 * x.abs().max(1.0),
+                        (x - y).abs() <= tolerance * x.abs().max(1.0),
                         "{} {background:?} step {step}: {name} {x} vs {y}",
                         backend.describe()
                     );
