@@ -5,8 +5,14 @@
 //! no factor of pi): per row, the input's `d` values first, then for each frequency the `d`
 //! sines followed by the `d` cosines. With `F = 10` and `d = 3` that is 63 values.
 
+use rayon::prelude::*;
+
 use super::scalar::NnScalar;
 use super::{NnError, check_len};
+
+/// Rows per parallel task: every row is independent, so the split only sets the task size
+/// (about 40k sines and cosines for 3 inputs and 10 bands) and never the result.
+const ROWS_PER_TASK: usize = 512;
 
 /// The encoding's parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -69,26 +75,32 @@ pub fn positional_encoding_forward<T: NnScalar>(
 ) -> Result<(), NnError> {
     encoding.check(rows, in_features, input.len(), output.len())?;
     let width = encoding.out_features(in_features);
-    if in_features == 0 {
+    if in_features == 0 || width == 0 {
         return Ok(());
     }
-    for (x, y) in input
-        .chunks_exact(in_features)
-        .zip(output.chunks_exact_mut(width))
-    {
-        if encoding.include_input {
-            y[..in_features].copy_from_slice(x);
-        }
-        for band in 0..encoding.frequencies {
-            let scale = T::from_f64((1u64 << band) as f64);
-            let start = encoding.sine_column(in_features, band);
-            for (i, &value) in x.iter().enumerate() {
-                let phase = value * scale;
-                y[start + i] = phase.sin();
-                y[start + in_features + i] = phase.cos();
+    let encode_rows = |(input, output): (&[T], &mut [T])| {
+        for (x, y) in input
+            .chunks_exact(in_features)
+            .zip(output.chunks_exact_mut(width))
+        {
+            if encoding.include_input {
+                y[..in_features].copy_from_slice(x);
+            }
+            for band in 0..encoding.frequencies {
+                let scale = T::from_f64((1u64 << band) as f64);
+                let start = encoding.sine_column(in_features, band);
+                for (i, &value) in x.iter().enumerate() {
+                    let phase = value * scale;
+                    y[start + i] = phase.sin();
+                    y[start + in_features + i] = phase.cos();
+                }
             }
         }
-    }
+    };
+    input
+        .par_chunks(ROWS_PER_TASK * in_features)
+        .zip(output.par_chunks_mut(ROWS_PER_TASK * width))
+        .for_each(encode_rows);
     Ok(())
 }
 
@@ -110,26 +122,33 @@ pub fn positional_encoding_backward<T: NnScalar>(
         d_output.len(),
     )?;
     let width = encoding.out_features(in_features);
-    if in_features == 0 {
+    if in_features == 0 || width == 0 {
         return Ok(());
     }
-    let rows_iter = output.chunks_exact(width).zip(d_output.chunks_exact(width));
-    for ((y, dy), dx) in rows_iter.zip(d_input.chunks_exact_mut(in_features)) {
-        for (i, d) in dx.iter_mut().enumerate() {
-            let mut sum = if encoding.include_input {
-                dy[i]
-            } else {
-                T::ZERO
-            };
-            for band in 0..encoding.frequencies {
-                let scale = T::from_f64((1u64 << band) as f64);
-                let sine = encoding.sine_column(in_features, band) + i;
-                let cosine = sine + in_features;
-                sum += scale * (y[cosine] * dy[sine] - y[sine] * dy[cosine]);
+    let backward_rows = |((output, d_output), d_input): ((&[T], &[T]), &mut [T])| {
+        let rows_iter = output.chunks_exact(width).zip(d_output.chunks_exact(width));
+        for ((y, dy), dx) in rows_iter.zip(d_input.chunks_exact_mut(in_features)) {
+            for (i, d) in dx.iter_mut().enumerate() {
+                let mut sum = if encoding.include_input {
+                    dy[i]
+                } else {
+                    T::ZERO
+                };
+                for band in 0..encoding.frequencies {
+                    let scale = T::from_f64((1u64 << band) as f64);
+                    let sine = encoding.sine_column(in_features, band) + i;
+                    let cosine = sine + in_features;
+                    sum += scale * (y[cosine] * dy[sine] - y[sine] * dy[cosine]);
+                }
+                *d = sum;
             }
-            *d = sum;
         }
-    }
+    };
+    output
+        .par_chunks(ROWS_PER_TASK * width)
+        .zip(d_output.par_chunks(ROWS_PER_TASK * width))
+        .zip(d_input.par_chunks_mut(ROWS_PER_TASK * in_features))
+        .for_each(backward_rows);
     Ok(())
 }
 
