@@ -238,6 +238,22 @@ pub fn knn_velocity<S: NnScalar>(
     out
 }
 
+/// Splats one frame's deformed Gaussians from `camera` on `background`, as every render
+/// of a trained avatar does (no smoothed opacity cut-off).
+pub fn splat_on(
+    world: &WorldGaussians,
+    camera: &Camera,
+    device: &dyn AvatarBackend,
+    background: [f64; 3],
+) -> anyhow::Result<RenderedImage<f64>> {
+    let options = RasterOptions {
+        background,
+        smooth_cutoff: false,
+    };
+    let mut pass = device.splat_forward(world, std::slice::from_ref(camera), &options)?;
+    Ok(pass.images.swap_remove(0))
+}
+
 /// The forward pass shared by training and rendering: non-rigid offsets from the networks
 /// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
 /// skinning, activations. The per-Gaussian networks, non-rigid and LBS offsets, run on
@@ -504,13 +520,7 @@ impl TrainedAvatar {
         background: [f64; 3],
     ) -> anyhow::Result<RenderedImage<f64>> {
         let deformed = self.deform(inputs, device)?;
-        let options = RasterOptions {
-            background,
-            smooth_cutoff: false,
-        };
-        let mut pass =
-            device.splat_forward(&deformed.world, std::slice::from_ref(camera), &options)?;
-        Ok(pass.images.swap_remove(0))
+        splat_on(&deformed.world, camera, device, background)
     }
 
     /// Writes the avatar arrays and attributes into an entry.

@@ -11,7 +11,7 @@ use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_motion::schema::MotionTrack;
 
-use crate::avatar::{FrameInputs, TrainedAvatar};
+use crate::avatar::{FrameInputs, TrainedAvatar, splat_on};
 use crate::device::{RenderPath, render_path};
 pub use crate::resident::deform::History;
 use crate::splatting::WorldGaussians;
@@ -22,6 +22,13 @@ pub struct SequenceRenderer {
     params: Vec<BodyParams>,
     motion: Option<MotionTrack>,
     path: RenderPath,
+    /// The host path's last deformed frame, with its frame and history: eval renders every
+    /// camera of a frame in turn and the viewer re-renders a paused frame from new views,
+    /// and on `cpu` the deformation (the per-Gaussian networks) is most of a frame's cost.
+    /// Valid because every call takes the avatar the renderer was built for.
+    last_deformed: Option<(usize, History, WorldGaussians)>,
+    /// Deformations the host path ran (the cache's misses).
+    host_deformations: usize,
 }
 
 impl SequenceRenderer {
@@ -39,7 +46,21 @@ impl SequenceRenderer {
             params,
             motion,
             path,
+            last_deformed: None,
+            host_deformations: 0,
         })
+    }
+
+    /// Drops the kept deformed frame: the next render deforms its frame anew (speed
+    /// measurements time the whole path).
+    pub fn forget_deformed_frame(&mut self) {
+        self.last_deformed = None;
+    }
+
+    /// Deformations run on the host path so far (a frame rendered again with the same
+    /// history, from any camera, reuses the last one).
+    pub fn host_deformations(&self) -> usize {
+        self.host_deformations
     }
 
     /// Frames of the sequence.
@@ -132,11 +153,37 @@ impl SequenceRenderer {
                 depth: widen(image.depth),
             });
         }
-        let inputs = self.frame_inputs(avatar, frame, history)?;
-        let RenderPath::Host(device) = &self.path else {
-            unreachable!("the device path returned above")
+        self.deform_on_host(avatar, frame, history)?;
+        let (RenderPath::Host(device), Some((_, _, world))) = (&self.path, &self.last_deformed)
+        else {
+            unreachable!("the device path returned above; the host path deformed the frame")
         };
-        avatar.render_on(&inputs, camera, &**device, background)
+        splat_on(world, camera, &**device, background)
+    }
+
+    /// Makes `last_deformed` frame `frame` with `history` on the host path (kept when it
+    /// already is).
+    fn deform_on_host(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+    ) -> anyhow::Result<&WorldGaussians> {
+        let cached = matches!(&self.last_deformed, Some((f, h, _)) if (*f, *h) == (frame, history));
+        if !cached {
+            self.last_deformed = None;
+            let inputs = self.frame_inputs(avatar, frame, history)?;
+            let RenderPath::Host(device) = &self.path else {
+                anyhow::bail!("the host deformation on the device path");
+            };
+            let world = avatar.deform(&inputs, &**device)?.world;
+            self.host_deformations += 1;
+            self.last_deformed = Some((frame, history, world));
+        }
+        match &self.last_deformed {
+            Some((_, _, world)) => Ok(world),
+            None => unreachable!("filled above"),
+        }
     }
 
     /// The deformed Gaussians of frame `frame` (with `history`), as the splatting reads them.
@@ -150,11 +197,7 @@ impl SequenceRenderer {
         if let RenderPath::Resident(device) = &mut self.path {
             return device.deform(frame, history);
         }
-        let inputs = self.frame_inputs(avatar, frame, history)?;
-        let RenderPath::Host(device) = &self.path else {
-            unreachable!("the device path returned above")
-        };
-        Ok(avatar.deform(&inputs, &**device)?.world)
+        self.deform_on_host(avatar, frame, history).cloned()
     }
 }
 
@@ -321,6 +364,63 @@ mod tests {
             );
             assert!(error.contains("frame 5"), "{error}");
         }
+    }
+
+    /// On `cpu` a frame rendered again with the same history, from another camera or on
+    /// another background, reuses its deformation and renders what a fresh renderer does;
+    /// another frame or history deforms again.
+    #[test]
+    fn a_host_frame_is_deformed_once_for_every_view() {
+        let cpu = Backend::select(DeviceChoice::Cpu).unwrap();
+        let (avatar, params, track) = avatar_and_sequence();
+        let fresh = || SequenceRenderer::new(&avatar, &cpu, params.clone(), Some(track.clone()));
+        let mut renderer = fresh().unwrap();
+        let (near, far) = (camera(32, 24), camera(40, 30));
+        let (grey, blue) = ([0.5; 3], [0.1, 0.2, 0.9]);
+        let mut views = Vec::new();
+        for (frame, history, view, background, deformations) in [
+            (3, History::Own, &near, grey, 1),
+            (3, History::Own, &far, grey, 1),
+            (3, History::Own, &near, blue, 1),
+            (3, History::Zeroed, &near, grey, 2),
+            (2, History::Zeroed, &near, grey, 3),
+            (3, History::Own, &far, grey, 4),
+        ] {
+            let image = renderer
+                .render(&avatar, frame, history, view, background)
+                .unwrap();
+            assert_eq!(
+                renderer.host_deformations(),
+                deformations,
+                "frame {frame} {history:?}"
+            );
+            let expected = fresh()
+                .unwrap()
+                .render(&avatar, frame, history, view, background)
+                .unwrap();
+            assert_eq!(image.colour, expected.colour, "frame {frame} {history:?}");
+            views.push(image.colour);
+        }
+        assert_ne!(
+            views[0], views[3],
+            "zeroed history renders as the frame's own"
+        );
+        renderer.forget_deformed_frame();
+        renderer
+            .render(&avatar, 3, History::Own, &far, grey)
+            .unwrap();
+        assert_eq!(
+            renderer.host_deformations(),
+            5,
+            "a forgotten frame deforms again"
+        );
+        // The deformed Gaussians of the frame just rendered come from the same deformation.
+        let world = renderer.deform(&avatar, 3, History::Own).unwrap();
+        assert_eq!(renderer.host_deformations(), 5);
+        assert_eq!(
+            world,
+            fresh().unwrap().deform(&avatar, 3, History::Own).unwrap()
+        );
     }
 
     /// On the device a frame costs one submission and one read-back (the image and the

@@ -14,6 +14,7 @@ use seqavatar_compute::splat::{
 use seqavatar_core::camera::Camera;
 
 /// One frame's Gaussians in world space, f64.
+#[derive(Clone, Debug, PartialEq)]
 pub struct WorldGaussians {
     pub means: Vec<f64>,
     pub covariances: Vec<f64>,

@@ -340,6 +340,10 @@ impl ViewRenderer for AvatarRenderer {
         )
         .map_err(anyhow::Error::from)
     }
+
+    fn forget_deformed_frame(&mut self) {
+        self.frames.forget_deformed_frame();
+    }
 }
 
 #[cfg(test)]

@@ -23,6 +23,10 @@ pub trait ViewRenderer {
     fn set_context_probe(&mut self, _probe: Option<crate::context_probe::ContextProbe>) -> bool {
         false
     }
+
+    /// Forgets any deformed frame kept for the next render, so that render runs the whole
+    /// path (the speed measurement's renders all do).
+    fn forget_deformed_frame(&mut self) {}
 }
 
 impl<F: FnMut(usize, &Camera) -> anyhow::Result<ImageF32>> ViewRenderer for F {
@@ -177,7 +181,7 @@ pub struct SpeedRow {
 }
 
 /// Times `frames.len()` renders of `camera` (one untimed warm-up render first: gpu pipelines
-/// compile on first use).
+/// compile on first use), each deforming its frame anew.
 pub fn measure_speed(
     renderer: &mut dyn ViewRenderer,
     camera: &Camera,
@@ -190,6 +194,7 @@ pub fn measure_speed(
     renderer.render(frames[0], camera)?;
     let started = Instant::now();
     for &frame in frames {
+        renderer.forget_deformed_frame();
         let image = renderer.render(frame, camera)?;
         anyhow::ensure!(
             image.width == camera.width as usize && image.height == camera.height as usize,
@@ -233,6 +238,50 @@ pub fn contact_sheet_rows(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A renderer that counts its renders and the deformed frames it was told to forget.
+    #[derive(Default)]
+    struct Counting {
+        renders: usize,
+        forgotten: usize,
+    }
+
+    impl ViewRenderer for Counting {
+        fn render(&mut self, _frame: usize, camera: &Camera) -> anyhow::Result<ImageF32> {
+            self.renders += 1;
+            let (w, h) = (camera.width as usize, camera.height as usize);
+            Ok(ImageF32::from_f32("counting", w, h, vec![0.5; w * h * 3])?)
+        }
+
+        fn forget_deformed_frame(&mut self) {
+            self.forgotten += 1;
+        }
+    }
+
+    /// Every timed render of the speed measurement runs the whole path: a renderer that
+    /// keeps its last deformed frame is told to forget it before each.
+    #[test]
+    fn every_timed_render_deforms_anew() {
+        let camera = Camera::look_at(
+            8,
+            6,
+            seqavatar_core::camera::Intrinsics {
+                fx: 8.0,
+                fy: 8.0,
+                cx: 4.0,
+                cy: 3.0,
+            },
+            seqavatar_core::glam::DVec3::new(0.0, 0.0, 3.0),
+            seqavatar_core::glam::DVec3::ZERO,
+            seqavatar_core::glam::DVec3::Y,
+        );
+        let mut renderer = Counting::default();
+        let row = measure_speed(&mut renderer, &camera, &[2, 2, 5]).unwrap();
+        assert_eq!(
+            (row.frames, renderer.renders, renderer.forgotten),
+            (3, 4, 3)
+        );
+    }
 
     fn score(psnr: f64, lpips: Option<f64>) -> ImageScore {
         ImageScore {

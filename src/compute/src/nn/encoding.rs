@@ -214,6 +214,49 @@ mod tests {
         }
     }
 
+    /// Over many row blocks (the parallel split), every row is the closed form: the forward
+    /// `sin(2^k x)`, `cos(2^k x)`, the backward `dy_x + sum_k 2^k (cos dy_sin - sin dy_cos)`.
+    #[test]
+    fn every_row_block_is_the_closed_form() {
+        let encoding = PositionalEncoding::NERF_XYZ;
+        let (rows, d) = (2 * ROWS_PER_TASK + 37, 3);
+        let width = encoding.out_features(d);
+        let mut rng = Rng::new(11);
+        let input: Vec<f64> = (0..rows * d).map(|_| rng.uniform(-1.5, 1.5)).collect();
+        let d_output: Vec<f64> = (0..rows * width).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let mut output = vec![f64::NAN; rows * width];
+        positional_encoding_forward(encoding, &input, rows, d, &mut output).unwrap();
+        let mut d_input = vec![f64::NAN; rows * d];
+        positional_encoding_backward(encoding, &output, &d_output, rows, d, &mut d_input).unwrap();
+        for row in [
+            0,
+            ROWS_PER_TASK - 1,
+            ROWS_PER_TASK,
+            2 * ROWS_PER_TASK,
+            rows - 1,
+        ] {
+            for i in 0..d {
+                let x = input[row * d + i];
+                let (y, dy) = (&output[row * width..], &d_output[row * width..]);
+                assert_eq!(y[i], x);
+                let mut expected = dy[i];
+                for band in 0..encoding.frequencies {
+                    let scale = f64::from(1u32 << band);
+                    let sine = d * (1 + 2 * band) + i;
+                    assert_eq!(y[sine], (scale * x).sin(), "row {row} band {band}");
+                    assert_eq!(y[sine + d], (scale * x).cos(), "row {row} band {band}");
+                    expected +=
+                        scale * ((scale * x).cos() * dy[sine] - (scale * x).sin() * dy[sine + d]);
+                }
+                let got = d_input[row * d + i];
+                assert!(
+                    (got - expected).abs() <= 1e-12 * expected.abs().max(1.0),
+                    "row {row}: {got} vs {expected}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn rejects_bad_lengths() {
         let mut output = vec![0.0f32; 62];
