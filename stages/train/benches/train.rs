@@ -30,6 +30,11 @@
 //! timed iterations from the same initial state. The gpu backend needs a hardware adapter
 //! (set `SEQAVATAR_BENCH_SOFTWARE_GPU=1` to time lavapipe instead).
 //!
+//! `SEQAVATAR_BENCH_PAPER_COPIES=K` (K >= 2) adds a `paper` row at the paper's scale: the
+//! trainer's Gaussians repeated K times through a checkpoint (every copy after the first
+//! with its centre moved by up to 5 mm), so the phases are timed at `K x 5860` Gaussians
+//! (16: 93 760, near the 10^5 of a densified paper run) without training that long first.
+//!
 //! Run: `cargo bench -p seqavatar-train --bench train`.
 
 use std::path::Path;
@@ -43,6 +48,7 @@ use seqavatar_engine::{
 };
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
+use seqavatar_train::densify::names;
 use seqavatar_train::trainer::{Phase, PhaseTimes, Trainer};
 
 const UPSTREAM: &str = r#"
@@ -160,10 +166,45 @@ fn per_phase(times: &PhaseTimes) -> String {
         .join(", ")
 }
 
+/// A trainer whose Gaussians are `trainer`'s repeated `copies` times, through a checkpoint:
+/// every per-Gaussian column (parameters, Adam moments, densification statistics) repeated,
+/// the centres of every copy after the first moved by up to 5 mm on each axis.
+fn with_copies<'d>(
+    mut trainer: Trainer<'d>,
+    config: &TrainConfig,
+    data: &'d TrainingData,
+    backend: &Backend,
+    copies: usize,
+) -> anyhow::Result<Trainer<'d>> {
+    let mut checkpoint = trainer.checkpoint()?;
+    let n = trainer.state.len();
+    let mut rng = Rng::new(29);
+    for tensor in &mut checkpoint.tensors {
+        if !tensor.name.starts_with("gaussians/") {
+            continue;
+        }
+        let jitter = tensor.name == format!("gaussians/{}", names::POSITION);
+        let mut values = Vec::with_capacity(copies * tensor.values.len());
+        values.extend_from_slice(&tensor.values);
+        for _ in 1..copies {
+            values.extend(tensor.values.iter().map(|&v| {
+                if jitter {
+                    v + rng.uniform(-5e-3, 5e-3)
+                } else {
+                    v
+                }
+            }));
+        }
+        tensor.values = values;
+        tensor.shape[0] = copies * n;
+    }
+    checkpoint.metadata["gaussians"] = serde_json::json!(copies * n);
+    Trainer::resume(config.clone(), data, backend.clone(), &checkpoint)
+}
+
 fn time_row(
     row: &str,
-    config: &TrainConfig,
-    data: &TrainingData,
+    variant: &Variant<'_>,
     backend: &Backend,
     timing: Timing,
 ) -> anyhow::Result<(f64, Option<f64>)> {
@@ -172,8 +213,12 @@ fn time_row(
         timed,
         peak,
     } = timing;
+    let (config, data) = (&variant.config, variant.data);
     let description = backend.describe();
     let mut trainer = Trainer::new(config.clone(), data, backend.clone())?;
+    if variant.copies > 1 {
+        trainer = with_copies(trainer, config, data, backend, variant.copies)?;
+    }
     for _ in 0..warmup {
         trainer.step()?;
     }
@@ -193,8 +238,9 @@ fn time_row(
     let traffic = backend.transfers().since(&traffic_before);
     let it_s = timed as f64 / seconds;
     println!(
-        "{row}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}; {description})",
-        1e3 * seconds / timed as f64
+        "{row}: {it_s:.3} iterations/s ({:.1} ms per iteration over {timed}, {} Gaussians; {description})",
+        1e3 * seconds / timed as f64,
+        trainer.state.len()
     );
     let device_times = trainer.device_phase_times()?;
     let host_times = *trainer.phase_times();
@@ -231,6 +277,26 @@ fn time_row(
     Ok((it_s, Some(percent)))
 }
 
+/// One row's configuration: a preset on a scene, its Gaussians repeated `copies` times
+/// (1: as initialised).
+struct Variant<'d> {
+    name: &'static str,
+    config: TrainConfig,
+    data: &'d TrainingData,
+    copies: usize,
+}
+
+impl<'d> Variant<'d> {
+    fn new(name: &'static str, config: TrainConfig, data: &'d TrainingData) -> Self {
+        Variant {
+            name,
+            config,
+            data,
+            copies: 1,
+        }
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     // As the `pipeline` binary does, so the figures are the ones users get.
     seqavatar_compute::memory::retain_freed_memory();
@@ -261,20 +327,35 @@ fn main() -> anyhow::Result<()> {
         rayon::current_num_threads(),
         w = config.trunk_width
     );
-    let mut variants = vec![("paper preset, no LPIPS loss", config.clone(), &data)];
+    let mut variants = vec![Variant::new(
+        "paper preset, no LPIPS loss",
+        config.clone(),
+        &data,
+    )];
     if std::env::var("SEQAVATAR_BENCH_LPIPS").map_or(true, |v| v != "0") {
         let weights = dir.path().join("lpips_vgg_seeded.safetensors");
         seeded_weights(LpipsNet::Vgg, 1).write_safetensors(&weights)?;
         let mut with_lpips = config.clone();
         with_lpips.lpips_weight = 0.1;
         with_lpips.lpips_weights = Some(weights);
-        variants.push((
+        variants.push(Variant::new(
             "paper preset, LPIPS loss (VGG, weight 0.1)",
             with_lpips,
             &data,
         ));
     }
-    variants.push(("fast preset at 128x128", fast, &fast_data));
+    variants.push(Variant::new("fast preset at 128x128", fast, &fast_data));
+    let copies = env_usize("SEQAVATAR_BENCH_PAPER_COPIES", 0);
+    if copies > 1 {
+        variants.push(Variant {
+            copies,
+            ..Variant::new(
+                "paper preset at paper scale, no LPIPS loss",
+                config.clone(),
+                &data,
+            )
+        });
+    }
     let timing = Timing {
         warmup,
         timed,
@@ -282,12 +363,12 @@ fn main() -> anyhow::Result<()> {
     };
     let mut headline = None;
     for (name, backend) in backends {
-        for (variant, config, data) in &variants {
-            let row = format!("{name}, {variant}");
-            let (it_s, percent) = time_row(&row, config, data, &backend, timing)?;
+        for variant in &variants {
+            let row = format!("{name}, {}", variant.name);
+            let (it_s, percent) = time_row(&row, variant, &backend, timing)?;
             if let Some(percent) = percent
                 && name == "cpu"
-                && variant.starts_with("paper preset, no LPIPS")
+                && variant.name == "paper preset, no LPIPS loss"
             {
                 headline = Some((it_s, percent));
             }
