@@ -226,6 +226,7 @@ fn time_row(
     // On the device, each phase is timed by timestamps between its commands (the host sees
     // only the recording and the submission).
     trainer.time_device_phases()?;
+    let searches_before = trainer.aiap_neighbour_searches()?;
     let traffic_before = backend.transfers();
     let started = Instant::now();
     for _ in 0..timed {
@@ -257,6 +258,14 @@ fn time_row(
         traffic.readbacks as f64 / timed as f64,
         traffic.bytes_up as f64 / 1024.0 / timed as f64,
         traffic.bytes_down as f64 / 1024.0 / timed as f64
+    );
+    // A full search is quadratic in the Gaussians on the device: how often the timed
+    // iterations needed one says whether the losses phase is the search.
+    let (searches, calls) = trainer.aiap_neighbour_searches()?;
+    println!(
+        "  AIAP neighbour lists: {} full searches in {} timed iterations that asked for neighbours",
+        searches - searches_before.0,
+        calls - searches_before.1
     );
     let Some(networks) = &trainer.networks else {
         return Ok((it_s, None));
