@@ -31,8 +31,45 @@ pub struct KernelSource {
 #[derive(Debug)]
 pub struct Kernel {
     pub name: &'static str,
-    pipeline: wgpu::ComputePipeline,
-    layout: wgpu::BindGroupLayout,
+    pub(crate) pipeline: wgpu::ComputePipeline,
+    pub(crate) layout: wgpu::BindGroupLayout,
+}
+
+impl Kernel {
+    /// Compiles kernel `name` (its WGSL through [`super::shaders::expand_includes`] and
+    /// [`super::shaders::compile_module`]) into the pipeline of entry point `entry`; a
+    /// validation error names the kernel. Every kernel is built here (`GpuContext::kernel`
+    /// caches them, `NnGpu::new` keeps its own).
+    pub(crate) fn compile(
+        device: &wgpu::Device,
+        name: &'static str,
+        wgsl: &str,
+        entry: &str,
+    ) -> Result<Self, BackendError> {
+        let wgsl = super::shaders::expand_includes(name, wgsl)?;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = super::shaders::compile_module(device, name, wgsl);
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(name),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: wgpu::PipelineCompilationOptions::default(),
+            cache: None,
+        });
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Shader {
+                name: name.to_owned(),
+                message: error.to_string(),
+            });
+        }
+        let layout = pipeline.get_bind_group_layout(0);
+        Ok(Kernel {
+            name,
+            pipeline,
+            layout,
+        })
+    }
 }
 
 /// A storage buffer with its length in elements (the buffer itself is at least 16 bytes so
@@ -277,31 +314,12 @@ impl GpuContext {
         if let Some(kernel) = kernels.get(source.name) {
             return Ok(kernel.clone());
         }
-        let wgsl = super::shaders::expand_includes(source.name, &source.wgsl)?;
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = super::shaders::compile_module(&self.device, source.name, wgsl);
-        let pipeline = self
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(source.name),
-                layout: None,
-                module: &module,
-                entry_point: Some(source.entry_point),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                cache: None,
-            });
-        if let Some(error) = pollster::block_on(scope.pop()) {
-            return Err(BackendError::Shader {
-                name: source.name.to_owned(),
-                message: error.to_string(),
-            });
-        }
-        let layout = pipeline.get_bind_group_layout(0);
-        let kernel = Arc::new(Kernel {
-            name: source.name,
-            pipeline,
-            layout,
-        });
+        let kernel = Arc::new(Kernel::compile(
+            &self.device,
+            source.name,
+            &source.wgsl,
+            source.entry_point,
+        )?);
         kernels.insert(source.name, kernel.clone());
         Ok(kernel)
     }

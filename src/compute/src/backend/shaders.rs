@@ -8,8 +8,8 @@
 //! `//#include "splat_types.wgsl"`, which [`expand_includes`] replaces by the header's text.
 //! The step is strict: an unknown header, a malformed include line, a header included twice
 //! or an include inside a header are errors naming the kernel. Every kernel is compiled
-//! through it (`GpuContext::kernel`, `NnGpu::new`), and a test checks that no kernel defines
-//! a function a header already defines.
+//! through it (`Kernel::compile`, for `GpuContext::kernel` and `NnGpu::new`), and a test
+//! checks that no kernel defines a function a header already defines.
 //!
 //! Kernels that accumulate gradients include the portable compare-exchange `gradient_add`,
 //! `//#include "atomic_add_cas.wgsl"`, alone between `// @atomic-add-begin` and
@@ -37,7 +37,7 @@ pub fn runtime_checks() -> wgpu::ShaderRuntimeChecks {
 }
 
 /// Compiles one kernel's expanded WGSL (see [`expand_includes`]) with [`runtime_checks`].
-/// Every kernel goes through this function (`GpuContext::kernel`, `NnGpu::new`).
+/// Every kernel goes through this function (`Kernel::compile`).
 pub fn compile_module(device: &wgpu::Device, name: &str, wgsl: String) -> wgpu::ShaderModule {
     // SAFETY: the one check turned off, loop bounding, guards only against infinite loops,
     // and no kernel in `shaders/` has one (see `runtime_checks`); the source is this

@@ -21,7 +21,7 @@ use super::NnError;
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
-use crate::backend::shaders::{compile_module, expand_includes};
+use crate::backend::Kernel;
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -193,14 +193,6 @@ impl NnProgram {
             }
         }
     }
-}
-
-/// A compiled kernel and its bind-group layout (derived from the shader).
-#[derive(Debug)]
-struct Kernel {
-    name: &'static str,
-    pipeline: wgpu::ComputePipeline,
-    layout: wgpu::BindGroupLayout,
 }
 
 /// A strided operand of the matrix kernel: element `(i, j)` at
@@ -393,27 +385,8 @@ impl NnGpu {
     /// Compiles every kernel for `device`.
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
         let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
-            let wgsl =
-                expand_includes(name, wgsl).map_err(|error| NnError::Gpu(error.to_string()))?;
-            let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-            let module = compile_module(device, name, wgsl);
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(name),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                cache: None,
-            });
-            if let Some(error) = pollster::block_on(scope.pop()) {
-                return Err(NnError::Gpu(format!("kernel {name}: {error}")));
-            }
-            let layout = pipeline.get_bind_group_layout(0);
-            Ok(Kernel {
-                name,
-                pipeline,
-                layout,
-            })
+            Kernel::compile(device, name, wgsl, entry)
+                .map_err(|error| NnError::Gpu(error.to_string()))
         };
         let limits = device.limits();
         Ok(NnGpu {
