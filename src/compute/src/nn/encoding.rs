@@ -11,7 +11,7 @@ use super::scalar::NnScalar;
 use super::{NnError, check_len};
 
 /// Rows per parallel task: every row is independent, so the split only sets the task size
-/// (about 40k sines and cosines for 3 inputs and 10 bands) and never the result.
+/// (about 30k sines and cosines for 3 inputs and 10 bands) and never the result.
 const ROWS_PER_TASK: usize = 512;
 
 /// The encoding's parameters.
@@ -75,7 +75,7 @@ pub fn positional_encoding_forward<T: NnScalar>(
 ) -> Result<(), NnError> {
     encoding.check(rows, in_features, input.len(), output.len())?;
     let width = encoding.out_features(in_features);
-    if in_features == 0 || width == 0 {
+    if width == 0 {
         return Ok(());
     }
     let encode_rows = |(input, output): (&[T], &mut [T])| {
@@ -122,7 +122,9 @@ pub fn positional_encoding_backward<T: NnScalar>(
         d_output.len(),
     )?;
     let width = encoding.out_features(in_features);
-    if in_features == 0 || width == 0 {
+    if width == 0 {
+        // No encoded values (no inputs, or no bands and no raw input): x reaches nothing.
+        d_input.fill(T::ZERO);
         return Ok(());
     }
     let backward_rows = |((output, d_output), d_input): ((&[T], &[T]), &mut [T])| {
@@ -255,6 +257,21 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// An encoding with no bands and no raw input encodes nothing, and its backward writes
+    /// a zero gradient (the input reaches no output).
+    #[test]
+    fn an_empty_encoding_has_a_zero_gradient() {
+        let encoding = PositionalEncoding {
+            frequencies: 0,
+            include_input: false,
+        };
+        let (rows, d) = (4, 3);
+        positional_encoding_forward(encoding, &[1.0f64; 12], rows, d, &mut []).unwrap();
+        let mut d_input = vec![f64::NAN; rows * d];
+        positional_encoding_backward(encoding, &[], &[], rows, d, &mut d_input).unwrap();
+        assert_eq!(d_input, vec![0.0; rows * d]);
     }
 
     #[test]
