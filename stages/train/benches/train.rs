@@ -178,24 +178,19 @@ fn with_copies<'d>(
 ) -> anyhow::Result<Trainer<'d>> {
     let mut checkpoint = trainer.checkpoint()?;
     let n = trainer.state.len();
+    let position = format!("gaussians/{}", names::POSITION);
     let mut rng = Rng::new(29);
     for tensor in &mut checkpoint.tensors {
         if !tensor.name.starts_with("gaussians/") {
             continue;
         }
-        let jitter = tensor.name == format!("gaussians/{}", names::POSITION);
-        let mut values = Vec::with_capacity(copies * tensor.values.len());
-        values.extend_from_slice(&tensor.values);
-        for _ in 1..copies {
-            values.extend(tensor.values.iter().map(|&v| {
-                if jitter {
-                    v + rng.uniform(-5e-3, 5e-3)
-                } else {
-                    v
-                }
-            }));
+        let original = tensor.values.len();
+        tensor.values = tensor.values.repeat(copies);
+        if tensor.name == position {
+            for value in &mut tensor.values[original..] {
+                *value += rng.uniform(-5e-3, 5e-3);
+            }
         }
-        tensor.values = values;
         tensor.shape[0] = copies * n;
     }
     checkpoint.metadata["gaussians"] = serde_json::json!(copies * n);
