@@ -163,26 +163,20 @@ fn write_images(
         |(index, &(view, frame, _))| -> anyhow::Result<()> {
             let source_view = plan.views[view];
             let source_frame = plan.frames[frame];
+            let image_name = || {
+                format!(
+                    "{}: camera {} frame {}",
+                    reader.describe(),
+                    reader.cameras()[source_view].id,
+                    reader.frame_id(source_frame)
+                )
+            };
             let source = reader
                 .read_image(source_view, source_frame)
-                .with_context(|| {
-                    format!(
-                        "{}: camera {} frame {}",
-                        reader.describe(),
-                        reader.cameras()[source_view].id,
-                        reader.frame_id(source_frame)
-                    )
-                })?;
+                .with_context(image_name)?;
             let source_camera = &reader.cameras()[source_view].camera;
             let (rgb, mask) =
-                resample(&source, source_camera, &cameras[view]).with_context(|| {
-                    format!(
-                        "{}: camera {} frame {}",
-                        reader.describe(),
-                        reader.cameras()[source_view].id,
-                        reader.frame_id(source_frame)
-                    )
-                })?;
+                resample(&source, source_camera, &cameras[view]).with_context(image_name)?;
             let (w, h) = (cameras[view].width as usize, cameras[view].height as usize);
             let (mw, mh) = (max_w as usize, max_h as usize);
             let mut rgb_chunk = vec![0u8; mh * mw * 3];
