@@ -458,7 +458,7 @@ mod tests {
     fn render_frames_follow_the_recording_start() {
         use crate::animate::frames_to_draw;
         use seqavatar_avatar::avatar::AvatarGaussians;
-        use seqavatar_avatar::config::{AvatarConfig, Background, MotionContext};
+        use seqavatar_avatar::config::{AvatarConfig, MotionContext};
         use seqavatar_avatar::rig::BodyRig;
         use seqavatar_core::body::procedural::procedural_body;
         use seqavatar_motion::schema::FrameAxis;
@@ -466,17 +466,10 @@ mod tests {
         let model = procedural_body(0.05);
         let (j, v, frames) = (model.num_joints(), model.num_vertices(), 6);
         let config = AvatarConfig {
-            motion_context: MotionContext::Skeleton,
             trunk_width: 8,
             trunk_depth: 1,
             tau: 1,
-            sequence_length: 2,
-            pose_refiner: false,
-            lbs_offsets: false,
-            sh_degree: 0,
-            scale_min: 1e-5,
-            scale_max: 0.5,
-            background: Background::Black,
+            ..seqavatar_avatar::test_support::small_config(MotionContext::Skeleton)
         };
         let renderer = |axis: FrameAxis| {
             let rig = BodyRig::new(model.clone()).unwrap();
