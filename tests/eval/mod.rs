@@ -14,7 +14,7 @@ use std::path::Path;
 use seqavatar_avatar::ply::{cloud_to_world, read_ply};
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::{
-    EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, StageReport, Store, run,
+    EntryId, EntryReader, LocalStore, Pipeline, RunOptions, StageReport, Store, run,
 };
 use seqavatar_eval::animate::drive_avatar;
 use seqavatar_eval::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
@@ -22,6 +22,8 @@ use seqavatar_eval::avatar_render::AvatarRenderer;
 use seqavatar_eval::evaluate::ViewRenderer;
 use seqavatar_eval::export::{ExportOptions, export_avatar};
 use seqavatar_eval::lpips::{LpipsNet, seeded};
+
+use crate::support::registry;
 
 /// The `cpu` backend, as `--device cpu` selects it.
 fn cpu() -> Backend {
@@ -56,16 +58,6 @@ stages:
     config: {{device: cpu, speed_scales: [1.0, 0.5], speed_frames: 2}}
 {extra}"#
     )
-}
-
-fn registry() -> Registry {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    seqavatar_eval::register(&mut registry);
-    registry
 }
 
 /// Inputs a stage will need are checked when the pipeline loads: an eval of an avatar

@@ -7,6 +7,8 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 
+use seqavatar_engine::Registry;
+
 /// A temporary folder with a cache and pipeline files.
 pub struct Sandbox {
     dir: tempfile::TempDir,
@@ -116,4 +118,16 @@ impl Sandbox {
             .map(|text| text.lines().count())
             .unwrap_or(0)
     }
+}
+
+/// Every stage of the five stage crates, as the `pipeline` binary registers them, for tests
+/// that run pipelines in process.
+pub fn registry() -> Registry {
+    let mut registry = Registry::new();
+    seqavatar_ingest::register(&mut registry);
+    seqavatar_fit::register(&mut registry);
+    seqavatar_motion::register(&mut registry);
+    seqavatar_train::register(&mut registry);
+    seqavatar_eval::register(&mut registry);
+    registry
 }

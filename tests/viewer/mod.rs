@@ -19,10 +19,12 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{Backend, DeviceChoice};
-use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, StageReport};
+use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, StageReport};
 use seqavatar_eval::avatar_render::AvatarRenderer;
 use seqavatar_eval::evaluate::ViewRenderer;
 use seqavatar_viewer::{Viewer, ViewerOptions};
+
+use crate::support::registry;
 
 const PIPELINE: &str = r#"description: tiny viewer test
 stages:
@@ -40,16 +42,6 @@ stages:
     inputs: [ingest, motion]
     config: {"preset": "fast", "device": "cpu", "seed": 5, "iterations": 30, "motion_context": "multiscale", "checkpoint_every": 100, "sh_degree": 1, "sh_degree_interval": 10}
 "#;
-
-fn registry() -> Registry {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    seqavatar_eval::register(&mut registry);
-    registry
-}
 
 fn cpu() -> Backend {
     Backend::select(DeviceChoice::Cpu).unwrap()
