@@ -35,6 +35,8 @@
 //! with its centre moved by up to 5 mm), so the phases are timed at `K x 5860` Gaussians
 //! (16: 93 760, near the 10^5 of a densified paper run) without training that long first.
 //!
+//! `SEQAVATAR_BENCH_BACKENDS=gpu` (or `cpu`) times one backend only.
+//!
 //! Run: `cargo bench -p seqavatar-train --bench train`.
 
 use std::path::Path;
@@ -124,8 +126,18 @@ fn upstream_entries(cache: &Path) -> anyhow::Result<(EntryReader, EntryReader)> 
 
 /// The backends timed: `cpu`, and `gpu` when an adapter is found (hardware unless
 /// `SEQAVATAR_BENCH_SOFTWARE_GPU` is set).
+/// The backends to time: `cpu` and the hardware gpu, or only those `SEQAVATAR_BENCH_BACKENDS`
+/// names (`cpu`, `gpu`, comma-separated): the paper-scale row takes minutes on a cpu.
 fn bench_backends() -> anyhow::Result<Vec<(&'static str, Backend)>> {
-    let mut backends = vec![("cpu", Backend::select(DeviceChoice::Cpu)?)];
+    let wanted = std::env::var("SEQAVATAR_BENCH_BACKENDS").unwrap_or_else(|_| "cpu,gpu".into());
+    let wants = |name: &str| wanted.split(',').any(|w| w.trim() == name);
+    let mut backends = Vec::new();
+    if wants("cpu") {
+        backends.push(("cpu", Backend::select(DeviceChoice::Cpu)?));
+    }
+    if !wants("gpu") {
+        return Ok(backends);
+    }
     let choice = if std::env::var_os("SEQAVATAR_BENCH_SOFTWARE_GPU").is_some() {
         AdapterChoice::AllowSoftware
     } else {
