@@ -408,6 +408,42 @@ mod tests {
         );
     }
 
+    /// The garment table: the whole-image figures beside the region's, one row for all
+    /// images and one per non-empty subset; no table without a garment region.
+    #[test]
+    fn garment_table_rows_per_subset_or_none_without_a_region() {
+        let region = |psnr: f64| RegionScore::Scored {
+            pixels: 5,
+            psnr,
+            ssim: 0.8,
+            lpips_vgg: None,
+            lpips_alex: None,
+        };
+        let with = |psnr: f64, garment: RegionScore| ImageScore {
+            garment: Some(garment),
+            ..score(psnr, None)
+        };
+        let scores = [with(20.0, region(18.0)), with(30.0, RegionScore::Empty)];
+        let means = mean_scores(&scores);
+        let subsets = crate::subsets::SubsetScores {
+            held_out_cameras: Some(mean_scores(&scores[..1])),
+            ..Default::default()
+        };
+        let table = garment_table(&means, &subsets).unwrap();
+        assert!(
+            table.contains("| all test images | 2 | 25.00 | 0.5000 | unavailable | 1 | 1 | 18.00 | 0.8000 | unavailable | unavailable |"),
+            "{table}"
+        );
+        assert!(
+            table.contains("| held-out cameras | 1 | 20.00 |"),
+            "{table}"
+        );
+        assert!(!table.contains("history frames"), "{table}");
+        let without = mean_scores(&[score(20.0, None)]);
+        assert_eq!(without.garment, None);
+        assert_eq!(garment_table(&without, &subsets), None);
+    }
+
     #[test]
     fn spread_picks_evenly_and_handles_small_counts() {
         assert_eq!(spread(10, 4), [0, 2, 5, 7]);

@@ -389,6 +389,28 @@ mod tests {
     use super::*;
 
     #[test]
+    fn outline_marks_the_region_border_only() {
+        // A 4 x 3 block at (2, 1) in a 8 x 6 image: its 10 border pixels are outlined, its 2
+        // inner ones and everything outside are left alone.
+        let data = (0..48)
+            .map(|i| u8::from((2..6).contains(&(i % 8)) && (1..4).contains(&(i / 8))) * 255)
+            .collect();
+        let region = crate::metrics::Mask::new("region", 8, 6, data).unwrap();
+        let mut image = RgbImage::from_pixel(8, 6, Rgb([10, 20, 30]));
+        outline_region(&mut image, &region);
+        let outlined: Vec<(u32, u32)> = image
+            .enumerate_pixels()
+            .filter(|(_, _, p)| **p == GARMENT_OUTLINE)
+            .map(|(x, y, _)| (x, y))
+            .collect();
+        assert_eq!(outlined.len(), 10, "{outlined:?}");
+        assert_eq!(*image.get_pixel(3, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(4, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(1, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(2, 1), GARMENT_OUTLINE);
+    }
+
+    #[test]
     fn markdown_table_checks_rows_and_escapes_pipes() {
         let table = markdown_table(&["a", "b"], &[vec!["1".into(), "x|y".into()]]).unwrap();
         assert_eq!(table, "| a | b |\n|---|---|\n| 1 | x\\|y |\n");

@@ -358,7 +358,7 @@ impl StageKind for EvalStage {
         vec![
             PictureKind {
                 name: "contact_sheet",
-                description: "ground truth | render | error map for a few test images",
+                description: "ground truth | render | error map for a few test images (the garment region, where ingest has one, outlined in cyan on the ground truth)",
             },
             PictureKind {
                 name: "render",
