@@ -42,6 +42,15 @@ pub fn resample(
     Ok((rgb, mask))
 }
 
+/// What [`resample_with_region`] returns: `rgb` and `mask` as [`resample`] gives them, and
+/// the region mask, all at the target camera's size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResampledWithRegion {
+    pub rgb: Vec<u8>,
+    pub mask: Vec<u8>,
+    pub region: Vec<u8>,
+}
+
 /// [`resample`] plus one more mask of the same image (e.g. a garment region), resampled by the
 /// same samples and weights as the foreground mask, so both stay aligned with the image; the
 /// image and foreground mask come out bit for bit as [`resample`] gives them.
@@ -50,7 +59,7 @@ pub fn resample_with_region(
     region: &image::GrayImage,
     source: &Camera,
     target: &Camera,
-) -> Result<(Vec<u8>, Vec<u8>, Vec<u8>), ResampleError> {
+) -> Result<ResampledWithRegion, ResampleError> {
     let (sw, sh) = (image.rgb.width(), image.rgb.height());
     if region.dimensions() != (sw, sh) {
         return Err(ResampleError::RegionSize {
@@ -60,7 +69,7 @@ pub fn resample_with_region(
     }
     let (rgb, [mask, region]) =
         resample_planes(image, [region.as_raw().as_slice()], source, target)?;
-    Ok((rgb, mask, region))
+    Ok(ResampledWithRegion { rgb, mask, region })
 }
 
 /// The one resampling loop: the image, its foreground mask and `E` extra one-channel planes of
@@ -247,11 +256,11 @@ mod tests {
             .unwrap(),
         };
         let (plain_rgb, plain_mask) = resample(&source_image, &source, &target).unwrap();
-        let (with_rgb, with_mask, region) =
+        let with =
             resample_with_region(&source_image, &source_image.mask, &source, &target).unwrap();
-        assert_eq!(plain_rgb, with_rgb);
-        assert_eq!(plain_mask, with_mask);
-        assert_eq!(region, plain_mask);
+        assert_eq!(plain_rgb, with.rgb);
+        assert_eq!(plain_mask, with.mask);
+        assert_eq!(with.region, plain_mask);
         assert!(
             resample_with_region(
                 &source_image,

@@ -209,11 +209,11 @@ fn write_images(
                 let garment = garment
                     .ok_or_else(|| anyhow::anyhow!("the reader returned no garment mask"))
                     .with_context(image_name)?;
-                let (rgb, mask, garment) =
+                let resampled =
                     resample_with_region(&source, &garment, source_camera, &cameras[view])
                         .with_context(image_name)?;
-                garment_masks.write_chunk(&[index as u64, 0, 0], &padded(&garment, 1))?;
-                (rgb, mask)
+                garment_masks.write_chunk(&[index as u64, 0, 0], &padded(&resampled.region, 1))?;
+                (resampled.rgb, resampled.mask)
             } else {
                 let source = reader
                     .read_image(source_view, source_frame)

@@ -198,7 +198,7 @@ fn zju_mocap_garment_region_is_the_cihp_clothing_labels() {
         image.mask.as_raw(),
         "label 7 (coat) is clothing"
     );
-    assert!(garment.iter().any(|v| *v == 255));
+    assert!(garment.contains(&255));
 
     // Every label in its own column band of the 40 x 32 image.
     let labels: Vec<u8> = (0..=19).collect();
@@ -239,7 +239,7 @@ fn zju_mocap_garment_region_is_the_cihp_clothing_labels() {
     assert_eq!(reader.garment_region(), None);
     let (image, garment) = reader.read_image_with_garment(0, 1).unwrap();
     assert!(garment.is_none());
-    assert!(image.mask.iter().any(|v| *v == 255));
+    assert!(image.mask.contains(&255));
 }
 
 #[test]
