@@ -43,9 +43,9 @@ const SPLIT_FRAMES: [(i64, usize); 6] = [
     (394, 475),
 ];
 
-/// The CIHP / LIP part labels (docs: /work/shared/reference/datasets.md, "ZJU-MoCap") that are
-/// clothing: 5 upper clothes, 6 dress, 7 coat, 9 pants, 11 scarf, 12 skirt. Not 10 (torso
-/// skin in ZJU-MoCap's parses), nor the accessories hat, glove, sunglasses, socks and shoes.
+/// The clothing labels of the 20-class CIHP / LIP part set of ZJU-MoCap's `mask_cihp/`
+/// parses: 5 upper clothes, 6 dress, 7 coat, 9 pants, 11 scarf, 12 skirt. Not 10 (torso skin
+/// in ZJU-MoCap's parses), nor the accessories hat, glove, sunglasses, socks and shoes.
 pub const CIHP_GARMENT_LABELS: [u8; 6] = [5, 6, 7, 9, 11, 12];
 
 /// The largest CIHP part label (20 classes, 0 background).
