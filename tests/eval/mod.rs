@@ -30,7 +30,8 @@ fn cpu() -> Backend {
     Backend::select(DeviceChoice::Cpu).unwrap()
 }
 
-const INGEST: &str = "{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}";
+/// With the skirt, so the entry has a garment region (`garment_masks`) that eval scores.
+const INGEST: &str = "{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: true, body_grid_spacing: 0.05}";
 
 /// JSON, which is also a YAML flow mapping.
 const TRAIN: &str = r#"{"preset": "fast", "device": "cpu", "seed": 3, "iterations": 40, "motion_context": "none", "pose_refiner": false, "lbs_offsets": false, "checkpoint_every": 100, "resolution_scale": 1.0, "sh_degree": 1, "sh_degree_interval": 20, "learning_rates": {"position_initial": 0.0016, "position_final": 0.000016}}"#;
@@ -171,7 +172,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
   - name: other_body
     kind: ingest
     config:
-      dataset: {{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.045}}
+      dataset: {{kind: synthetic, cameras: 3, frames: 4, width: 40, height: 40, supersample: 1, garment: true, body_grid_spacing: 0.045}}
       past_frames: 0
   - name: eval_other_body
     kind: eval
@@ -298,7 +299,84 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         assert!((direct - lpips[1]).abs() < 1e-9, "{direct} vs {}", lpips[1]);
         let direct_psnr = seqavatar_eval::metrics::psnr(&pair.render, &pair.truth).unwrap();
         assert!((direct_psnr - psnr[1]).abs() < 1e-9);
+        // The garment region's figures: the region math on the same pair and the ingest
+        // entry's garment mask.
+        let garment = testset.load_garment(&ingest, &test).unwrap().unwrap();
+        let region_psnr = seqavatar_eval::region::region_psnr(&pair.render, &pair.truth, &garment)
+            .unwrap()
+            .unwrap();
+        let stored = eval_lpips.read::<f64>("garment_psnr").unwrap().data;
+        assert!(
+            (region_psnr - stored[1]).abs() < 1e-9,
+            "{region_psnr} vs {}",
+            stored[1]
+        );
+        let crop = seqavatar_eval::region::region_lpips_crop(&garment, LpipsNet::Alex).unwrap();
+        let direct = model
+            .distances(&[(&pair.render.crop(crop), &pair.truth.crop(crop))])
+            .unwrap()[0]
+            .total;
+        let stored = eval_lpips.read::<f64>("garment_lpips_alex").unwrap().data;
+        assert!(
+            (direct - stored[1]).abs() < 1e-9,
+            "{direct} vs {}",
+            stored[1]
+        );
     }
+
+    // The garment region beside the whole image: per-image arrays, the summary's means and
+    // subsets, the table; the skirt is seen in both test images.
+    let garment_psnr = eval.read::<f64>("garment_psnr").unwrap().data;
+    let garment_ssim = eval.read::<f64>("garment_ssim").unwrap().data;
+    let garment_pixels = eval.read::<u32>("garment_pixels").unwrap().data;
+    assert_eq!(garment_psnr.len(), 2);
+    assert!(garment_pixels.iter().all(|p| *p > 0), "{garment_pixels:?}");
+    assert!(
+        garment_psnr.iter().all(|p| p.is_finite() && *p > 5.0),
+        "{garment_psnr:?}"
+    );
+    assert!(
+        garment_ssim.iter().all(|s| *s > 0.0 && *s <= 1.0),
+        "{garment_ssim:?}"
+    );
+    assert!(
+        !eval
+            .array_names()
+            .contains(&"garment_lpips_alex".to_owned())
+    );
+    assert_eq!(summary["garment_region"], "synthetic_skirt");
+    assert!(
+        summary["garment_lpips"].is_null(),
+        "no LPIPS weights: {summary}"
+    );
+    let means = &summary["means"]["garment"];
+    assert_eq!(
+        (means["images"].as_u64(), means["empty_images"].as_u64()),
+        (Some(2), Some(0))
+    );
+    let mean_psnr = (garment_psnr[0] + garment_psnr[1]) / 2.0;
+    assert!((means["psnr"].as_f64().unwrap() - mean_psnr).abs() < 1e-12);
+    assert!(summary["means"]["garment"]["lpips_alex"].is_null());
+    // Every frame of this walk is a held-out-camera frame: that subset has the same region means.
+    assert_eq!(summary["subsets"]["held_out_cameras"]["garment"], *means);
+    let garment_table = eval.attribute("garment_table").unwrap();
+    let garment_table = garment_table.as_str().unwrap();
+    assert!(
+        garment_table.contains("| garment PSNR |"),
+        "{garment_table}"
+    );
+    assert!(
+        garment_table.contains(&format!(
+            "| all test images | 2 | {:.2} |",
+            (psnr[0] + psnr[1]) / 2.0
+        )),
+        "{garment_table}"
+    );
+    let lpips_summary = eval_lpips.attribute("summary").unwrap();
+    assert_eq!(
+        lpips_summary["garment_lpips"].as_str(),
+        Some(seqavatar_eval::region::REGION_LPIPS_METHOD)
+    );
 
     // Another camera rig, another body model: clear errors naming both entries.
     let error = run_text(&cache, &text, Some("eval_other_cameras"))
@@ -332,6 +410,15 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     );
     assert!(markdown.contains(&row), "missing {row} in\n{markdown}");
     assert!(markdown.contains("unavailable"), "{markdown}");
+    assert!(markdown.contains("## Garment region"), "{markdown}");
+    assert!(
+        markdown.contains("`eval`: garment region `synthetic_skirt`"),
+        "{markdown}"
+    );
+    assert!(
+        markdown.contains(&format!("{:.2}", mean_psnr)),
+        "{markdown}"
+    );
     assert!(markdown.contains("| 40 x 40 | 2 |"), "{markdown}");
     assert!(
         markdown.contains("## Trade-off"),

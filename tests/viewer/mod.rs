@@ -332,6 +332,10 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
             let note = sheet.header("x-compare").unwrap().to_owned();
             if note == "truth|render|error" {
                 assert_eq!(decode_jpeg(&sheet).dimensions(), (3 * 48, 40));
+                // The frame's PSNR; no garment region (this scene has no skirt).
+                let psnr: f64 = sheet.header("x-compare-psnr").unwrap().parse().unwrap();
+                assert!(psnr > 5.0 && psnr.is_finite(), "{psnr}");
+                assert_eq!(sheet.header("x-compare-garment-psnr"), Some("n/a"));
                 compared += 1;
             } else {
                 assert_eq!(

@@ -65,6 +65,41 @@ fn blur_same(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> Vec<
     out
 }
 
+/// The SSIM map of three planes: per plane, the local SSIM of every pixel (the values whose
+/// mean over pixels and planes [`ssim_planes`] returns), for means over part of an image
+/// (eval's garment region).
+pub fn ssim_map(
+    x: &[Vec<f64>; 3],
+    y: &[Vec<f64>; 3],
+    width: usize,
+    height: usize,
+) -> [Vec<f64>; 3] {
+    let kernel = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
+    std::array::from_fn(|c| {
+        let (xs, ys) = (&x[c], &y[c]);
+        let mu_x = blur_same(xs, width, height, &kernel);
+        let mu_y = blur_same(ys, width, height, &kernel);
+        let sq = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
+        let e_xx = blur_same(&sq(xs, xs), width, height, &kernel);
+        let e_yy = blur_same(&sq(ys, ys), width, height, &kernel);
+        let e_xy = blur_same(&sq(xs, ys), width, height, &kernel);
+        (0..xs.len())
+            .map(|i| {
+                // The same expression, term for term, as in `ssim_planes`.
+                let (m, k) = (mu_x[i], mu_y[i]);
+                let sxx = e_xx[i] - m * m;
+                let syy = e_yy[i] - k * k;
+                let sxy = e_xy[i] - m * k;
+                let a1 = 2.0 * m * k + SSIM_C1;
+                let a2 = 2.0 * sxy + SSIM_C2;
+                let b1 = m * m + k * k + SSIM_C1;
+                let b2 = sxx + syy + SSIM_C2;
+                a1 * a2 / (b1 * b2)
+            })
+            .collect()
+    })
+}
+
 /// Mean SSIM over three planes and its gradient with respect to the first image's planes.
 pub fn ssim_planes(
     x: &[Vec<f64>; 3],
@@ -123,6 +158,35 @@ mod tests {
 
     fn random_vec(rng: &mut Rng, n: usize, lo: f64, hi: f64) -> Vec<f64> {
         (0..n).map(|_| rng.uniform(lo, hi)).collect()
+    }
+
+    /// The mean of the SSIM map over every pixel and plane, summed in `ssim_planes`' order
+    /// (plane by plane, pixel by pixel), is its value bit for bit.
+    #[test]
+    fn ssim_map_mean_is_the_ssim_value() {
+        let mut rng = Rng::new(11);
+        for (width, height) in [(23, 17), (3, 2), (12, 12)] {
+            let n = width * height;
+            let x: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, n, 0.0, 1.0));
+            let y: [Vec<f64>; 3] = std::array::from_fn(|_| random_vec(&mut rng, n, 0.0, 1.0));
+            let (value, _) = ssim_planes(&x, &y, width, height);
+            let map = ssim_map(&x, &y, width, height);
+            let mut total = 0.0;
+            for plane in &map {
+                assert_eq!(plane.len(), n);
+                for v in plane {
+                    total += v;
+                }
+            }
+            assert_eq!(total / (3 * n) as f64, value, "{width}x{height}");
+            // Identical planes: 1 at every pixel.
+            assert!(
+                ssim_map(&x, &x, width, height)
+                    .iter()
+                    .flatten()
+                    .all(|v| (v - 1.0).abs() < 1e-12)
+            );
+        }
     }
 
     /// The separable row-parallel blur against a direct 2D zero-padded correlation, on

@@ -7,7 +7,8 @@
 //! Routes: `GET /` (the page), `GET /info` (the scene: frames, cameras, the orbit's home view,
 //! limits, as JSON), `GET /frame?...` (one image, see [`request`]); anything else is 404.
 //! The page's own query (`/?size=256&speed=4&camera=1&compare=1&play=1`) sets its controls'
-//! starting state.
+//! starting state. A compared frame's reply carries its PSNR in `x-compare-psnr` and the
+//! garment region's in `x-compare-garment-psnr` (`n/a` without a region, `empty`).
 //! Plain HTTP requests rather than a WebSocket: each frame is one cacheable-free GET whose
 //! status says what happened (200, 400 with a message, 409 superseded, 503 busy), the page
 //! keeps at most two requests in flight, and there is no connection state to validate.
@@ -36,6 +37,7 @@ use axum::routing::get;
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::{Pipeline, Registry, open_store};
 use seqavatar_eval::animate::PoseSource;
+use seqavatar_eval::report::format_metric;
 use tokio::sync::oneshot;
 
 use crate::render::{JobError, Scheduler};
@@ -448,14 +450,22 @@ async fn frame(
                 "x-image-size",
                 format!("{}x{}", rendered.width, rendered.height),
             );
-            if let Some(compare) = rendered.compare {
-                put(
-                    "x-compare",
-                    match compare {
-                        Ok(()) => "truth|render|error".to_owned(),
-                        Err(why) => format!("unavailable: {why}"),
-                    },
-                );
+            match rendered.compare {
+                Some(Ok(psnr)) => {
+                    put("x-compare", "truth|render|error".to_owned());
+                    put("x-compare-psnr", format_metric(Some(psnr.whole), 2));
+                    // "n/a": the entry has no garment region; "empty": none in this image.
+                    put(
+                        "x-compare-garment-psnr",
+                        match psnr.garment {
+                            None => "n/a".to_owned(),
+                            Some(None) => "empty".to_owned(),
+                            Some(value) => format_metric(value, 2),
+                        },
+                    );
+                }
+                Some(Err(why)) => put("x-compare", format!("unavailable: {why}")),
+                None => {}
             }
             response
         }

@@ -16,6 +16,7 @@ use seqavatar_compute::image::ImageF32;
 use seqavatar_eval::context_probe::ContextProbe;
 use seqavatar_eval::evaluate::ViewRenderer;
 use seqavatar_eval::metrics::{Mask, Protocol};
+use seqavatar_eval::region::region_psnr;
 use tokio::sync::oneshot;
 
 use crate::request::{FrameRequest, View};
@@ -37,9 +38,19 @@ pub struct Rendered {
     pub height: u32,
     /// Seconds the avatar render took (without comparison and encoding).
     pub render_seconds: f64,
-    /// With `compare`: the image is ground truth | render | error map side by side, or why
-    /// it is the render only.
-    pub compare: Option<Result<(), String>>,
+    /// With `compare`: the image is ground truth | render | error map side by side, with
+    /// its PSNR, or why it is the render only.
+    pub compare: Option<Result<ComparePsnr, String>>,
+}
+
+/// The compared frame's PSNR by eval's protocol (at the size shown): over the whole image and
+/// over the garment region (`seqavatar_eval::region`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ComparePsnr {
+    pub whole: f64,
+    /// `None` where the ingest entry has no garment region; `Some(None)` where the region
+    /// is empty in this image.
+    pub garment: Option<Option<f64>>,
 }
 
 /// Why a request got no frame.
@@ -222,7 +233,7 @@ fn render_request(
     let (image, compare) = match (request.compare, dataset_view) {
         (true, Some(view)) => {
             match comparison(scene, view, request.frame, &render).map_err(failed)? {
-                Ok(sheet) => (sheet, Some(Ok(()))),
+                Ok((sheet, psnr)) => (sheet, Some(Ok(psnr))),
                 Err(why) => (render.to_rgb_image(), Some(Err(why))),
             }
         }
@@ -244,23 +255,45 @@ fn render_request(
 /// Ground truth | render | error map of `view` at `frame`, as eval's contact sheet shows them:
 /// both prepared by eval's protocol (ground truth outside its foreground mask and render
 /// outside the mask's bound box on the protocol background), the truth and mask resampled to
-/// the render's size when it is smaller than the camera's. `Ok(Err(why))` when there is no
-/// ground truth to compare with.
+/// the render's size when it is smaller than the camera's; with the pair's PSNR over the whole
+/// image and the garment region. `Ok(Err(why))` when there is no ground truth to compare with.
 fn comparison(
     scene: &Scene,
     view: usize,
     frame: usize,
     render: &ImageF32,
-) -> anyhow::Result<Result<RgbImage, String>> {
+) -> anyhow::Result<Result<(RgbImage, ComparePsnr), String>> {
     let Some(truth) = &scene.truth else {
         return Ok(Err(
             "no ground truth: the poses are not the trained sequence's".to_owned(),
         ));
     };
+    let garment_mask = truth.garment(view, frame)?;
     let Some((truth, mask)) = truth.image(view, frame)? else {
         return Ok(Err(format!("no image of camera {view} at frame {frame}")));
     };
     let (width, height) = (render.width, render.height);
+    let resize_mask = |mask: Mask| -> anyhow::Result<Mask> {
+        if (mask.width, mask.height) == (width, height) {
+            return Ok(mask);
+        }
+        let mask_image =
+            image::GrayImage::from_raw(mask.width as u32, mask.height as u32, mask.data)
+                .ok_or_else(|| anyhow::anyhow!("camera {view}: the mask's size is wrong"))?;
+        let small = image::imageops::resize(
+            &mask_image,
+            width as u32,
+            height as u32,
+            image::imageops::FilterType::Nearest,
+        );
+        Ok(Mask::new(
+            "ground-truth mask",
+            width,
+            height,
+            small.into_raw(),
+        )?)
+    };
+    let garment_mask = garment_mask.map(resize_mask).transpose()?;
     let (truth, mask) = if (truth.width, truth.height) == (width, height) {
         (truth, mask)
     } else {
@@ -271,17 +304,18 @@ fn comparison(
             h,
             image::imageops::FilterType::Triangle,
         );
-        let mask_image =
-            image::GrayImage::from_raw(mask.width as u32, mask.height as u32, mask.data)
-                .ok_or_else(|| anyhow::anyhow!("camera {view}: the mask's size is wrong"))?;
-        let mask_small =
-            image::imageops::resize(&mask_image, w, h, image::imageops::FilterType::Nearest);
         (
             ImageF32::from_rgb8("ground truth", width, height, truth_rgb.as_raw())?,
-            Mask::new("ground-truth mask", width, height, mask_small.into_raw())?,
+            resize_mask(mask)?,
         )
     };
     let pair = Protocol::default().prepare(render, &truth, &mask)?;
+    let psnr = ComparePsnr {
+        whole: seqavatar_eval::metrics::psnr(&pair.render, &pair.truth)?,
+        garment: garment_mask
+            .map(|garment| region_psnr(&pair.render, &pair.truth, &garment))
+            .transpose()?,
+    };
     let error = seqavatar_eval::report::error_map(&pair.render, &pair.truth, ERROR_FULL_SCALE)?;
     let (w, h) = (width as u32, height as u32);
     let mut sheet = RgbImage::new(w * 3, h);
@@ -289,7 +323,7 @@ fn comparison(
     for (slot, part) in parts.iter().enumerate() {
         image::imageops::replace(&mut sheet, part, i64::from(w) * slot as i64, 0);
     }
-    Ok(Ok(sheet))
+    Ok(Ok((sheet, psnr)))
 }
 
 #[cfg(test)]

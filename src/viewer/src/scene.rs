@@ -84,6 +84,16 @@ impl GroundTruth {
         let image = TestImage { index, view, frame };
         Ok(Some(self.testset.load(&self.ingest, &image)?))
     }
+
+    /// The garment mask of `view` at `frame` at the camera's size; `None` when the entry has
+    /// no garment region or no image of (view, frame).
+    pub fn garment(&self, view: usize, frame: usize) -> anyhow::Result<Option<Mask>> {
+        let Some(&index) = self.by_view_frame.get(&(view, frame)) else {
+            return Ok(None);
+        };
+        let image = TestImage { index, view, frame };
+        self.testset.load_garment(&self.ingest, &image)
+    }
 }
 
 impl Scene {

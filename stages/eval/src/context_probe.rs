@@ -232,6 +232,7 @@ mod tests {
             ssim: 0.9,
             lpips_vgg: None,
             lpips_alex: None,
+            garment: None,
         };
         let base = SubsetScores {
             history: Some(mean(30.0)),

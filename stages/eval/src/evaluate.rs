@@ -11,7 +11,10 @@ use seqavatar_core::camera::Camera;
 use crate::image::ImageF32;
 use crate::lpips::{Lpips, LpipsNet};
 use crate::metrics::{Mask, PreparedPair, Protocol, psnr_ssim};
-use crate::report::{self, format_metric};
+use crate::region::{
+    RegionMeans, RegionScore, region_lpips_crop, region_means, region_psnr, region_ssim,
+};
+use crate::report::{self, format_metric, markdown_table};
 
 /// Renders a frame of the sequence seen by a camera: the whole render path (network
 /// evaluation included), RGB in [0, 1] of the camera's size.
@@ -42,6 +45,9 @@ pub struct ImageScore {
     pub ssim: f64,
     pub lpips_vgg: Option<f64>,
     pub lpips_alex: Option<f64>,
+    /// The garment region's metrics (crate::region); `None` where the image has no garment
+    /// mask (its dataset has no garment region).
+    pub garment: Option<RegionScore>,
 }
 
 /// LPIPS models the user configured (either may be absent).
@@ -67,13 +73,15 @@ pub struct ScoredImage {
     pub score: ImageScore,
 }
 
-/// Applies the protocol to `render` against `truth` and `mask` and computes every metric.
+/// Applies the protocol to `render` against `truth` and `mask` and computes every metric, on
+/// the whole image and, given a `garment` mask, on the garment region (crate::region).
 pub fn score_image(
     protocol: &Protocol,
     lpips: &LpipsModels,
     render: &ImageF32,
     truth: &ImageF32,
     mask: &Mask,
+    garment: Option<&Mask>,
 ) -> anyhow::Result<ScoredImage> {
     let pair = protocol.prepare(render, truth, mask)?;
     let (psnr, ssim) = psnr_ssim(&pair)?;
@@ -85,13 +93,46 @@ pub fn score_image(
         let distances = model.distances(&[(&render, &truth)])?;
         Ok(Some(distances[0].total))
     };
+    let garment = garment
+        .map(|region| score_region(lpips, &pair, region))
+        .transpose()?;
     let score = ImageScore {
         psnr,
         ssim,
         lpips_vgg: lpips_of(LpipsNet::Vgg)?,
         lpips_alex: lpips_of(LpipsNet::Alex)?,
+        garment,
     };
     Ok(ScoredImage { pair, score })
+}
+
+/// The region metrics of a prepared pair (crate::region).
+fn score_region(
+    lpips: &LpipsModels,
+    pair: &PreparedPair,
+    region: &Mask,
+) -> anyhow::Result<RegionScore> {
+    let (Some(psnr), Some(ssim)) = (
+        region_psnr(&pair.render, &pair.truth, region)?,
+        region_ssim(&pair.render, &pair.truth, region)?,
+    ) else {
+        return Ok(RegionScore::Empty);
+    };
+    let lpips_of = |net: LpipsNet| -> anyhow::Result<Option<f64>> {
+        let (Some(model), Some(crop)) = (lpips.get(net), region_lpips_crop(region, net)) else {
+            return Ok(None);
+        };
+        let (render, truth) = (pair.render.crop(crop), pair.truth.crop(crop));
+        let distances = model.distances(&[(&render, &truth)])?;
+        Ok(Some(distances[0].total))
+    };
+    Ok(RegionScore::Scored {
+        pixels: region.data.iter().filter(|&&v| v >= 128).count(),
+        psnr,
+        ssim,
+        lpips_vgg: lpips_of(LpipsNet::Vgg)?,
+        lpips_alex: lpips_of(LpipsNet::Alex)?,
+    })
 }
 
 /// Means of the per-image metrics (LPIPS means only when every image has LPIPS).
@@ -102,6 +143,10 @@ pub struct MeanScores {
     pub ssim: f64,
     pub lpips_vgg: Option<f64>,
     pub lpips_alex: Option<f64>,
+    /// The garment region's means; absent where the images have no garment mask (and in
+    /// summaries written before eval version 10).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub garment: Option<RegionMeans>,
 }
 
 /// Averages scores (PSNR per image, then averaged, as the paper).
@@ -120,6 +165,7 @@ pub fn mean_scores(scores: &[ImageScore]) -> MeanScores {
         ssim: mean(&mut scores.iter().map(|score| score.ssim)),
         lpips_vgg: optional_mean(|score| score.lpips_vgg),
         lpips_alex: optional_mean(|score| score.lpips_alex),
+        garment: region_means(scores.iter().filter_map(|score| score.garment.as_ref())),
     }
 }
 
@@ -151,6 +197,58 @@ pub fn mean_table_row(sequence: &str, means: &MeanScores) -> Vec<String> {
         format_lpips_x1000(means.lpips_vgg),
         format_lpips_x1000(means.lpips_alex),
     ]
+}
+
+/// Header of the garment-region table: per subset, the whole-image figures beside the
+/// garment region's.
+pub const GARMENT_TABLE_HEADERS: [&str; 11] = [
+    "subset",
+    "images",
+    "PSNR",
+    "SSIM",
+    "LPIPS-VGG x1000",
+    "garment images",
+    "empty regions",
+    "garment PSNR",
+    "garment SSIM",
+    "garment LPIPS-VGG x1000",
+    "garment LPIPS-Alex x1000",
+];
+
+/// The garment-region table (Markdown) of an eval summary: all test images, then each
+/// non-empty subset; `None` when the means have no garment region.
+pub fn garment_table(means: &MeanScores, subsets: &crate::subsets::SubsetScores) -> Option<String> {
+    means.garment?;
+    let row = |name: &str, m: &MeanScores| -> Vec<String> {
+        let g = m.garment.unwrap_or(RegionMeans {
+            images: 0,
+            empty_images: 0,
+            psnr: None,
+            ssim: None,
+            lpips_vgg: None,
+            lpips_alex: None,
+        });
+        vec![
+            name.to_owned(),
+            m.images.to_string(),
+            format_metric(Some(m.psnr), 2),
+            format_metric(Some(m.ssim), 4),
+            format_lpips_x1000(m.lpips_vgg),
+            g.images.to_string(),
+            g.empty_images.to_string(),
+            format_metric(g.psnr, 2),
+            format_metric(g.ssim, 4),
+            format_lpips_x1000(g.lpips_vgg),
+            format_lpips_x1000(g.lpips_alex),
+        ]
+    };
+    let mut rows = vec![row("all test images", means)];
+    for (name, subset) in subsets.named() {
+        if let Some(m) = subset {
+            rows.push(row(name, m));
+        }
+    }
+    markdown_table(&GARMENT_TABLE_HEADERS, &rows).ok()
 }
 
 /// `image` placed in the top-left corner of a `width x height` black canvas (the ingest
@@ -289,6 +387,7 @@ mod tests {
             ssim: 0.5,
             lpips_vgg: lpips,
             lpips_alex: None,
+            garment: None,
         }
     }
 
@@ -307,6 +406,42 @@ mod tests {
             row,
             ["seq", "2", "25.00", "0.5000", "200.00", "unavailable"]
         );
+    }
+
+    /// The garment table: the whole-image figures beside the region's, one row for all
+    /// images and one per non-empty subset; no table without a garment region.
+    #[test]
+    fn garment_table_rows_per_subset_or_none_without_a_region() {
+        let region = |psnr: f64| RegionScore::Scored {
+            pixels: 5,
+            psnr,
+            ssim: 0.8,
+            lpips_vgg: None,
+            lpips_alex: None,
+        };
+        let with = |psnr: f64, garment: RegionScore| ImageScore {
+            garment: Some(garment),
+            ..score(psnr, None)
+        };
+        let scores = [with(20.0, region(18.0)), with(30.0, RegionScore::Empty)];
+        let means = mean_scores(&scores);
+        let subsets = crate::subsets::SubsetScores {
+            held_out_cameras: Some(mean_scores(&scores[..1])),
+            ..Default::default()
+        };
+        let table = garment_table(&means, &subsets).unwrap();
+        assert!(
+            table.contains("| all test images | 2 | 25.00 | 0.5000 | unavailable | 1 | 1 | 18.00 | 0.8000 | unavailable | unavailable |"),
+            "{table}"
+        );
+        assert!(
+            table.contains("| held-out cameras | 1 | 20.00 |"),
+            "{table}"
+        );
+        assert!(!table.contains("history frames"), "{table}");
+        let without = mean_scores(&[score(20.0, None)]);
+        assert_eq!(without.garment, None);
+        assert_eq!(garment_table(&without, &subsets), None);
     }
 
     #[test]
@@ -346,6 +481,7 @@ mod tests {
             &truth,
             &truth,
             &mask,
+            None,
         )
         .unwrap();
         assert_eq!(scored.score.psnr, f64::INFINITY);
@@ -363,6 +499,7 @@ mod tests {
             &stray,
             &truth,
             &mask,
+            None,
         )
         .unwrap();
         assert_eq!(cleaned.score.psnr, f64::INFINITY);
@@ -375,6 +512,7 @@ mod tests {
             &inside,
             &truth,
             &mask,
+            None,
         )
         .unwrap();
         // One pixel off by 1 in every channel: mse = 3 / (3 * 720).

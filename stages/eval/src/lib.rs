@@ -9,6 +9,7 @@
 //! - [`animate`]: `pipeline render` (novel poses from another sequence or a pose file).
 //! - [`pipeline_report`]: `pipeline report`; [`ablation`]: its seed-averaged ablation table.
 //! - [`subsets`]: scores on the history frames and per protocol (held-out cameras, frames).
+//! - [`region`]: PSNR, SSIM and LPIPS on the garment region (the ingest `garment_masks`).
 //! - [`context_probe`]: the PSNR change with the motion context zeroed or from another frame.
 //! - [`metrics`], [`report`], [`testset`]: building blocks.
 //! - [`lpips`], [`image`], [`safetensors`]: re-exported from `seqavatar_compute`, where LPIPS
@@ -22,6 +23,7 @@ pub mod evaluate;
 pub mod export;
 pub mod metrics;
 pub mod pipeline_report;
+pub mod region;
 pub mod report;
 pub mod stage;
 pub mod subsets;

@@ -39,6 +39,50 @@ pub fn format_metric(value: Option<f64>, decimals: usize) -> String {
     }
 }
 
+/// What reports say where the ingest entry has no garment region.
+pub const NO_GARMENT_REGION: &str = "garment region: not available for this dataset";
+
+/// Colour of the garment region's outline on contact sheets.
+pub const GARMENT_OUTLINE: Rgb<u8> = Rgb([0, 255, 255]);
+
+/// Marks the region's border on `image` (same size as the mask): every region pixel with a
+/// 4-neighbour outside the region (or on the image border) becomes [`GARMENT_OUTLINE`].
+pub fn outline_region(image: &mut RgbImage, region: &crate::metrics::Mask) {
+    let (width, height) = (region.width, region.height);
+    if image.dimensions() != (width as u32, height as u32) {
+        return;
+    }
+    for y in 0..height {
+        for x in 0..width {
+            if !region.is_foreground(x, y) {
+                continue;
+            }
+            let border = x == 0
+                || y == 0
+                || x + 1 == width
+                || y + 1 == height
+                || !region.is_foreground(x - 1, y)
+                || !region.is_foreground(x + 1, y)
+                || !region.is_foreground(x, y - 1)
+                || !region.is_foreground(x, y + 1);
+            if border {
+                image.put_pixel(x as u32, y as u32, GARMENT_OUTLINE);
+            }
+        }
+    }
+}
+
+/// One line of the garment region's means, for logs.
+pub fn describe_region_means(means: &crate::region::RegionMeans) -> String {
+    format!(
+        "{} images ({} with an empty region left out), PSNR {} dB, SSIM {}",
+        means.images,
+        means.empty_images,
+        format_metric(means.psnr, 2),
+        format_metric(means.ssim, 4)
+    )
+}
+
 /// The "hot" colour map: black, red, yellow, white for t in [0, 1].
 pub fn hot(t: f64) -> Rgb<u8> {
     let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
@@ -343,6 +387,28 @@ fn draw_marker(image: &mut RgbImage, (x, y): (f64, f64), color: Rgb<u8>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn outline_marks_the_region_border_only() {
+        // A 4 x 3 block at (2, 1) in a 8 x 6 image: its 10 border pixels are outlined, its 2
+        // inner ones and everything outside are left alone.
+        let data = (0..48)
+            .map(|i| u8::from((2..6).contains(&(i % 8)) && (1..4).contains(&(i / 8))) * 255)
+            .collect();
+        let region = crate::metrics::Mask::new("region", 8, 6, data).unwrap();
+        let mut image = RgbImage::from_pixel(8, 6, Rgb([10, 20, 30]));
+        outline_region(&mut image, &region);
+        let outlined: Vec<(u32, u32)> = image
+            .enumerate_pixels()
+            .filter(|(_, _, p)| **p == GARMENT_OUTLINE)
+            .map(|(x, y, _)| (x, y))
+            .collect();
+        assert_eq!(outlined.len(), 10, "{outlined:?}");
+        assert_eq!(*image.get_pixel(3, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(4, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(1, 2), Rgb([10, 20, 30]));
+        assert_eq!(*image.get_pixel(2, 1), GARMENT_OUTLINE);
+    }
 
     #[test]
     fn markdown_table_checks_rows_and_escapes_pipes() {

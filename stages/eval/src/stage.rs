@@ -10,6 +10,10 @@
 //! Output arrays (axis `image` = the scored test images, in ingest order):
 //! - `psnr`, `ssim` f64 `(image)`; `lpips_vgg`, `lpips_alex` f64 `(image)` only when the
 //!   matching weights file is configured (LPIPS is never reported as a number otherwise).
+//! - Only where the ingest entry has `garment_masks` (crate::region): `garment_pixels` u32
+//!   `(image)` (pixels in the garment region), `garment_psnr`, `garment_ssim` f64 `(image)`
+//!   and, with their weights, `garment_lpips_vgg`, `garment_lpips_alex` f64 `(image)`; NaN
+//!   where the region is empty (such images are left out of the region means).
 //! - `image_index` u32 `(image)` (position on the ingest `image` axis), `image_view`,
 //!   `image_frame` u32 `(image)`, `render_seconds` f64 `(image)` (whole render path).
 //! - `renders` and `error_maps` u8 `(image, height, width, rgb)`, one image per chunk, views
@@ -26,7 +30,14 @@
 //! `context_probes` = a list of [`crate::context_probe::ProbeResult`]: the scores with the
 //! motion-history inputs zeroed and taken from frame `i + context_probe_offset`, and their
 //! PSNR change per subset, empty for avatars without such inputs; `lpips` =
-//! `"unavailable"` or the nets used, `backend`), `speed` (a list of [`SpeedRow`]), `mean_table` (Markdown).
+//! `"unavailable"` or the nets used, `backend`; `garment_region` = the ingest entry's
+//! `garment_region` (`synthetic_skirt`, `cihp_clothing`) or `null` (no garment region for
+//! this dataset), and then `means.garment` and each subset's `garment` =
+//! [`crate::region::RegionMeans`] (`images`, `empty_images`, `psnr`, `ssim`, `lpips_vgg`,
+//! `lpips_alex`); `garment_lpips` = how region LPIPS is taken
+//! ([`crate::region::REGION_LPIPS_METHOD`]) or `null`), `speed` (a list of [`SpeedRow`]),
+//! `mean_table` (Markdown), `garment_table` (Markdown: per subset, the whole-image figures
+//! beside the garment region's, or "garment region: not available for this dataset").
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -49,13 +60,17 @@ use crate::evaluate::{
 use crate::image::ImageF32;
 use crate::lpips::{Lpips, LpipsNet, LpipsWeights};
 use crate::metrics::Protocol;
-use crate::report::{error_map, markdown_table};
+use crate::region::RegionScore;
+use crate::report::{error_map, markdown_table, outline_region};
 use crate::testset::{TestImage, TestSet};
 
 /// The kind name in pipeline files.
 pub const EVAL_KIND: &str = "eval";
 /// Entry attribute holding the sequence name, the means and the LPIPS availability.
 pub const SUMMARY_ATTRIBUTE: &str = "summary";
+/// Entry attribute holding the garment-region table (Markdown; crate::evaluate::garment_table)
+/// or the sentence that the dataset has no garment region.
+pub const GARMENT_TABLE_ATTRIBUTE: &str = "garment_table";
 /// Entry attribute holding the rendering speed rows.
 pub const SPEED_ATTRIBUTE: &str = "speed";
 /// Train-entry attribute with the protocol PSNR on training images.
@@ -219,7 +234,9 @@ impl StageKind for EvalStage {
         //    `summary.train_image_psnr` (from the train entry).
         // 8: on the cpu backend the avatar splats in f32 (the lane path).
         // 9: on the gpu backend each frame is deformed and splatted on the device.
-        9
+        // 10: the garment region's figures (`summary.garment_region`, `garment` in `means`
+        //     and each subset, per-image `garment_*` arrays) where ingest has garment masks.
+        10
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -341,7 +358,7 @@ impl StageKind for EvalStage {
         vec![
             PictureKind {
                 name: "contact_sheet",
-                description: "ground truth | render | error map for a few test images",
+                description: "ground truth | render | error map for a few test images (the garment region, where ingest has one, outlined in cyan on the ground truth)",
             },
             PictureKind {
                 name: "render",
@@ -503,6 +520,14 @@ pub fn evaluate_entry(
         .filter(|(_, present)| *present)
         .map(|(name, _)| *name)
         .collect();
+    let garment_region = testset.garment_region.map(|region| region.as_str());
+    match (&means.garment, garment_region) {
+        (Some(garment), Some(region)) => ctx.log(&format!(
+            "garment region ({region}): {}",
+            crate::report::describe_region_means(garment)
+        )),
+        _ => ctx.log(crate::report::NO_GARMENT_REGION),
+    }
     out.set_attribute(
         SUMMARY_ATTRIBUTE,
         serde_json::json!({
@@ -513,11 +538,25 @@ pub fn evaluate_entry(
             "context_probes": probes,
             "lpips": if nets.is_empty() { "unavailable".to_owned() } else { nets.join(",") },
             "backend": backend.describe(),
+            "garment_region": garment_region,
+            "garment_lpips": (garment_region.is_some() && !nets.is_empty())
+                .then_some(crate::region::REGION_LPIPS_METHOD),
         }),
     )?;
     out.set_attribute(SPEED_ATTRIBUTE, serde_json::to_value(&speed)?)?;
     out.set_attribute("mean_table", serde_json::Value::String(table.clone()))?;
     for line in table.lines() {
+        ctx.log(line);
+    }
+    // The garment region beside the whole-image figures, per subset (Markdown), or the
+    // sentence saying the dataset has none.
+    let garment = crate::evaluate::garment_table(&means, &subsets)
+        .unwrap_or_else(|| crate::report::NO_GARMENT_REGION.to_owned());
+    out.set_attribute(
+        GARMENT_TABLE_ATTRIBUTE,
+        serde_json::Value::String(garment.clone()),
+    )?;
+    for line in garment.lines() {
         ctx.log(line);
     }
     Ok(())
@@ -585,8 +624,16 @@ impl Evaluation<'_, '_> {
                 camera.height
             );
             let (truth, mask) = testset.load(self.ingest, &test)?;
-            let scored = score_image(&config.protocol, lpips, &render, &truth, &mask)
-                .with_context(|| format!("scoring test image {}", test.index))?;
+            let garment = testset.load_garment(self.ingest, &test)?;
+            let scored = score_image(
+                &config.protocol,
+                lpips,
+                &render,
+                &truth,
+                &mask,
+                garment.as_ref(),
+            )
+            .with_context(|| format!("scoring test image {}", test.index))?;
             let render_rgb = scored.pair.render.to_rgb_image();
             let error_rgb = error_map(
                 &scored.pair.render,
@@ -602,7 +649,11 @@ impl Evaluation<'_, '_> {
                 pad_to(&error_rgb, width as u32, height as u32).as_raw(),
             )?;
             if sheet_picks.contains(&slot) {
-                sheet_images.push((scored.pair.truth.to_rgb_image(), render_rgb, error_rgb));
+                let mut truth_rgb = scored.pair.truth.to_rgb_image();
+                if let Some(garment) = &garment {
+                    outline_region(&mut truth_rgb, garment);
+                }
+                sheet_images.push((truth_rgb, render_rgb, error_rgb));
             }
             scores.push(scored.score);
             progress.inc(1);
@@ -642,6 +693,36 @@ impl Evaluation<'_, '_> {
                 .map(|s| s.lpips_alex.unwrap_or(f64::NAN))
                 .collect();
             column("lpips_alex", &values)?;
+        }
+        if self.testset.garment_region.is_some() {
+            let region = |pick: fn(&RegionScore) -> Option<f64>| -> Vec<f64> {
+                scores
+                    .iter()
+                    .map(|s| s.garment.as_ref().and_then(pick).unwrap_or(f64::NAN))
+                    .collect()
+            };
+            let pixels: Vec<u32> = scores
+                .iter()
+                .map(|s| match s.garment {
+                    Some(RegionScore::Scored { pixels, .. }) => pixels as u32,
+                    _ => 0,
+                })
+                .collect();
+            out.write_array::<u32>(
+                "garment_pixels",
+                &["image"],
+                &[count as u64],
+                &[count as u64],
+                &pixels,
+            )?;
+            column("garment_psnr", &region(|r| r.psnr()))?;
+            column("garment_ssim", &region(|r| r.ssim()))?;
+            if lpips.vgg.is_some() {
+                column("garment_lpips_vgg", &region(|r| r.lpips_vgg()))?;
+            }
+            if lpips.alex.is_some() {
+                column("garment_lpips_alex", &region(|r| r.lpips_alex()))?;
+            }
         }
         column("render_seconds", &scored.render_seconds)?;
         for (name, values) in [
@@ -730,16 +811,16 @@ impl Evaluation<'_, '_> {
             &self.tests.iter().map(|t| t.frame).collect::<Vec<_>>(),
             scores,
         )?;
-        for (name, subset) in [
-            ("history frames", &subsets.history),
-            ("other frames", &subsets.not_history),
-            ("held-out cameras", &subsets.held_out_cameras),
-            ("held-out frames", &subsets.held_out_frames),
-            ("held-out history frames", &subsets.held_out_history_frames),
-        ] {
+        for (name, subset) in subsets.named() {
             if let Some(m) = subset {
+                let garment = m.garment.as_ref().map_or_else(String::new, |g| {
+                    format!(
+                        "; garment region: {}",
+                        crate::report::describe_region_means(g)
+                    )
+                });
                 self.ctx.log(&format!(
-                    "{name}: {} images, PSNR {:.2} dB, SSIM {:.4}",
+                    "{name}: {} images, PSNR {:.2} dB, SSIM {:.4}{garment}",
                     m.images, m.psnr, m.ssim
                 ));
             }
@@ -787,12 +868,14 @@ impl Evaluation<'_, '_> {
                     )
                 })?;
                 let (truth, mask) = testset.load(ingest, test)?;
+                // The probes compare whole-image figures; the garment region is not re-scored.
                 let scored = score_image(
                     &config.protocol,
                     &LpipsModels::default(),
                     &render,
                     &truth,
                     &mask,
+                    None,
                 )?;
                 scores.push(scored.score);
                 progress.inc(1);

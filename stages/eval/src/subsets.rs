@@ -60,6 +60,19 @@ pub struct SubsetScores {
     pub held_out_history_frames: Option<MeanScores>,
 }
 
+impl SubsetScores {
+    /// Each subset with the name reports and logs give it.
+    pub fn named(&self) -> [(&'static str, &Option<MeanScores>); 5] {
+        [
+            ("history frames", &self.history),
+            ("other frames", &self.not_history),
+            ("held-out cameras", &self.held_out_cameras),
+            ("held-out frames", &self.held_out_frames),
+            ("held-out history frames", &self.held_out_history_frames),
+        ]
+    }
+}
+
 /// Splits `scores` (one per scored image, whose frame is `frames[i]`) into the subsets.
 pub fn subset_scores(
     flags: &[FrameFlags],
@@ -124,6 +137,7 @@ mod tests {
             ssim: psnr / 100.0,
             lpips_vgg: None,
             lpips_alex: None,
+            garment: None,
         };
         let frames = [0, 1, 2, 3, 1];
         let scores = [

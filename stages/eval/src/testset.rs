@@ -33,6 +33,8 @@ pub struct TestSet {
     /// Height and width of the ingest `images` array (the largest view).
     pub stored_height: usize,
     pub stored_width: usize,
+    /// Where the entry's `garment_masks` came from; `None` when it has none.
+    pub garment_region: Option<seqavatar_ingest::GarmentRegion>,
 }
 
 /// Checks a shape; `None` matches any extent.
@@ -126,6 +128,7 @@ impl TestSet {
             images,
             stored_height,
             stored_width,
+            garment_region: seqavatar_ingest::schema::read_garment_region(entry)?,
         })
     }
 
@@ -144,5 +147,27 @@ impl TestSet {
         let mask = Mask::new("ingest mask", width, height, mask.data)
             .map_err(|error| anyhow::anyhow!("image {}: {error}", image.index))?;
         Ok((truth, mask))
+    }
+
+    /// The garment mask of `image` (ingest `garment_masks`), cropped to its view's size;
+    /// `None` when the entry has no garment region.
+    pub fn load_garment(
+        &self,
+        entry: &EntryReader,
+        image: &TestImage,
+    ) -> anyhow::Result<Option<Mask>> {
+        if self.garment_region.is_none() {
+            return Ok(None);
+        }
+        let camera = &self.cameras[image.view];
+        let (width, height) = (camera.width as usize, camera.height as usize);
+        let garment = entry.read_region::<u8>(
+            seqavatar_ingest::schema::GARMENT_MASKS,
+            &[image.index as u64, 0, 0],
+            &[1, height as u64, width as u64],
+        )?;
+        let garment = Mask::new("ingest garment mask", width, height, garment.data)
+            .map_err(|error| anyhow::anyhow!("image {}: {error}", image.index))?;
+        Ok(Some(garment))
     }
 }

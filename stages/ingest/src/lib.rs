@@ -41,6 +41,16 @@
 //!   test, each by view then frame, then the held-out frames' test images by view then frame.
 //!   A (view, frame) in both splits is stored once, as train.
 //!
+//! Garment region (only where the dataset has one; eval scores it beside the whole image):
+//! - `garment_masks` u8 `(image, height, width)`, chunked and padded as `masks` and resampled
+//!   by the same samples: the garment's coverage of each pixel, 0 .. 255 (soft at edges,
+//!   like `masks`; a pixel is in the region at 128 and above), never above `masks`.
+//! - Attribute `garment_region`: where it came from: `synthetic_skirt` (the synthetic scene's
+//!   skirt: the supersamples whose visible surface after the depth test is a skirt triangle)
+//!   or `cihp_clothing` (ZJU-MoCap `mask_cihp/` part labels 5, 6, 7, 9, 11, 12: upper
+//!   clothes, dress, coat, pants, scarf, skirt). No other dataset, nor ZJU-MoCap with
+//!   `mask/`, writes either. Read with [`schema::read_garment_region`].
+//!
 //! Garment history (only the synthetic history scene, `dataset.scene: history`), per frame:
 //! - `history_displacement_mm` f64 `(frame)`: RMS over the garment's particles of the
 //!   simulated garment minus its static drape under the same pose (what the pose alone
@@ -105,7 +115,7 @@ pub mod stage;
 pub mod synthetic;
 
 pub use config::IngestConfig;
-pub use reader::{DatasetReader, Keypoints3d};
+pub use reader::{DatasetReader, GarmentRegion, Keypoints3d};
 pub use schema::{read_body_model, read_body_params, read_cameras, read_keypoints_3d};
 pub use stage::Ingest;
 

@@ -79,6 +79,27 @@ pub struct GarmentHistory {
     pub drape: Vec<seqavatar_core::glam::DVec3>,
 }
 
+/// Where a dataset's garment region comes from: the ingest entry's `garment_region`
+/// attribute, written with the `garment_masks` array (lib.rs schema).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GarmentRegion {
+    /// The synthetic scene's skirt: the pixels whose visible surface is a skirt triangle.
+    SyntheticSkirt,
+    /// ZJU-MoCap `mask_cihp/` part labels: the union of the clothing labels
+    /// ([`crate::datasets::zju_mocap::CIHP_GARMENT_LABELS`]).
+    CihpClothing,
+}
+
+impl GarmentRegion {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::SyntheticSkirt => "synthetic_skirt",
+            Self::CihpClothing => "cihp_clothing",
+        }
+    }
+}
+
 /// A selection of frame-list indices: `start, start + step, ...` below `end`
 /// (`end: None` = up to the last frame).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -176,6 +197,22 @@ pub trait DatasetReader: Send + Sync {
     }
     /// Image and mask of camera `view` at frame-list index `frame`, full resolution.
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage>;
+    /// Where this capture's garment region comes from; `None` (the default) when it has
+    /// none. When `Some`, [`Self::read_image_with_garment`] returns a garment mask with every
+    /// image.
+    fn garment_region(&self) -> Option<GarmentRegion> {
+        None
+    }
+    /// [`Self::read_image`] and, where [`Self::garment_region`] is `Some`, the garment
+    /// region's mask of the same image (0 outside .. 255 inside, soft values allowed, within
+    /// the foreground mask), full resolution.
+    fn read_image_with_garment(
+        &self,
+        view: usize,
+        frame: usize,
+    ) -> anyhow::Result<(SourceImage, Option<image::GrayImage>)> {
+        Ok((self.read_image(view, frame)?, None))
+    }
 }
 
 /// Opens the reader for a dataset config: generates the synthetic scene or opens a

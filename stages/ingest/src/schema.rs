@@ -7,7 +7,7 @@ use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_engine::{EntryReader, EntryWriter};
 
-use crate::reader::{Keypoints3d, SourceCamera};
+use crate::reader::{GarmentRegion, Keypoints3d, SourceCamera};
 
 /// Writes the camera arrays of the ingested views: `cameras` are the rescaled,
 /// distortion-free cameras, `source` the dataset's cameras they came from (for
@@ -506,6 +506,42 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
     };
     BodyModel::new(arrays)
         .with_context(|| format!("body model arrays of entry {}", entry.location()))
+}
+
+/// The per-image garment masks (lib.rs schema), `uint8` 0..255 `(image, height, width)`
+/// chunked as `masks`; written only where the dataset has a garment region.
+pub const GARMENT_MASKS: &str = "garment_masks";
+/// The attribute naming where [`GARMENT_MASKS`] came from ([`GarmentRegion::as_str`]).
+pub const GARMENT_REGION_ATTRIBUTE: &str = "garment_region";
+
+/// Where the entry's garment masks came from; `None` when the entry has none (its dataset has
+/// no garment region, or it was made before ingest version 5). The array without the
+/// attribute (or the other way round), an unknown attribute value, or a `garment_masks`
+/// shape other than that of `masks` is an error naming the entry.
+pub fn read_garment_region(entry: &EntryReader) -> anyhow::Result<Option<GarmentRegion>> {
+    let location = entry.location();
+    let has_array = entry.array_names().iter().any(|n| n == GARMENT_MASKS);
+    let attribute = entry.attribute(GARMENT_REGION_ATTRIBUTE);
+    let region = match (has_array, attribute) {
+        (false, None) => return Ok(None),
+        (true, Some(value)) => serde_json::from_value::<GarmentRegion>(value.clone()).map_err(|_| {
+            anyhow::anyhow!(
+                "entry {location}: attribute `{GARMENT_REGION_ATTRIBUTE}` is {value}, expected \"synthetic_skirt\" or \"cihp_clothing\""
+            )
+        })?,
+        (true, None) => anyhow::bail!(
+            "entry {location}: array `{GARMENT_MASKS}` without the attribute `{GARMENT_REGION_ATTRIBUTE}`"
+        ),
+        (false, Some(_)) => anyhow::bail!(
+            "entry {location}: attribute `{GARMENT_REGION_ATTRIBUTE}` without the array `{GARMENT_MASKS}`"
+        ),
+    };
+    let (garment, masks) = (entry.shape(GARMENT_MASKS)?, entry.shape("masks")?);
+    anyhow::ensure!(
+        garment == masks,
+        "entry {location}: array `{GARMENT_MASKS}` has shape {garment:?}, expected that of `masks` {masks:?}"
+    );
+    Ok(Some(region))
 }
 
 /// A frame is a *history frame* when its garment's history-only displacement exceeds this

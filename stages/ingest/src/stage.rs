@@ -26,7 +26,7 @@ pub use crate::schema::{
     read_body_model, read_body_params, read_keypoints_3d, write_body_model, write_body_params,
     write_keypoints_3d,
 };
-pub use seqavatar_formats::resample::resample;
+pub use seqavatar_formats::resample::{resample, resample_with_region};
 
 /// The `ingest` stage kind.
 pub struct Ingest;
@@ -35,7 +35,9 @@ pub struct Ingest;
 /// 3: images and masks decode strictly (a truncated JPEG was accepted with grey rows), so
 /// entries made by the lenient decoder are not served again.
 /// 4: attribute `first_frame_index` (where the frame axis starts in the recording).
-pub const INGEST_VERSION: u32 = 4;
+/// 5: array `garment_masks` and attribute `garment_region` (the synthetic skirt, ZJU-MoCap's
+///    CIHP clothing labels); the other arrays are unchanged.
+pub const INGEST_VERSION: u32 = 5;
 
 impl StageKind for Ingest {
     fn kind(&self) -> &'static str {
@@ -133,9 +135,10 @@ impl StageKind for Ingest {
     }
 }
 
-/// Resamples every planned image (and its mask) to its ingested camera and writes them, in
-/// parallel, one chunk each (nothing but the images in flight is held), then the per-image
-/// view, frame and split arrays; returns the split of each image.
+/// Resamples every planned image (and its mask, and its garment mask where the reader has a
+/// garment region) to its ingested camera and writes them, in parallel, one chunk each
+/// (nothing but the images in flight is held), then the per-image view, frame and split
+/// arrays; returns the split of each image.
 fn write_images(
     ctx: &StageContext<'_>,
     reader: &dyn DatasetReader,
@@ -158,6 +161,22 @@ fn write_images(
         &[n, max_h, max_w],
         &[1, max_h, max_w],
     )?;
+    // Chunked as `masks`, through the same resampling, so the two stay aligned.
+    let garment_region = reader.garment_region();
+    let garment_masks = garment_region
+        .map(|region| -> anyhow::Result<_> {
+            out.set_attribute(
+                crate::schema::GARMENT_REGION_ATTRIBUTE,
+                region.as_str().into(),
+            )?;
+            out.create_array::<u8>(
+                crate::schema::GARMENT_MASKS,
+                &["image", "height", "width"],
+                &[n, max_h, max_w],
+                &[1, max_h, max_w],
+            )
+        })
+        .transpose()?;
     let bar = ctx.progress_bar(n, "images");
     plan.images.par_iter().enumerate().try_for_each(
         |(index, &(view, frame, _))| -> anyhow::Result<()> {
@@ -171,23 +190,38 @@ fn write_images(
                     reader.frame_id(source_frame)
                 )
             };
-            let source = reader
-                .read_image(source_view, source_frame)
-                .with_context(image_name)?;
             let source_camera = &reader.cameras()[source_view].camera;
-            let (rgb, mask) =
-                resample(&source, source_camera, &cameras[view]).with_context(image_name)?;
             let (w, h) = (cameras[view].width as usize, cameras[view].height as usize);
             let (mw, mh) = (max_w as usize, max_h as usize);
-            let mut rgb_chunk = vec![0u8; mh * mw * 3];
-            let mut mask_chunk = vec![0u8; mh * mw];
-            for row in 0..h {
-                rgb_chunk[row * mw * 3..row * mw * 3 + w * 3]
-                    .copy_from_slice(&rgb[row * w * 3..(row + 1) * w * 3]);
-                mask_chunk[row * mw..row * mw + w].copy_from_slice(&mask[row * w..(row + 1) * w]);
-            }
-            images.write_chunk(&[index as u64, 0, 0, 0], &rgb_chunk)?;
-            masks.write_chunk(&[index as u64, 0, 0], &mask_chunk)?;
+            // One plane of `h x w` values per pixel into the top-left of a `mh x mw` chunk.
+            let padded = |plane: &[u8], channels: usize| {
+                let mut chunk = vec![0u8; mh * mw * channels];
+                for row in 0..h {
+                    chunk[row * mw * channels..(row * mw + w) * channels]
+                        .copy_from_slice(&plane[row * w * channels..(row + 1) * w * channels]);
+                }
+                chunk
+            };
+            let (rgb, mask) = if let Some(garment_masks) = &garment_masks {
+                let (source, garment) = reader
+                    .read_image_with_garment(source_view, source_frame)
+                    .with_context(image_name)?;
+                let garment = garment
+                    .ok_or_else(|| anyhow::anyhow!("the reader returned no garment mask"))
+                    .with_context(image_name)?;
+                let resampled =
+                    resample_with_region(&source, &garment, source_camera, &cameras[view])
+                        .with_context(image_name)?;
+                garment_masks.write_chunk(&[index as u64, 0, 0], &padded(&resampled.region, 1))?;
+                (resampled.rgb, resampled.mask)
+            } else {
+                let source = reader
+                    .read_image(source_view, source_frame)
+                    .with_context(image_name)?;
+                resample(&source, source_camera, &cameras[view]).with_context(image_name)?
+            };
+            images.write_chunk(&[index as u64, 0, 0, 0], &padded(&rgb, 3))?;
+            masks.write_chunk(&[index as u64, 0, 0], &padded(&mask, 1))?;
             bar.inc(1);
             Ok(())
         },
@@ -503,6 +537,69 @@ mod stage_tests {
             );
             // The image border is background (the focal length keeps 4 % margins).
             assert_eq!(mask.data[0], 0);
+        }
+        // Garment region: the skirt's coverage, chunked as the masks, never above the mask,
+        // non-empty in every image (the skirt is in every view), and inside the box the
+        // skirt's particles (the scene's own, independently) project to.
+        assert_eq!(
+            crate::schema::read_garment_region(&entry).unwrap(),
+            Some(crate::reader::GarmentRegion::SyntheticSkirt)
+        );
+        assert_eq!(entry.shape("garment_masks").unwrap(), vec![10, 40, 48]);
+        let scene =
+            crate::synthetic::SyntheticScene::generate(&crate::synthetic::SyntheticConfig {
+                cameras: 3,
+                frames: 4,
+                width: 48,
+                height: 40,
+                supersample: 1,
+                body_grid_spacing: 0.04,
+                ..Default::default()
+            })
+            .unwrap();
+        let cameras = crate::schema::read_cameras(&entry).unwrap();
+        for image in 0..views.len() {
+            let (v, f) = (views[image] as usize, frames[image] as usize);
+            let read = |name: &str| {
+                entry
+                    .read_region::<u8>(name, &[image as u64, 0, 0], &[1, 40, 48])
+                    .unwrap()
+                    .data
+            };
+            let (garment, mask) = (read("garment_masks"), read("masks"));
+            assert!(
+                garment.iter().zip(&mask).all(|(g, m)| g <= m),
+                "image {image}"
+            );
+            let pixels: Vec<usize> = (0..garment.len()).filter(|&p| garment[p] >= 128).collect();
+            assert!(
+                pixels.len() >= 10,
+                "image {image}: {} skirt pixels",
+                pixels.len()
+            );
+            let projected: Vec<_> = scene
+                .skirt_positions(f)
+                .iter()
+                .filter_map(|p| cameras[v].project(*p))
+                .collect();
+            let (lo, hi) = projected
+                .iter()
+                .fold((projected[0], projected[0]), |(lo, hi), p| {
+                    (lo.min(*p), hi.max(*p))
+                });
+            for p in pixels {
+                let (x, y) = ((p % 48) as f64 + 0.5, (p / 48) as f64 + 0.5);
+                assert!(
+                    x >= lo.x - 1.0 && x <= hi.x + 1.0 && y >= lo.y - 1.0 && y <= hi.y + 1.0,
+                    "image {image}: skirt pixel ({x}, {y}) outside the skirt's box {lo:?} {hi:?}"
+                );
+            }
+            // Body pixels exist that are not skirt: the region is not the whole person.
+            assert!(
+                mask.iter()
+                    .zip(&garment)
+                    .any(|(m, g)| *m >= 128 && *g < 128)
+            );
         }
         // Contact sheet.
         let options =

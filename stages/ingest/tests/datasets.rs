@@ -9,6 +9,7 @@ mod support;
 use std::path::Path;
 
 use seqavatar_core::glam::DVec3;
+use seqavatar_ingest::GarmentRegion;
 use seqavatar_ingest::datasets::body_model::{ComponentLimits, load_body_model_npz};
 use seqavatar_ingest::datasets::dna_rendering::DnaRendering;
 use seqavatar_ingest::datasets::i3d_human::I3dHuman;
@@ -175,6 +176,70 @@ fn zju_mocap_reads_cameras_images_masks_and_fits() {
     assert_eq!(split.test_views, vec![1, 2]);
     assert_eq!(split.train_frames.end, Some(4));
     assert_eq!(split.test_frames.step, 30);
+}
+
+/// `mask_cihp/` holds CIHP part labels: the foreground is every non-zero label, the garment
+/// region the clothing labels (5 upper clothes, 6 dress, 7 coat, 9 pants, 11 scarf, 12 skirt;
+/// not 10, torso skin, nor 13 face or 14 left arm). The committed fixture's masks are all
+/// label 7 (coat), so the region is the whole person there; a label image written here as
+/// the fixture script writes its masks (an 8-bit grey PNG of labels) checks each label. With
+/// `mask/` (0/1) there is no garment region; a value that is no CIHP label is an error naming
+/// the file.
+#[test]
+fn zju_mocap_garment_region_is_the_cihp_clothing_labels() {
+    let dir = dataset_fixture("zju");
+    let root = dir.path().join("CoreView_377");
+    let reader = ZjuMocap::open(&root, None).unwrap();
+    assert_eq!(reader.garment_region(), Some(GarmentRegion::CihpClothing));
+    let (image, garment) = reader.read_image_with_garment(1, 2).unwrap();
+    let garment = garment.expect("a garment mask with mask_cihp");
+    assert_eq!(
+        garment.as_raw(),
+        image.mask.as_raw(),
+        "label 7 (coat) is clothing"
+    );
+    assert!(garment.contains(&255));
+
+    // Every label in its own column band of the 40 x 32 image.
+    let labels: Vec<u8> = (0..=19).collect();
+    let label_at = |x: u32| labels[(x as usize) / 2];
+    let parts = image::GrayImage::from_fn(40, 32, |x, _| image::Luma([label_at(x)]));
+    let path = root.join("mask_cihp/Camera_B2/000002.png");
+    parts.save(&path).unwrap();
+    let (image, garment) = reader.read_image_with_garment(1, 2).unwrap();
+    let garment = garment.unwrap();
+    for x in 0..40 {
+        let label = label_at(x);
+        let clothing = [5, 6, 7, 9, 11, 12].contains(&label);
+        assert_eq!(
+            garment.get_pixel(x, 5).0[0],
+            if clothing { 255 } else { 0 },
+            "label {label}"
+        );
+        assert_eq!(
+            image.mask.get_pixel(x, 5).0[0],
+            if label != 0 { 255 } else { 0 },
+            "label {label}"
+        );
+    }
+    // `read_image` gives the same image and mask.
+    assert_eq!(reader.read_image(1, 2).unwrap(), image);
+
+    // Not a CIHP label.
+    let bad = image::GrayImage::from_fn(40, 32, |x, _| image::Luma([if x == 3 { 200 } else { 5 }]));
+    bad.save(&path).unwrap();
+    assert_error_mentions(
+        reader.read_image_with_garment(1, 2),
+        &["mask_cihp/Camera_B2/000002.png", "200", "CIHP part label"],
+    );
+
+    // `mask/` (0/1): no garment region.
+    std::fs::rename(root.join("mask_cihp"), root.join("mask")).unwrap();
+    let reader = ZjuMocap::open(&root, None).unwrap();
+    assert_eq!(reader.garment_region(), None);
+    let (image, garment) = reader.read_image_with_garment(0, 1).unwrap();
+    assert!(garment.is_none());
+    assert!(image.mask.contains(&255));
 }
 
 #[test]

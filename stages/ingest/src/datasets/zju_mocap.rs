@@ -10,6 +10,9 @@
 //!   [`BodyParams::world_translation`] unchanged; `poses[0..3]` is the root's local rotation.
 //! - Mask files store labels (0/1, or a part id for `mask_cihp`): any non-zero is foreground
 //!   (255).
+//! - With `mask_cihp/`, the garment region of an image is the union of the CIHP clothing
+//!   labels [`CIHP_GARMENT_LABELS`] (255 inside, 0 outside); a value above 19 (not a CIHP
+//!   label) is an error naming the file. `mask/` has no part labels, so no garment region.
 //! - A frame's number is its image file stem (`000123.jpg` -> 123); fits are
 //!   `new_params/<number>.npy`.
 
@@ -26,7 +29,9 @@ use super::common::{
     trailing_number,
 };
 use crate::formats::Value;
-use crate::reader::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
+use crate::reader::{
+    BodyModelKind, DatasetReader, FrameRange, GarmentRegion, SourceCamera, SourceImage, Split,
+};
 
 /// Frames used by the 3DGS-Avatar split, per sequence number (docs/method.md).
 const SPLIT_FRAMES: [(i64, usize); 6] = [
@@ -37,6 +42,28 @@ const SPLIT_FRAMES: [(i64, usize); 6] = [
     (393, 658),
     (394, 475),
 ];
+
+/// The clothing labels of the 20-class CIHP / LIP part set of ZJU-MoCap's `mask_cihp/`
+/// parses: 5 upper clothes, 6 dress, 7 coat, 9 pants, 11 scarf, 12 skirt. Not 10 (torso skin
+/// in ZJU-MoCap's parses), nor the accessories hat, glove, sunglasses, socks and shoes.
+pub const CIHP_GARMENT_LABELS: [u8; 6] = [5, 6, 7, 9, 11, 12];
+
+/// The largest CIHP part label (20 classes, 0 background).
+const CIHP_MAX_LABEL: u8 = 19;
+
+/// The garment region of a CIHP part-label image: 255 where the label is clothing
+/// ([`CIHP_GARMENT_LABELS`]), else 0.
+pub fn cihp_garment_mask(labels: &image::GrayImage) -> image::GrayImage {
+    let mut region = labels.clone();
+    for value in region.iter_mut() {
+        *value = if CIHP_GARMENT_LABELS.contains(value) {
+            255
+        } else {
+            0
+        };
+    }
+    region
+}
 
 /// Test views are every view but the first, test frames every 30th (docs/method.md).
 const TEST_FRAME_STEP: usize = 30;
@@ -113,6 +140,13 @@ impl ZjuMocap {
             body_model_path: body_model.map(Path::to_owned),
             sequence_number,
         })
+    }
+
+    /// Whether the masks are `mask_cihp/` part labels (else `mask/`, 0/1).
+    fn part_labels(&self) -> bool {
+        self.mask_dir
+            .file_name()
+            .is_some_and(|name| name == "mask_cihp")
     }
 
     /// The fits file of a frame-list index.
@@ -356,6 +390,19 @@ impl DatasetReader for ZjuMocap {
     }
 
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        Ok(self.read_image_with_garment(view, frame)?.0)
+    }
+
+    /// The CIHP clothing labels, when the masks are `mask_cihp/` part labels.
+    fn garment_region(&self) -> Option<GarmentRegion> {
+        self.part_labels().then_some(GarmentRegion::CihpClothing)
+    }
+
+    fn read_image_with_garment(
+        &self,
+        view: usize,
+        frame: usize,
+    ) -> anyhow::Result<(SourceImage, Option<image::GrayImage>)> {
         let relative = &self.images[frame][view];
         let annots = self.root.join("annots.npy");
         let image_path = join_relative(&self.root, relative, &annots, "ims")?;
@@ -368,7 +415,25 @@ impl DatasetReader for ZjuMocap {
         let mask_path =
             join_relative(&self.mask_dir, relative, &annots, "ims")?.with_extension("png");
         let source = mask_path.display().to_string();
-        let mask = decode_mask(&read_bytes(&mask_path)?, &source, true, rgb.dimensions())?;
-        Ok(SourceImage { rgb, mask })
+        let bytes = read_bytes(&mask_path)?;
+        if !self.part_labels() {
+            let mask = decode_mask(&bytes, &source, true, rgb.dimensions())?;
+            return Ok((SourceImage { rgb, mask }, None));
+        }
+        let labels = decode_mask(&bytes, &source, false, rgb.dimensions())?;
+        if let Some(bad) = labels.iter().find(|label| **label > CIHP_MAX_LABEL) {
+            bail!(
+                "{source}: holds the value {bad}, not a CIHP part label (0..={CIHP_MAX_LABEL}); \
+                 `mask_cihp/` files must be grey PNGs of part labels"
+            );
+        }
+        let garment = cihp_garment_mask(&labels);
+        let mut mask = labels;
+        for value in mask.iter_mut() {
+            if *value != 0 {
+                *value = 255;
+            }
+        }
+        Ok((SourceImage { rgb, mask }, Some(garment)))
     }
 }

@@ -30,8 +30,8 @@ use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
 use super::{SceneKind, SyntheticBackground, SyntheticConfig};
 use crate::reader::{
-    BodyModelKind, DatasetReader, FrameRange, GarmentHistory, Keypoints3d, SourceCamera,
-    SourceImage, Split,
+    BodyModelKind, DatasetReader, FrameRange, GarmentHistory, GarmentRegion, Keypoints3d,
+    SourceCamera, SourceImage, Split,
 };
 
 /// Garment simulation rate (substeps per second).
@@ -629,8 +629,21 @@ impl SyntheticScene {
 
     /// Renders camera `view` at frame `frame`: supersampled visibility, shading, box filter.
     pub fn render(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        Ok(self.render_with_garment(view, frame)?.0)
+    }
+
+    /// [`Self::render`] and the skirt's coverage of each pixel: the fraction (0..255) of the
+    /// pixel's supersamples whose visible surface after the depth test is a skirt triangle,
+    /// counted on the same samples as the foreground mask, so it never exceeds it. `None`
+    /// without a garment.
+    pub fn render_with_garment(
+        &self,
+        view: usize,
+        frame: usize,
+    ) -> anyhow::Result<(SourceImage, Option<image::GrayImage>)> {
         let (points, body_count) = self.frame_geometry(frame)?;
-        self.render_points(view, &points, body_count)
+        let (image, garment) = self.render_points(view, &points, body_count)?;
+        Ok((image, self.config.garment.then_some(garment)))
     }
 
     /// [`Self::render`] with the frame's skirt replaced by `skirt` (one position per
@@ -650,16 +663,17 @@ impl SyntheticScene {
         );
         points.truncate(body_count);
         points.extend_from_slice(skirt);
-        self.render_points(view, &points, body_count)
+        Ok(self.render_points(view, &points, body_count)?.0)
     }
 
-    /// Renders body vertices `points[..body_count]` followed by the skirt particles.
+    /// Renders body vertices `points[..body_count]` followed by the skirt particles: the image
+    /// with its foreground mask, and the skirt's coverage (all zero without a garment).
     fn render_points(
         &self,
         view: usize,
         points: &[DVec3],
         body_count: usize,
-    ) -> anyhow::Result<SourceImage> {
+    ) -> anyhow::Result<(SourceImage, image::GrayImage)> {
         let config = &self.config;
         let camera = &self.cameras[view].camera;
         let s = config.supersample as usize;
@@ -709,18 +723,24 @@ impl SyntheticScene {
         let fine_width = width * s;
         let mut rgb = image::RgbImage::new(camera.width, camera.height);
         let mut mask = image::GrayImage::new(camera.width, camera.height);
+        let mut garment = image::GrayImage::new(camera.width, camera.height);
         let samples_per_pixel = (s * s) as f64;
         let backdrop = self.backdrops.get(view);
         for row in 0..height {
             for col in 0..width {
                 let mut colour = DVec3::ZERO;
                 let mut covered = 0usize;
+                let mut skirt_covered = 0usize;
                 for dy in 0..s {
                     for dx in 0..s {
                         let sample = (row * s + dy) * fine_width + col * s + dx;
                         if let Some(c) = shade(sample) {
                             colour += c;
                             covered += 1;
+                            // Triangles after the body's are the skirt's.
+                            if buffer.triangle[sample] as usize >= num_body_faces {
+                                skirt_covered += 1;
+                            }
                         } else if let Some(backdrop) = backdrop {
                             // The sample's centre in image pixels.
                             let x = col as f64 + (dx as f64 + 0.5) / s as f64;
@@ -739,9 +759,12 @@ impl SyntheticScene {
                 );
                 let coverage = (covered as f64 / samples_per_pixel * 255.0).round() as u8;
                 mask.put_pixel(col as u32, row as u32, image::Luma([coverage]));
+                let skirt_coverage =
+                    (skirt_covered as f64 / samples_per_pixel * 255.0).round() as u8;
+                garment.put_pixel(col as u32, row as u32, image::Luma([skirt_coverage]));
             }
         }
-        Ok(SourceImage { rgb, mask })
+        Ok((SourceImage { rgb, mask }, garment))
     }
 
     /// Renders every view of a frame in parallel (used by tests and previews).
@@ -846,6 +869,19 @@ impl DatasetReader for SyntheticScene {
     }
 
     fn read_image(&self, view: usize, frame: usize) -> anyhow::Result<SourceImage> {
+        Ok(self.read_image_with_garment(view, frame)?.0)
+    }
+
+    /// The skirt's pixels, where the scene has a garment.
+    fn garment_region(&self) -> Option<GarmentRegion> {
+        self.config.garment.then_some(GarmentRegion::SyntheticSkirt)
+    }
+
+    fn read_image_with_garment(
+        &self,
+        view: usize,
+        frame: usize,
+    ) -> anyhow::Result<(SourceImage, Option<image::GrayImage>)> {
         anyhow::ensure!(
             view < self.cameras.len(),
             "synthetic scene has no camera {view}"
@@ -854,7 +890,7 @@ impl DatasetReader for SyntheticScene {
             frame < self.config.frames,
             "synthetic scene has no frame {frame}"
         );
-        self.render(view, frame)
+        self.render_with_garment(view, frame)
     }
 }
 
