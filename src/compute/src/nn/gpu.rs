@@ -12,16 +12,24 @@
 //! weight gradient sums over all rows, which leaves few output tiles for a large reduction,
 //! so it is split along the rows into partial products in a scratch buffer, then summed in
 //! order by `nn_reduce.wgsl` (no float atomics, deterministic).
+//!
+//! Where the adapter has tensor cores ([`TensorCores`]) and [`Precision::Mixed`] asks for
+//! them, [`NnGpu::for_context`] picks, once, the tensor-core path for all three products of a
+//! layer (`Y = X W`, `dX = dY' W^T`, `dW = X^T dY'`): each operand is scaled by a power of two
+//! and packed to padded f16 (`nn_matmul_f16.wgsl`), multiplied on 16 x 16 x 16 cooperative
+//! matrices with f32 accumulators (`nn_matmul_coop.wgsl`), and unscaled, split-summed and
+//! finished with the same epilogue (accumulate, bias, ReLU). Weights, gradients and Adam
+//! state stay f32 buffers; only the products' operands are rounded to f16.
 
 use std::sync::Mutex;
 
 use wgpu::util::DeviceExt;
 
-use super::NnError;
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
-use crate::backend::Kernel;
+use super::{NnError, Precision};
+use crate::backend::{GpuContext, Kernel, TensorCores};
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -29,6 +37,19 @@ const ADAM_WGSL: &str = include_str!("../../../../shaders/nn_adam.wgsl");
 const POSENC_WGSL: &str = include_str!("../../../../shaders/nn_posenc.wgsl");
 const RODRIGUES_WGSL: &str = include_str!("../../../../shaders/nn_rodrigues.wgsl");
 const FINITE_WGSL: &str = include_str!("../../../../shaders/nn_finite.wgsl");
+const MATMUL_F16_WGSL: &str = include_str!("../../../../shaders/nn_matmul_f16.wgsl");
+const MATMUL_COOP_WGSL: &str = include_str!("../../../../shaders/nn_matmul_coop.wgsl");
+
+/// Output block edge of the tensor-core kernel (a 2 x 2 of 16 x 16 tiles per subgroup), as in
+/// `nn_matmul_coop.wgsl`; rows of A and columns of B are padded to multiples of it.
+const COOP_BLOCK: usize = 32;
+/// Reduction step of the tensor-core kernel (K of the 16 x 16 x 16 matrices).
+const COOP_TILE_K: usize = 16;
+/// Workgroups the tensor-core weight-gradient split aims for: each is one subgroup, so many
+/// more than the f32 kernel's 256-thread groups are needed to fill a large GPU.
+const COOP_TARGET_WORKGROUPS: usize = 2048;
+/// Workgroup size of the staging kernels of `nn_matmul_f16.wgsl`.
+const STAGING_WORKGROUP: usize = 256;
 
 /// Output tile edge of the matrix kernel (rows and columns), as in `nn_matmul.wgsl`.
 const TILE: usize = 64;
@@ -227,6 +248,42 @@ pub(crate) struct MatmulParams {
     pad: u32,
 }
 
+/// `Params` in `nn_matmul_f16.wgsl` (operand staging and epilogue of the tensor-core path).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct StagingParams {
+    rows: u32,
+    cols: u32,
+    offset: u32,
+    row_stride: u32,
+    col_stride: u32,
+    mask_flags: u32,
+    slot: u32,
+    rows_pad: u32,
+    cols_pad: u32,
+    m: u32,
+    n: u32,
+    n_pad: u32,
+    splits: u32,
+    partial_stride: u32,
+    c_offset: u32,
+    c_row_stride: u32,
+    c_flags: u32,
+    pad: [u32; 3],
+}
+
+/// `Params` in `nn_matmul_coop.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct CoopParams {
+    k_pad: u32,
+    n_pad: u32,
+    m_blocks: u32,
+    k_per_split: u32,
+    partial_stride: u32,
+    pad: [u32; 3],
+}
+
 /// `Params` in `nn_adam.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -302,6 +359,38 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "split_stride" => split_stride,
             "_pad" => pad,
         }),
+        wgsl_twin!(StagingParams as "Params" in ["nn_matmul_f16.wgsl"] {
+            "rows" => rows,
+            "cols" => cols,
+            "offset" => offset,
+            "row_stride" => row_stride,
+            "col_stride" => col_stride,
+            "mask_flags" => mask_flags,
+            "slot" => slot,
+            "rows_pad" => rows_pad,
+            "cols_pad" => cols_pad,
+            "m" => m,
+            "n" => n,
+            "n_pad" => n_pad,
+            "splits" => splits,
+            "partial_stride" => partial_stride,
+            "c_offset" => c_offset,
+            "c_row_stride" => c_row_stride,
+            "c_flags" => c_flags,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+        wgsl_twin!(CoopParams as "Params" in ["nn_matmul_coop.wgsl"] {
+            "k_pad" => k_pad,
+            "n_pad" => n_pad,
+            "m_blocks" => m_blocks,
+            "k_per_split" => k_per_split,
+            "partial_stride" => partial_stride,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
         wgsl_twin!(AdamParams as "Params" in ["nn_adam.wgsl"] {
             "len" => len,
             "slot" => slot,
@@ -351,6 +440,100 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
     ]
 }
 
+/// How the dense layers' matrix products run on one [`NnGpu`], chosen once when it is made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MatmulPath {
+    /// `nn_matmul.wgsl`: f32 operands and accumulation, on every adapter; the reference.
+    F32,
+    /// `nn_matmul_coop.wgsl` on the adapter's tensor cores: f16 operands (scaled by powers
+    /// of two), f32 accumulation.
+    TensorCores(TensorCores),
+}
+
+/// The kernels and scratch buffers of the tensor-core path.
+#[derive(Debug)]
+struct TensorCoreKernels {
+    cores: TensorCores,
+    operand_max: Kernel,
+    pack: Kernel,
+    multiply: Kernel,
+    epilogue: Kernel,
+    /// The two operands' largest magnitudes (`scales` in `nn_matmul_f16.wgsl`), cleared
+    /// before each product.
+    scales: wgpu::Buffer,
+    /// The padded f16 copies of A and B and the f32 partial products; grown on demand and
+    /// reused by every product (commands run in order).
+    packed_a: Mutex<Option<wgpu::Buffer>>,
+    packed_b: Mutex<Option<wgpu::Buffer>>,
+    partials: Mutex<Option<wgpu::Buffer>>,
+}
+
+impl TensorCoreKernels {
+    fn new(device: &wgpu::Device, cores: TensorCores) -> Result<Self, NnError> {
+        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
+            Kernel::compile(device, name, wgsl, entry)
+                .map_err(|error| NnError::Gpu(error.to_string()))
+        };
+        let multiply = Kernel::compile_with_constants(
+            device,
+            "nn_matmul_coop",
+            MATMUL_COOP_WGSL,
+            "multiply",
+            &[("SUBGROUP_SIZE", f64::from(cores.subgroup_size))],
+        )
+        .map_err(|error| NnError::Gpu(error.to_string()))?;
+        Ok(TensorCoreKernels {
+            cores,
+            operand_max: compile("nn_matmul_operand_max", MATMUL_F16_WGSL, "operand_max")?,
+            pack: compile("nn_matmul_pack", MATMUL_F16_WGSL, "pack")?,
+            multiply,
+            epilogue: compile("nn_matmul_epilogue", MATMUL_F16_WGSL, "epilogue")?,
+            scales: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("nn tensor-core scales"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            packed_a: Mutex::new(None),
+            packed_b: Mutex::new(None),
+            partials: Mutex::new(None),
+        })
+    }
+}
+
+/// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is too
+/// small (sizes rounded up to powers of two within `max_binding_bytes`).
+fn grown_buffer(
+    device: &wgpu::Device,
+    slot: &Mutex<Option<wgpu::Buffer>>,
+    label: &'static str,
+    bytes: u64,
+    max_binding_bytes: u64,
+) -> Result<wgpu::Buffer, NnError> {
+    let bytes = bytes.max(16).div_ceil(4) * 4;
+    if bytes > max_binding_bytes {
+        return Err(NnError::Gpu(format!(
+            "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
+        )));
+    }
+    let mut slot = slot
+        .lock()
+        .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
+    match &*slot {
+        Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
+        _ => {
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes.next_power_of_two().min(max_binding_bytes),
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            });
+            *slot = Some(buffer.clone());
+            Ok(buffer)
+        }
+    }
+}
+
 /// The dense-network kernels compiled for one device.
 #[derive(Debug)]
 pub struct NnGpu {
@@ -364,6 +547,8 @@ pub struct NnGpu {
     rodrigues_forward: Kernel,
     rodrigues_backward: Kernel,
     finite: Kernel,
+    /// The tensor-core path's kernels, where it was chosen ([`NnGpu::for_context`]).
+    tensor_cores: Option<TensorCoreKernels>,
     /// Bound to read-only slots a dispatch does not use.
     placeholder: wgpu::Buffer,
     /// Partial sums of the split reductions; grown on demand, reused across calls (commands
@@ -382,7 +567,43 @@ fn to_u32(what: &str, value: usize) -> Result<u32, NnError> {
 }
 
 impl NnGpu {
-    /// Compiles every kernel for `device`.
+    /// Compiles every kernel for the context's device, choosing the matrix products' path
+    /// once: the tensor cores where `precision` is [`Precision::Mixed`] and the device was
+    /// opened with them ([`GpuContext::tensor_cores`]), else f32. A tensor-core kernel the
+    /// driver rejects is an error, not a silent fallback.
+    pub fn for_context(context: &GpuContext, precision: Precision) -> Result<Self, NnError> {
+        let mut nn = Self::new(context.device())?;
+        if precision == Precision::Mixed
+            && let Some(cores) = context.tensor_cores()
+        {
+            nn.tensor_cores = Some(TensorCoreKernels::new(context.device(), cores)?);
+        }
+        Ok(nn)
+    }
+
+    /// The path the dense layers' products take.
+    pub fn matmul_path(&self) -> MatmulPath {
+        self.tensor_cores
+            .as_ref()
+            .map_or(MatmulPath::F32, |kernels| {
+                MatmulPath::TensorCores(kernels.cores)
+            })
+    }
+
+    /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
+    /// `networks: f32`.
+    pub fn describe(&self) -> String {
+        match self.matmul_path() {
+            MatmulPath::F32 => "networks: f32".to_owned(),
+            MatmulPath::TensorCores(_) => {
+                let shape = TensorCores::SHAPE;
+                format!("networks: f16 tensor cores ({shape}x{shape}x{shape})")
+            }
+        }
+    }
+
+    /// Compiles every kernel for `device`, with f32 matrix products (see
+    /// [`NnGpu::for_context`] for the choice of tensor cores).
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
         let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
             Kernel::compile(device, name, wgsl, entry)
@@ -404,6 +625,7 @@ impl NnGpu {
             rodrigues_forward: compile("nn_rodrigues_forward", RODRIGUES_WGSL, "forward")?,
             rodrigues_backward: compile("nn_rodrigues_backward", RODRIGUES_WGSL, "backward")?,
             finite: compile("nn_finite", FINITE_WGSL, "main")?,
+            tensor_cores: None,
             placeholder: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn placeholder"),
                 size: 16,
@@ -559,6 +781,20 @@ impl NnGpu {
         if m == 0 || n == 0 {
             return Ok(());
         }
+        if let Some(kernels) = &self.tensor_cores {
+            return self.matmul_tensor_cores(
+                encoder,
+                kernels,
+                (m, n, k),
+                a,
+                b,
+                mask,
+                bias,
+                c,
+                c_offset,
+                flags,
+            );
+        }
         let m_tiles = m.div_ceil(TILE);
         let n_tiles = n.div_ceil(TILE);
         // Split along k when the output has few tiles and the reduction is long (the weight
@@ -640,6 +876,172 @@ impl NnGpu {
                 flags & ACCUMULATE != 0,
             )?;
         }
+        Ok(())
+    }
+
+    /// [`NnGpu::matmul`] on the tensor cores: both operands' largest magnitudes, their
+    /// scaled and padded f16 copies, the products split along k, and the epilogue.
+    #[allow(clippy::too_many_arguments)]
+    fn matmul_tensor_cores(
+        &self,
+        encoder: &mut impl Record,
+        kernels: &TensorCoreKernels,
+        (m, n, k): (usize, usize, usize),
+        a: Operand<'_>,
+        b: Operand<'_>,
+        mask: Option<&wgpu::Buffer>,
+        bias: Option<&wgpu::Buffer>,
+        c: &wgpu::Buffer,
+        c_offset: usize,
+        flags: u32,
+    ) -> Result<(), NnError> {
+        let m_pad = m.div_ceil(COOP_BLOCK) * COOP_BLOCK;
+        let n_pad = n.div_ceil(COOP_BLOCK) * COOP_BLOCK;
+        let k_pad = k.div_ceil(COOP_TILE_K) * COOP_TILE_K;
+        let (m_blocks, n_blocks) = (m_pad / COOP_BLOCK, n_pad / COOP_BLOCK);
+        // Split along k when the output has few blocks and the reduction is long (the weight
+        // gradient), within the scratch the device can bind.
+        let partial_len = m_pad * n_pad;
+        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len;
+        let splits = COOP_TARGET_WORKGROUPS
+            .div_ceil(m_blocks * n_blocks)
+            .min(k_pad.div_ceil(256))
+            .min(max_splits)
+            .max(1);
+        let k_per_split = k_pad.div_ceil(splits).div_ceil(COOP_TILE_K).max(1) * COOP_TILE_K;
+        let splits = k_pad.div_ceil(k_per_split).max(1);
+        let groups_y = m_blocks * splits;
+        let max_groups = self.max_groups_per_dimension as usize;
+        if groups_y > max_groups || n_blocks > max_groups {
+            return Err(NnError::Gpu(format!(
+                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
+            )));
+        }
+        // Every flat index of the kernels is a u32.
+        to_u32("padded operand size", m_pad * k_pad)?;
+        to_u32("padded operand size", k_pad * n_pad)?;
+        to_u32("partial products", splits * partial_len)?;
+        let device = &self.device;
+        let limit = self.max_binding_bytes;
+        let packed_a = grown_buffer(
+            device,
+            &kernels.packed_a,
+            "nn tensor-core A",
+            (m_pad * k_pad * 2) as u64,
+            limit,
+        )?;
+        let packed_b = grown_buffer(
+            device,
+            &kernels.packed_b,
+            "nn tensor-core B",
+            (k_pad * n_pad * 2) as u64,
+            limit,
+        )?;
+        let partials = grown_buffer(
+            device,
+            &kernels.partials,
+            "nn tensor-core partial products",
+            (splits * partial_len * 4) as u64,
+            limit,
+        )?;
+        let mask_buffer = mask.unwrap_or(&self.placeholder);
+        encoder.record_clear(&kernels.scales);
+        let operands = [
+            (a, (m, k), (m_pad, k_pad), flags & MASK_A != 0, &packed_a),
+            (b, (k, n), (k_pad, n_pad), flags & MASK_B != 0, &packed_b),
+        ];
+        let mut staging = Vec::with_capacity(2);
+        for (slot, (operand, (rows, cols), (rows_pad, cols_pad), masked, _)) in
+            operands.iter().enumerate()
+        {
+            staging.push(StagingParams {
+                rows: to_u32("rows", *rows)?,
+                cols: to_u32("columns", *cols)?,
+                offset: to_u32("offset", operand.offset)?,
+                row_stride: to_u32("stride", operand.row_stride)?,
+                col_stride: to_u32("stride", operand.col_stride)?,
+                mask_flags: u32::from(*masked),
+                slot: slot as u32,
+                rows_pad: to_u32("rows", *rows_pad)?,
+                cols_pad: to_u32("columns", *cols_pad)?,
+                ..StagingParams::default()
+            });
+        }
+        for ((operand, (rows, cols), ..), params) in operands.iter().zip(&staging) {
+            let (x, y) = self.grid((rows * cols).div_ceil(STAGING_WORKGROUP))?;
+            self.dispatch(
+                encoder,
+                &kernels.operand_max,
+                bytemuck::bytes_of(params),
+                &[
+                    (1, operand.buffer),
+                    (2, mask_buffer),
+                    (3, &kernels.scales),
+                ],
+                x,
+                y,
+            );
+        }
+        for ((operand, _, (rows_pad, cols_pad), _, packed), params) in
+            operands.iter().zip(&staging)
+        {
+            let (x, y) = self.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))?;
+            self.dispatch(
+                encoder,
+                &kernels.pack,
+                bytemuck::bytes_of(params),
+                &[
+                    (1, operand.buffer),
+                    (2, mask_buffer),
+                    (3, &kernels.scales),
+                    (4, *packed),
+                ],
+                x,
+                y,
+            );
+        }
+        let multiply = CoopParams {
+            k_pad: to_u32("reduction length", k_pad)?,
+            n_pad: to_u32("columns", n_pad)?,
+            m_blocks: to_u32("blocks", m_blocks)?,
+            k_per_split: to_u32("k slice", k_per_split)?,
+            partial_stride: to_u32("partial size", partial_len)?,
+            pad: [0; 3],
+        };
+        self.dispatch(
+            encoder,
+            &kernels.multiply,
+            bytemuck::bytes_of(&multiply),
+            &[(1, &packed_a), (2, &packed_b), (3, &partials)],
+            to_u32("blocks", n_blocks)?,
+            to_u32("blocks", groups_y)?,
+        );
+        let epilogue = StagingParams {
+            m: to_u32("rows", m)?,
+            n: to_u32("columns", n)?,
+            n_pad: to_u32("columns", n_pad)?,
+            splits: to_u32("k splits", splits)?,
+            partial_stride: to_u32("partial size", partial_len)?,
+            c_offset: to_u32("offset", c_offset)?,
+            c_row_stride: to_u32("columns", n)?,
+            c_flags: flags & (ACCUMULATE | ADD_BIAS | RELU),
+            ..StagingParams::default()
+        };
+        to_u32("product size", m * n)?;
+        let (x, y) = self.grid((m * n).div_ceil(STAGING_WORKGROUP))?;
+        self.dispatch(
+            encoder,
+            &kernels.epilogue,
+            bytemuck::bytes_of(&epilogue),
+            &[
+                (3, &kernels.scales),
+                (5, &partials),
+                (6, bias.unwrap_or(&self.placeholder)),
+                (7, c),
+            ],
+            x,
+            y,
+        );
         Ok(())
     }
 
