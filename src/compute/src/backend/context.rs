@@ -192,8 +192,7 @@ impl TensorCores {
     pub const SHAPE: u32 = 16;
 
     fn of_adapter(adapter: &wgpu::Adapter) -> Option<Self> {
-        let needed =
-            wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX | wgpu::Features::SHADER_F16;
+        let needed = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX | wgpu::Features::SHADER_F16;
         if !adapter.features().contains(needed) {
             return None;
         }

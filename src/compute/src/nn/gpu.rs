@@ -973,17 +973,12 @@ impl NnGpu {
                 encoder,
                 &kernels.operand_max,
                 bytemuck::bytes_of(params),
-                &[
-                    (1, operand.buffer),
-                    (2, mask_buffer),
-                    (3, &kernels.scales),
-                ],
+                &[(1, operand.buffer), (2, mask_buffer), (3, &kernels.scales)],
                 x,
                 y,
             );
         }
-        for ((operand, _, (rows_pad, cols_pad), _, packed), params) in
-            operands.iter().zip(&staging)
+        for ((operand, _, (rows_pad, cols_pad), _, packed), params) in operands.iter().zip(&staging)
         {
             let (x, y) = self.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))?;
             self.dispatch(
@@ -1603,8 +1598,9 @@ pub fn adam_factors_record(factors: &[AdamStepFactors]) -> Vec<f32> {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
     use super::*;
-    use crate::backend::GpuContext;
     use crate::backend::test_support::gpu_test_context;
     use crate::nn::adam::{AdamState, adam_update};
     use crate::nn::encoding::{positional_encoding_backward, positional_encoding_forward};
@@ -1618,6 +1614,10 @@ mod tests {
     }
 
     fn upload(context: &GpuContext, data: &[f32]) -> wgpu::Buffer {
+        context.upload("nn test", data).unwrap().buffer
+    }
+
+    fn upload_words(context: &GpuContext, data: &[u32]) -> wgpu::Buffer {
         context.upload("nn test", data).unwrap().buffer
     }
 
@@ -1641,6 +1641,15 @@ mod tests {
         }
     }
 
+    /// The largest differences [`check_linear_on`] allows: of the output, of the
+    /// reductions over rows (`dW`, `db`) and of the input gradients.
+    #[derive(Clone, Copy)]
+    struct Tolerances {
+        output: f32,
+        row_sums: f32,
+        input_gradient: f32,
+    }
+
     /// Forward and backward of a two-part layer on both backends. `rows` above 256 makes the
     /// weight gradient take the split-and-reduce path.
     fn check_linear(rows: usize, widths: [usize; 2], out: usize, activation: Activation) {
@@ -1648,6 +1657,28 @@ mod tests {
             return;
         };
         let nn = NnGpu::new(context.device()).unwrap();
+        // Sums over `rows` terms: f32 rounding grows like sqrt(rows).
+        let sum_tolerance = 1e-6 * (rows as f32).sqrt().max(8.0);
+        let tolerances = Tolerances {
+            output: 1e-5,
+            row_sums: sum_tolerance,
+            input_gradient: 1e-5,
+        };
+        check_linear_on(&context, &nn, rows, widths, out, activation, tolerances);
+    }
+
+    /// [`check_linear`] on a given [`NnGpu`]. The cpu backward takes its ReLU mask from the
+    /// gpu's output, so an output that rounding puts on the other side of zero (likely with
+    /// f16 operands) does not count as a backward error.
+    fn check_linear_on(
+        context: &GpuContext,
+        nn: &NnGpu,
+        rows: usize,
+        widths: [usize; 2],
+        out: usize,
+        activation: Activation,
+        tolerances: Tolerances,
+    ) {
         let mut rng = Rng::new(rows as u64);
         let shape = LinearShape {
             in_features: widths[0] + widths[1],
@@ -1676,41 +1707,15 @@ mod tests {
         ];
         let mut y = vec![0.0f32; rows * out];
         linear_forward(shape, &weight, &bias, &parts, rows, &mut y).unwrap();
-        let (mut d_weight, mut d_bias, mut d_x1) =
-            (d_weight0.clone(), d_bias0.clone(), d_x1_0.clone());
-        let mut d_x0 = vec![0.0f32; rows * widths[0]];
-        let mut d_pre = d_y.clone();
-        linear_backward(
-            shape,
-            &weight,
-            &parts,
-            rows,
-            &y,
-            &mut d_pre,
-            LinearGrads {
-                weight: &mut d_weight,
-                bias: &mut d_bias,
-            },
-            &mut [
-                InputGrad::Write(&mut d_x0),
-                InputGrad::Accumulate(&mut d_x1),
-            ],
-        )
-        .unwrap();
 
-        // gpu.
+        // gpu forward.
         let (g_weight, g_bias, g_x0, g_x1) = (
-            upload(&context, &weight),
-            upload(&context, &bias),
-            upload(&context, &x0),
-            upload(&context, &x1),
+            upload(context, &weight),
+            upload(context, &bias),
+            upload(context, &x0),
+            upload(context, &x1),
         );
-        let g_y = upload(&context, &vec![f32::NAN; rows * out]);
-        let g_dy = upload(&context, &d_y);
-        let g_dw = upload(&context, &d_weight0);
-        let g_db = upload(&context, &d_bias0);
-        let g_dx0 = upload(&context, &vec![f32::NAN; rows * widths[0]]);
-        let g_dx1 = upload(&context, &d_x1_0);
+        let g_y = upload(context, &vec![f32::NAN; rows * out]);
         let g_parts = [
             GpuInputPart {
                 buffer: &g_x0,
@@ -1732,6 +1737,39 @@ mod tests {
             &g_y,
         )
         .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        let gpu_y = download(context, context.encoder(), &g_y, y.len());
+
+        // cpu backward on the gpu's mask.
+        let (mut d_weight, mut d_bias, mut d_x1) =
+            (d_weight0.clone(), d_bias0.clone(), d_x1_0.clone());
+        let mut d_x0 = vec![0.0f32; rows * widths[0]];
+        let mut d_pre = d_y.clone();
+        linear_backward(
+            shape,
+            &weight,
+            &parts,
+            rows,
+            &gpu_y,
+            &mut d_pre,
+            LinearGrads {
+                weight: &mut d_weight,
+                bias: &mut d_bias,
+            },
+            &mut [
+                InputGrad::Write(&mut d_x0),
+                InputGrad::Accumulate(&mut d_x1),
+            ],
+        )
+        .unwrap();
+
+        // gpu backward.
+        let g_dy = upload(context, &d_y);
+        let g_dw = upload(context, &d_weight0);
+        let g_db = upload(context, &d_bias0);
+        let g_dx0 = upload(context, &vec![f32::NAN; rows * widths[0]]);
+        let g_dx1 = upload(context, &d_x1_0);
+        let mut encoder = context.encoder();
         nn.linear_backward(
             &mut encoder,
             shape,
@@ -1753,10 +1791,9 @@ mod tests {
         context.submit_and_wait(encoder).unwrap();
         let label = format!("{rows}x{widths:?}x{out} {activation:?}");
         let read =
-            |buffer: &wgpu::Buffer, len: usize| download(&context, context.encoder(), buffer, len);
-        assert_close(&format!("{label} Y"), &read(&g_y, y.len()), &y, 1e-5);
-        // Sums over `rows` terms: f32 rounding grows like sqrt(rows).
-        let sum_tolerance = 1e-6 * (rows as f32).sqrt().max(8.0);
+            |buffer: &wgpu::Buffer, len: usize| download(context, context.encoder(), buffer, len);
+        assert_close(&format!("{label} Y"), &gpu_y, &y, tolerances.output);
+        let sum_tolerance = tolerances.row_sums;
         assert_close(
             &format!("{label} dW"),
             &read(&g_dw, d_weight.len()),
@@ -1773,13 +1810,13 @@ mod tests {
             &format!("{label} dX0"),
             &read(&g_dx0, d_x0.len()),
             &d_x0,
-            1e-5,
+            tolerances.input_gradient,
         );
         assert_close(
             &format!("{label} dX1"),
             &read(&g_dx1, d_x1.len()),
             &d_x1,
-            1e-5,
+            tolerances.input_gradient,
         );
     }
 
@@ -1943,5 +1980,555 @@ mod tests {
                 actual: 5
             }
         );
+    }
+
+    /// The tensor-core path, where the adapter has it, or `None` after printing why the
+    /// test is skipped: lavapipe and most adapters have no cooperative matrices, so a
+    /// missing feature skips even under `CI` (a missing adapter still fails there).
+    fn tensor_core_test_nn(test: &str) -> Option<(Arc<GpuContext>, NnGpu)> {
+        let context = gpu_test_context()?;
+        if context.tensor_cores().is_none() {
+            eprintln!(
+                "skipped {test}: {} has no tensor cores for the f16 path (cooperative 16x16x16 \
+                 f16 x f16 -> f32 matrices and a fixed subgroup size)",
+                context.info().name
+            );
+            return None;
+        }
+        let nn = NnGpu::for_context(&context, Precision::Mixed).unwrap();
+        assert!(
+            matches!(nn.matmul_path(), MatmulPath::TensorCores(_)),
+            "{}",
+            nn.describe()
+        );
+        eprintln!("{test}: {} on {}", nn.describe(), context.info().name);
+        Some((context, nn))
+    }
+
+    /// f16 operands keep 11 significant bits: each product term is off by about 2^-11
+    /// relative, so outputs and gradients are compared at 1e-2 (relative, plus absolute
+    /// near zero).
+    const F16_TOLERANCES: Tolerances = Tolerances {
+        output: 1e-2,
+        row_sums: 1e-2,
+        input_gradient: 1e-2,
+    };
+
+    #[test]
+    fn tensor_cores_match_cpu_on_random_layers() {
+        let Some((context, nn)) = tensor_core_test_nn("tensor_cores_match_cpu_on_random_layers")
+        else {
+            return;
+        };
+        // Sizes off the 32 x 32 blocks and 16-deep steps, a split weight gradient (600 and
+        // 5000 rows), a single input column, and a paper-width layer.
+        for (rows, widths, out, activation) in [
+            (70, [5, 19], 67, Activation::Relu),
+            (3, [1, 2], 1, Activation::Identity),
+            (600, [40, 23], 33, Activation::Relu),
+            (5000, [256, 256], 512, Activation::Relu),
+        ] {
+            check_linear_on(&context, &nn, rows, widths, out, activation, F16_TOLERANCES);
+        }
+        // The f32 precision on the same context never takes the tensor cores.
+        let f32_nn = NnGpu::for_context(&context, Precision::F32).unwrap();
+        assert_eq!(f32_nn.matmul_path(), MatmulPath::F32);
+        assert_eq!(f32_nn.describe(), "networks: f32");
+    }
+
+    /// Mean squared error of a two-layer network (`32 -> 64 ReLU -> 8`) fitting a fixed
+    /// target, trained `steps` Adam steps on `nn`; the loss before each step.
+    fn training_losses(context: &GpuContext, nn: &NnGpu, steps: usize) -> Vec<f64> {
+        let (rows, inputs, hidden, outputs) = (512, 32, 64, 8);
+        let mut rng = Rng::new(11);
+        let x = random(&mut rng, rows * inputs, 1.0);
+        let target = random(&mut rng, rows * outputs, 1.0);
+        let shapes = [
+            LinearShape {
+                in_features: inputs,
+                out_features: hidden,
+                activation: Activation::Relu,
+            },
+            LinearShape {
+                in_features: hidden,
+                out_features: outputs,
+                activation: Activation::Identity,
+            },
+        ];
+        let params: Vec<[wgpu::Buffer; 2]> = shapes
+            .iter()
+            .map(|shape| {
+                let bound = 1.0 / (shape.in_features as f64).sqrt();
+                [
+                    upload(context, &random(&mut rng, shape.weight_len(), bound)),
+                    upload(context, &random(&mut rng, shape.out_features, bound)),
+                ]
+            })
+            .collect();
+        let zeros = |len: usize| upload(context, &vec![0.0f32; len]);
+        let grads: Vec<[wgpu::Buffer; 2]> = shapes
+            .iter()
+            .map(|shape| [zeros(shape.weight_len()), zeros(shape.out_features)])
+            .collect();
+        let moments: Vec<[wgpu::Buffer; 4]> = shapes
+            .iter()
+            .map(|shape| {
+                [
+                    zeros(shape.weight_len()),
+                    zeros(shape.weight_len()),
+                    zeros(shape.out_features),
+                    zeros(shape.out_features),
+                ]
+            })
+            .collect();
+        let g_x = upload(context, &x);
+        let hidden_out = zeros(rows * hidden);
+        let y = zeros(rows * outputs);
+        let d_hidden = zeros(rows * hidden);
+        let config = AdamConfig::default();
+        let mut losses = Vec::new();
+        for step in 1..=steps {
+            let mut encoder = context.encoder();
+            let input = [GpuInputPart {
+                buffer: &g_x,
+                cols: inputs,
+            }];
+            let hidden_part = [GpuInputPart {
+                buffer: &hidden_out,
+                cols: hidden,
+            }];
+            nn.linear_forward(
+                &mut encoder,
+                shapes[0],
+                &params[0][0],
+                &params[0][1],
+                &input,
+                rows,
+                &hidden_out,
+            )
+            .unwrap();
+            nn.linear_forward(
+                &mut encoder,
+                shapes[1],
+                &params[1][0],
+                &params[1][1],
+                &hidden_part,
+                rows,
+                &y,
+            )
+            .unwrap();
+            context.submit_and_wait(encoder).unwrap();
+            let prediction = download(context, context.encoder(), &y, rows * outputs);
+            let count = prediction.len() as f64;
+            losses.push(
+                prediction
+                    .iter()
+                    .zip(&target)
+                    .map(|(p, t)| f64::from(p - t).powi(2))
+                    .sum::<f64>()
+                    / count,
+            );
+            // dL/dY of the mean: small values (~1e-3 and below), which f16 keeps only
+            // because the operands are scaled.
+            let d_y: Vec<f32> = prediction
+                .iter()
+                .zip(&target)
+                .map(|(p, t)| (2.0 * f64::from(p - t) / count) as f32)
+                .collect();
+            let g_dy = upload(context, &d_y);
+            let mut encoder = context.encoder();
+            for [weight, bias] in &grads {
+                encoder.clear_buffer(weight, 0, None);
+                encoder.clear_buffer(bias, 0, None);
+            }
+            nn.linear_backward(
+                &mut encoder,
+                shapes[1],
+                &params[1][0],
+                &hidden_part,
+                rows,
+                &y,
+                &g_dy,
+                GpuLinearGrads {
+                    weight: &grads[1][0],
+                    bias: &grads[1][1],
+                },
+                &[GpuInputGrad::Write(&d_hidden)],
+            )
+            .unwrap();
+            nn.linear_backward(
+                &mut encoder,
+                shapes[0],
+                &params[0][0],
+                &input,
+                rows,
+                &hidden_out,
+                &d_hidden,
+                GpuLinearGrads {
+                    weight: &grads[0][0],
+                    bias: &grads[0][1],
+                },
+                &[GpuInputGrad::Skip],
+            )
+            .unwrap();
+            for ((shape, [weight, bias]), ([d_weight, d_bias], [m_w, v_w, m_b, v_b])) in
+                shapes.iter().zip(&params).zip(grads.iter().zip(&moments))
+            {
+                let lr = 1e-2;
+                let t = step as u64;
+                let len = shape.weight_len();
+                nn.adam_update(
+                    &mut encoder,
+                    &config,
+                    lr,
+                    t,
+                    weight,
+                    d_weight,
+                    m_w,
+                    v_w,
+                    len,
+                )
+                .unwrap();
+                let len = shape.out_features;
+                nn.adam_update(&mut encoder, &config, lr, t, bias, d_bias, m_b, v_b, len)
+                    .unwrap();
+            }
+            context.submit_and_wait(encoder).unwrap();
+        }
+        losses
+    }
+
+    /// Training on the tensor cores lowers the loss as the f32 path does: the same network,
+    /// data and steps end at most 10% of the starting loss above the f32 run, and below
+    /// half the starting loss.
+    #[test]
+    fn tensor_cores_train_like_f32() {
+        let Some((context, nn)) = tensor_core_test_nn("tensor_cores_train_like_f32") else {
+            return;
+        };
+        let steps = 60;
+        let mixed = training_losses(&context, &nn, steps);
+        let reference = training_losses(&context, &NnGpu::new(context.device()).unwrap(), steps);
+        let (first, last, last_f32) = (mixed[0], mixed[steps - 1], reference[steps - 1]);
+        eprintln!(
+            "loss: f16 tensor cores {first} -> {last}, f32 {} -> {last_f32}",
+            reference[0]
+        );
+        assert!(mixed.iter().all(|loss| loss.is_finite()), "{mixed:?}");
+        assert!(
+            (first - reference[0]).abs() <= 1e-2 * reference[0],
+            "{first} vs {}",
+            reference[0]
+        );
+        assert!(last < 0.5 * first, "the loss did not decrease: {mixed:?}");
+        assert!(last <= last_f32 + 0.1 * first, "{last} vs f32 {last_f32}");
+    }
+
+    /// f16 bits to f32 (normal, subnormal, zero, infinity, NaN).
+    fn f16_to_f32(bits: u16) -> f32 {
+        let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
+        let exponent = i32::from((bits >> 10) & 0x1f);
+        let mantissa = f32::from(bits & 0x3ff);
+        match exponent {
+            0 => sign * mantissa * 2f32.powi(-24),
+            31 if mantissa == 0.0 => sign * f32::INFINITY,
+            31 => f32::NAN,
+            _ => sign * (1.0 + mantissa / 1024.0) * 2f32.powi(exponent - 15),
+        }
+    }
+
+    /// The staging kernels of the tensor-core path on one `rows x cols` operand (row-major,
+    /// no mask): its scale exponent and its packed f16 values as f32 (still scaled by
+    /// 2^exponent), padded to `rows_pad x cols_pad`.
+    struct Staged {
+        exponent: i32,
+        values: Vec<f32>,
+    }
+
+    /// The staging kernels (`nn_matmul_f16.wgsl`), compiled on a context with f16 but no
+    /// tensor cores (lavapipe), or `None` after printing why the test is skipped.
+    fn staging_kernels(test: &str) -> Option<(Arc<GpuContext>, NnGpu, [Kernel; 3])> {
+        let context = gpu_test_context()?;
+        if !context.has_f16() {
+            eprintln!("skipped {test}: {} has no f16 shaders", context.info().name);
+            return None;
+        }
+        let nn = NnGpu::new(context.device()).unwrap();
+        let compile =
+            |name, entry| Kernel::compile(context.device(), name, MATMUL_F16_WGSL, entry).unwrap();
+        let kernels = [
+            compile("nn_matmul_operand_max", "operand_max"),
+            compile("nn_matmul_pack", "pack"),
+            compile("nn_matmul_epilogue", "epilogue"),
+        ];
+        Some((context, nn, kernels))
+    }
+
+    /// Stages `values` (`rows x cols`) as operand `slot` into `packed`, with `scales` shared
+    /// by both operands of a product.
+    #[allow(clippy::too_many_arguments)]
+    fn stage(
+        context: &GpuContext,
+        nn: &NnGpu,
+        kernels: &[Kernel; 3],
+        values: &[f32],
+        (rows, cols): (usize, usize),
+        (rows_pad, cols_pad): (usize, usize),
+        slot: u32,
+        scales: &wgpu::Buffer,
+        packed: &wgpu::Buffer,
+    ) -> Staged {
+        let source = upload(context, values);
+        let params = StagingParams {
+            rows: rows as u32,
+            cols: cols as u32,
+            row_stride: cols as u32,
+            col_stride: 1,
+            slot,
+            rows_pad: rows_pad as u32,
+            cols_pad: cols_pad as u32,
+            ..StagingParams::default()
+        };
+        let mut encoder = context.encoder();
+        let bindings = [(1, &source), (2, &nn.placeholder), (3, scales)];
+        let (x, y) = nn.grid((rows * cols).div_ceil(STAGING_WORKGROUP)).unwrap();
+        nn.dispatch(
+            &mut encoder,
+            &kernels[0],
+            bytemuck::bytes_of(&params),
+            &bindings,
+            x,
+            y,
+        );
+        let (x, y) = nn
+            .grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))
+            .unwrap();
+        let bindings = [(1, &source), (2, &nn.placeholder), (3, scales), (4, packed)];
+        nn.dispatch(
+            &mut encoder,
+            &kernels[1],
+            bytemuck::bytes_of(&params),
+            &bindings,
+            x,
+            y,
+        );
+        context.submit_and_wait(encoder).unwrap();
+        let max_bits: Vec<u32> = context.download(context.encoder(), scales, 2).unwrap();
+        let max_bits = max_bits[slot as usize];
+        // As scale_exponent in the WGSL.
+        let exponent = if max_bits == 0 {
+            0
+        } else {
+            (14 - (((max_bits >> 23) & 0xff) as i32 - 127)).min(126)
+        };
+        let words: Vec<u32> = context
+            .download(context.encoder(), packed, (rows_pad * cols_pad).div_ceil(2))
+            .unwrap();
+        let values = words
+            .iter()
+            .flat_map(|word| [*word as u16, (*word >> 16) as u16])
+            .take(rows_pad * cols_pad)
+            .map(f16_to_f32)
+            .collect();
+        Staged { exponent, values }
+    }
+
+    /// Operands beyond f16's range (up to f32's largest) and far below its normal range
+    /// (1e-30) are scaled so that every packed value is finite and within f16's range and
+    /// keeps f16's 11 bits relative to the operand's largest magnitude; infinities and NaNs
+    /// do not enter the scale. Runs wherever the adapter has f16 (lavapipe does).
+    #[test]
+    fn f16_staging_keeps_extreme_operands_finite_and_exact_to_f16_precision() {
+        let Some((context, nn, kernels)) = staging_kernels("f16_staging_extremes") else {
+            return;
+        };
+        let cases: [(&str, Vec<f32>); 4] = [
+            (
+                "near the f16 limit",
+                vec![65504.0, -65504.0, 65519.0, 70000.0, 1.0, -0.5, 0.0, 3.0e-5],
+            ),
+            (
+                "far beyond it",
+                vec![f32::MAX, -3.0e38, 1.0e30, 1.0e6, -7.0e4, 1.0, 0.0, 2.0e37],
+            ),
+            (
+                "tiny gradients",
+                vec![
+                    1.0e-30, -3.0e-30, 2.5e-31, 1.0e-35, 0.0, -1.0e-30, 7.0e-31, 1.0e-44,
+                ],
+            ),
+            (
+                "non-finite entries",
+                vec![
+                    f32::INFINITY,
+                    f32::NAN,
+                    2.0,
+                    -4.0,
+                    0.5,
+                    f32::NEG_INFINITY,
+                    1.0,
+                    3.0,
+                ],
+            ),
+        ];
+        let scales = upload_words(context.as_ref(), &[0u32; 4]);
+        let (rows, cols, rows_pad, cols_pad) = (2, 4, 32, 16);
+        let packed = upload_words(context.as_ref(), &vec![0u32; rows_pad * cols_pad / 2]);
+        for (what, values) in &cases {
+            context.write(&scales, 0, &[0u32; 4]).unwrap();
+            let staged = stage(
+                &context,
+                &nn,
+                &kernels,
+                values,
+                (rows, cols),
+                (rows_pad, cols_pad),
+                0,
+                &scales,
+                &packed,
+            );
+            let largest = values
+                .iter()
+                .filter(|value| value.is_finite())
+                .fold(0.0f64, |largest, value| largest.max(f64::from(value.abs())));
+            for (index, &packed_value) in staged.values.iter().enumerate() {
+                let (row, col) = (index / cols_pad, index % cols_pad);
+                if row >= rows || col >= cols {
+                    assert_eq!(packed_value, 0.0, "{what}: padding [{row}][{col}]");
+                    continue;
+                }
+                let original = values[row * cols + col];
+                if !original.is_finite() {
+                    continue;
+                }
+                assert!(
+                    packed_value.is_finite() && packed_value.abs() <= 65504.0,
+                    "{what}: {original} packed as {packed_value}"
+                );
+                let unscaled = f64::from(packed_value) * 2f64.powi(-staged.exponent);
+                // Half a unit in the last place of f16, relative to the largest magnitude
+                // (smaller values may be f16 subnormals), and f32's own rounding.
+                let allowed = largest * 2f64.powi(-11) + f64::from(original.abs()) * 1e-7;
+                assert!(
+                    (unscaled - f64::from(original)).abs() <= allowed,
+                    "{what}: {original} came back as {unscaled} (exponent {})",
+                    staged.exponent
+                );
+            }
+            // The largest finite magnitude lands in [2^14, 2^15).
+            if largest > 1e-37 {
+                let scaled = largest * 2f64.powi(staged.exponent);
+                assert!((16384.0..32768.0).contains(&scaled), "{what}: {scaled}");
+            }
+        }
+    }
+
+    /// The tensor-core product without tensor cores: A (entries near 1e5, beyond f16) and B
+    /// (near 1e-7, below f16's normal range) staged on the gpu, multiplied on the cpu as
+    /// the cooperative matrices do (f16 products summed in f32, two k splits), then
+    /// unscaled, summed, biased and rectified by the epilogue kernel; the result matches an
+    /// f64 product of the f32 operands to 1e-2 and is finite.
+    #[test]
+    fn f16_staging_and_epilogue_reproduce_the_product_of_out_of_range_operands() {
+        let Some((context, nn, kernels)) = staging_kernels("f16_staging_and_epilogue") else {
+            return;
+        };
+        let (m, k, n) = (5, 40, 7);
+        let (m_pad, k_pad, n_pad) = (32, 48, 32);
+        let mut rng = Rng::new(3);
+        let a: Vec<f32> = random(&mut rng, m * k, 1.0)
+            .iter()
+            .map(|v| v * 2.0e5)
+            .collect();
+        let b: Vec<f32> = random(&mut rng, k * n, 1.0)
+            .iter()
+            .map(|v| v * 3.0e-7)
+            .collect();
+        let bias = random(&mut rng, n, 0.01);
+        let scales = upload_words(context.as_ref(), &[0u32; 4]);
+        let packed_a = upload_words(context.as_ref(), &vec![0u32; m_pad * k_pad / 2]);
+        let packed_b = upload_words(context.as_ref(), &vec![0u32; k_pad * n_pad / 2]);
+        let staged_a = stage(
+            &context,
+            &nn,
+            &kernels,
+            &a,
+            (m, k),
+            (m_pad, k_pad),
+            0,
+            &scales,
+            &packed_a,
+        );
+        let staged_b = stage(
+            &context,
+            &nn,
+            &kernels,
+            &b,
+            (k, n),
+            (k_pad, n_pad),
+            1,
+            &scales,
+            &packed_b,
+        );
+        // What the multiply kernel computes on the scaled f16 values, in two k slices of 32
+        // and 16.
+        let splits = [(0, 32), (32, 48)];
+        let mut partials = vec![0.0f32; splits.len() * m_pad * n_pad];
+        for (split, (begin, end)) in splits.iter().enumerate() {
+            for i in 0..m_pad {
+                for j in 0..n_pad {
+                    let mut sum = 0.0f32;
+                    for kk in *begin..*end {
+                        let a_value = staged_a.values[i * k_pad + kk];
+                        let b_value = staged_b.values[kk * n_pad + j];
+                        sum += a_value * b_value;
+                    }
+                    partials[split * m_pad * n_pad + i * n_pad + j] = sum;
+                }
+            }
+        }
+        let g_partials = upload(context.as_ref(), &partials);
+        let g_bias = upload(context.as_ref(), &bias);
+        let g_c = upload(context.as_ref(), &vec![f32::NAN; m * n]);
+        let params = StagingParams {
+            m: m as u32,
+            n: n as u32,
+            n_pad: n_pad as u32,
+            splits: splits.len() as u32,
+            partial_stride: (m_pad * n_pad) as u32,
+            c_row_stride: n as u32,
+            c_flags: ADD_BIAS | RELU,
+            ..StagingParams::default()
+        };
+        let mut encoder = context.encoder();
+        let (x, y) = nn.grid((m * n).div_ceil(STAGING_WORKGROUP)).unwrap();
+        nn.dispatch(
+            &mut encoder,
+            &kernels[2],
+            bytemuck::bytes_of(&params),
+            &[(3, &scales), (5, &g_partials), (6, &g_bias), (7, &g_c)],
+            x,
+            y,
+        );
+        context.submit_and_wait(encoder).unwrap();
+        let c = download(&context, context.encoder(), &g_c, m * n);
+        let mut largest = 0.0f64;
+        let mut expected = vec![0.0f64; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                let product: f64 = (0..k)
+                    .map(|kk| f64::from(a[i * k + kk]) * f64::from(b[kk * n + j]))
+                    .sum();
+                expected[i * n + j] = (product + f64::from(bias[j])).max(0.0);
+                largest = largest.max(product.abs());
+            }
+        }
+        for (index, (&got, &want)) in c.iter().zip(&expected).enumerate() {
+            assert!(got.is_finite(), "C[{index}] = {got}");
+            assert!(
+                (f64::from(got) - want).abs() <= 1e-2 * largest,
+                "C[{index}]: {got} vs {want} (largest |product| {largest})"
+            );
+        }
     }
 }
