@@ -450,6 +450,39 @@ pub enum MatmulPath {
     TensorCores(TensorCores),
 }
 
+impl MatmulPath {
+    /// The path [`NnGpu::for_context`] takes on `context` for `precision`: the tensor cores
+    /// where `precision` is [`Precision::Mixed`] and the device was opened with them
+    /// ([`GpuContext::tensor_cores`]), else f32. The one place the choice is made, so a run's
+    /// log line ([`MatmulPath::describe`]) always names the path its kernels take.
+    pub fn choose(context: &GpuContext, precision: Precision) -> Self {
+        match (precision, context.tensor_cores()) {
+            (Precision::Mixed, Some(cores)) => Self::TensorCores(cores),
+            _ => Self::F32,
+        }
+    }
+
+    /// The path of the networks on `backend` for `precision`: [`MatmulPath::choose`] on the
+    /// gpu, f32 on `cpu` (which always runs f32).
+    pub fn of_backend(backend: &crate::backend::Backend, precision: Precision) -> Self {
+        backend
+            .gpu()
+            .map_or(Self::F32, |context| Self::choose(context, precision))
+    }
+
+    /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
+    /// `networks: f32`.
+    pub fn describe(self) -> String {
+        match self {
+            Self::F32 => "networks: f32".to_owned(),
+            Self::TensorCores(_) => {
+                let shape = TensorCores::SHAPE;
+                format!("networks: f16 tensor cores ({shape}x{shape}x{shape})")
+            }
+        }
+    }
+}
+
 /// The kernels and scratch buffers of the tensor-core path.
 #[derive(Debug)]
 struct TensorCoreKernels {
@@ -573,9 +606,7 @@ impl NnGpu {
     /// driver rejects is an error, not a silent fallback.
     pub fn for_context(context: &GpuContext, precision: Precision) -> Result<Self, NnError> {
         let mut nn = Self::new(context.device())?;
-        if precision == Precision::Mixed
-            && let Some(cores) = context.tensor_cores()
-        {
+        if let MatmulPath::TensorCores(cores) = MatmulPath::choose(context, precision) {
             nn.tensor_cores = Some(TensorCoreKernels::new(context.device(), cores)?);
         }
         Ok(nn)
@@ -593,13 +624,7 @@ impl NnGpu {
     /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
     /// `networks: f32`.
     pub fn describe(&self) -> String {
-        match self.matmul_path() {
-            MatmulPath::F32 => "networks: f32".to_owned(),
-            MatmulPath::TensorCores(_) => {
-                let shape = TensorCores::SHAPE;
-                format!("networks: f16 tensor cores ({shape}x{shape}x{shape})")
-            }
-        }
+        self.matmul_path().describe()
     }
 
     /// Compiles every kernel for `device`, with f32 matrix products (see
