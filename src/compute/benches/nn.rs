@@ -18,16 +18,28 @@
 //! `forward` (`X W + b`, ReLU; numpy `X W`), `backward` (ReLU mask, `db`, `dX = dY' W^T`,
 //! `dW += X^T dY'`; numpy the two products) and `dW only` (the backward of a layer whose
 //! input needs no gradient, the first layer's case; numpy `X^T dY`).
+//!
+//! Then, on the gpu, every dense-layer shape of the `paper` preset's networks (trunk 512 x 3,
+//! tau 8, L 8, 3 scales, SMPL; listed from docs/method.md, "Networks": the avatar crate that
+//! describes them depends on this one) at `SEQAVATAR_BENCH_GPU_ROWS` rows (default 94 000,
+//! about a paper-sized model's Gaussians; every layer at the same rows, though the per-frame
+//! layers run one row and the per-step ones `L` rows per Gaussian): forward and backward
+//! GFLOP/s on the f32 path and, where the adapter has tensor cores, on the tensor-core path
+//! (`precision: mixed`) side by side, each layer's throughput as a fraction of the 512 x 512
+//! layer's, and the `networks:` line a `mixed` run prints. A hardware adapter only, unless
+//! `SEQAVATAR_BENCH_GPU=software` allows Mesa lavapipe (then 2048 rows by default).
 
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
-use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
+use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, MatmulPath, NnGpu};
 use seqavatar_compute::nn::init::{Rng, uniform_fill};
 use seqavatar_compute::nn::linear::{InputGrad, LinearGrads};
-use seqavatar_compute::nn::{Activation, InputPart, LinearShape, linear_backward, linear_forward};
+use seqavatar_compute::nn::{
+    Activation, InputPart, LinearShape, Precision, linear_backward, linear_forward,
+};
 
 /// Best of `repeats` timings of `work`, after one warm-up run, in seconds.
 fn best_seconds(repeats: usize, mut work: impl FnMut()) -> f64 {
@@ -496,6 +508,168 @@ fn gpu_gflops(
     Ok((flops / forward / 1e9, 2.0 * flops / backward / 1e9))
 }
 
+/// The dense layers of the `paper` preset's networks (SMPL: J = 24; tau 8, L 8, |S| 3):
+/// where each runs, and its `in x out`, as docs/method.md ("Networks") lists them.
+const PAPER_LAYERS: [(&str, usize, usize); 18] = [
+    ("trunk.0 (63 + 32 + 32 + 96)", 223, 512),
+    ("trunk.1, trunk.2", 512, 512),
+    ("heads (3 + 4 + 3)", 512, 10),
+    ("pose encoder 0 (3 (J-1))", 69, 32),
+    ("pose encoder 1", 32, 32),
+    ("seq pose frame (3 (J+1) |S|)", 225, 16),
+    ("seq pose sequence (16 L)", 128, 32),
+    ("seq xyz velocity (3 tau |S|)", 72, 64),
+    ("seq xyz position", 63, 32),
+    ("seq xyz frame", 96, 96),
+    ("seq xyz sequence 0 (96 L)", 768, 256),
+    ("seq xyz sequence 1", 256, 96),
+    ("pose refiner 0", 69, 128),
+    ("refiner 1, lbs 1-2", 128, 128),
+    ("pose refiner 2", 128, 69),
+    ("lbs 0", 63, 128),
+    ("lbs 3 (128 + 63)", 191, 128),
+    ("lbs 4 (J)", 128, 24),
+];
+
+/// The gpu context of the paper-layer table, per `SEQAVATAR_BENCH_GPU` (`software` allows
+/// lavapipe; anything else, or nothing, asks for a hardware adapter).
+fn paper_context() -> Result<GpuContext, String> {
+    let choice = match std::env::var("SEQAVATAR_BENCH_GPU").as_deref() {
+        Ok("software") => AdapterChoice::AllowSoftware,
+        _ => AdapterChoice::Hardware,
+    };
+    GpuContext::new(choice).map_err(|error| error.to_string())
+}
+
+/// Forward and backward GFLOP/s of one layer on one path, or why it failed.
+type PathFigures = Result<(f64, f64), String>;
+
+/// Formats `figures` as two columns, with the two ratios to `reference` after them.
+fn path_columns(figures: &PathFigures, reference: &PathFigures) -> String {
+    match (figures, reference) {
+        (Ok((forward, backward)), Ok((reference_forward, reference_backward))) => format!(
+            "{forward:>8.1} {backward:>8.1} {:>6.2} {:>6.2}",
+            forward / reference_forward,
+            backward / reference_backward
+        ),
+        (Ok((forward, backward)), Err(_)) => {
+            format!("{forward:>8.1} {backward:>8.1} {:>6} {:>6}", "-", "-")
+        }
+        (Err(_), _) => format!("{:>8} {:>8} {:>6} {:>6}", "-", "-", "-", "-"),
+    }
+}
+
+/// The gpu table of every dense layer of the `paper` networks, f32 and tensor cores.
+fn paper_layers_table() {
+    let context = match paper_context() {
+        Ok(context) => context,
+        Err(error) => {
+            println!("paper layers on the gpu: {error}, skipped (networks: f32 on cpu)");
+            println!("tensor-core path: not available (no gpu adapter)");
+            return;
+        }
+    };
+    let software = context.info().device_type == wgpu::DeviceType::Cpu;
+    let rows: usize = std::env::var("SEQAVATAR_BENCH_GPU_ROWS")
+        .ok()
+        .and_then(|text| text.parse().ok())
+        .unwrap_or(if software { 2048 } else { 94_000 });
+    let kernels = |precision| {
+        NnGpu::for_context(&context, precision)
+            .map(|nn| nn.with_max_workgroups_per_dimension(context.max_workgroups_per_dimension()))
+    };
+    let (f32_nn, mixed_nn) = match (kernels(Precision::F32), kernels(Precision::Mixed)) {
+        (Ok(f32_nn), Ok(mixed_nn)) => (f32_nn, mixed_nn),
+        (Err(error), _) | (_, Err(error)) => {
+            println!("paper layers on the gpu: kernels failed to compile ({error}), skipped");
+            return;
+        }
+    };
+    println!();
+    println!("gpu adapter: {}", context.describe());
+    println!("{}", mixed_nn.describe());
+    let tensor_cores = match mixed_nn.matmul_path() {
+        MatmulPath::TensorCores(_) => Some(&mixed_nn),
+        MatmulPath::F32 => {
+            println!(
+                "tensor-core path: not available on this adapter (no 16x16x16 f16 -> f32 \
+                 cooperative matrices with a fixed subgroup size); f32 only"
+            );
+            None
+        }
+    };
+    println!(
+        "paper networks' dense layers + ReLU over {rows} rows, GFLOP/s (backward = dX + dW + db, \
+         2x forward flops), x512: throughput over the 512 x 512 layer's on the same path"
+    );
+    let mut measured: Vec<((usize, usize), PathFigures, Option<PathFigures>)> = Vec::new();
+    for &(_, n_in, n_out) in &PAPER_LAYERS {
+        if measured.iter().any(|(shape, ..)| *shape == (n_in, n_out)) {
+            continue;
+        }
+        let shape = LinearShape {
+            in_features: n_in,
+            out_features: n_out,
+            activation: Activation::Relu,
+        };
+        let f32_figures = gpu_gflops(&context, &f32_nn, rows, shape);
+        let tc_figures = tensor_cores.map(|nn| gpu_gflops(&context, nn, rows, shape));
+        for (path, figures) in [
+            ("f32", Some(&f32_figures)),
+            ("tensor cores", tc_figures.as_ref()),
+        ] {
+            if let Some(Err(error)) = figures {
+                eprintln!("gpu {path} failed for {n_in} x {n_out}: {error}");
+            }
+        }
+        measured.push(((n_in, n_out), f32_figures, tc_figures));
+    }
+    let find = |shape: (usize, usize)| {
+        measured
+            .iter()
+            .find(|(measured_shape, ..)| *measured_shape == shape)
+            .expect("every shape measured")
+    };
+    let (_, f32_reference, tc_reference) = find((512, 512));
+    println!(
+        "{:>28} | {:>9} | {:>8} {:>8} {:>6} {:>6} | {:>8} {:>8} {:>6} {:>6} | {:>6} {:>6}",
+        "layer",
+        "in x out",
+        "f32 fwd",
+        "f32 bwd",
+        "x512",
+        "x512",
+        "tc fwd",
+        "tc bwd",
+        "x512",
+        "x512",
+        "tc/f32",
+        "tc/f32"
+    );
+    for &(name, n_in, n_out) in &PAPER_LAYERS {
+        let (_, f32_figures, tc_figures) = find((n_in, n_out));
+        let tc_columns = match (tc_figures, tc_reference) {
+            (Some(figures), Some(reference)) => path_columns(figures, reference),
+            _ => format!("{:>8} {:>8} {:>6} {:>6}", "-", "-", "-", "-"),
+        };
+        let speedup = match (tc_figures, f32_figures) {
+            (Some(Ok((tc_forward, tc_backward))), Ok((forward, backward))) => {
+                format!(
+                    "{:>6.2} {:>6.2}",
+                    tc_forward / forward,
+                    tc_backward / backward
+                )
+            }
+            _ => format!("{:>6} {:>6}", "-", "-"),
+        };
+        println!(
+            "{name:>28} | {:>9} | {} | {tc_columns} | {speedup}",
+            format!("{n_in} x {n_out}"),
+            path_columns(f32_figures, f32_reference),
+        );
+    }
+}
+
 fn main() {
     // As the `pipeline` binary does, so the figures are the ones users get.
     seqavatar_compute::memory::retain_freed_memory();
@@ -602,4 +776,5 @@ fn main() {
         longest_wait.as_millis()
     );
     println!("load average after: {}", load_average());
+    paper_layers_table();
 }

@@ -8,17 +8,19 @@
 //! Run: `cargo bench -p seqavatar-avatar --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
 //! `SEQAVATAR_BENCH_GPU=1` also times `GpuNetworks` on a hardware adapter (`=software` allows
-//! lavapipe); gpu times include the input uploads and output downloads of each call.
+//! lavapipe); gpu times include the input uploads and output downloads of each call, with the
+//! networks at `precision: mixed` (the `networks:` line says which path that is).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use seqavatar_avatar::model::gpu::GpuNetworks;
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
+use seqavatar_compute::nn::gpu::MatmulPath;
 
 use seqavatar_avatar::config::MotionContext;
 use seqavatar_avatar::model::{FrameInputs, GaussianInputs, NetworkConfig, Networks, Widths};
-use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
+use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Precision, Rng, linear_forward};
 
 fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
     (0..len).map(|_| rng.uniform(-1.0, 1.0) as f32).collect()
@@ -59,6 +61,11 @@ fn bench_gpu_context() -> Option<Arc<GpuContext>> {
     match GpuContext::new(choice) {
         Ok(context) => {
             println!("gpu: {}", context.describe());
+            // `GpuNetworks` are uploaded with `precision: mixed`, the configs' default.
+            println!(
+                "gpu {}",
+                MatmulPath::choose(&context, Precision::Mixed).describe()
+            );
             Some(Arc::new(context))
         }
         Err(error) => {
@@ -117,7 +124,8 @@ fn bench_non_rigid(
     let Some(gpu_context) = gpu_context else {
         return;
     };
-    let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+    let gpu =
+        GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
     let (mut forward, mut backward) = (Vec::new(), Vec::new());
     for repeat in 0..=repeats {
         let start = Instant::now();
@@ -179,7 +187,8 @@ fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuConte
     });
     print!("lbs offsets n = {n}: forward + backward cpu f64 {cpu64:.1} ms, cpu f32 {cpu32:.1} ms");
     if let Some(gpu_context) = gpu_context {
-        let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+        let gpu =
+            GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
         let on_gpu = time_ms(repeats, || {
             let (_, cache) = gpu.lbs_offsets_forward(&xyz).expect("gpu forward");
             gpu.lbs_offsets_backward(&cache, &d_offsets)
@@ -210,7 +219,8 @@ fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     print!("pose refiner (one frame): forward + backward cpu f64 {cpu:.3} ms");
     if let Some(gpu_context) = gpu_context {
         let networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
-        let gpu = GpuNetworks::upload(gpu_context.clone(), &networks).expect("upload");
+        let gpu =
+            GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
         let on_gpu = time_ms(repeats, || {
             let (_, cache) = gpu.pose_refiner_forward(&pose).expect("gpu forward");
             gpu.pose_refiner_backward(&cache, &d_rotations)

@@ -465,8 +465,12 @@ impl TrainedAvatar {
     /// every frame with it; it is a snapshot of the networks (after changing them, build
     /// another).
     pub fn backend(&self, backend: Backend) -> anyhow::Result<Box<dyn AvatarBackend>> {
-        avatar_backend(backend, self.networks.as_ref())
-            .context("the avatar's networks on the chosen backend")
+        avatar_backend(
+            backend,
+            self.networks.as_ref(),
+            self.config.networks_precision(),
+        )
+        .context("the avatar's networks on the chosen backend")
     }
 
     /// The deformed Gaussians of one frame (pose refiner, networks, skinning), the
@@ -696,6 +700,7 @@ mod tests {
     use crate::skinning::skin_backward;
     use seqavatar_compute::backend::DeviceChoice;
     use seqavatar_compute::backend::test_support::gpu_test_backend;
+    use seqavatar_compute::nn::Precision;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::glam::DVec3;
     use seqavatar_core::rng::SplitMix64 as Rng;
@@ -712,7 +717,12 @@ mod tests {
 
     /// The `cpu` backend, as every caller builds it.
     fn cpu<S: NnScalar>() -> Box<dyn AvatarBackend<S>> {
-        avatar_backend(Backend::select(DeviceChoice::Cpu).unwrap(), None).unwrap()
+        avatar_backend(
+            Backend::select(DeviceChoice::Cpu).unwrap(),
+            None,
+            Precision::F32,
+        )
+        .unwrap()
     }
 
     /// A smooth function of the skinned Gaussians: `sum a . centres + sum b . covariances`.
@@ -1026,7 +1036,7 @@ mod tests {
             return;
         };
         let (s, networks) = gpu_setup(200);
-        let gpu = avatar_backend(backend, Some(&networks)).unwrap();
+        let gpu = avatar_backend(backend, Some(&networks), Precision::F32).unwrap();
         assert!(gpu.networks_on_gpu());
         let cpu = deform_with(&s, &networks, &*cpu());
         let on_gpu = deform_with(&s, &networks, &*gpu);
@@ -1073,7 +1083,7 @@ mod tests {
             return;
         };
         let (s, networks) = gpu_setup(60);
-        let gpu = avatar_backend(backend, Some(&networks)).unwrap();
+        let gpu = avatar_backend(backend, Some(&networks), Precision::F32).unwrap();
         let cpu = cpu();
         let run = |device: &dyn AvatarBackend<f64>| {
             let mut master = networks.clone();

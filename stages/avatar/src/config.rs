@@ -4,6 +4,7 @@
 //! it into its entry (attribute `avatar`); eval and `pipeline render` read it from there, so
 //! neither depends on the trainer (learning rates, schedules and losses stay in `train`).
 
+use seqavatar_compute::nn::Precision;
 use seqavatar_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 
@@ -121,6 +122,13 @@ pub struct AvatarConfig {
     pub scale_max: f64,
     /// The training background (`random` renders on black).
     pub background: Background,
+    /// How the networks' dense layers run on the `gpu` backend (the train config's
+    /// `precision`, stored only where it was set, so entries of configs without it are
+    /// written as before): `None` is [`Precision::Mixed`] ([`AvatarConfig::networks_precision`]).
+    /// `pipeline render`, `export` and `view` use the value stored in the train entry; eval
+    /// replaces it with its own config's `precision`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub precision: Option<Precision>,
 }
 
 /// A rejected avatar configuration, naming the field.
@@ -179,6 +187,12 @@ impl AvatarConfig {
     pub fn needs_networks(&self) -> bool {
         self.motion_context.has_non_rigid() || self.pose_refiner || self.lbs_offsets
     }
+
+    /// The precision the networks' gpu kernels are built with: [`AvatarConfig::precision`],
+    /// `mixed` where it is absent.
+    pub fn networks_precision(&self) -> Precision {
+        self.precision.unwrap_or_default()
+    }
 }
 
 impl AvatarConfig {
@@ -197,6 +211,8 @@ impl AvatarConfig {
             scale_min: 1e-5,
             scale_max: 0.5,
             background: Background::Black,
+            // The gpu paths are compared with `cpu` at f32's tolerances.
+            precision: Some(Precision::F32),
         }
     }
 }
@@ -207,6 +223,29 @@ mod tests {
 
     fn config() -> AvatarConfig {
         AvatarConfig::for_tests()
+    }
+
+    /// The stored avatar config of entries written before `precision` existed reads as
+    /// `mixed`; an absent precision is not written, a set one is.
+    #[test]
+    fn precision_is_optional_in_the_stored_config() {
+        let mut value = serde_json::to_value(config()).unwrap();
+        value.as_object_mut().unwrap().remove("precision");
+        let old: AvatarConfig = serde_json::from_value(value).unwrap();
+        assert_eq!(old.precision, None);
+        assert_eq!(old.networks_precision(), Precision::Mixed);
+        assert!(
+            serde_json::to_value(&old)
+                .unwrap()
+                .get("precision")
+                .is_none()
+        );
+        let set = AvatarConfig {
+            precision: Some(Precision::F32),
+            ..old
+        };
+        assert_eq!(serde_json::to_value(&set).unwrap()["precision"], "f32");
+        assert_eq!(set.networks_precision(), Precision::F32);
     }
 
     #[test]

@@ -18,7 +18,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use seqavatar_compute::backend::{Backend, GpuContext};
-use seqavatar_compute::nn::NnScalar;
+use seqavatar_compute::nn::{NnScalar, Precision};
 use seqavatar_compute::splat::{RasterOptions, SplatGradients};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
@@ -156,10 +156,15 @@ pub trait AvatarBackend<S: NnScalar = f32>: Send + Sync {
 
 /// The backend `backend` names, for the networks `networks` (those of the avatar or the
 /// trainer it serves; `None` without networks). The one place that looks at which backend
-/// it is: on the gpu the per-Gaussian networks are uploaded here, once, as an f32 copy.
+/// it is: on the gpu the per-Gaussian networks are uploaded here, once, as an f32 copy whose
+/// dense layers take the path `precision` chooses ([`AvatarConfig::networks_precision`];
+/// `cpu` always runs f32).
+///
+/// [`AvatarConfig::networks_precision`]: crate::config::AvatarConfig::networks_precision
 pub fn avatar_backend<S: NnScalar>(
     backend: Backend,
     networks: Option<&Networks<S>>,
+    precision: Precision,
 ) -> anyhow::Result<Box<dyn AvatarBackend<S>>> {
     match &backend {
         Backend::Cpu => Ok(Box::new(CpuBackend { backend })),
@@ -167,7 +172,7 @@ pub fn avatar_backend<S: NnScalar>(
             let context = context.clone();
             let copy = networks
                 .filter(|net| net.has_non_rigid() || net.has_lbs_offsets())
-                .map(|net| upload(context.clone(), net))
+                .map(|net| upload(context.clone(), net, precision))
                 .transpose()
                 .context("uploading the networks to the gpu")?;
             Ok(Box::new(GpuBackend {
@@ -183,6 +188,7 @@ pub fn avatar_backend<S: NnScalar>(
 fn upload<S: NnScalar>(
     context: Arc<GpuContext>,
     networks: &Networks<S>,
+    precision: Precision,
 ) -> anyhow::Result<GpuNetworks> {
     let mut narrow = Networks::<f32>::new(networks.config(), 0)?;
     narrow.load_parameters(|name| {
@@ -192,7 +198,7 @@ fn upload<S: NnScalar>(
             .find(|param| param.name == name)
             .map(|param| param.values.iter().map(|v| v.to_f64() as f32).collect())
     })?;
-    Ok(GpuNetworks::upload(context, &narrow)?)
+    Ok(GpuNetworks::upload(context, &narrow, precision)?)
 }
 
 /// Plain Rust: the networks in their scalar, splatting in f64.

@@ -3,7 +3,7 @@
 //! networks change what renders), random Gaussians on template vertices, and a random motion
 //! track. Seeded: the same description builds the same avatar.
 
-use seqavatar_compute::nn::Rng;
+use seqavatar_compute::nn::{Precision, Rng};
 use seqavatar_core::body::procedural::procedural_body;
 use seqavatar_motion::schema::{FrameAxis, MotionTrack};
 
@@ -26,6 +26,9 @@ pub fn small_config(motion_context: MotionContext) -> AvatarConfig {
         scale_min: 1e-5,
         scale_max: 0.5,
         background: Background::Black,
+        // The gpu renders are compared with `cpu` at f32's tolerances (the tensor-core path
+        // is tested against f32 in the compute crate).
+        precision: Some(Precision::F32),
     }
 }
 

@@ -232,7 +232,8 @@ impl AvatarRenderer {
 
     /// The avatar of `train` driven by the body parameters of `params_entry` (a fit entry, or
     /// the ingest entry) and the motion entry, after checking body model and cameras against
-    /// `ingest`.
+    /// `ingest`; its networks run at the `precision` the train entry stored (`mixed` where it
+    /// stored none), as `pipeline view` renders.
     pub fn open(
         train: &EntryReader,
         ingest: &EntryReader,
@@ -240,7 +241,26 @@ impl AvatarRenderer {
         motion: Option<&EntryReader>,
         backend: &Backend,
     ) -> anyhow::Result<Self> {
-        let avatar = Self::load_avatar(train)?;
+        Self::open_loaded(
+            Self::load_avatar(train)?,
+            train,
+            ingest,
+            params_entry,
+            motion,
+            backend,
+        )
+    }
+
+    /// [`AvatarRenderer::open`] with `avatar` already loaded from `train` (eval sets its
+    /// networks' `precision` before the renderer is built).
+    pub fn open_loaded(
+        avatar: TrainedAvatar,
+        train: &EntryReader,
+        ingest: &EntryReader,
+        params_entry: &EntryReader,
+        motion: Option<&EntryReader>,
+        backend: &Backend,
+    ) -> anyhow::Result<Self> {
         check_body_model(train, &avatar, ingest)?;
         check_cameras(train, ingest)?;
         let params = seqavatar_ingest::read_body_params(params_entry, "body")?;

@@ -47,6 +47,8 @@ use serde::{Deserialize, Serialize};
 
 use seqavatar_avatar::config::MotionContext;
 use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_compute::nn::Precision;
+use seqavatar_compute::nn::gpu::MatmulPath;
 use seqavatar_engine::{
     BACKEND_LOG_PREFIX, ConfigError, EntryReader, PictureKind, PictureOptions, StageContext,
     StageKind,
@@ -102,6 +104,13 @@ pub struct EvalConfig {
     pub context_probes: bool,
     /// The "another frame" probe gives frame `i` the inputs of frame `(i + offset) mod n`.
     pub context_probe_offset: usize,
+    /// How the avatar's networks' dense layers run on the `gpu` backend: `f32`, or `mixed`
+    /// (f16 operands with f32 accumulation on tensor cores where the adapter has them, else
+    /// f32). Absent means `mixed` (whatever the train entry's `precision`), and leaves the
+    /// key of configs written before the setting existed unchanged (it is serialised only
+    /// where set). `cpu` ignores it. The log's `networks:` line names the path.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub precision: Option<Precision>,
 }
 
 impl Default for EvalConfig {
@@ -118,6 +127,7 @@ impl Default for EvalConfig {
             speed_frames: 5,
             context_probes: true,
             context_probe_offset: 50,
+            precision: None,
         }
     }
 }
@@ -236,6 +246,11 @@ impl StageKind for EvalStage {
         // 9: on the gpu backend each frame is deformed and splatted on the device.
         // 10: the garment region's figures (`summary.garment_region`, `garment` in `means`
         //     and each subset, per-image `garment_*` arrays) where ingest has garment masks.
+        // `precision` did not bump it: the f32 path is unchanged, so on machines
+        // without tensor cores every output is as before, and a config without `precision`
+        // keeps its key (the field is serialised only where set); an explicit one enters the
+        // key through the canonical config. `mixed`, the default, changes results only on
+        // adapters with tensor cores, which the key does not name (it names no adapter).
         10
     }
 
@@ -315,6 +330,10 @@ impl StageKind for EvalStage {
         let backend = Backend::select(config.device)
             .with_context(|| format!("config `device: {}`", config.device))?;
         ctx.log(&format!("{BACKEND_LOG_PREFIX} {}", backend.describe()));
+        let precision = config.precision.unwrap_or_default();
+        // The path the renderer's networks take (`NnGpu::for_context` makes the same choice
+        // from the same context and precision).
+        ctx.log(&MatmulPath::of_backend(&backend, precision).describe());
         let lpips = load_lpips(&config, &backend)?;
         if lpips.vgg.is_none() && lpips.alex.is_none() {
             ctx.log("LPIPS unavailable: no lpips_vgg_weights / lpips_alex_weights configured");
@@ -328,7 +347,11 @@ impl StageKind for EvalStage {
         };
         let fit = optional("fit")?;
         let motion = optional("motion")?;
-        let mut renderer = crate::avatar_render::AvatarRenderer::open(
+        // Eval renders at its own precision, not the train entry's.
+        let mut avatar = crate::avatar_render::AvatarRenderer::load_avatar(&train)?;
+        avatar.config.precision = Some(precision);
+        let mut renderer = crate::avatar_render::AvatarRenderer::open_loaded(
+            avatar,
             &train,
             &ingest,
             fit.as_ref().unwrap_or(&ingest),
@@ -916,6 +939,47 @@ pub fn render_image(
 mod tests {
     use super::*;
     use serde_json::json;
+
+    /// `precision: f32 | mixed` resolves into the config; absent, it is `mixed` and the
+    /// resolved config, and so the key, is what it was before the setting existed; a bad
+    /// value is an error naming the field and the choices.
+    #[test]
+    fn precision_parses_defaults_to_mixed_and_leaves_the_key_alone() {
+        use seqavatar_engine::key::{KeyMaterial, stage_key};
+        for (text, precision) in [("f32", Precision::F32), ("mixed", Precision::Mixed)] {
+            let resolved = EvalStage
+                .resolve_config(&json!({"precision": text}))
+                .unwrap();
+            assert_eq!(resolved["precision"], json!(text));
+            let config: EvalConfig = serde_json::from_value(resolved).unwrap();
+            assert_eq!(config.precision, Some(precision));
+        }
+        let absent = EvalStage.resolve_config(&json!({})).unwrap();
+        assert!(absent.get("precision").is_none(), "{absent}");
+        let config: EvalConfig = serde_json::from_value(absent.clone()).unwrap();
+        assert_eq!(config.precision.unwrap_or_default(), Precision::Mixed);
+        // The key of the default config at version 9 as it was before `precision` existed
+        // (commit 8f18229). A change to a field's default changes it (update it then); a
+        // new optional field must not.
+        let key = stage_key(&KeyMaterial {
+            kind: "eval",
+            version: 9,
+            config: &absent,
+            input_keys: &[],
+            external_digests: &[],
+        });
+        assert_eq!(
+            key,
+            "8dcb34cc48ded13d5addeb04349ffb1eeb793a8b2dff8297ece0a496032da22e"
+        );
+        let error = EvalStage
+            .resolve_config(&json!({"precision": "f16"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["precision", "f16", "f32", "mixed"] {
+            assert!(error.contains(part), "`{error}` lacks {part}");
+        }
+    }
 
     /// `device` is the compute crate's `DeviceChoice`, spelled as before (`auto`, `cpu`,
     /// `gpu`: the resolved config, and so the key, is unchanged); an unknown name is an error

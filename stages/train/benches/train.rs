@@ -22,7 +22,8 @@
 //!
 //! Each row also prints the host-device traffic of its timed iterations
 //! (`transfers per iteration: <R> readbacks, <U> KiB up, <D> KiB down`, counted by the gpu
-//! context; zero on `cpu`).
+//! context; zero on `cpu`), and gpu rows the path of the networks' dense layers (`networks:
+//! f32` or `networks: f16 tensor cores (16x16x16)`, the presets' default `precision: mixed`).
 //!
 //! The scene is the built-in synthetic one (procedural body, two cameras, 512 x 512), run
 //! through the real ingest and motion stages into a temporary cache. Each row runs
@@ -44,6 +45,7 @@ use std::time::Instant;
 
 use seqavatar_compute::backend::{AdapterChoice, Backend, DeviceChoice};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
+use seqavatar_compute::nn::gpu::MatmulPath;
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
@@ -250,6 +252,13 @@ fn time_row(
         1e3 * seconds / timed as f64,
         trainer.state.len()
     );
+    if backend.gpu().is_some() {
+        // The path the trainer's networks took (`precision` of the row's config).
+        println!(
+            "  {}",
+            MatmulPath::of_backend(backend, config.networks_precision()).describe()
+        );
+    }
     let device_times = trainer.device_phase_times()?;
     let host_times = *trainer.phase_times();
     println!("  host ms per phase: {}", per_phase(&host_times));

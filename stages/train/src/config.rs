@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 pub use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
+use seqavatar_compute::nn::Precision;
 use serde::{Deserialize, Serialize};
 
 pub use seqavatar_avatar::config::{
@@ -191,6 +192,13 @@ pub struct TrainConfig {
     pub checkpoint_every: u32,
     /// The background renders and targets are composited on (`black`, `white`, `random`).
     pub background: Background,
+    /// How the networks' dense layers run on the `gpu` backend: `f32`, or `mixed` (f16
+    /// operands with f32 accumulation on tensor cores where the adapter has them, else f32;
+    /// parameters, gradients and Adam stay f32). Absent means `mixed`, and leaves the key of
+    /// configs written before the setting existed unchanged (it is serialised only where set).
+    /// `cpu` ignores it. Chosen once per run; the log's `networks:` line names the path.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub precision: Option<Precision>,
 }
 
 /// A config error naming `field`.
@@ -245,6 +253,7 @@ impl TrainConfig {
             learning_rates: LearningRates::default(),
             checkpoint_every: 500,
             background: Background::Black,
+            precision: None,
         };
         match preset {
             Preset::Balanced => base,
@@ -518,7 +527,14 @@ impl TrainConfig {
             scale_min: self.scale_min,
             scale_max: self.scale_max,
             background: self.background,
+            precision: self.precision,
         }
+    }
+
+    /// The precision the networks' gpu kernels are built with (`precision`, `mixed` where
+    /// absent).
+    pub fn networks_precision(&self) -> Precision {
+        self.precision.unwrap_or_default()
     }
 
     /// Whether the LPIPS loss runs (a positive weight; validation ensures the weights file).

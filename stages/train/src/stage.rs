@@ -40,6 +40,7 @@ use serde_json::json;
 use seqavatar_avatar::avatar::TrainedAvatar;
 use seqavatar_avatar::sequence::{History, SequenceRenderer};
 use seqavatar_compute::backend::Backend;
+use seqavatar_compute::nn::gpu::MatmulPath;
 use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, EntryWriter, PictureKind, PictureOptions, StageContext, StageKind,
@@ -58,6 +59,13 @@ pub struct TrainStage;
 /// backend splats in f32 on the lane path, and on the gpu backend the held-out PSNR renders
 /// with the gpu copy of the per-Gaussian networks, as eval does; 9: on the gpu backend the
 /// held-out PSNR renders each image on the device).
+///
+/// `precision` (issue #32) did not bump it: the f32 path is unchanged, so on machines
+/// without tensor cores every output is as before, and a config without `precision` keeps
+/// its key (the field is serialised only where set). An explicit `precision` enters the key
+/// through the canonical config. `mixed`, the default, changes results only on adapters
+/// with tensor cores, which the key does not name, as it names no adapter (`device: auto`
+/// is keyed the same on a gpu and on `cpu`; the entry's `backend` attribute says which ran).
 const VERSION: u32 = 9;
 
 /// Training images (spread evenly over the training split) scored for the train-image PSNR.
@@ -204,6 +212,9 @@ impl StageKind for TrainStage {
         let backend = Backend::select(config.device)
             .with_context(|| format!("config `device: {}`", config.device))?;
         ctx.log(&format!("backend: {}", backend.describe()));
+        // The path every network built for this run takes (`NnGpu::for_context` makes the
+        // same choice from the same context and precision).
+        ctx.log(&MatmulPath::of_backend(&backend, config.networks_precision()).describe());
         log_lpips_setting(ctx, &config);
         let mut trainer = start_or_resume(ctx, &config, &data, &backend)?;
         let timing = train_to_the_end(ctx, &config, &mut trainer)?;
@@ -656,6 +667,55 @@ pub fn draw_loss_curve(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `precision: f32 | mixed` resolves into the config and the avatar config the entry
+    /// stores; absent, it is `mixed`, and the resolved config, the stored avatar config and
+    /// so the key are what they were before the setting existed; a bad value is an error
+    /// naming the field and the choices.
+    #[test]
+    fn precision_parses_defaults_to_mixed_and_leaves_keys_alone() {
+        use seqavatar_compute::nn::Precision;
+        use seqavatar_engine::key::{KeyMaterial, stage_key};
+        for (text, precision) in [("f32", Precision::F32), ("mixed", Precision::Mixed)] {
+            let resolved = TrainStage
+                .resolve_config(&json!({"preset": "fast", "precision": text}))
+                .unwrap();
+            assert_eq!(resolved["precision"], json!(text));
+            let config = TrainConfig::resolve(&resolved).unwrap();
+            assert_eq!(config.networks_precision(), precision);
+            assert_eq!(config.avatar().precision, Some(precision));
+            assert_eq!(config.avatar().networks_precision(), precision);
+        }
+        let absent = TrainStage
+            .resolve_config(&json!({"preset": "fast"}))
+            .unwrap();
+        assert!(absent.get("precision").is_none(), "{absent}");
+        let config = TrainConfig::resolve(&absent).unwrap();
+        assert_eq!(config.networks_precision(), Precision::Mixed);
+        let avatar = serde_json::to_value(config.avatar()).unwrap();
+        assert!(avatar.get("precision").is_none(), "{avatar}");
+        // The key of the `fast` preset at version 9 as it was before `precision` existed
+        // (commit 8f18229). A change to the preset or to a field's default changes it
+        // (update it then); a new optional field must not.
+        let key = stage_key(&KeyMaterial {
+            kind: "train",
+            version: 9,
+            config: &absent,
+            input_keys: &[],
+            external_digests: &[],
+        });
+        assert_eq!(
+            key,
+            "20baf867c35335e4bcf8330fcd9833bd34bccceda594dbab4cd134548c65e7e4"
+        );
+        let error = TrainStage
+            .resolve_config(&json!({"precision": "f16"}))
+            .unwrap_err()
+            .to_string();
+        for part in ["precision", "f16", "f32", "mixed"] {
+            assert!(error.contains(part), "`{error}` lacks {part}");
+        }
+    }
 
     #[test]
     fn protocol_psnr_closed_form() {

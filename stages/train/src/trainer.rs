@@ -455,7 +455,7 @@ impl<'d> Trainer<'d> {
             "no training image has a non-empty foreground mask"
         );
         let gpu_context = backend.gpu().cloned();
-        let device = avatar_backend(backend, networks.as_ref())?;
+        let device = avatar_backend(backend, networks.as_ref(), config.networks_precision())?;
         let lpips = load_lpips_loss(&config, device.compute())?;
         if let Some(loss) = &lpips {
             for &index in &train_images {

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use seqavatar_avatar::TrainedAvatar;
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::lpips::LpipsNet;
+use seqavatar_compute::nn::Precision;
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
 };
@@ -136,7 +137,11 @@ fn tiny_data(cache: &Path, iterations: u32) -> (TrainingData, TrainConfig) {
     let motion = entry(cache, &reports, "motion");
     let raw: serde_json::Value =
         serde_json::from_str(&TRAIN_CONFIG.replace("ITERATIONS", &iterations.to_string())).unwrap();
-    let config = TrainConfig::resolve(&raw).unwrap();
+    let mut config = TrainConfig::resolve(&raw).unwrap();
+    // The gpu runs are compared with `cpu` at f32's tolerances: the tensor-core path
+    // (`precision: mixed` on adapters that have it) is tested against f32 in the compute
+    // crate (`nn::gpu` tests).
+    config.precision = Some(Precision::F32);
     let data = TrainingData::read(&ingest, &ingest, &motion, config.resolution_scale).unwrap();
     (data, config)
 }

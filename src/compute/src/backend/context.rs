@@ -46,6 +46,18 @@ impl Kernel {
         wgsl: &str,
         entry: &str,
     ) -> Result<Self, BackendError> {
+        Self::compile_with_constants(device, name, wgsl, entry, &[])
+    }
+
+    /// [`Kernel::compile`] with values for the kernel's `override` constants (the
+    /// tensor-core kernel's workgroup size is the adapter's subgroup size).
+    pub(crate) fn compile_with_constants(
+        device: &wgpu::Device,
+        name: &'static str,
+        wgsl: &str,
+        entry: &str,
+        constants: &[(&str, f64)],
+    ) -> Result<Self, BackendError> {
         let wgsl = super::shaders::expand_includes(name, wgsl)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = super::shaders::compile_module(device, name, wgsl);
@@ -54,7 +66,10 @@ impl Kernel {
             layout: None,
             module: &module,
             entry_point: Some(entry),
-            compilation_options: wgpu::PipelineCompilationOptions::default(),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                ..wgpu::PipelineCompilationOptions::default()
+            },
             cache: None,
         });
         if let Some(error) = pollster::block_on(scope.pop()) {
@@ -87,6 +102,11 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     limits: wgpu::Limits,
     float_atomics: bool,
+    /// Whether the device was opened with `SHADER_F16` (f16 in shaders and storage).
+    f16: bool,
+    /// The cooperative-matrix configuration the dense layers' mixed-precision path needs,
+    /// where the device was opened with it (see [`TensorCores`]).
+    tensor_cores: Option<TensorCores>,
     /// Whether timestamp queries inside encoders are on.
     timestamps: bool,
     /// Workgroups per dimension a dispatch may use before it goes 2D: the adapter limit,
@@ -156,6 +176,48 @@ impl std::fmt::Debug for GpuContext {
     }
 }
 
+/// What the dense layers' tensor-core path (`nn_matmul_coop.wgsl`) needs of an adapter, found
+/// once when the context is made: cooperative matrices (`EXPERIMENTAL_COOPERATIVE_MATRIX`,
+/// which wgpu-hal reports on Vulkan only with the Vulkan memory model's device scope) with
+/// f16 shaders, a 16 x 16 x 16 configuration with f16 A and B and f32 C and result, and a
+/// fixed subgroup size, so that a workgroup of that many invocations is one subgroup.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TensorCores {
+    /// The adapter's one subgroup size: the kernel's workgroup size.
+    pub subgroup_size: u32,
+}
+
+impl TensorCores {
+    /// The cooperative-matrix shape the kernel uses: M = N = K = 16.
+    pub const SHAPE: u32 = 16;
+
+    fn of_adapter(adapter: &wgpu::Adapter) -> Option<Self> {
+        let needed = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX | wgpu::Features::SHADER_F16;
+        if !adapter.features().contains(needed) {
+            return None;
+        }
+        let info = adapter.get_info();
+        // The subgroup size may vary between launches where min and max differ: then a
+        // workgroup cannot be made exactly one subgroup.
+        if info.subgroup_min_size != info.subgroup_max_size || info.subgroup_min_size == 0 {
+            return None;
+        }
+        let fits = adapter
+            .cooperative_matrix_properties()
+            .iter()
+            .any(|properties| {
+                properties.m_size == Self::SHAPE
+                    && properties.n_size == Self::SHAPE
+                    && properties.k_size == Self::SHAPE
+                    && properties.ab_type == wgpu::CooperativeScalarType::F16
+                    && properties.cr_type == wgpu::CooperativeScalarType::F32
+            });
+        fits.then_some(TensorCores {
+            subgroup_size: info.subgroup_min_size,
+        })
+    }
+}
+
 fn is_hardware(info: &wgpu::AdapterInfo) -> bool {
     matches!(
         info.device_type,
@@ -216,12 +278,28 @@ impl GpuContext {
         if timestamps {
             required_features |= timestamp_features;
         }
+        let f16 = adapter.features().contains(wgpu::Features::SHADER_F16);
+        if f16 {
+            required_features |= wgpu::Features::SHADER_F16;
+        }
+        let tensor_cores = TensorCores::of_adapter(&adapter);
+        let experimental_features = if tensor_cores.is_some() {
+            required_features |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+            // SAFETY: `enabled` only lets the device be opened with wgpu's experimental
+            // features, here cooperative matrices alone; wgpu may have bugs in them, which is
+            // why the one kernel that uses them (`nn_matmul_coop.wgsl`) is checked against
+            // the f32 kernel on the hardware that has them (`nn::gpu` tests) and is chosen
+            // only by `Precision::Mixed`, with the f32 kernels kept on every device.
+            unsafe { wgpu::ExperimentalFeatures::enabled() }
+        } else {
+            wgpu::ExperimentalFeatures::disabled()
+        };
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("seqavatar"),
             required_features,
             required_limits: limits.clone(),
-            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            experimental_features,
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         }))
@@ -235,6 +313,8 @@ impl GpuContext {
             queue,
             limits: limits.clone(),
             float_atomics,
+            f16,
+            tensor_cores,
             timestamps,
             dispatch_limit: limits.max_compute_workgroups_per_dimension,
             kernels: Mutex::new(HashMap::new()),
@@ -290,6 +370,16 @@ impl GpuContext {
     /// Whether the device was opened with `SHADER_FLOAT32_ATOMIC`.
     pub fn has_float_atomics(&self) -> bool {
         self.float_atomics
+    }
+
+    /// Whether the device was opened with `SHADER_F16`.
+    pub fn has_f16(&self) -> bool {
+        self.f16
+    }
+
+    /// The tensor-core configuration of the device, if it was opened with one.
+    pub fn tensor_cores(&self) -> Option<TensorCores> {
+        self.tensor_cores
     }
 
     /// Whether timestamps can be written between the commands of an encoder

@@ -11,8 +11,8 @@ pub mod test_support;
 mod timer;
 
 pub use context::{
-    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, Transfers,
-    split_workgroups,
+    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, TensorCores,
+    Transfers, split_workgroups,
 };
 pub use timer::PhaseTimer;
 

@@ -310,16 +310,37 @@ pub fn with_atomic_add(name: &str, wgsl: &str, mode: AtomicAdd) -> Result<String
 mod tests {
     use super::*;
 
-    fn validate(name: &str, wgsl: &str) -> naga::Module {
+    /// The capabilities a kernel may use: f32 atomics (the native atomic-add variant), and
+    /// f16 or cooperative matrices only where the kernel enables them, so an f32 kernel that
+    /// slips into f16 fails here.
+    fn capabilities(wgsl: &str) -> naga::valid::Capabilities {
+        use naga::valid::Capabilities;
+        let enables = |extension: &str| {
+            wgsl.lines()
+                .any(|line| line.trim() == format!("enable {extension};"))
+        };
+        let mut capabilities = Capabilities::SHADER_FLOAT32_ATOMIC;
+        if enables("f16") {
+            capabilities |= Capabilities::SHADER_FLOAT16;
+        }
+        if enables("wgpu_cooperative_matrix") {
+            capabilities |= Capabilities::COOPERATIVE_MATRIX;
+        }
+        capabilities
+    }
+
+    fn validate_with_info(name: &str, wgsl: &str) -> (naga::Module, naga::valid::ModuleInfo) {
         let module = naga::front::wgsl::parse_str(wgsl)
             .unwrap_or_else(|error| panic!("{name}: {}", error.emit_to_string(wgsl)));
-        naga::valid::Validator::new(
-            naga::valid::ValidationFlags::all(),
-            naga::valid::Capabilities::SHADER_FLOAT32_ATOMIC,
-        )
-        .validate(&module)
-        .unwrap_or_else(|error| panic!("{name}: {}", error.emit_to_string(wgsl)));
-        module
+        let info =
+            naga::valid::Validator::new(naga::valid::ValidationFlags::all(), capabilities(wgsl))
+                .validate(&module)
+                .unwrap_or_else(|error| panic!("{name}: {}", error.emit_to_string(wgsl)));
+        (module, info)
+    }
+
+    fn validate(name: &str, wgsl: &str) -> naga::Module {
+        validate_with_info(name, wgsl).0
     }
 
     /// Every `shaders/*.wgsl` as (file name, text), sorted; at least a few, so a wrong
@@ -382,6 +403,166 @@ mod tests {
             "validated {} shader files and {variants} atomic variants",
             files.len()
         );
+    }
+
+    /// SPIR-V opcodes and operands the tensor-core check reads (SPIR-V 1.6 with
+    /// SPV_KHR_cooperative_matrix).
+    mod spirv_op {
+        pub const MEMORY_MODEL: u32 = 14;
+        pub const CAPABILITY: u32 = 17;
+        pub const TYPE_FLOAT: u32 = 22;
+        pub const CONSTANT: u32 = 43;
+        pub const TYPE_COOPERATIVE_MATRIX: u32 = 4456;
+        pub const COOPERATIVE_MATRIX_LOAD: u32 = 4457;
+        pub const COOPERATIVE_MATRIX_STORE: u32 = 4458;
+        pub const COOPERATIVE_MATRIX_MUL_ADD: u32 = 4459;
+        pub const CAPABILITY_FLOAT16: u32 = 9;
+        pub const CAPABILITY_COOPERATIVE_MATRIX: u32 = 6022;
+        pub const MEMORY_MODEL_VULKAN: u32 = 3;
+    }
+
+    /// A cooperative-matrix type of a SPIR-V module: (float width, rows, columns, use).
+    type CoopType = (u32, u32, u32, u32);
+
+    /// What the tensor-core kernel's SPIR-V says about its cooperative matrices: the types of
+    /// each multiply-add's A, B and result, and the numbers of loads and stores.
+    struct CoopSummary {
+        capabilities: Vec<u32>,
+        memory_model: u32,
+        multiply_adds: Vec<[CoopType; 3]>,
+        loads: usize,
+        stores: usize,
+    }
+
+    fn summarise_cooperative_matrices(words: &[u32]) -> CoopSummary {
+        use std::collections::HashMap;
+        assert_eq!(words[0], 0x0723_0203, "not a SPIR-V module");
+        let mut float_width: HashMap<u32, u32> = HashMap::new();
+        let mut constant: HashMap<u32, u32> = HashMap::new();
+        let mut coop_type: HashMap<u32, CoopType> = HashMap::new();
+        // The result type of every value that is a cooperative matrix.
+        let mut value_type: HashMap<u32, u32> = HashMap::new();
+        let mut summary = CoopSummary {
+            capabilities: Vec::new(),
+            memory_model: u32::MAX,
+            multiply_adds: Vec::new(),
+            loads: 0,
+            stores: 0,
+        };
+        let mut at = 5;
+        while at < words.len() {
+            let count = (words[at] >> 16) as usize;
+            let opcode = words[at] & 0xffff;
+            assert!(count > 0 && at + count <= words.len(), "truncated SPIR-V");
+            let operands = &words[at + 1..at + count];
+            match opcode {
+                spirv_op::CAPABILITY => summary.capabilities.push(operands[0]),
+                spirv_op::MEMORY_MODEL => summary.memory_model = operands[1],
+                spirv_op::TYPE_FLOAT => {
+                    float_width.insert(operands[0], operands[1]);
+                }
+                spirv_op::CONSTANT => {
+                    constant.insert(operands[1], operands[2]);
+                }
+                spirv_op::TYPE_COOPERATIVE_MATRIX => {
+                    // Result id, component type, scope, rows, columns, use (ids of constants).
+                    let width = float_width[&operands[1]];
+                    let [rows, columns, role] = [3, 4, 5].map(|index| constant[&operands[index]]);
+                    coop_type.insert(operands[0], (width, rows, columns, role));
+                }
+                spirv_op::COOPERATIVE_MATRIX_LOAD => {
+                    value_type.insert(operands[1], operands[0]);
+                    summary.loads += 1;
+                }
+                spirv_op::COOPERATIVE_MATRIX_STORE => summary.stores += 1,
+                spirv_op::COOPERATIVE_MATRIX_MUL_ADD => {
+                    value_type.insert(operands[1], operands[0]);
+                    let a = coop_type[&value_type[&operands[2]]];
+                    let b = coop_type[&value_type[&operands[3]]];
+                    let result = coop_type[&operands[0]];
+                    summary.multiply_adds.push([a, b, result]);
+                }
+                _ => {}
+            }
+            at += count;
+        }
+        summary
+    }
+
+    /// The tensor-core kernel validates with the capabilities the device is opened with (f16
+    /// and cooperative matrices), and naga's SPIR-V backend, with wgpu's bounds checks,
+    /// writes it as f16 x f16 products accumulated in f32 on 16 x 16 x 16 matrices: the
+    /// configuration `nn::gpu` requires of the adapter. Runs without any adapter.
+    #[test]
+    fn tensor_core_kernel_writes_spirv_with_f16_operands_and_f32_accumulators() {
+        let name = "nn_matmul_coop.wgsl";
+        let (_, raw) = kernel_files()
+            .into_iter()
+            .find(|(file, _)| file == name)
+            .expect("the tensor-core kernel is a file of shaders/");
+        let wgsl = expand_includes(name, &raw).unwrap();
+        let (module, info) = validate_with_info(name, &wgsl);
+        // Without f16 or cooperative matrices the kernel is rejected, so the capability
+        // check above is not vacuous.
+        for missing in [
+            naga::valid::Capabilities::SHADER_FLOAT16,
+            naga::valid::Capabilities::COOPERATIVE_MATRIX,
+        ] {
+            let capabilities = capabilities(&wgsl) - missing;
+            assert!(
+                naga::valid::Validator::new(naga::valid::ValidationFlags::all(), capabilities)
+                    .validate(&module)
+                    .is_err(),
+                "{name} validated without {missing:?}"
+            );
+        }
+        let mut constants = naga::back::PipelineConstants::default();
+        constants.insert("SUBGROUP_SIZE".to_owned(), 32.0);
+        let (module, info) = naga::back::pipeline_constants::process_overrides(
+            &module,
+            &info,
+            Some((naga::ShaderStage::Compute, "multiply")),
+            &constants,
+        )
+        .unwrap();
+        // wgpu-hal's Vulkan options: SPIR-V 1.6 on Vulkan 1.3, indices restricted, buffer
+        // accesses restricted unless the device has robustBufferAccess2.
+        use naga::proc::BoundsCheckPolicy;
+        for buffer in [BoundsCheckPolicy::Restrict, BoundsCheckPolicy::Unchecked] {
+            let options = naga::back::spv::Options {
+                lang_version: (1, 6),
+                bounds_check_policies: naga::proc::BoundsCheckPolicies {
+                    index: BoundsCheckPolicy::Restrict,
+                    buffer,
+                    image_load: BoundsCheckPolicy::Restrict,
+                    binding_array: BoundsCheckPolicy::Unchecked,
+                },
+                ..naga::back::spv::Options::default()
+            };
+            let pipeline = naga::back::spv::PipelineOptions {
+                shader_stage: naga::ShaderStage::Compute,
+                entry_point: "multiply".to_owned(),
+            };
+            let words = naga::back::spv::write_vec(&module, &info, &options, Some(&pipeline))
+                .unwrap_or_else(|error| panic!("{name} ({buffer:?}): SPIR-V: {error}"));
+            let summary = summarise_cooperative_matrices(&words);
+            for capability in [
+                spirv_op::CAPABILITY_FLOAT16,
+                spirv_op::CAPABILITY_COOPERATIVE_MATRIX,
+            ] {
+                assert!(
+                    summary.capabilities.contains(&capability),
+                    "capability {capability} missing: {:?}",
+                    summary.capabilities
+                );
+            }
+            assert_eq!(summary.memory_model, spirv_op::MEMORY_MODEL_VULKAN);
+            // (width, rows, columns, use): use 0 is A, 1 is B, 2 the accumulator.
+            let expected = [(16, 16, 16, 0), (16, 16, 16, 1), (32, 16, 16, 2)];
+            assert_eq!(summary.multiply_adds, vec![expected; 4], "{buffer:?}");
+            // Four tile loads; one store, in `store_tile`, called four times.
+            assert_eq!((summary.loads, summary.stores), (4, 1), "{buffer:?}");
+        }
     }
 
     /// The names of the functions `wgsl` defines (`fn NAME(` at the start of a line).

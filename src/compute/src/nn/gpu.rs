@@ -12,16 +12,24 @@
 //! weight gradient sums over all rows, which leaves few output tiles for a large reduction,
 //! so it is split along the rows into partial products in a scratch buffer, then summed in
 //! order by `nn_reduce.wgsl` (no float atomics, deterministic).
+//!
+//! Where the adapter has tensor cores ([`TensorCores`]) and [`Precision::Mixed`] asks for
+//! them, [`NnGpu::for_context`] picks, once, the tensor-core path for all three products of a
+//! layer (`Y = X W`, `dX = dY' W^T`, `dW = X^T dY'`): each operand is scaled by a power of two
+//! and packed to padded f16 (`nn_matmul_f16.wgsl`), multiplied on 16 x 16 x 16 cooperative
+//! matrices with f32 accumulators (`nn_matmul_coop.wgsl`), and unscaled, split-summed and
+//! finished with the same epilogue (accumulate, bias, ReLU). Weights, gradients and Adam
+//! state stay f32 buffers; only the products' operands are rounded to f16.
 
 use std::sync::Mutex;
 
 use wgpu::util::DeviceExt;
 
-use super::NnError;
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
-use crate::backend::Kernel;
+use super::{NnError, Precision};
+use crate::backend::{GpuContext, Kernel, TensorCores};
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -29,6 +37,19 @@ const ADAM_WGSL: &str = include_str!("../../../../shaders/nn_adam.wgsl");
 const POSENC_WGSL: &str = include_str!("../../../../shaders/nn_posenc.wgsl");
 const RODRIGUES_WGSL: &str = include_str!("../../../../shaders/nn_rodrigues.wgsl");
 const FINITE_WGSL: &str = include_str!("../../../../shaders/nn_finite.wgsl");
+const MATMUL_F16_WGSL: &str = include_str!("../../../../shaders/nn_matmul_f16.wgsl");
+const MATMUL_COOP_WGSL: &str = include_str!("../../../../shaders/nn_matmul_coop.wgsl");
+
+/// Output block edge of the tensor-core kernel (a 2 x 2 of 16 x 16 tiles per subgroup), as in
+/// `nn_matmul_coop.wgsl`; rows of A and columns of B are padded to multiples of it.
+const COOP_BLOCK: usize = 32;
+/// Reduction step of the tensor-core kernel (K of the 16 x 16 x 16 matrices).
+const COOP_TILE_K: usize = 16;
+/// Workgroups the tensor-core weight-gradient split aims for: each is one subgroup, so many
+/// more than the f32 kernel's 256-thread groups are needed to fill a large GPU.
+const COOP_TARGET_WORKGROUPS: usize = 2048;
+/// Workgroup size of the staging kernels of `nn_matmul_f16.wgsl`.
+const STAGING_WORKGROUP: usize = 256;
 
 /// Output tile edge of the matrix kernel (rows and columns), as in `nn_matmul.wgsl`.
 const TILE: usize = 64;
@@ -227,6 +248,42 @@ pub(crate) struct MatmulParams {
     pad: u32,
 }
 
+/// `Params` in `nn_matmul_f16.wgsl` (operand staging and epilogue of the tensor-core path).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct StagingParams {
+    rows: u32,
+    cols: u32,
+    offset: u32,
+    row_stride: u32,
+    col_stride: u32,
+    mask_flags: u32,
+    slot: u32,
+    rows_pad: u32,
+    cols_pad: u32,
+    m: u32,
+    n: u32,
+    n_pad: u32,
+    splits: u32,
+    partial_stride: u32,
+    c_offset: u32,
+    c_row_stride: u32,
+    c_flags: u32,
+    pad: [u32; 3],
+}
+
+/// `Params` in `nn_matmul_coop.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct CoopParams {
+    k_pad: u32,
+    n_pad: u32,
+    m_blocks: u32,
+    k_per_split: u32,
+    partial_stride: u32,
+    pad: [u32; 3],
+}
+
 /// `Params` in `nn_adam.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -302,6 +359,38 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "split_stride" => split_stride,
             "_pad" => pad,
         }),
+        wgsl_twin!(StagingParams as "Params" in ["nn_matmul_f16.wgsl"] {
+            "rows" => rows,
+            "cols" => cols,
+            "offset" => offset,
+            "row_stride" => row_stride,
+            "col_stride" => col_stride,
+            "mask_flags" => mask_flags,
+            "slot" => slot,
+            "rows_pad" => rows_pad,
+            "cols_pad" => cols_pad,
+            "m" => m,
+            "n" => n,
+            "n_pad" => n_pad,
+            "splits" => splits,
+            "partial_stride" => partial_stride,
+            "c_offset" => c_offset,
+            "c_row_stride" => c_row_stride,
+            "c_flags" => c_flags,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
+        wgsl_twin!(CoopParams as "Params" in ["nn_matmul_coop.wgsl"] {
+            "k_pad" => k_pad,
+            "n_pad" => n_pad,
+            "m_blocks" => m_blocks,
+            "k_per_split" => k_per_split,
+            "partial_stride" => partial_stride,
+            "_pad0" => pad[0],
+            "_pad1" => pad[1],
+            "_pad2" => pad[2],
+        }),
         wgsl_twin!(AdamParams as "Params" in ["nn_adam.wgsl"] {
             "len" => len,
             "slot" => slot,
@@ -351,6 +440,133 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
     ]
 }
 
+/// How the dense layers' matrix products run on one [`NnGpu`], chosen once when it is made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MatmulPath {
+    /// `nn_matmul.wgsl`: f32 operands and accumulation, on every adapter; the reference.
+    F32,
+    /// `nn_matmul_coop.wgsl` on the adapter's tensor cores: f16 operands (scaled by powers
+    /// of two), f32 accumulation.
+    TensorCores(TensorCores),
+}
+
+impl MatmulPath {
+    /// The path [`NnGpu::for_context`] takes on `context` for `precision`: the tensor cores
+    /// where `precision` is [`Precision::Mixed`] and the device was opened with them
+    /// ([`GpuContext::tensor_cores`]), else f32. The one place the choice is made, so a run's
+    /// log line ([`MatmulPath::describe`]) always names the path its kernels take.
+    pub fn choose(context: &GpuContext, precision: Precision) -> Self {
+        match (precision, context.tensor_cores()) {
+            (Precision::Mixed, Some(cores)) => Self::TensorCores(cores),
+            _ => Self::F32,
+        }
+    }
+
+    /// The path of the networks on `backend` for `precision`: [`MatmulPath::choose`] on the
+    /// gpu, f32 on `cpu` (which always runs f32).
+    pub fn of_backend(backend: &crate::backend::Backend, precision: Precision) -> Self {
+        backend
+            .gpu()
+            .map_or(Self::F32, |context| Self::choose(context, precision))
+    }
+
+    /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
+    /// `networks: f32`.
+    pub fn describe(self) -> String {
+        match self {
+            Self::F32 => "networks: f32".to_owned(),
+            Self::TensorCores(_) => {
+                let shape = TensorCores::SHAPE;
+                format!("networks: f16 tensor cores ({shape}x{shape}x{shape})")
+            }
+        }
+    }
+}
+
+/// The kernels and scratch buffers of the tensor-core path.
+#[derive(Debug)]
+struct TensorCoreKernels {
+    cores: TensorCores,
+    operand_max: Kernel,
+    pack: Kernel,
+    multiply: Kernel,
+    epilogue: Kernel,
+    /// The two operands' largest magnitudes (`scales` in `nn_matmul_f16.wgsl`), cleared
+    /// before each product.
+    scales: wgpu::Buffer,
+    /// The padded f16 copies of A and B and the f32 partial products; grown on demand and
+    /// reused by every product (commands run in order).
+    packed_a: Mutex<Option<wgpu::Buffer>>,
+    packed_b: Mutex<Option<wgpu::Buffer>>,
+    partials: Mutex<Option<wgpu::Buffer>>,
+}
+
+impl TensorCoreKernels {
+    fn new(device: &wgpu::Device, cores: TensorCores) -> Result<Self, NnError> {
+        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
+            Kernel::compile(device, name, wgsl, entry)
+                .map_err(|error| NnError::Gpu(error.to_string()))
+        };
+        let multiply = Kernel::compile_with_constants(
+            device,
+            "nn_matmul_coop",
+            MATMUL_COOP_WGSL,
+            "multiply",
+            &[("SUBGROUP_SIZE", f64::from(cores.subgroup_size))],
+        )
+        .map_err(|error| NnError::Gpu(error.to_string()))?;
+        Ok(TensorCoreKernels {
+            cores,
+            operand_max: compile("nn_matmul_operand_max", MATMUL_F16_WGSL, "operand_max")?,
+            pack: compile("nn_matmul_pack", MATMUL_F16_WGSL, "pack")?,
+            multiply,
+            epilogue: compile("nn_matmul_epilogue", MATMUL_F16_WGSL, "epilogue")?,
+            scales: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("nn tensor-core scales"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            packed_a: Mutex::new(None),
+            packed_b: Mutex::new(None),
+            partials: Mutex::new(None),
+        })
+    }
+}
+
+/// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is too
+/// small (sizes rounded up to powers of two within `max_binding_bytes`).
+fn grown_buffer(
+    device: &wgpu::Device,
+    slot: &Mutex<Option<wgpu::Buffer>>,
+    label: &'static str,
+    bytes: u64,
+    max_binding_bytes: u64,
+) -> Result<wgpu::Buffer, NnError> {
+    let bytes = bytes.max(16).div_ceil(4) * 4;
+    if bytes > max_binding_bytes {
+        return Err(NnError::Gpu(format!(
+            "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
+        )));
+    }
+    let mut slot = slot
+        .lock()
+        .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
+    match &*slot {
+        Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
+        _ => {
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes.next_power_of_two().min(max_binding_bytes),
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            });
+            *slot = Some(buffer.clone());
+            Ok(buffer)
+        }
+    }
+}
+
 /// The dense-network kernels compiled for one device.
 #[derive(Debug)]
 pub struct NnGpu {
@@ -364,6 +580,8 @@ pub struct NnGpu {
     rodrigues_forward: Kernel,
     rodrigues_backward: Kernel,
     finite: Kernel,
+    /// The tensor-core path's kernels, where it was chosen ([`NnGpu::for_context`]).
+    tensor_cores: Option<TensorCoreKernels>,
     /// Bound to read-only slots a dispatch does not use.
     placeholder: wgpu::Buffer,
     /// Partial sums of the split reductions; grown on demand, reused across calls (commands
@@ -382,7 +600,35 @@ fn to_u32(what: &str, value: usize) -> Result<u32, NnError> {
 }
 
 impl NnGpu {
-    /// Compiles every kernel for `device`.
+    /// Compiles every kernel for the context's device, choosing the matrix products' path
+    /// once: the tensor cores where `precision` is [`Precision::Mixed`] and the device was
+    /// opened with them ([`GpuContext::tensor_cores`]), else f32. A tensor-core kernel the
+    /// driver rejects is an error, not a silent fallback.
+    pub fn for_context(context: &GpuContext, precision: Precision) -> Result<Self, NnError> {
+        let mut nn = Self::new(context.device())?;
+        if let MatmulPath::TensorCores(cores) = MatmulPath::choose(context, precision) {
+            nn.tensor_cores = Some(TensorCoreKernels::new(context.device(), cores)?);
+        }
+        Ok(nn)
+    }
+
+    /// The path the dense layers' products take.
+    pub fn matmul_path(&self) -> MatmulPath {
+        self.tensor_cores
+            .as_ref()
+            .map_or(MatmulPath::F32, |kernels| {
+                MatmulPath::TensorCores(kernels.cores)
+            })
+    }
+
+    /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
+    /// `networks: f32`.
+    pub fn describe(&self) -> String {
+        self.matmul_path().describe()
+    }
+
+    /// Compiles every kernel for `device`, with f32 matrix products (see
+    /// [`NnGpu::for_context`] for the choice of tensor cores).
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
         let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
             Kernel::compile(device, name, wgsl, entry)
@@ -404,6 +650,7 @@ impl NnGpu {
             rodrigues_forward: compile("nn_rodrigues_forward", RODRIGUES_WGSL, "forward")?,
             rodrigues_backward: compile("nn_rodrigues_backward", RODRIGUES_WGSL, "backward")?,
             finite: compile("nn_finite", FINITE_WGSL, "main")?,
+            tensor_cores: None,
             placeholder: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn placeholder"),
                 size: 16,
@@ -559,6 +806,20 @@ impl NnGpu {
         if m == 0 || n == 0 {
             return Ok(());
         }
+        if let Some(kernels) = &self.tensor_cores {
+            return self.matmul_tensor_cores(
+                encoder,
+                kernels,
+                (m, n, k),
+                a,
+                b,
+                mask,
+                bias,
+                c,
+                c_offset,
+                flags,
+            );
+        }
         let m_tiles = m.div_ceil(TILE);
         let n_tiles = n.div_ceil(TILE);
         // Split along k when the output has few tiles and the reduction is long (the weight
@@ -640,6 +901,167 @@ impl NnGpu {
                 flags & ACCUMULATE != 0,
             )?;
         }
+        Ok(())
+    }
+
+    /// [`NnGpu::matmul`] on the tensor cores: both operands' largest magnitudes, their
+    /// scaled and padded f16 copies, the products split along k, and the epilogue.
+    #[allow(clippy::too_many_arguments)]
+    fn matmul_tensor_cores(
+        &self,
+        encoder: &mut impl Record,
+        kernels: &TensorCoreKernels,
+        (m, n, k): (usize, usize, usize),
+        a: Operand<'_>,
+        b: Operand<'_>,
+        mask: Option<&wgpu::Buffer>,
+        bias: Option<&wgpu::Buffer>,
+        c: &wgpu::Buffer,
+        c_offset: usize,
+        flags: u32,
+    ) -> Result<(), NnError> {
+        let m_pad = m.div_ceil(COOP_BLOCK) * COOP_BLOCK;
+        let n_pad = n.div_ceil(COOP_BLOCK) * COOP_BLOCK;
+        let k_pad = k.div_ceil(COOP_TILE_K) * COOP_TILE_K;
+        let (m_blocks, n_blocks) = (m_pad / COOP_BLOCK, n_pad / COOP_BLOCK);
+        // Split along k when the output has few blocks and the reduction is long (the weight
+        // gradient), within the scratch the device can bind.
+        let partial_len = m_pad * n_pad;
+        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len;
+        let splits = COOP_TARGET_WORKGROUPS
+            .div_ceil(m_blocks * n_blocks)
+            .min(k_pad.div_ceil(256))
+            .min(max_splits)
+            .max(1);
+        let k_per_split = k_pad.div_ceil(splits).div_ceil(COOP_TILE_K).max(1) * COOP_TILE_K;
+        let splits = k_pad.div_ceil(k_per_split).max(1);
+        let groups_y = m_blocks * splits;
+        let max_groups = self.max_groups_per_dimension as usize;
+        if groups_y > max_groups || n_blocks > max_groups {
+            return Err(NnError::Gpu(format!(
+                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
+            )));
+        }
+        // Every flat index of the kernels is a u32.
+        to_u32("padded operand size", m_pad * k_pad)?;
+        to_u32("padded operand size", k_pad * n_pad)?;
+        to_u32("partial products", splits * partial_len)?;
+        let device = &self.device;
+        let limit = self.max_binding_bytes;
+        let packed_a = grown_buffer(
+            device,
+            &kernels.packed_a,
+            "nn tensor-core A",
+            (m_pad * k_pad * 2) as u64,
+            limit,
+        )?;
+        let packed_b = grown_buffer(
+            device,
+            &kernels.packed_b,
+            "nn tensor-core B",
+            (k_pad * n_pad * 2) as u64,
+            limit,
+        )?;
+        let partials = grown_buffer(
+            device,
+            &kernels.partials,
+            "nn tensor-core partial products",
+            (splits * partial_len * 4) as u64,
+            limit,
+        )?;
+        let mask_buffer = mask.unwrap_or(&self.placeholder);
+        encoder.record_clear(&kernels.scales);
+        let operands = [
+            (a, (m, k), (m_pad, k_pad), flags & MASK_A != 0, &packed_a),
+            (b, (k, n), (k_pad, n_pad), flags & MASK_B != 0, &packed_b),
+        ];
+        let mut staging = Vec::with_capacity(2);
+        for (slot, (operand, (rows, cols), (rows_pad, cols_pad), masked, _)) in
+            operands.iter().enumerate()
+        {
+            staging.push(StagingParams {
+                rows: to_u32("rows", *rows)?,
+                cols: to_u32("columns", *cols)?,
+                offset: to_u32("offset", operand.offset)?,
+                row_stride: to_u32("stride", operand.row_stride)?,
+                col_stride: to_u32("stride", operand.col_stride)?,
+                mask_flags: u32::from(*masked),
+                slot: slot as u32,
+                rows_pad: to_u32("rows", *rows_pad)?,
+                cols_pad: to_u32("columns", *cols_pad)?,
+                ..StagingParams::default()
+            });
+        }
+        for ((operand, (rows, cols), ..), params) in operands.iter().zip(&staging) {
+            let (x, y) = self.grid((rows * cols).div_ceil(STAGING_WORKGROUP))?;
+            self.dispatch(
+                encoder,
+                &kernels.operand_max,
+                bytemuck::bytes_of(params),
+                &[(1, operand.buffer), (2, mask_buffer), (3, &kernels.scales)],
+                x,
+                y,
+            );
+        }
+        for ((operand, _, (rows_pad, cols_pad), _, packed), params) in operands.iter().zip(&staging)
+        {
+            let (x, y) = self.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))?;
+            self.dispatch(
+                encoder,
+                &kernels.pack,
+                bytemuck::bytes_of(params),
+                &[
+                    (1, operand.buffer),
+                    (2, mask_buffer),
+                    (3, &kernels.scales),
+                    (4, *packed),
+                ],
+                x,
+                y,
+            );
+        }
+        let multiply = CoopParams {
+            k_pad: to_u32("reduction length", k_pad)?,
+            n_pad: to_u32("columns", n_pad)?,
+            m_blocks: to_u32("blocks", m_blocks)?,
+            k_per_split: to_u32("k slice", k_per_split)?,
+            partial_stride: to_u32("partial size", partial_len)?,
+            pad: [0; 3],
+        };
+        self.dispatch(
+            encoder,
+            &kernels.multiply,
+            bytemuck::bytes_of(&multiply),
+            &[(1, &packed_a), (2, &packed_b), (3, &partials)],
+            to_u32("blocks", n_blocks)?,
+            to_u32("blocks", groups_y)?,
+        );
+        let epilogue = StagingParams {
+            m: to_u32("rows", m)?,
+            n: to_u32("columns", n)?,
+            n_pad: to_u32("columns", n_pad)?,
+            splits: to_u32("k splits", splits)?,
+            partial_stride: to_u32("partial size", partial_len)?,
+            c_offset: to_u32("offset", c_offset)?,
+            c_row_stride: to_u32("columns", n)?,
+            c_flags: flags & (ACCUMULATE | ADD_BIAS | RELU),
+            ..StagingParams::default()
+        };
+        to_u32("product size", m * n)?;
+        let (x, y) = self.grid((m * n).div_ceil(STAGING_WORKGROUP))?;
+        self.dispatch(
+            encoder,
+            &kernels.epilogue,
+            bytemuck::bytes_of(&epilogue),
+            &[
+                (3, &kernels.scales),
+                (5, &partials),
+                (6, bias.unwrap_or(&self.placeholder)),
+                (7, c),
+            ],
+            x,
+            y,
+        );
         Ok(())
     }
 
@@ -1201,8 +1623,9 @@ pub fn adam_factors_record(factors: &[AdamStepFactors]) -> Vec<f32> {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
     use super::*;
-    use crate::backend::GpuContext;
     use crate::backend::test_support::gpu_test_context;
     use crate::nn::adam::{AdamState, adam_update};
     use crate::nn::encoding::{positional_encoding_backward, positional_encoding_forward};
@@ -1216,6 +1639,10 @@ mod tests {
     }
 
     fn upload(context: &GpuContext, data: &[f32]) -> wgpu::Buffer {
+        context.upload("nn test", data).unwrap().buffer
+    }
+
+    fn upload_words(context: &GpuContext, data: &[u32]) -> wgpu::Buffer {
         context.upload("nn test", data).unwrap().buffer
     }
 
@@ -1239,6 +1666,15 @@ mod tests {
         }
     }
 
+    /// The largest differences [`check_linear_on`] allows: of the output, of the
+    /// reductions over rows (`dW`, `db`) and of the input gradients.
+    #[derive(Clone, Copy)]
+    struct Tolerances {
+        output: f32,
+        row_sums: f32,
+        input_gradient: f32,
+    }
+
     /// Forward and backward of a two-part layer on both backends. `rows` above 256 makes the
     /// weight gradient take the split-and-reduce path.
     fn check_linear(rows: usize, widths: [usize; 2], out: usize, activation: Activation) {
@@ -1246,6 +1682,28 @@ mod tests {
             return;
         };
         let nn = NnGpu::new(context.device()).unwrap();
+        // Sums over `rows` terms: f32 rounding grows like sqrt(rows).
+        let sum_tolerance = 1e-6 * (rows as f32).sqrt().max(8.0);
+        let tolerances = Tolerances {
+            output: 1e-5,
+            row_sums: sum_tolerance,
+            input_gradient: 1e-5,
+        };
+        check_linear_on(&context, &nn, rows, widths, out, activation, tolerances);
+    }
+
+    /// [`check_linear`] on a given [`NnGpu`]. The cpu backward takes its ReLU mask from the
+    /// gpu's output, so an output that rounding puts on the other side of zero (likely with
+    /// f16 operands) does not count as a backward error.
+    fn check_linear_on(
+        context: &GpuContext,
+        nn: &NnGpu,
+        rows: usize,
+        widths: [usize; 2],
+        out: usize,
+        activation: Activation,
+        tolerances: Tolerances,
+    ) {
         let mut rng = Rng::new(rows as u64);
         let shape = LinearShape {
             in_features: widths[0] + widths[1],
@@ -1274,41 +1732,15 @@ mod tests {
         ];
         let mut y = vec![0.0f32; rows * out];
         linear_forward(shape, &weight, &bias, &parts, rows, &mut y).unwrap();
-        let (mut d_weight, mut d_bias, mut d_x1) =
-            (d_weight0.clone(), d_bias0.clone(), d_x1_0.clone());
-        let mut d_x0 = vec![0.0f32; rows * widths[0]];
-        let mut d_pre = d_y.clone();
-        linear_backward(
-            shape,
-            &weight,
-            &parts,
-            rows,
-            &y,
-            &mut d_pre,
-            LinearGrads {
-                weight: &mut d_weight,
-                bias: &mut d_bias,
-            },
-            &mut [
-                InputGrad::Write(&mut d_x0),
-                InputGrad::Accumulate(&mut d_x1),
-            ],
-        )
-        .unwrap();
 
-        // gpu.
+        // gpu forward.
         let (g_weight, g_bias, g_x0, g_x1) = (
-            upload(&context, &weight),
-            upload(&context, &bias),
-            upload(&context, &x0),
-            upload(&context, &x1),
+            upload(context, &weight),
+            upload(context, &bias),
+            upload(context, &x0),
+            upload(context, &x1),
         );
-        let g_y = upload(&context, &vec![f32::NAN; rows * out]);
-        let g_dy = upload(&context, &d_y);
-        let g_dw = upload(&context, &d_weight0);
-        let g_db = upload(&context, &d_bias0);
-        let g_dx0 = upload(&context, &vec![f32::NAN; rows * widths[0]]);
-        let g_dx1 = upload(&context, &d_x1_0);
+        let g_y = upload(context, &vec![f32::NAN; rows * out]);
         let g_parts = [
             GpuInputPart {
                 buffer: &g_x0,
@@ -1330,6 +1762,39 @@ mod tests {
             &g_y,
         )
         .unwrap();
+        context.submit_and_wait(encoder).unwrap();
+        let gpu_y = download(context, context.encoder(), &g_y, y.len());
+
+        // cpu backward on the gpu's mask.
+        let (mut d_weight, mut d_bias, mut d_x1) =
+            (d_weight0.clone(), d_bias0.clone(), d_x1_0.clone());
+        let mut d_x0 = vec![0.0f32; rows * widths[0]];
+        let mut d_pre = d_y.clone();
+        linear_backward(
+            shape,
+            &weight,
+            &parts,
+            rows,
+            &gpu_y,
+            &mut d_pre,
+            LinearGrads {
+                weight: &mut d_weight,
+                bias: &mut d_bias,
+            },
+            &mut [
+                InputGrad::Write(&mut d_x0),
+                InputGrad::Accumulate(&mut d_x1),
+            ],
+        )
+        .unwrap();
+
+        // gpu backward.
+        let g_dy = upload(context, &d_y);
+        let g_dw = upload(context, &d_weight0);
+        let g_db = upload(context, &d_bias0);
+        let g_dx0 = upload(context, &vec![f32::NAN; rows * widths[0]]);
+        let g_dx1 = upload(context, &d_x1_0);
+        let mut encoder = context.encoder();
         nn.linear_backward(
             &mut encoder,
             shape,
@@ -1351,10 +1816,9 @@ mod tests {
         context.submit_and_wait(encoder).unwrap();
         let label = format!("{rows}x{widths:?}x{out} {activation:?}");
         let read =
-            |buffer: &wgpu::Buffer, len: usize| download(&context, context.encoder(), buffer, len);
-        assert_close(&format!("{label} Y"), &read(&g_y, y.len()), &y, 1e-5);
-        // Sums over `rows` terms: f32 rounding grows like sqrt(rows).
-        let sum_tolerance = 1e-6 * (rows as f32).sqrt().max(8.0);
+            |buffer: &wgpu::Buffer, len: usize| download(context, context.encoder(), buffer, len);
+        assert_close(&format!("{label} Y"), &gpu_y, &y, tolerances.output);
+        let sum_tolerance = tolerances.row_sums;
         assert_close(
             &format!("{label} dW"),
             &read(&g_dw, d_weight.len()),
@@ -1371,13 +1835,13 @@ mod tests {
             &format!("{label} dX0"),
             &read(&g_dx0, d_x0.len()),
             &d_x0,
-            1e-5,
+            tolerances.input_gradient,
         );
         assert_close(
             &format!("{label} dX1"),
             &read(&g_dx1, d_x1.len()),
             &d_x1,
-            1e-5,
+            tolerances.input_gradient,
         );
     }
 
@@ -1541,5 +2005,555 @@ mod tests {
                 actual: 5
             }
         );
+    }
+
+    /// The tensor-core path, where the adapter has it, or `None` after printing why the
+    /// test is skipped: lavapipe and most adapters have no cooperative matrices, so a
+    /// missing feature skips even under `CI` (a missing adapter still fails there).
+    fn tensor_core_test_nn(test: &str) -> Option<(Arc<GpuContext>, NnGpu)> {
+        let context = gpu_test_context()?;
+        if context.tensor_cores().is_none() {
+            eprintln!(
+                "skipped {test}: {} has no tensor cores for the f16 path (cooperative 16x16x16 \
+                 f16 x f16 -> f32 matrices and a fixed subgroup size)",
+                context.info().name
+            );
+            return None;
+        }
+        let nn = NnGpu::for_context(&context, Precision::Mixed).unwrap();
+        assert!(
+            matches!(nn.matmul_path(), MatmulPath::TensorCores(_)),
+            "{}",
+            nn.describe()
+        );
+        eprintln!("{test}: {} on {}", nn.describe(), context.info().name);
+        Some((context, nn))
+    }
+
+    /// f16 operands keep 11 significant bits: each product term is off by about 2^-11
+    /// relative, so outputs and gradients are compared at 1e-2 (relative, plus absolute
+    /// near zero).
+    const F16_TOLERANCES: Tolerances = Tolerances {
+        output: 1e-2,
+        row_sums: 1e-2,
+        input_gradient: 1e-2,
+    };
+
+    #[test]
+    fn tensor_cores_match_cpu_on_random_layers() {
+        let Some((context, nn)) = tensor_core_test_nn("tensor_cores_match_cpu_on_random_layers")
+        else {
+            return;
+        };
+        // Sizes off the 32 x 32 blocks and 16-deep steps, a split weight gradient (600 and
+        // 5000 rows), a single input column, and a paper-width layer.
+        for (rows, widths, out, activation) in [
+            (70, [5, 19], 67, Activation::Relu),
+            (3, [1, 2], 1, Activation::Identity),
+            (600, [40, 23], 33, Activation::Relu),
+            (5000, [256, 256], 512, Activation::Relu),
+        ] {
+            check_linear_on(&context, &nn, rows, widths, out, activation, F16_TOLERANCES);
+        }
+        // The f32 precision on the same context never takes the tensor cores.
+        let f32_nn = NnGpu::for_context(&context, Precision::F32).unwrap();
+        assert_eq!(f32_nn.matmul_path(), MatmulPath::F32);
+        assert_eq!(f32_nn.describe(), "networks: f32");
+    }
+
+    /// Mean squared error of a two-layer network (`32 -> 64 ReLU -> 8`) fitting a fixed
+    /// target, trained `steps` Adam steps on `nn`; the loss before each step.
+    fn training_losses(context: &GpuContext, nn: &NnGpu, steps: usize) -> Vec<f64> {
+        let (rows, inputs, hidden, outputs) = (512, 32, 64, 8);
+        let mut rng = Rng::new(11);
+        let x = random(&mut rng, rows * inputs, 1.0);
+        let target = random(&mut rng, rows * outputs, 1.0);
+        let shapes = [
+            LinearShape {
+                in_features: inputs,
+                out_features: hidden,
+                activation: Activation::Relu,
+            },
+            LinearShape {
+                in_features: hidden,
+                out_features: outputs,
+                activation: Activation::Identity,
+            },
+        ];
+        let params: Vec<[wgpu::Buffer; 2]> = shapes
+            .iter()
+            .map(|shape| {
+                let bound = 1.0 / (shape.in_features as f64).sqrt();
+                [
+                    upload(context, &random(&mut rng, shape.weight_len(), bound)),
+                    upload(context, &random(&mut rng, shape.out_features, bound)),
+                ]
+            })
+            .collect();
+        let zeros = |len: usize| upload(context, &vec![0.0f32; len]);
+        let grads: Vec<[wgpu::Buffer; 2]> = shapes
+            .iter()
+            .map(|shape| [zeros(shape.weight_len()), zeros(shape.out_features)])
+            .collect();
+        let moments: Vec<[wgpu::Buffer; 4]> = shapes
+            .iter()
+            .map(|shape| {
+                [
+                    zeros(shape.weight_len()),
+                    zeros(shape.weight_len()),
+                    zeros(shape.out_features),
+                    zeros(shape.out_features),
+                ]
+            })
+            .collect();
+        let g_x = upload(context, &x);
+        let hidden_out = zeros(rows * hidden);
+        let y = zeros(rows * outputs);
+        let d_hidden = zeros(rows * hidden);
+        let config = AdamConfig::default();
+        let mut losses = Vec::new();
+        for step in 1..=steps {
+            let mut encoder = context.encoder();
+            let input = [GpuInputPart {
+                buffer: &g_x,
+                cols: inputs,
+            }];
+            let hidden_part = [GpuInputPart {
+                buffer: &hidden_out,
+                cols: hidden,
+            }];
+            nn.linear_forward(
+                &mut encoder,
+                shapes[0],
+                &params[0][0],
+                &params[0][1],
+                &input,
+                rows,
+                &hidden_out,
+            )
+            .unwrap();
+            nn.linear_forward(
+                &mut encoder,
+                shapes[1],
+                &params[1][0],
+                &params[1][1],
+                &hidden_part,
+                rows,
+                &y,
+            )
+            .unwrap();
+            context.submit_and_wait(encoder).unwrap();
+            let prediction = download(context, context.encoder(), &y, rows * outputs);
+            let count = prediction.len() as f64;
+            losses.push(
+                prediction
+                    .iter()
+                    .zip(&target)
+                    .map(|(p, t)| f64::from(p - t).powi(2))
+                    .sum::<f64>()
+                    / count,
+            );
+            // dL/dY of the mean: small values (~1e-3 and below), which f16 keeps only
+            // because the operands are scaled.
+            let d_y: Vec<f32> = prediction
+                .iter()
+                .zip(&target)
+                .map(|(p, t)| (2.0 * f64::from(p - t) / count) as f32)
+                .collect();
+            let g_dy = upload(context, &d_y);
+            let mut encoder = context.encoder();
+            for [weight, bias] in &grads {
+                encoder.clear_buffer(weight, 0, None);
+                encoder.clear_buffer(bias, 0, None);
+            }
+            nn.linear_backward(
+                &mut encoder,
+                shapes[1],
+                &params[1][0],
+                &hidden_part,
+                rows,
+                &y,
+                &g_dy,
+                GpuLinearGrads {
+                    weight: &grads[1][0],
+                    bias: &grads[1][1],
+                },
+                &[GpuInputGrad::Write(&d_hidden)],
+            )
+            .unwrap();
+            nn.linear_backward(
+                &mut encoder,
+                shapes[0],
+                &params[0][0],
+                &input,
+                rows,
+                &hidden_out,
+                &d_hidden,
+                GpuLinearGrads {
+                    weight: &grads[0][0],
+                    bias: &grads[0][1],
+                },
+                &[GpuInputGrad::Skip],
+            )
+            .unwrap();
+            for ((shape, [weight, bias]), ([d_weight, d_bias], [m_w, v_w, m_b, v_b])) in
+                shapes.iter().zip(&params).zip(grads.iter().zip(&moments))
+            {
+                let lr = 1e-2;
+                let t = step as u64;
+                let len = shape.weight_len();
+                nn.adam_update(
+                    &mut encoder,
+                    &config,
+                    lr,
+                    t,
+                    weight,
+                    d_weight,
+                    m_w,
+                    v_w,
+                    len,
+                )
+                .unwrap();
+                let len = shape.out_features;
+                nn.adam_update(&mut encoder, &config, lr, t, bias, d_bias, m_b, v_b, len)
+                    .unwrap();
+            }
+            context.submit_and_wait(encoder).unwrap();
+        }
+        losses
+    }
+
+    /// Training on the tensor cores lowers the loss as the f32 path does: the same network,
+    /// data and steps end at most 10% of the starting loss above the f32 run, and below
+    /// half the starting loss.
+    #[test]
+    fn tensor_cores_train_like_f32() {
+        let Some((context, nn)) = tensor_core_test_nn("tensor_cores_train_like_f32") else {
+            return;
+        };
+        let steps = 60;
+        let mixed = training_losses(&context, &nn, steps);
+        let reference = training_losses(&context, &NnGpu::new(context.device()).unwrap(), steps);
+        let (first, last, last_f32) = (mixed[0], mixed[steps - 1], reference[steps - 1]);
+        eprintln!(
+            "loss: f16 tensor cores {first} -> {last}, f32 {} -> {last_f32}",
+            reference[0]
+        );
+        assert!(mixed.iter().all(|loss| loss.is_finite()), "{mixed:?}");
+        assert!(
+            (first - reference[0]).abs() <= 1e-2 * reference[0],
+            "{first} vs {}",
+            reference[0]
+        );
+        assert!(last < 0.5 * first, "the loss did not decrease: {mixed:?}");
+        assert!(last <= last_f32 + 0.1 * first, "{last} vs f32 {last_f32}");
+    }
+
+    /// f16 bits to f32 (normal, subnormal, zero, infinity, NaN).
+    fn f16_to_f32(bits: u16) -> f32 {
+        let sign = if bits & 0x8000 != 0 { -1.0 } else { 1.0 };
+        let exponent = i32::from((bits >> 10) & 0x1f);
+        let mantissa = f32::from(bits & 0x3ff);
+        match exponent {
+            0 => sign * mantissa * 2f32.powi(-24),
+            31 if mantissa == 0.0 => sign * f32::INFINITY,
+            31 => f32::NAN,
+            _ => sign * (1.0 + mantissa / 1024.0) * 2f32.powi(exponent - 15),
+        }
+    }
+
+    /// The staging kernels of the tensor-core path on one `rows x cols` operand (row-major,
+    /// no mask): its scale exponent and its packed f16 values as f32 (still scaled by
+    /// 2^exponent), padded to `rows_pad x cols_pad`.
+    struct Staged {
+        exponent: i32,
+        values: Vec<f32>,
+    }
+
+    /// The staging kernels (`nn_matmul_f16.wgsl`), compiled on a context with f16 but no
+    /// tensor cores (lavapipe), or `None` after printing why the test is skipped.
+    fn staging_kernels(test: &str) -> Option<(Arc<GpuContext>, NnGpu, [Kernel; 3])> {
+        let context = gpu_test_context()?;
+        if !context.has_f16() {
+            eprintln!("skipped {test}: {} has no f16 shaders", context.info().name);
+            return None;
+        }
+        let nn = NnGpu::new(context.device()).unwrap();
+        let compile =
+            |name, entry| Kernel::compile(context.device(), name, MATMUL_F16_WGSL, entry).unwrap();
+        let kernels = [
+            compile("nn_matmul_operand_max", "operand_max"),
+            compile("nn_matmul_pack", "pack"),
+            compile("nn_matmul_epilogue", "epilogue"),
+        ];
+        Some((context, nn, kernels))
+    }
+
+    /// Stages `values` (`rows x cols`) as operand `slot` into `packed`, with `scales` shared
+    /// by both operands of a product.
+    #[allow(clippy::too_many_arguments)]
+    fn stage(
+        context: &GpuContext,
+        nn: &NnGpu,
+        kernels: &[Kernel; 3],
+        values: &[f32],
+        (rows, cols): (usize, usize),
+        (rows_pad, cols_pad): (usize, usize),
+        slot: u32,
+        scales: &wgpu::Buffer,
+        packed: &wgpu::Buffer,
+    ) -> Staged {
+        let source = upload(context, values);
+        let params = StagingParams {
+            rows: rows as u32,
+            cols: cols as u32,
+            row_stride: cols as u32,
+            col_stride: 1,
+            slot,
+            rows_pad: rows_pad as u32,
+            cols_pad: cols_pad as u32,
+            ..StagingParams::default()
+        };
+        let mut encoder = context.encoder();
+        let bindings = [(1, &source), (2, &nn.placeholder), (3, scales)];
+        let (x, y) = nn.grid((rows * cols).div_ceil(STAGING_WORKGROUP)).unwrap();
+        nn.dispatch(
+            &mut encoder,
+            &kernels[0],
+            bytemuck::bytes_of(&params),
+            &bindings,
+            x,
+            y,
+        );
+        let (x, y) = nn
+            .grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))
+            .unwrap();
+        let bindings = [(1, &source), (2, &nn.placeholder), (3, scales), (4, packed)];
+        nn.dispatch(
+            &mut encoder,
+            &kernels[1],
+            bytemuck::bytes_of(&params),
+            &bindings,
+            x,
+            y,
+        );
+        context.submit_and_wait(encoder).unwrap();
+        let max_bits: Vec<u32> = context.download(context.encoder(), scales, 2).unwrap();
+        let max_bits = max_bits[slot as usize];
+        // As scale_exponent in the WGSL.
+        let exponent = if max_bits == 0 {
+            0
+        } else {
+            (14 - (((max_bits >> 23) & 0xff) as i32 - 127)).min(126)
+        };
+        let words: Vec<u32> = context
+            .download(context.encoder(), packed, (rows_pad * cols_pad).div_ceil(2))
+            .unwrap();
+        let values = words
+            .iter()
+            .flat_map(|word| [*word as u16, (*word >> 16) as u16])
+            .take(rows_pad * cols_pad)
+            .map(f16_to_f32)
+            .collect();
+        Staged { exponent, values }
+    }
+
+    /// Operands beyond f16's range (up to f32's largest) and far below its normal range
+    /// (1e-30) are scaled so that every packed value is finite and within f16's range and
+    /// keeps f16's 11 bits relative to the operand's largest magnitude; infinities and NaNs
+    /// do not enter the scale. Runs wherever the adapter has f16 (lavapipe does).
+    #[test]
+    fn f16_staging_keeps_extreme_operands_finite_and_exact_to_f16_precision() {
+        let Some((context, nn, kernels)) = staging_kernels("f16_staging_extremes") else {
+            return;
+        };
+        let cases: [(&str, Vec<f32>); 4] = [
+            (
+                "near the f16 limit",
+                vec![65504.0, -65504.0, 65519.0, 70000.0, 1.0, -0.5, 0.0, 3.0e-5],
+            ),
+            (
+                "far beyond it",
+                vec![f32::MAX, -3.0e38, 1.0e30, 1.0e6, -7.0e4, 1.0, 0.0, 2.0e37],
+            ),
+            (
+                "tiny gradients",
+                vec![
+                    1.0e-30, -3.0e-30, 2.5e-31, 1.0e-35, 0.0, -1.0e-30, 7.0e-31, 1.0e-44,
+                ],
+            ),
+            (
+                "non-finite entries",
+                vec![
+                    f32::INFINITY,
+                    f32::NAN,
+                    2.0,
+                    -4.0,
+                    0.5,
+                    f32::NEG_INFINITY,
+                    1.0,
+                    3.0,
+                ],
+            ),
+        ];
+        let scales = upload_words(context.as_ref(), &[0u32; 4]);
+        let (rows, cols, rows_pad, cols_pad) = (2, 4, 32, 16);
+        let packed = upload_words(context.as_ref(), &vec![0u32; rows_pad * cols_pad / 2]);
+        for (what, values) in &cases {
+            context.write(&scales, 0, &[0u32; 4]).unwrap();
+            let staged = stage(
+                &context,
+                &nn,
+                &kernels,
+                values,
+                (rows, cols),
+                (rows_pad, cols_pad),
+                0,
+                &scales,
+                &packed,
+            );
+            let largest = values
+                .iter()
+                .filter(|value| value.is_finite())
+                .fold(0.0f64, |largest, value| largest.max(f64::from(value.abs())));
+            for (index, &packed_value) in staged.values.iter().enumerate() {
+                let (row, col) = (index / cols_pad, index % cols_pad);
+                if row >= rows || col >= cols {
+                    assert_eq!(packed_value, 0.0, "{what}: padding [{row}][{col}]");
+                    continue;
+                }
+                let original = values[row * cols + col];
+                if !original.is_finite() {
+                    continue;
+                }
+                assert!(
+                    packed_value.is_finite() && packed_value.abs() <= 65504.0,
+                    "{what}: {original} packed as {packed_value}"
+                );
+                let unscaled = f64::from(packed_value) * 2f64.powi(-staged.exponent);
+                // Half a unit in the last place of f16, relative to the largest magnitude
+                // (smaller values may be f16 subnormals), and f32's own rounding.
+                let allowed = largest * 2f64.powi(-11) + f64::from(original.abs()) * 1e-7;
+                assert!(
+                    (unscaled - f64::from(original)).abs() <= allowed,
+                    "{what}: {original} came back as {unscaled} (exponent {})",
+                    staged.exponent
+                );
+            }
+            // The largest finite magnitude lands in [2^14, 2^15).
+            if largest > 1e-37 {
+                let scaled = largest * 2f64.powi(staged.exponent);
+                assert!((16384.0..32768.0).contains(&scaled), "{what}: {scaled}");
+            }
+        }
+    }
+
+    /// The tensor-core product without tensor cores: A (entries near 1e5, beyond f16) and B
+    /// (near 1e-7, below f16's normal range) staged on the gpu, multiplied on the cpu as
+    /// the cooperative matrices do (f16 products summed in f32, two k splits), then
+    /// unscaled, summed, biased and rectified by the epilogue kernel; the result matches an
+    /// f64 product of the f32 operands to 1e-2 and is finite.
+    #[test]
+    fn f16_staging_and_epilogue_reproduce_the_product_of_out_of_range_operands() {
+        let Some((context, nn, kernels)) = staging_kernels("f16_staging_and_epilogue") else {
+            return;
+        };
+        let (m, k, n) = (5, 40, 7);
+        let (m_pad, k_pad, n_pad) = (32, 48, 32);
+        let mut rng = Rng::new(3);
+        let a: Vec<f32> = random(&mut rng, m * k, 1.0)
+            .iter()
+            .map(|v| v * 2.0e5)
+            .collect();
+        let b: Vec<f32> = random(&mut rng, k * n, 1.0)
+            .iter()
+            .map(|v| v * 3.0e-7)
+            .collect();
+        let bias = random(&mut rng, n, 0.01);
+        let scales = upload_words(context.as_ref(), &[0u32; 4]);
+        let packed_a = upload_words(context.as_ref(), &vec![0u32; m_pad * k_pad / 2]);
+        let packed_b = upload_words(context.as_ref(), &vec![0u32; k_pad * n_pad / 2]);
+        let staged_a = stage(
+            &context,
+            &nn,
+            &kernels,
+            &a,
+            (m, k),
+            (m_pad, k_pad),
+            0,
+            &scales,
+            &packed_a,
+        );
+        let staged_b = stage(
+            &context,
+            &nn,
+            &kernels,
+            &b,
+            (k, n),
+            (k_pad, n_pad),
+            1,
+            &scales,
+            &packed_b,
+        );
+        // What the multiply kernel computes on the scaled f16 values, in two k slices of 32
+        // and 16.
+        let splits = [(0, 32), (32, 48)];
+        let mut partials = vec![0.0f32; splits.len() * m_pad * n_pad];
+        for (split, (begin, end)) in splits.iter().enumerate() {
+            for i in 0..m_pad {
+                for j in 0..n_pad {
+                    let mut sum = 0.0f32;
+                    for kk in *begin..*end {
+                        let a_value = staged_a.values[i * k_pad + kk];
+                        let b_value = staged_b.values[kk * n_pad + j];
+                        sum += a_value * b_value;
+                    }
+                    partials[split * m_pad * n_pad + i * n_pad + j] = sum;
+                }
+            }
+        }
+        let g_partials = upload(context.as_ref(), &partials);
+        let g_bias = upload(context.as_ref(), &bias);
+        let g_c = upload(context.as_ref(), &vec![f32::NAN; m * n]);
+        let params = StagingParams {
+            m: m as u32,
+            n: n as u32,
+            n_pad: n_pad as u32,
+            splits: splits.len() as u32,
+            partial_stride: (m_pad * n_pad) as u32,
+            c_row_stride: n as u32,
+            c_flags: ADD_BIAS | RELU,
+            ..StagingParams::default()
+        };
+        let mut encoder = context.encoder();
+        let (x, y) = nn.grid((m * n).div_ceil(STAGING_WORKGROUP)).unwrap();
+        nn.dispatch(
+            &mut encoder,
+            &kernels[2],
+            bytemuck::bytes_of(&params),
+            &[(3, &scales), (5, &g_partials), (6, &g_bias), (7, &g_c)],
+            x,
+            y,
+        );
+        context.submit_and_wait(encoder).unwrap();
+        let c = download(&context, context.encoder(), &g_c, m * n);
+        let mut largest = 0.0f64;
+        let mut expected = vec![0.0f64; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                let product: f64 = (0..k)
+                    .map(|kk| f64::from(a[i * k + kk]) * f64::from(b[kk * n + j]))
+                    .sum();
+                expected[i * n + j] = (product + f64::from(bias[j])).max(0.0);
+                largest = largest.max(product.abs());
+            }
+        }
+        for (index, (&got, &want)) in c.iter().zip(&expected).enumerate() {
+            assert!(got.is_finite(), "C[{index}] = {got}");
+            assert!(
+                (f64::from(got) - want).abs() <= 1e-2 * largest,
+                "C[{index}]: {got} vs {want} (largest |product| {largest})"
+            );
+        }
     }
 }

@@ -22,7 +22,9 @@
 //! - [`init`]: the seeded PRNG and PyTorch-default initialisation.
 //! - [`encoding`]: NeRF positional encoding, forward and backward.
 //! - [`adam`]: Adam with parameter groups and learning-rate schedules.
-//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above, f32 only.
+//! - [`gpu`]: the WGSL kernels (`shaders/nn_*.wgsl`) for all of the above: f32, and where
+//!   the adapter has tensor cores and [`Precision::Mixed`] asks for them, dense-layer
+//!   products with f16 operands and f32 accumulation.
 
 pub mod adam;
 pub mod encoding;
@@ -36,6 +38,31 @@ pub use encoding::{PositionalEncoding, positional_encoding_backward, positional_
 pub use init::{Rng, kaiming_uniform, uniform_fill};
 pub use linear::{Activation, InputPart, LinearShape, linear_backward, linear_forward};
 pub use scalar::NnScalar;
+
+/// The `precision:` setting of the train and eval configs: how the dense layers' matrix
+/// products run on the `gpu` backend (`cpu` ignores it and always runs f32). Spelled `f32`
+/// or `mixed`; resolved once, when the networks' gpu kernels are made
+/// ([`gpu::NnGpu::for_context`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// f32 operands and accumulation everywhere (`nn_matmul.wgsl`): the reference.
+    F32,
+    /// f16 operands with f32 accumulation on tensor cores where the adapter has them
+    /// (`nn_matmul_coop.wgsl`), else f32. Parameters, their gradients' accumulation
+    /// buffers and the Adam state stay f32 either way.
+    #[default]
+    Mixed,
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        formatter.write_str(match self {
+            Self::F32 => "f32",
+            Self::Mixed => "mixed",
+        })
+    }
+}
 
 /// Errors of the dense-network operations: every one names the operand it is about.
 #[derive(Debug, thiserror::Error, PartialEq)]

@@ -30,7 +30,7 @@ use std::sync::Arc;
 
 use seqavatar_compute::backend::GpuContext;
 use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
-use seqavatar_compute::nn::{LinearShape, NnScalar};
+use seqavatar_compute::nn::{LinearShape, NnScalar, Precision};
 
 use super::dense::Dense;
 use super::network::folded_shapes;
@@ -168,9 +168,15 @@ fn input(buffer: &wgpu::Buffer, cols: usize) -> GpuInputPart<'_> {
 }
 
 impl GpuNetworks {
-    /// Uploads the parameters of `networks` (gradients start at zero).
-    pub fn upload(context: Arc<GpuContext>, networks: &Networks<f32>) -> Result<Self, ModelError> {
-        let nn = NnGpu::new(context.device())?
+    /// Uploads the parameters of `networks` (gradients start at zero), with the dense
+    /// layers' products on the path `precision` chooses on this context, once
+    /// ([`NnGpu::for_context`]).
+    pub fn upload(
+        context: Arc<GpuContext>,
+        networks: &Networks<f32>,
+        precision: Precision,
+    ) -> Result<Self, ModelError> {
+        let nn = NnGpu::for_context(&context, precision)?
             .with_max_workgroups_per_dimension(context.max_workgroups_per_dimension());
         let mut layers = Vec::new();
         let mut nets = [None, None, None];
@@ -336,6 +342,7 @@ impl GpuNetworks {
     pub fn upload_f64(
         context: Arc<GpuContext>,
         networks: &Networks<f64>,
+        precision: Precision,
     ) -> Result<Self, ModelError> {
         let mut narrow = Networks::<f32>::new(networks.config(), 0)?;
         let values: HashMap<String, Vec<f32>> = networks
@@ -344,7 +351,7 @@ impl GpuNetworks {
             .map(|p| (p.name.clone(), p.values.iter().map(|&v| v as f32).collect()))
             .collect();
         narrow.load_parameters(|name| values.get(name).cloned())?;
-        Self::upload(context, &narrow)
+        Self::upload(context, &narrow, precision)
     }
 
     /// The groups that [`crate::avatar::deform`] evaluates on the gpu: the non-rigid

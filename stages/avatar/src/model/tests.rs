@@ -2,7 +2,7 @@
 //! bias trick against a materialised-concatenation forward written with naive loops, the
 //! identity start, disabled blocks, extremes and input errors.
 
-use seqavatar_compute::nn::Rng;
+use seqavatar_compute::nn::{Precision, Rng};
 use seqavatar_core::glam::DVec3;
 use seqavatar_core::rotation::axis_angle_to_matrix;
 
@@ -927,6 +927,32 @@ fn to_f32(values: &[f64]) -> Vec<f32> {
     values.iter().map(|&x| x as f32).collect()
 }
 
+/// The uploaded networks' kernels take the path their precision chooses on the context, once:
+/// f32 for `f32`; for `mixed` the tensor cores where the adapter has them, else f32 (as on
+/// lavapipe).
+#[test]
+fn gpu_upload_takes_the_path_of_its_precision() {
+    use super::gpu::GpuNetworks;
+    use seqavatar_compute::nn::gpu::MatmulPath;
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
+        return;
+    };
+    let cpu = Networks::<f32>::new(&small_config(MotionContext::Pose, 1, 2), 3).unwrap();
+    let path = |precision| {
+        GpuNetworks::upload(context.clone(), &cpu, precision)
+            .unwrap()
+            .kernels()
+            .matmul_path()
+    };
+    assert_eq!(path(Precision::F32), MatmulPath::F32);
+    let mixed = path(Precision::Mixed);
+    assert_eq!(mixed, MatmulPath::choose(&context, Precision::Mixed));
+    assert_eq!(
+        matches!(mixed, MatmulPath::TensorCores(_)),
+        context.tensor_cores().is_some()
+    );
+}
+
 fn check_gpu_parity(config: &NetworkConfig, n: usize) {
     use super::gpu::GpuNetworks;
     let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context() else {
@@ -935,7 +961,7 @@ fn check_gpu_parity(config: &NetworkConfig, n: usize) {
     let label = format!("{:?} n = {n}", config.motion_context);
     let mut rng = Rng::new(n as u64 + 17);
     let mut cpu = Networks::<f32>::new(config, 11).unwrap();
-    let gpu = GpuNetworks::upload(context, &cpu).unwrap();
+    let gpu = GpuNetworks::upload(context, &cpu, Precision::F32).unwrap();
     let input = inputs(config, n, &mut rng);
     let (pose, xyz) = (to_f32(&input.pose), to_f32(&input.xyz));
     let skeleton = input.skeleton.as_deref().map(to_f32);
@@ -1043,7 +1069,7 @@ fn gpu_copy_of_the_f64_master_round_trips_and_adds_gradients() {
     config.lbs_offsets = true;
     let n = 9;
     let master = Networks::<f64>::new(&config, 5).unwrap();
-    let gpu = GpuNetworks::upload_f64(context, &master).unwrap();
+    let gpu = GpuNetworks::upload_f64(context, &master, Precision::F32).unwrap();
     let mut narrowed = Networks::<f32>::new(&config, 77).unwrap();
     gpu.download_into(&mut narrowed).unwrap();
     for (m, d) in master.parameters().iter().zip(narrowed.parameters()) {
@@ -1155,7 +1181,7 @@ fn gpu_group_sets_upload_and_add_gradients_together() {
     };
     let config = small_config(MotionContext::Pose, 1, 1);
     let master = Networks::<f64>::new(&config, 5).unwrap();
-    let gpu = GpuNetworks::upload_f64(context, &master).unwrap();
+    let gpu = GpuNetworks::upload_f64(context, &master, Precision::F32).unwrap();
     let other = Networks::<f64>::new(&config, 6).unwrap();
     gpu.upload_groups(&other, GpuNetworks::DEFORM_GROUPS)
         .unwrap();
@@ -1655,7 +1681,7 @@ fn check_resident_parity(
     counts: &[usize],
 ) {
     let mut cpu = Networks::<f32>::new(config, 11).unwrap();
-    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu, Precision::F32).unwrap();
     for (round, &n) in counts.iter().enumerate() {
         let label = format!("{:?} n = {n} (round {round})", config.motion_context);
         let host = host_case(config, n, 31 + round as u64);
@@ -1805,7 +1831,7 @@ fn resident_adam_matches_cpu_adam_update_and_round_trips() {
     };
     let config = small_config(MotionContext::Multiscale, 2, 2);
     let mut cpu = Networks::<f32>::new(&config, 3).unwrap();
-    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu, Precision::F32).unwrap();
     let adam = AdamConfig {
         eps: 1e-15,
         ..AdamConfig::default()
@@ -1865,7 +1891,7 @@ fn resident_adam_matches_cpu_adam_update_and_round_trips() {
     assert_eq!(gpu.adam_step(), 3);
     compare(&cpu, &gpu, &states, "after 3 steps");
     // Resume: a fresh device copy of the parameters with the downloaded moments.
-    let mut resumed = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let mut resumed = gpu::GpuNetworks::upload(context.clone(), &cpu, Precision::F32).unwrap();
     resumed
         .upload_adam(&adam, &gpu.download_adam().unwrap())
         .unwrap();
@@ -1923,7 +1949,7 @@ fn resident_steady_state_iteration_reads_back_nothing_and_uploads_under_one_kib(
     config.widths = Widths::PAPER;
     config.trunk_width = 64;
     let cpu = Networks::<f32>::new(&config, 2).unwrap();
-    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu).unwrap();
+    let mut gpu = gpu::GpuNetworks::upload(context.clone(), &cpu, Precision::F32).unwrap();
     let host = host_case(&config, 200, 4);
     let case = device_case(&context, &config, &host);
     let adam = AdamConfig::default();

@@ -45,7 +45,8 @@ impl CanonicalColumns {
     }
 }
 
-/// A trained avatar on the device with the frames of one sequence.
+/// A trained avatar on the device with the frames of one sequence; its networks' dense layers
+/// take the path the avatar's `precision` chooses, once, when it is built.
 pub struct ResidentRenderer {
     context: Arc<GpuContext>,
     deformer: ResidentDeformer,
@@ -79,7 +80,13 @@ impl ResidentRenderer {
         let networks = avatar
             .networks
             .as_ref()
-            .map(|networks| GpuNetworks::upload(context.clone(), networks))
+            .map(|networks| {
+                GpuNetworks::upload(
+                    context.clone(),
+                    networks,
+                    avatar.config.networks_precision(),
+                )
+            })
             .transpose()
             .context("uploading the avatar's networks")?;
         let deformer = ResidentDeformer::new(

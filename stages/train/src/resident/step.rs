@@ -143,7 +143,8 @@ fn upload_networks(
     let Some(net) = networks else {
         return Ok(None);
     };
-    let mut gpu = GpuNetworks::upload(context.clone(), net).context("uploading the networks")?;
+    let mut gpu = GpuNetworks::upload(context.clone(), net, config.networks_precision())
+        .context("uploading the networks")?;
     if !network_adam.is_empty() {
         let states: HashMap<String, AdamState<f32>> = network_adam
             .iter()
