@@ -60,7 +60,7 @@ pub struct TrainStage;
 /// with the gpu copy of the per-Gaussian networks, as eval does; 9: on the gpu backend the
 /// held-out PSNR renders each image on the device).
 ///
-/// `precision` (issue #32) did not bump it: the f32 path is unchanged, so on machines
+/// `precision` did not bump it: the f32 path is unchanged, so on machines
 /// without tensor cores every output is as before, and a config without `precision` keeps
 /// its key (the field is serialised only where set). An explicit `precision` enters the key
 /// through the canonical config. `mixed`, the default, changes results only on adapters
