@@ -36,7 +36,8 @@
 //! with its centre moved by up to 5 mm), so the phases are timed at `K x 5860` Gaussians
 //! (16: 93 760, near the 10^5 of a densified paper run) without training that long first.
 //!
-//! `SEQAVATAR_BENCH_BACKENDS=gpu` (or `cpu`) times one backend only.
+//! `SEQAVATAR_BENCH_BACKENDS=gpu` (or `cpu`) times one backend only;
+//! `SEQAVATAR_BENCH_PRECISION=f32` (or `mixed`, the default) sets every row's `precision`.
 //!
 //! Run: `cargo bench -p seqavatar-train --bench train`.
 
@@ -45,6 +46,7 @@ use std::time::Instant;
 
 use seqavatar_compute::backend::{AdapterChoice, Backend, DeviceChoice};
 use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
+use seqavatar_compute::nn::Precision;
 use seqavatar_compute::nn::gpu::MatmulPath;
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
 use seqavatar_engine::{
@@ -127,9 +129,8 @@ fn upstream_entries(cache: &Path) -> anyhow::Result<(EntryReader, EntryReader)> 
 }
 
 /// The backends timed: `cpu`, and `gpu` when an adapter is found (hardware unless
-/// `SEQAVATAR_BENCH_SOFTWARE_GPU` is set).
-/// The backends to time: `cpu` and the hardware gpu, or only those `SEQAVATAR_BENCH_BACKENDS`
-/// names (`cpu`, `gpu`, comma-separated): the paper-scale row takes minutes on a cpu.
+/// `SEQAVATAR_BENCH_SOFTWARE_GPU` is set), or only those `SEQAVATAR_BENCH_BACKENDS` names
+/// (`cpu`, `gpu`, comma-separated): the paper-scale row takes minutes on a cpu.
 fn bench_backends() -> anyhow::Result<Vec<(&'static str, Backend)>> {
     let wanted = std::env::var("SEQAVATAR_BENCH_BACKENDS").unwrap_or_else(|_| "cpu,gpu".into());
     let wants = |name: &str| wanted.split(',').any(|w| w.trim() == name);
@@ -327,12 +328,18 @@ fn main() -> anyhow::Result<()> {
     seqavatar_compute::memory::retain_freed_memory();
     let dir = tempfile::tempdir()?;
     let (ingest, motion) = upstream_entries(dir.path())?;
+    let precision: Option<Precision> = match std::env::var("SEQAVATAR_BENCH_PRECISION") {
+        Ok(name) => Some(serde_json::from_value(serde_json::Value::String(name))?),
+        Err(_) => None,
+    };
     let mut config = TrainConfig::preset(Preset::Paper);
     config.sequence_length = 8;
+    config.precision = precision;
     let data = TrainingData::read(&ingest, &ingest, &motion, 1.0)?;
     // The `fast` preset at the demo's training resolution (128 x 128).
     let mut fast = TrainConfig::preset(Preset::Fast);
     fast.resolution_scale = 0.25;
+    fast.precision = precision;
     let fast_data = TrainingData::read(&ingest, &ingest, &motion, fast.resolution_scale)?;
     let warmup = env_usize("SEQAVATAR_BENCH_WARMUP", 2);
     let timed = env_usize("SEQAVATAR_BENCH_ITERATIONS", 10);
