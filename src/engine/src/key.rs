@@ -150,7 +150,7 @@ pub struct FileDigests {
 impl FileDigests {
     /// Loads the memo at `memo_path` (a missing or unreadable memo starts empty).
     pub fn load(memo_path: &Path) -> Self {
-        let memo = fs::read(memo_path)
+        let memo = crate::files::read_regular_file(memo_path)
             .ok()
             .and_then(|bytes| serde_json::from_slice(&bytes).ok())
             .unwrap_or_default();
@@ -288,7 +288,8 @@ mod tests {
         assert_ne!(digests.digest(dataset.path()).unwrap(), before);
     }
 
-    /// `/dev/zero` and a FIFO as external inputs are refused from their metadata, at once.
+    /// `/dev/zero`, a FIFO and `/proc` files as external inputs are refused from their metadata,
+    /// at once.
     #[cfg(unix)]
     #[test]
     fn devices_and_fifos_are_not_hashed() {
@@ -308,6 +309,20 @@ mod tests {
             assert!(start.elapsed() < std::time::Duration::from_secs(1));
             assert!(error.contains("only regular files"), "{error}");
         }
+        // `/proc/self/pagemap` looks regular with size 0 and yields gigabytes: refused from
+        // its file system before a byte is hashed.
+        #[cfg(target_os = "linux")]
+        for name in ["/proc/self/pagemap", "/proc/self/status"] {
+            let start = std::time::Instant::now();
+            let error = format!("{:#}", digests.digest(Path::new(name)).unwrap_err());
+            assert!(
+                start.elapsed() < std::time::Duration::from_secs(1),
+                "{error}"
+            );
+            assert!(error.contains("kernel's proc file system"), "{error}");
+            assert!(error.contains(name), "{error}");
+        }
+        assert_eq!(digests.files_hashed(), 0);
     }
 
     fn key_of(config: serde_json::Value, inputs: &[&str], version: u32) -> String {

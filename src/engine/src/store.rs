@@ -6,10 +6,8 @@
 use std::fs::{self, File, OpenOptions};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use anyhow::Context as _;
-use zarrs::filesystem::FilesystemStore;
 use zarrs::storage::ReadableListableStorage;
 
 use crate::entry::EntryReader;
@@ -339,9 +337,9 @@ impl Store for LocalStore {
             id,
             self.root.display()
         );
-        let store = FilesystemStore::new(&dir)
+        let storage = crate::files::entry_storage(&dir)
             .with_context(|| format!("cannot open entry {}", dir.display()))?;
-        Ok((Arc::new(store), dir.display().to_string()))
+        Ok((storage, dir.display().to_string()))
     }
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
