@@ -232,6 +232,7 @@ pub(crate) fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
 impl LocalStore {
     /// A store rooted at `root` (created if missing).
     pub fn open(root: &Path) -> anyhow::Result<Self> {
+        crate::files::require_utf8_path(root)?;
         fs::create_dir_all(root)
             .with_context(|| format!("cannot create cache folder {}", root.display()))?;
         Ok(Self {
@@ -660,6 +661,22 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let store = LocalStore::open(dir.path()).unwrap();
         (dir, store)
+    }
+
+    /// A cache path that is not UTF-8 is refused when the cache opens, named (shown lossily),
+    /// not later by zarrs as "base path … is not valid".
+    #[cfg(unix)]
+    #[test]
+    fn a_cache_path_that_is_not_utf8_is_named() {
+        use std::os::unix::ffi::OsStrExt as _;
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join(std::ffi::OsStr::from_bytes(b"cache-\xff"));
+        let error = format!("{:#}", LocalStore::open(&cache).unwrap_err());
+        assert!(
+            error.contains("cache-\u{fffd} is not valid UTF-8"),
+            "{error}"
+        );
+        assert!(!cache.exists());
     }
 
     #[test]
