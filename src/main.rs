@@ -75,11 +75,11 @@ enum Command {
     /// frames, and an MP4 when ffmpeg is on PATH).
     Render {
         /// The train entry: its cache folder, its key or a unique key prefix.
-        #[arg(long)]
+        #[arg(long, value_parser = entry_spec)]
         avatar: String,
         /// An ingest entry (folder, key or key prefix) or a pose file (.npz with body_pose,
         /// global_orient, transl and optionally betas).
-        #[arg(long)]
+        #[arg(long, value_parser = entry_spec)]
         poses: String,
         /// View index of the avatar's training cameras.
         #[arg(long, default_value_t = 0)]
@@ -105,11 +105,11 @@ enum Command {
     /// them (they open in the common splat viewers and editors).
     Export {
         /// The train entry: its cache folder, its key or a unique key prefix.
-        #[arg(long)]
+        #[arg(long, value_parser = entry_spec)]
         avatar: String,
         /// An ingest entry (folder, key or key prefix) or a pose file (.npz with body_pose,
         /// global_orient, transl and optionally betas); without it, canonical.ply only.
-        #[arg(long)]
+        #[arg(long, value_parser = entry_spec)]
         poses: Option<String>,
         /// Output folder for canonical.ply and frame_NNNNN.ply.
         #[arg(long)]
@@ -128,16 +128,20 @@ enum Command {
         /// FILE.yaml:TRAIN_STAGE (its cached entry), unless --avatar names the entry.
         target: Option<String>,
         /// The train entry: its cache folder, its key or a unique key prefix.
-        #[arg(long, conflicts_with = "target")]
+        #[arg(long, conflicts_with = "target", value_parser = entry_spec)]
         avatar: Option<String>,
         /// Drive the avatar with these poses: an ingest entry (folder, key or key prefix) or
         /// a pose file (.npz); default: its trained sequence, with its ground-truth images.
-        #[arg(long)]
+        #[arg(long, value_parser = entry_spec)]
         poses: Option<String>,
         /// Address to listen on; anything but a loopback address exposes the viewer to the
-        /// network.
+        /// network, and needs --allow-remote.
         #[arg(long, default_value = "127.0.0.1")]
         host: String,
+        /// Allow a --host that is not a loopback address (the viewer has no password: anyone
+        /// who can reach the address can use it).
+        #[arg(long)]
+        allow_remote: bool,
         /// Port to listen on (0: a free port; the URL is printed).
         #[arg(long, default_value_t = 8080)]
         port: u16,
@@ -312,11 +316,13 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             avatar,
             poses,
             host,
+            allow_remote,
             port,
             device,
             max_size,
             sets,
         } => {
+            check_view_host(&host, allow_remote)?;
             let avatar = match (target, avatar) {
                 (_, Some(avatar)) => avatar,
                 (Some(target), None) => {
@@ -344,7 +350,22 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 max_size,
             };
             let viewer = seqavatar_viewer::Viewer::start(options)?;
-            println!("viewer: {} (Ctrl-C to stop)", viewer.url());
+            let address = viewer.address();
+            if !address.ip().is_loopback() {
+                eprintln!(
+                    "warning: listening on {address}{}: anyone who can reach it can use the \
+                     viewer, which has no password",
+                    if address.ip().is_unspecified() {
+                        " (every network interface)"
+                    } else {
+                        ""
+                    }
+                );
+            }
+            println!(
+                "viewer: {} (listening on {address}; Ctrl-C to stop)",
+                viewer.url()
+            );
             viewer.wait()?;
         }
         Command::Report { file, out, sets } => {
@@ -364,6 +385,40 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// An entry named on the command line (a cache entry folder, a key or a key prefix, or a
+/// pose file): an empty name is the prefix of every key, so it is refused.
+fn entry_spec(text: &str) -> Result<String, String> {
+    if text.trim().is_empty() {
+        return Err(
+            "an empty name would match every entry; give a cache entry folder, a key or a \
+             unique key prefix"
+                .to_owned(),
+        );
+    }
+    Ok(text.to_owned())
+}
+
+/// Whether `host` (a name or an address, IPv6 in brackets or not) is a loopback address.
+fn is_loopback_host(host: &str) -> bool {
+    host.eq_ignore_ascii_case("localhost")
+        || host
+            .trim_start_matches('[')
+            .trim_end_matches(']')
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+/// `pipeline view` listens beyond loopback only when asked to with `--allow-remote`.
+fn check_view_host(host: &str, allow_remote: bool) -> anyhow::Result<()> {
+    if !allow_remote && !is_loopback_host(host) {
+        anyhow::bail!(
+            "--host {host} is not a loopback address: the viewer would be reachable from the \
+             network, and it has no password; add --allow-remote to mean that"
+        );
+    }
+    Ok(())
+}
+
 fn main() -> ExitCode {
     // Before any thread allocates: training frees and re-allocates the same large buffers
     // every iteration, and returning them to the kernel cost 15-20% of its time.
@@ -374,5 +429,61 @@ fn main() -> ExitCode {
             eprintln!("error: {error:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(arguments: &[&str]) -> Result<Cli, String> {
+        Cli::try_parse_from(std::iter::once("pipeline").chain(arguments.iter().copied()))
+            .map_err(|error| error.to_string())
+    }
+
+    /// `render --avatar ''` once picked an entry (every key starts with ""): refused.
+    #[test]
+    fn an_empty_entry_name_is_refused() {
+        for arguments in [
+            &["render", "--avatar", "", "--poses", "abc", "--out", "o"][..],
+            &["render", "--avatar", "abc", "--poses", " ", "--out", "o"],
+            &["export", "--avatar", "", "--out", "o"],
+            &["view", "--avatar", ""],
+        ] {
+            let error = parse(arguments).unwrap_err();
+            assert!(
+                error.contains("an empty name would match every entry"),
+                "{error}"
+            );
+        }
+        parse(&["render", "--avatar", "ab", "--poses", "cd", "--out", "o"]).unwrap();
+    }
+
+    #[test]
+    fn viewing_beyond_loopback_needs_allow_remote() {
+        for host in ["127.0.0.1", "localhost", "::1", "[::1]", "127.0.0.2"] {
+            check_view_host(host, false).unwrap();
+        }
+        for host in ["0.0.0.0", "192.168.1.5", "::", "example.org"] {
+            let error = check_view_host(host, false).unwrap_err().to_string();
+            assert!(error.contains("--allow-remote"), "{error}");
+            check_view_host(host, true).unwrap();
+        }
+        let Cli {
+            command: Command::View { allow_remote, .. },
+            ..
+        } = parse(&[
+            "view",
+            "--avatar",
+            "k",
+            "--host",
+            "0.0.0.0",
+            "--allow-remote",
+        ])
+        .unwrap()
+        else {
+            panic!("not the view command");
+        };
+        assert!(allow_remote);
     }
 }

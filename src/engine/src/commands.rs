@@ -3,10 +3,8 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use anyhow::Context as _;
-use zarrs::filesystem::FilesystemStore;
 
 use crate::array::Element;
 use crate::entry::EntryReader;
@@ -232,9 +230,8 @@ fn resolve_target(
 }
 
 fn open_entry_folder(folder: &Path) -> anyhow::Result<EntryReader> {
-    let store = FilesystemStore::new(folder)
-        .with_context(|| format!("cannot open {}", folder.display()))?;
-    EntryReader::open(Arc::new(store), &folder.display().to_string())
+    let storage = crate::files::entry_storage(folder)?;
+    EntryReader::open(storage, &folder.display().to_string())
 }
 
 /// `pipeline inspect`.
@@ -781,7 +778,8 @@ mod tests {
         let chunk = entry.join("values/c/0");
         let original_chunk = std::fs::read(&chunk).unwrap();
         {
-            let storage = Arc::new(FilesystemStore::new(&entry).unwrap());
+            let storage =
+                std::sync::Arc::new(zarrs::filesystem::FilesystemStore::new(&entry).unwrap());
             let array = zarrs::array::Array::open(storage, "/values").unwrap();
             let mut values: Vec<f64> = array.retrieve_chunk(&[0]).unwrap();
             values[0] += 3.0;

@@ -50,7 +50,8 @@ pub fn stage_key(material: &KeyMaterial<'_>) -> String {
     hasher.finalize().to_hex().to_string()
 }
 
-/// Compact JSON with object keys sorted at every level, whatever the map implementation.
+/// Compact JSON with object keys sorted at every level, whatever the map implementation, and
+/// a negative zero written as `0.0`.
 pub fn canonical_json(value: &serde_json::Value) -> String {
     let mut text = String::new();
     write_canonical(value, &mut text);
@@ -82,6 +83,11 @@ fn write_canonical(value: &serde_json::Value, text: &mut String) {
                 write_canonical(item, text);
             }
             text.push(']');
+        }
+        // `-0.0` and `0.0` are the same value to every stage: one spelling, one key. (Other
+        // numbers keep serde_json's spelling, so no existing key changes.)
+        serde_json::Value::Number(number) if number.as_f64() == Some(0.0) && number.is_f64() => {
+            text.push_str("0.0");
         }
         other => text.push_str(&other.to_string()),
     }
@@ -150,7 +156,7 @@ pub struct FileDigests {
 impl FileDigests {
     /// Loads the memo at `memo_path` (a missing or unreadable memo starts empty).
     pub fn load(memo_path: &Path) -> Self {
-        let memo = fs::read(memo_path)
+        let memo = crate::files::read_regular_file(memo_path)
             .ok()
             .and_then(|bytes| serde_json::from_slice(&bytes).ok())
             .unwrap_or_default();
@@ -288,7 +294,8 @@ mod tests {
         assert_ne!(digests.digest(dataset.path()).unwrap(), before);
     }
 
-    /// `/dev/zero` and a FIFO as external inputs are refused from their metadata, at once.
+    /// `/dev/zero`, a FIFO and `/proc` files as external inputs are refused from their metadata,
+    /// at once.
     #[cfg(unix)]
     #[test]
     fn devices_and_fifos_are_not_hashed() {
@@ -308,6 +315,20 @@ mod tests {
             assert!(start.elapsed() < std::time::Duration::from_secs(1));
             assert!(error.contains("only regular files"), "{error}");
         }
+        // `/proc/self/pagemap` looks regular with size 0 and yields gigabytes: refused from
+        // its file system before a byte is hashed.
+        #[cfg(target_os = "linux")]
+        for name in ["/proc/self/pagemap", "/proc/self/status"] {
+            let start = std::time::Instant::now();
+            let error = format!("{:#}", digests.digest(Path::new(name)).unwrap_err());
+            assert!(
+                start.elapsed() < std::time::Duration::from_secs(1),
+                "{error}"
+            );
+            assert!(error.contains("kernel's proc file system"), "{error}");
+            assert!(error.contains(name), "{error}");
+        }
+        assert_eq!(digests.files_hashed(), 0);
     }
 
     fn key_of(config: serde_json::Value, inputs: &[&str], version: u32) -> String {
@@ -362,6 +383,25 @@ mod tests {
             hasher.update(field);
         }
         assert_eq!(key, hasher.finalize().to_hex().to_string());
+    }
+
+    /// `-0.0` and `0.0` give one key (the issue's "small one"); other numbers keep their
+    /// spelling, so keys of configs without a negative zero are unchanged.
+    #[test]
+    fn a_negative_zero_gives_the_key_of_zero() {
+        let negative: serde_json::Value =
+            serde_json::from_str(r#"{"x": -0.0, "y": [-0.0]}"#).unwrap();
+        let positive: serde_json::Value =
+            serde_json::from_str(r#"{"x": 0.0, "y": [0.0]}"#).unwrap();
+        assert_eq!(canonical_json(&negative), r#"{"x":0.0,"y":[0.0]}"#);
+        assert_eq!(key_of(negative, &[], 1), key_of(positive, &[], 1));
+        // From YAML too (how configs arrive).
+        let yaml: serde_json::Value = serde_saphyr::from_str("x: -0.0\ny: [-0.0]\n").unwrap();
+        assert_eq!(canonical_json(&yaml), r#"{"x":0.0,"y":[0.0]}"#);
+        assert_eq!(
+            canonical_json(&json!({"a": 0, "b": 0.5, "c": -1.5, "d": 1.0, "e": -3})),
+            r#"{"a":0,"b":0.5,"c":-1.5,"d":1.0,"e":-3}"#
+        );
     }
 
     #[test]

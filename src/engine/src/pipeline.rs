@@ -13,9 +13,6 @@ use crate::yaml_lines::LineMap;
 /// A pipeline file that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
-    // The cause is in the message, so it is not also a `source` (chains would repeat it).
-    #[error("{file}: cannot read: {error}")]
-    Read { file: String, error: std::io::Error },
     #[error("{file}:{line}: {message}")]
     At {
         file: String,
@@ -105,9 +102,20 @@ impl Pipeline {
         registry: &Registry,
         overrides: &[String],
     ) -> Result<Self, PipelineError> {
-        let text = std::fs::read_to_string(file).map_err(|error| PipelineError::Read {
+        // Through the checked open: a FIFO, a device or a `/proc` file as the pipeline is
+        // refused at once, and a file over the size bound is never read.
+        let bytes = crate::files::read_regular_file_at_most(
+            file,
+            crate::yaml_lines::MAX_YAML_BYTES as u64,
+            "a pipeline file",
+        )
+        .map_err(|error| PipelineError::General {
             file: file.display().to_string(),
-            error,
+            message: format!("cannot read: {error:#}"),
+        })?;
+        let text = String::from_utf8(bytes).map_err(|error| PipelineError::General {
+            file: file.display().to_string(),
+            message: format!("not UTF-8 text: {error}"),
         })?;
         Self::parse(&text, file, registry, overrides)
     }
@@ -725,6 +733,8 @@ fn parse_override(
     let value = if value_text.trim().is_empty() {
         serde_json::Value::String(String::new())
     } else {
+        crate::yaml_lines::check_bounds(value_text)
+            .map_err(|error| format!("the value is refused: {}", error.message))?;
         serde_saphyr::from_str::<serde_json::Value>(value_text)
             .map_err(|error| format!("the value is not valid YAML: {error}"))?
     };

@@ -6,10 +6,8 @@
 use std::fs::{self, File, OpenOptions};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use anyhow::Context as _;
-use zarrs::filesystem::FilesystemStore;
 use zarrs::storage::ReadableListableStorage;
 
 use crate::entry::EntryReader;
@@ -234,6 +232,7 @@ pub(crate) fn check_component(what: &str, value: &str) -> anyhow::Result<()> {
 impl LocalStore {
     /// A store rooted at `root` (created if missing).
     pub fn open(root: &Path) -> anyhow::Result<Self> {
+        crate::files::require_utf8_path(root)?;
         fs::create_dir_all(root)
             .with_context(|| format!("cannot create cache folder {}", root.display()))?;
         Ok(Self {
@@ -339,9 +338,9 @@ impl Store for LocalStore {
             id,
             self.root.display()
         );
-        let store = FilesystemStore::new(&dir)
+        let storage = crate::files::entry_storage(&dir)
             .with_context(|| format!("cannot open entry {}", dir.display()))?;
-        Ok((Arc::new(store), dir.display().to_string()))
+        Ok((storage, dir.display().to_string()))
     }
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
@@ -662,6 +661,22 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let store = LocalStore::open(dir.path()).unwrap();
         (dir, store)
+    }
+
+    /// A cache path that is not UTF-8 is refused when the cache opens, named (shown lossily),
+    /// not later by zarrs as "base path … is not valid".
+    #[cfg(unix)]
+    #[test]
+    fn a_cache_path_that_is_not_utf8_is_named() {
+        use std::os::unix::ffi::OsStrExt as _;
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join(std::ffi::OsStr::from_bytes(b"cache-\xff"));
+        let error = format!("{:#}", LocalStore::open(&cache).unwrap_err());
+        assert!(
+            error.contains("cache-\u{fffd} is not valid UTF-8"),
+            "{error}"
+        );
+        assert!(!cache.exists());
     }
 
     #[test]

@@ -356,8 +356,7 @@ impl Bucket {
                 let file = source.join(name);
                 let target = format!("{relative}/{name}");
                 async move {
-                    let bytes = std::fs::read(&file)
-                        .with_context(|| format!("cannot read {}", file.display()))?;
+                    let bytes = crate::files::read_regular_file(&file)?;
                     let size = bytes.len() as u64;
                     let path = self.path(&target);
                     self.store

@@ -25,7 +25,6 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
-use zarrs::filesystem::FilesystemStore;
 use zarrs::storage::ReadableListableStorage;
 
 use bucket::Bucket;
@@ -268,10 +267,7 @@ impl RemoteStore {
         fs::create_dir_all(&temp).with_context(|| format!("cannot create {}", temp.display()))?;
         let result = (|| -> anyhow::Result<()> {
             let bytes = self.bucket.download_files(&data, &names, &temp)?;
-            let storage: ReadableListableStorage = Arc::new(
-                FilesystemStore::new(&temp)
-                    .with_context(|| format!("cannot open {}", temp.display()))?,
-            );
+            let storage: ReadableListableStorage = crate::files::entry_storage(&temp)?;
             let reader = EntryReader::open(storage, &location)?;
             anyhow::ensure!(
                 reader.kind() == id.kind && reader.key() == id.key,
