@@ -191,7 +191,14 @@ impl TensorCores {
     /// The cooperative-matrix shape the kernel uses: M = N = K = 16.
     pub const SHAPE: u32 = 16;
 
+    /// `SEQAVATAR_TENSOR_CORES=off` opens the device without cooperative matrices. With
+    /// them wgpu declares the Vulkan memory model for every kernel, not only the tensor-core
+    /// one; whether that changes the f32 kernels' speed on hardware is measured by comparing
+    /// runs with and without this variable (`.ci/gpu-check`).
     fn of_adapter(adapter: &wgpu::Adapter) -> Option<Self> {
+        if std::env::var("SEQAVATAR_TENSOR_CORES").is_ok_and(|v| v == "off") {
+            return None;
+        }
         let needed = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX | wgpu::Features::SHADER_F16;
         if !adapter.features().contains(needed) {
             return None;
