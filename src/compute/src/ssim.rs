@@ -65,6 +65,43 @@ fn blur_same(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> Vec<
     out
 }
 
+/// The blurred local statistics of one plane pair: means `mu_x`, `mu_y` and second moments
+/// `E[x^2]`, `E[y^2]`, `E[xy]` under the SSIM window.
+struct LocalMoments {
+    mu_x: Vec<f64>,
+    mu_y: Vec<f64>,
+    e_xx: Vec<f64>,
+    e_yy: Vec<f64>,
+    e_xy: Vec<f64>,
+}
+
+impl LocalMoments {
+    fn of(xs: &[f64], ys: &[f64], width: usize, height: usize, kernel: &[f64]) -> Self {
+        let sq = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
+        Self {
+            mu_x: blur_same(xs, width, height, kernel),
+            mu_y: blur_same(ys, width, height, kernel),
+            e_xx: blur_same(&sq(xs, xs), width, height, kernel),
+            e_yy: blur_same(&sq(ys, ys), width, height, kernel),
+            e_xy: blur_same(&sq(xs, ys), width, height, kernel),
+        }
+    }
+
+    /// The four factors of pixel `i`'s SSIM `a1 a2 / (b1 b2)`: `(a1, a2, b1, b2)`.
+    fn factors(&self, i: usize) -> (f64, f64, f64, f64) {
+        let (m, k) = (self.mu_x[i], self.mu_y[i]);
+        let sxx = self.e_xx[i] - m * m;
+        let syy = self.e_yy[i] - k * k;
+        let sxy = self.e_xy[i] - m * k;
+        (
+            2.0 * m * k + SSIM_C1,
+            2.0 * sxy + SSIM_C2,
+            m * m + k * k + SSIM_C1,
+            sxx + syy + SSIM_C2,
+        )
+    }
+}
+
 /// The SSIM map of three planes: per plane, the local SSIM of every pixel (the values whose
 /// mean over pixels and planes [`ssim_planes`] returns), for means over part of an image
 /// (eval's garment region).
@@ -76,24 +113,10 @@ pub fn ssim_map(
 ) -> [Vec<f64>; 3] {
     let kernel = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
     std::array::from_fn(|c| {
-        let (xs, ys) = (&x[c], &y[c]);
-        let mu_x = blur_same(xs, width, height, &kernel);
-        let mu_y = blur_same(ys, width, height, &kernel);
-        let sq = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
-        let e_xx = blur_same(&sq(xs, xs), width, height, &kernel);
-        let e_yy = blur_same(&sq(ys, ys), width, height, &kernel);
-        let e_xy = blur_same(&sq(xs, ys), width, height, &kernel);
-        (0..xs.len())
+        let moments = LocalMoments::of(&x[c], &y[c], width, height, &kernel);
+        (0..x[c].len())
             .map(|i| {
-                // The same expression, term for term, as in `ssim_planes`.
-                let (m, k) = (mu_x[i], mu_y[i]);
-                let sxx = e_xx[i] - m * m;
-                let syy = e_yy[i] - k * k;
-                let sxy = e_xy[i] - m * k;
-                let a1 = 2.0 * m * k + SSIM_C1;
-                let a2 = 2.0 * sxy + SSIM_C2;
-                let b1 = m * m + k * k + SSIM_C1;
-                let b2 = sxx + syy + SSIM_C2;
+                let (a1, a2, b1, b2) = moments.factors(i);
                 a1 * a2 / (b1 * b2)
             })
             .collect()
@@ -112,26 +135,15 @@ pub fn ssim_planes(
     let mut total = 0.0;
     let grads = std::array::from_fn(|c| {
         let (xs, ys) = (&x[c], &y[c]);
-        let mu_x = blur_same(xs, width, height, &kernel);
-        let mu_y = blur_same(ys, width, height, &kernel);
-        let sq = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).collect::<Vec<_>>();
-        let e_xx = blur_same(&sq(xs, xs), width, height, &kernel);
-        let e_yy = blur_same(&sq(ys, ys), width, height, &kernel);
-        let e_xy = blur_same(&sq(xs, ys), width, height, &kernel);
+        let moments = LocalMoments::of(xs, ys, width, height, &kernel);
         // Per-pixel partial derivatives of S (times dMean/dS = 1/(3n)) with respect to
         // mu_x, E[x^2] and E[xy], the three blurred quantities that depend on x.
         let mut d_mu = vec![0.0; xs.len()];
         let mut d_exx = vec![0.0; xs.len()];
         let mut d_exy = vec![0.0; xs.len()];
         for i in 0..xs.len() {
-            let (m, k) = (mu_x[i], mu_y[i]);
-            let sxx = e_xx[i] - m * m;
-            let syy = e_yy[i] - k * k;
-            let sxy = e_xy[i] - m * k;
-            let a1 = 2.0 * m * k + SSIM_C1;
-            let a2 = 2.0 * sxy + SSIM_C2;
-            let b1 = m * m + k * k + SSIM_C1;
-            let b2 = sxx + syy + SSIM_C2;
+            let (m, k) = (moments.mu_x[i], moments.mu_y[i]);
+            let (a1, a2, b1, b2) = moments.factors(i);
             let s = a1 * a2 / (b1 * b2);
             total += s;
             let inv = 1.0 / (b1 * b2);

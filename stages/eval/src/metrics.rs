@@ -267,10 +267,15 @@ pub fn psnr_ssim(pair: &PreparedPair) -> Result<(f64, f64), MetricError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn image(width: usize, height: usize, value: impl Fn(usize, usize, usize) -> f32) -> ImageF32 {
+    /// A test image whose channel `c` at `(x, y)` is `value(x, y, c)`.
+    pub(crate) fn image(
+        width: usize,
+        height: usize,
+        value: impl Fn(usize, usize, usize) -> f32,
+    ) -> ImageF32 {
         let mut data = Vec::with_capacity(width * height * 3);
         for y in 0..height {
             for x in 0..width {

@@ -245,19 +245,8 @@ pub fn region_means<'a>(scores: impl IntoIterator<Item = &'a RegionScore>) -> Op
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::metrics::tests::image;
     use crate::metrics::{psnr, ssim};
-
-    fn image(width: usize, height: usize, value: impl Fn(usize, usize, usize) -> f32) -> ImageF32 {
-        let mut data = Vec::with_capacity(width * height * 3);
-        for y in 0..height {
-            for x in 0..width {
-                for c in 0..3 {
-                    data.push(value(x, y, c));
-                }
-            }
-        }
-        ImageF32::from_f32("test", width, height, data).unwrap()
-    }
 
     fn mask(width: usize, height: usize, inside: impl Fn(usize, usize) -> u8) -> Mask {
         let data = (0..width * height)
