@@ -9,7 +9,6 @@ use std::time::{Duration, Instant};
 use seqavatar_avatar::TrainedAvatar;
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::lpips::LpipsNet;
-use seqavatar_compute::nn::Precision;
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
 };
@@ -33,7 +32,10 @@ stages:
 "#;
 
 /// JSON, which is also a YAML flow mapping.
-const TRAIN_CONFIG: &str = r#"{"preset": "fast", "device": "cpu", "seed": 3, "iterations": ITERATIONS, "motion_context": "none", "pose_refiner": false, "lbs_offsets": false, "checkpoint_every": 10, "resolution_scale": 1.0, "sh_degree": 1, "sh_degree_interval": 20, "learning_rates": {"position_initial": 0.0016, "position_final": 0.000016}}"#;
+/// `precision: f32`: the gpu runs are compared with `cpu` at f32's tolerances; the
+/// tensor-core path (`mixed` on adapters that have it) is tested against f32 in the compute
+/// crate (`nn::gpu` tests).
+const TRAIN_CONFIG: &str = r#"{"preset": "fast", "device": "cpu", "precision": "f32", "seed": 3, "iterations": ITERATIONS, "motion_context": "none", "pose_refiner": false, "lbs_offsets": false, "checkpoint_every": 10, "resolution_scale": 1.0, "sh_degree": 1, "sh_degree_interval": 20, "learning_rates": {"position_initial": 0.0016, "position_final": 0.000016}}"#;
 
 fn pipeline_text(iterations: u32) -> String {
     format!(
@@ -137,11 +139,7 @@ fn tiny_data(cache: &Path, iterations: u32) -> (TrainingData, TrainConfig) {
     let motion = entry(cache, &reports, "motion");
     let raw: serde_json::Value =
         serde_json::from_str(&TRAIN_CONFIG.replace("ITERATIONS", &iterations.to_string())).unwrap();
-    let mut config = TrainConfig::resolve(&raw).unwrap();
-    // The gpu runs are compared with `cpu` at f32's tolerances: the tensor-core path
-    // (`precision: mixed` on adapters that have it) is tested against f32 in the compute
-    // crate (`nn::gpu` tests).
-    config.precision = Some(Precision::F32);
+    let config = TrainConfig::resolve(&raw).unwrap();
     let data = TrainingData::read(&ingest, &ingest, &motion, config.resolution_scale).unwrap();
     (data, config)
 }
