@@ -183,8 +183,8 @@ fn zju_mocap_reads_cameras_images_masks_and_fits() {
 /// not 10, torso skin, nor 13 face or 14 left arm). The committed fixture's masks are all
 /// label 7 (coat), so the region is the whole person there; a label image written here as
 /// the fixture script writes its masks (an 8-bit grey PNG of labels) checks each label. With
-/// `mask/` (0/1) there is no garment region; a value that is no CIHP label is an error naming
-/// the file.
+/// `mask/` (0/1) there is no garment region; a file holding a value that is no CIHP label
+/// loads with an empty region.
 #[test]
 fn zju_mocap_garment_region_is_the_cihp_clothing_labels() {
     let dir = dataset_fixture("zju");
@@ -225,13 +225,24 @@ fn zju_mocap_garment_region_is_the_cihp_clothing_labels() {
     // `read_image` gives the same image and mask.
     assert_eq!(reader.read_image(1, 2).unwrap(), image);
 
-    // Not a CIHP label.
-    let bad = image::GrayImage::from_fn(40, 32, |x, _| image::Luma([if x == 3 { 200 } else { 5 }]));
-    bad.save(&path).unwrap();
-    assert_error_mentions(
-        reader.read_image_with_garment(1, 2),
-        &["mask_cihp/Camera_B2/000002.png", "200", "CIHP part label"],
+    // A file holding a value that is no CIHP label (here a 0/255 matte with one label-5
+    // column) still loads: the person is every non-zero pixel, the garment region is empty.
+    let matte = image::GrayImage::from_fn(40, 32, |x, _| {
+        image::Luma([match x {
+            0..=9 => 0,
+            10 => 5,
+            _ => 255,
+        }])
+    });
+    matte.save(&path).unwrap();
+    let (image, garment) = reader.read_image_with_garment(1, 2).unwrap();
+    assert!(
+        garment.unwrap().iter().all(|&v| v == 0),
+        "no garment region"
     );
+    assert_eq!(image.mask.get_pixel(5, 5).0[0], 0);
+    assert_eq!(image.mask.get_pixel(10, 5).0[0], 255);
+    assert_eq!(image.mask.get_pixel(20, 5).0[0], 255);
 
     // `mask/` (0/1): no garment region.
     std::fs::rename(root.join("mask_cihp"), root.join("mask")).unwrap();

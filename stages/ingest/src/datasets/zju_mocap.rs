@@ -11,8 +11,8 @@
 //! - Mask files store labels (0/1, or a part id for `mask_cihp`): any non-zero is foreground
 //!   (255).
 //! - With `mask_cihp/`, the garment region of an image is the union of the CIHP clothing
-//!   labels [`CIHP_GARMENT_LABELS`] (255 inside, 0 outside); a value above 19 (not a CIHP
-//!   label) is an error naming the file. `mask/` has no part labels, so no garment region.
+//!   labels [`CIHP_GARMENT_LABELS`] (255 inside, 0 outside); a file holding a value above 19
+//!   (no CIHP label) loads with an empty garment region and a warning naming it. `mask/` has no part labels, so no garment region.
 //! - A frame's number is its image file stem (`000123.jpg` -> 123); fits are
 //!   `new_params/<number>.npy`.
 
@@ -421,13 +421,20 @@ impl DatasetReader for ZjuMocap {
             return Ok((SourceImage { rgb, mask }, None));
         }
         let labels = decode_mask(&bytes, &source, false, rgb.dimensions())?;
-        if let Some(bad) = labels.iter().find(|label| **label > CIHP_MAX_LABEL) {
-            bail!(
-                "{source}: holds the value {bad}, not a CIHP part label (0..={CIHP_MAX_LABEL}); \
-                 `mask_cihp/` files must be grey PNGs of part labels"
+        // A file that is no label image (a 0/255 matte, a palette written as grey) still
+        // loads: its non-zero pixels are the person, and its garment region is empty (eval
+        // counts such images apart), said here with the file's name.
+        let non_labels = labels.iter().filter(|l| **l > CIHP_MAX_LABEL).count();
+        let garment = if non_labels > 0 {
+            eprintln!(
+                "[ingest] warning: {source}: {non_labels} pixels hold values above \
+                 {CIHP_MAX_LABEL}, which are no CIHP part labels; the image's garment region \
+                 is left empty"
             );
-        }
-        let garment = cihp_garment_mask(&labels);
+            image::GrayImage::new(labels.width(), labels.height())
+        } else {
+            cihp_garment_mask(&labels)
+        };
         let mut mask = labels;
         for value in mask.iter_mut() {
             if *value != 0 {
