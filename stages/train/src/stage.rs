@@ -810,10 +810,10 @@ mod tests {
         // The default split: 48 training views on every frame, 16 test views on every other.
         assert_eq!(images.count, 48 * 1000 + 16 * 500);
         let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
-        // The `fast` preset trains at half resolution: 1024 x 1024, RGB and mask bytes.
-        assert_eq!(config.resolution_scale, 0.5);
+        // The demo trains at full resolution: 2048 x 2048, RGB and mask bytes.
+        assert_eq!(config.resolution_scale, 1.0);
         let estimate = config.run_memory_estimate_bytes(Some(&images));
-        assert!(estimate > images.count * 1024 * 1024 * 4, "{estimate}");
+        assert!(estimate > images.count * 2048 * 2048 * 4, "{estimate}");
         let error = config.check_memory(Some(&images), 16 << 30).unwrap_err();
         for field in [
             "dataset.cameras",
