@@ -1,4 +1,4 @@
-// Device-resident motion inputs of the avatar (stages/avatar/src/resident/motion.rs), f32:
+// Device-resident motion inputs of the avatar (src/avatar/src/resident/motion.rs), f32:
 // the frame's skeleton-motion window (motion::schema::MotionTrack::gather), the k nearest
 // template vertices of query points (motion::knn::KnnGrid::query_all: sorted by squared
 // distance, then index) and the velocity gather (avatar::knn_velocity).

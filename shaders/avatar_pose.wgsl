@@ -2,7 +2,7 @@
 // rotations refined by the pose refiner, forward kinematics, the target joint transforms
 // with the frame's world transform, the per-vertex rest offsets (shape and pose blend
 // shapes), and the backward of all of it to the refiner's matrices. The maths is
-// `BodyRig::pose_with_chain` and `BodyRig::pose_backward` (stages/avatar/src/rig.rs), in f32.
+// `BodyRig::pose_with_chain` and `BodyRig::pose_backward` (src/avatar/src/rig.rs), in f32.
 //
 // Matrices are row-major in every buffer: a 3 x 3 is `[r00 r01 r02 r10 ... r22]`, a 3 x 4
 // transform `[r00 r01 r02 t0 r10 ... t2]`. WGSL's `mat3x3f` is column-major: `m[c][r]` is

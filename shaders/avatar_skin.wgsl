@@ -1,5 +1,5 @@
-// Device-resident skinning of the avatar's Gaussians (stages/avatar/src/resident/skinning.rs),
-// f32, with the maths of stages/avatar/src/skinning.rs (`skin_forward`, `skin_backward`, the
+// Device-resident skinning of the avatar's Gaussians (src/avatar/src/resident/skinning.rs),
+// f32, with the maths of src/avatar/src/skinning.rs (`skin_forward`, `skin_backward`, the
 // oracle) and of `avatar::deform` (heads to deformed canonical Gaussians, activations).
 //
 // Layouts (row-major, the cpu layouts): positions N x 3, quaternions N x 4 [w x y z],

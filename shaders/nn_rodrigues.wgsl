@@ -1,6 +1,6 @@
 // The pose refiner's regularised Rodrigues map and its backward (the cpu twins are
 // `regularised_rodrigues` / `regularised_rodrigues_backward` in
-// stages/avatar/src/model/pose_refiner.rs):
+// src/avatar/src/model/pose_refiner.rs):
 //   theta = sqrt(epsilon + |v|^2),  k = v / theta,
 //   R = cos(theta) I + (1 - cos(theta)) k k^T + sin(theta) [k]x      (row-major 3 x 3)
 // One thread per rotation vector; `vectors` is count x 3, `matrices` count x 9. The grid may

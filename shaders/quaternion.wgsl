@@ -1,5 +1,5 @@
 // Rotation matrices of `w x y z` quaternions (a vec4 holds w in .x) and their backward, as
-// core::rotation::quat_wxyz_to_matrix and stages/avatar/src/skinning.rs
+// core::rotation::quat_wxyz_to_matrix and src/avatar/src/skinning.rs
 // quat_matrix_backward, included by kernels with `//#include "quaternion.wgsl"`
 // (src/compute/src/backend/shaders.rs). The including kernel also includes "finite.wgsl".
 // WGSL matrices are column-major: `m[c][r]` is row r, column c.

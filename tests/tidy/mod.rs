@@ -33,7 +33,7 @@ fn the_backend_is_chosen_in_one_place() {
     let mut files = Vec::new();
     rust_files(&root.join("stages"), &mut files);
     assert!(files.len() > 50, "only {} files under stages/", files.len());
-    let chooser = root.join("stages/avatar/src/device.rs");
+    let chooser = root.join("src/avatar/src/device.rs");
     let mut elsewhere = Vec::new();
     let mut in_chooser = 0;
     for file in &files {
@@ -138,7 +138,7 @@ fn path_exists(root: &Path, path: &str) -> bool {
 
 /// ARCHITECTURE.md stays true: its code map has an entry for every workspace crate and
 /// every top-level folder, and every repository path it names (a code span starting with a
-/// top-level folder, e.g. `stages/avatar/src/device.rs`; `<placeholders>` are not paths)
+/// top-level folder, e.g. `src/avatar/src/device.rs`; `<placeholders>` are not paths)
 /// exists.
 #[test]
 fn the_code_map_names_every_crate_and_folder_and_only_paths_that_exist() {
