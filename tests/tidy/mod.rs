@@ -34,7 +34,11 @@ fn the_backend_is_chosen_in_one_place() {
     let mut files = Vec::new();
     rust_files(&root.join("stages"), &mut files);
     rust_files(&root.join("src/avatar"), &mut files);
-    assert!(files.len() > 50, "only {} files under stages/ and src/avatar/", files.len());
+    assert!(
+        files.len() > 50,
+        "only {} files under stages/ and src/avatar/",
+        files.len()
+    );
     let chooser = root.join("src/avatar/src/device.rs");
     let mut elsewhere = Vec::new();
     let mut in_chooser = 0;
