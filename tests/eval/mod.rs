@@ -13,15 +13,15 @@ use std::path::Path;
 
 use seqavatar_avatar::ply::{cloud_to_world, read_ply};
 use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_compute::lpips::{LpipsNet, seeded};
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, RunOptions, StageReport, Store, run,
 };
-use seqavatar_eval::animate::drive_avatar;
-use seqavatar_eval::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
-use seqavatar_eval::avatar_render::AvatarRenderer;
-use seqavatar_eval::evaluate::ViewRenderer;
-use seqavatar_eval::export::{ExportOptions, export_avatar};
-use seqavatar_eval::lpips::{LpipsNet, seeded};
+use seqavatar_evaluation::animate::drive_avatar;
+use seqavatar_evaluation::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
+use seqavatar_evaluation::avatar_render::AvatarRenderer;
+use seqavatar_evaluation::evaluate::ViewRenderer;
+use seqavatar_evaluation::export::{ExportOptions, export_avatar};
 
 use crate::support::registry;
 
@@ -82,7 +82,7 @@ fn missing_inputs_are_found_when_the_pipeline_loads() {
     let error = parse(&multiscale.replace(eval_inputs, "inputs: [train, ingest]")).unwrap_err();
     assert!(
         error.contains("stage \"eval\" (kind eval): needs an input of kind motion")
-            && error.contains("Multiscale"),
+            && error.contains("motion context multiscale"),
         "{error}"
     );
     // An avatar without skeleton motion renders without the motion entry.
@@ -279,39 +279,41 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     assert!(!eval_lpips.array_names().contains(&"lpips_vgg".to_owned()));
     assert!(!eval_lpips.array_names().contains(&"speed_fps".to_owned()));
     {
-        use seqavatar_eval::evaluate::ViewRenderer;
+        use seqavatar_evaluation::evaluate::ViewRenderer;
         let mut renderer = AvatarRenderer::open(&train, &ingest, &ingest, None, &cpu()).unwrap();
-        let testset = seqavatar_eval::testset::TestSet::read(&ingest).unwrap();
+        let testset = seqavatar_evaluation::testset::TestSet::read(&ingest).unwrap();
         let test = testset.images[1];
         let render = renderer
             .render(test.frame, &testset.cameras[test.view])
             .unwrap();
         let (truth, mask) = testset.load(&ingest, &test).unwrap();
-        let pair = seqavatar_eval::metrics::Protocol::default()
+        let pair = seqavatar_evaluation::metrics::Protocol::default()
             .prepare(&render, &truth, &mask)
             .unwrap();
-        let model = seqavatar_eval::lpips::Lpips::new(
-            seqavatar_eval::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
+        let model = seqavatar_compute::lpips::Lpips::new(
+            seqavatar_compute::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
             &cpu(),
         )
         .unwrap();
         let direct = model.distances(&[(&pair.render, &pair.truth)]).unwrap()[0].total;
         assert!((direct - lpips[1]).abs() < 1e-9, "{direct} vs {}", lpips[1]);
-        let direct_psnr = seqavatar_eval::metrics::psnr(&pair.render, &pair.truth).unwrap();
+        let direct_psnr = seqavatar_evaluation::metrics::psnr(&pair.render, &pair.truth).unwrap();
         assert!((direct_psnr - psnr[1]).abs() < 1e-9);
         // The garment region's figures: the region math on the same pair and the ingest
         // entry's garment mask.
         let garment = testset.load_garment(&ingest, &test).unwrap().unwrap();
-        let region_psnr = seqavatar_eval::region::region_psnr(&pair.render, &pair.truth, &garment)
-            .unwrap()
-            .unwrap();
+        let region_psnr =
+            seqavatar_evaluation::region::region_psnr(&pair.render, &pair.truth, &garment)
+                .unwrap()
+                .unwrap();
         let stored = eval_lpips.read::<f64>("garment_psnr").unwrap().data;
         assert!(
             (region_psnr - stored[1]).abs() < 1e-9,
             "{region_psnr} vs {}",
             stored[1]
         );
-        let crop = seqavatar_eval::region::region_lpips_crop(&garment, LpipsNet::Alex).unwrap();
+        let crop =
+            seqavatar_evaluation::region::region_lpips_crop(&garment, LpipsNet::Alex).unwrap();
         let direct = model
             .distances(&[(&pair.render.crop(crop), &pair.truth.crop(crop))])
             .unwrap()[0]
@@ -375,7 +377,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let lpips_summary = eval_lpips.attribute("summary").unwrap();
     assert_eq!(
         lpips_summary["garment_lpips"].as_str(),
-        Some(seqavatar_eval::region::REGION_LPIPS_METHOD)
+        Some(seqavatar_evaluation::region::REGION_LPIPS_METHOD)
     );
 
     // Another camera rig, another body model: clear errors naming both entries.
@@ -396,7 +398,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let registry = registry();
     let store = LocalStore::open(&cache).unwrap();
     let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
-    let path = seqavatar_eval::pipeline_report::write_report_for(
+    let path = seqavatar_evaluation::pipeline_report::write_report_for(
         &registry,
         &pipeline,
         &store,
@@ -505,7 +507,8 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         &cpu(),
     )
     .unwrap();
-    let camera = seqavatar_ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
+    let camera =
+        seqavatar_schema::ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
     let raster = seqavatar_compute::splat::RasterOptions {
         background: driven.renderer.avatar.background,
         smooth_cutoff: false,
@@ -585,7 +588,7 @@ fn fixture(name: &str) -> std::path::PathBuf {
 /// Pose files in the dataset layout (stages/eval/tests/fixtures/make_poses.py); bad ones name the array.
 #[test]
 fn pose_files_are_read_and_checked() {
-    use seqavatar_eval::animate::read_pose_file;
+    use seqavatar_evaluation::animate::read_pose_file;
     let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5]).unwrap();
     assert_eq!(params.len(), 3);
     assert_eq!(params[2].world_translation.to_array(), [6.0, 7.0, 8.0]);

@@ -2,22 +2,8 @@
 //! networks, as stored in a `train` entry, and its render path, which is exactly the
 //! training forward pass (networks, skinning, splatting) without gradients.
 //!
-//! # Entry arrays written by [`TrainedAvatar::write`]
-//!
-//! - `gaussian_xyz` f64 `(gaussian, xyz)`: canonical (big-pose) centres, metres.
-//! - `gaussian_sh` f64 `(gaussian, coeff, rgb)`: 16 SH coefficients per channel (degree 3
-//!   storage; the attribute `sh_degree` says how many are active).
-//! - `gaussian_opacity` f64 `(gaussian)`: opacity logits (activated with a sigmoid).
-//! - `gaussian_log_scale` f64 `(gaussian, xyz)`; `gaussian_rotation` f64 `(gaussian, wxyz)`.
-//! - The body model arrays of the ingest schema (`body_model_*`), so that the entry renders
-//!   on its own.
-//! - `network/<name>` f64: network parameters by their stable names (when the motion context
-//!   or the refiners use networks), the f32 values the networks train and render with.
-//!
-//! Attributes: `avatar` (the [`AvatarConfig`]), `sh_degree`, `scales` (raw temporal
-//! scales fed to the networks, largest first), `sequence_length`, `background`,
-//! `body_model_kind`, `extent`, `motion_joints` (with networks). The train stage adds its
-//! own `config` (the resolved train config, which nothing here reads).
+//! Its entry arrays and attributes ([`TrainedAvatar::write`], [`TrainedAvatar::load`]) are
+//! listed in `seqavatar_schema::train` (docs/schema.md).
 
 use anyhow::Context;
 use seqavatar_compute::backend::Backend;
@@ -26,10 +12,10 @@ use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_coun
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_engine::{EntryReader, EntryWriter};
-use seqavatar_ingest::schema::write_body_model;
+use seqavatar_schema::ingest::write_body_model;
 
-use seqavatar_motion::knn::{KnnGrid, as_points};
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_knn::{KnnGrid, as_points};
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::config::AvatarConfig;
 use crate::device::{AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend};
@@ -655,7 +641,7 @@ impl TrainedAvatar {
             log_scale: read("gaussian_log_scale", &[n, 3])?,
             rotation: read("gaussian_rotation", &[n, 4])?,
         };
-        let model = seqavatar_ingest::read_body_model(entry)
+        let model = seqavatar_schema::ingest::read_body_model(entry)
             .with_context(|| format!("entry {location}: body model"))?;
         let rig = BodyRig::new(model)?;
         let networks = if needs_networks(&config) {

@@ -22,8 +22,8 @@ use seqavatar_compute::nn::{NnScalar, Precision};
 use seqavatar_compute::splat::{RasterOptions, SplatGradients};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
-use seqavatar_motion::knn::KnnGrid;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_knn::KnnGrid;
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::avatar::{Deformed, TrainedAvatar, knn_velocity, to_f64, to_scalar};
 use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};

@@ -9,7 +9,7 @@ use seqavatar_compute::backend::Backend;
 use seqavatar_compute::splat::RenderedImage;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::avatar::{FrameInputs, TrainedAvatar, splat_on};
 use crate::device::{RenderPath, render_path};

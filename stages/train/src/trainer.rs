@@ -30,7 +30,7 @@ use seqavatar_avatar::avatar::{
 use seqavatar_avatar::device::{AvatarBackend, avatar_backend};
 use seqavatar_avatar::model::{NetworkConfig, NetworkGroup, Networks};
 use seqavatar_avatar::rig::{FramePose, PoseChain};
-use seqavatar_motion::knn::{KnnGrid, MovingKnn, as_points, knn_brute_force};
+use seqavatar_knn::{KnnGrid, MovingKnn, as_points, knn_brute_force};
 
 use crate::checkpoint::{Checkpoint, Tensor};
 use crate::config::TrainConfig;

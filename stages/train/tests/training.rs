@@ -169,8 +169,8 @@ fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
     // The entry carries the ingest cameras.
     let ingest = entry(dir.path(), &reports, "ingest");
     assert_eq!(
-        seqavatar_ingest::read_cameras(&train).unwrap(),
-        seqavatar_ingest::read_cameras(&ingest).unwrap()
+        seqavatar_schema::ingest::read_cameras(&train).unwrap(),
+        seqavatar_schema::ingest::read_cameras(&ingest).unwrap()
     );
     // The stored avatar renders, and its pictures draw.
     let avatar = TrainedAvatar::load(&train).unwrap();

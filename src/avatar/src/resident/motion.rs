@@ -21,8 +21,8 @@ use std::borrow::Cow;
 use std::sync::Arc;
 
 use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
-use seqavatar_motion::knn::{KnnGrid, as_points};
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_knn::{KnnGrid, as_points};
+use seqavatar_schema::motion::MotionTrack;
 
 const KNN_WGSL: &str = include_str!("../../../../shaders/avatar_knn.wgsl");
 
@@ -487,7 +487,7 @@ mod tests {
     };
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::rng::SplitMix64 as Rng;
-    use seqavatar_motion::schema::FrameAxis;
+    use seqavatar_schema::motion::FrameAxis;
 
     /// f32 rounding, back in f64: the values the device holds.
     fn round(values: &[f64]) -> Vec<f64> {

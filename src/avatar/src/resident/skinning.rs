@@ -596,7 +596,7 @@ mod tests {
     use seqavatar_compute::splat::sh_coefficient_count;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::rng::SplitMix64 as Rng;
-    use seqavatar_motion::knn::{KnnGrid, as_points};
+    use seqavatar_knn::{KnnGrid, as_points};
 
     /// f32 rounding, back in f64: the values the device holds, for the f64 oracle.
     fn round(values: &[f64]) -> Vec<f64> {
