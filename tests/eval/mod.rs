@@ -480,6 +480,15 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let first = image::open(&summary.frames[0]).unwrap().to_rgb8();
     let last = image::open(&summary.frames[2]).unwrap().to_rgb8();
     assert_ne!(first, last, "the swing moves the legs between frames");
+    // A pose file declaring 100 000 frames: `--max-frames` cuts it before any frame's
+    // parameters are built.
+    let long = RenderOptions {
+        poses: PoseSource::File(fixture("poses_long.npz")),
+        out: dir.path().join("render_long"),
+        max_frames: 2,
+        ..options.clone()
+    };
+    assert_eq!(render_poses(&cache, &long).unwrap().frames.len(), 2);
 
     // `pipeline export`: canonical and posed PLY files; each posed frame read back and
     // splatted is the image `pipeline render` draws of that frame (within 1e-3 RMS).
@@ -505,6 +514,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         &export.avatar,
         export.poses.as_ref().unwrap(),
         &cpu(),
+        0,
     )
     .unwrap();
     let camera =
@@ -589,42 +599,45 @@ fn fixture(name: &str) -> std::path::PathBuf {
 #[test]
 fn pose_files_are_read_and_checked() {
     use seqavatar_evaluation::animate::read_pose_file;
-    let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5]).unwrap();
+    let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5], usize::MAX).unwrap();
     assert_eq!(params.len(), 3);
     assert_eq!(params[2].world_translation.to_array(), [6.0, 7.0, 8.0]);
     assert_eq!(params[0].pose[0].to_array(), [0.0; 3]);
     assert_eq!(params[1].pose[23].to_array(), [0.1; 3]);
     assert_eq!(params[0].betas, [1.0; 4]);
     // (frames, joints, 3) layout; betas default to the avatar's.
-    let swing = read_pose_file(&fixture("swing.npz"), 24, &[0.5]).unwrap();
+    let swing = read_pose_file(&fixture("swing.npz"), 24, &[0.5], usize::MAX).unwrap();
     assert_eq!(swing.len(), 10);
     assert_eq!(swing[0].betas, [0.5]);
     let expected = 0.3 * (std::f64::consts::PI * 3.0 / 9.0).sin();
     assert!((swing[3].pose[1].x - expected).abs() < 1e-12);
     assert!((swing[3].pose[2].x + expected).abs() < 1e-12);
+    // A limit keeps the first frames.
+    let cut = read_pose_file(&fixture("swing.npz"), 24, &[0.5], 4).unwrap();
+    assert_eq!(cut, swing[..4]);
     // More joints than the body model has.
-    let error = read_pose_file(&fixture("poses.npz"), 20, &[])
+    let error = read_pose_file(&fixture("poses.npz"), 20, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("body_pose") && error.contains("23 joints"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("poses_nan.npz"), 24, &[])
+    let error = read_pose_file(&fixture("poses_nan.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("transl") && error.contains("non-finite"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("poses_missing.npz"), 24, &[])
+    let error = read_pose_file(&fixture("poses_missing.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("poses_missing.npz") && error.contains("global_orient"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("absent.npz"), 24, &[])
+    let error = read_pose_file(&fixture("absent.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(error.contains("absent.npz"), "{error}");

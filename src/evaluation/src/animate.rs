@@ -37,6 +37,14 @@ impl PoseSource {
             Self::Entry(text.to_owned())
         }
     }
+
+    /// The source as the user named it, for messages.
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Entry(spec) => spec.clone(),
+            Self::File(path) => path.display().to_string(),
+        }
+    }
 }
 
 /// Options of `pipeline render`.
@@ -151,11 +159,13 @@ pub fn upstream_input(
 
 /// Reads a pose file: `body_pose` `(F, 3 K)` or `(F, K, 3)` (K = joints after the root, at
 /// most J - 1; missing joints are zero), `global_orient` `(F, 3)`, `transl` `(F, 3)`, optional
-/// `betas` `(F, B)` or `(B)`. Frames without `betas` use `default_betas`.
+/// `betas` `(F, B)` or `(B)`. Frames without `betas` use `default_betas`. Only the first
+/// `limit` frames become parameters.
 pub fn read_pose_file(
     path: &Path,
     num_joints: usize,
     default_betas: &[f64],
+    limit: usize,
 ) -> anyhow::Result<Vec<BodyParams>> {
     let bytes = seqavatar_engine::files::read_regular_file(path)?;
     let arrays =
@@ -216,7 +226,7 @@ pub fn read_pose_file(
             ),
         }
     };
-    (0..frames)
+    (0..frames.min(limit))
         .map(|frame| {
             let mut pose = vec![DVec3::ZERO; num_joints];
             pose[0] = DVec3::from_slice(&orient[frame * 3..frame * 3 + 3]);
@@ -257,12 +267,16 @@ pub struct DrivenAvatar {
 /// Opens the avatar `avatar` (a train entry: folder, key or key prefix) of the cache in
 /// `store` and drives it with `poses` on `backend`: the source's poses with the avatar's
 /// shape, and (for motion contexts with skeleton motion) motion windows computed from them
-/// at the scales and velocity normalisation of the avatar's motion entry.
+/// at the scales and velocity normalisation of the avatar's motion entry. With
+/// `max_frames > 0` the poses are cut, before anything is computed from them, to what
+/// drawing that many frames reads (windows look back only, so cutting the tail is exact);
+/// the motion windows' memory is estimated against the budget before they are computed.
 pub fn drive_avatar(
     store: &dyn Store,
     avatar: &str,
     poses: &PoseSource,
     backend: &Backend,
+    max_frames: usize,
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
     let avatar = AvatarRenderer::load_avatar(&train)?;
@@ -273,9 +287,35 @@ pub fn drive_avatar(
         .first()
         .map(|params| params.betas.clone())
         .unwrap_or_default();
+    let motion_entry = if avatar.config.motion_context.has_skeleton_motion() {
+        Some(upstream(store, &train, "motion")?)
+    } else {
+        None
+    };
+    let raw_scales = match &motion_entry {
+        Some(entry) => entry.read::<u32>("scales")?.data,
+        None => Vec::new(),
+    };
+    let interval = trained_ingest
+        .attribute("frame_interval")
+        .and_then(|value| value.as_u64())
+        .unwrap_or(1)
+        .max(1) as u32;
+    // The poses drawing `max_frames` frames reads: the first drawn frame is at most one
+    // full window after the axis start.
+    let pose_limit = if max_frames == 0 {
+        usize::MAX
+    } else {
+        let largest_step = raw_scales
+            .iter()
+            .max()
+            .map_or(0, |&s| (s / interval) as usize);
+        let reach = avatar.config.sequence_length.saturating_mul(largest_step);
+        max_frames.saturating_add(reach)
+    };
     let (params, axis) = match poses {
         PoseSource::File(path) => (
-            read_pose_file(path, model.num_joints(), &default_betas)?,
+            read_pose_file(path, model.num_joints(), &default_betas, pose_limit)?,
             FrameAxis::FROM_START,
         ),
         PoseSource::Entry(spec) => {
@@ -291,6 +331,7 @@ pub fn drive_avatar(
             // The subject's shape is the avatar's: keep the poses and world transform only.
             let params = seqavatar_schema::ingest::read_body_params(&entry, "body")?
                 .into_iter()
+                .take(pose_limit)
                 .map(|mut frame| {
                     frame.betas = default_betas.clone();
                     frame.expression.clear();
@@ -305,15 +346,15 @@ pub fn drive_avatar(
             .check_params(frame_params)
             .with_context(|| format!("poses, frame {frame}"))?;
     }
-    let motion = if avatar.config.motion_context.has_skeleton_motion() {
-        let motion_entry = upstream(store, &train, "motion")?;
-        let raw_scales = motion_entry.read::<u32>("scales")?.data;
+    let motion = if let Some(motion_entry) = &motion_entry {
         let (normalisation, input_scales) =
-            seqavatar_schema::motion::read_input_scales(&motion_entry)?;
-        let interval = trained_ingest
-            .attribute("frame_interval")
-            .and_then(|value| value.as_u64())
-            .unwrap_or(1) as u32;
+            seqavatar_schema::motion::read_input_scales(motion_entry)?;
+        check_motion_memory(
+            poses,
+            params.len(),
+            (model.num_vertices(), model.num_joints(), raw_scales.len()),
+            seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?,
+        )?;
         Some(seqavatar_context::compute::motion_track_for(
             &model,
             &params,
@@ -338,6 +379,33 @@ pub fn drive_avatar(
         trained_ingest,
         renderer,
     })
+}
+
+/// Refuses motion windows for `frames` poses whose arrays would not fit the memory budget
+/// `budget` (a pose file's frames are cheap to declare: 100 000 compress to 60 KB).
+fn check_motion_memory(
+    poses: &PoseSource,
+    frames: usize,
+    (vertices, joints, scales): (usize, usize, usize),
+    budget: Option<u64>,
+) -> anyhow::Result<()> {
+    // Per frame, f32: posed vertices and their velocity per scale, joint rotations and their
+    // motion per scale; twice, for the arrays and the track built from them.
+    let (v, j, s) = (vertices as u64, joints as u64, scales as u64);
+    let per_frame = 4 * 2 * (v * 3 * (1 + s) + j * (9 + 3 * s));
+    let estimate = per_frame.saturating_mul(frames as u64);
+    match budget {
+        Some(budget) if estimate > budget => anyhow::bail!(
+            "--poses {}: motion windows for {frames} frames ({vertices} template vertices, \
+             {scales} scales) need about {:.1} GB, over the memory budget of {:.1} GB; draw \
+             fewer with --max-frames (or set {})",
+            poses.describe(),
+            estimate as f64 / 1e9,
+            budget as f64 / 1e9,
+            seqavatar_engine::MEMORY_BUDGET_VAR
+        ),
+        _ => Ok(()),
+    }
 }
 
 /// The frames of a driven avatar to draw: from its first frame with a complete motion
@@ -373,6 +441,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
         &options.avatar,
         &options.poses,
         &options.backend,
+        options.max_frames,
     )?;
     let cameras = seqavatar_schema::ingest::read_cameras(&trained_ingest)?;
     let camera = cameras
@@ -446,4 +515,26 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
         video_note,
         seconds,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 100 000 frames of an SMPL-sized template at 3 scales need about 66 GB of motion
+    /// windows: refused against a 16 GB budget, naming the file, the estimate and
+    /// `--max-frames`; 100 frames pass.
+    #[test]
+    fn motion_windows_over_the_budget_are_refused_before_they_are_computed() {
+        let poses = PoseSource::parse("long.npz");
+        let smpl = (6890, 24, 3);
+        let error = check_motion_memory(&poses, 100_000, smpl, Some(16 << 30))
+            .unwrap_err()
+            .to_string();
+        for part in ["long.npz", "100000 frames", "66.5 GB", "--max-frames"] {
+            assert!(error.contains(part), "`{error}` lacks {part}");
+        }
+        check_motion_memory(&poses, 100, smpl, Some(16 << 30)).unwrap();
+        check_motion_memory(&poses, 100_000, smpl, None).unwrap();
+    }
 }

@@ -67,8 +67,13 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
             seconds: started.elapsed().as_secs_f64(),
         });
     };
-    let DrivenAvatar { mut renderer, .. } =
-        drive_avatar(store.as_ref(), &options.avatar, poses, &options.backend)?;
+    let DrivenAvatar { mut renderer, .. } = drive_avatar(
+        store.as_ref(),
+        &options.avatar,
+        poses,
+        &options.backend,
+        options.max_frames,
+    )?;
     let range = frames_to_draw(&renderer, options.max_frames);
     let skipped = range.start;
     let bar = if options.progress {

@@ -113,7 +113,7 @@ impl Scene {
                     train,
                     trained_ingest,
                     renderer,
-                } = drive_avatar(store, avatar, source, backend)?;
+                } = drive_avatar(store, avatar, source, backend, 0)?;
                 let text = match source {
                     PoseSource::Entry(spec) => format!("ingest entry {spec}"),
                     PoseSource::File(path) => format!("pose file {}", path.display()),
