@@ -32,7 +32,9 @@ use seqavatar_motion::knn::{KnnGrid, as_points};
 use seqavatar_motion::schema::MotionTrack;
 
 use crate::config::AvatarConfig;
-use crate::device::{AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend};
+use crate::device::{
+    AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend, to_f64, to_scalar,
+};
 pub use crate::device::{LbsOffsetsPass, NonRigidPass};
 use crate::model::{NetworkConfig, Networks, PoseRefinerCache};
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
@@ -195,49 +197,6 @@ impl<S> Deformed<S> {
     }
 }
 
-/// f64 values in the networks' scalar (rounded once for f32).
-pub(crate) fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
-    values.iter().map(|&v| S::from_f64(v)).collect()
-}
-
-/// The networks' values in f64 (exact).
-pub(crate) fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
-    values.iter().map(|&v| v.to_f64()).collect()
-}
-
-/// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
-/// centre), `N x L x tau x S x 3`, from a window `(L, S, V, 3)`.
-pub fn knn_velocity<S: NnScalar>(
-    template_grid: &KnnGrid,
-    xyz: &[f64],
-    window: &[f32],
-    length: usize,
-    n_scales: usize,
-    tau: usize,
-) -> Vec<S> {
-    let n = xyz.len() / 3;
-    let v = window.len() / (length * n_scales * 3).max(1);
-    // The canonical centres move by at most an optimiser step per iteration (and not at all
-    // between rendered frames): the grid's candidate lists answer most calls.
-    let neighbours = template_grid.query_all_tracked(&as_points(xyz), tau);
-    let mut out = Vec::with_capacity(n * length * tau * n_scales * 3);
-    for i in 0..n {
-        for l in 0..length {
-            for &vertex in &neighbours[i * tau..(i + 1) * tau] {
-                for s in 0..n_scales {
-                    let at = ((l * n_scales + s) * v + vertex as usize) * 3;
-                    out.extend(
-                        window[at..at + 3]
-                            .iter()
-                            .map(|&x| S::from_f64(f64::from(x))),
-                    );
-                }
-            }
-        }
-    }
-    out
-}
-
 /// Splats one frame's deformed Gaussians from `camera` on `background`, as every render
 /// of a trained avatar does (no smoothed opacity cut-off).
 pub fn splat_on(
@@ -392,7 +351,12 @@ pub fn deform_backward<S: NnScalar>(
     params: &BodyParams,
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
-    let through = device.networks_backward(networks, deformed, skin)?;
+    let through = device.networks_backward(
+        networks,
+        deformed.non_rigid.as_ref(),
+        deformed.weight_offsets.as_ref().map(|(_, pass)| pass),
+        skin,
+    )?;
     if let Some((cache, _)) = &posed.refiner {
         let d_rotations =
             rig.pose_backward(&posed.chain, &skin.target_joints, &skin.vertex_offsets);

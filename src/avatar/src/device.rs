@@ -1,18 +1,17 @@
 //! The backend an avatar's numeric work runs on, chosen once.
 //!
-//! [`AvatarBackend`] is everything the render and training paths ask of a backend: the
+//! [`AvatarBackend`] is everything the host render and training paths ask of a backend: the
 //! per-Gaussian networks (non-rigid and LBS offsets) forward and backward, and splatting
 //! forward and backward. [`avatar_backend`] is the one place that looks at which backend a
 //! [`Backend`] is (itself resolved once from a `device:` setting by [`Backend::select`]): it
 //! builds the `cpu` implementation, or the `gpu` one, which owns its context and its f32
-//! copy of the per-Gaussian networks. The trainer, eval's renderer, `pipeline render` and
-//! `pipeline export` build one when they are built and call through it; none of them
+//! copy of the per-Gaussian networks. The trainer's host step, `pipeline export` and the
+//! host render path build one when they are built and call through it; none of them
 //! asks which backend it is (as Brush picks its backend once and never asks again).
 //!
 //! On this host path the pose refiner is not a backend operation: it runs on `cpu` (one row
-//! per frame; see [`crate::avatar::deform`]). [`render_path`] chooses, with the same
-//! backend, how a sequence is rendered: through the `cpu` backend with the frame inputs on
-//! the host, or entirely on the device (refiner included).
+//! per frame). How a whole sequence is rendered (this host path, or entirely on the device)
+//! is chosen once as well, by the sequence renderer.
 
 use std::sync::Arc;
 
@@ -20,18 +19,14 @@ use anyhow::Context;
 use seqavatar_compute::backend::{Backend, GpuContext};
 use seqavatar_compute::nn::{NnScalar, Precision};
 use seqavatar_compute::splat::{RasterOptions, SplatGradients};
-use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
-use seqavatar_motion::knn::KnnGrid;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_motion::knn::{KnnGrid, as_points};
 
-use crate::avatar::{Deformed, TrainedAvatar, knn_velocity, to_f64, to_scalar};
 use crate::model::gpu::{GpuLbsOffsetsCache, GpuNetworks, GpuNonRigidCache};
 use crate::model::{
     FrameInputs, GaussianInputs, LbsOffsetsCache, NetworkConfig, NetworkGroup, Networks,
     NonRigidCache,
 };
-use crate::resident::render::ResidentRenderer;
 use crate::skinning::SkinningGrads;
 use crate::splatting::{self, SplatPass, WorldGaussians};
 
@@ -81,6 +76,49 @@ impl NonRigidInputs<'_> {
     }
 }
 
+/// f64 values in the networks' scalar (rounded once for f32).
+pub(crate) fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
+    values.iter().map(|&v| S::from_f64(v)).collect()
+}
+
+/// The networks' values in f64 (exact).
+pub(crate) fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
+    values.iter().map(|&v| v.to_f64()).collect()
+}
+
+/// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
+/// centre), `N x L x tau x S x 3`, from a window `(L, S, V, 3)`.
+pub fn knn_velocity<S: NnScalar>(
+    template_grid: &KnnGrid,
+    xyz: &[f64],
+    window: &[f32],
+    length: usize,
+    n_scales: usize,
+    tau: usize,
+) -> Vec<S> {
+    let n = xyz.len() / 3;
+    let v = window.len() / (length * n_scales * 3).max(1);
+    // The canonical centres move by at most an optimiser step per iteration (and not at all
+    // between rendered frames): the grid's candidate lists answer most calls.
+    let neighbours = template_grid.query_all_tracked(&as_points(xyz), tau);
+    let mut out = Vec::with_capacity(n * length * tau * n_scales * 3);
+    for i in 0..n {
+        for l in 0..length {
+            for &vertex in &neighbours[i * tau..(i + 1) * tau] {
+                for s in 0..n_scales {
+                    let at = ((l * n_scales + s) * v + vertex as usize) * 3;
+                    out.extend(
+                        window[at..at + 3]
+                            .iter()
+                            .map(|&x| S::from_f64(f64::from(x))),
+                    );
+                }
+            }
+        }
+    }
+    out
+}
+
 /// The non-rigid network's outputs, widened to f64.
 pub struct NonRigidOffsets {
     /// Position offsets, `N x 3`.
@@ -125,14 +163,15 @@ pub trait AvatarBackend<S: NnScalar = f32>: Send + Sync {
         positions: &[f64],
     ) -> anyhow::Result<(Vec<f64>, LbsOffsetsPass<S>)>;
 
-    /// Backward of the per-Gaussian networks of `deformed` from the skinning's gradients:
-    /// their parameter gradients accumulate into `networks`' (the master), and the gradient
-    /// of the canonical centres through the non-rigid network is returned (zeros without
-    /// one).
+    /// Backward of the per-Gaussian networks' forward passes (`non_rigid`, `lbs_offsets`:
+    /// those that ran) from the skinning's gradients: their parameter gradients accumulate
+    /// into `networks`' (the master), and the gradient of the canonical centres through the
+    /// non-rigid network is returned (zeros without one).
     fn networks_backward(
         &self,
         networks: &mut Networks<S>,
-        deformed: &Deformed<S>,
+        non_rigid: Option<&NonRigidPass<S>>,
+        lbs_offsets: Option<&LbsOffsetsPass<S>>,
         skin: &SkinningGrads,
     ) -> anyhow::Result<Vec<f64>>;
 
@@ -262,11 +301,12 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
     fn networks_backward(
         &self,
         networks: &mut Networks<S>,
-        deformed: &Deformed<S>,
+        non_rigid: Option<&NonRigidPass<S>>,
+        lbs_offsets: Option<&LbsOffsetsPass<S>>,
         skin: &SkinningGrads,
     ) -> anyhow::Result<Vec<f64>> {
-        let mut through = vec![0.0; deformed.positions.len()];
-        if let Some(pass) = &deformed.non_rigid {
+        let mut through = vec![0.0; skin.positions.len()];
+        if let Some(pass) = non_rigid {
             let NonRigidPass::Cpu(cache) = pass else {
                 anyhow::bail!("non-rigid backward on cpu: {FOREIGN_PASS} (gpu)");
             };
@@ -277,7 +317,7 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
                 &to_scalar(&skin.d_scales),
             )?);
         }
-        if let Some((_, pass)) = &deformed.weight_offsets {
+        if let Some(pass) = lbs_offsets {
             let LbsOffsetsPass::Cpu(cache) = pass else {
                 anyhow::bail!("LBS-offset backward on cpu: {FOREIGN_PASS} (gpu)");
             };
@@ -386,12 +426,13 @@ impl<S: NnScalar> AvatarBackend<S> for GpuBackend {
     fn networks_backward(
         &self,
         networks: &mut Networks<S>,
-        deformed: &Deformed<S>,
+        non_rigid: Option<&NonRigidPass<S>>,
+        lbs_offsets: Option<&LbsOffsetsPass<S>>,
         skin: &SkinningGrads,
     ) -> anyhow::Result<Vec<f64>> {
-        let mut through = vec![0.0; deformed.positions.len()];
+        let mut through = vec![0.0; skin.positions.len()];
         let mut ran: Vec<NetworkGroup> = Vec::new();
-        let non_rigid = match &deformed.non_rigid {
+        let non_rigid = match non_rigid {
             None => None,
             Some(NonRigidPass::Gpu(cache)) => {
                 ran.push(NetworkGroup::NonRigid);
@@ -401,13 +442,13 @@ impl<S: NnScalar> AvatarBackend<S> for GpuBackend {
                 anyhow::bail!("non-rigid backward on the gpu: {FOREIGN_PASS} (cpu)")
             }
         };
-        let lbs_offsets = match &deformed.weight_offsets {
+        let lbs_offsets = match lbs_offsets {
             None => None,
-            Some((_, LbsOffsetsPass::Gpu(cache))) => {
+            Some(LbsOffsetsPass::Gpu(cache)) => {
                 ran.push(NetworkGroup::LbsOffsets);
                 Some(cache)
             }
-            Some((_, LbsOffsetsPass::Cpu(_))) => {
+            Some(LbsOffsetsPass::Cpu(_)) => {
                 anyhow::bail!("LBS-offset backward on the gpu: {FOREIGN_PASS} (cpu)")
             }
         };
@@ -453,33 +494,4 @@ impl<S: NnScalar> AvatarBackend<S> for GpuBackend {
     ) -> anyhow::Result<SplatGradients<f64>> {
         splatting::backward_gpu(&self.context, pass, colour, alpha)
     }
-}
-
-/// How a [`crate::sequence::SequenceRenderer`] renders, chosen by [`render_path`].
-pub enum RenderPath {
-    /// Frame inputs on the host, the avatar's backend ([`avatar_backend`]) for networks and
-    /// splatting (`cpu`).
-    Host(Box<dyn AvatarBackend>),
-    /// Everything on the device (gpu): the avatar, its networks and the sequence uploaded
-    /// once, one read-back per frame.
-    Resident(Box<ResidentRenderer>),
-}
-
-/// The render path of `avatar` over the frames `params` (with their motion `track`) on
-/// `backend`: the host path on `cpu`, the device path on the gpu.
-pub fn render_path(
-    avatar: &TrainedAvatar,
-    backend: &Backend,
-    params: &[BodyParams],
-    track: Option<&MotionTrack>,
-) -> anyhow::Result<RenderPath> {
-    Ok(match backend.gpu() {
-        Some(context) => RenderPath::Resident(Box::new(ResidentRenderer::new(
-            context.clone(),
-            avatar,
-            params,
-            track,
-        )?)),
-        None => RenderPath::Host(avatar.backend(backend.clone())?),
-    })
 }

@@ -1,6 +1,6 @@
 //! What both training steps share: a run's state ([`Run`]), the step that advances it
-//! ([`TrainingStep`]: [`crate::step::host`] on `cpu`, [`crate::step::device`] on the gpu,
-//! chosen once by [`crate::step::training_step`]), and the statistics, curves and phase times
+//! ([`TrainingStep`]: `step::host` on `cpu`, `step::device` on the gpu,
+//! chosen once by `step::training_step`), and the statistics, curves and phase times
 //! they report.
 
 use std::collections::BTreeMap;
@@ -280,7 +280,7 @@ impl Run<'_> {
 }
 
 /// One training iteration on the backend the run was built for, and what it keeps beside the
-/// [`Run`]. Built once, by [`crate::step::training_step`]; the trainer calls through it and
+/// [`Run`]. Built once, by `step::training_step`; the trainer calls through it and
 /// never asks which backend it is. What the host step has nothing to do for has a default.
 pub trait TrainingStep: Send {
     /// One iteration: the phases of [`Phase`] in order, each timed into the run's phase

@@ -1,8 +1,8 @@
 //! The training loop. [`Trainer::step`] runs one iteration as named phases ([`Phase`], each
 //! timed into [`Trainer::phase_times`]) through the [`TrainingStep`] chosen once, when the
-//! trainer is built ([`crate::step::training_step`]): the host step on `cpu`
-//! ([`crate::step::host`], which documents the phases), the device-resident one on the gpu
-//! ([`crate::step::device`]); the SH degree follows its schedule.
+//! trainer is built (`step::training_step`): the host step on `cpu`
+//! (`step::host`, which documents the phases), the device-resident one on the gpu
+//! (`step::device`); the SH degree follows its schedule.
 //!
 //! A [`Trainer`] holds the complete resumable state ([`Run`]); [`Trainer::checkpoint`] and
 //! [`Trainer::resume`] convert it to and from a [`Checkpoint`] exactly, so a resumed `cpu`
@@ -105,7 +105,7 @@ impl<'d> Trainer<'d> {
     /// A fresh run: Gaussians at the canonical template vertices with random colours,
     /// opacity 0.1, isotropic scales from the neighbour distances, identity rotations. Every
     /// phase runs on `backend`, which the trainer builds its step from once
-    /// ([`training_step`]).
+    /// (`step::training_step`).
     pub fn new(
         config: TrainConfig,
         data: &'d TrainingData,
@@ -146,7 +146,7 @@ impl<'d> Trainer<'d> {
     }
 
     /// The trainer of `config` on `data` from `run` (fresh or a checkpoint's), checking the
-    /// training images and building the step for `backend` ([`training_step`]).
+    /// training images and building the step for `backend` (`step::training_step`).
     fn assemble(
         config: TrainConfig,
         data: &'d TrainingData,
