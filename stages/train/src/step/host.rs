@@ -136,11 +136,7 @@ impl HostStep {
     /// ([`avatar_backend`]).
     pub(crate) fn new(backend: Backend, run: &Run<'_>) -> anyhow::Result<Self> {
         Ok(Self {
-            device: avatar_backend(
-                backend,
-                run.networks.as_ref(),
-                run.config.networks_precision(),
-            )?,
+            device: avatar_backend(backend)?,
             template_grid: template_grid(&run.data.rig),
             aiap_knn: MovingKnn::default(),
             poses: vec![None; run.data.params.len()],
@@ -179,11 +175,6 @@ impl HostStep {
         let frame = run.data.images[chosen[0]].frame;
         if let Some(net) = run.networks.as_mut() {
             net.zero_grad();
-        }
-        // The master parameters change with every optimiser step (and `networks` is public):
-        // the backend's copy (on the gpu) is refreshed before every forward pass.
-        if let Some(net) = &run.networks {
-            self.device.refresh_networks(net)?;
         }
         let posed = self.posed_frame(run, frame)?;
         let avatar_config = run.config.avatar();
