@@ -55,20 +55,6 @@ impl DerefMut for Trainer<'_> {
     }
 }
 
-/// Where a run stands: fresh ([`Trainer::new`]) or read from a checkpoint
-/// ([`Trainer::resume`]).
-struct RunState {
-    state: GaussianState,
-    /// Iterations done.
-    iteration: u64,
-    /// The Gaussians' Adam step count.
-    adam_step: u64,
-    rng: Rng,
-    curve: LossCurve,
-    networks: Option<Networks<f32>>,
-    network_adam: BTreeMap<String, AdamState<f32>>,
-}
-
 /// Initial linear scales: `sqrt(mean squared distance to the 3 nearest other points)`.
 pub fn initial_scales(points: &[f64]) -> Vec<f64> {
     let p = as_points(points);
@@ -129,77 +115,51 @@ impl<'d> Trainer<'d> {
         let state = initial_state(&centres, &colours, 0.1, &initial_scales(&centres))?;
         let networks = build_networks(&config, data, scales.len())?;
         Self::assemble(
-            config,
-            data,
             backend,
-            scales,
-            RunState {
+            Run {
+                config,
+                data,
                 state,
                 iteration: 0,
                 adam_step: 0,
                 rng,
                 curve: LossCurve::default(),
+                scales,
                 networks,
                 network_adam: BTreeMap::new(),
+                train_images: Vec::new(),
+                lpips: None,
+                phase_times: PhaseTimes::default(),
             },
         )
     }
 
-    /// The trainer of `config` on `data` from `run` (fresh or a checkpoint's), checking the
-    /// training images and building the step for `backend` (`step::training_step`).
-    fn assemble(
-        config: TrainConfig,
-        data: &'d TrainingData,
-        backend: Backend,
-        scales: Vec<u32>,
-        run: RunState,
-    ) -> anyhow::Result<Self> {
-        let RunState {
-            state,
-            iteration,
-            adam_step,
-            rng,
-            curve,
-            networks,
-            network_adam,
-        } = run;
-        let train_images: Vec<usize> = data
+    /// The trainer of `run` (fresh or a checkpoint's; its training images and LPIPS loss
+    /// found here), building the step for `backend` (`step::training_step`).
+    fn assemble(backend: Backend, mut run: Run<'d>) -> anyhow::Result<Self> {
+        let data = run.data;
+        run.train_images = data
             .split(0)
             .into_iter()
             .filter(|&i| data.images[i].bound.is_some())
             .collect();
         anyhow::ensure!(
-            !train_images.is_empty(),
+            !run.train_images.is_empty(),
             "no training image has a non-empty foreground mask"
         );
-        let lpips = load_lpips_loss(&config)?;
-        if let Some(loss) = &lpips {
-            for &index in &train_images {
+        run.lpips = load_lpips_loss(&run.config)?;
+        if let Some(loss) = &run.lpips {
+            for &index in &run.train_images {
                 let camera = &data.cameras[data.images[index].view];
                 loss.check_image(camera.width as usize, camera.height as usize)
                     .with_context(|| {
                         format!(
                             "LPIPS loss: training camera {} (after resolution_scale {})",
-                            data.images[index].view, config.resolution_scale
+                            data.images[index].view, run.config.resolution_scale
                         )
                     })?;
             }
         }
-        let run = Run {
-            config,
-            data,
-            state,
-            iteration,
-            adam_step,
-            rng,
-            curve,
-            scales,
-            networks,
-            network_adam,
-            train_images,
-            lpips,
-            phase_times: PhaseTimes::default(),
-        };
         let training_step = training_step(backend, &run)?;
         Ok(Self { run, training_step })
     }
@@ -439,18 +399,21 @@ impl<'d> Trainer<'d> {
             }
         }
         Self::assemble(
-            config,
-            data,
             backend,
-            scales,
-            RunState {
+            Run {
+                config,
+                data,
                 state,
                 iteration: checkpoint.iteration,
                 adam_step,
                 rng: Rng::from_state(checkpoint.rng_state),
                 curve,
+                scales,
                 networks,
                 network_adam,
+                train_images: Vec::new(),
+                lpips: None,
+                phase_times: PhaseTimes::default(),
             },
         )
     }
