@@ -6,8 +6,8 @@
 //! f32 on the lane path). [`avatar_backend`] builds it from a [`Backend`] (itself resolved
 //! once from a `device:` setting by [`Backend::select`]); on the gpu nothing runs on the host
 //! path: the trainer's step and the sequence renderer run the whole frame on the device,
-//! each chosen once by its own factory. The trainer's host step, `pipeline export` and the
-//! host render path build one when they are built and call through it.
+//! each chosen once by its own factory. The trainer's host step and the sequence renderer's
+//! host path build one when they are built and call through it.
 //!
 //! On this host path the pose refiner is not a backend operation either: it runs on `cpu`
 //! (one row per frame).
