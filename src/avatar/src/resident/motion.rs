@@ -1,7 +1,7 @@
 //! Motion inputs on the device (`shaders/avatar_knn.wgsl`): the sequence's motion arrays and
 //! the canonical template uploaded once; per iteration the frame's skeleton-motion window,
 //! the `tau` nearest template vertices of each canonical centre with the velocity gather
-//! ([`crate::avatar::knn_velocity`]), and the nearest template vertex of each deformed centre.
+//! ([`crate::device::knn_velocity`]), and the nearest template vertex of each deformed centre.
 //!
 //! Order of calls in an iteration: [`ResidentMotion::set_iteration`] (host check of the window
 //! rule and one 16-byte write), then, recorded into the step's encoder,
@@ -479,8 +479,9 @@ pub struct MotionOutputs {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::avatar::{gather_frame_inputs, knn_velocity};
+    use crate::avatar::gather_frame_inputs;
     use crate::config::{AvatarConfig, MotionContext};
+    use crate::device::knn_velocity;
     use crate::rig::BodyRig;
     use seqavatar_compute::backend::test_support::{
         gpu_test_context, gpu_test_context_with_dispatch_limit,

@@ -120,15 +120,9 @@ impl Backend {
 
     /// Host-device traffic through this backend so far (none on `cpu`).
     pub fn transfers(&self) -> Transfers {
-        self.gpu()
-            .map_or_else(Transfers::default, |context| context.transfers())
-    }
-
-    /// The gpu context, if this is the gpu backend.
-    pub fn gpu(&self) -> Option<&Arc<GpuContext>> {
         match self {
-            Self::Cpu => None,
-            Self::Gpu(context) => Some(context),
+            Self::Cpu => Transfers::default(),
+            Self::Gpu(context) => context.transfers(),
         }
     }
 }

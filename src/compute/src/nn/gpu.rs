@@ -465,9 +465,10 @@ impl MatmulPath {
     /// The path of the networks on `backend` for `precision`: [`MatmulPath::choose`] on the
     /// gpu, f32 on `cpu` (which always runs f32).
     pub fn of_backend(backend: &crate::backend::Backend, precision: Precision) -> Self {
-        backend
-            .gpu()
-            .map_or(Self::F32, |context| Self::choose(context, precision))
+        match backend {
+            crate::backend::Backend::Cpu => Self::F32,
+            crate::backend::Backend::Gpu(context) => Self::choose(context, precision),
+        }
     }
 
     /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or

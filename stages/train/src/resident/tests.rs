@@ -14,7 +14,7 @@ use super::state::{GaussianRates, OptimiserStep, RECORD_WORDS, ResidentGaussians
 use crate::densify::{GaussianState, names};
 use crate::gaussians::{SH, SH_STORED, TRAINABLE, initial_state};
 use crate::rng::Rng;
-use crate::trainer::update_sh;
+use crate::step::host::update_sh;
 
 /// Values exactly representable in f32, so that both sides start from the same numbers.
 fn random(rng: &mut Rng, len: usize, lo: f64, hi: f64) -> Vec<f64> {
