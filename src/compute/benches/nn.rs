@@ -476,14 +476,8 @@ fn gpu_gflops(
                 let result = if backward {
                     nn.linear_backward(
                         &mut encoder,
-                        GpuLinear {
-                            shape,
-                            weight: &weight,
-                        },
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuLinear::new(shape, &weight),
+                        GpuInput::new(&parts, rows),
                         &y,
                         &d_y,
                         GpuLinearGrads {
@@ -495,15 +489,9 @@ fn gpu_gflops(
                 } else {
                     nn.linear_forward(
                         &mut encoder,
-                        GpuLinear {
-                            shape,
-                            weight: &weight,
-                        },
+                        GpuLinear::new(shape, &weight),
                         &bias,
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuInput::new(&parts, rows),
                         &y,
                     )
                 };

@@ -562,15 +562,9 @@ impl GpuNetworks {
                 if plan.frame.is_empty() {
                     self.nn.linear_forward(
                         &mut encoder,
-                        GpuLinear {
-                            shape: layer.shape,
-                            weight: &layer.weight,
-                        },
+                        GpuLinear::new(layer.shape, &layer.weight),
                         &layer.bias,
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuInput::new(&parts, rows),
                         &out,
                     )?;
                 } else {
@@ -581,31 +575,22 @@ impl GpuNetworks {
                     frame_parts.extend(gpu_parts(&cache, &plan.frame));
                     self.nn.linear_forward(
                         &mut encoder,
-                        GpuLinear {
-                            shape: LinearShape {
+                        GpuLinear::new(
+                            LinearShape {
                                 in_features: layer.shape.in_features,
                                 ..frame_shape
                             },
-                            weight: &layer.weight,
-                        },
+                            &layer.weight,
+                        ),
                         &layer.bias,
-                        GpuInput {
-                            parts: &frame_parts,
-                            rows: 1,
-                        },
+                        GpuInput::new(&frame_parts, 1),
                         &bias,
                     )?;
                     self.nn.linear_forward(
                         &mut encoder,
-                        GpuLinear {
-                            shape: rows_shape,
-                            weight: &layer.weight,
-                        },
+                        GpuLinear::new(rows_shape, &layer.weight),
                         &bias,
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuInput::new(&parts, rows),
                         &out,
                     )?;
                     frame_bias = Some((placeholder, bias));
@@ -718,14 +703,8 @@ impl GpuNetworks {
                 match &cache.frame_bias[index] {
                     None => self.nn.linear_backward(
                         &mut encoder,
-                        GpuLinear {
-                            shape: layer.shape,
-                            weight: &layer.weight,
-                        },
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuLinear::new(layer.shape, &layer.weight),
+                        GpuInput::new(&parts, rows),
                         out,
                         &d_out,
                         grads(layer, &sinks(&rows_d)),
@@ -736,14 +715,8 @@ impl GpuNetworks {
                             self.zeros("per-frame bias gradient", rows_shape.out_features)?;
                         self.nn.linear_backward(
                             &mut encoder,
-                            GpuLinear {
-                                shape: rows_shape,
-                                weight: &layer.weight,
-                            },
-                            GpuInput {
-                                parts: &parts,
-                                rows,
-                            },
+                            GpuLinear::new(rows_shape, &layer.weight),
+                            GpuInput::new(&parts, rows),
                             out,
                             &d_out,
                             GpuLinearGrads {
@@ -762,17 +735,14 @@ impl GpuNetworks {
                         d_frame.extend(sinks(&frame_d));
                         self.nn.linear_backward(
                             &mut encoder,
-                            GpuLinear {
-                                shape: LinearShape {
+                            GpuLinear::new(
+                                LinearShape {
                                     in_features: layer.shape.in_features,
                                     ..frame_shape
                                 },
-                                weight: &layer.weight,
-                            },
-                            GpuInput {
-                                parts: &frame_parts,
-                                rows: 1,
-                            },
+                                &layer.weight,
+                            ),
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                             &d_bias,
                             grads(layer, &d_frame),

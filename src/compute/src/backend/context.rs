@@ -484,13 +484,13 @@ impl GpuContext {
     /// block at binding 0, `bindings` at theirs, a [`Workgroups::Linear`] launch laid out in
     /// 2D beyond the per-dimension limit (shaders recover the linear index as
     /// `id.x + id.y * num.x`).
-    pub fn call<'a, P: bytemuck::Pod>(
+    pub fn call<P: bytemuck::Pod>(
         &self,
         target: &mut impl Record,
         kernel: &Kernel,
         params: &P,
         bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: impl Into<Workgroups<'a>>,
+        workgroups: impl Into<Workgroups>,
     ) {
         self.transfers.up(std::mem::size_of::<P>());
         kernel.call(target, params, bindings, self.layout(workgroups.into()));
@@ -498,18 +498,18 @@ impl GpuContext {
 
     /// [`GpuContext::call`] of a kernel whose uniform blocks, if any, are among `bindings`
     /// ([`Kernel::dispatch`]).
-    pub fn dispatch<'a>(
+    pub fn dispatch(
         &self,
         target: &mut impl Record,
         kernel: &Kernel,
         bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: impl Into<Workgroups<'a>>,
+        workgroups: impl Into<Workgroups>,
     ) {
         kernel.dispatch(target, bindings, self.layout(workgroups.into()));
     }
 
     /// A 1D launch as a grid within [`GpuContext::dispatch_limit`].
-    fn layout<'a>(&self, workgroups: Workgroups<'a>) -> Workgroups<'a> {
+    fn layout(&self, workgroups: Workgroups) -> Workgroups {
         match workgroups {
             Workgroups::Linear(count) => {
                 let (x, y) = split_workgroups(count, self.dispatch_limit);

@@ -20,39 +20,38 @@ pub struct Kernel {
 }
 
 /// The workgroups of one call.
-#[derive(Clone, Copy, Debug)]
-pub enum Workgroups<'a> {
-    /// A 1D launch, laid out in 2D beyond the per-dimension limit by
-    /// [`GpuContext::call`](super::GpuContext::call) (shaders recover the linear index as
-    /// `id.x + id.y * num.x`); [`Kernel::call`] takes it as one row.
+#[derive(Clone, Debug)]
+pub enum Workgroups {
+    /// A 1D launch; [`GpuContext::call`](super::GpuContext::call) lays it out in 2D beyond the
+    /// per-dimension limit (shaders recover the linear index as `id.x + id.y * num.x`).
     Linear(u32),
     /// An `x` by `y` grid.
     Grid(u32, u32),
-    /// A grid the device wrote into the buffer at the byte offset (three u32: x, y, z), so
-    /// that a kernel decides on the device whether and how widely another runs. The buffer
-    /// needs `INDIRECT` usage ([`GpuContext::indirect_args`](super::GpuContext::indirect_args)).
-    Indirect(&'a wgpu::Buffer, u64),
+    /// A grid the device wrote into the buffer at the byte offset (three u32), so that a kernel
+    /// decides on the device whether and how widely another runs (`INDIRECT` usage:
+    /// [`GpuContext::indirect_args`](super::GpuContext::indirect_args)).
+    Indirect(wgpu::Buffer, u64),
 }
 
-impl From<u32> for Workgroups<'_> {
+impl From<u32> for Workgroups {
     fn from(count: u32) -> Self {
         Workgroups::Linear(count)
     }
 }
 
-impl From<(u32, u32)> for Workgroups<'_> {
+impl From<(u32, u32)> for Workgroups {
     fn from((x, y): (u32, u32)) -> Self {
         Workgroups::Grid(x, y)
     }
 }
 
-/// The grid of a [`PreparedDispatch`].
-#[derive(Clone, Debug)]
-pub enum PreparedGrid {
-    /// An `x` by `y` grid.
-    Grid(u32, u32),
-    /// Read by the device from the buffer at the byte offset.
-    Indirect(wgpu::Buffer, u64),
+impl Workgroups {
+    fn is_empty(&self) -> bool {
+        matches!(
+            self,
+            Workgroups::Linear(0) | Workgroups::Grid(0, _) | Workgroups::Grid(_, 0)
+        )
+    }
 }
 
 /// One call with its uniform block and bindings resolved: what a [`Record`] receives.
@@ -60,12 +59,10 @@ pub enum PreparedGrid {
 pub struct PreparedDispatch {
     /// The kernel's name (the compute pass label).
     pub label: &'static str,
-    /// The compiled kernel.
     pub pipeline: wgpu::ComputePipeline,
     /// Its uniform block and buffers.
     pub bind_group: wgpu::BindGroup,
-    /// Its workgroups.
-    pub grid: PreparedGrid,
+    pub workgroups: Workgroups,
 }
 
 impl PreparedDispatch {
@@ -73,9 +70,10 @@ impl PreparedDispatch {
     pub fn record_into(&self, pass: &mut wgpu::ComputePass<'_>) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
-        match &self.grid {
-            PreparedGrid::Grid(x, y) => pass.dispatch_workgroups(*x, *y, 1),
-            PreparedGrid::Indirect(buffer, offset) => {
+        match &self.workgroups {
+            Workgroups::Linear(x) => pass.dispatch_workgroups(*x, 1, 1),
+            Workgroups::Grid(x, y) => pass.dispatch_workgroups(*x, *y, 1),
+            Workgroups::Indirect(buffer, offset) => {
                 pass.dispatch_workgroups_indirect(buffer, *offset);
             }
         }
@@ -83,11 +81,9 @@ impl PreparedDispatch {
 }
 
 /// Where kernel calls are recorded: straight into a command encoder (one compute pass per
-/// call; the uniform blocks and bind groups of each call are created by the call), or into a
-/// program that keeps them, so a resident step creates them once per shape and replays the
-/// program every iteration with no allocation and no upload.
+/// call), or into a program that keeps the calls' uniform blocks and bind groups, so a
+/// resident step creates them once per shape and replays them every iteration.
 pub trait Record {
-    /// Records one dispatch.
     fn record_dispatch(&mut self, dispatch: PreparedDispatch);
     /// Records the zeroing of a whole buffer.
     fn record_clear(&mut self, buffer: &wgpu::Buffer);
@@ -161,16 +157,16 @@ impl Kernel {
 
     /// Records one call: `params` uploaded as a fresh uniform block at binding 0 (into a
     /// program it is created once and replayed), `bindings` (`(binding, buffer)` in group 0)
-    /// at theirs. An empty grid records nothing; a [`Workgroups::Linear`] launch is one row.
-    pub fn call<'a, P: bytemuck::Pod>(
+    /// at theirs. Empty workgroups record nothing.
+    pub fn call<P: bytemuck::Pod>(
         &self,
         target: &mut impl Record,
         params: &P,
         bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: impl Into<Workgroups<'a>>,
+        workgroups: impl Into<Workgroups>,
     ) {
         let workgroups = workgroups.into();
-        if is_empty(workgroups) {
+        if workgroups.is_empty() {
             return;
         }
         let uniform = self
@@ -180,34 +176,23 @@ impl Kernel {
                 contents: bytemuck::bytes_of(params),
                 usage: wgpu::BufferUsages::UNIFORM,
             });
-        self.record(target, Some(&uniform), bindings, workgroups);
+        self.dispatch(target, &[&[(0, &uniform)], bindings].concat(), workgroups);
     }
 
     /// Records one call whose uniform blocks, if any, are among `bindings` (blocks a resident
     /// step writes in place); otherwise as [`Kernel::call`].
-    pub fn dispatch<'a>(
+    pub fn dispatch(
         &self,
         target: &mut impl Record,
         bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: impl Into<Workgroups<'a>>,
+        workgroups: impl Into<Workgroups>,
     ) {
         let workgroups = workgroups.into();
-        if !is_empty(workgroups) {
-            self.record(target, None, bindings, workgroups);
+        if workgroups.is_empty() {
+            return;
         }
-    }
-
-    fn record(
-        &self,
-        target: &mut impl Record,
-        uniform: Option<&wgpu::Buffer>,
-        bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: Workgroups<'_>,
-    ) {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = uniform
-            .map(|uniform| (0, uniform))
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
-            .chain(bindings)
             .map(|(binding, buffer)| wgpu::BindGroupEntry {
                 binding: *binding,
                 resource: buffer.as_entire_binding(),
@@ -218,24 +203,11 @@ impl Kernel {
             layout: &self.layout,
             entries: &entries,
         });
-        let grid = match workgroups {
-            Workgroups::Linear(x) => PreparedGrid::Grid(x, 1),
-            Workgroups::Grid(x, y) => PreparedGrid::Grid(x, y),
-            Workgroups::Indirect(buffer, offset) => PreparedGrid::Indirect(buffer.clone(), offset),
-        };
         target.record_dispatch(PreparedDispatch {
             label: self.name,
             pipeline: self.pipeline.clone(),
             bind_group,
-            grid,
+            workgroups,
         });
-    }
-}
-
-fn is_empty(workgroups: Workgroups<'_>) -> bool {
-    match workgroups {
-        Workgroups::Linear(x) => x == 0,
-        Workgroups::Grid(x, y) => x == 0 || y == 0,
-        Workgroups::Indirect(..) => false,
     }
 }

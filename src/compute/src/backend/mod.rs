@@ -15,7 +15,7 @@ pub use context::{
     AdapterChoice, GpuBuffer, GpuContext, KernelSource, PendingDownload, TensorCores, Transfers,
     split_workgroups,
 };
-pub use kernel::{Kernel, PreparedDispatch, PreparedGrid, Record, Workgroups};
+pub use kernel::{Kernel, PreparedDispatch, Record, Workgroups};
 pub use timer::PhaseTimer;
 
 use std::fmt;

@@ -123,6 +123,18 @@ pub struct GpuInput<'a> {
     pub rows: usize,
 }
 
+impl<'a> GpuLinear<'a> {
+    pub fn new(shape: LinearShape, weight: &'a wgpu::Buffer) -> Self {
+        GpuLinear { shape, weight }
+    }
+}
+
+impl<'a> GpuInput<'a> {
+    pub fn new(parts: &'a [GpuInputPart<'a>], rows: usize) -> Self {
+        GpuInput { parts, rows }
+    }
+}
+
 /// One step of a [`NnProgram`].
 #[derive(Clone, Debug)]
 enum ProgramStep {
@@ -1658,15 +1670,9 @@ mod tests {
         let mut encoder = context.encoder();
         nn.linear_forward(
             &mut encoder,
-            GpuLinear {
-                shape,
-                weight: &g_weight,
-            },
+            GpuLinear::new(shape, &g_weight),
             &g_bias,
-            GpuInput {
-                parts: &g_parts,
-                rows,
-            },
+            GpuInput::new(&g_parts, rows),
             &g_y,
         )
         .unwrap();
@@ -1705,14 +1711,8 @@ mod tests {
         let mut encoder = context.encoder();
         nn.linear_backward(
             &mut encoder,
-            GpuLinear {
-                shape,
-                weight: &g_weight,
-            },
-            GpuInput {
-                parts: &g_parts,
-                rows,
-            },
+            GpuLinear::new(shape, &g_weight),
+            GpuInput::new(&g_parts, rows),
             &g_y,
             &g_dy,
             GpuLinearGrads {
@@ -1899,18 +1899,15 @@ mod tests {
         let error = nn
             .linear_forward(
                 &mut encoder,
-                GpuLinear {
-                    shape,
-                    weight: &weight,
-                },
+                GpuLinear::new(shape, &weight),
                 &bias,
-                GpuInput {
-                    parts: &[GpuInputPart {
+                GpuInput::new(
+                    &[GpuInputPart {
                         buffer: &input,
                         cols: 4,
                     }],
-                    rows: 2,
-                },
+                    2,
+                ),
                 &output,
             )
             .unwrap_err();
@@ -2056,29 +2053,17 @@ mod tests {
             }];
             nn.linear_forward(
                 &mut encoder,
-                GpuLinear {
-                    shape: shapes[0],
-                    weight: &params[0][0],
-                },
+                GpuLinear::new(shapes[0], &params[0][0]),
                 &params[0][1],
-                GpuInput {
-                    parts: &input,
-                    rows,
-                },
+                GpuInput::new(&input, rows),
                 &hidden_out,
             )
             .unwrap();
             nn.linear_forward(
                 &mut encoder,
-                GpuLinear {
-                    shape: shapes[1],
-                    weight: &params[1][0],
-                },
+                GpuLinear::new(shapes[1], &params[1][0]),
                 &params[1][1],
-                GpuInput {
-                    parts: &hidden_part,
-                    rows,
-                },
+                GpuInput::new(&hidden_part, rows),
                 &y,
             )
             .unwrap();
@@ -2108,14 +2093,8 @@ mod tests {
             }
             nn.linear_backward(
                 &mut encoder,
-                GpuLinear {
-                    shape: shapes[1],
-                    weight: &params[1][0],
-                },
-                GpuInput {
-                    parts: &hidden_part,
-                    rows,
-                },
+                GpuLinear::new(shapes[1], &params[1][0]),
+                GpuInput::new(&hidden_part, rows),
                 &y,
                 &g_dy,
                 GpuLinearGrads {
@@ -2127,14 +2106,8 @@ mod tests {
             .unwrap();
             nn.linear_backward(
                 &mut encoder,
-                GpuLinear {
-                    shape: shapes[0],
-                    weight: &params[0][0],
-                },
-                GpuInput {
-                    parts: &input,
-                    rows,
-                },
+                GpuLinear::new(shapes[0], &params[0][0]),
+                GpuInput::new(&input, rows),
                 &hidden_out,
                 &d_hidden,
                 GpuLinearGrads {

@@ -384,7 +384,7 @@ impl ResidentAiap {
                 (3, &workspace.candidates.buffer),
                 (4, &workspace.slack.buffer),
             ],
-            Workgroups::Indirect(&workspace.grids, 0),
+            Workgroups::Indirect(workspace.grids.clone(), 0),
         );
         ctx.dispatch(
             encoder,
@@ -394,7 +394,7 @@ impl ResidentAiap {
                 (4, &workspace.slack.buffer),
                 (5, &workspace.lists.buffer),
             ],
-            Workgroups::Indirect(&workspace.grids, 12),
+            Workgroups::Indirect(workspace.grids.clone(), 12),
         );
         ctx.dispatch(
             encoder,

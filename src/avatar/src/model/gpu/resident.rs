@@ -304,15 +304,9 @@ impl GpuNetworks {
                 match &work.frame_bias[index] {
                     None => self.nn.linear_forward(
                         &mut forward,
-                        GpuLinear {
-                            shape: layer.shape,
-                            weight: &layer.weight,
-                        },
+                        GpuLinear::new(layer.shape, &layer.weight),
                         &layer.bias,
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuInput::new(&parts, rows),
                         out,
                     )?,
                     Some([placeholder, bias, _]) => {
@@ -321,31 +315,22 @@ impl GpuNetworks {
                         frame_parts.extend(parts_of(&plan.frame));
                         self.nn.linear_forward(
                             &mut forward,
-                            GpuLinear {
-                                shape: seqavatar_compute::nn::LinearShape {
+                            GpuLinear::new(
+                                seqavatar_compute::nn::LinearShape {
                                     in_features: layer.shape.in_features,
                                     ..frame_shape
                                 },
-                                weight: &layer.weight,
-                            },
+                                &layer.weight,
+                            ),
                             &layer.bias,
-                            GpuInput {
-                                parts: &frame_parts,
-                                rows: 1,
-                            },
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                         )?;
                         self.nn.linear_forward(
                             &mut forward,
-                            GpuLinear {
-                                shape: rows_shape,
-                                weight: &layer.weight,
-                            },
+                            GpuLinear::new(rows_shape, &layer.weight),
                             bias,
-                            GpuInput {
-                                parts: &parts,
-                                rows,
-                            },
+                            GpuInput::new(&parts, rows),
                             out,
                         )?;
                     }
@@ -430,14 +415,8 @@ impl GpuNetworks {
                 match &work.frame_bias[index] {
                     None => self.nn.linear_backward(
                         &mut backward,
-                        GpuLinear {
-                            shape: layer.shape,
-                            weight: &layer.weight,
-                        },
-                        GpuInput {
-                            parts: &parts,
-                            rows,
-                        },
+                        GpuLinear::new(layer.shape, &layer.weight),
+                        GpuInput::new(&parts, rows),
                         out,
                         d_out,
                         grads(layer, &rows_d),
@@ -447,14 +426,8 @@ impl GpuNetworks {
                         backward.record_clear(d_bias);
                         self.nn.linear_backward(
                             &mut backward,
-                            GpuLinear {
-                                shape: rows_shape,
-                                weight: &layer.weight,
-                            },
-                            GpuInput {
-                                parts: &parts,
-                                rows,
-                            },
+                            GpuLinear::new(rows_shape, &layer.weight),
+                            GpuInput::new(&parts, rows),
                             out,
                             d_out,
                             GpuLinearGrads {
@@ -469,17 +442,14 @@ impl GpuNetworks {
                         d_frame.extend(frame_d);
                         self.nn.linear_backward(
                             &mut backward,
-                            GpuLinear {
-                                shape: seqavatar_compute::nn::LinearShape {
+                            GpuLinear::new(
+                                seqavatar_compute::nn::LinearShape {
                                     in_features: layer.shape.in_features,
                                     ..frame_shape
                                 },
-                                weight: &layer.weight,
-                            },
-                            GpuInput {
-                                parts: &frame_parts,
-                                rows: 1,
-                            },
+                                &layer.weight,
+                            ),
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                             d_bias,
                             grads(layer, &d_frame),
