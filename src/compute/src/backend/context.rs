@@ -467,12 +467,7 @@ impl GpuContext {
     /// A small uniform buffer holding one `T`.
     pub fn uniform<T: bytemuck::Pod>(&self, what: &str, value: &T) -> wgpu::Buffer {
         self.transfers.up(std::mem::size_of::<T>());
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(what),
-                contents: bytemuck::bytes_of(value),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            })
+        super::kernel::uniform_buffer(&self.device, what, value)
     }
 
     pub fn encoder(&self) -> wgpu::CommandEncoder {

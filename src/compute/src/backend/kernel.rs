@@ -169,13 +169,7 @@ impl Kernel {
         if workgroups.is_empty() {
             return;
         }
-        let uniform = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(self.name),
-                contents: bytemuck::bytes_of(params),
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
+        let uniform = uniform_buffer(&self.device, self.name, params);
         self.dispatch(target, &[&[(0, &uniform)], bindings].concat(), workgroups);
     }
 
@@ -210,4 +204,19 @@ impl Kernel {
             workgroups,
         });
     }
+}
+
+/// A uniform block holding `value`, writable in place by the queue: every uniform buffer of
+/// the gpu backend is made here (per call by [`Kernel::call`], once by
+/// [`GpuContext::uniform`](super::GpuContext::uniform) for blocks a resident step rewrites).
+pub(crate) fn uniform_buffer<T: bytemuck::Pod>(
+    device: &wgpu::Device,
+    label: &str,
+    value: &T,
+) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(value),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
 }
