@@ -1,9 +1,7 @@
-//! One kernel call: a compiled [`Kernel`], its params (a uniform block at binding 0), its
-//! buffers and its workgroups, recorded as one compute pass into a [`Record`]: a command
-//! encoder, or a program that keeps the bind groups and replays them (`nn::gpu::NnProgram`).
-//! Every dispatch of the gpu backend goes through [`Kernel::call`] or [`Kernel::dispatch`]
-//! ([`GpuContext::call`](super::GpuContext::call) adds the context's traffic counter and its
-//! 2D layout of long 1D launches).
+//! One kernel call: a [`Kernel`], its params (the uniform block at binding 0), its buffers
+//! and its [`Workgroups`], recorded into a [`Record`] (an encoder, or `nn::gpu::NnProgram`).
+//! Every dispatch goes through [`Kernel::call`] or [`Kernel::dispatch`]; the context's
+//! versions add its traffic counter and its 2D layout of long 1D launches.
 
 use wgpu::util::DeviceExt;
 

@@ -235,14 +235,6 @@ struct Product<'a> {
     flags: u32,
 }
 
-/// `slices` partial results of `len` values each, one after the other in `buffer`.
-#[derive(Clone, Copy)]
-struct Partials<'a> {
-    buffer: &'a wgpu::Buffer,
-    slices: usize,
-    len: usize,
-}
-
 /// `Params` in `nn_matmul.wgsl` (its layout is checked against the WGSL by a test).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -847,11 +839,7 @@ impl NnGpu {
         if let Some(partials) = &scratch {
             self.accumulate_into(
                 encoder,
-                Partials {
-                    buffer: partials,
-                    slices: splits,
-                    len: m * n,
-                },
+                (partials, splits, m * n),
                 (c, c_offset),
                 flags & ACCUMULATE != 0,
             )?;
@@ -1010,15 +998,11 @@ impl NnGpu {
         Ok(())
     }
 
-    /// `destination[offset + i] (+)= sum_s partials[s * len + i]`.
+    /// `destination[offset + i] (+)= sum_s partials[s * len + i]` over the `slices` partials.
     fn accumulate_into(
         &self,
         encoder: &mut impl Record,
-        Partials {
-            buffer: partials,
-            slices,
-            len,
-        }: Partials<'_>,
+        (partials, slices, len): (&wgpu::Buffer, usize, usize),
         (destination, offset): (&wgpu::Buffer, usize),
         accumulate: bool,
     ) -> Result<(), NnError> {
@@ -1204,16 +1188,7 @@ impl NnGpu {
                 ],
                 (to_u32("column groups", out.div_ceil(64))?, groups_y),
             );
-            self.accumulate_into(
-                encoder,
-                Partials {
-                    buffer: &scratch,
-                    slices: chunks,
-                    len: out,
-                },
-                (grads.bias, 0),
-                true,
-            )?;
+            self.accumulate_into(encoder, (&scratch, chunks, out), (grads.bias, 0), true)?;
         }
 
         let masked = if relu { MASK_B } else { 0 };
