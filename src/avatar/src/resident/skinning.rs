@@ -512,7 +512,7 @@ impl ResidentSkinning {
         self.context
             .dispatch(encoder, &self.backward, &bindings, self.workgroups()?);
         let chunks = self.count.div_ceil(JOINT_CHUNK).max(1) as u32;
-        self.context.dispatch_grid(
+        self.context.dispatch(
             encoder,
             &self.reduce_joints,
             &[
@@ -522,8 +522,7 @@ impl ResidentSkinning {
                 (28, &self.grad_blend.buffer),
                 (29, &self.joint_partials.buffer),
             ],
-            chunks,
-            self.joints as u32,
+            (chunks, self.joints as u32),
         );
         self.context.dispatch(
             encoder,

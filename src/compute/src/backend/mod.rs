@@ -5,15 +5,17 @@
 //! explicitly with [`AdapterChoice::AllowSoftware`] (the gpu tests do).
 
 mod context;
+mod kernel;
 pub mod primitives;
 pub mod shaders;
 pub mod test_support;
 mod timer;
 
 pub use context::{
-    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, TensorCores,
-    Transfers, split_workgroups,
+    AdapterChoice, GpuBuffer, GpuContext, KernelSource, PendingDownload, TensorCores, Transfers,
+    split_workgroups,
 };
+pub use kernel::{Kernel, PreparedDispatch, Record, Workgroups};
 pub use timer::PhaseTimer;
 
 use std::fmt;

@@ -23,7 +23,9 @@ use seqavatar_avatar::model::{NetworkGroup, Networks};
 use seqavatar_avatar::resident::deform::{DeformerSetup, History, ResidentDeformer};
 use seqavatar_avatar::resident::skinning::GaussianColumns;
 use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, PhaseTimer};
-use seqavatar_compute::lpips::gpu::{Crop, DeviceImage as LpipsImage, GpuLpips, ResidentLpips};
+use seqavatar_compute::lpips::gpu::{
+    Crop, CropPair, DeviceImage as LpipsImage, GpuLpips, ResidentLpips,
+};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
 use seqavatar_compute::splat::RasterOptions;
 use seqavatar_compute::splat::gpu::{DeviceImageGradient, GpuOptions, SplatWorkspace};
@@ -195,11 +197,11 @@ fn record_add(
     source: &wgpu::Buffer,
     len: usize,
 ) {
-    let length = context.uniform("add length", &[len as u32, 0, 0, 0]);
-    context.dispatch(
+    context.call(
         encoder,
         add,
-        &[(0, &length), (1, source), (2, destination)],
+        &[len as u32, 0, 0, 0],
+        &[(1, source), (2, destination)],
         len.div_ceil(256) as u32,
     );
 }
@@ -480,13 +482,15 @@ impl ResidentStep {
                     trunk,
                     encoder,
                     c,
-                    image(rendered),
-                    image(target),
-                    Crop {
-                        x0: crop.x0,
-                        y0: crop.y0,
-                        width: crop.width(),
-                        height: crop.height(),
+                    CropPair {
+                        render: image(rendered),
+                        target: image(target),
+                        crop: Crop {
+                            x0: crop.x0,
+                            y0: crop.y0,
+                            width: crop.width(),
+                            height: crop.height(),
+                        },
                     },
                     (config.lpips_weight / cameras.len() as f64) as f32,
                     colour,
