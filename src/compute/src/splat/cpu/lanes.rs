@@ -20,7 +20,7 @@
 
 use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, TILE_SIZE};
 use super::project::Splat2d;
-use super::raster::{PixelState, TileSlots, Upstream, box_in_tile, row_span_f64};
+use super::tile::{PixelState, TileSlots, Upstream, box_in_tile, row_span_f64};
 use crate::scalar::Scalar;
 
 /// Pixels per step (one AVX2 register of `f32`).
@@ -462,7 +462,7 @@ fn row_groups(lo: usize, hi: usize) -> ([(usize, usize); 2], usize) {
 }
 
 /// The tile rows a splat's box covers, and on each its tile-local column span `[lo, hi)`
-/// (the span of `raster::row_span`, moved to the tile's first column). Spans are computed
+/// (the span of `tile::row_span`, moved to the tile's first column). Spans are computed
 /// per row on demand ([`Self::row`]), so rows the loops skip (finished in the forward pass,
 /// past their last contributor in the backward pass) cost nothing.
 struct TileSpans {
@@ -1226,7 +1226,7 @@ mod tests {
 
     #[test]
     fn tile_spans_are_the_row_spans_of_the_box_rows() {
-        use super::super::raster::row_span;
+        use super::super::tile::row_span;
         let mut rng = crate::splat::scene::SplitMix64::new(11);
         for _ in 0..500 {
             let mean = [

@@ -14,6 +14,7 @@
 mod lanes;
 mod project;
 mod raster;
+mod tile;
 
 #[cfg(test)]
 mod tests;
@@ -24,7 +25,8 @@ use rayon::prelude::*;
 use seqavatar_core::camera::Camera;
 
 use self::project::{CameraParams, Cull, Splat2d, Splat2dGradient, TileRect};
-use self::raster::{Binning, Compositing, PixelState, Upstream};
+use self::raster::{Binning, Compositing};
+use self::tile::{PixelState, Upstream};
 use super::{
     GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatDiagnostics, SplatError,
     SplatGradients, validate_call,
@@ -288,7 +290,7 @@ pub fn backward_with_phases<S: Scalar>(
 fn accumulate_camera<S: Scalar>(
     state: &CameraState<S>,
     gaussians: &GaussianSet<'_, S>,
-    slots: &[raster::Slot<S>],
+    slots: &[tile::Slot<S>],
     out: &mut SplatGradients<S>,
 ) -> usize {
     let k = gaussians.sh_coefficients();
