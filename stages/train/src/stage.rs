@@ -124,6 +124,8 @@ pub fn protocol_psnr(
 }
 
 impl StageKind for TrainStage {
+    type Config = TrainConfig;
+
     fn kind(&self) -> &'static str {
         "train"
     }
@@ -138,7 +140,7 @@ impl StageKind for TrainStage {
 
     fn check_inputs(
         &self,
-        config: &serde_json::Value,
+        config: &TrainConfig,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["ingest", "motion"])?;
@@ -153,8 +155,6 @@ impl StageKind for TrainStage {
         let Some(images) = TrainingImages::from_ingest_config(&ingest_config) else {
             return Ok(());
         };
-        let config: TrainConfig = serde_json::from_value(config.clone())
-            .map_err(|e| format!("train config does not deserialize: {e}"))?;
         match seqavatar_engine::memory_budget_bytes()? {
             Some(budget) => config
                 .check_memory(Some(&images), budget)
@@ -163,8 +163,8 @@ impl StageKind for TrainStage {
         }
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let config = TrainConfig::resolve(raw).map_err(|e| match e {
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<TrainConfig, ConfigError> {
+        TrainConfig::resolve(raw).map_err(|e| match e {
             crate::config::ConfigError::Field { field, message } => {
                 let top = field.split(['.', '[']).next().unwrap_or("").to_owned();
                 if top.is_empty() {
@@ -174,22 +174,18 @@ impl StageKind for TrainStage {
                 }
             }
             other => ConfigError::new(vec![], other.to_string()),
-        })?;
-        serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
+        })
     }
 
-    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
-        let config: TrainConfig =
-            serde_json::from_value(config.clone()).context("train config does not deserialize")?;
+    fn external_files(&self, config: &TrainConfig) -> anyhow::Result<Vec<PathBuf>> {
         Ok(if config.lpips_enabled() {
-            config.lpips_weights.into_iter().collect()
+            config.lpips_weights.iter().cloned().collect()
         } else {
             Vec::new()
         })
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: TrainConfig = ctx.config()?;
+    fn run(&self, config: &TrainConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let ingest = ctx.input("ingest")?.clone();
         let motion = ctx.input("motion")?.clone();
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
@@ -202,7 +198,7 @@ impl StageKind for TrainStage {
                 .map_err(anyhow::Error::msg)?;
         }
         let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
-        check_motion_window(&config, &data).with_context(|| {
+        check_motion_window(config, &data).with_context(|| {
             format!(
                 "train config against ingest entry {} (via motion entry {})",
                 ingest.location(),
@@ -215,9 +211,9 @@ impl StageKind for TrainStage {
         // The path every network built for this run takes (`NnGpu::for_context` makes the
         // same choice from the same context and precision).
         ctx.log(&MatmulPath::of_backend(&backend, config.networks_precision()).describe());
-        log_lpips_setting(ctx, &config);
-        let mut trainer = start_or_resume(ctx, &config, &data, &backend)?;
-        let timing = train_to_the_end(ctx, &config, &mut trainer)?;
+        log_lpips_setting(ctx, config);
+        let mut trainer = start_or_resume(ctx, config, &data, &backend)?;
+        let timing = train_to_the_end(ctx, config, &mut trainer)?;
         if timing.ran > 0 {
             log_iteration_costs(ctx, &trainer, &timing)?;
         }
@@ -234,7 +230,7 @@ impl StageKind for TrainStage {
 
         // Held-out PSNR on the test split, and on training images by the same protocol.
         let mut scorer = ProtocolScorer {
-            config: &config,
+            config,
             data: &data,
             avatar: &avatar,
             frames: &mut frames,
@@ -248,7 +244,7 @@ impl StageKind for TrainStage {
         let train_psnr = scorer.psnrs(&train_picks)?;
         let train_image_psnr = (!train_psnr.is_empty())
             .then(|| train_psnr.iter().sum::<f64>() / train_psnr.len() as f64);
-        let diagnostics = network_diagnostics(ctx, &config, &data, &trainer, &train_split)?;
+        let diagnostics = network_diagnostics(ctx, config, &data, &trainer, &train_split)?;
         let test_mean = if test_psnr.is_empty() {
             f64::NAN
         } else {
@@ -276,7 +272,7 @@ impl StageKind for TrainStage {
 
         let out = ctx.output();
         avatar.write(out, data.extent, &data.body_model_kind)?;
-        out.set_attribute("config", serde_json::to_value(&config)?)?;
+        out.set_attribute("config", serde_json::to_value(config)?)?;
         write_curves_and_cameras(out, &trainer.curve, &ingest)?;
         let t = test.len() as u64;
         out.write_array("test_psnr", &["image"], &[t], &[t.max(1)], &test_psnr)?;
@@ -680,6 +676,7 @@ mod tests {
             let resolved = TrainStage
                 .resolve_config(&json!({"preset": "fast", "precision": text}))
                 .unwrap();
+            let resolved = serde_json::to_value(resolved).unwrap();
             assert_eq!(resolved["precision"], json!(text));
             let config = TrainConfig::resolve(&resolved).unwrap();
             assert_eq!(config.networks_precision(), precision);
@@ -689,6 +686,7 @@ mod tests {
         let absent = TrainStage
             .resolve_config(&json!({"preset": "fast"}))
             .unwrap();
+        let absent = serde_json::to_value(absent).unwrap();
         assert!(absent.get("precision").is_none(), "{absent}");
         let config = TrainConfig::resolve(&absent).unwrap();
         assert_eq!(config.networks_precision(), Precision::Mixed);
@@ -762,7 +760,7 @@ mod tests {
 
     /// The ingest and train configs of `pipelines/synthetic.yaml` (the demo), resolved, with
     /// the ingest's scene size replaced by `scene`.
-    fn demo_configs(scene: serde_json::Value) -> (serde_json::Value, serde_json::Value) {
+    fn demo_configs(scene: serde_json::Value) -> (serde_json::Value, TrainConfig) {
         use seqavatar_engine::StageKind as _;
         let mut dataset =
             json!({"kind": "synthetic", "cameras": 8, "frames": 48, "width": 256, "height": 256});
@@ -774,13 +772,14 @@ mod tests {
                 &json!({"dataset": dataset, "resolution_scale": 1.0, "past_frames": 18}),
             )
             .unwrap();
+        let ingest = serde_json::to_value(ingest).unwrap();
         let train = TrainStage
             .resolve_config(&json!({"preset": "fast", "device": "auto", "resolution_scale": 1.0, "iterations": 800}))
             .unwrap();
         (ingest, train)
     }
 
-    fn check(ingest: &serde_json::Value, train: &serde_json::Value) -> Result<(), String> {
+    fn check(ingest: &serde_json::Value, train: &TrainConfig) -> Result<(), String> {
         let inputs = [
             seqavatar_engine::StageInput {
                 name: "ingest",
@@ -809,7 +808,7 @@ mod tests {
         let images = TrainingImages::from_ingest_config(&ingest_config).unwrap();
         // The default split: 48 training views on every frame, 16 test views on every other.
         assert_eq!(images.count, 48 * 1000 + 16 * 500);
-        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        let config = &train;
         // The demo trains at full resolution: 2048 x 2048, RGB and mask bytes.
         assert_eq!(config.resolution_scale, 1.0);
         let estimate = config.run_memory_estimate_bytes(Some(&images));
@@ -853,7 +852,7 @@ mod tests {
             (images.count, images.width, images.height),
             (6 * 48 + 2 * 24, 256, 256)
         );
-        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        let config = &train;
         // At the demo's full resolution: 256 x 256 pixels per image and render.
         assert_eq!(config.resolution_scale, 1.0);
         let estimate = config.run_memory_estimate_bytes(Some(&images));

@@ -1,0 +1,105 @@
+//! The registry's object-safe view of a [`StageKind`]: the config type erased. A stage's
+//! config is resolved once, when the pipeline loads, and handed back typed to the hooks of
+//! the kind that resolved it.
+
+use std::any::Any;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::{
+    ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageInput, StageKind,
+};
+
+/// A stage's resolved [`StageKind::Config`], type-erased; only its own kind opens it.
+#[derive(Clone)]
+pub(crate) struct TypedConfig(Arc<dyn Any + Send + Sync>);
+
+impl TypedConfig {
+    /// The placeholder of a stage whose config is not resolved yet.
+    pub(crate) fn unresolved() -> Self {
+        Self(Arc::new(()))
+    }
+
+    fn get<S: StageKind>(&self, stage: &S) -> &S::Config {
+        self.0.downcast_ref().unwrap_or_else(|| {
+            panic!(
+                "stage kind \"{}\" was given a config it did not resolve",
+                StageKind::kind(stage)
+            )
+        })
+    }
+}
+
+impl std::fmt::Debug for TypedConfig {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        formatter.write_str("TypedConfig")
+    }
+}
+
+/// [`StageKind`] without its config type, as the [`crate::Registry`] holds it; implemented
+/// for every stage kind.
+pub(crate) trait ErasedStage: Send + Sync {
+    fn version(&self) -> u32;
+    fn input_kinds(&self) -> &'static [&'static str];
+    /// The effective config (defaults explicit, the JSON that keys hash) and the typed one.
+    fn resolve_config(
+        &self,
+        raw: &serde_json::Value,
+    ) -> Result<(serde_json::Value, TypedConfig), ConfigError>;
+    fn check_inputs(&self, config: &TypedConfig, inputs: &[StageInput<'_>]) -> Result<(), String>;
+    fn external_files(&self, config: &TypedConfig) -> anyhow::Result<Vec<PathBuf>>;
+    fn run(&self, config: &TypedConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()>;
+    fn pictures(&self) -> Vec<PictureKind>;
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage>;
+}
+
+impl<S: StageKind> ErasedStage for S {
+    fn version(&self) -> u32 {
+        StageKind::version(self)
+    }
+
+    fn input_kinds(&self) -> &'static [&'static str] {
+        StageKind::input_kinds(self)
+    }
+
+    fn resolve_config(
+        &self,
+        raw: &serde_json::Value,
+    ) -> Result<(serde_json::Value, TypedConfig), ConfigError> {
+        let config = StageKind::resolve_config(self, raw)?;
+        let effective = serde_json::to_value(&config).map_err(|error| {
+            ConfigError::new(vec![], format!("cannot re-serialize config: {error}"))
+        })?;
+        Ok((effective, TypedConfig(Arc::new(config))))
+    }
+
+    fn check_inputs(&self, config: &TypedConfig, inputs: &[StageInput<'_>]) -> Result<(), String> {
+        StageKind::check_inputs(self, config.get(self), inputs)
+    }
+
+    fn external_files(&self, config: &TypedConfig) -> anyhow::Result<Vec<PathBuf>> {
+        StageKind::external_files(self, config.get(self))
+    }
+
+    fn run(&self, config: &TypedConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        StageKind::run(self, config.get(self), ctx)
+    }
+
+    fn pictures(&self) -> Vec<PictureKind> {
+        StageKind::pictures(self)
+    }
+
+    fn draw_picture(
+        &self,
+        entry: &EntryReader,
+        picture: &str,
+        options: &PictureOptions,
+    ) -> anyhow::Result<image::RgbImage> {
+        StageKind::draw_picture(self, entry, picture, options)
+    }
+}
