@@ -13,6 +13,7 @@ mod entry;
 mod erased;
 pub mod files;
 pub mod key;
+mod local;
 mod matrix;
 pub mod picture;
 mod pipeline;
@@ -27,7 +28,7 @@ use std::collections::BTreeMap;
 
 /// Version of this tool, recorded in every manifest.
 pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -39,13 +40,35 @@ pub use config::{
     ConfigError, ConfigPathSegment, MEMORY_BUDGET_VAR, machine_memory_bytes, memory_budget_bytes,
     parse_config, parse_size,
 };
-pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray};
+pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray, ReadLease};
+pub use local::LocalStore;
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
     BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
     open_leased_verified, open_verified, run, selected_stages,
 };
-pub use store::{EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store, open_store};
+pub use store::{EntryId, EntryState, KeyLock, Staging, Store};
+
+/// Opens the cache `cache`: a local folder, or `s3://bucket/prefix` fronted by the local
+/// folder `$SEQAVATAR_LOCAL_CACHE` (default `cache`).
+pub fn open_store(cache: &Path) -> anyhow::Result<Box<dyn Store>> {
+    let text = cache.to_string_lossy();
+    if !text.starts_with("s3://") {
+        return Ok(Box::new(LocalStore::open(cache)?));
+    }
+    #[cfg(feature = "remote")]
+    {
+        let url = crate::remote::S3Url::parse(&text)?;
+        let local = std::env::var_os("SEQAVATAR_LOCAL_CACHE")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("cache"));
+        Ok(Box::new(crate::remote::RemoteStore::open(&url, &local)?))
+    }
+    #[cfg(not(feature = "remote"))]
+    anyhow::bail!(
+        "cache {text}: this binary was built without the \"remote\" feature of seqavatar-engine"
+    )
+}
 
 /// One kind of stage (`kind:` in the pipeline YAML): its identity, its configuration schema
 /// and the computation it performs.

@@ -13,10 +13,12 @@ use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use crate::Registry;
-use crate::entry::{EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput};
+use crate::entry::{
+    EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput, ReadLease,
+};
 use crate::key::{FileDigests, KeyMaterial, stage_key};
 use crate::pipeline::{Pipeline, StageSpec};
-use crate::store::{EntryId, EntryState, KeyLock, ReadLease, Staging, Store};
+use crate::store::{EntryId, EntryState, KeyLock, Staging, Store};
 
 /// The file (in the store's local state folder) remembering external file digests.
 const FILE_DIGEST_MEMO: &str = ".file-digests.json";
@@ -743,7 +745,7 @@ mod tests {
     use crate::StageKind;
     use crate::builtin::TestArrays;
     use crate::config::ConfigError;
-    use crate::store::LocalStore;
+    use crate::local::LocalStore;
     use std::path::PathBuf;
 
     /// `test_arrays` with another implementation version.
