@@ -11,29 +11,13 @@ use crate::{
 };
 
 /// A stage's resolved [`StageKind::Config`], type-erased; only its own kind opens it.
-#[derive(Clone)]
-pub(crate) struct TypedConfig(Arc<dyn Any + Send + Sync>);
+pub(crate) type TypedConfig = Arc<dyn Any + Send + Sync>;
 
-impl TypedConfig {
-    /// The placeholder of a stage whose config is not resolved yet.
-    pub(crate) fn unresolved() -> Self {
-        Self(Arc::new(()))
-    }
-
-    fn get<S: StageKind>(&self, stage: &S) -> &S::Config {
-        self.0.downcast_ref().unwrap_or_else(|| {
-            panic!(
-                "stage kind \"{}\" was given a config it did not resolve",
-                StageKind::kind(stage)
-            )
-        })
-    }
-}
-
-impl std::fmt::Debug for TypedConfig {
-    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        formatter.write_str("TypedConfig")
-    }
+fn typed<'c, S: StageKind>(stage: &S, config: &'c TypedConfig) -> &'c S::Config {
+    config.downcast_ref().unwrap_or_else(|| {
+        let kind = StageKind::kind(stage);
+        panic!("stage kind \"{kind}\" was given a config it did not resolve")
+    })
 }
 
 /// [`StageKind`] without its config type, as the [`crate::Registry`] holds it; implemented
@@ -75,19 +59,19 @@ impl<S: StageKind> ErasedStage for S {
         let effective = serde_json::to_value(&config).map_err(|error| {
             ConfigError::new(vec![], format!("cannot re-serialize config: {error}"))
         })?;
-        Ok((effective, TypedConfig(Arc::new(config))))
+        Ok((effective, Arc::new(config)))
     }
 
     fn check_inputs(&self, config: &TypedConfig, inputs: &[StageInput<'_>]) -> Result<(), String> {
-        StageKind::check_inputs(self, config.get(self), inputs)
+        StageKind::check_inputs(self, typed(self, config), inputs)
     }
 
     fn external_files(&self, config: &TypedConfig) -> anyhow::Result<Vec<PathBuf>> {
-        StageKind::external_files(self, config.get(self))
+        StageKind::external_files(self, typed(self, config))
     }
 
     fn run(&self, config: &TypedConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        StageKind::run(self, config.get(self), ctx)
+        StageKind::run(self, typed(self, config), ctx)
     }
 
     fn pictures(&self) -> Vec<PictureKind> {

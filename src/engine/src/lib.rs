@@ -30,9 +30,6 @@ use std::collections::BTreeMap;
 pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
-use serde::de::DeserializeOwned;
-
 pub use array::{Element, NdArray};
 #[cfg(any(test, feature = "test-stages"))]
 pub use builtin::TestArrays;
@@ -73,11 +70,9 @@ pub fn open_store(cache: &Path) -> anyhow::Result<Box<dyn Store>> {
 /// One kind of stage (`kind:` in the pipeline YAML): its identity, its configuration schema
 /// and the computation it performs.
 pub trait StageKind: Send + Sync + 'static {
-    /// The `config:` mapping of the YAML, typed (normally `#[serde(deny_unknown_fields,
-    /// default)]`). The engine resolves it once, when the pipeline loads, and hands it to
-    /// every hook; its serialization (every default explicit) is the effective config that
-    /// keys and manifests hold.
-    type Config: DeserializeOwned + Serialize + Send + Sync + 'static;
+    /// The `config:` mapping, typed; resolved once, when the pipeline loads, and handed to
+    /// every hook. Its serialization (defaults explicit) is the config that keys hold.
+    type Config: serde::de::DeserializeOwned + serde::Serialize + Send + Sync + 'static;
     /// The name used as `kind:` in the pipeline YAML and as the cache folder name.
     fn kind(&self) -> &'static str;
     /// Implementation version; bump whenever the code changes the result.

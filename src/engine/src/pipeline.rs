@@ -507,7 +507,7 @@ impl Loader<'_> {
                 name,
                 kind,
                 config: serde_json::Value::Null,
-                typed: TypedConfig::unresolved(),
+                typed: std::sync::Arc::new(()),
                 inputs,
                 line: self.lines.line_of(path),
             },
