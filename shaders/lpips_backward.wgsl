@@ -29,13 +29,6 @@ const NORM_EPSILON: f32 = 1e-10;
 
 //#include "linear_index.wgsl"
 
-// `a s - b t`, exactly 0 when `a = b` and `s = t` (as in lpips_forward.wgsl: without the
-// select a compiler may contract it into an fma that leaves the rounding error of `b t`, so
-// identical images would get a nonzero gradient).
-fn normalised_difference(a: f32, s: f32, b: f32, t: f32) -> f32 {
-    return select(a * s - b * t, 0.0, a == b && s == t);
-}
-
 // One thread: one pixel of one pair (`images` counts pairs, `in_channels` the channels,
 // `in_height * in_width` the pixels). Adds to `gradient` (pairs, C, pixels) the derivative of
 // the layer's spatial mean of sum_c w_c (u_c - v_c)^2, u = f0 / (|f0| + eps),

@@ -117,13 +117,6 @@ fn max_pool(
     output[index] = best;
 }
 
-// `a s - b t`, exactly 0 when `a = b` and `s = t`. Written plainly, a compiler may contract
-// it into `fma(a, s, -(b t))`, which leaves the rounding error of `b t` (NVIDIA does): the
-// distance of two identical images would then not be exactly 0.
-fn normalised_difference(a: f32, s: f32, b: f32, t: f32) -> f32 {
-    return select(a * s - b * t, 0.0, a == b && s == t);
-}
-
 // One thread: one pixel of one pair. Pair p compares batch image p with image images + p
 // (`images` counts pairs here, `in_channels` the channels, `in_height * in_width` the pixels);
 // `weight` holds the lin layer. Writes sum_c w_c (f0_c / (|f0| + eps) - f1_c / (|f1| + eps))^2.

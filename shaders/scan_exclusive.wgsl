@@ -18,9 +18,8 @@ const BLOCK: u32 = 256u;
 
 var<workgroup> partial: array<u32, BLOCK>;
 
-fn block_index(id: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return id.x + id.y * groups.x;
-}
+const WORKGROUP: u32 = BLOCK;
+//#include "linear_index.wgsl"
 
 @compute @workgroup_size(256)
 fn scan_blocks(

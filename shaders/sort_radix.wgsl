@@ -26,9 +26,8 @@ const WORDS: u32 = 8u; // 16 digits, two 16-bit counters per word
 var<workgroup> histogram: array<atomic<u32>, DIGITS>;
 var<workgroup> packed: array<array<u32, WORDS>, BLOCK>;
 
-fn block_index(id: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return id.x + id.y * groups.x;
-}
+const WORKGROUP: u32 = BLOCK;
+//#include "linear_index.wgsl"
 
 @compute @workgroup_size(256)
 fn sort_count(

@@ -248,9 +248,9 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             max_frames,
         } => {
             let backend = Backend::select(device)?;
-            let options = seqavatar_eval::animate::RenderOptions {
+            let options = seqavatar_evaluation::animate::RenderOptions {
                 avatar,
-                poses: seqavatar_eval::animate::PoseSource::parse(&poses),
+                poses: seqavatar_evaluation::animate::PoseSource::parse(&poses),
                 camera,
                 resolution_scale,
                 out,
@@ -258,7 +258,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 fps,
                 max_frames,
             };
-            let summary = seqavatar_eval::animate::render_poses(&cache, &options)?;
+            let summary = seqavatar_evaluation::animate::render_poses(&cache, &options)?;
             println!(
                 "rendered {} frames into {} in {:.2} s",
                 summary.frames.len(),
@@ -285,17 +285,17 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             max_frames,
         } => {
             let backend = Backend::select(device)?;
-            let options = seqavatar_eval::export::ExportOptions {
+            let options = seqavatar_evaluation::export::ExportOptions {
                 avatar,
                 poses: poses
                     .as_deref()
-                    .map(seqavatar_eval::animate::PoseSource::parse),
+                    .map(seqavatar_evaluation::animate::PoseSource::parse),
                 out,
                 backend,
                 max_frames,
                 progress: std::io::IsTerminal::is_terminal(&std::io::stderr()),
             };
-            let summary = seqavatar_eval::export::export_avatar(&cache, &options)?;
+            let summary = seqavatar_evaluation::export::export_avatar(&cache, &options)?;
             println!(
                 "wrote {} ({} Gaussians) and {} posed frames into {} in {:.2} s",
                 summary.canonical.display(),
@@ -343,7 +343,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 avatar,
                 poses: poses
                     .as_deref()
-                    .map(seqavatar_eval::animate::PoseSource::parse),
+                    .map(seqavatar_evaluation::animate::PoseSource::parse),
                 backend: Backend::select(device)?,
                 host,
                 port,
@@ -376,7 +376,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                     .unwrap_or_else(|| "pipeline".to_owned());
                 PathBuf::from("reports").join(stem)
             });
-            let path = seqavatar_eval::pipeline_report::write_report(
+            let path = seqavatar_evaluation::pipeline_report::write_report(
                 &registry, &file, &sets, &cache, &out,
             )?;
             println!("report: {}", path.display());

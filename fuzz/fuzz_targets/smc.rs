@@ -5,5 +5,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = seqavatar_ingest::datasets::smc::read_all(data);
+    let _ = seqavatar_datasets::smc::read_all(data);
 });

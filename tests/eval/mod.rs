@@ -13,15 +13,15 @@ use std::path::Path;
 
 use seqavatar_avatar::ply::{cloud_to_world, read_ply};
 use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_compute::lpips::{LpipsNet, seeded};
 use seqavatar_engine::{
     EntryId, EntryReader, LocalStore, Pipeline, RunOptions, StageReport, Store, run,
 };
-use seqavatar_eval::animate::drive_avatar;
-use seqavatar_eval::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
-use seqavatar_eval::avatar_render::AvatarRenderer;
-use seqavatar_eval::evaluate::ViewRenderer;
-use seqavatar_eval::export::{ExportOptions, export_avatar};
-use seqavatar_eval::lpips::{LpipsNet, seeded};
+use seqavatar_evaluation::animate::drive_avatar;
+use seqavatar_evaluation::animate::{PoseSource, RenderOptions, render_poses, resolve_entry};
+use seqavatar_evaluation::avatar_render::AvatarRenderer;
+use seqavatar_evaluation::evaluate::ViewRenderer;
+use seqavatar_evaluation::export::{ExportOptions, export_avatar};
 
 use crate::support::registry;
 
@@ -82,7 +82,7 @@ fn missing_inputs_are_found_when_the_pipeline_loads() {
     let error = parse(&multiscale.replace(eval_inputs, "inputs: [train, ingest]")).unwrap_err();
     assert!(
         error.contains("stage \"eval\" (kind eval): needs an input of kind motion")
-            && error.contains("Multiscale"),
+            && error.contains("motion context multiscale"),
         "{error}"
     );
     // An avatar without skeleton motion renders without the motion entry.
@@ -279,39 +279,41 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     assert!(!eval_lpips.array_names().contains(&"lpips_vgg".to_owned()));
     assert!(!eval_lpips.array_names().contains(&"speed_fps".to_owned()));
     {
-        use seqavatar_eval::evaluate::ViewRenderer;
+        use seqavatar_evaluation::evaluate::ViewRenderer;
         let mut renderer = AvatarRenderer::open(&train, &ingest, &ingest, None, &cpu()).unwrap();
-        let testset = seqavatar_eval::testset::TestSet::read(&ingest).unwrap();
+        let testset = seqavatar_evaluation::testset::TestSet::read(&ingest).unwrap();
         let test = testset.images[1];
         let render = renderer
             .render(test.frame, &testset.cameras[test.view])
             .unwrap();
         let (truth, mask) = testset.load(&ingest, &test).unwrap();
-        let pair = seqavatar_eval::metrics::Protocol::default()
+        let pair = seqavatar_evaluation::metrics::Protocol::default()
             .prepare(&render, &truth, &mask)
             .unwrap();
-        let model = seqavatar_eval::lpips::Lpips::new(
-            seqavatar_eval::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
+        let model = seqavatar_compute::lpips::Lpips::new(
+            seqavatar_compute::lpips::LpipsWeights::load(&weights, LpipsNet::Alex).unwrap(),
             &cpu(),
         )
         .unwrap();
         let direct = model.distances(&[(&pair.render, &pair.truth)]).unwrap()[0].total;
         assert!((direct - lpips[1]).abs() < 1e-9, "{direct} vs {}", lpips[1]);
-        let direct_psnr = seqavatar_eval::metrics::psnr(&pair.render, &pair.truth).unwrap();
+        let direct_psnr = seqavatar_evaluation::metrics::psnr(&pair.render, &pair.truth).unwrap();
         assert!((direct_psnr - psnr[1]).abs() < 1e-9);
         // The garment region's figures: the region math on the same pair and the ingest
         // entry's garment mask.
         let garment = testset.load_garment(&ingest, &test).unwrap().unwrap();
-        let region_psnr = seqavatar_eval::region::region_psnr(&pair.render, &pair.truth, &garment)
-            .unwrap()
-            .unwrap();
+        let region_psnr =
+            seqavatar_evaluation::region::region_psnr(&pair.render, &pair.truth, &garment)
+                .unwrap()
+                .unwrap();
         let stored = eval_lpips.read::<f64>("garment_psnr").unwrap().data;
         assert!(
             (region_psnr - stored[1]).abs() < 1e-9,
             "{region_psnr} vs {}",
             stored[1]
         );
-        let crop = seqavatar_eval::region::region_lpips_crop(&garment, LpipsNet::Alex).unwrap();
+        let crop =
+            seqavatar_evaluation::region::region_lpips_crop(&garment, LpipsNet::Alex).unwrap();
         let direct = model
             .distances(&[(&pair.render.crop(crop), &pair.truth.crop(crop))])
             .unwrap()[0]
@@ -375,7 +377,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let lpips_summary = eval_lpips.attribute("summary").unwrap();
     assert_eq!(
         lpips_summary["garment_lpips"].as_str(),
-        Some(seqavatar_eval::region::REGION_LPIPS_METHOD)
+        Some(seqavatar_evaluation::region::REGION_LPIPS_METHOD)
     );
 
     // Another camera rig, another body model: clear errors naming both entries.
@@ -396,7 +398,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let registry = registry();
     let store = LocalStore::open(&cache).unwrap();
     let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
-    let path = seqavatar_eval::pipeline_report::write_report_for(
+    let path = seqavatar_evaluation::pipeline_report::write_report_for(
         &registry,
         &pipeline,
         &store,
@@ -478,6 +480,15 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     let first = image::open(&summary.frames[0]).unwrap().to_rgb8();
     let last = image::open(&summary.frames[2]).unwrap().to_rgb8();
     assert_ne!(first, last, "the swing moves the legs between frames");
+    // A pose file declaring 100 000 frames: `--max-frames` cuts it before any frame's
+    // parameters are built.
+    let long = RenderOptions {
+        poses: PoseSource::File(fixture("poses_long.npz")),
+        out: dir.path().join("render_long"),
+        max_frames: 2,
+        ..options.clone()
+    };
+    assert_eq!(render_poses(&cache, &long).unwrap().frames.len(), 2);
 
     // `pipeline export`: canonical and posed PLY files; each posed frame read back and
     // splatted is the image `pipeline render` draws of that frame (within 1e-3 RMS).
@@ -503,9 +514,11 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         &export.avatar,
         export.poses.as_ref().unwrap(),
         &cpu(),
+        0,
     )
     .unwrap();
-    let camera = seqavatar_ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
+    let camera =
+        seqavatar_schema::ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
     let raster = seqavatar_compute::splat::RasterOptions {
         background: driven.renderer.avatar.background,
         smooth_cutoff: false,
@@ -585,43 +598,46 @@ fn fixture(name: &str) -> std::path::PathBuf {
 /// Pose files in the dataset layout (stages/eval/tests/fixtures/make_poses.py); bad ones name the array.
 #[test]
 fn pose_files_are_read_and_checked() {
-    use seqavatar_eval::animate::read_pose_file;
-    let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5]).unwrap();
+    use seqavatar_evaluation::animate::read_pose_file;
+    let params = read_pose_file(&fixture("poses.npz"), 24, &[0.5], usize::MAX).unwrap();
     assert_eq!(params.len(), 3);
     assert_eq!(params[2].world_translation.to_array(), [6.0, 7.0, 8.0]);
     assert_eq!(params[0].pose[0].to_array(), [0.0; 3]);
     assert_eq!(params[1].pose[23].to_array(), [0.1; 3]);
     assert_eq!(params[0].betas, [1.0; 4]);
     // (frames, joints, 3) layout; betas default to the avatar's.
-    let swing = read_pose_file(&fixture("swing.npz"), 24, &[0.5]).unwrap();
+    let swing = read_pose_file(&fixture("swing.npz"), 24, &[0.5], usize::MAX).unwrap();
     assert_eq!(swing.len(), 10);
     assert_eq!(swing[0].betas, [0.5]);
     let expected = 0.3 * (std::f64::consts::PI * 3.0 / 9.0).sin();
     assert!((swing[3].pose[1].x - expected).abs() < 1e-12);
     assert!((swing[3].pose[2].x + expected).abs() < 1e-12);
+    // A limit keeps the first frames.
+    let cut = read_pose_file(&fixture("swing.npz"), 24, &[0.5], 4).unwrap();
+    assert_eq!(cut, swing[..4]);
     // More joints than the body model has.
-    let error = read_pose_file(&fixture("poses.npz"), 20, &[])
+    let error = read_pose_file(&fixture("poses.npz"), 20, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("body_pose") && error.contains("23 joints"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("poses_nan.npz"), 24, &[])
+    let error = read_pose_file(&fixture("poses_nan.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("transl") && error.contains("non-finite"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("poses_missing.npz"), 24, &[])
+    let error = read_pose_file(&fixture("poses_missing.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(
         error.contains("poses_missing.npz") && error.contains("global_orient"),
         "{error}"
     );
-    let error = read_pose_file(&fixture("absent.npz"), 24, &[])
+    let error = read_pose_file(&fixture("absent.npz"), 24, &[], usize::MAX)
         .unwrap_err()
         .to_string();
     assert!(error.contains("absent.npz"), "{error}");

@@ -24,46 +24,65 @@ fn names_the_backend(line: &str) -> bool {
     matches_on_it || line.contains("Backend::Cpu") || line.contains("Backend::Gpu")
 }
 
-/// The backend is chosen once (ARCHITECTURE.md, invariants): in the stage crates and the avatar
-/// library (sources,
-/// tests, benches, examples) only `seqavatar_avatar::device::avatar_backend` looks at which
-/// backend it is; everything else calls through the `AvatarBackend` it builds.
+/// The backend factories: the only files that look at which backend a `Backend` is, each
+/// when what it builds is built (ARCHITECTURE.md, invariants).
+const BACKEND_FACTORIES: [&str; 3] = [
+    // `avatar_backend`: the `AvatarBackend` of the host paths.
+    "src/avatar/src/device.rs",
+    // `frame_path`: a sequence rendered on the host or on the device.
+    "src/avatar/src/sequence.rs",
+    // `training_step`: the host or the device-resident training step.
+    "stages/train/src/step/mod.rs",
+];
+
+/// The backend is chosen once (ARCHITECTURE.md, invariants): in the stage crates and the
+/// libraries (sources, tests, benches, examples) only the [`BACKEND_FACTORIES`] look at which
+/// backend it is, by matching on it (checked in stages/ and src/avatar/; the compute library
+/// implements the backends) or by asking for its gpu (`.gpu()`, anywhere under stages/ and
+/// src/); everything else calls through what they build.
 #[test]
 fn the_backend_is_chosen_in_one_place() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut files = Vec::new();
-    rust_files(&root.join("stages"), &mut files);
-    rust_files(&root.join("src/avatar"), &mut files);
+    let mut matched = Vec::new();
+    rust_files(&root.join("stages"), &mut matched);
+    rust_files(&root.join("src/avatar"), &mut matched);
+    let mut asked = Vec::new();
+    rust_files(&root.join("stages"), &mut asked);
+    rust_files(&root.join("src"), &mut asked);
     assert!(
-        files.len() > 50,
-        "only {} files under stages/ and src/avatar/",
-        files.len()
+        matched.len() > 50 && asked.len() > matched.len(),
+        "only {} files under stages/ and src/avatar/, {} under stages/ and src/",
+        matched.len(),
+        asked.len()
     );
-    let chooser = root.join("src/avatar/src/device.rs");
+    let factories: Vec<_> = BACKEND_FACTORIES.iter().map(|f| root.join(f)).collect();
     let mut elsewhere = Vec::new();
-    let mut in_chooser = 0;
-    for file in &files {
-        let text = std::fs::read_to_string(file).unwrap();
-        for (number, line) in text.lines().enumerate() {
-            if !names_the_backend(line) {
-                continue;
-            }
-            if file == &chooser {
-                in_chooser += 1;
-            } else {
-                elsewhere.push(format!("{}:{}: {line}", file.display(), number + 1));
+    let mut in_factories = vec![0; factories.len()];
+    for (files, looks) in [
+        (&matched, names_the_backend as fn(&str) -> bool),
+        (&asked, |line: &str| line.contains(".gpu()")),
+    ] {
+        for file in files {
+            let text = std::fs::read_to_string(file).unwrap();
+            for (number, line) in text.lines().enumerate() {
+                if !looks(line) {
+                    continue;
+                }
+                match factories.iter().position(|factory| factory == file) {
+                    Some(factory) => in_factories[factory] += 1,
+                    None => elsewhere.push(format!("{}:{}: {line}", file.display(), number + 1)),
+                }
             }
         }
     }
     assert!(
         elsewhere.is_empty(),
-        "the backend is chosen in `avatar_backend` only, but:\n{}",
+        "the backend is chosen in {BACKEND_FACTORIES:?} only, but:\n{}",
         elsewhere.join("\n")
     );
-    assert!(
-        in_chooser > 0,
-        "`avatar_backend` no longer names the backends"
-    );
+    for (factory, count) in BACKEND_FACTORIES.iter().zip(in_factories) {
+        assert!(count > 0, "{factory} no longer names the backends");
+    }
 }
 
 /// The repository root.

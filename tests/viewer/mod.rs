@@ -20,8 +20,8 @@ use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, StageReport};
-use seqavatar_eval::avatar_render::AvatarRenderer;
-use seqavatar_eval::evaluate::ViewRenderer;
+use seqavatar_evaluation::avatar_render::AvatarRenderer;
+use seqavatar_evaluation::evaluate::ViewRenderer;
 use seqavatar_viewer::{Viewer, ViewerOptions};
 
 use crate::support::registry;
@@ -295,7 +295,7 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         let (ingest, motion) = (input("ingest"), input("motion"));
         let mut renderer =
             AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
-        let camera = &seqavatar_ingest::read_cameras(&ingest).unwrap()[0];
+        let camera = &seqavatar_schema::ingest::read_cameras(&ingest).unwrap()[0];
         renderer.render(frame, camera).unwrap().to_rgb_image()
     };
     let difference: f64 = image
@@ -579,7 +579,7 @@ impl Drop for ChildGuard {
 }
 
 fn on_path(program: &str) -> Option<PathBuf> {
-    seqavatar_eval::animate::on_path(program)
+    seqavatar_evaluation::animate::on_path(program)
 }
 
 /// A WebDriver session of chromedriver.

@@ -2,22 +2,8 @@
 //! networks, as stored in a `train` entry, and its render path, which is exactly the
 //! training forward pass (networks, skinning, splatting) without gradients.
 //!
-//! # Entry arrays written by [`TrainedAvatar::write`]
-//!
-//! - `gaussian_xyz` f64 `(gaussian, xyz)`: canonical (big-pose) centres, metres.
-//! - `gaussian_sh` f64 `(gaussian, coeff, rgb)`: 16 SH coefficients per channel (degree 3
-//!   storage; the attribute `sh_degree` says how many are active).
-//! - `gaussian_opacity` f64 `(gaussian)`: opacity logits (activated with a sigmoid).
-//! - `gaussian_log_scale` f64 `(gaussian, xyz)`; `gaussian_rotation` f64 `(gaussian, wxyz)`.
-//! - The body model arrays of the ingest schema (`body_model_*`), so that the entry renders
-//!   on its own.
-//! - `network/<name>` f64: network parameters by their stable names (when the motion context
-//!   or the refiners use networks), the f32 values the networks train and render with.
-//!
-//! Attributes: `avatar` (the [`AvatarConfig`]), `sh_degree`, `scales` (raw temporal
-//! scales fed to the networks, largest first), `sequence_length`, `background`,
-//! `body_model_kind`, `extent`, `motion_joints` (with networks). The train stage adds its
-//! own `config` (the resolved train config, which nothing here reads).
+//! Its entry arrays and attributes ([`TrainedAvatar::write`], [`TrainedAvatar::load`]) are
+//! listed in `seqavatar_schema::train` (docs/schema.md).
 
 use anyhow::Context;
 use seqavatar_compute::backend::Backend;
@@ -26,15 +12,16 @@ use seqavatar_compute::splat::{RasterOptions, RenderedImage, sh_coefficient_coun
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_engine::{EntryReader, EntryWriter};
-use seqavatar_ingest::schema::write_body_model;
+use seqavatar_schema::ingest::write_body_model;
 
-use seqavatar_motion::knn::{KnnGrid, as_points};
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_knn::{KnnGrid, as_points};
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::config::AvatarConfig;
-use crate::device::{AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend};
-pub use crate::device::{LbsOffsetsPass, NonRigidPass};
-use crate::model::{NetworkConfig, Networks, PoseRefinerCache};
+use crate::device::{
+    AvatarBackend, NonRigidInputs, NonRigidOffsets, avatar_backend, to_f64, to_scalar,
+};
+use crate::model::{LbsOffsetsCache, NetworkConfig, Networks, NonRigidCache, PoseRefinerCache};
 use crate::rig::{BodyRig, FramePose, PoseChain, refine_pose};
 use crate::skinning::{GaussianParams, Skinned, SkinningGrads, skin_forward};
 use crate::splatting::WorldGaussians;
@@ -167,9 +154,9 @@ pub fn frame_pose<S: NnScalar>(
 pub struct Deformed<S = f32> {
     /// Nearest template vertex of each (post-non-rigid) centre.
     pub nearest: Vec<u32>,
-    pub non_rigid: Option<NonRigidPass<S>>,
+    pub non_rigid: Option<NonRigidCache<S>>,
     /// LBS weight offsets `N x J` and the activations of the pass that made them.
-    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsPass<S>)>,
+    pub weight_offsets: Option<(Vec<f64>, LbsOffsetsCache<S>)>,
     /// Centres after the non-rigid offset (canonical space).
     pub positions: Vec<f64>,
     /// Linear scale offsets `N x 3` and rotation offsets `N x 4`.
@@ -195,49 +182,6 @@ impl<S> Deformed<S> {
     }
 }
 
-/// f64 values in the networks' scalar (rounded once for f32).
-pub(crate) fn to_scalar<S: NnScalar>(values: &[f64]) -> Vec<S> {
-    values.iter().map(|&v| S::from_f64(v)).collect()
-}
-
-/// The networks' values in f64 (exact).
-pub(crate) fn to_f64<S: NnScalar>(values: &[S]) -> Vec<f64> {
-    values.iter().map(|&v| v.to_f64()).collect()
-}
-
-/// Per Gaussian the velocities of its `tau` nearest template vertices (of its canonical
-/// centre), `N x L x tau x S x 3`, from a window `(L, S, V, 3)`.
-pub fn knn_velocity<S: NnScalar>(
-    template_grid: &KnnGrid,
-    xyz: &[f64],
-    window: &[f32],
-    length: usize,
-    n_scales: usize,
-    tau: usize,
-) -> Vec<S> {
-    let n = xyz.len() / 3;
-    let v = window.len() / (length * n_scales * 3).max(1);
-    // The canonical centres move by at most an optimiser step per iteration (and not at all
-    // between rendered frames): the grid's candidate lists answer most calls.
-    let neighbours = template_grid.query_all_tracked(&as_points(xyz), tau);
-    let mut out = Vec::with_capacity(n * length * tau * n_scales * 3);
-    for i in 0..n {
-        for l in 0..length {
-            for &vertex in &neighbours[i * tau..(i + 1) * tau] {
-                for s in 0..n_scales {
-                    let at = ((l * n_scales + s) * v + vertex as usize) * 3;
-                    out.extend(
-                        window[at..at + 3]
-                            .iter()
-                            .map(|&x| S::from_f64(f64::from(x))),
-                    );
-                }
-            }
-        }
-    }
-    out
-}
-
 /// Splats one frame's deformed Gaussians from `camera` on `background`, as every render
 /// of a trained avatar does (no smoothed opacity cut-off).
 pub fn splat_on(
@@ -257,8 +201,8 @@ pub fn splat_on(
 /// The forward pass shared by training and rendering: non-rigid offsets from the networks
 /// (zeros without them), nearest template vertex of the moved centre, LBS weight offsets,
 /// skinning, activations. The per-Gaussian networks, non-rigid and LBS offsets, run on
-/// `device` (on `cpu` in the networks' scalar `S`, on a gpu on its f32 copy; inputs rounded
-/// once, outputs widened to f64); everything else runs on `cpu` in f64.
+/// `device` (in the networks' scalar `S`; inputs rounded once, outputs widened to f64);
+/// everything else runs in f64.
 ///
 /// The pose refiner ([`frame_pose`]) stays on `cpu` on every backend on purpose: it is one
 /// row per frame (`69 -> 128 -> 128 -> 69` for SMPL, about 35k multiply-adds), and its
@@ -392,7 +336,12 @@ pub fn deform_backward<S: NnScalar>(
     params: &BodyParams,
     skin: &SkinningGrads,
 ) -> anyhow::Result<Vec<f64>> {
-    let through = device.networks_backward(networks, deformed, skin)?;
+    let through = device.networks_backward(
+        networks,
+        deformed.non_rigid.as_ref(),
+        deformed.weight_offsets.as_ref().map(|(_, pass)| pass),
+        skin,
+    )?;
     if let Some((cache, _)) = &posed.refiner {
         let d_rotations =
             rig.pose_backward(&posed.chain, &skin.target_joints, &skin.vertex_offsets);
@@ -460,17 +409,10 @@ impl TrainedAvatar {
         }
     }
 
-    /// The backend `backend` names, built for this avatar's networks (on the gpu, with an
-    /// f32 copy of its per-Gaussian networks: [`avatar_backend`]). Build it once and render
-    /// every frame with it; it is a snapshot of the networks (after changing them, build
-    /// another).
+    /// The host backend `backend` names ([`avatar_backend`]: `cpu`'s; the gpu renders a
+    /// sequence on the device, `crate::sequence::SequenceRenderer`).
     pub fn backend(&self, backend: Backend) -> anyhow::Result<Box<dyn AvatarBackend>> {
-        avatar_backend(
-            backend,
-            self.networks.as_ref(),
-            self.config.networks_precision(),
-        )
-        .context("the avatar's networks on the chosen backend")
+        avatar_backend(backend).context("the avatar's host backend")
     }
 
     /// The deformed Gaussians of one frame (pose refiner, networks, skinning), the
@@ -655,7 +597,7 @@ impl TrainedAvatar {
             log_scale: read("gaussian_log_scale", &[n, 3])?,
             rotation: read("gaussian_rotation", &[n, 4])?,
         };
-        let model = seqavatar_ingest::read_body_model(entry)
+        let model = seqavatar_schema::ingest::read_body_model(entry)
             .with_context(|| format!("entry {location}: body model"))?;
         let rig = BodyRig::new(model)?;
         let networks = if needs_networks(&config) {
@@ -699,8 +641,6 @@ mod tests {
     use crate::model::Widths;
     use crate::skinning::skin_backward;
     use seqavatar_compute::backend::DeviceChoice;
-    use seqavatar_compute::backend::test_support::gpu_test_backend;
-    use seqavatar_compute::nn::Precision;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::glam::DVec3;
     use seqavatar_core::rng::SplitMix64 as Rng;
@@ -717,12 +657,7 @@ mod tests {
 
     /// The `cpu` backend, as every caller builds it.
     fn cpu<S: NnScalar>() -> Box<dyn AvatarBackend<S>> {
-        avatar_backend(
-            Backend::select(DeviceChoice::Cpu).unwrap(),
-            None,
-            Precision::F32,
-        )
-        .unwrap()
+        avatar_backend(Backend::select(DeviceChoice::Cpu).unwrap()).unwrap()
     }
 
     /// A smooth function of the skinned Gaussians: `sum a . centres + sum b . covariances`.
@@ -964,330 +899,5 @@ mod tests {
             let numeric = (eval(eps) - eval(-eps)) / (2.0 * eps);
             check(&format!("xyz[{i}]"), numeric, d_xyz[i]);
         }
-    }
-
-    // -----------------------------------------------------------------------------------
-    // gpu networks (lavapipe in CI; skipped without an adapter unless CI is set).
-
-    /// `max |gpu - cpu| <= tolerance * max(1e-300, max |cpu|)` over an array: f32 networks
-    /// against the f64 master, so the tolerance is relative to the array's magnitude.
-    fn assert_close(what: &str, gpu: &[f64], cpu: &[f64], tolerance: f64) {
-        assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
-        let scale = cpu.iter().fold(1e-300f64, |m, x| m.max(x.abs()));
-        let worst = gpu
-            .iter()
-            .zip(cpu)
-            .map(|(g, c)| (g - c).abs())
-            .fold(0.0, f64::max);
-        eprintln!("{what}: worst |gpu - cpu| {worst:.3e} (scale {scale:.3e})");
-        for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
-            assert!(
-                (g - c).abs() <= tolerance * scale,
-                "{what}[{i}]: gpu {g} vs cpu {c} (scale {scale})"
-            );
-        }
-    }
-
-    /// Every network on (multiscale motion context, LBS offsets, pose refiner), with
-    /// non-rigid heads far from their near-zero initialisation so every output moves.
-    fn gpu_setup(n: usize) -> (Setup, Networks<f64>) {
-        let (setup, mut networks) = build(MotionContext::Multiscale, true, n);
-        assert!(
-            networks.has_non_rigid() && networks.has_lbs_offsets() && networks.has_pose_refiner()
-        );
-        let mut rng = Rng::new(31);
-        for param in networks.parameters_mut() {
-            if param.name.starts_with("non_rigid.heads") {
-                for x in param.values.iter_mut() {
-                    *x = rng.uniform(-0.05, 0.05);
-                }
-            }
-        }
-        (setup, networks)
-    }
-
-    fn deform_with(
-        s: &Setup,
-        networks: &Networks<f64>,
-        device: &dyn AvatarBackend<f64>,
-    ) -> Deformed<f64> {
-        let posed = frame_pose(&s.rig, Some(networks), &s.inputs.params).unwrap();
-        deform(
-            &s.rig,
-            &s.grid,
-            Some(networks),
-            device,
-            &s.gaussians,
-            &s.inputs,
-            &posed.pose,
-            &s.config,
-            0,
-        )
-        .unwrap()
-    }
-
-    /// The deformation with the per-Gaussian networks on the gpu (f32) matches the f64 `cpu`
-    /// deformation: every output to 1e-5 of its array's largest value (f32 has 6e-8
-    /// relative precision and the networks add a few roundings per layer; lavapipe measured
-    /// at most 1.4e-7).
-    #[test]
-    fn deform_with_gpu_networks_matches_cpu() {
-        let Some(backend) = gpu_test_backend() else {
-            return;
-        };
-        let (s, networks) = gpu_setup(200);
-        let gpu = avatar_backend(backend, Some(&networks), Precision::F32).unwrap();
-        assert!(gpu.networks_on_gpu());
-        let cpu = deform_with(&s, &networks, &*cpu());
-        let on_gpu = deform_with(&s, &networks, &*gpu);
-        assert!(matches!(on_gpu.non_rigid, Some(NonRigidPass::Gpu(_))));
-        assert!(matches!(
-            on_gpu.weight_offsets,
-            Some((_, LbsOffsetsPass::Gpu(_)))
-        ));
-        assert!(matches!(cpu.non_rigid, Some(NonRigidPass::Cpu(_))));
-        // The networks do move things (so the comparison is not of zeros).
-        let moved = cpu
-            .positions
-            .iter()
-            .zip(&s.gaussians.xyz)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
-        assert!(moved > 1e-3, "largest non-rigid offset {moved}");
-        let offsets = |d: &Deformed<f64>| d.weight_offsets.as_ref().unwrap().0.clone();
-        assert!(offsets(&cpu).iter().any(|w| w.abs() > 1e-3));
-        assert_eq!(on_gpu.nearest, cpu.nearest);
-        assert_close("positions", &on_gpu.positions, &cpu.positions, 1e-5);
-        assert_close("d_scales", &on_gpu.d_scales, &cpu.d_scales, 1e-5);
-        assert_close("d_rotations", &on_gpu.d_rotations, &cpu.d_rotations, 1e-5);
-        assert_close("weight offsets", &offsets(&on_gpu), &offsets(&cpu), 1e-5);
-        assert_close("world means", &on_gpu.world.means, &cpu.world.means, 1e-5);
-        assert_close(
-            "world covariances",
-            &on_gpu.world.covariances,
-            &cpu.world.covariances,
-            1e-5,
-        );
-        assert_eq!(on_gpu.world.sh, cpu.world.sh);
-        assert_eq!(on_gpu.world.opacities, cpu.world.opacities);
-    }
-
-    /// `deform_backward` after a gpu deformation: the gradients of every group (non-rigid and
-    /// LBS offsets from the device, the pose refiner on `cpu`) accumulate in the master over
-    /// two backwards and match the all-`cpu` backward, as does the centre gradient through the
-    /// non-rigid network (1e-4 of each array's largest value: f32 forward and backward;
-    /// lavapipe measured at most 2.3e-6).
-    #[test]
-    fn deform_backward_with_gpu_networks_matches_cpu() {
-        let Some(backend) = gpu_test_backend() else {
-            return;
-        };
-        let (s, networks) = gpu_setup(60);
-        let gpu = avatar_backend(backend, Some(&networks), Precision::F32).unwrap();
-        let cpu = cpu();
-        let run = |device: &dyn AvatarBackend<f64>| {
-            let mut master = networks.clone();
-            let posed = frame_pose(&s.rig, Some(&master), &s.inputs.params).unwrap();
-            let deformed = deform_with(&s, &master, device);
-            let frame = s
-                .rig
-                .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
-            let skin = skin_backward(&frame, &deformed.skin_params(&s.gaussians), &s.a, &s.b);
-            // Twice: the second adds to the first's gradients (as a second camera's would),
-            // on the device too, which must not carry the first pass's gradients over.
-            let mut through = Vec::new();
-            for _ in 0..2 {
-                through = deform_backward(
-                    &mut master,
-                    device,
-                    &s.rig,
-                    &posed,
-                    &deformed,
-                    &s.inputs.params,
-                    &skin,
-                )
-                .unwrap();
-            }
-            (master, through)
-        };
-        let (on_cpu, cpu_through) = run(&*cpu);
-        let (on_gpu, gpu_through) = run(&*gpu);
-        assert_close("d canonical xyz", &gpu_through, &cpu_through, 1e-4);
-        let mut groups = std::collections::HashSet::new();
-        for (c, g) in on_cpu.parameters().iter().zip(on_gpu.parameters()) {
-            assert_eq!(c.name, g.name);
-            assert_eq!(
-                c.values, g.values,
-                "{}: the backward changed values",
-                c.name
-            );
-            assert!(
-                c.grads.iter().any(|x| x.abs() > 1e-9),
-                "{}: no gradient reached it",
-                c.name
-            );
-            assert_close(&format!("{} gradient", c.name), g.grads, c.grads, 1e-4);
-            groups.insert(format!("{:?}", c.group));
-        }
-        assert_eq!(groups.len(), 3, "groups checked: {groups:?}");
-        // A backward on another backend than its forward's is an error, not a panic, both
-        // ways.
-        let posed = frame_pose(&s.rig, Some(&networks), &s.inputs.params).unwrap();
-        for (forward, backward) in [(&*gpu, &*cpu), (&*cpu, &*gpu)] {
-            let deformed = deform_with(&s, &networks, forward);
-            let skin = skin_zero(&s, &posed, &deformed);
-            let error = deform_backward(
-                &mut networks.clone(),
-                backward,
-                &s.rig,
-                &posed,
-                &deformed,
-                &s.inputs.params,
-                &skin,
-            )
-            .expect_err("a pass of another backend");
-            assert!(
-                format!("{error:#}").contains("another backend"),
-                "{error:#}"
-            );
-        }
-        // A gpu backend built for other networks refuses to run these.
-        let mut other_config = networks.config().clone();
-        other_config.trunk_width += 1;
-        let other = Networks::<f64>::new(&other_config, 0).unwrap();
-        let error = deform(
-            &s.rig,
-            &s.grid,
-            Some(&other),
-            &*gpu,
-            &s.gaussians,
-            &s.inputs,
-            &posed.pose,
-            &s.config,
-            0,
-        )
-        .err()
-        .expect("networks of another configuration");
-        assert!(
-            format!("{error:#}").contains("another configuration"),
-            "{error:#}"
-        );
-    }
-
-    /// Skinning gradients of a zero loss (for the error path).
-    fn skin_zero(s: &Setup, posed: &PosedFrame<f64>, deformed: &Deformed<f64>) -> SkinningGrads {
-        let frame = s
-            .rig
-            .frame(&posed.pose, s.config.scale_min, s.config.scale_max);
-        let n = deformed.positions.len() / 3;
-        skin_backward(
-            &frame,
-            &deformed.skin_params(&s.gaussians),
-            &vec![0.0; 3 * n],
-            &vec![0.0; 6 * n],
-        )
-    }
-
-    /// PSNR in dB of two images with values in `[0, 1]`.
-    fn psnr(a: &[f64], b: &[f64]) -> f64 {
-        let mse = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len() as f64;
-        10.0 * (1.0 / mse.max(1e-30)).log10()
-    }
-
-    /// A trained avatar renders the same image on the gpu backend (networks on its gpu copy,
-    /// gpu splatting) as on `cpu` (f32 networks, cpu splatting): PSNR above 50 dB.
-    #[test]
-    fn trained_avatar_renders_the_same_with_gpu_networks() {
-        let Some(backend) = gpu_test_backend() else {
-            return;
-        };
-        let (s, networks) = gpu_setup(400);
-        let mut rng = Rng::new(5);
-        let mut gaussians = s.gaussians.clone();
-        for x in gaussians.sh.iter_mut() {
-            *x = rng.uniform(-0.5, 0.5);
-        }
-        for x in gaussians.opacity_logit.iter_mut() {
-            *x = rng.uniform(0.0, 3.0);
-        }
-        for x in gaussians.log_scale.iter_mut() {
-            *x = rng.uniform(-3.0, -2.0);
-        }
-        let without_networks = TrainedAvatar::new(
-            s.config.clone(),
-            s.rig.clone(),
-            gaussians.clone(),
-            1,
-            vec![2, 1],
-            None,
-        );
-        let mut narrow = Networks::<f32>::new(networks.config(), 0).unwrap();
-        narrow
-            .load_parameters(|name| {
-                let param = networks.parameters().into_iter().find(|p| p.name == name)?;
-                Some(param.values.iter().map(|&v| v as f32).collect())
-            })
-            .unwrap();
-        let avatar = TrainedAvatar::new(
-            s.config.clone(),
-            s.rig.clone(),
-            gaussians,
-            1,
-            vec![2, 1],
-            Some(narrow),
-        );
-        let target = DVec3::new(0.1, 0.0, 2.0);
-        let camera = Camera::look_at(
-            48,
-            64,
-            seqavatar_core::camera::Intrinsics {
-                fx: 60.0,
-                fy: 60.0,
-                cx: 24.0,
-                cy: 32.0,
-            },
-            target + DVec3::new(0.0, 0.0, -2.2),
-            target,
-            DVec3::new(0.0, 1.0, 0.0),
-        );
-        let on_cpu = avatar
-            .backend(Backend::select(DeviceChoice::Cpu).unwrap())
-            .unwrap();
-        assert!(!on_cpu.networks_on_gpu());
-        let cpu = avatar.render(&s.inputs, &camera, &*on_cpu).unwrap();
-        let on_gpu = avatar.backend(backend.clone()).unwrap();
-        assert!(on_gpu.networks_on_gpu());
-        let deformed = avatar.deform(&s.inputs, &*on_gpu).unwrap();
-        assert!(matches!(deformed.non_rigid, Some(NonRigidPass::Gpu(_))));
-        let gpu = avatar.render(&s.inputs, &camera, &*on_gpu).unwrap();
-        let covered = cpu.alpha.iter().filter(|&&a| a > 0.5).count();
-        assert!(
-            covered > cpu.alpha.len() / 50,
-            "the avatar covers {covered} of {} pixels",
-            cpu.alpha.len()
-        );
-        let db = psnr(&gpu.colour, &cpu.colour);
-        eprintln!("gpu networks + gpu splatting vs cpu: PSNR {db:.1} dB");
-        assert!(db > 50.0, "PSNR {db} dB");
-        // The networks change the image far more than that (the comparison is not vacuous).
-        let rigid = without_networks
-            .render(&s.inputs, &camera, &*on_cpu)
-            .unwrap();
-        let effect = psnr(&rigid.colour, &cpu.colour);
-        eprintln!("with vs without networks: PSNR {effect:.1} dB");
-        assert!(
-            effect < 40.0,
-            "the networks change the image by PSNR {effect} dB only"
-        );
-        // An avatar without per-Gaussian networks makes no copy.
-        let refiner_only = TrainedAvatar::new(
-            s.config.clone(),
-            s.rig.clone(),
-            s.gaussians.clone(),
-            0,
-            Vec::new(),
-            None,
-        );
-        assert!(!refiner_only.backend(backend).unwrap().networks_on_gpu());
     }
 }

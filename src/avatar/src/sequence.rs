@@ -1,34 +1,90 @@
 //! A trained avatar driven by one sequence's frames (body parameters and motion track) and
-//! rendered on the backend chosen once: on `cpu` the frame inputs are gathered on the host
-//! and the avatar's [`crate::device::AvatarBackend`] deforms and splats; on the `gpu` the
-//! whole frame runs on the device ([`ResidentRenderer`]) and only the image comes back. Eval,
-//! the held-out PSNR of training, `pipeline render`, `pipeline export` and `pipeline view`
-//! render through it.
+//! rendered on the backend chosen once, by `frame_path` when the renderer is built: on `cpu`
+//! the frame inputs are gathered on the host and the avatar's
+//! [`crate::device::AvatarBackend`] deforms and splats (`HostPath`); on the `gpu` the whole
+//! frame runs on the device ([`ResidentRenderer`]) and only the image comes back. Eval, the
+//! held-out PSNR of training, `pipeline render`, `pipeline export` and `pipeline view` render
+//! through it.
 
 use seqavatar_compute::backend::Backend;
 use seqavatar_compute::splat::RenderedImage;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::avatar::{FrameInputs, TrainedAvatar, splat_on};
-use crate::device::{RenderPath, render_path};
+use crate::device::AvatarBackend;
 pub use crate::resident::deform::History;
+use crate::resident::render::ResidentRenderer;
 use crate::splatting::WorldGaussians;
 
 /// An avatar's renderer over the frames of one sequence. Every call takes the avatar it was
 /// built for (the device path holds a snapshot of it made at [`SequenceRenderer::new`]).
 pub struct SequenceRenderer {
+    frames: Frames,
+    path: Box<dyn FramePath>,
+}
+
+/// The frames of the sequence: their body parameters and motion track.
+struct Frames {
     params: Vec<BodyParams>,
     motion: Option<MotionTrack>,
-    path: RenderPath,
-    /// The host path's last deformed frame, with its frame and history: eval renders every
-    /// camera of a frame in turn and the viewer re-renders a paused frame from new views,
-    /// and on `cpu` the deformation (the per-Gaussian networks) is most of a frame's cost.
-    /// Valid because every call takes the avatar the renderer was built for.
-    last_deformed: Option<(usize, History, WorldGaussians)>,
-    /// Deformations the host path ran (the cache's misses).
-    host_deformations: usize,
+}
+
+/// How frames are deformed and splatted, chosen once by `frame_path`.
+trait FramePath: Send {
+    /// Frame `frame` (with `history`) from `camera` on `background`.
+    fn render(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frames: &Frames,
+        at: (usize, History),
+        camera: &Camera,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>>;
+
+    /// The deformed Gaussians of frame `frame` (with `history`).
+    fn deform(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frames: &Frames,
+        at: (usize, History),
+    ) -> anyhow::Result<WorldGaussians>;
+
+    /// Whether frames are deformed and splatted on the device.
+    fn on_device(&self) -> bool;
+
+    /// Deformations run on the host so far.
+    fn host_deformations(&self) -> usize {
+        0
+    }
+
+    /// Drops a kept deformed frame.
+    fn forget_deformed_frame(&mut self) {}
+}
+
+/// The path of `avatar` over the frames `params` (with their motion `track`) on `backend`:
+/// the host path on `cpu`, the device path on the gpu (the avatar, its networks, the poses
+/// and the motion arrays uploaded here, once). The renderer's one backend factory.
+fn frame_path(
+    avatar: &TrainedAvatar,
+    backend: &Backend,
+    params: &[BodyParams],
+    track: Option<&MotionTrack>,
+) -> anyhow::Result<Box<dyn FramePath>> {
+    Ok(match backend {
+        Backend::Cpu => Box::new(HostPath {
+            device: avatar.backend(backend.clone())?,
+            last_deformed: None,
+            deformations: 0,
+        }),
+        Backend::Gpu(context) => Box::new(ResidentRenderer::new(
+            context.clone(),
+            avatar,
+            params,
+            track,
+        )?),
+    })
 }
 
 impl SequenceRenderer {
@@ -41,54 +97,49 @@ impl SequenceRenderer {
         params: Vec<BodyParams>,
         motion: Option<MotionTrack>,
     ) -> anyhow::Result<Self> {
-        let path = render_path(avatar, backend, &params, motion.as_ref())?;
+        let path = frame_path(avatar, backend, &params, motion.as_ref())?;
         Ok(Self {
-            params,
-            motion,
+            frames: Frames { params, motion },
             path,
-            last_deformed: None,
-            host_deformations: 0,
         })
     }
 
     /// Drops the kept deformed frame: the next render deforms its frame anew (speed
     /// measurements time the whole path).
     pub fn forget_deformed_frame(&mut self) {
-        self.last_deformed = None;
+        self.path.forget_deformed_frame();
     }
 
     /// Deformations run on the host path so far (a frame rendered again with the same
     /// history, from any camera, reuses the last one).
     pub fn host_deformations(&self) -> usize {
-        self.host_deformations
+        self.path.host_deformations()
     }
 
     /// Frames of the sequence.
     pub fn num_frames(&self) -> usize {
-        self.params.len()
+        self.frames.params.len()
     }
 
     /// The frames' body parameters.
     pub fn params(&self) -> &[BodyParams] {
-        &self.params
+        &self.frames.params
     }
 
     /// The motion track, when the renderer has one.
     pub fn motion(&self) -> Option<&MotionTrack> {
-        self.motion.as_ref()
+        self.frames.motion.as_ref()
     }
 
     /// Whether frames are deformed and splatted on the device.
     pub fn on_device(&self) -> bool {
-        matches!(self.path, RenderPath::Resident(_))
+        self.path.on_device()
     }
 
-    /// Whether the per-Gaussian networks run on a gpu (on either path).
+    /// Whether the per-Gaussian networks run on a gpu: on the device path (the host path is
+    /// `cpu`'s).
     pub fn networks_on_gpu(&self) -> bool {
-        match &self.path {
-            RenderPath::Host(device) => device.networks_on_gpu(),
-            RenderPath::Resident(_) => true,
-        }
+        self.path.on_device()
     }
 
     /// The host-side inputs of frame `frame` with `history` (the `cpu` path's; the device
@@ -99,7 +150,53 @@ impl SequenceRenderer {
         frame: usize,
         history: History,
     ) -> anyhow::Result<FrameInputs> {
-        let params = self.frame_params(frame)?;
+        self.frames.inputs(avatar, frame, history)
+    }
+
+    /// Renders frame `frame` (with `history`) from `camera` on `background`.
+    pub fn render(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+        camera: &Camera,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>> {
+        self.frames.params(frame)?;
+        self.path
+            .render(avatar, &self.frames, (frame, history), camera, background)
+    }
+
+    /// The deformed Gaussians of frame `frame` (with `history`), as the splatting reads them.
+    pub fn deform(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+    ) -> anyhow::Result<WorldGaussians> {
+        self.frames.params(frame)?;
+        self.path.deform(avatar, &self.frames, (frame, history))
+    }
+}
+
+impl Frames {
+    fn params(&self, frame: usize) -> anyhow::Result<&BodyParams> {
+        self.params.get(frame).ok_or_else(|| {
+            anyhow::anyhow!(
+                "frame {frame}: the sequence has {} frames",
+                self.params.len()
+            )
+        })
+    }
+
+    /// The host-side inputs of frame `frame` with `history`.
+    fn inputs(
+        &self,
+        avatar: &TrainedAvatar,
+        frame: usize,
+        history: History,
+    ) -> anyhow::Result<FrameInputs> {
+        let params = self.params(frame)?;
         let Some(track) = &self.motion else {
             return Ok(FrameInputs {
                 params: params.clone(),
@@ -115,69 +212,41 @@ impl SequenceRenderer {
                 inputs.vertex_velocity.fill(0.0);
             }
             History::Frame(donor) => {
-                let donor = avatar.frame_inputs(track, self.frame_params(donor)?, donor)?;
+                let donor = avatar.frame_inputs(track, self.params(donor)?, donor)?;
                 inputs.skeleton_motion = donor.skeleton_motion;
                 inputs.vertex_velocity = donor.vertex_velocity;
             }
         }
         Ok(inputs)
     }
+}
 
-    fn frame_params(&self, frame: usize) -> anyhow::Result<&BodyParams> {
-        self.params.get(frame).ok_or_else(|| {
-            anyhow::anyhow!(
-                "frame {frame}: the sequence has {} frames",
-                self.params.len()
-            )
-        })
-    }
+/// The `cpu` path: frame inputs on the host, the avatar's backend for networks and splatting.
+struct HostPath {
+    device: Box<dyn AvatarBackend>,
+    /// The last deformed frame, with its frame and history: eval renders every camera of a
+    /// frame in turn and the viewer re-renders a paused frame from new views, and on `cpu`
+    /// the deformation (the per-Gaussian networks) is most of a frame's cost. Valid because
+    /// every call takes the avatar the renderer was built for.
+    last_deformed: Option<(usize, History, WorldGaussians)>,
+    /// Deformations run (the cache's misses).
+    deformations: usize,
+}
 
-    /// Renders frame `frame` (with `history`) from `camera` on `background`.
-    pub fn render(
+impl HostPath {
+    /// Makes `last_deformed` frame `at` (kept when it already is).
+    fn deform_frame(
         &mut self,
         avatar: &TrainedAvatar,
-        frame: usize,
-        history: History,
-        camera: &Camera,
-        background: [f64; 3],
-    ) -> anyhow::Result<RenderedImage<f64>> {
-        self.frame_params(frame)?;
-        if let RenderPath::Resident(device) = &mut self.path {
-            let image = device.render(frame, history, camera, background)?;
-            let widen = |values: Vec<f32>| values.into_iter().map(f64::from).collect();
-            return Ok(RenderedImage {
-                width: image.width,
-                height: image.height,
-                colour: widen(image.colour),
-                alpha: widen(image.alpha),
-                depth: widen(image.depth),
-            });
-        }
-        self.deform_on_host(avatar, frame, history)?;
-        let (RenderPath::Host(device), Some((_, _, world))) = (&self.path, &self.last_deformed)
-        else {
-            unreachable!("the device path returned above; the host path deformed the frame")
-        };
-        splat_on(world, camera, &**device, background)
-    }
-
-    /// Makes `last_deformed` frame `frame` with `history` on the host path (kept when it
-    /// already is).
-    fn deform_on_host(
-        &mut self,
-        avatar: &TrainedAvatar,
-        frame: usize,
-        history: History,
+        frames: &Frames,
+        (frame, history): (usize, History),
     ) -> anyhow::Result<&WorldGaussians> {
         let cached = matches!(&self.last_deformed, Some((f, h, _)) if (*f, *h) == (frame, history));
         if !cached {
             self.last_deformed = None;
-            let inputs = self.frame_inputs(avatar, frame, history)?;
-            let RenderPath::Host(device) = &self.path else {
-                anyhow::bail!("the host deformation on the device path");
-            };
-            let world = avatar.deform(&inputs, &**device)?.world;
-            self.host_deformations += 1;
+            let inputs = frames.inputs(avatar, frame, history)?;
+            let world = avatar.deform(&inputs, &*self.device)?.world;
+            self.deformations += 1;
             self.last_deformed = Some((frame, history, world));
         }
         match &self.last_deformed {
@@ -185,19 +254,78 @@ impl SequenceRenderer {
             None => unreachable!("filled above"),
         }
     }
+}
 
-    /// The deformed Gaussians of frame `frame` (with `history`), as the splatting reads them.
-    pub fn deform(
+impl FramePath for HostPath {
+    fn render(
         &mut self,
         avatar: &TrainedAvatar,
-        frame: usize,
-        history: History,
+        frames: &Frames,
+        at: (usize, History),
+        camera: &Camera,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>> {
+        self.deform_frame(avatar, frames, at)?;
+        let Some((_, _, world)) = &self.last_deformed else {
+            unreachable!("deformed above")
+        };
+        splat_on(world, camera, &*self.device, background)
+    }
+
+    fn deform(
+        &mut self,
+        avatar: &TrainedAvatar,
+        frames: &Frames,
+        at: (usize, History),
     ) -> anyhow::Result<WorldGaussians> {
-        self.frame_params(frame)?;
-        if let RenderPath::Resident(device) = &mut self.path {
-            return device.deform(frame, history);
-        }
-        self.deform_on_host(avatar, frame, history).cloned()
+        self.deform_frame(avatar, frames, at).cloned()
+    }
+
+    fn on_device(&self) -> bool {
+        false
+    }
+
+    fn host_deformations(&self) -> usize {
+        self.deformations
+    }
+
+    fn forget_deformed_frame(&mut self) {
+        self.last_deformed = None;
+    }
+}
+
+/// The `gpu` path: everything on the device, one read-back per frame.
+impl FramePath for ResidentRenderer {
+    fn render(
+        &mut self,
+        _avatar: &TrainedAvatar,
+        _frames: &Frames,
+        (frame, history): (usize, History),
+        camera: &Camera,
+        background: [f64; 3],
+    ) -> anyhow::Result<RenderedImage<f64>> {
+        let image = ResidentRenderer::render(self, frame, history, camera, background)?;
+        let widen = |values: Vec<f32>| values.into_iter().map(f64::from).collect();
+        Ok(RenderedImage {
+            width: image.width,
+            height: image.height,
+            colour: widen(image.colour),
+            alpha: widen(image.alpha),
+            depth: widen(image.depth),
+        })
+    }
+
+    fn deform(
+        &mut self,
+        _avatar: &TrainedAvatar,
+        _frames: &Frames,
+        (frame, history): (usize, History),
+    ) -> anyhow::Result<WorldGaussians> {
+        ResidentRenderer::deform(self, frame, history)
+    }
+
+    fn on_device(&self) -> bool {
+        true
     }
 }
 

@@ -1,13 +1,9 @@
-//! Splatting with f64 at the boundary, one pair of functions per backend (called through
-//! [`crate::device::AvatarBackend`]): both backends splat in f32 (inputs rounded once, outputs
-//! widened; on `cpu` that is the lane-parallel speed path of `compute::splat::cpu`, about 4x
-//! the f64 generic one), so the loss and everything around the splatting stays in f64 on
-//! both. The f64 cpu splatting remains the oracle of the splatting's own gradient tests.
-
-use std::sync::Arc;
+//! Splatting with f64 at the boundary, for the host path (called through
+//! [`crate::device::AvatarBackend`]): it splats in f32 (inputs rounded once, outputs widened;
+//! the lane-parallel speed path of `compute::splat::cpu`, about 4x the f64 generic one), so
+//! the loss and everything around the splatting stays in f64. The f64 cpu splatting remains the oracle of the splatting's own gradient tests.
 
 use anyhow::Context;
-use seqavatar_compute::backend::GpuContext;
 use seqavatar_compute::splat::{
     self, GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatGradients,
 };
@@ -67,15 +63,11 @@ impl F32Gaussians {
     }
 }
 
-enum State {
-    Cpu(splat::cpu::CpuForward<f32>, F32Gaussians),
-    Gpu(Box<splat::gpu::GpuForward>, F32Gaussians),
-}
-
-/// A forward pass kept for its backward.
+/// A forward pass kept for its backward, with the f32 copy it splatted.
 pub struct SplatPass {
     pub images: Vec<RenderedImage<f64>>,
-    state: State,
+    forward: splat::cpu::CpuForward<f32>,
+    narrow: F32Gaussians,
 }
 
 fn widen(image: &RenderedImage<f32>) -> RenderedImage<f64> {
@@ -102,24 +94,8 @@ pub fn forward_cpu(
         splat::cpu::forward(&narrow.set(), cameras, options).context("splatting forward (cpu)")?;
     Ok(SplatPass {
         images: f.images.iter().map(widen).collect(),
-        state: State::Cpu(f, narrow),
-    })
-}
-
-/// Renders `gaussians` from `cameras` on the gpu of `context` in f32 (the `gpu` backend's
-/// [`crate::device::AvatarBackend::splat_forward`]).
-pub fn forward_gpu(
-    context: &Arc<GpuContext>,
-    gaussians: &WorldGaussians,
-    cameras: &[Camera],
-    options: &RasterOptions,
-) -> anyhow::Result<SplatPass> {
-    let narrow = F32Gaussians::new(gaussians);
-    let f = splat::gpu::forward(context, &narrow.set(), cameras, options)
-        .context("splatting forward (gpu)")?;
-    Ok(SplatPass {
-        images: f.images.iter().map(widen).collect(),
-        state: State::Gpu(Box::new(f), narrow),
+        forward: f,
+        narrow,
     })
 }
 
@@ -130,29 +106,9 @@ pub fn backward_cpu(
     colour: &[Vec<f64>],
     alpha: &[Vec<f64>],
 ) -> anyhow::Result<SplatGradients<f64>> {
-    let State::Cpu(f, narrow) = &pass.state else {
-        anyhow::bail!("splatting backward: a gpu forward pass needs the gpu backend");
-    };
     let (c32, a32) = (narrow_planes(colour), narrow_planes(alpha));
-    let g = splat::cpu::backward(f, &narrow.set(), &upstream_f32(&c32, &a32))
+    let g = splat::cpu::backward(&pass.forward, &pass.narrow.set(), &upstream_f32(&c32, &a32))
         .context("splatting backward (cpu)")?;
-    Ok(widen_gradients(g))
-}
-
-/// Gradients with respect to the Gaussians given to [`forward_gpu`] (the pass keeps their
-/// f32 copy).
-pub fn backward_gpu(
-    context: &Arc<GpuContext>,
-    pass: &SplatPass,
-    colour: &[Vec<f64>],
-    alpha: &[Vec<f64>],
-) -> anyhow::Result<SplatGradients<f64>> {
-    let State::Gpu(f, narrow) = &pass.state else {
-        anyhow::bail!("splatting backward: a cpu forward pass needs the cpu backend");
-    };
-    let (c32, a32) = (narrow_planes(colour), narrow_planes(alpha));
-    let g = splat::gpu::backward(context, f, &narrow.set(), &upstream_f32(&c32, &a32))
-        .context("splatting backward (gpu)")?;
     Ok(widen_gradients(g))
 }
 

@@ -5,7 +5,7 @@
 
 use seqavatar_compute::nn::{Precision, Rng};
 use seqavatar_core::body::procedural::procedural_body;
-use seqavatar_motion::schema::{FrameAxis, MotionTrack};
+use seqavatar_schema::motion::{FrameAxis, MotionTrack};
 
 use crate::avatar::{AvatarGaussians, TrainedAvatar};
 use crate::config::{AvatarConfig, Background, MotionContext};

@@ -34,7 +34,9 @@ use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
-use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, MatmulPath, NnGpu};
+use seqavatar_compute::nn::gpu::{
+    GpuInput, GpuInputGrad, GpuInputPart, GpuLinear, GpuLinearGrads, MatmulPath, NnGpu,
+};
 use seqavatar_compute::nn::init::{Rng, uniform_fill};
 use seqavatar_compute::nn::linear::{InputGrad, LinearGrads};
 use seqavatar_compute::nn::{
@@ -293,8 +295,8 @@ impl CpuLayer {
                 LinearGrads {
                     weight: &mut self.d_weight,
                     bias: &mut self.d_bias,
+                    inputs: &mut d_inputs,
                 },
-                &mut d_inputs,
             )
             .expect("backward");
         })
@@ -474,20 +476,24 @@ fn gpu_gflops(
                 let result = if backward {
                     nn.linear_backward(
                         &mut encoder,
-                        shape,
-                        &weight,
-                        &parts,
-                        rows,
+                        GpuLinear::new(shape, &weight),
+                        GpuInput::new(&parts, rows),
                         &y,
                         &d_y,
                         GpuLinearGrads {
                             weight: &d_weight,
                             bias: &d_bias,
+                            inputs: &[GpuInputGrad::Write(&d_x)],
                         },
-                        &[GpuInputGrad::Write(&d_x)],
                     )
                 } else {
-                    nn.linear_forward(&mut encoder, shape, &weight, &bias, &parts, rows, &y)
+                    nn.linear_forward(
+                        &mut encoder,
+                        GpuLinear::new(shape, &weight),
+                        &bias,
+                        GpuInput::new(&parts, rows),
+                        &y,
+                    )
                 };
                 if let Err(error) = result {
                     failure = Some(error.to_string());

@@ -188,8 +188,10 @@ pub const MEMORY_BUDGET_VAR: &str = "SEQAVATAR_MEMORY_BUDGET";
 pub const DEFAULT_MEMORY_FRACTION: f64 = 0.75;
 
 /// The memory a stage's configuration may be estimated to need: [`MEMORY_BUDGET_VAR`] when
-/// set, else [`DEFAULT_MEMORY_FRACTION`] of [`machine_memory_bytes`]; `None` where neither
-/// is known (no check). A value that is not a size is an error naming the variable.
+/// set, else [`DEFAULT_MEMORY_FRACTION`] of the least of [`machine_memory_bytes`] and the
+/// process's own limits ([`process_memory_limit_bytes`]: `RLIMIT_AS`, `RLIMIT_DATA`, the
+/// cgroup's memory limit); `None` where none is known (no check). A value that is not a size
+/// is an error naming the variable.
 pub fn memory_budget_bytes() -> Result<Option<u64>, String> {
     if let Some(value) = std::env::var_os(MEMORY_BUDGET_VAR) {
         let value = value.to_string_lossy();
@@ -197,7 +199,80 @@ pub fn memory_budget_bytes() -> Result<Option<u64>, String> {
             format!("{MEMORY_BUDGET_VAR}={value:?} is not a size in bytes (examples: 8G, 512M)")
         });
     }
-    Ok(machine_memory_bytes().map(|bytes| (bytes as f64 * DEFAULT_MEMORY_FRACTION) as u64))
+    let least = [machine_memory_bytes(), process_memory_limit_bytes()]
+        .into_iter()
+        .flatten()
+        .min();
+    Ok(least.map(|bytes| (bytes as f64 * DEFAULT_MEMORY_FRACTION) as u64))
+}
+
+/// Limits at or above this many bytes mean "no limit" (cgroup v1 writes `2^63 - 4096`).
+const NO_LIMIT_BYTES: u64 = 1 << 60;
+
+/// The least memory limit set on this process: its `RLIMIT_AS` and `RLIMIT_DATA` soft limits
+/// and its cgroup's (v2 `memory.max`, v1 `memory.limit_in_bytes`); `None` where none is set.
+pub fn process_memory_limit_bytes() -> Option<u64> {
+    let cgroup = std::fs::read_to_string("/proc/self/cgroup")
+        .ok()
+        .and_then(|text| cgroup_memory_limit(&text, |path| std::fs::read_to_string(path).ok()));
+    [
+        rlimit_bytes(libc::RLIMIT_AS),
+        rlimit_bytes(libc::RLIMIT_DATA),
+        cgroup,
+    ]
+    .into_iter()
+    .flatten()
+    .filter(|&bytes| bytes < NO_LIMIT_BYTES)
+    .min()
+}
+
+/// The soft limit of `resource`, `None` when unlimited or unknown.
+fn rlimit_bytes(resource: libc::__rlimit_resource_t) -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: `getrlimit` writes one `rlimit` through a pointer to a live, aligned value.
+    let status = unsafe { libc::getrlimit(resource, &mut limit) };
+    (status == 0 && limit.rlim_cur != libc::RLIM_INFINITY).then_some(limit.rlim_cur)
+}
+
+/// The memory limit of the cgroup named in `/proc/self/cgroup` (`proc_cgroup`): v2
+/// (`0::<path>`, file `memory.max`, `max` = none) or v1 (the `memory` controller's path,
+/// file `memory.limit_in_bytes`), read with `read` at the group's path and, inside a
+/// container whose namespace hides the path, at the mount's root.
+fn cgroup_memory_limit(proc_cgroup: &str, read: impl Fn(&str) -> Option<String>) -> Option<u64> {
+    let parse = |text: String| -> Option<u64> {
+        let text = text.trim();
+        if text == "max" {
+            return None;
+        }
+        text.parse::<u64>()
+            .ok()
+            .filter(|&bytes| bytes < NO_LIMIT_BYTES)
+    };
+    let mut limits = Vec::new();
+    for line in proc_cgroup.lines() {
+        let mut fields = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(path)) =
+            (fields.next(), fields.next(), fields.next())
+        else {
+            continue;
+        };
+        let path = path.trim_end_matches('/');
+        let (root, file) = if controllers.is_empty() {
+            ("/sys/fs/cgroup", "memory.max")
+        } else if controllers.split(',').any(|c| c == "memory") {
+            ("/sys/fs/cgroup/memory", "memory.limit_in_bytes")
+        } else {
+            continue;
+        };
+        let limit = read(&format!("{root}{path}/{file}"))
+            .or_else(|| read(&format!("{root}/{file}")))
+            .and_then(parse);
+        limits.extend(limit);
+    }
+    limits.into_iter().min()
 }
 
 /// `123`, `800K`, `800M`, `2G` (binary multiples) as bytes; `None` for anything else or 0.
@@ -245,5 +320,71 @@ mod memory_tests {
         if cfg!(target_os = "linux") {
             assert!(machine_memory_bytes().is_some_and(|bytes| bytes > 1 << 26));
         }
+    }
+
+    /// The cgroup limit is read where `/proc/self/cgroup` points, v2 and v1, falling back to
+    /// the mount's root inside a container; "max" and v1's huge sentinel mean no limit.
+    #[test]
+    fn cgroup_limits_parse() {
+        let files = |entries: &'static [(&'static str, &'static str)]| {
+            move |path: &str| {
+                entries
+                    .iter()
+                    .find(|(name, _)| *name == path)
+                    .map(|(_, text)| (*text).to_owned())
+            }
+        };
+        let v2 = "0::/user.slice/job\n";
+        let job = files(&[("/sys/fs/cgroup/user.slice/job/memory.max", "6000000000\n")]);
+        assert_eq!(cgroup_memory_limit(v2, job), Some(6_000_000_000));
+        let unlimited = files(&[("/sys/fs/cgroup/user.slice/job/memory.max", "max\n")]);
+        assert_eq!(cgroup_memory_limit(v2, unlimited), None);
+        let v1 = "9:pids:/\n4:memory:/process_api/abc\n0::/\n";
+        let hidden = files(&[("/sys/fs/cgroup/memory/memory.limit_in_bytes", "4294967296")]);
+        assert_eq!(cgroup_memory_limit(v1, hidden), Some(4 << 30));
+        let sentinel = files(&[(
+            "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+            "9223372036854771712",
+        )]);
+        assert_eq!(cgroup_memory_limit(v1, sentinel), None);
+        assert_eq!(cgroup_memory_limit("garbage", files(&[])), None);
+    }
+
+    /// A process started under `RLIMIT_AS` plans within three quarters of it.
+    #[test]
+    fn the_address_space_limit_bounds_the_budget() {
+        if std::env::var_os("SEQAVATAR_RLIMIT_CHILD").is_some() {
+            let budget = memory_budget_bytes().unwrap().unwrap();
+            assert!(budget <= 3 << 30, "{budget}");
+            return;
+        }
+        let exe = std::env::current_exe().unwrap();
+        let mut child = std::process::Command::new(exe);
+        child
+            .args([
+                "--exact",
+                "config::memory_tests::the_address_space_limit_bounds_the_budget",
+            ])
+            .env("SEQAVATAR_RLIMIT_CHILD", "1")
+            .env_remove(MEMORY_BUDGET_VAR);
+        // SAFETY: the closure runs in the forked child before exec and only calls
+        // `setrlimit`, which is async-signal-safe.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut child, || {
+                let limit = libc::rlimit {
+                    rlim_cur: 4 << 30,
+                    rlim_max: libc::RLIM_INFINITY,
+                };
+                if libc::setrlimit(libc::RLIMIT_AS, &limit) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let status = child.status().unwrap();
+        assert!(
+            status.success(),
+            "the child under RLIMIT_AS = 4 GiB: {status}"
+        );
     }
 }

@@ -31,6 +31,7 @@ pub(crate) trait ErasedStage: Send + Sync {
         raw: &serde_json::Value,
     ) -> Result<(serde_json::Value, TypedConfig), ConfigError>;
     fn check_inputs(&self, config: &TypedConfig, inputs: &[StageInput<'_>]) -> Result<(), String>;
+    fn planned(&self, config: &TypedConfig) -> serde_json::Value;
     fn external_files(&self, config: &TypedConfig) -> anyhow::Result<Vec<PathBuf>>;
     fn run(&self, config: &TypedConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()>;
     fn pictures(&self) -> Vec<PictureKind>;
@@ -64,6 +65,10 @@ impl<S: StageKind> ErasedStage for S {
 
     fn check_inputs(&self, config: &TypedConfig, inputs: &[StageInput<'_>]) -> Result<(), String> {
         StageKind::check_inputs(self, typed(self, config), inputs)
+    }
+
+    fn planned(&self, config: &TypedConfig) -> serde_json::Value {
+        StageKind::planned(self, typed(self, config))
     }
 
     fn external_files(&self, config: &TypedConfig) -> anyhow::Result<Vec<PathBuf>> {

@@ -95,6 +95,14 @@ pub trait StageKind: Send + Sync + 'static {
     ) -> Result<(), String> {
         Ok(())
     }
+    /// What an entry of this stage will hold, as far as its effective config alone
+    /// determines it, for the stages downstream to check when the pipeline loads (their
+    /// [`StageKind::check_inputs`] sees it as [`StageInput::planned`]). A value of one of
+    /// `seqavatar_schema`'s `Planned*` types, where a downstream stage reads it; `Null`
+    /// (the default) when nothing is known before the run.
+    fn planned(&self, _config: &Self::Config) -> serde_json::Value {
+        serde_json::Value::Null
+    }
     /// External files (raw dataset files) whose content the result depends on.
     fn external_files(&self, _config: &Self::Config) -> anyhow::Result<Vec<PathBuf>> {
         Ok(vec![])
@@ -121,8 +129,10 @@ pub trait StageKind: Send + Sync + 'static {
 pub struct StageInput<'a> {
     pub name: &'a str,
     pub kind: &'a str,
-    /// The input stage's effective config.
-    pub config: &'a serde_json::Value,
+    /// What the input stage's entry will hold, as far as its config says
+    /// ([`StageKind::planned`]): a stage knows its inputs by their entries, not by their
+    /// configs.
+    pub planned: &'a serde_json::Value,
 }
 
 /// For [`StageKind::check_inputs`]: an error unless exactly one input has each of `kinds`.

@@ -453,20 +453,27 @@ impl Loader<'_> {
         Ok(())
     }
 
-    /// Each stage's inputs give it what its run needs (with their effective configs).
+    /// Each stage's inputs give it what its run needs (with what their entries will hold).
     fn check_stage_inputs(&self, parsed: &ParsedStages) -> Result<(), PipelineError> {
         let stages = &parsed.stages;
+        let planned: Vec<serde_json::Value> = stages
+            .iter()
+            .map(|stage| {
+                let kind = self.registry.get(&stage.kind).expect("kind checked above");
+                kind.planned(&stage.typed)
+            })
+            .collect();
         for (index, stage) in stages.iter().enumerate() {
             let kind = self.registry.get(&stage.kind).expect("kind checked above");
             let inputs: Vec<crate::StageInput<'_>> = stage
                 .inputs
                 .iter()
                 .map(|name| {
-                    let upstream = &stages[parsed.index_of[name]];
+                    let upstream = parsed.index_of[name];
                     crate::StageInput {
                         name,
-                        kind: &upstream.kind,
-                        config: &upstream.config,
+                        kind: &stages[upstream].kind,
+                        planned: &planned[upstream],
                     }
                 })
                 .collect();

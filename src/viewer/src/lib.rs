@@ -36,8 +36,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::{Pipeline, Registry, open_store};
-use seqavatar_eval::animate::PoseSource;
-use seqavatar_eval::report::format_metric;
+use seqavatar_evaluation::animate::PoseSource;
+use seqavatar_evaluation::report::format_metric;
 use tokio::sync::oneshot;
 
 use crate::render::{JobError, Scheduler};

@@ -13,10 +13,10 @@ use std::time::Instant;
 
 use image::RgbImage;
 use seqavatar_compute::image::ImageF32;
-use seqavatar_eval::context_probe::ContextProbe;
-use seqavatar_eval::evaluate::ViewRenderer;
-use seqavatar_eval::metrics::{Mask, Protocol};
-use seqavatar_eval::region::region_psnr;
+use seqavatar_evaluation::context_probe::ContextProbe;
+use seqavatar_evaluation::evaluate::ViewRenderer;
+use seqavatar_evaluation::metrics::{Mask, Protocol};
+use seqavatar_evaluation::region::region_psnr;
 use tokio::sync::oneshot;
 
 use crate::request::{FrameRequest, View};
@@ -44,7 +44,7 @@ pub struct Rendered {
 }
 
 /// The compared frame's PSNR by eval's protocol (at the size shown): over the whole image and
-/// over the garment region (`seqavatar_eval::region`).
+/// over the garment region (`seqavatar_evaluation::region`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ComparePsnr {
     pub whole: f64,
@@ -311,12 +311,13 @@ fn comparison(
     };
     let pair = Protocol::default().prepare(render, &truth, &mask)?;
     let psnr = ComparePsnr {
-        whole: seqavatar_eval::metrics::psnr(&pair.render, &pair.truth)?,
+        whole: seqavatar_evaluation::metrics::psnr(&pair.render, &pair.truth)?,
         garment: garment_mask
             .map(|garment| region_psnr(&pair.render, &pair.truth, &garment))
             .transpose()?,
     };
-    let error = seqavatar_eval::report::error_map(&pair.render, &pair.truth, ERROR_FULL_SCALE)?;
+    let error =
+        seqavatar_evaluation::report::error_map(&pair.render, &pair.truth, ERROR_FULL_SCALE)?;
     let (w, h) = (width as u32, height as u32);
     let mut sheet = RgbImage::new(w * 3, h);
     let parts = [pair.truth.to_rgb_image(), pair.render.to_rgb_image(), error];

@@ -2,7 +2,7 @@
 //! finite number, in range) before anything is rendered; an error is a message naming the
 //! parameter, answered with status 400.
 
-use seqavatar_eval::context_probe::ContextProbe;
+use seqavatar_evaluation::context_probe::ContextProbe;
 
 use crate::orbit::OrbitView;
 

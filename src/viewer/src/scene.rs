@@ -11,12 +11,12 @@ use seqavatar_compute::image::ImageF32;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::{EntryReader, Store};
-use seqavatar_eval::animate::{
+use seqavatar_evaluation::animate::{
     DrivenAvatar, PoseSource, drive_avatar, resolve_entry, upstream_input,
 };
-use seqavatar_eval::avatar_render::AvatarRenderer;
-use seqavatar_eval::metrics::Mask;
-use seqavatar_eval::testset::{TestImage, TestSet};
+use seqavatar_evaluation::avatar_render::AvatarRenderer;
+use seqavatar_evaluation::metrics::Mask;
+use seqavatar_evaluation::testset::{TestImage, TestSet};
 
 use crate::orbit::{OrbitFrame, mean_image_up, vertical_fov_deg};
 
@@ -113,7 +113,7 @@ impl Scene {
                     train,
                     trained_ingest,
                     renderer,
-                } = drive_avatar(store, avatar, source, backend)?;
+                } = drive_avatar(store, avatar, source, backend, 0)?;
                 let text = match source {
                     PoseSource::Entry(spec) => format!("ingest entry {spec}"),
                     PoseSource::File(path) => format!("pose file {}", path.display()),
@@ -147,7 +147,7 @@ impl Scene {
                 (renderer, ingest, Some(truth), text, entries)
             }
         };
-        let cameras = seqavatar_ingest::read_cameras(&ingest)?;
+        let cameras = seqavatar_schema::ingest::read_cameras(&ingest)?;
         anyhow::ensure!(
             !cameras.is_empty(),
             "ingest entry {} has no cameras",
@@ -185,11 +185,11 @@ impl Scene {
         ];
         let mut renderer = renderer;
         // Whether the probes apply: set and cleared again.
-        let context_probes = seqavatar_eval::evaluate::ViewRenderer::set_context_probe(
+        let context_probes = seqavatar_evaluation::evaluate::ViewRenderer::set_context_probe(
             &mut renderer,
-            Some(seqavatar_eval::context_probe::ContextProbe::Zeroed),
+            Some(seqavatar_evaluation::context_probe::ContextProbe::Zeroed),
         );
-        seqavatar_eval::evaluate::ViewRenderer::set_context_probe(&mut renderer, None);
+        seqavatar_evaluation::evaluate::ViewRenderer::set_context_probe(&mut renderer, None);
         let avatar = entries[0].location().to_owned();
         Ok(Self {
             renderer,

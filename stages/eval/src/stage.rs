@@ -7,37 +7,7 @@
 //! skeleton motion or velocities). The avatar must have been trained on the same cameras and
 //! body model: otherwise the stage stops with an error naming both entries.
 //!
-//! Output arrays (axis `image` = the scored test images, in ingest order):
-//! - `psnr`, `ssim` f64 `(image)`; `lpips_vgg`, `lpips_alex` f64 `(image)` only when the
-//!   matching weights file is configured (LPIPS is never reported as a number otherwise).
-//! - Only where the ingest entry has `garment_masks` (crate::region): `garment_pixels` u32
-//!   `(image)` (pixels in the garment region), `garment_psnr`, `garment_ssim` f64 `(image)`
-//!   and, with their weights, `garment_lpips_vgg`, `garment_lpips_alex` f64 `(image)`; NaN
-//!   where the region is empty (such images are left out of the region means).
-//! - `image_index` u32 `(image)` (position on the ingest `image` axis), `image_view`,
-//!   `image_frame` u32 `(image)`, `render_seconds` f64 `(image)` (whole render path).
-//! - `renders` and `error_maps` u8 `(image, height, width, rgb)`, one image per chunk, views
-//!   smaller than the largest stored in the top-left corner (the ingest layout). Renders are
-//!   after the protocol (background outside the bound box); error maps are the per-pixel mean
-//!   absolute error in the "hot" colour map, white at `error_full_scale`.
-//! - `contact_sheet` u8 `(sheet_height, sheet_width, rgb)`: ground truth | render | error.
-//! - `speed_width`, `speed_height` u32 `(resolution)`, `speed_fps` f64 `(resolution)`.
-//!
-//! Attributes: `summary` (`sequence`, `means` = [`MeanScores`], `subsets` =
-//! [`crate::subsets::SubsetScores`]: means on the ingest entry's history frames and other
-//! frames, held-out cameras and held-out frames, each `null` when empty; `train_image_psnr` =
-//! the train entry's `train_image_psnr_mean` (protocol PSNR on training images) or `null`;
-//! `context_probes` = a list of [`crate::context_probe::ProbeResult`]: the scores with the
-//! motion-history inputs zeroed and taken from frame `i + context_probe_offset`, and their
-//! PSNR change per subset, empty for avatars without such inputs; `lpips` =
-//! `"unavailable"` or the nets used, `backend`; `garment_region` = the ingest entry's
-//! `garment_region` (`synthetic_skirt`, `cihp_clothing`) or `null` (no garment region for
-//! this dataset), and then `means.garment` and each subset's `garment` =
-//! [`crate::region::RegionMeans`] (`images`, `empty_images`, `psnr`, `ssim`, `lpips_vgg`,
-//! `lpips_alex`); `garment_lpips` = how region LPIPS is taken
-//! ([`crate::region::REGION_LPIPS_METHOD`]) or `null`), `speed` (a list of [`SpeedRow`]),
-//! `mean_table` (Markdown), `garment_table` (Markdown: per subset, the whole-image figures
-//! beside the garment region's, or "garment region: not available for this dataset").
+//! Output: the arrays and attributes of `seqavatar_schema::eval` (docs/schema.md).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -45,7 +15,6 @@ use std::time::Instant;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 
-use seqavatar_avatar::config::MotionContext;
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::nn::Precision;
 use seqavatar_compute::nn::gpu::MatmulPath;
@@ -54,29 +23,25 @@ use seqavatar_engine::{
     StageKind,
 };
 
-use crate::context_probe::{ContextProbe, ProbeResult, probe_result};
-use crate::evaluate::{
-    ImageScore, LpipsModels, MEAN_TABLE_HEADERS, MeanScores, SpeedRow, ViewRenderer,
-    contact_sheet_rows, mean_scores, mean_table_row, measure_speed, pad_to, score_image, spread,
+use seqavatar_compute::image::ImageF32;
+use seqavatar_compute::lpips::{Lpips, LpipsNet, LpipsWeights};
+use seqavatar_evaluation::context_probe::{ContextProbe, ProbeResult, probe_result};
+use seqavatar_evaluation::evaluate::{
+    LpipsModels, MEAN_TABLE_HEADERS, SpeedRow, ViewRenderer, contact_sheet_rows, mean_table_row,
+    measure_speed, pad_to, score_image, spread,
 };
-use crate::image::ImageF32;
-use crate::lpips::{Lpips, LpipsNet, LpipsWeights};
-use crate::metrics::Protocol;
-use crate::region::RegionScore;
-use crate::report::{error_map, markdown_table, outline_region};
-use crate::testset::{TestImage, TestSet};
+use seqavatar_evaluation::metrics::Protocol;
+use seqavatar_evaluation::region::RegionScore;
+use seqavatar_evaluation::report::{error_map, markdown_table, outline_region};
+use seqavatar_evaluation::scores::{ImageScore, MeanScores, mean_scores};
+use seqavatar_evaluation::testset::{TestImage, TestSet};
 
-/// The kind name in pipeline files.
-pub const EVAL_KIND: &str = "eval";
-/// Entry attribute holding the sequence name, the means and the LPIPS availability.
-pub const SUMMARY_ATTRIBUTE: &str = "summary";
-/// Entry attribute holding the garment-region table (Markdown; crate::evaluate::garment_table)
-/// or the sentence that the dataset has no garment region.
-pub const GARMENT_TABLE_ATTRIBUTE: &str = "garment_table";
-/// Entry attribute holding the rendering speed rows.
-pub const SPEED_ATTRIBUTE: &str = "speed";
-/// Train-entry attribute with the protocol PSNR on training images.
-pub const TRAIN_IMAGE_PSNR_ATTRIBUTE: &str = "train_image_psnr_mean";
+use seqavatar_schema::eval::{
+    EVAL_KIND, GARMENT_TABLE_ATTRIBUTE, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE,
+    TRAIN_IMAGE_PSNR_ATTRIBUTE, read_rgb,
+};
+use seqavatar_schema::ingest::PlannedIngest;
+use seqavatar_schema::train::PlannedTrain;
 
 /// The `eval` stage configuration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -100,7 +65,7 @@ pub struct EvalConfig {
     /// Timed renders per resolution (after one untimed warm-up render).
     pub speed_frames: usize,
     /// Score the test images again with the motion-history inputs zeroed and taken from
-    /// another frame ([`crate::context_probe`]); avatars without such inputs are not probed.
+    /// another frame ([`seqavatar_evaluation::context_probe`]); avatars without such inputs are not probed.
     pub context_probes: bool,
     /// The "another frame" probe gives frame `i` the inputs of frame `(i + offset) mod n`.
     pub context_probe_offset: usize,
@@ -272,36 +237,21 @@ impl StageKind for EvalStage {
             .iter()
             .find(|input| input.kind == "ingest")
             .expect("checked above");
-        let ingest_config: seqavatar_ingest::config::IngestConfig =
-            serde_json::from_value(ingest.config.clone())
-                .map_err(|e| format!("input {}: ingest config: {e}", ingest.name))?;
-        ingest_config
-            .check_test_images_at_load()
-            .map_err(|e| format!("input {}: {e}", ingest.name))?;
+        if let Some(why) = PlannedIngest::of(ingest)?.no_test_images {
+            return Err(format!("input {}: {why}", ingest.name));
+        }
         // An avatar with skeleton-motion context renders from the motion entry.
         let train = inputs
             .iter()
             .find(|input| input.kind == "train")
             .expect("checked above");
-        // The train stage's resolved config names every field; eval needs only this one.
-        let context = train
-            .config
-            .get("motion_context")
-            .ok_or_else(|| format!("input {}: train config has no `motion_context`", train.name))
-            .and_then(|value| {
-                serde_json::from_value::<MotionContext>(value.clone()).map_err(|e| {
-                    format!(
-                        "input {}: train config field `motion_context`: {e}",
-                        train.name
-                    )
-                })
-            })?;
-        if context.has_skeleton_motion() {
+        let plan = PlannedTrain::of(train)?;
+        if plan.renders_from_motion_entry {
             seqavatar_engine::require_one_input_of_each(inputs, &["motion"]).map_err(|e| {
                 format!(
-                    "{e} (input {} trains with motion context {context:?}, which renders \
-                     from the motion entry)",
-                    train.name
+                    "{e} (input {} trains with motion context {}, which renders from the \
+                     motion entry)",
+                    train.name, plan.motion_context
                 )
             })?;
         }
@@ -346,9 +296,9 @@ impl StageKind for EvalStage {
         let fit = optional("fit")?;
         let motion = optional("motion")?;
         // Eval renders at its own precision, not the train entry's.
-        let mut avatar = crate::avatar_render::AvatarRenderer::load_avatar(&train)?;
+        let mut avatar = seqavatar_evaluation::avatar_render::AvatarRenderer::load_avatar(&train)?;
         avatar.config.precision = Some(precision);
-        let mut renderer = crate::avatar_render::AvatarRenderer::open_loaded(
+        let mut renderer = seqavatar_evaluation::avatar_render::AvatarRenderer::open_loaded(
             avatar,
             &train,
             &ingest,
@@ -419,76 +369,6 @@ impl StageKind for EvalStage {
     }
 }
 
-/// An RGB image array of an eval entry: the whole array, or image `index` of a stack.
-fn read_rgb(
-    entry: &EntryReader,
-    name: &str,
-    index: Option<usize>,
-) -> anyhow::Result<image::RgbImage> {
-    let shape = entry.shape(name)?;
-    let (data, height, width) = match index {
-        None => {
-            anyhow::ensure!(
-                shape.len() == 3 && shape[2] == 3,
-                "array \"{name}\" has shape {shape:?}, expected (height, width, 3)"
-            );
-            (entry.read::<u8>(name)?.data, shape[0], shape[1])
-        }
-        Some(index) => {
-            anyhow::ensure!(
-                shape.len() == 4 && shape[3] == 3,
-                "array \"{name}\" has shape {shape:?}, expected (image, height, width, 3)"
-            );
-            anyhow::ensure!(
-                (index as u64) < shape[0],
-                "index {index}: array \"{name}\" has {} images",
-                shape[0]
-            );
-            let region = entry.read_region::<u8>(
-                name,
-                &[index as u64, 0, 0, 0],
-                &[1, shape[1], shape[2], 3],
-            )?;
-            (region.data, shape[1], shape[2])
-        }
-    };
-    image::RgbImage::from_raw(width as u32, height as u32, data)
-        .ok_or_else(|| anyhow::anyhow!("array \"{name}\": size does not match its data"))
-}
-
-/// Writes the PNGs of an eval entry into `folder` (`contact_sheet.png`, `render_NNN.png`,
-/// `error_NNN.png`); returns how many test images were written.
-pub fn export_pngs(entry: &EntryReader, folder: &Path) -> anyhow::Result<usize> {
-    let save = |image: image::RgbImage, name: String| -> anyhow::Result<()> {
-        let path = folder.join(name);
-        image
-            .save(&path)
-            .with_context(|| format!("cannot write {}", path.display()))
-    };
-    save(
-        read_rgb(entry, "contact_sheet", None)?,
-        "contact_sheet.png".to_owned(),
-    )?;
-    let count = entry.shape("renders")?.first().copied().unwrap_or(0) as usize;
-    let views = entry.read::<u32>("image_view")?.data;
-    let frames = entry.read::<u32>("image_frame")?.data;
-    for index in 0..count {
-        let (view, frame) = (
-            views.get(index).copied().unwrap_or(0),
-            frames.get(index).copied().unwrap_or(0),
-        );
-        save(
-            read_rgb(entry, "renders", Some(index))?,
-            format!("render_{index:03}_view{view}_frame{frame}.png"),
-        )?;
-        save(
-            read_rgb(entry, "error_maps", Some(index))?,
-            format!("error_{index:03}_view{view}_frame{frame}.png"),
-        )?;
-    }
-    Ok(count)
-}
-
 /// Scores every selected test image rendered by `renderer` and writes the eval entry.
 pub fn evaluate_entry(
     ctx: &StageContext<'_>,
@@ -545,9 +425,9 @@ pub fn evaluate_entry(
     match (&means.garment, garment_region) {
         (Some(garment), Some(region)) => ctx.log(&format!(
             "garment region ({region}): {}",
-            crate::report::describe_region_means(garment)
+            seqavatar_evaluation::report::describe_region_means(garment)
         )),
-        _ => ctx.log(crate::report::NO_GARMENT_REGION),
+        _ => ctx.log(seqavatar_evaluation::report::NO_GARMENT_REGION),
     }
     out.set_attribute(
         SUMMARY_ATTRIBUTE,
@@ -561,7 +441,7 @@ pub fn evaluate_entry(
             "backend": backend.describe(),
             "garment_region": garment_region,
             "garment_lpips": (garment_region.is_some() && !nets.is_empty())
-                .then_some(crate::region::REGION_LPIPS_METHOD),
+                .then_some(seqavatar_evaluation::region::REGION_LPIPS_METHOD),
         }),
     )?;
     out.set_attribute(SPEED_ATTRIBUTE, serde_json::to_value(&speed)?)?;
@@ -571,8 +451,8 @@ pub fn evaluate_entry(
     }
     // The garment region beside the whole-image figures, per subset (Markdown), or the
     // sentence saying the dataset has none.
-    let garment = crate::evaluate::garment_table(&means, &subsets)
-        .unwrap_or_else(|| crate::report::NO_GARMENT_REGION.to_owned());
+    let garment = seqavatar_evaluation::evaluate::garment_table(&means, &subsets)
+        .unwrap_or_else(|| seqavatar_evaluation::report::NO_GARMENT_REGION.to_owned());
     out.set_attribute(
         GARMENT_TABLE_ATTRIBUTE,
         serde_json::Value::String(garment.clone()),
@@ -826,9 +706,12 @@ impl Evaluation<'_, '_> {
 
     /// Scores on the history frames and per protocol (held-out cameras / held-out frames),
     /// logged.
-    fn subset_scores(&self, scores: &[ImageScore]) -> anyhow::Result<crate::subsets::SubsetScores> {
-        let subsets = crate::subsets::subset_scores(
-            &crate::subsets::frame_flags(self.ingest)?,
+    fn subset_scores(
+        &self,
+        scores: &[ImageScore],
+    ) -> anyhow::Result<seqavatar_evaluation::subsets::SubsetScores> {
+        let subsets = seqavatar_evaluation::subsets::subset_scores(
+            &seqavatar_evaluation::subsets::frame_flags(self.ingest)?,
             &self.tests.iter().map(|t| t.frame).collect::<Vec<_>>(),
             scores,
         )?;
@@ -837,7 +720,7 @@ impl Evaluation<'_, '_> {
                 let garment = m.garment.as_ref().map_or_else(String::new, |g| {
                     format!(
                         "; garment region: {}",
-                        crate::report::describe_region_means(g)
+                        seqavatar_evaluation::report::describe_region_means(g)
                     )
                 });
                 self.ctx.log(&format!(
@@ -849,18 +732,18 @@ impl Evaluation<'_, '_> {
         Ok(subsets)
     }
 
-    /// Scores the test images again under each context probe ([`crate::context_probe`]), PSNR
+    /// Scores the test images again under each context probe ([`seqavatar_evaluation::context_probe`]), PSNR
     /// and SSIM (no LPIPS), and logs the PSNR change per subset; empty when the renderer has
     /// no motion history inputs.
     fn run_context_probes(
         &self,
         renderer: &mut dyn ViewRenderer,
         means: &MeanScores,
-        subsets: &crate::subsets::SubsetScores,
+        subsets: &seqavatar_evaluation::subsets::SubsetScores,
     ) -> anyhow::Result<Vec<ProbeResult>> {
         let (ctx, config, ingest, testset, tests) =
             (self.ctx, self.config, self.ingest, self.testset, self.tests);
-        let flags = crate::subsets::frame_flags(ingest)?;
+        let flags = seqavatar_evaluation::subsets::frame_flags(ingest)?;
         let frames: Vec<usize> = tests.iter().map(|t| t.frame).collect();
         let mut results = Vec::new();
         for probe in [
@@ -902,7 +785,8 @@ impl Evaluation<'_, '_> {
                 progress.inc(1);
             }
             progress.finish_and_clear();
-            let probe_subsets = crate::subsets::subset_scores(&flags, &frames, &scores)?;
+            let probe_subsets =
+                seqavatar_evaluation::subsets::subset_scores(&flags, &frames, &scores)?;
             let result = probe_result(probe, &scores, probe_subsets, means, subsets);
             let change = &result.psnr_change;
             let show =
@@ -1017,18 +901,18 @@ mod tests {
                     "dataset": {"kind": "synthetic", "cameras": cameras, "frames": 4, "width": 16, "height": 16}
                 }))
                 .unwrap();
-            let ingest = serde_json::to_value(ingest).unwrap();
-            let train = json!({"motion_context": "none"});
+            let ingest = seqavatar_ingest::Ingest.planned(&ingest);
+            let train = json!({"motion_context": "none", "renders_from_motion_entry": false});
             let inputs = [
                 seqavatar_engine::StageInput {
                     name: "train",
                     kind: "train",
-                    config: &train,
+                    planned: &train,
                 },
                 seqavatar_engine::StageInput {
                     name: "ingest",
                     kind: "ingest",
-                    config: &ingest,
+                    planned: &ingest,
                 },
             ];
             EvalStage.check_inputs(&EvalConfig::default(), &inputs)

@@ -3,7 +3,7 @@
 //!
 //! Two measures, each only where the ingest entry has the data:
 //! - **Silhouette IoU** per image: the posed body ([`BodyModel::forward`]) rasterized with
-//!   the ingest stage's software rasterizer ([`seqavatar_ingest::synthetic::raster`]) into
+//!   the ingest stage's software rasterizer ([`seqavatar_datasets::synthetic::raster`]) into
 //!   the image's camera, against the ingest mask (foreground: mask >= 128). Images are
 //!   compared at most [`EVIDENCE_MAX_SIDE`] pixels on their longer side (masks resampled
 //!   with the ingest stage's [`resample`]), which keeps the test cheap on full-size captures.
@@ -20,12 +20,13 @@ use rayon::prelude::*;
 use seqavatar_core::body::BodyModel;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
+use seqavatar_datasets::synthetic::raster::{EMPTY, rasterize};
 use seqavatar_engine::EntryReader;
 use seqavatar_formats::resample::{SourceImage, resample};
-use seqavatar_ingest::synthetic::raster::{EMPTY, rasterize};
 
-use crate::io::BodySequence;
 use crate::keypoints::KeypointObservations;
+use seqavatar_schema::body::BodySequence;
+use seqavatar_schema::fit::TrackVerdict;
 
 /// Longest side, in pixels, at which silhouettes are compared.
 pub const EVIDENCE_MAX_SIDE: u32 = 256;
@@ -61,7 +62,7 @@ impl Silhouettes {
     /// images. Errors name the entry and the array.
     pub fn read(ingest: &EntryReader) -> anyhow::Result<Option<Self>> {
         let location = ingest.location();
-        let source_cameras = seqavatar_ingest::read_cameras(ingest)?;
+        let source_cameras = seqavatar_schema::ingest::read_cameras(ingest)?;
         let view_of = ingest.read::<u32>("image_view")?.data;
         let frame_of = ingest.read::<u32>("image_frame")?.data;
         anyhow::ensure!(
@@ -318,18 +319,6 @@ fn changed_frames(a: &BodySequence, b: &BodySequence, track: usize) -> Vec<bool>
         .collect()
 }
 
-/// What [`choose_tracks`] found for one track.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TrackVerdict {
-    /// Change of the mean IoU over all images that refining this track made (with the
-    /// other tracks refined).
-    pub iou_change: f64,
-    /// Change of the mean keypoint distance (metres) that refining this track made.
-    pub keypoint_change: f64,
-    /// True when the evidence got worse and the input fit is kept.
-    pub kept_input: bool,
-}
-
 /// Judges each track of `refined` in the context of the others (module docs): the refined
 /// sequence against the same with only that track put back to `input`. Returns the refined
 /// sequence with every track whose refinement made the evidence worse put back, and a
@@ -400,7 +389,7 @@ mod tests {
     use seqavatar_core::body::BodyParams;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::camera::Intrinsics;
-    use seqavatar_ingest::Keypoints3d;
+    use seqavatar_schema::ingest::Keypoints3d;
 
     #[test]
     fn iou_of_known_coverage() {

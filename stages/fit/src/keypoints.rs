@@ -35,15 +35,15 @@ use rayon::prelude::*;
 use seqavatar_core::body::BodyModel;
 use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_core::rotation::{axis_angle_to_matrix, matrix_to_axis_angle, skew};
-use seqavatar_ingest::Keypoints3d;
+use seqavatar_schema::ingest::Keypoints3d;
 
 use crate::banded::BandedMatrix;
-use crate::io::BodySequence;
 use crate::refine::{RefineSummary, axis_angle_near, shared_betas};
 use crate::smooth::{
     SmoothError, SmoothingPlan, SmoothingWeights, accumulate, levenberg_marquardt, robust,
     rotation_energy, rotation_residuals, translation_energy, translation_residuals,
 };
+use seqavatar_schema::body::BodySequence;
 
 /// Relative energy decrease below which the joint solve stops.
 const KEYPOINT_TOLERANCE: f64 = 1e-7;
@@ -616,8 +616,8 @@ mod tests {
     use crate::refine::{joint_positions, mean_distance, refine_sequence, vertex_velocity_error};
     use seqavatar_core::body::BodyParams;
     use seqavatar_core::body::procedural::procedural_body;
-    use seqavatar_ingest::DatasetReader;
-    use seqavatar_ingest::synthetic::{SyntheticConfig, SyntheticScene};
+    use seqavatar_datasets::DatasetReader;
+    use seqavatar_datasets::synthetic::{SyntheticConfig, SyntheticScene};
 
     /// Deterministic noise in [-1, 1].
     fn noise(seed: &mut u64) -> f64 {

@@ -4,10 +4,8 @@
 
 pub mod banded;
 pub mod evidence;
-pub mod io;
 pub mod keypoints;
 pub mod refine;
-pub mod schema;
 pub mod smooth;
 pub mod stage;
 

@@ -8,8 +8,8 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_core::rotation::{axis_angle_to_matrix, matrix_to_axis_angle};
 
-use crate::io::BodySequence;
 use crate::smooth::{SmoothError, SmoothingPlan, smooth_rotation_track, smooth_translation_track};
+use seqavatar_schema::body::BodySequence;
 
 /// The axis-angle vector of rotation `r` closest to `reference` among all equivalent ones
 /// (`u (theta + 2 pi k)`), so a refined pose keeps the input's branch: networks read raw
@@ -238,8 +238,8 @@ pub fn vertex_velocity_error(
 mod tests {
     use super::*;
     use crate::smooth::{SmoothingPlan, SmoothingWeights};
-    use seqavatar_ingest::DatasetReader;
-    use seqavatar_ingest::synthetic::{SyntheticConfig, SyntheticScene};
+    use seqavatar_datasets::DatasetReader;
+    use seqavatar_datasets::synthetic::{SyntheticConfig, SyntheticScene};
     use std::f64::consts::PI;
 
     /// The acceptance test: on the synthetic scene (exact ground truth, jittered

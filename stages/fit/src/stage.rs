@@ -1,6 +1,6 @@
 //! The `fit` stage kind: configuration, run, and its picture.
 //!
-//! Output arrays and attributes: [`crate::schema`], where they are written and read.
+//! Output arrays and attributes: `seqavatar_schema::fit`, where they are written and read.
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
@@ -10,15 +10,15 @@ use seqavatar_engine::{
 };
 
 use crate::evidence::{EvidenceSources, Silhouettes, choose_tracks, track_name};
-use crate::io::BodySequence;
 use crate::keypoints::{KeypointObservations, KeypointWeights, refine_with_keypoints};
 use crate::refine::{
     joint_jitter, joint_positions, mean_distance, refine_sequence, vertex_velocity_error,
 };
-use crate::schema::{Jitter, SilhouetteIou, TrackVerdicts};
 use crate::smooth::SmoothingPlan;
 use seqavatar_engine::picture;
-use seqavatar_ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
+use seqavatar_schema::body::BodySequence;
+use seqavatar_schema::fit::{Jitter, SilhouetteIou, TrackVerdicts};
+use seqavatar_schema::ingest::{Keypoints3d, read_body_model, read_keypoints_3d};
 
 /// What the stage does with the input fits. In YAML a bare `off` reads as the boolean
 /// `false`; that is accepted as `off` too.

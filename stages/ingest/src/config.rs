@@ -8,7 +8,8 @@ use serde::{Deserialize, Serialize};
 use seqavatar_engine::{ConfigError, ConfigPathSegment};
 
 use crate::plan::ImageCounts;
-use crate::reader::{FrameRange, Split};
+use seqavatar_datasets::{DatasetConfig, FrameRange, Split};
+use seqavatar_schema::ingest::{PlannedImages, PlannedIngest};
 
 /// Split overrides from the stage config: any field left out keeps the dataset's default.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -35,48 +36,6 @@ impl SplitOverrides {
             frame_interval: self.frame_interval.unwrap_or(default.frame_interval),
             held_out_frames: self.held_out_frames.clone().or(default.held_out_frames),
         }
-    }
-}
-
-/// ZJU-MoCap sequence (`CoreView_XXX/`).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ZjuMocapConfig {
-    /// The `CoreView_XXX` folder.
-    pub root: PathBuf,
-}
-
-/// I3D-Human sequence (`<root>/<ID>-train/` ...).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct I3dHumanConfig {
-    pub root: PathBuf,
-    /// Subject and sequence id, e.g. `ID1_1`.
-    pub sequence: String,
-}
-
-/// DNA-Rendering take (main `.smc`; the annotation file is found next to it).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct DnaRenderingConfig {
-    pub main_file: PathBuf,
-    /// Explicit annotation file; default: derived from `main_file` (datasets.md).
-    pub annotations_file: Option<PathBuf>,
-}
-
-/// Which dataset to ingest (`dataset: {kind: synthetic, ...}` in the YAML).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum DatasetConfig {
-    Synthetic(crate::synthetic::SyntheticConfig),
-    ZjuMocap(ZjuMocapConfig),
-    I3dHuman(I3dHumanConfig),
-    DnaRendering(DnaRenderingConfig),
-}
-
-impl Default for DatasetConfig {
-    fn default() -> Self {
-        Self::Synthetic(crate::synthetic::SyntheticConfig::default())
     }
 }
 
@@ -168,9 +127,42 @@ impl IngestConfig {
         };
         let split = self
             .split
-            .apply(crate::synthetic::scene::default_split(scene.cameras));
+            .apply(seqavatar_datasets::synthetic::scene::default_split(
+                scene.cameras,
+            ));
         let counts = ImageCounts::of(&split, scene.cameras, scene.frames);
         Some((split, counts))
+    }
+
+    /// What the entry will hold, as far as this config determines it: the images of a
+    /// synthetic scene (its split's images at `dataset.width x dataset.height` times
+    /// `resolution_scale`; none for file-based datasets or a split the plan refuses, which
+    /// ingest reports), and why there will be no test image where the config says so.
+    pub fn planned(&self) -> PlannedIngest {
+        let images = match (&self.dataset, self.image_counts_at_load()) {
+            (DatasetConfig::Synthetic(scene), Some((_, Ok(counts)))) => {
+                let side = |n: u32| ((f64::from(n) * self.resolution_scale).round() as u64).max(1);
+                Some(PlannedImages {
+                    count: (counts.train + counts.test) as u64,
+                    width: side(scene.width),
+                    height: side(scene.height),
+                    source: format!(
+                        "dataset.cameras {} x dataset.frames {} split, dataset.width x \
+                         dataset.height {} x {} at resolution_scale {}",
+                        scene.cameras,
+                        scene.frames,
+                        scene.width,
+                        scene.height,
+                        self.resolution_scale
+                    ),
+                })
+            }
+            _ => None,
+        };
+        PlannedIngest {
+            images,
+            no_test_images: self.check_test_images_at_load().err(),
+        }
     }
 
     /// For a stage that evaluates on the held-out images (eval): an error, naming the split

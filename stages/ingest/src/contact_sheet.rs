@@ -36,7 +36,7 @@ pub fn contact_sheet(
     let columns = (options.get_u64("columns", 4)?.max(1) as usize).min(picks.len());
     let rows = picks.len().div_ceil(columns);
     let mut sheet = image::RgbImage::new((columns * w) as u32, (rows * h) as u32);
-    let history = crate::schema::read_garment_history(entry)?;
+    let history = seqavatar_schema::ingest::read_garment_history(entry)?;
     let image_frame = match &history {
         Some(_) => entry.read::<u32>("image_frame")?.data,
         None => Vec::new(),
@@ -102,7 +102,7 @@ pub fn history_chart(
     entry: &EntryReader,
     options: &PictureOptions,
 ) -> anyhow::Result<image::RgbImage> {
-    let history = crate::schema::read_garment_history(entry)?.ok_or_else(|| {
+    let history = seqavatar_schema::ingest::read_garment_history(entry)?.ok_or_else(|| {
         anyhow::anyhow!(
             "entry {}: no garment history (only the synthetic history scene records it)",
             entry.location()
@@ -114,7 +114,7 @@ pub fn history_chart(
         .pixels
         .iter()
         .copied()
-        .fold(crate::schema::HISTORY_FRAME_PX, f64::max);
+        .fold(seqavatar_schema::ingest::HISTORY_FRAME_PX, f64::max);
     let mut chart = image::RgbImage::from_pixel(
         (3 * n).max(1) as u32,
         height as u32,
@@ -132,7 +132,7 @@ pub fn history_chart(
             }
         }
     }
-    let threshold = to_row(crate::schema::HISTORY_FRAME_PX);
+    let threshold = to_row(seqavatar_schema::ingest::HISTORY_FRAME_PX);
     for x in 0..3 * n {
         chart.put_pixel(x as u32, threshold as u32, image::Rgb([40, 60, 220]));
     }

@@ -3,7 +3,7 @@
 
 use anyhow::bail;
 
-use crate::reader::Split;
+use seqavatar_datasets::Split;
 
 /// What the stage will ingest: resolved from a reader's default split and the overrides.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -220,7 +220,7 @@ impl SplitFrames {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reader::FrameRange;
+    use seqavatar_datasets::FrameRange;
 
     fn split(
         train: &[usize],

@@ -13,20 +13,14 @@ use seqavatar_engine::{
     ConfigError, EntryReader, EntryWriter, PictureKind, PictureOptions, StageContext, StageKind,
 };
 
-pub use crate::config::{
-    DatasetConfig, DnaRenderingConfig, I3dHumanConfig, IngestConfig, MAX_FRAMES,
-    MAX_SYNTHETIC_CAMERAS, SplitOverrides, ZjuMocapConfig,
-};
-pub use crate::plan::IngestPlan;
-pub use crate::reader::{
-    BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
-    open_reader,
-};
-pub use crate::schema::{
-    read_body_model, read_body_params, read_keypoints_3d, write_body_model, write_body_params,
+use crate::config::IngestConfig;
+use crate::plan::IngestPlan;
+use seqavatar_datasets::{BodyModelKind, DatasetReader, open_reader};
+use seqavatar_formats::resample::{resample, resample_with_region};
+use seqavatar_schema::ingest::{
+    self as schema, Keypoints3d, SourceCamera, write_body_model, write_body_params,
     write_keypoints_3d,
 };
-pub use seqavatar_formats::resample::{resample, resample_with_region};
 
 /// The `ingest` stage kind.
 pub struct Ingest;
@@ -54,6 +48,10 @@ impl StageKind for Ingest {
         &[]
     }
 
+    fn planned(&self, config: &IngestConfig) -> serde_json::Value {
+        serde_json::to_value(config.planned()).unwrap_or_default()
+    }
+
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<IngestConfig, ConfigError> {
         let config: IngestConfig = seqavatar_engine::parse_config(raw)?;
         config.validate()?;
@@ -62,13 +60,13 @@ impl StageKind for Ingest {
 
     fn external_files(&self, config: &IngestConfig) -> anyhow::Result<Vec<PathBuf>> {
         let mut files: Vec<PathBuf> = config.body_model.iter().cloned().collect();
-        files.extend(crate::datasets::source_files(config));
+        files.extend(seqavatar_datasets::sources::source_files(&config.dataset));
         Ok(files)
     }
 
     fn run(&self, config: &IngestConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         // Ranges were checked when the pipeline loaded (resolve_config).
-        let reader = open_reader(config)?;
+        let reader = open_reader(&config.dataset, config.body_model.as_deref())?;
         ctx.log(&format!("reading {}", reader.describe()));
         let split = config.split.apply(reader.default_split());
         let plan = IngestPlan::new(
@@ -88,7 +86,7 @@ impl StageKind for Ingest {
         let cameras = ingested_cameras(reader.as_ref(), &plan, config.resolution_scale)?;
         let sources: Vec<&SourceCamera> =
             plan.views.iter().map(|&v| &reader.cameras()[v]).collect();
-        crate::schema::write_cameras(out, &cameras, &sources)?;
+        schema::write_cameras(out, &cameras, &sources)?;
         let (model, kind) = reader.body_model()?;
         write_body_model(out, &model)?;
         write_frames(out, reader.as_ref(), &plan, &model)?;
@@ -97,9 +95,9 @@ impl StageKind for Ingest {
             ctx.log(&format!(
                 "garment history: {flagged} of {} frames move the garment by more than {} px from its static drape",
                 history.frames.len(),
-                crate::schema::HISTORY_FRAME_PX
+                schema::HISTORY_FRAME_PX
             ));
-            crate::schema::write_garment_history(out, &history)?;
+            schema::write_garment_history(out, &history)?;
         }
 
         let image_split = write_images(ctx, reader.as_ref(), &plan, &cameras)?;
@@ -163,12 +161,9 @@ fn write_images(
     let garment_region = reader.garment_region();
     let garment_masks = garment_region
         .map(|region| -> anyhow::Result<_> {
-            out.set_attribute(
-                crate::schema::GARMENT_REGION_ATTRIBUTE,
-                region.as_str().into(),
-            )?;
+            out.set_attribute(schema::GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
             out.create_array::<u8>(
-                crate::schema::GARMENT_MASKS,
+                schema::GARMENT_MASKS,
                 &["image", "height", "width"],
                 &[n, max_h, max_w],
                 &[1, max_h, max_w],
@@ -254,7 +249,7 @@ fn write_attributes(
     out.set_attribute("resolution_scale", config.resolution_scale.into())?;
     out.set_attribute("past_frames", config.past_frames.into())?;
     // Where the frame axis starts in the recording, so that motion windows clamp only at
-    // the recording's true start (`seqavatar_motion::schema::FrameAxis`).
+    // the recording's true start (`seqavatar_schema::motion::FrameAxis`).
     out.set_attribute("first_frame_index", plan.frames[0].into())?;
     let train = image_split.iter().filter(|s| **s == 0).count();
     out.set_attribute("num_train_images", train.into())?;
@@ -292,7 +287,7 @@ fn garment_history(
     reader: &dyn DatasetReader,
     plan: &IngestPlan,
     cameras: &[Camera],
-) -> anyhow::Result<Option<crate::schema::GarmentHistoryArrays>> {
+) -> anyhow::Result<Option<schema::GarmentHistoryArrays>> {
     let Some(first) = plan.frames.first() else {
         return Ok(None);
     };
@@ -342,10 +337,10 @@ fn garment_history(
         })
         .collect::<anyhow::Result<Vec<(f64, f64)>>>()?;
     let pixels: Vec<f64> = rows.iter().map(|r| r.1).collect();
-    Ok(Some(crate::schema::GarmentHistoryArrays {
+    Ok(Some(schema::GarmentHistoryArrays {
         frames: pixels
             .iter()
-            .map(|p| *p > crate::schema::HISTORY_FRAME_PX)
+            .map(|p| *p > schema::HISTORY_FRAME_PX)
             .collect(),
         millimetres: rows.iter().map(|r| r.0).collect(),
         pixels,
@@ -429,7 +424,9 @@ fn write_frames(
 #[cfg(test)]
 mod stage_tests {
     use super::*;
+    use seqavatar_datasets::DatasetConfig;
     use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store};
+    use seqavatar_schema::ingest::{read_body_model, read_body_params, read_keypoints_3d};
 
     const TINY: &str = "stages:\n  - name: ingest\n    kind: ingest\n    config:\n      dataset: {kind: synthetic, cameras: 3, frames: 4, width: 48, height: 40, supersample: 1, body_grid_spacing: 0.04}\n      past_frames: 2\n";
 
@@ -540,12 +537,12 @@ mod stage_tests {
         // non-empty in every image (the skirt is in every view), and inside the box the
         // skirt's particles (the scene's own, independently) project to.
         assert_eq!(
-            crate::schema::read_garment_region(&entry).unwrap(),
-            Some(crate::reader::GarmentRegion::SyntheticSkirt)
+            schema::read_garment_region(&entry).unwrap(),
+            Some(seqavatar_datasets::GarmentRegion::SyntheticSkirt)
         );
         assert_eq!(entry.shape("garment_masks").unwrap(), vec![10, 40, 48]);
-        let scene =
-            crate::synthetic::SyntheticScene::generate(&crate::synthetic::SyntheticConfig {
+        let scene = seqavatar_datasets::synthetic::SyntheticScene::generate(
+            &seqavatar_datasets::synthetic::SyntheticConfig {
                 cameras: 3,
                 frames: 4,
                 width: 48,
@@ -553,9 +550,10 @@ mod stage_tests {
                 supersample: 1,
                 body_grid_spacing: 0.04,
                 ..Default::default()
-            })
-            .unwrap();
-        let cameras = crate::schema::read_cameras(&entry).unwrap();
+            },
+        )
+        .unwrap();
+        let cameras = schema::read_cameras(&entry).unwrap();
         for image in 0..views.len() {
             let (v, f) = (views[image] as usize, frames[image] as usize);
             let read = |name: &str| {
@@ -608,11 +606,7 @@ mod stage_tests {
         assert_eq!(sheet.dimensions(), (3 * 48, 40));
         assert!(Ingest.draw_picture(&entry, "nope", &options).is_err());
         // The walk scene records no garment history.
-        assert!(
-            crate::schema::read_garment_history(&entry)
-                .unwrap()
-                .is_none()
-        );
+        assert!(schema::read_garment_history(&entry).unwrap().is_none());
         assert!(Ingest.draw_picture(&entry, "history", &options).is_err());
     }
 
@@ -621,27 +615,25 @@ mod stage_tests {
     /// 256 x 256, zero while the skirt is at rest; the default scene records none.
     #[test]
     fn history_scene_records_the_history_only_displacement() {
-        use crate::synthetic::history;
+        use seqavatar_datasets::synthetic::history;
         let last = history::LENGTH - 1;
         let text = format!(
             "stages:\n  - name: ingest\n    kind: ingest\n    config:\n      dataset: {{kind: synthetic, scene: history, fps: 30, frames: {}, cameras: 3, width: 256, height: 256, supersample: 1, body_grid_spacing: 0.04}}\n      split: {{train_views: [0, 1, 2], test_views: [], train_frames: {{start: 0, end: null, step: {last}}}}}\n",
             history::LENGTH
         );
         let (_dir, entry) = run_pipeline(&text);
-        let arrays = crate::schema::read_garment_history(&entry)
-            .unwrap()
-            .unwrap();
+        let arrays = schema::read_garment_history(&entry).unwrap().unwrap();
         assert_eq!(arrays.pixels.len(), history::LENGTH);
         for (f, (&px, &flag)) in arrays.pixels.iter().zip(&arrays.frames).enumerate() {
-            assert_eq!(flag, px > crate::schema::HISTORY_FRAME_PX, "frame {f}");
+            assert_eq!(flag, px > schema::HISTORY_FRAME_PX, "frame {f}");
         }
         // At rest before the first step: no displacement.
         assert_eq!(arrays.millimetres[0], 0.0);
         assert_eq!(arrays.pixels[0], 0.0);
         // The millimetres are the scene's own RMS of simulated minus drape.
-        let scene =
-            crate::synthetic::SyntheticScene::generate(&crate::synthetic::SyntheticConfig {
-                scene: crate::synthetic::SceneKind::History,
+        let scene = seqavatar_datasets::synthetic::SyntheticScene::generate(
+            &seqavatar_datasets::synthetic::SyntheticConfig {
+                scene: seqavatar_datasets::synthetic::SceneKind::History,
                 fps: 30.0,
                 frames: history::LENGTH,
                 cameras: 3,
@@ -650,8 +642,9 @@ mod stage_tests {
                 supersample: 1,
                 body_grid_spacing: 0.04,
                 ..Default::default()
-            })
-            .unwrap();
+            },
+        )
+        .unwrap();
         for frame in [20, 100, 190] {
             let drape = scene.static_drape(frame, 0.0).unwrap();
             let simulated = scene.skirt_positions(frame);
@@ -743,13 +736,18 @@ mod stage_tests {
             assert!(err.contains(field), "{raw}: {err}");
         }
         let bad = IngestConfig {
-            dataset: DatasetConfig::Synthetic(crate::synthetic::SyntheticConfig {
+            dataset: DatasetConfig::Synthetic(seqavatar_datasets::synthetic::SyntheticConfig {
                 frames: 0,
                 ..Default::default()
             }),
             ..Default::default()
         };
-        let err = format!("{:#}", open_reader(&bad).err().unwrap());
+        let err = format!(
+            "{:#}",
+            open_reader(&bad.dataset, bad.body_model.as_deref())
+                .err()
+                .unwrap()
+        );
         assert!(err.contains("dataset.frames"), "{err}");
     }
 }

@@ -3,7 +3,7 @@
 //! Inputs: an `ingest` entry (body model, cameras, frame axis) and optionally a `fit` entry
 //! (refined parameters; without one the ingest fits are used).
 //!
-//! Output: the arrays and attributes of [`crate::schema`] (its writer, beside their reader).
+//! Output: the arrays and attributes of `seqavatar_schema::motion` (its writer, beside their reader).
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
@@ -14,12 +14,14 @@ use seqavatar_engine::picture;
 use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
-use seqavatar_fit::io::BodySequence;
-use seqavatar_ingest::read_body_model;
+use seqavatar_schema::body::BodySequence;
+use seqavatar_schema::ingest::read_body_model;
 
-use crate::compute::{InputScales, canonical_template, compute_motion, effective_velocity};
-use crate::context::{InputScaling, Scales, VelocityNormalisation};
-use crate::schema::{FrameAxis, MotionEntry, read_input_scales, write_entry};
+use seqavatar_context::compute::{canonical_template, compute_motion, effective_velocity};
+use seqavatar_schema::motion::{
+    FrameAxis, InputScales, InputScaling, MotionEntry, Scales, VelocityNormalisation,
+    read_input_scales, write_entry,
+};
 
 /// The `motion` stage configuration: only what changes the motion templates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -286,7 +288,7 @@ fn draw_speed(entry: &EntryReader, options: &PictureOptions) -> anyhow::Result<i
 }
 
 fn read_camera(entry: &EntryReader, view: usize) -> anyhow::Result<Camera> {
-    let mut cameras = seqavatar_ingest::read_cameras(entry)?;
+    let mut cameras = seqavatar_schema::ingest::read_cameras(entry)?;
     let views = cameras.len();
     anyhow::ensure!(
         view < views,
@@ -438,7 +440,7 @@ stages:
         // scale), zero at the first frame.
         let factors = entry.read::<f64>("vertex_velocity_scale").unwrap().data;
         assert_eq!(entry.attribute("input_scaling"), Some("rms".into()));
-        for (slot, rms) in crate::context::block_rms(&velocity.data, 2, v)
+        for (slot, rms) in seqavatar_schema::motion::block_rms(&velocity.data, 2, v)
             .into_iter()
             .enumerate()
         {
@@ -470,7 +472,11 @@ stages:
             }
         }
         // A window is a gather of these rows.
-        let w = crate::window(7, 3, &steps.iter().map(|&s| s as usize).collect::<Vec<_>>());
+        let w = seqavatar_schema::motion::window(
+            7,
+            3,
+            &steps.iter().map(|&s| s as usize).collect::<Vec<_>>(),
+        );
         assert_eq!(w.frames, vec![7, 7, 4, 6, 1, 5]);
         // The KNN graph starts with the vertex itself.
         let knn = entry.read::<u32>("canonical_knn").unwrap();

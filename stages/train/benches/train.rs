@@ -253,7 +253,7 @@ fn time_row(
         1e3 * seconds / timed as f64,
         trainer.state.len()
     );
-    if backend.gpu().is_some() {
+    if trainer.resident() {
         // The path the trainer's networks took (`precision` of the row's config).
         println!(
             "  {}",

@@ -616,26 +616,14 @@ pub struct TrainingImages {
 }
 
 impl TrainingImages {
-    /// From the ingest stage's config where it determines them (a synthetic scene: its
-    /// split's images at `dataset.width x dataset.height` times `resolution_scale`); `None`
-    /// for file-based datasets or a split the plan refuses (ingest reports that).
-    pub fn from_ingest_config(ingest: &seqavatar_ingest::config::IngestConfig) -> Option<Self> {
-        let seqavatar_ingest::config::DatasetConfig::Synthetic(scene) = &ingest.dataset else {
-            return None;
-        };
-        let (_, counts) = ingest.image_counts_at_load()?;
-        let counts = counts.ok()?;
-        let side = |n: u32| ((f64::from(n) * ingest.resolution_scale).round() as u64).max(1);
-        Some(Self {
-            count: (counts.train + counts.test) as u64,
-            width: side(scene.width),
-            height: side(scene.height),
-            source: format!(
-                "dataset.cameras {} x dataset.frames {} split, dataset.width x dataset.height \
-                 {} x {} at resolution_scale {}",
-                scene.cameras, scene.frames, scene.width, scene.height, ingest.resolution_scale
-            ),
-        })
+    /// From the ingest stage's plan, where its config determines them.
+    pub fn from_plan(images: &seqavatar_schema::ingest::PlannedImages) -> Self {
+        Self {
+            count: images.count,
+            width: images.width,
+            height: images.height,
+            source: images.source.clone(),
+        }
     }
 
     /// From the ingest entry's `images` array (count, height, width), read from its metadata

@@ -9,10 +9,10 @@ use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::EntryReader;
 use seqavatar_formats::resample::{SourceImage, resample};
-use seqavatar_ingest::{read_body_model, read_body_params};
+use seqavatar_schema::ingest::{read_body_model, read_body_params};
 
 use seqavatar_avatar::rig::BodyRig;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 use crate::losses::{Rect, bound_box};
 
@@ -54,7 +54,7 @@ impl ImageRecord {
 }
 
 /// The cameras of an entry (the ingest schema's reader, re-exported for this crate's users).
-pub use seqavatar_ingest::read_cameras;
+pub use seqavatar_schema::ingest::read_cameras;
 
 /// Everything a run reads, in memory.
 #[derive(Clone, Debug)]

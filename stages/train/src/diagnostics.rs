@@ -16,7 +16,7 @@ use seqavatar_avatar::config::AvatarConfig;
 use seqavatar_avatar::model::{NetworkConfig, Networks};
 use seqavatar_compute::nn::NnScalar;
 use seqavatar_core::body::BodyParams;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 /// RMS of each input block of the non-rigid network over a set of frames. Blocks the motion
 /// context does not feed are empty (`pose` is `None` without a non-rigid network).
@@ -264,7 +264,7 @@ mod tests {
     use crate::config::{MotionContext, Preset, TrainConfig};
     use seqavatar_avatar::model::Widths;
     use seqavatar_core::glam::DVec3;
-    use seqavatar_motion::schema::FrameAxis;
+    use seqavatar_schema::motion::FrameAxis;
 
     /// A track whose every value at scale slot 0 is `a` and at slot 1 is `b` (any window then
     /// has RMS |a| and |b| per scale, whatever frames it gathers).

@@ -13,7 +13,8 @@
 //! - [`resident`]: the device-resident training step's pieces (`gpu` backend).
 //! - [`rng`]: the deterministic generator whose state checkpoints store.
 //! - [`data`]: what a run reads from its input entries.
-//! - [`trainer`]: the training loop and its resumable state.
+//! - [`trainer`]: the training loop; [`run`]: its resumable state and the [`run::TrainingStep`]
+//!   that advances it, host (`cpu`) or device-resident (`gpu`), built once by `step`.
 //! - [`resident`]: pieces of the device-resident training step (`gpu` backend).
 //! - [`stage`]: the `train` stage kind.
 
@@ -30,7 +31,9 @@ pub mod gaussians;
 pub mod losses;
 pub mod resident;
 pub mod rng;
+pub mod run;
 pub mod stage;
+mod step;
 pub mod trainer;
 
 pub use stage::TrainStage;

@@ -15,7 +15,7 @@
 use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsError, LpipsInput, tap_sizes};
 use seqavatar_compute::ssim::ssim_planes;
-use seqavatar_motion::knn::{MovingKnn, as_points};
+use seqavatar_knn::{MovingKnn, as_points};
 
 use seqavatar_avatar::skinning::{canonical_covariances, canonical_covariances_backward};
 
@@ -909,7 +909,7 @@ mod tests {
         assert!(grads.value > 0.0);
         // An independent composition of the pieces: brute-force neighbours, covariances
         // from `canonical_covariances`, the weighted sum of `aiap_loss`'s terms.
-        let neighbours = seqavatar_motion::knn::knn_brute_force(
+        let neighbours = seqavatar_knn::knn_brute_force(
             &as_points(&tensors[0]),
             &as_points(&tensors[0]),
             weights.neighbours,

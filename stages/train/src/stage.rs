@@ -12,24 +12,7 @@
 //! With `lpips_weight > 0` the LPIPS weights file (`lpips_weights`) is an external file: its
 //! content enters the key.
 //!
-//! Output: the trained avatar ([`seqavatar_avatar::avatar`] lists its arrays and
-//! attributes), the attribute `config` (the resolved train config), and
-//! - `loss_<name>` f64 `(iteration)` for `total`, `l1`, `mask_mse`, `dssim`, `lpips`
-//!   (unweighted, 0 when the LPIPS loss is off), `aiap`, `psnr` (train PSNR inside the bound
-//!   box) and `gaussians` (count after the iteration);
-//! - `camera_K`, `camera_R`, `camera_t`, `camera_image_size`: the ingest entry's cameras
-//!   (ingest resolution; training rescales them by `resolution_scale`);
-//! - `test_psnr` f64 `(image)`: held-out PSNR per test image (docs/method.md protocol), with
-//!   `test_image` u32 `(image)` the ingest image index;
-//! - attributes `wall_seconds`, `iterations_per_second` (of the last session when resumed),
-//!   `resumed_from`, `final_train_psnr` (mean over the last tenth of the iterations),
-//!   `test_psnr_mean`, `backend`, `gaussians`;
-//! - attributes `train_image_psnr_mean` (the held-out protocol's PSNR on up to
-//!   [`TRAIN_PSNR_IMAGES`] training images spread over the training split, next to
-//!   `test_psnr_mean`: the gap is memorisation), `train_image_psnr_images`, `input_rms`
-//!   ([`crate::diagnostics::InputRms`]: RMS of each non-rigid input block over the training
-//!   frames) and `first_layer_norms` (a list of [`crate::diagnostics::BlockNorm`]: first-layer
-//!   weight norms per input block).
+//! Output: the arrays and attributes of `seqavatar_schema::train` (docs/schema.md).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -77,7 +60,7 @@ pub use seqavatar_avatar::config::PROTOCOL_BACKGROUND;
 /// stays inside what the ingest entry holds ([`MotionTrack::check_window`]); motion contexts
 /// without skeleton motion gather no window.
 ///
-/// [`MotionTrack::check_window`]: seqavatar_motion::schema::MotionTrack::check_window
+/// [`MotionTrack::check_window`]: seqavatar_schema::motion::MotionTrack::check_window
 pub fn check_motion_window(config: &TrainConfig, data: &TrainingData) -> anyhow::Result<()> {
     if !config.motion_context.has_skeleton_motion() {
         return Ok(());
@@ -149,18 +132,28 @@ impl StageKind for TrainStage {
             .iter()
             .find(|input| input.kind == "ingest")
             .expect("checked above");
-        let ingest_config: seqavatar_ingest::IngestConfig =
-            serde_json::from_value(ingest.config.clone())
-                .map_err(|e| format!("input {}: ingest config: {e}", ingest.name))?;
-        let Some(images) = TrainingImages::from_ingest_config(&ingest_config) else {
+        let Some(images) = seqavatar_schema::ingest::PlannedIngest::of(ingest)?.images else {
             return Ok(());
         };
+        let images = TrainingImages::from_plan(&images);
         match seqavatar_engine::memory_budget_bytes()? {
             Some(budget) => config
                 .check_memory(Some(&images), budget)
                 .map_err(|e| format!("{e} (images from input {})", ingest.name)),
             None => Ok(()),
         }
+    }
+
+    fn planned(&self, config: &TrainConfig) -> serde_json::Value {
+        let motion_context = serde_json::to_value(config.motion_context)
+            .ok()
+            .and_then(|name| name.as_str().map(str::to_owned))
+            .unwrap_or_else(|| format!("{:?}", config.motion_context));
+        serde_json::to_value(seqavatar_schema::train::PlannedTrain {
+            motion_context,
+            renders_from_motion_entry: config.motion_context.has_skeleton_motion(),
+        })
+        .unwrap_or_default()
     }
 
     fn resolve_config(&self, raw: &serde_json::Value) -> Result<TrainConfig, ConfigError> {
@@ -760,7 +753,7 @@ mod tests {
 
     /// The ingest and train configs of `pipelines/synthetic.yaml` (the demo), resolved, with
     /// the ingest's scene size replaced by `scene`.
-    fn demo_configs(scene: serde_json::Value) -> (serde_json::Value, TrainConfig) {
+    fn demo_configs(scene: serde_json::Value) -> (seqavatar_ingest::IngestConfig, TrainConfig) {
         use seqavatar_engine::StageKind as _;
         let mut dataset =
             json!({"kind": "synthetic", "cameras": 8, "frames": 48, "width": 256, "height": 256});
@@ -772,24 +765,38 @@ mod tests {
                 &json!({"dataset": dataset, "resolution_scale": 1.0, "past_frames": 18}),
             )
             .unwrap();
-        let ingest = serde_json::to_value(ingest).unwrap();
         let train = TrainStage
             .resolve_config(&json!({"preset": "fast", "device": "auto", "resolution_scale": 1.0, "iterations": 800}))
             .unwrap();
         (ingest, train)
     }
 
-    fn check(ingest: &serde_json::Value, train: &TrainConfig) -> Result<(), String> {
+    /// The images the ingest config plans, as the train stage's load-time check sees them.
+    fn planned_images(ingest: &seqavatar_ingest::IngestConfig) -> Option<TrainingImages> {
+        use seqavatar_engine::StageKind as _;
+        let planned = seqavatar_ingest::Ingest.planned(ingest);
+        let input = seqavatar_engine::StageInput {
+            name: "ingest",
+            kind: "ingest",
+            planned: &planned,
+        };
+        let plan = seqavatar_schema::ingest::PlannedIngest::of(&input).unwrap();
+        plan.images.as_ref().map(TrainingImages::from_plan)
+    }
+
+    fn check(ingest: &seqavatar_ingest::IngestConfig, train: &TrainConfig) -> Result<(), String> {
+        use seqavatar_engine::StageKind as _;
+        let planned = seqavatar_ingest::Ingest.planned(ingest);
         let inputs = [
             seqavatar_engine::StageInput {
                 name: "ingest",
                 kind: "ingest",
-                config: ingest,
+                planned: &planned,
             },
             seqavatar_engine::StageInput {
                 name: "motion",
                 kind: "motion",
-                config: &serde_json::Value::Null,
+                planned: &serde_json::Value::Null,
             },
         ];
         TrainStage.check_inputs(train, &inputs)
@@ -803,9 +810,7 @@ mod tests {
         let started = Instant::now();
         let (ingest, train) =
             demo_configs(json!({"cameras": 64, "frames": 1000, "width": 2048, "height": 2048}));
-        let ingest_config: seqavatar_ingest::IngestConfig =
-            serde_json::from_value(ingest.clone()).unwrap();
-        let images = TrainingImages::from_ingest_config(&ingest_config).unwrap();
+        let images = planned_images(&ingest).unwrap();
         // The default split: 48 training views on every frame, 16 test views on every other.
         assert_eq!(images.count, 48 * 1000 + 16 * 500);
         let config = &train;
@@ -844,9 +849,7 @@ mod tests {
     #[test]
     fn the_demo_run_is_within_the_memory_budget() {
         let (ingest, train) = demo_configs(json!({}));
-        let ingest_config: seqavatar_ingest::IngestConfig =
-            serde_json::from_value(ingest.clone()).unwrap();
-        let images = TrainingImages::from_ingest_config(&ingest_config).unwrap();
+        let images = planned_images(&ingest).unwrap();
         // 6 training views on 48 frames, 2 test views on 24.
         assert_eq!(
             (images.count, images.width, images.height),

@@ -109,8 +109,8 @@ impl<S: NnScalar> Dense<S> {
             LinearGrads {
                 weight: &mut self.d_weight,
                 bias: &mut self.d_bias,
+                inputs: d_parts,
             },
-            d_parts,
         )
     }
 

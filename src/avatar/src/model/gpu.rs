@@ -29,7 +29,9 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use seqavatar_compute::backend::GpuContext;
-use seqavatar_compute::nn::gpu::{GpuInputGrad, GpuInputPart, GpuLinearGrads, NnGpu};
+use seqavatar_compute::nn::gpu::{
+    GpuInput, GpuInputGrad, GpuInputPart, GpuLinear, GpuLinearGrads, NnGpu,
+};
 use seqavatar_compute::nn::{LinearShape, NnScalar, Precision};
 
 use super::dense::Dense;
@@ -155,11 +157,13 @@ fn gpu_error(error: impl std::fmt::Display) -> ModelError {
     ModelError::Gpu(error.to_string())
 }
 
-/// Gradient sinks of one backward: write, add or skip.
-fn grads(layer: &GpuDense) -> GpuLinearGrads<'_> {
+/// Gradient sinks of one backward: the layer's parameter gradients, and write, add or skip
+/// per input part.
+fn grads<'a>(layer: &'a GpuDense, inputs: &'a [GpuInputGrad<'a>]) -> GpuLinearGrads<'a> {
     GpuLinearGrads {
         weight: &layer.d_weight,
         bias: &layer.d_bias,
+        inputs,
     }
 }
 
@@ -533,8 +537,7 @@ impl GpuNetworks {
                             &mut encoder,
                             encoding,
                             block,
-                            rows,
-                            input.width,
+                            (rows, input.width),
                             &out,
                         )?;
                         encoded.push(out);
@@ -559,11 +562,9 @@ impl GpuNetworks {
                 if plan.frame.is_empty() {
                     self.nn.linear_forward(
                         &mut encoder,
-                        layer.shape,
-                        &layer.weight,
+                        GpuLinear::new(layer.shape, &layer.weight),
                         &layer.bias,
-                        &parts,
-                        rows,
+                        GpuInput::new(&parts, rows),
                         &out,
                     )?;
                 } else {
@@ -574,23 +575,22 @@ impl GpuNetworks {
                     frame_parts.extend(gpu_parts(&cache, &plan.frame));
                     self.nn.linear_forward(
                         &mut encoder,
-                        LinearShape {
-                            in_features: layer.shape.in_features,
-                            ..frame_shape
-                        },
-                        &layer.weight,
+                        GpuLinear::new(
+                            LinearShape {
+                                in_features: layer.shape.in_features,
+                                ..frame_shape
+                            },
+                            &layer.weight,
+                        ),
                         &layer.bias,
-                        &frame_parts,
-                        1,
+                        GpuInput::new(&frame_parts, 1),
                         &bias,
                     )?;
                     self.nn.linear_forward(
                         &mut encoder,
-                        rows_shape,
-                        &layer.weight,
+                        GpuLinear::new(rows_shape, &layer.weight),
                         &bias,
-                        &parts,
-                        rows,
+                        GpuInput::new(&parts, rows),
                         &out,
                     )?;
                     frame_bias = Some((placeholder, bias));
@@ -703,14 +703,11 @@ impl GpuNetworks {
                 match &cache.frame_bias[index] {
                     None => self.nn.linear_backward(
                         &mut encoder,
-                        layer.shape,
-                        &layer.weight,
-                        &parts,
-                        rows,
+                        GpuLinear::new(layer.shape, &layer.weight),
+                        GpuInput::new(&parts, rows),
                         out,
                         &d_out,
-                        grads(layer),
-                        &sinks(&rows_d),
+                        grads(layer, &sinks(&rows_d)),
                     )?,
                     Some((placeholder, bias)) => {
                         let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
@@ -718,17 +715,15 @@ impl GpuNetworks {
                             self.zeros("per-frame bias gradient", rows_shape.out_features)?;
                         self.nn.linear_backward(
                             &mut encoder,
-                            rows_shape,
-                            &layer.weight,
-                            &parts,
-                            rows,
+                            GpuLinear::new(rows_shape, &layer.weight),
+                            GpuInput::new(&parts, rows),
                             out,
                             &d_out,
                             GpuLinearGrads {
                                 weight: &layer.d_weight,
                                 bias: &d_bias,
+                                inputs: &sinks(&rows_d),
                             },
-                            &sinks(&rows_d),
                         )?;
                         let mut frame_parts = vec![input(placeholder, plan.rows_in())];
                         frame_parts.extend(gpu_parts_ref(
@@ -740,17 +735,17 @@ impl GpuNetworks {
                         d_frame.extend(sinks(&frame_d));
                         self.nn.linear_backward(
                             &mut encoder,
-                            LinearShape {
-                                in_features: layer.shape.in_features,
-                                ..frame_shape
-                            },
-                            &layer.weight,
-                            &frame_parts,
-                            1,
+                            GpuLinear::new(
+                                LinearShape {
+                                    in_features: layer.shape.in_features,
+                                    ..frame_shape
+                                },
+                                &layer.weight,
+                            ),
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                             &d_bias,
-                            grads(layer),
-                            &d_frame,
+                            grads(layer, &d_frame),
                         )?;
                         keep.push(d_bias);
                     }
@@ -790,8 +785,7 @@ impl GpuNetworks {
                         encoding,
                         &cache.inputs[index][0],
                         &d_value,
-                        rows,
-                        input.width,
+                        (rows, input.width),
                         &d_raw,
                     )?;
                     keep.push(d_value);

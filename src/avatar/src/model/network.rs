@@ -329,8 +329,8 @@ impl<S: NnScalar> Network<S> {
                         LinearGrads {
                             weight: d_rows_weight,
                             bias: &mut d_frame_bias,
+                            inputs: &mut sinks(&mut rows_d),
                         },
-                        &mut sinks(&mut rows_d),
                     )?;
                     linear_backward(
                         frame_shape,
@@ -342,8 +342,8 @@ impl<S: NnScalar> Network<S> {
                         LinearGrads {
                             weight: d_frame_weight,
                             bias: d_bias,
+                            inputs: &mut sinks(&mut frame_d),
                         },
-                        &mut sinks(&mut frame_d),
                     )?;
                 }
                 pool.push(d_out);

@@ -11,9 +11,6 @@ use seqavatar_core::rotation::skew;
 
 use super::network::Activations;
 
-/// Bound of the uniform initialisation of the refiner's last layer.
-pub const LAST_LAYER_BOUND: f64 = 1e-5;
-
 /// The `theta^2` regulariser of [`regularised_rodrigues`].
 pub const THETA_SQUARED_EPSILON: f64 = 1e-5;
 

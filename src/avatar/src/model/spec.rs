@@ -32,6 +32,9 @@ use seqavatar_compute::nn::{Activation, LinearShape, NnScalar, PositionalEncodin
 use super::dense::Init;
 use super::{HEAD_WIDTH, ModelError, NetworkConfig, NetworkGroup, check_finite, check_input};
 
+/// Bound of the uniform initialisation of the body-pose refiner's last layer.
+pub const LAST_LAYER_BOUND: f64 = 1e-5;
+
 /// The row space of a value or a layer (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Rows {
@@ -396,7 +399,7 @@ impl NetworkSpec {
             &[h1],
             pose,
             Activation::Identity,
-            Init::SmallUniform(super::pose_refiner::LAST_LAYER_BOUND),
+            Init::SmallUniform(LAST_LAYER_BOUND),
         );
         net
     }

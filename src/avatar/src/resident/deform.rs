@@ -11,7 +11,7 @@ use anyhow::Context as _;
 use seqavatar_compute::backend::{GpuBuffer, GpuContext};
 use seqavatar_compute::splat::gpu::DeviceGaussians;
 use seqavatar_core::body::BodyParams;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 use super::motion::{MotionSetup, ResidentMotion};
 use super::pose::ResidentPose;

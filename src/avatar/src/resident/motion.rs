@@ -1,7 +1,7 @@
 //! Motion inputs on the device (`shaders/avatar_knn.wgsl`): the sequence's motion arrays and
 //! the canonical template uploaded once; per iteration the frame's skeleton-motion window,
 //! the `tau` nearest template vertices of each canonical centre with the velocity gather
-//! ([`crate::avatar::knn_velocity`]), and the nearest template vertex of each deformed centre.
+//! ([`crate::device::knn_velocity`]), and the nearest template vertex of each deformed centre.
 //!
 //! Order of calls in an iteration: [`ResidentMotion::set_iteration`] (host check of the window
 //! rule and one 16-byte write), then, recorded into the step's encoder,
@@ -21,8 +21,8 @@ use std::borrow::Cow;
 use std::sync::Arc;
 
 use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
-use seqavatar_motion::knn::{KnnGrid, as_points};
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_knn::{KnnGrid, as_points};
+use seqavatar_schema::motion::MotionTrack;
 
 const KNN_WGSL: &str = include_str!("../../../../shaders/avatar_knn.wgsl");
 
@@ -479,15 +479,16 @@ pub struct MotionOutputs {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::avatar::{gather_frame_inputs, knn_velocity};
+    use crate::avatar::gather_frame_inputs;
     use crate::config::{AvatarConfig, MotionContext};
+    use crate::device::knn_velocity;
     use crate::rig::BodyRig;
     use seqavatar_compute::backend::test_support::{
         gpu_test_context, gpu_test_context_with_dispatch_limit,
     };
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::rng::SplitMix64 as Rng;
-    use seqavatar_motion::schema::FrameAxis;
+    use seqavatar_schema::motion::FrameAxis;
 
     /// f32 rounding, back in f64: the values the device holds.
     fn round(values: &[f64]) -> Vec<f64> {

@@ -13,7 +13,7 @@ use seqavatar_compute::splat::gpu::{GpuOptions, SplatWorkspace};
 use seqavatar_compute::splat::{RasterOptions, RenderedImage};
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
-use seqavatar_motion::schema::MotionTrack;
+use seqavatar_schema::motion::MotionTrack;
 
 use super::deform::{DeformerSetup, History, ResidentDeformer};
 use super::skinning::GaussianColumns;

@@ -512,7 +512,7 @@ impl ResidentSkinning {
         self.context
             .dispatch(encoder, &self.backward, &bindings, self.workgroups()?);
         let chunks = self.count.div_ceil(JOINT_CHUNK).max(1) as u32;
-        self.context.dispatch_grid(
+        self.context.dispatch(
             encoder,
             &self.reduce_joints,
             &[
@@ -522,8 +522,7 @@ impl ResidentSkinning {
                 (28, &self.grad_blend.buffer),
                 (29, &self.joint_partials.buffer),
             ],
-            chunks,
-            self.joints as u32,
+            (chunks, self.joints as u32),
         );
         self.context.dispatch(
             encoder,
@@ -596,7 +595,7 @@ mod tests {
     use seqavatar_compute::splat::sh_coefficient_count;
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::rng::SplitMix64 as Rng;
-    use seqavatar_motion::knn::{KnnGrid, as_points};
+    use seqavatar_knn::{KnnGrid, as_points};
 
     /// f32 rounding, back in f64: the values the device holds, for the f64 oracle.
     fn round(values: &[f64]) -> Vec<f64> {

@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use wgpu::util::DeviceExt;
 
 use super::BackendError;
+use super::kernel::{Kernel, Record, Workgroups};
 
 /// Which adapters [`GpuContext::new`] may pick.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,66 +26,6 @@ pub struct KernelSource {
     pub name: &'static str,
     pub wgsl: Cow<'static, str>,
     pub entry_point: &'static str,
-}
-
-/// A compiled compute pipeline and its workgroup size along x (for dispatch arithmetic).
-#[derive(Debug)]
-pub struct Kernel {
-    pub name: &'static str,
-    pub(crate) pipeline: wgpu::ComputePipeline,
-    pub(crate) layout: wgpu::BindGroupLayout,
-}
-
-impl Kernel {
-    /// Compiles kernel `name` (its WGSL through [`super::shaders::expand_includes`] and
-    /// [`super::shaders::compile_module`]) into the pipeline of entry point `entry`; a
-    /// validation error names the kernel. Every kernel is built here (`GpuContext::kernel`
-    /// caches them, `NnGpu::new` keeps its own).
-    pub(crate) fn compile(
-        device: &wgpu::Device,
-        name: &'static str,
-        wgsl: &str,
-        entry: &str,
-    ) -> Result<Self, BackendError> {
-        Self::compile_with_constants(device, name, wgsl, entry, &[])
-    }
-
-    /// [`Kernel::compile`] with values for the kernel's `override` constants (the
-    /// tensor-core kernel's workgroup size is the adapter's subgroup size).
-    pub(crate) fn compile_with_constants(
-        device: &wgpu::Device,
-        name: &'static str,
-        wgsl: &str,
-        entry: &str,
-        constants: &[(&str, f64)],
-    ) -> Result<Self, BackendError> {
-        let wgsl = super::shaders::expand_includes(name, wgsl)?;
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = super::shaders::compile_module(device, name, wgsl);
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(name),
-            layout: None,
-            module: &module,
-            entry_point: Some(entry),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants,
-                ..wgpu::PipelineCompilationOptions::default()
-            },
-            cache: None,
-        });
-        if let Some(error) = pollster::block_on(scope.pop()) {
-            return Err(BackendError::Shader {
-                name: name.to_owned(),
-                message: error.to_string(),
-            });
-        }
-        let layout = pipeline.get_bind_group_layout(0);
-        Ok(Kernel {
-            name,
-            pipeline,
-            layout,
-        })
-    }
 }
 
 /// A storage buffer with its length in elements (the buffer itself is at least 16 bytes so
@@ -526,12 +467,7 @@ impl GpuContext {
     /// A small uniform buffer holding one `T`.
     pub fn uniform<T: bytemuck::Pod>(&self, what: &str, value: &T) -> wgpu::Buffer {
         self.transfers.up(std::mem::size_of::<T>());
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(what),
-                contents: bytemuck::bytes_of(value),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            })
+        super::kernel::uniform_buffer(&self.device, what, value)
     }
 
     pub fn encoder(&self) -> wgpu::CommandEncoder {
@@ -539,87 +475,47 @@ impl GpuContext {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
     }
 
-    /// Records one dispatch of `workgroups` workgroups, laid out in 2D when they exceed the
-    /// per-dimension limit. Shaders recover the linear index as `id.x + id.y * num.x`.
-    /// `bindings` are `(binding index, buffer)` in group 0.
+    /// Records one call of `kernel` ([`Kernel::call`]): `params` uploaded as its uniform
+    /// block at binding 0, `bindings` at theirs, a [`Workgroups::Linear`] launch laid out in
+    /// 2D beyond the per-dimension limit (shaders recover the linear index as
+    /// `id.x + id.y * num.x`).
+    pub fn call<P: bytemuck::Pod>(
+        &self,
+        target: &mut impl Record,
+        kernel: &Kernel,
+        params: &P,
+        bindings: &[(u32, &wgpu::Buffer)],
+        workgroups: impl Into<Workgroups>,
+    ) {
+        self.transfers.up(std::mem::size_of::<P>());
+        kernel.call(target, params, bindings, self.layout(workgroups.into()));
+    }
+
+    /// [`GpuContext::call`] of a kernel whose uniform blocks, if any, are among `bindings`
+    /// ([`Kernel::dispatch`]).
     pub fn dispatch(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        target: &mut impl Record,
         kernel: &Kernel,
         bindings: &[(u32, &wgpu::Buffer)],
-        workgroups: u32,
+        workgroups: impl Into<Workgroups>,
     ) {
-        if workgroups == 0 {
-            return;
+        kernel.dispatch(target, bindings, self.layout(workgroups.into()));
+    }
+
+    /// A 1D launch as a grid within [`GpuContext::dispatch_limit`].
+    fn layout(&self, workgroups: Workgroups) -> Workgroups {
+        match workgroups {
+            Workgroups::Linear(count) => {
+                let (x, y) = split_workgroups(count, self.dispatch_limit);
+                Workgroups::Grid(x, y)
+            }
+            other => other,
         }
-        let (x, y) = split_workgroups(workgroups, self.dispatch_limit);
-        self.dispatch_grid(encoder, kernel, bindings, x, y);
-    }
-
-    /// Records one dispatch of an `x` by `y` grid of workgroups.
-    pub fn dispatch_grid(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        kernel: &Kernel,
-        bindings: &[(u32, &wgpu::Buffer)],
-        x: u32,
-        y: u32,
-    ) {
-        if x == 0 || y == 0 {
-            return;
-        }
-        self.begin_pass(encoder, kernel, bindings)
-            .dispatch_workgroups(x, y, 1);
-    }
-
-    /// A compute pass of `kernel` with `bindings` (group 0) bound, ready for its dispatch.
-    fn begin_pass<'e>(
-        &self,
-        encoder: &'e mut wgpu::CommandEncoder,
-        kernel: &Kernel,
-        bindings: &[(u32, &wgpu::Buffer)],
-    ) -> wgpu::ComputePass<'e> {
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
-            .iter()
-            .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                binding: *binding,
-                resource: buffer.as_entire_binding(),
-            })
-            .collect();
-        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(kernel.name),
-            layout: &kernel.layout,
-            entries: &entries,
-        });
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(kernel.name),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&kernel.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass
-    }
-
-    /// Records one dispatch whose grid the device wrote into `indirect` at byte `offset`
-    /// (three u32: x, y, z workgroups), so that a kernel can decide on the device whether and
-    /// how widely another runs, without a read-back. A grid beyond the per-dimension limit
-    /// ([`GpuContext::dispatch_limit`]) must be written 2D; shaders recover the linear index
-    /// as `id.x + id.y * num.x`. `indirect` needs `INDIRECT` usage
-    /// ([`GpuContext::indirect_args`]).
-    pub fn dispatch_indirect(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        kernel: &Kernel,
-        bindings: &[(u32, &wgpu::Buffer)],
-        indirect: &wgpu::Buffer,
-        offset: u64,
-    ) {
-        self.begin_pass(encoder, kernel, bindings)
-            .dispatch_workgroups_indirect(indirect, offset);
     }
 
     /// A zero-filled buffer of `len` u32 that kernels write as storage and
-    /// [`GpuContext::dispatch_indirect`] reads as grids.
+    /// [`Workgroups::Indirect`] reads as grids.
     pub fn indirect_args(&self, what: &str, len: usize) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(what),

@@ -5,15 +5,17 @@
 //! explicitly with [`AdapterChoice::AllowSoftware`] (the gpu tests do).
 
 mod context;
+mod kernel;
 pub mod primitives;
 pub mod shaders;
 pub mod test_support;
 mod timer;
 
 pub use context::{
-    AdapterChoice, GpuBuffer, GpuContext, Kernel, KernelSource, PendingDownload, TensorCores,
-    Transfers, split_workgroups,
+    AdapterChoice, GpuBuffer, GpuContext, KernelSource, PendingDownload, TensorCores, Transfers,
+    split_workgroups,
 };
+pub use kernel::{Kernel, PreparedDispatch, Record, Workgroups};
 pub use timer::PhaseTimer;
 
 use std::fmt;
@@ -120,15 +122,9 @@ impl Backend {
 
     /// Host-device traffic through this backend so far (none on `cpu`).
     pub fn transfers(&self) -> Transfers {
-        self.gpu()
-            .map_or_else(Transfers::default, |context| context.transfers())
-    }
-
-    /// The gpu context, if this is the gpu backend.
-    pub fn gpu(&self) -> Option<&Arc<GpuContext>> {
         match self {
-            Self::Cpu => None,
-            Self::Gpu(context) => Some(context),
+            Self::Cpu => Transfers::default(),
+            Self::Gpu(context) => context.transfers(),
         }
     }
 }

@@ -319,9 +319,7 @@ fn backward<S: Scalar>(
                 layer_distance_backward(
                     features_after(index),
                     &pass.targets[layer],
-                    pairs,
-                    channels,
-                    pixels,
+                    (pairs, channels, pixels),
                     &trunk.lins[layer],
                     S::ONE / S::from_f64(pixels as f64),
                     &mut gradient,
@@ -646,18 +644,16 @@ pub(in crate::lpips) fn layer_distance_map<S: Scalar>(
     map
 }
 
-/// Adds `pixel_weight x d(map)/d(first features)` to `gradient` (both `(pairs, c, pixels)`).
+/// Adds `pixel_weight x d(map)/d(first features)` to `gradient` (both `(pairs, c, pixels)`,
+/// `dims = (pairs, c, pixels)`).
 ///
 /// With `n = |a|`, `s = 1 / (n + eps)`, `u = s a`, `g_c = 2 lin_c (u_c - b_c)` (`b` the
 /// target's unit features): `d/da_k = s g_k - s^2 (a_k / n) sum_c g_c a_c`; at `n = 0` the
 /// second term is dropped (see the module docs).
-#[allow(clippy::too_many_arguments)]
 fn layer_distance_backward<S: Scalar>(
     first: &[S],
     target_units: &[S],
-    pairs: usize,
-    channels: usize,
-    pixels: usize,
+    (pairs, channels, pixels): (usize, usize, usize),
     lin: &[S],
     pixel_weight: S,
     gradient: &mut [S],
@@ -750,9 +746,7 @@ pub(super) mod ops {
         layer_distance_backward(
             &features[..channels * pixels],
             &targets,
-            1,
-            channels,
-            pixels,
+            (1, channels, pixels),
             &lin,
             1.0,
             &mut gradient,

@@ -338,8 +338,6 @@ impl GpuLpips {
         let context = &self.context;
         let images = 2 * pairs;
         let mut encoder = context.encoder();
-        // Keeps uniforms alive until the work is submitted.
-        let mut uniforms = Vec::new();
         // activations[0] is the input; every conv and pool appends its output.
         let mut activations = vec![context.upload("lpips input", data)?];
         let mut trace = Vec::new();
@@ -362,14 +360,14 @@ impl GpuLpips {
                         images * shape.out_channels * shape.out_height * shape.out_width,
                         4,
                     )?;
-                    uniforms.push(self.record_conv(
+                    self.record_conv(
                         &mut encoder,
                         shape,
                         &activations[current],
                         weight,
                         bias,
                         &output,
-                    )?);
+                    )?;
                     activations.push(output);
                     trace.push(Traced::Conv {
                         conv: conv_index,
@@ -389,12 +387,7 @@ impl GpuLpips {
                         shape.planes * shape.out_height * shape.out_width,
                         4,
                     )?;
-                    uniforms.push(self.record_max_pool(
-                        &mut encoder,
-                        shape,
-                        &activations[current],
-                        &output,
-                    )?);
+                    self.record_max_pool(&mut encoder, shape, &activations[current], &output)?;
                     activations.push(output);
                     trace.push(Traced::Pool {
                         shape: PoolShape {
@@ -419,20 +412,18 @@ impl GpuLpips {
                         total,
                         ..Params::default()
                     };
-                    let uniform = context.uniform("lpips distance params", &params);
                     let map = context.zeros("lpips distance map", pairs * h * w, 4)?;
-                    context.dispatch(
+                    context.call(
                         &mut encoder,
                         &*self.kernel(DISTANCE)?,
+                        &params,
                         &[
-                            (0, &uniform),
                             (1, &activations[current].buffer),
                             (2, &lin.buffer),
                             (4, &map.buffer),
                         ],
                         total.div_ceil(WORKGROUP),
                     );
-                    uniforms.push(uniform);
                     map_buffers.push(map);
                     trace.push(Traced::Tap {
                         layer,
@@ -466,14 +457,14 @@ impl GpuLpips {
                                 4,
                             )?,
                         };
-                        uniforms.push(self.record_distance_backward(
+                        self.record_distance_backward(
                             &mut encoder,
                             pairs,
                             [channels, height, width],
                             &activations[features],
                             &self.lins[layer],
                             &target,
-                        )?);
+                        )?;
                         current = Some(target);
                     }
                     Traced::Conv {
@@ -489,14 +480,14 @@ impl GpuLpips {
                             pairs * shape.in_channels * shape.in_height * shape.in_width,
                             4,
                         )?;
-                        uniforms.extend(self.record_conv_backward(
+                        self.record_conv_backward(
                             &mut encoder,
                             shape,
                             &activations[output],
                             &upstream,
                             &self.convs[conv].0,
                             &target,
-                        )?);
+                        )?;
                         gradients.push(upstream);
                         current = Some(target);
                     }
@@ -509,13 +500,13 @@ impl GpuLpips {
                             shape.planes * shape.in_height * shape.in_width,
                             4,
                         )?;
-                        uniforms.push(self.record_max_pool_backward(
+                        self.record_max_pool_backward(
                             &mut encoder,
                             shape,
                             &activations[input],
                             &upstream,
                             &target,
-                        )?);
+                        )?;
                         gradients.push(upstream);
                         current = Some(target);
                     }
@@ -534,7 +525,7 @@ impl GpuLpips {
             sources.push((&input_gradient.buffer, input_gradient.len));
         }
         let mut values = context.download_all::<f32>(encoder, &sources)?;
-        drop((uniforms, activations, gradients));
+        drop((activations, gradients));
         let gradient = if with_gradient {
             values.pop().unwrap_or_default()
         } else {
@@ -552,20 +543,17 @@ impl GpuLpips {
         weight: &GpuBuffer,
         bias: &GpuBuffer,
         output: &GpuBuffer,
-    ) -> Result<wgpu::Buffer, LpipsError> {
+    ) -> Result<(), LpipsError> {
         let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
         let total = to_u32(
             "conv threads",
             shape.images * groups * shape.out_height * shape.out_width,
         )?;
-        let uniform = self
-            .context
-            .uniform("lpips conv params", &conv_params(shape, total)?);
-        self.context.dispatch(
+        self.context.call(
             encoder,
             &*self.kernel(CONV)?,
+            &conv_params(shape, total)?,
             &[
-                (0, &uniform),
                 (1, &input.buffer),
                 (2, &weight.buffer),
                 (3, &bias.buffer),
@@ -573,7 +561,7 @@ impl GpuLpips {
             ],
             total.div_ceil(WORKGROUP),
         );
-        Ok(uniform)
+        Ok(())
     }
 
     /// Records the max pool of `shape.planes` planes.
@@ -583,21 +571,19 @@ impl GpuLpips {
         shape: PoolShape,
         input: &GpuBuffer,
         output: &GpuBuffer,
-    ) -> Result<wgpu::Buffer, LpipsError> {
+    ) -> Result<(), LpipsError> {
         let total = to_u32(
             "pool threads",
             shape.planes * shape.out_height * shape.out_width,
         )?;
-        let uniform = self
-            .context
-            .uniform("lpips pool params", &pool_params(shape, total)?);
-        self.context.dispatch(
+        self.context.call(
             encoder,
             &*self.kernel(POOL)?,
-            &[(0, &uniform), (1, &input.buffer), (4, &output.buffer)],
+            &pool_params(shape, total)?,
+            &[(1, &input.buffer), (4, &output.buffer)],
             total.div_ceil(WORKGROUP),
         );
-        Ok(uniform)
+        Ok(())
     }
 
     /// Records `target += d(spatial mean of the layer distance) / d(first features)` for
@@ -611,7 +597,7 @@ impl GpuLpips {
         features: &GpuBuffer,
         lin: &GpuBuffer,
         target: &GpuBuffer,
-    ) -> Result<wgpu::Buffer, LpipsError> {
+    ) -> Result<(), LpipsError> {
         let total = to_u32("distance gradient threads", pairs * height * width)?;
         let params = Params {
             images: to_u32("pairs", pairs)?,
@@ -621,21 +607,14 @@ impl GpuLpips {
             total,
             ..Params::default()
         };
-        let uniform = self
-            .context
-            .uniform("lpips distance gradient params", &params);
-        self.context.dispatch(
+        self.context.call(
             encoder,
             &*self.kernel(DISTANCE_BACKWARD)?,
-            &[
-                (0, &uniform),
-                (1, &features.buffer),
-                (2, &lin.buffer),
-                (4, &target.buffer),
-            ],
+            &params,
+            &[(1, &features.buffer), (2, &lin.buffer), (4, &target.buffer)],
             total.div_ceil(WORKGROUP),
         );
-        Ok(uniform)
+        Ok(())
     }
 
     /// Records the backward of `relu(conv(x) + bias)` for the first `shape.images` images:
@@ -649,26 +628,19 @@ impl GpuLpips {
         upstream: &GpuBuffer,
         weight: &GpuBuffer,
         target: &GpuBuffer,
-    ) -> Result<[wgpu::Buffer; 2], LpipsError> {
+    ) -> Result<(), LpipsError> {
         let mask_total = to_u32(
             "relu mask threads",
             shape.images * shape.out_channels * shape.out_height * shape.out_width,
         )?;
-        let mask_uniform = self.context.uniform(
-            "lpips relu mask params",
+        self.context.call(
+            encoder,
+            &*self.kernel(RELU_MASK)?,
             &Params {
                 total: mask_total,
                 ..Params::default()
             },
-        );
-        self.context.dispatch(
-            encoder,
-            &*self.kernel(RELU_MASK)?,
-            &[
-                (0, &mask_uniform),
-                (1, &output.buffer),
-                (4, &upstream.buffer),
-            ],
+            &[(1, &output.buffer), (4, &upstream.buffer)],
             mask_total.div_ceil(WORKGROUP),
         );
         let groups = shape.in_channels.div_ceil(CHANNELS_PER_THREAD);
@@ -676,21 +648,18 @@ impl GpuLpips {
             "conv gradient threads",
             shape.images * groups * shape.in_height * shape.in_width,
         )?;
-        let uniform = self
-            .context
-            .uniform("lpips conv gradient params", &conv_params(shape, total)?);
-        self.context.dispatch(
+        self.context.call(
             encoder,
             &*self.kernel(CONV_BACKWARD)?,
+            &conv_params(shape, total)?,
             &[
-                (0, &uniform),
                 (2, &weight.buffer),
                 (3, &upstream.buffer),
                 (4, &target.buffer),
             ],
             total.div_ceil(WORKGROUP),
         );
-        Ok([mask_uniform, uniform])
+        Ok(())
     }
 
     /// Records the max pool's backward for `shape.planes` planes: `target` (the pool input's
@@ -702,26 +671,23 @@ impl GpuLpips {
         input: &GpuBuffer,
         upstream: &GpuBuffer,
         target: &GpuBuffer,
-    ) -> Result<wgpu::Buffer, LpipsError> {
+    ) -> Result<(), LpipsError> {
         let total = to_u32(
             "pool gradient threads",
             shape.planes * shape.in_height * shape.in_width,
         )?;
-        let uniform = self
-            .context
-            .uniform("lpips pool gradient params", &pool_params(shape, total)?);
-        self.context.dispatch(
+        self.context.call(
             encoder,
             &*self.kernel(POOL_BACKWARD)?,
+            &pool_params(shape, total)?,
             &[
-                (0, &uniform),
                 (1, &input.buffer),
                 (3, &upstream.buffer),
                 (4, &target.buffer),
             ],
             total.div_ceil(WORKGROUP),
         );
-        Ok(uniform)
+        Ok(())
     }
 }
 
@@ -829,6 +795,15 @@ pub struct DeviceImage<'a> {
     pub offset: usize,
     pub width: usize,
     pub height: usize,
+}
+
+/// The images one [`ResidentLpips::record`] call compares: `crop` of `render` and of
+/// `target`.
+#[derive(Clone, Copy, Debug)]
+pub struct CropPair<'a> {
+    pub render: DeviceImage<'a>,
+    pub target: DeviceImage<'a>,
+    pub crop: Crop,
 }
 
 /// A crop `[x0, x0 + width) x [y0, y0 + height)` of a [`DeviceImage`].
@@ -1223,17 +1198,18 @@ impl ResidentLpips {
     }
 
     /// Records, with camera slot `slot` (one call per slot per submission): LPIPS between
-    /// `crop` of `render` and of `target` into [`Self::value`], and `factor x` its gradient
+    /// `crop` of `render` and of `target` ([`CropPair`]) into [`Self::value`], and `factor x` its gradient
     /// with respect to the render added into `gradient` (same layout as `render`) on the crop.
-    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         gpu: &GpuLpips,
         encoder: &mut wgpu::CommandEncoder,
         slot: usize,
-        render: DeviceImage<'_>,
-        target: DeviceImage<'_>,
-        crop: Crop,
+        CropPair {
+            render,
+            target,
+            crop,
+        }: CropPair<'_>,
         factor: f32,
         gradient: &GpuBuffer,
     ) -> Result<(), LpipsError> {

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
 use crate::backend::{GpuBuffer, GpuContext};
 
-use super::gpu::{ConvShape, Crop, DeviceImage, GpuLpips, PoolShape};
+use super::gpu::{ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape};
 use super::*;
 
 /// Deterministic values in [-1, 1).
@@ -36,15 +36,13 @@ fn dot(a: &[f32], b: &[f32]) -> (f64, f64) {
 fn run_and_read(
     context: &GpuContext,
     target: &GpuBuffer,
-    record: impl FnOnce(&mut wgpu::CommandEncoder) -> Vec<wgpu::Buffer>,
+    record: impl FnOnce(&mut wgpu::CommandEncoder),
 ) -> Vec<f32> {
     let mut encoder = context.encoder();
-    let uniforms = record(&mut encoder);
-    let result = context
+    record(&mut encoder);
+    context
         .download(encoder, &target.buffer, target.len)
-        .unwrap();
-    drop(uniforms);
-    result
+        .unwrap()
 }
 
 /// A GpuLpips whose kernels the op tests drive with their own buffers (the small AlexNet
@@ -156,18 +154,16 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
         let upstream_buffer = context.upload("g", &upstream).unwrap();
         let target = context.zeros("dx", 2 * in_len, 4).unwrap();
         let forward = run_and_read(&context, &output, |encoder| {
-            vec![
-                lpips
-                    .record_conv(
-                        encoder,
-                        forward_shape,
-                        &input_buffer,
-                        &weight_buffer,
-                        &bias_buffer,
-                        &output,
-                    )
-                    .unwrap(),
-            ]
+            lpips
+                .record_conv(
+                    encoder,
+                    forward_shape,
+                    &input_buffer,
+                    &weight_buffer,
+                    &bias_buffer,
+                    &output,
+                )
+                .unwrap();
         });
         let gradient = run_and_read(&context, &target, |encoder| {
             lpips
@@ -179,8 +175,7 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
                     &weight_buffer,
                     &target,
                 )
-                .unwrap()
-                .into()
+                .unwrap();
         });
         // The Jacobian of relu(conv(x) + b) at x is J = M conv with the mask M = [out > 0],
         // so J x = out - M b and <J x, g> must equal <x, J^T g> = <x, gradient>.
@@ -289,24 +284,14 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
         let upstream_buffer = context.upload("g", &upstream).unwrap();
         let target = context.zeros("dx", 3 * plane, 4).unwrap();
         let pooled = run_and_read(&context, &output, |encoder| {
-            vec![
-                lpips
-                    .record_max_pool(encoder, forward_shape, &input_buffer, &output)
-                    .unwrap(),
-            ]
+            lpips
+                .record_max_pool(encoder, forward_shape, &input_buffer, &output)
+                .unwrap();
         });
         let gradient = run_and_read(&context, &target, |encoder| {
-            vec![
-                lpips
-                    .record_max_pool_backward(
-                        encoder,
-                        shape,
-                        &input_buffer,
-                        &upstream_buffer,
-                        &target,
-                    )
-                    .unwrap(),
-            ]
+            lpips
+                .record_max_pool_backward(encoder, shape, &input_buffer, &upstream_buffer, &target)
+                .unwrap();
         });
         // The pool is positively homogeneous, so J x = pool(x): <pool(x), g> = <x, J^T g>.
         let (left, magnitude) = dot(&pooled[..3 * out_plane], &upstream);
@@ -367,18 +352,16 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
     let lin_buffer = context.upload("lin", &lin).unwrap();
     let target = context.upload("grad", &prior).unwrap();
     let gradient = run_and_read(&context, &target, |encoder| {
-        vec![
-            lpips
-                .record_distance_backward(
-                    encoder,
-                    pairs,
-                    [channels, height, width],
-                    &feature_buffer,
-                    &lin_buffer,
-                    &target,
-                )
-                .unwrap(),
-        ]
+        lpips
+            .record_distance_backward(
+                encoder,
+                pairs,
+                [channels, height, width],
+                &feature_buffer,
+                &lin_buffer,
+                &target,
+            )
+            .unwrap();
     });
     assert!(gradient.iter().all(|g| g.is_finite()), "{gradient:?}");
     for pair in 0..pairs {
@@ -727,19 +710,21 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
                             &gpu,
                             encoder,
                             slot,
-                            DeviceImage {
-                                buffer: &render_buffer,
-                                offset: lead + slot * pixels,
-                                width,
-                                height,
+                            CropPair {
+                                render: DeviceImage {
+                                    buffer: &render_buffer,
+                                    offset: lead + slot * pixels,
+                                    width,
+                                    height,
+                                },
+                                target: DeviceImage {
+                                    buffer: &target_buffer,
+                                    offset: slot * pixels,
+                                    width,
+                                    height,
+                                },
+                                crop: crops[slot],
                             },
-                            DeviceImage {
-                                buffer: &target_buffer,
-                                offset: slot * pixels,
-                                width,
-                                height,
-                            },
-                            crops[slot],
                             factors[slot],
                             &gradient,
                         )
@@ -836,13 +821,15 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
             &gpu,
             &mut context.encoder(),
             0,
-            image,
-            image,
-            Crop {
-                x0: 0,
-                y0: 0,
-                width: 24,
-                height: 18,
+            CropPair {
+                render: image,
+                target: image,
+                crop: Crop {
+                    x0: 0,
+                    y0: 0,
+                    width: 24,
+                    height: 18,
+                },
             },
             1.0,
             &render_buffer,

@@ -630,12 +630,6 @@ impl Lpips {
         &self.weights
     }
 
-    /// The gpu trunk when this runs on the `gpu` backend (its resident path:
-    /// [`gpu::GpuLpips::resident`]).
-    pub fn gpu(&self) -> Option<&gpu::GpuLpips> {
-        self.gpu.as_ref()
-    }
-
     /// LPIPS of each pair; all images must have one size.
     pub fn distances(
         &self,

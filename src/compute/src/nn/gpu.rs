@@ -30,6 +30,7 @@ use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
 use super::{NnError, Precision};
 use crate::backend::{GpuContext, Kernel, TensorCores};
+pub use crate::backend::{PreparedDispatch, Record};
 
 const MATMUL_WGSL: &str = include_str!("../../../../shaders/nn_matmul.wgsl");
 const REDUCE_WGSL: &str = include_str!("../../../../shaders/nn_reduce.wgsl");
@@ -87,54 +88,50 @@ pub enum GpuInputGrad<'a> {
     Accumulate(&'a wgpu::Buffer),
 }
 
-/// A layer's parameter-gradient buffers (accumulated into).
+/// A layer's gradient buffers: its parameters' (accumulated into) and its input parts'.
 #[derive(Clone, Copy, Debug)]
 pub struct GpuLinearGrads<'a> {
     /// `in x out`.
     pub weight: &'a wgpu::Buffer,
     /// `out`.
     pub bias: &'a wgpu::Buffer,
+    /// One entry per input part.
+    pub inputs: &'a [GpuInputGrad<'a>],
 }
 
-/// One dispatch with its uniform block and bindings resolved: what a [`Record`] receives.
-#[derive(Clone, Debug)]
-pub struct PreparedDispatch {
-    /// The kernel's name (the compute pass label).
-    pub label: &'static str,
-    /// The compiled kernel.
-    pub pipeline: wgpu::ComputePipeline,
-    /// Its uniform block and buffers.
-    pub bind_group: wgpu::BindGroup,
-    /// Workgroups along x.
-    pub x: u32,
-    /// Workgroups along y.
-    pub y: u32,
+/// The values one Adam update steps (`len` of them) and their optimiser state.
+#[derive(Clone, Copy, Debug)]
+pub struct GpuAdamValues<'a> {
+    pub params: &'a wgpu::Buffer,
+    pub grads: &'a wgpu::Buffer,
+    pub first_moment: &'a wgpu::Buffer,
+    pub second_moment: &'a wgpu::Buffer,
+    pub len: usize,
 }
 
-/// Where the `nn` operations record their work: straight into a command encoder (the
-/// uniform blocks and bind groups of each call are created by the call), or into a
-/// [`NnProgram`] that keeps them, so a resident step creates them once per shape and replays
-/// the program every iteration with no allocation and no upload.
-pub trait Record {
-    /// Records one dispatch.
-    fn record_dispatch(&mut self, dispatch: PreparedDispatch);
-    /// Records the zeroing of a whole buffer.
-    fn record_clear(&mut self, buffer: &wgpu::Buffer);
+/// A dense layer on the gpu: its shape and its `in x out` weight buffer.
+#[derive(Clone, Copy, Debug)]
+pub struct GpuLinear<'a> {
+    pub shape: LinearShape,
+    pub weight: &'a wgpu::Buffer,
 }
 
-impl Record for wgpu::CommandEncoder {
-    fn record_dispatch(&mut self, dispatch: PreparedDispatch) {
-        let mut pass = self.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(dispatch.label),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&dispatch.pipeline);
-        pass.set_bind_group(0, &dispatch.bind_group, &[]);
-        pass.dispatch_workgroups(dispatch.x, dispatch.y, 1);
+/// A layer's input on the gpu: `rows` rows, the concatenation of `parts`.
+#[derive(Clone, Copy, Debug)]
+pub struct GpuInput<'a> {
+    pub parts: &'a [GpuInputPart<'a>],
+    pub rows: usize,
+}
+
+impl<'a> GpuLinear<'a> {
+    pub fn new(shape: LinearShape, weight: &'a wgpu::Buffer) -> Self {
+        GpuLinear { shape, weight }
     }
+}
 
-    fn record_clear(&mut self, buffer: &wgpu::Buffer) {
-        self.clear_buffer(buffer, 0, None);
+impl<'a> GpuInput<'a> {
+    pub fn new(parts: &'a [GpuInputPart<'a>], rows: usize) -> Self {
+        GpuInput { parts, rows }
     }
 }
 
@@ -205,9 +202,7 @@ impl NnProgram {
                         timestamp_writes: None,
                     });
                     while let Some(ProgramStep::Dispatch(dispatch)) = self.steps.get(index) {
-                        pass.set_pipeline(&dispatch.pipeline);
-                        pass.set_bind_group(0, &dispatch.bind_group, &[]);
-                        pass.dispatch_workgroups(dispatch.x, dispatch.y, 1);
+                        dispatch.record_into(&mut pass);
                         index += 1;
                     }
                 }
@@ -224,6 +219,20 @@ struct Operand<'a> {
     offset: usize,
     row_stride: usize,
     col_stride: usize,
+}
+
+/// One product `C (+)= A (m x k) * B (k x n)` of the matrix kernel, `dims = (m, n, k)`: `mask`
+/// (the ReLU mask, by `flags`) and `bias` where the flags use them, C row-major at `c_offset`.
+#[derive(Clone, Copy)]
+struct Product<'a> {
+    dims: (usize, usize, usize),
+    a: Operand<'a>,
+    b: Operand<'a>,
+    mask: Option<&'a wgpu::Buffer>,
+    bias: Option<&'a wgpu::Buffer>,
+    c: &'a wgpu::Buffer,
+    c_offset: usize,
+    flags: u32,
 }
 
 /// `Params` in `nn_matmul.wgsl` (its layout is checked against the WGSL by a test).
@@ -465,9 +474,10 @@ impl MatmulPath {
     /// The path of the networks on `backend` for `precision`: [`MatmulPath::choose`] on the
     /// gpu, f32 on `cpu` (which always runs f32).
     pub fn of_backend(backend: &crate::backend::Backend, precision: Precision) -> Self {
-        backend
-            .gpu()
-            .map_or(Self::F32, |context| Self::choose(context, precision))
+        match backend {
+            crate::backend::Backend::Cpu => Self::F32,
+            crate::backend::Backend::Gpu(context) => Self::choose(context, precision),
+        }
     }
 
     /// One line for run summaries: `networks: f16 tensor cores (16x16x16)` or
@@ -728,54 +738,6 @@ impl NnGpu {
         }
     }
 
-    /// Records one dispatch of an `x` by `y` grid with a fresh uniform block (created now:
-    /// into a [`NnProgram`] it is created once and replayed).
-    #[allow(clippy::too_many_arguments)]
-    fn dispatch(
-        &self,
-        encoder: &mut impl Record,
-        kernel: &Kernel,
-        params: &[u8],
-        bindings: &[(u32, &wgpu::Buffer)],
-        x: u32,
-        y: u32,
-    ) {
-        if x == 0 || y == 0 {
-            return;
-        }
-        let uniform = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(kernel.name),
-                contents: params,
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
-        let mut entries = vec![wgpu::BindGroupEntry {
-            binding: 0,
-            resource: uniform.as_entire_binding(),
-        }];
-        entries.extend(
-            bindings
-                .iter()
-                .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                    binding: *binding,
-                    resource: buffer.as_entire_binding(),
-                }),
-        );
-        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(kernel.name),
-            layout: &kernel.layout,
-            entries: &entries,
-        });
-        encoder.record_dispatch(PreparedDispatch {
-            label: kernel.name,
-            pipeline: kernel.pipeline.clone(),
-            bind_group,
-            x,
-            y,
-        });
-    }
-
     /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
     fn grid(&self, workgroups: usize) -> Result<(u32, u32), NnError> {
         let max = self.max_groups_per_dimension.max(1) as usize;
@@ -790,35 +752,22 @@ impl NnGpu {
     }
 
     /// `C (+)= A (m x k) * B (k x n)` with the given flags; C row-major at `c_offset`.
-    #[allow(clippy::too_many_arguments)]
-    fn matmul(
-        &self,
-        encoder: &mut impl Record,
-        (m, n, k): (usize, usize, usize),
-        a: Operand<'_>,
-        b: Operand<'_>,
-        mask: Option<&wgpu::Buffer>,
-        bias: Option<&wgpu::Buffer>,
-        c: &wgpu::Buffer,
-        c_offset: usize,
-        flags: u32,
-    ) -> Result<(), NnError> {
+    fn matmul(&self, encoder: &mut impl Record, product: Product<'_>) -> Result<(), NnError> {
+        let Product {
+            dims: (m, n, k),
+            a,
+            b,
+            mask,
+            bias,
+            c,
+            c_offset,
+            flags,
+        } = product;
         if m == 0 || n == 0 {
             return Ok(());
         }
         if let Some(kernels) = &self.tensor_cores {
-            return self.matmul_tensor_cores(
-                encoder,
-                kernels,
-                (m, n, k),
-                a,
-                b,
-                mask,
-                bias,
-                c,
-                c_offset,
-                flags,
-            );
+            return self.matmul_tensor_cores(encoder, kernels, product);
         }
         let m_tiles = m.div_ceil(TILE);
         let n_tiles = n.div_ceil(TILE);
@@ -876,10 +825,9 @@ impl NnGpu {
         };
         let mask = mask.unwrap_or(&self.placeholder);
         let bias = bias.unwrap_or(&self.placeholder);
-        self.dispatch(
+        self.matmul.call(
             encoder,
-            &self.matmul,
-            bytemuck::bytes_of(&params),
+            &params,
             &[
                 (1, a.buffer),
                 (2, b.buffer),
@@ -887,17 +835,13 @@ impl NnGpu {
                 (4, bias),
                 (5, target),
             ],
-            to_u32("tiles", n_tiles)?,
-            to_u32("tiles", groups_y)?,
+            (to_u32("tiles", n_tiles)?, to_u32("tiles", groups_y)?),
         );
         if let Some(partials) = &scratch {
             self.accumulate_into(
                 encoder,
-                partials,
-                splits,
-                m * n,
-                c,
-                c_offset,
+                (partials, splits, m * n),
+                (c, c_offset),
                 flags & ACCUMULATE != 0,
             )?;
         }
@@ -906,19 +850,20 @@ impl NnGpu {
 
     /// [`NnGpu::matmul`] on the tensor cores: both operands' largest magnitudes, their
     /// scaled and padded f16 copies, the products split along k, and the epilogue.
-    #[allow(clippy::too_many_arguments)]
     fn matmul_tensor_cores(
         &self,
         encoder: &mut impl Record,
         kernels: &TensorCoreKernels,
-        (m, n, k): (usize, usize, usize),
-        a: Operand<'_>,
-        b: Operand<'_>,
-        mask: Option<&wgpu::Buffer>,
-        bias: Option<&wgpu::Buffer>,
-        c: &wgpu::Buffer,
-        c_offset: usize,
-        flags: u32,
+        Product {
+            dims: (m, n, k),
+            a,
+            b,
+            mask,
+            bias,
+            c,
+            c_offset,
+            flags,
+        }: Product<'_>,
     ) -> Result<(), NnError> {
         let m_pad = m.div_ceil(COOP_BLOCK) * COOP_BLOCK;
         let n_pad = n.div_ceil(COOP_BLOCK) * COOP_BLOCK;
@@ -993,31 +938,25 @@ impl NnGpu {
             });
         }
         for ((operand, (rows, cols), ..), params) in operands.iter().zip(&staging) {
-            let (x, y) = self.grid((rows * cols).div_ceil(STAGING_WORKGROUP))?;
-            self.dispatch(
+            kernels.operand_max.call(
                 encoder,
-                &kernels.operand_max,
-                bytemuck::bytes_of(params),
+                params,
                 &[(1, operand.buffer), (2, mask_buffer), (3, &kernels.scales)],
-                x,
-                y,
+                self.grid((rows * cols).div_ceil(STAGING_WORKGROUP))?,
             );
         }
         for ((operand, _, (rows_pad, cols_pad), _, packed), params) in operands.iter().zip(&staging)
         {
-            let (x, y) = self.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))?;
-            self.dispatch(
+            kernels.pack.call(
                 encoder,
-                &kernels.pack,
-                bytemuck::bytes_of(params),
+                params,
                 &[
                     (1, operand.buffer),
                     (2, mask_buffer),
                     (3, &kernels.scales),
                     (4, *packed),
                 ],
-                x,
-                y,
+                self.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))?,
             );
         }
         let multiply = CoopParams {
@@ -1028,13 +967,11 @@ impl NnGpu {
             partial_stride: to_u32("partial size", partial_len)?,
             pad: [0; 3],
         };
-        self.dispatch(
+        kernels.multiply.call(
             encoder,
-            &kernels.multiply,
-            bytemuck::bytes_of(&multiply),
+            &multiply,
             &[(1, &packed_a), (2, &packed_b), (3, &partials)],
-            to_u32("blocks", n_blocks)?,
-            to_u32("blocks", groups_y)?,
+            (to_u32("blocks", n_blocks)?, to_u32("blocks", groups_y)?),
         );
         let epilogue = StagingParams {
             m: to_u32("rows", m)?,
@@ -1048,33 +985,26 @@ impl NnGpu {
             ..StagingParams::default()
         };
         to_u32("product size", m * n)?;
-        let (x, y) = self.grid((m * n).div_ceil(STAGING_WORKGROUP))?;
-        self.dispatch(
+        kernels.epilogue.call(
             encoder,
-            &kernels.epilogue,
-            bytemuck::bytes_of(&epilogue),
+            &epilogue,
             &[
                 (3, &kernels.scales),
                 (5, &partials),
                 (6, bias.unwrap_or(&self.placeholder)),
                 (7, c),
             ],
-            x,
-            y,
+            self.grid((m * n).div_ceil(STAGING_WORKGROUP))?,
         );
         Ok(())
     }
 
-    /// `destination[offset + i] (+)= sum_s partials[s * len + i]`.
-    #[allow(clippy::too_many_arguments)]
+    /// `destination[offset + i] (+)= sum_s partials[s * len + i]` over the `slices` partials.
     fn accumulate_into(
         &self,
         encoder: &mut impl Record,
-        partials: &wgpu::Buffer,
-        slices: usize,
-        len: usize,
-        destination: &wgpu::Buffer,
-        offset: usize,
+        (partials, slices, len): (&wgpu::Buffer, usize, usize),
+        (destination, offset): (&wgpu::Buffer, usize),
         accumulate: bool,
     ) -> Result<(), NnError> {
         let (x, y) = self.grid(len.div_ceil(256))?;
@@ -1088,14 +1018,8 @@ impl NnGpu {
             ],
             pad: [0; 3],
         };
-        self.dispatch(
-            encoder,
-            &self.accumulate_partials,
-            bytemuck::bytes_of(&params),
-            &[(1, partials), (3, destination)],
-            x,
-            y,
-        );
+        self.accumulate_partials
+            .call(encoder, &params, &[(1, partials), (3, destination)], (x, y));
         Ok(())
     }
 
@@ -1138,15 +1062,15 @@ impl NnGpu {
     }
 
     /// Records `output = act(concat(inputs) W + b)` (`rows x out`, overwritten).
-    #[allow(clippy::too_many_arguments)]
     pub fn linear_forward(
         &self,
         encoder: &mut impl Record,
-        shape: LinearShape,
-        weight: &wgpu::Buffer,
+        GpuLinear { shape, weight }: GpuLinear<'_>,
         bias: &wgpu::Buffer,
-        inputs: &[GpuInputPart<'_>],
-        rows: usize,
+        GpuInput {
+            parts: inputs,
+            rows,
+        }: GpuInput<'_>,
         output: &wgpu::Buffer,
     ) -> Result<(), NnError> {
         self.check_layer(shape, weight, inputs, rows)?;
@@ -1165,24 +1089,26 @@ impl NnGpu {
             }
             self.matmul(
                 encoder,
-                (rows, out, part.cols),
-                Operand {
-                    buffer: part.buffer,
-                    offset: 0,
-                    row_stride: part.cols,
-                    col_stride: 1,
+                Product {
+                    dims: (rows, out, part.cols),
+                    a: Operand {
+                        buffer: part.buffer,
+                        offset: 0,
+                        row_stride: part.cols,
+                        col_stride: 1,
+                    },
+                    b: Operand {
+                        buffer: weight,
+                        offset: weight_row * out,
+                        row_stride: out,
+                        col_stride: 1,
+                    },
+                    mask: None,
+                    bias: Some(bias),
+                    c: output,
+                    c_offset: 0,
+                    flags,
                 },
-                Operand {
-                    buffer: weight,
-                    offset: weight_row * out,
-                    row_stride: out,
-                    col_stride: 1,
-                },
-                None,
-                Some(bias),
-                output,
-                0,
-                flags,
             )?;
             weight_row += part.cols;
         }
@@ -1190,21 +1116,21 @@ impl NnGpu {
     }
 
     /// Records the backward of [`NnGpu::linear_forward`]: parameter gradients accumulated into
-    /// `grads`, input gradients per `d_inputs`. `output` is the forward output (ReLU mask);
+    /// `grads`, input gradients per `grads.inputs`. `output` is the forward output (ReLU mask);
     /// `d_output = dL/dY` is only read.
-    #[allow(clippy::too_many_arguments)]
     pub fn linear_backward(
         &self,
         encoder: &mut impl Record,
-        shape: LinearShape,
-        weight: &wgpu::Buffer,
-        inputs: &[GpuInputPart<'_>],
-        rows: usize,
+        GpuLinear { shape, weight }: GpuLinear<'_>,
+        GpuInput {
+            parts: inputs,
+            rows,
+        }: GpuInput<'_>,
         output: &wgpu::Buffer,
         d_output: &wgpu::Buffer,
         grads: GpuLinearGrads<'_>,
-        d_inputs: &[GpuInputGrad<'_>],
     ) -> Result<(), NnError> {
+        let d_inputs = grads.inputs;
         self.check_layer(shape, weight, inputs, rows)?;
         let out = shape.out_features;
         self.check_buffer("linear output", output, rows * out)?;
@@ -1253,19 +1179,17 @@ impl NnGpu {
                     "{rows} rows exceed the column-sum grid"
                 )));
             }
-            self.dispatch(
+            self.column_sums.call(
                 encoder,
-                &self.column_sums,
-                bytemuck::bytes_of(&params),
+                &params,
                 &[
                     (1, d_output),
                     (2, mask.unwrap_or(&self.placeholder)),
                     (3, &scratch),
                 ],
-                to_u32("column groups", out.div_ceil(64))?,
-                groups_y,
+                (to_u32("column groups", out.div_ceil(64))?, groups_y),
             );
-            self.accumulate_into(encoder, &scratch, chunks, out, grads.bias, 0, true)?;
+            self.accumulate_into(encoder, (&scratch, chunks, out), (grads.bias, 0), true)?;
         }
 
         let masked = if relu { MASK_B } else { 0 };
@@ -1275,24 +1199,26 @@ impl NnGpu {
             // dW_part += X_part^T dY' (cols x rows times rows x out).
             self.matmul(
                 encoder,
-                (cols, out, rows),
-                Operand {
-                    buffer: part.buffer,
-                    offset: 0,
-                    row_stride: 1,
-                    col_stride: cols,
+                Product {
+                    dims: (cols, out, rows),
+                    a: Operand {
+                        buffer: part.buffer,
+                        offset: 0,
+                        row_stride: 1,
+                        col_stride: cols,
+                    },
+                    b: Operand {
+                        buffer: d_output,
+                        offset: 0,
+                        row_stride: out,
+                        col_stride: 1,
+                    },
+                    mask,
+                    bias: None,
+                    c: grads.weight,
+                    c_offset: weight_row * out,
+                    flags: ACCUMULATE | masked,
                 },
-                Operand {
-                    buffer: d_output,
-                    offset: 0,
-                    row_stride: out,
-                    col_stride: 1,
-                },
-                mask,
-                None,
-                grads.weight,
-                weight_row * out,
-                ACCUMULATE | masked,
             )?;
             // dX_part (+)= dY' W_part^T (rows x out times out x cols).
             let (target, accumulate) = match d_input {
@@ -1303,24 +1229,27 @@ impl NnGpu {
             if let Some(target) = target {
                 self.matmul(
                     encoder,
-                    (rows, cols, out),
-                    Operand {
-                        buffer: d_output,
-                        offset: 0,
-                        row_stride: out,
-                        col_stride: 1,
+                    Product {
+                        dims: (rows, cols, out),
+                        a: Operand {
+                            buffer: d_output,
+                            offset: 0,
+                            row_stride: out,
+                            col_stride: 1,
+                        },
+                        b: Operand {
+                            buffer: weight,
+                            offset: weight_row * out,
+                            row_stride: 1,
+                            col_stride: out,
+                        },
+                        mask,
+                        bias: None,
+                        c: target,
+                        c_offset: 0,
+                        flags: if accumulate { ACCUMULATE } else { 0 }
+                            | if relu { MASK_A } else { 0 },
                     },
-                    Operand {
-                        buffer: weight,
-                        offset: weight_row * out,
-                        row_stride: 1,
-                        col_stride: out,
-                    },
-                    mask,
-                    None,
-                    target,
-                    0,
-                    if accumulate { ACCUMULATE } else { 0 } | if relu { MASK_A } else { 0 },
                 )?;
             }
             weight_row += cols;
@@ -1332,18 +1261,13 @@ impl NnGpu {
     /// this update (the `cpu` twin is [`adam_update`](super::adam::adam_update)). The step
     /// factors go to the device in a small buffer created by the call; a resident step uses
     /// [`NnGpu::adam_update_from_record`] with a record it writes once per iteration.
-    #[allow(clippy::too_many_arguments)]
     pub fn adam_update(
         &self,
         encoder: &mut impl Record,
         config: &AdamConfig,
         lr: f64,
         t: u64,
-        params: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-        first_moment: &wgpu::Buffer,
-        second_moment: &wgpu::Buffer,
-        len: usize,
+        values: GpuAdamValues<'_>,
     ) -> Result<(), NnError> {
         config.validate()?;
         let factors = adam_factors_record(&[AdamStepFactors::new(config, lr, t)]);
@@ -1354,42 +1278,34 @@ impl NnGpu {
                 contents: bytemuck::cast_slice(&factors),
                 usage: wgpu::BufferUsages::STORAGE,
             });
-        self.adam_update_from_record(
-            encoder,
-            config,
-            (&factors, 0),
-            params,
-            grads,
-            first_moment,
-            second_moment,
-            len,
-        )
+        self.adam_update_from_record(encoder, config, (&factors, 0), values)
     }
 
     /// Records one Adam update of `len` values whose step factors are read on the device
     /// from `record.0` at slot `record.1` (`[step_size, correction]` at f32 index
     /// `2 slot`, as [`adam_factors_record`] lays them out). Recorded into a [`NnProgram`],
     /// the update replays every iteration while the host rewrites only the record.
-    #[allow(clippy::too_many_arguments)]
     pub fn adam_update_from_record(
         &self,
         encoder: &mut impl Record,
         config: &AdamConfig,
         record: (&wgpu::Buffer, usize),
-        params: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-        first_moment: &wgpu::Buffer,
-        second_moment: &wgpu::Buffer,
-        len: usize,
+        values: GpuAdamValues<'_>,
     ) -> Result<(), NnError> {
         config.validate()?;
         let (factors, slot) = record;
+        let GpuAdamValues {
+            params,
+            grads,
+            first_moment,
+            second_moment,
+            len,
+        } = values;
         self.check_buffer("adam parameters", params, len)?;
         self.check_buffer("adam gradient", grads, len)?;
         self.check_buffer("adam first moment", first_moment, len)?;
         self.check_buffer("adam second moment", second_moment, len)?;
         self.check_buffer("adam step factors", factors, 2 * slot + 2)?;
-        let (x, y) = self.grid(len.div_ceil(256))?;
         let uniform = AdamParams {
             len: to_u32("adam length", len)?,
             slot: to_u32("adam factor slot", slot)?,
@@ -1401,10 +1317,9 @@ impl NnGpu {
             eps: config.eps as f32,
             pad: [0; 3],
         };
-        self.dispatch(
+        self.adam.call(
             encoder,
-            &self.adam,
-            bytemuck::bytes_of(&uniform),
+            &uniform,
             &[
                 (1, params),
                 (2, grads),
@@ -1412,8 +1327,7 @@ impl NnGpu {
                 (4, second_moment),
                 (5, factors),
             ],
-            x,
-            y,
+            self.grid(len.div_ceil(256))?,
         );
         Ok(())
     }
@@ -1432,19 +1346,16 @@ impl NnGpu {
     ) -> Result<(), NnError> {
         self.check_buffer("checked values", values, len)?;
         self.check_buffer("status", status, slot + 1)?;
-        let (x, y) = self.grid(len.div_ceil(256))?;
         let params = FiniteParams {
             len: to_u32("checked length", len)?,
             slot: to_u32("status slot", slot)?,
             pad: [0; 2],
         };
-        self.dispatch(
+        self.finite.call(
             encoder,
-            &self.finite,
-            bytemuck::bytes_of(&params),
+            &params,
             &[(1, values), (2, status)],
-            x,
-            y,
+            self.grid(len.div_ceil(256))?,
         );
         Ok(())
     }
@@ -1462,15 +1373,9 @@ impl NnGpu {
     ) -> Result<(), NnError> {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrices", matrices, 9 * count)?;
-        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
-        self.dispatch(
-            encoder,
-            &self.rodrigues_forward,
-            bytemuck::bytes_of(&params),
-            &[(1, vectors), (3, matrices)],
-            x,
-            y,
-        );
+        let (params, grid) = self.rodrigues_params(epsilon, count)?;
+        self.rodrigues_forward
+            .call(encoder, &params, &[(1, vectors), (3, matrices)], grid);
         Ok(())
     }
 
@@ -1488,14 +1393,12 @@ impl NnGpu {
         self.check_buffer("rotation vectors", vectors, 3 * count)?;
         self.check_buffer("rotation matrix gradient", d_matrices, 9 * count)?;
         self.check_buffer("rotation vector gradient", d_vectors, 3 * count)?;
-        let (params, x, y) = self.rodrigues_params(epsilon, count)?;
-        self.dispatch(
+        let (params, grid) = self.rodrigues_params(epsilon, count)?;
+        self.rodrigues_backward.call(
             encoder,
-            &self.rodrigues_backward,
-            bytemuck::bytes_of(&params),
+            &params,
             &[(1, vectors), (2, d_matrices), (3, d_vectors)],
-            x,
-            y,
+            grid,
         );
         Ok(())
     }
@@ -1505,14 +1408,14 @@ impl NnGpu {
         &self,
         epsilon: f64,
         count: usize,
-    ) -> Result<(RodriguesParams, u32, u32), NnError> {
-        let (x, y) = self.grid(count.div_ceil(64))?;
+    ) -> Result<(RodriguesParams, (u32, u32)), NnError> {
+        let grid = self.grid(count.div_ceil(64))?;
         let params = RodriguesParams {
             count: to_u32("rotation count", count)?,
             epsilon: epsilon as f32,
             pad: [0; 2],
         };
-        Ok((params, x, y))
+        Ok((params, grid))
     }
 
     fn posenc_params(
@@ -1520,14 +1423,14 @@ impl NnGpu {
         encoding: PositionalEncoding,
         rows: usize,
         in_features: usize,
-    ) -> Result<(PosencParams, u32, u32), NnError> {
+    ) -> Result<(PosencParams, (u32, u32)), NnError> {
         if encoding.frequencies > 30 {
             return Err(NnError::Config {
                 field: "positional_encoding.frequencies".into(),
                 message: format!("{} bands exceed 30", encoding.frequencies),
             });
         }
-        let (x, y) = self.grid((rows * in_features).div_ceil(64))?;
+        let grid = self.grid((rows * in_features).div_ceil(64))?;
         let params = PosencParams {
             rows: to_u32("rows", rows)?,
             in_features: to_u32("in_features", in_features)?,
@@ -1536,7 +1439,7 @@ impl NnGpu {
             pad: [0; 4],
         };
         to_u32("encoding size", rows * encoding.out_features(in_features))?;
-        Ok((params, x, y))
+        Ok((params, grid))
     }
 
     /// Records the positional encoding of `input` (`rows x in_features`) into `output`.
@@ -1545,8 +1448,7 @@ impl NnGpu {
         encoder: &mut impl Record,
         encoding: PositionalEncoding,
         input: &wgpu::Buffer,
-        rows: usize,
-        in_features: usize,
+        (rows, in_features): (usize, usize),
         output: &wgpu::Buffer,
     ) -> Result<(), NnError> {
         self.check_buffer("positional encoding input", input, rows * in_features)?;
@@ -1555,28 +1457,20 @@ impl NnGpu {
             output,
             rows * encoding.out_features(in_features),
         )?;
-        let (params, x, y) = self.posenc_params(encoding, rows, in_features)?;
-        self.dispatch(
-            encoder,
-            &self.posenc_forward,
-            bytemuck::bytes_of(&params),
-            &[(1, input), (3, output)],
-            x,
-            y,
-        );
+        let (params, grid) = self.posenc_params(encoding, rows, in_features)?;
+        self.posenc_forward
+            .call(encoder, &params, &[(1, input), (3, output)], grid);
         Ok(())
     }
 
     /// Records the encoding's backward: `d_input` (`rows x in_features`) is overwritten.
-    #[allow(clippy::too_many_arguments)]
     pub fn positional_encoding_backward(
         &self,
         encoder: &mut impl Record,
         encoding: PositionalEncoding,
         output: &wgpu::Buffer,
         d_output: &wgpu::Buffer,
-        rows: usize,
-        in_features: usize,
+        (rows, in_features): (usize, usize),
         d_input: &wgpu::Buffer,
     ) -> Result<(), NnError> {
         let width = encoding.out_features(in_features);
@@ -1591,14 +1485,12 @@ impl NnGpu {
             d_input,
             rows * in_features,
         )?;
-        let (params, x, y) = self.posenc_params(encoding, rows, in_features)?;
-        self.dispatch(
+        let (params, grid) = self.posenc_params(encoding, rows, in_features)?;
+        self.posenc_backward.call(
             encoder,
-            &self.posenc_backward,
-            bytemuck::bytes_of(&params),
+            &params,
             &[(1, output), (2, d_output), (3, d_input)],
-            x,
-            y,
+            grid,
         );
         Ok(())
     }
@@ -1754,11 +1646,9 @@ mod tests {
         let mut encoder = context.encoder();
         nn.linear_forward(
             &mut encoder,
-            shape,
-            &g_weight,
+            GpuLinear::new(shape, &g_weight),
             &g_bias,
-            &g_parts,
-            rows,
+            GpuInput::new(&g_parts, rows),
             &g_y,
         )
         .unwrap();
@@ -1780,11 +1670,11 @@ mod tests {
             LinearGrads {
                 weight: &mut d_weight,
                 bias: &mut d_bias,
+                inputs: &mut [
+                    InputGrad::Write(&mut d_x0),
+                    InputGrad::Accumulate(&mut d_x1),
+                ],
             },
-            &mut [
-                InputGrad::Write(&mut d_x0),
-                InputGrad::Accumulate(&mut d_x1),
-            ],
         )
         .unwrap();
 
@@ -1797,20 +1687,18 @@ mod tests {
         let mut encoder = context.encoder();
         nn.linear_backward(
             &mut encoder,
-            shape,
-            &g_weight,
-            &g_parts,
-            rows,
+            GpuLinear::new(shape, &g_weight),
+            GpuInput::new(&g_parts, rows),
             &g_y,
             &g_dy,
             GpuLinearGrads {
                 weight: &g_dw,
                 bias: &g_db,
+                inputs: &[
+                    GpuInputGrad::Write(&g_dx0),
+                    GpuInputGrad::Accumulate(&g_dx1),
+                ],
             },
-            &[
-                GpuInputGrad::Write(&g_dx0),
-                GpuInputGrad::Accumulate(&g_dx1),
-            ],
         )
         .unwrap();
         context.submit_and_wait(encoder).unwrap();
@@ -1888,11 +1776,13 @@ mod tests {
                 &config,
                 lr,
                 step,
-                &g_params,
-                &g_grads,
-                &g_m,
-                &g_v,
-                len,
+                GpuAdamValues {
+                    params: &g_params,
+                    grads: &g_grads,
+                    first_moment: &g_m,
+                    second_moment: &g_v,
+                    len,
+                },
             )
             .unwrap();
             context.submit_and_wait(encoder).unwrap();
@@ -1939,15 +1829,14 @@ mod tests {
         let g_d_output = upload(&context, &d_output);
         let g_d_input = upload(&context, &vec![f32::NAN; rows * d]);
         let mut encoder = context.encoder();
-        nn.positional_encoding_forward(&mut encoder, encoding, &g_input, rows, d, &g_output)
+        nn.positional_encoding_forward(&mut encoder, encoding, &g_input, (rows, d), &g_output)
             .unwrap();
         nn.positional_encoding_backward(
             &mut encoder,
             encoding,
             &g_output,
             &g_d_output,
-            rows,
-            d,
+            (rows, d),
             &g_d_input,
         )
         .unwrap();
@@ -1986,14 +1875,15 @@ mod tests {
         let error = nn
             .linear_forward(
                 &mut encoder,
-                shape,
-                &weight,
+                GpuLinear::new(shape, &weight),
                 &bias,
-                &[GpuInputPart {
-                    buffer: &input,
-                    cols: 4,
-                }],
-                2,
+                GpuInput::new(
+                    &[GpuInputPart {
+                        buffer: &input,
+                        cols: 4,
+                    }],
+                    2,
+                ),
                 &output,
             )
             .unwrap_err();
@@ -2139,21 +2029,17 @@ mod tests {
             }];
             nn.linear_forward(
                 &mut encoder,
-                shapes[0],
-                &params[0][0],
+                GpuLinear::new(shapes[0], &params[0][0]),
                 &params[0][1],
-                &input,
-                rows,
+                GpuInput::new(&input, rows),
                 &hidden_out,
             )
             .unwrap();
             nn.linear_forward(
                 &mut encoder,
-                shapes[1],
-                &params[1][0],
+                GpuLinear::new(shapes[1], &params[1][0]),
                 &params[1][1],
-                &hidden_part,
-                rows,
+                GpuInput::new(&hidden_part, rows),
                 &y,
             )
             .unwrap();
@@ -2183,32 +2069,28 @@ mod tests {
             }
             nn.linear_backward(
                 &mut encoder,
-                shapes[1],
-                &params[1][0],
-                &hidden_part,
-                rows,
+                GpuLinear::new(shapes[1], &params[1][0]),
+                GpuInput::new(&hidden_part, rows),
                 &y,
                 &g_dy,
                 GpuLinearGrads {
                     weight: &grads[1][0],
                     bias: &grads[1][1],
+                    inputs: &[GpuInputGrad::Write(&d_hidden)],
                 },
-                &[GpuInputGrad::Write(&d_hidden)],
             )
             .unwrap();
             nn.linear_backward(
                 &mut encoder,
-                shapes[0],
-                &params[0][0],
-                &input,
-                rows,
+                GpuLinear::new(shapes[0], &params[0][0]),
+                GpuInput::new(&input, rows),
                 &hidden_out,
                 &d_hidden,
                 GpuLinearGrads {
                     weight: &grads[0][0],
                     bias: &grads[0][1],
+                    inputs: &[GpuInputGrad::Skip],
                 },
-                &[GpuInputGrad::Skip],
             )
             .unwrap();
             for ((shape, [weight, bias]), ([d_weight, d_bias], [m_w, v_w, m_b, v_b])) in
@@ -2222,16 +2104,30 @@ mod tests {
                     &config,
                     lr,
                     t,
-                    weight,
-                    d_weight,
-                    m_w,
-                    v_w,
-                    len,
+                    GpuAdamValues {
+                        params: weight,
+                        grads: d_weight,
+                        first_moment: m_w,
+                        second_moment: v_w,
+                        len,
+                    },
                 )
                 .unwrap();
                 let len = shape.out_features;
-                nn.adam_update(&mut encoder, &config, lr, t, bias, d_bias, m_b, v_b, len)
-                    .unwrap();
+                nn.adam_update(
+                    &mut encoder,
+                    &config,
+                    lr,
+                    t,
+                    GpuAdamValues {
+                        params: bias,
+                        grads: d_bias,
+                        first_moment: m_b,
+                        second_moment: v_b,
+                        len,
+                    },
+                )
+                .unwrap();
             }
             context.submit_and_wait(encoder).unwrap();
         }
@@ -2287,7 +2183,10 @@ mod tests {
 
     /// The staging kernels (`nn_matmul_f16.wgsl`), compiled on a context with f16 but no
     /// tensor cores (lavapipe), or `None` after printing why the test is skipped.
-    fn staging_kernels(test: &str) -> Option<(Arc<GpuContext>, NnGpu, [Kernel; 3])> {
+    /// A context with f16, its `NnGpu` and the three staging kernels.
+    type Staging = (Arc<GpuContext>, NnGpu, [Kernel; 3]);
+
+    fn staging_kernels(test: &str) -> Option<Staging> {
         let context = gpu_test_context()?;
         if !context.has_f16() {
             eprintln!("skipped {test}: {} has no f16 shaders", context.info().name);
@@ -2306,11 +2205,8 @@ mod tests {
 
     /// Stages `values` (`rows x cols`) as operand `slot` into `packed`, with `scales` shared
     /// by both operands of a product.
-    #[allow(clippy::too_many_arguments)]
     fn stage(
-        context: &GpuContext,
-        nn: &NnGpu,
-        kernels: &[Kernel; 3],
+        (context, nn, kernels): &Staging,
         values: &[f32],
         (rows, cols): (usize, usize),
         (rows_pad, cols_pad): (usize, usize),
@@ -2331,26 +2227,19 @@ mod tests {
         };
         let mut encoder = context.encoder();
         let bindings = [(1, &source), (2, &nn.placeholder), (3, scales)];
-        let (x, y) = nn.grid((rows * cols).div_ceil(STAGING_WORKGROUP)).unwrap();
-        nn.dispatch(
+        kernels[0].call(
             &mut encoder,
-            &kernels[0],
-            bytemuck::bytes_of(&params),
+            &params,
             &bindings,
-            x,
-            y,
+            nn.grid((rows * cols).div_ceil(STAGING_WORKGROUP)).unwrap(),
         );
-        let (x, y) = nn
-            .grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))
-            .unwrap();
         let bindings = [(1, &source), (2, &nn.placeholder), (3, scales), (4, packed)];
-        nn.dispatch(
+        kernels[1].call(
             &mut encoder,
-            &kernels[1],
-            bytemuck::bytes_of(&params),
+            &params,
             &bindings,
-            x,
-            y,
+            nn.grid((rows_pad * cols_pad).div_ceil(STAGING_WORKGROUP))
+                .unwrap(),
         );
         context.submit_and_wait(encoder).unwrap();
         let max_bits: Vec<u32> = context.download(context.encoder(), scales, 2).unwrap();
@@ -2379,9 +2268,10 @@ mod tests {
     /// do not enter the scale. Runs wherever the adapter has f16 (lavapipe does).
     #[test]
     fn f16_staging_keeps_extreme_operands_finite_and_exact_to_f16_precision() {
-        let Some((context, nn, kernels)) = staging_kernels("f16_staging_extremes") else {
+        let Some(staging) = staging_kernels("f16_staging_extremes") else {
             return;
         };
+        let context = &staging.0;
         let cases: [(&str, Vec<f32>); 4] = [
             (
                 "near the f16 limit",
@@ -2417,9 +2307,7 @@ mod tests {
         for (what, values) in &cases {
             context.write(&scales, 0, &[0u32; 4]).unwrap();
             let staged = stage(
-                &context,
-                &nn,
-                &kernels,
+                &staging,
                 values,
                 (rows, cols),
                 (rows_pad, cols_pad),
@@ -2470,9 +2358,10 @@ mod tests {
     /// f64 product of the f32 operands to 1e-2 and is finite.
     #[test]
     fn f16_staging_and_epilogue_reproduce_the_product_of_out_of_range_operands() {
-        let Some((context, nn, kernels)) = staging_kernels("f16_staging_and_epilogue") else {
+        let Some(staging) = staging_kernels("f16_staging_and_epilogue") else {
             return;
         };
+        let (context, nn, kernels) = &staging;
         let (m, k, n) = (5, 40, 7);
         let (m_pad, k_pad, n_pad) = (32, 48, 32);
         let mut rng = Rng::new(3);
@@ -2488,28 +2377,8 @@ mod tests {
         let scales = upload_words(context.as_ref(), &[0u32; 4]);
         let packed_a = upload_words(context.as_ref(), &vec![0u32; m_pad * k_pad / 2]);
         let packed_b = upload_words(context.as_ref(), &vec![0u32; k_pad * n_pad / 2]);
-        let staged_a = stage(
-            &context,
-            &nn,
-            &kernels,
-            &a,
-            (m, k),
-            (m_pad, k_pad),
-            0,
-            &scales,
-            &packed_a,
-        );
-        let staged_b = stage(
-            &context,
-            &nn,
-            &kernels,
-            &b,
-            (k, n),
-            (k_pad, n_pad),
-            1,
-            &scales,
-            &packed_b,
-        );
+        let staged_a = stage(&staging, &a, (m, k), (m_pad, k_pad), 0, &scales, &packed_a);
+        let staged_b = stage(&staging, &b, (k, n), (k_pad, n_pad), 1, &scales, &packed_b);
         // What the multiply kernel computes on the scaled f16 values, in two k slices of 32
         // and 16.
         let splits = [(0, 32), (32, 48)];
@@ -2541,17 +2410,14 @@ mod tests {
             ..StagingParams::default()
         };
         let mut encoder = context.encoder();
-        let (x, y) = nn.grid((m * n).div_ceil(STAGING_WORKGROUP)).unwrap();
-        nn.dispatch(
+        kernels[2].call(
             &mut encoder,
-            &kernels[2],
-            bytemuck::bytes_of(&params),
+            &params,
             &[(3, &scales), (5, &g_partials), (6, &g_bias), (7, &g_c)],
-            x,
-            y,
+            nn.grid((m * n).div_ceil(STAGING_WORKGROUP)).unwrap(),
         );
         context.submit_and_wait(encoder).unwrap();
-        let c = download(&context, context.encoder(), &g_c, m * n);
+        let c = download(context, context.encoder(), &g_c, m * n);
         let mut largest = 0.0f64;
         let mut expected = vec![0.0f64; m * n];
         for i in 0..m {

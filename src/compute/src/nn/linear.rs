@@ -79,13 +79,16 @@ pub enum InputGrad<'a, T> {
     Accumulate(&'a mut [T]),
 }
 
-/// The gradient buffers of one layer's parameters; both are accumulated into.
+/// The gradient buffers of one layer: its parameters' (both accumulated into) and its
+/// input parts'.
 #[derive(Debug)]
-pub struct LinearGrads<'a, T> {
+pub struct LinearGrads<'a, 'b, T> {
     /// `in x out`, like the weight.
     pub weight: &'a mut [T],
     /// `out`, like the bias.
     pub bias: &'a mut [T],
+    /// One entry per input part.
+    pub inputs: &'a mut [InputGrad<'b, T>],
 }
 
 /// Bytes of input and output one row block spans (`rows * (in + out)` values): about an L2
@@ -209,11 +212,8 @@ impl<'a, T> View<'a, T> {
 ///
 /// Panics only on a violated internal invariant (views not covering their shape), which the
 /// public functions rule out by validating every length first.
-#[allow(clippy::too_many_arguments)]
 fn gemm_into<T: NnScalar>(
-    m: usize,
-    n: usize,
-    k: usize,
+    (m, n, k): (usize, usize, usize),
     dst: &mut [T],
     dst_stride: usize,
     accumulate: bool,
@@ -292,9 +292,7 @@ pub fn linear_forward<T: NnScalar>(
         let mut weight_row = 0;
         for (part_index, part) in inputs.iter().enumerate() {
             gemm_into(
-                block_rows,
-                out,
-                part.cols,
+                (block_rows, out, part.cols),
                 block,
                 out,
                 part_index > 0,
@@ -369,7 +367,7 @@ fn gcd(mut a: usize, mut b: usize) -> usize {
 ///
 /// `output` is the forward output (for the ReLU mask). `d_output` holds `dL/dY` on entry
 /// and `dL/d(pre-activation)` on return (masked in place to avoid a `rows x out` copy).
-/// Weight and bias gradients are accumulated into `grads`; `d_inputs` has one entry per
+/// Weight and bias gradients are accumulated into `grads`, whose `inputs` has one entry per
 /// input part.
 ///
 /// Two phases, each a set of parallel tasks. Per row block: the ReLU mask and the bias
@@ -380,7 +378,6 @@ fn gcd(mut a: usize, mut b: usize) -> usize {
 /// gradient by `gemm`, the others into partials added after in chunk order; each chunk's
 /// product is split over weight rows into tiles so that there are a multiple of
 /// `WEIGHT_TASKS` equal tasks. Chunks and tiles depend on the shape and `rows` only.
-#[allow(clippy::too_many_arguments)]
 pub fn linear_backward<T: NnScalar>(
     shape: LinearShape,
     weight: &[T],
@@ -388,19 +385,19 @@ pub fn linear_backward<T: NnScalar>(
     rows: usize,
     output: &[T],
     d_output: &mut [T],
-    grads: LinearGrads<'_, T>,
-    d_inputs: &mut [InputGrad<'_, T>],
+    grads: LinearGrads<'_, '_, T>,
 ) -> Result<(), NnError> {
+    let LinearGrads {
+        weight: d_weight,
+        bias: d_bias,
+        inputs: d_inputs,
+    } = grads;
     check_shape(shape, weight, inputs, rows)?;
     let out = shape.out_features;
     check_len("linear output", rows * out, output.len())?;
     check_len("linear output gradient", rows * out, d_output.len())?;
-    check_len(
-        "linear weight gradient",
-        shape.weight_len(),
-        grads.weight.len(),
-    )?;
-    check_len("linear bias gradient", out, grads.bias.len())?;
+    check_len("linear weight gradient", shape.weight_len(), d_weight.len())?;
+    check_len("linear bias gradient", out, d_bias.len())?;
     if d_inputs.len() != inputs.len() {
         return Err(NnError::Shape {
             operand: "linear input gradients".into(),
@@ -466,7 +463,7 @@ pub fn linear_backward<T: NnScalar>(
     });
     // Bias gradient: column sums per block, then over blocks in order (deterministic).
     for sums in &column_sums {
-        for (g, &s) in grads.bias.iter_mut().zip(sums) {
+        for (g, &s) in d_bias.iter_mut().zip(sums) {
             *g += s;
         }
     }
@@ -483,7 +480,7 @@ pub fn linear_backward<T: NnScalar>(
         .collect();
     let mut weight_tasks: Vec<WeightTask<'_, T>> = Vec::new();
     let destinations =
-        std::iter::once(&mut *grads.weight).chain(partials.iter_mut().map(Vec::as_mut_slice));
+        std::iter::once(&mut *d_weight).chain(partials.iter_mut().map(Vec::as_mut_slice));
     for (chunk, mut rest) in destinations.enumerate() {
         let first_row = chunk * chunk_rows;
         let chunk_len = chunk_rows.min(rows - first_row);
@@ -510,9 +507,7 @@ pub fn linear_backward<T: NnScalar>(
     plan.run(weight_tasks, |task| {
         let part = &inputs[task.part];
         gemm_into(
-            task.dst.len() / out,
-            out,
-            task.rows,
+            (task.dst.len() / out, out, task.rows),
             task.dst,
             out,
             task.accumulate,
@@ -543,9 +538,9 @@ pub fn linear_backward<T: NnScalar>(
             }
         };
         if plan.across_tasks {
-            grads.weight.par_chunks_mut(block).enumerate().for_each(add);
+            d_weight.par_chunks_mut(block).enumerate().for_each(add);
         } else {
-            grads.weight.chunks_mut(block).enumerate().for_each(add);
+            d_weight.chunks_mut(block).enumerate().for_each(add);
         }
     }
     Ok(())
@@ -591,9 +586,7 @@ fn backward_block<T: NnScalar>(
         if let Some((buffer, accumulate)) = d_input {
             // dX_part (+)= dY' W_part^T: (block x out) (out x cols), W read transposed.
             gemm_into(
-                block_rows,
-                part.cols,
-                out,
+                (block_rows, part.cols, out),
                 buffer,
                 part.cols,
                 accumulate,
@@ -777,11 +770,11 @@ mod tests {
                 LinearGrads {
                     weight: &mut d_weight,
                     bias: &mut d_bias,
+                    inputs: &mut [
+                        InputGrad::Write(&mut d_input0),
+                        InputGrad::Accumulate(&mut d_input1),
+                    ],
                 },
-                &mut [
-                    InputGrad::Write(&mut d_input0),
-                    InputGrad::Accumulate(&mut d_input1),
-                ],
             )
             .unwrap();
 
@@ -930,11 +923,11 @@ mod tests {
                             LinearGrads {
                                 weight: &mut grad_weight,
                                 bias: &mut grad_bias,
+                                inputs: &mut [
+                                    InputGrad::Write(&mut grad_input0),
+                                    InputGrad::Accumulate(&mut grad_input1),
+                                ],
                             },
-                            &mut [
-                                InputGrad::Write(&mut grad_input0),
-                                InputGrad::Accumulate(&mut grad_input1),
-                            ],
                         )
                         .unwrap();
                         vec![forward, grad_weight, grad_bias, grad_input0, grad_input1]

@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, ensure};
 use seqavatar_compute::backend::shaders::{AtomicAdd, with_atomic_add};
-use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, Workgroups};
 
 use super::state::ResidentGaussians;
 use crate::densify::names;
@@ -276,7 +276,7 @@ impl ResidentAiap {
             ],
             groups,
         );
-        ctx.dispatch_grid(
+        ctx.dispatch(
             encoder,
             &self.reduce_loss,
             &[
@@ -284,8 +284,7 @@ impl ResidentAiap {
                 (8, &workspace.partials.buffer),
                 (9, &self.log.buffer),
             ],
-            1,
-            1,
+            (1, 1),
         );
         ctx.dispatch(
             encoder,
@@ -363,7 +362,7 @@ impl ResidentAiap {
             .as_ref()
             .expect("allocated by ensure_workspace");
         let ctx = &self.context;
-        ctx.dispatch_grid(
+        ctx.dispatch(
             encoder,
             &self.check,
             &[
@@ -373,10 +372,9 @@ impl ResidentAiap {
                 (5, &workspace.lists.buffer),
                 (6, &workspace.grids),
             ],
-            1,
-            1,
+            (1, 1),
         );
-        ctx.dispatch_indirect(
+        ctx.dispatch(
             encoder,
             &self.rebuild,
             &[
@@ -386,10 +384,9 @@ impl ResidentAiap {
                 (3, &workspace.candidates.buffer),
                 (4, &workspace.slack.buffer),
             ],
-            &workspace.grids,
-            0,
+            Workgroups::Indirect(workspace.grids.clone(), 0),
         );
-        ctx.dispatch_indirect(
+        ctx.dispatch(
             encoder,
             &self.finalize,
             &[
@@ -397,8 +394,7 @@ impl ResidentAiap {
                 (4, &workspace.slack.buffer),
                 (5, &workspace.lists.buffer),
             ],
-            &workspace.grids,
-            12,
+            Workgroups::Indirect(workspace.grids.clone(), 12),
         );
         ctx.dispatch(
             encoder,

@@ -23,7 +23,9 @@ use seqavatar_avatar::model::{NetworkGroup, Networks};
 use seqavatar_avatar::resident::deform::{DeformerSetup, History, ResidentDeformer};
 use seqavatar_avatar::resident::skinning::GaussianColumns;
 use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, PhaseTimer};
-use seqavatar_compute::lpips::gpu::{Crop, DeviceImage as LpipsImage, ResidentLpips};
+use seqavatar_compute::lpips::gpu::{
+    Crop, CropPair, DeviceImage as LpipsImage, GpuLpips, ResidentLpips,
+};
 use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
 use seqavatar_compute::splat::RasterOptions;
 use seqavatar_compute::splat::gpu::{DeviceImageGradient, GpuOptions, SplatWorkspace};
@@ -40,7 +42,7 @@ use crate::data::TrainingData;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::SH;
 use crate::losses::{AiapWeights, ImageLossWeights, LpipsLoss};
-use crate::trainer::{Divergence, pad_rect};
+use crate::run::{Divergence, Run, pad_rect};
 
 const STEP_WGSL: &str = include_str!("../../../../shaders/train_step.wgsl");
 
@@ -81,22 +83,6 @@ pub struct LoggedIteration {
     pub image_total: f64,
 }
 
-/// What a resident run is built from: the run's configuration and data, and its state (fresh
-/// or resumed) on the host.
-#[derive(Clone, Copy)]
-pub struct ResidentRun<'a> {
-    pub config: &'a TrainConfig,
-    pub data: &'a TrainingData,
-    /// Raw temporal scales the networks read, largest first.
-    pub scales: &'a [u32],
-    pub state: &'a GaussianState,
-    pub networks: Option<&'a Networks<f32>>,
-    /// The networks' Adam moments by parameter name (empty for a fresh run).
-    pub network_adam: &'a BTreeMap<String, AdamState<f32>>,
-    /// The LPIPS loss when it is on (its trunk on this run's gpu).
-    pub lpips: Option<&'a LpipsLoss>,
-}
-
 /// The device state and workspaces of a resident training run.
 pub struct ResidentStep {
     context: Arc<GpuContext>,
@@ -106,8 +92,8 @@ pub struct ResidentStep {
     splat: SplatWorkspace,
     truth: GroundTruth,
     losses: ImageLoss,
-    /// The LPIPS trunk's device workspace, when the loss is on.
-    lpips: Option<ResidentLpips>,
+    /// The LPIPS trunk on the device and its workspace, when the loss is on.
+    lpips: Option<(GpuLpips, ResidentLpips)>,
     gaussians: ResidentGaussians,
     adam: GaussianAdam,
     aiap: ResidentAiap,
@@ -156,29 +142,30 @@ fn upload_networks(
     Ok(Some(gpu))
 }
 
-/// The LPIPS trunk's device workspace for the run's largest camera.
+/// The LPIPS trunk uploaded to `context` and its device workspace for the run's largest
+/// camera.
 fn lpips_workspace(
+    context: &Arc<GpuContext>,
     config: &TrainConfig,
     data: &TrainingData,
     loss: &LpipsLoss,
-) -> anyhow::Result<ResidentLpips> {
-    let gpu = loss
-        .lpips()
-        .gpu()
-        .context("the LPIPS loss's trunk is not on the gpu")?;
+) -> anyhow::Result<(GpuLpips, ResidentLpips)> {
+    let trunk = GpuLpips::new(context.clone(), loss.lpips().weights()).context("LPIPS loss")?;
     let (max_height, max_width) = data
         .cameras
         .iter()
         .map(|c| (c.height as usize, c.width as usize))
         .fold((1, 1), |(h, w), (ch, cw)| (h.max(ch), w.max(cw)));
-    gpu.resident(
-        loss.lpips().weights(),
-        config.lpips_input(),
-        max_height,
-        max_width,
-        config.cameras_per_step,
-    )
-    .context("LPIPS on the device")
+    let workspace = trunk
+        .resident(
+            loss.lpips().weights(),
+            config.lpips_input(),
+            max_height,
+            max_width,
+            config.cameras_per_step,
+        )
+        .context("LPIPS on the device")?;
+    Ok((trunk, workspace))
 }
 
 /// The canonical Gaussians' columns the deformation reads, from the optimiser's buffers.
@@ -210,11 +197,11 @@ fn record_add(
     source: &wgpu::Buffer,
     len: usize,
 ) {
-    let length = context.uniform("add length", &[len as u32, 0, 0, 0]);
-    context.dispatch(
+    context.call(
         encoder,
         add,
-        &[(0, &length), (1, source), (2, destination)],
+        &[len as u32, 0, 0, 0],
+        &[(1, source), (2, destination)],
         len.div_ceil(256) as u32,
     );
 }
@@ -224,16 +211,10 @@ impl ResidentStep {
     /// moments, the networks with theirs (`network_adam`, empty for a fresh run), the
     /// sequence's poses and motion arrays, the ground-truth images; allocates every
     /// workspace for the current Gaussian count.
-    pub fn new(context: Arc<GpuContext>, run: &ResidentRun<'_>) -> anyhow::Result<Self> {
-        let ResidentRun {
-            config,
-            data,
-            scales,
-            state,
-            networks,
-            network_adam,
-            lpips,
-        } = *run;
+    pub fn new(context: Arc<GpuContext>, run: &Run<'_>) -> anyhow::Result<Self> {
+        let (config, data, scales, state) = (&run.config, run.data, &run.scales[..], &run.state);
+        let (networks, network_adam, lpips) =
+            (run.networks.as_ref(), &run.network_adam, run.lpips.as_ref());
         let n = state.len();
         let avatar = config.avatar();
         let networks = upload_networks(&context, config, networks, network_adam)?;
@@ -275,7 +256,7 @@ impl ResidentStep {
         )
         .context("image losses")?;
         let lpips = lpips
-            .map(|loss| lpips_workspace(config, data, loss))
+            .map(|loss| lpips_workspace(&context, config, data, loss))
             .transpose()?;
         let gaussians = ResidentGaussians::upload(&context, state).context("Gaussians")?;
         let adam = GaussianAdam::new(&context)?;
@@ -486,7 +467,7 @@ impl ResidentStep {
                 },
                 DeviceImages { colour, alpha },
             )?;
-            if let (Some(workspace), Some(loss)) = (&self.lpips, lpips) {
+            if let (Some((trunk, workspace)), Some(loss)) = (&self.lpips, lpips) {
                 // Its image gradient joins the colour gradient before the splatting backward.
                 let (width, height) = (camera.width as usize, camera.height as usize);
                 let target = self.losses.record_target(encoder, c, &self.truth)?;
@@ -497,21 +478,19 @@ impl ResidentStep {
                     width,
                     height,
                 };
-                let gpu = loss
-                    .lpips()
-                    .gpu()
-                    .context("the LPIPS trunk is not on the gpu")?;
                 workspace.record(
-                    gpu,
+                    trunk,
                     encoder,
                     c,
-                    image(rendered),
-                    image(target),
-                    Crop {
-                        x0: crop.x0,
-                        y0: crop.y0,
-                        width: crop.width(),
-                        height: crop.height(),
+                    CropPair {
+                        render: image(rendered),
+                        target: image(target),
+                        crop: Crop {
+                            x0: crop.x0,
+                            y0: crop.y0,
+                            width: crop.width(),
+                            height: crop.height(),
+                        },
                     },
                     (config.lpips_weight / cameras.len() as f64) as f32,
                     colour,

@@ -14,7 +14,7 @@ use super::state::{GaussianRates, OptimiserStep, RECORD_WORDS, ResidentGaussians
 use crate::densify::{GaussianState, names};
 use crate::gaussians::{SH, SH_STORED, TRAINABLE, initial_state};
 use crate::rng::Rng;
-use crate::trainer::update_sh;
+use crate::step::host::update_sh;
 
 /// Values exactly representable in f32, so that both sides start from the same numbers.
 fn random(rng: &mut Rng, len: usize, lo: f64, hi: f64) -> Vec<f64> {
@@ -453,7 +453,7 @@ fn a_steady_state_step_uploads_only_its_record_and_reads_nothing_back() {
 use super::aiap::ResidentAiap;
 use crate::losses::{AiapGaussians, AiapWeights, aiap_gaussians};
 use seqavatar_compute::backend::shaders::AtomicAdd;
-use seqavatar_motion::knn::{MovingKnn, as_points, knn_brute_force};
+use seqavatar_knn::{MovingKnn, as_points, knn_brute_force};
 
 /// Points on a lattice of step 1/8 (distances exact in f32, many ties), some coincident.
 fn lattice_points(rng: &mut Rng, n: usize) -> Vec<f64> {

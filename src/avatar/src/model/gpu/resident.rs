@@ -19,8 +19,8 @@ use std::collections::HashMap;
 use seqavatar_compute::nn::AdamConfig;
 use seqavatar_compute::nn::adam::{AdamState, AdamStepFactors};
 use seqavatar_compute::nn::gpu::{
-    GpuInputGrad, GpuInputPart, GpuLinearGrads, NnProgram, Record, adam_factors_record,
-    first_non_finite,
+    GpuAdamValues, GpuInput, GpuInputGrad, GpuInputPart, GpuLinear, GpuLinearGrads, NnProgram,
+    Record, adam_factors_record, first_non_finite,
 };
 
 use super::super::network::folded_shapes;
@@ -287,8 +287,7 @@ impl GpuNetworks {
                         &mut forward,
                         encoding,
                         raw,
-                        rows,
-                        input_spec.width,
+                        (rows, input_spec.width),
                         value,
                     )?;
                 }
@@ -305,11 +304,9 @@ impl GpuNetworks {
                 match &work.frame_bias[index] {
                     None => self.nn.linear_forward(
                         &mut forward,
-                        layer.shape,
-                        &layer.weight,
+                        GpuLinear::new(layer.shape, &layer.weight),
                         &layer.bias,
-                        &parts,
-                        rows,
+                        GpuInput::new(&parts, rows),
                         out,
                     )?,
                     Some([placeholder, bias, _]) => {
@@ -318,23 +315,22 @@ impl GpuNetworks {
                         frame_parts.extend(parts_of(&plan.frame));
                         self.nn.linear_forward(
                             &mut forward,
-                            seqavatar_compute::nn::LinearShape {
-                                in_features: layer.shape.in_features,
-                                ..frame_shape
-                            },
-                            &layer.weight,
+                            GpuLinear::new(
+                                seqavatar_compute::nn::LinearShape {
+                                    in_features: layer.shape.in_features,
+                                    ..frame_shape
+                                },
+                                &layer.weight,
+                            ),
                             &layer.bias,
-                            &frame_parts,
-                            1,
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                         )?;
                         self.nn.linear_forward(
                             &mut forward,
-                            rows_shape,
-                            &layer.weight,
+                            GpuLinear::new(rows_shape, &layer.weight),
                             bias,
-                            &parts,
-                            rows,
+                            GpuInput::new(&parts, rows),
                             out,
                         )?;
                     }
@@ -419,31 +415,26 @@ impl GpuNetworks {
                 match &work.frame_bias[index] {
                     None => self.nn.linear_backward(
                         &mut backward,
-                        layer.shape,
-                        &layer.weight,
-                        &parts,
-                        rows,
+                        GpuLinear::new(layer.shape, &layer.weight),
+                        GpuInput::new(&parts, rows),
                         out,
                         d_out,
-                        grads(layer),
-                        &rows_d,
+                        grads(layer, &rows_d),
                     )?,
                     Some([placeholder, bias, d_bias]) => {
                         let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
                         backward.record_clear(d_bias);
                         self.nn.linear_backward(
                             &mut backward,
-                            rows_shape,
-                            &layer.weight,
-                            &parts,
-                            rows,
+                            GpuLinear::new(rows_shape, &layer.weight),
+                            GpuInput::new(&parts, rows),
                             out,
                             d_out,
                             GpuLinearGrads {
                                 weight: &layer.d_weight,
                                 bias: d_bias,
+                                inputs: &rows_d,
                             },
-                            &rows_d,
                         )?;
                         let mut frame_parts = vec![input(placeholder, plan.rows_in())];
                         frame_parts.extend(parts_of(&plan.frame));
@@ -451,17 +442,17 @@ impl GpuNetworks {
                         d_frame.extend(frame_d);
                         self.nn.linear_backward(
                             &mut backward,
-                            seqavatar_compute::nn::LinearShape {
-                                in_features: layer.shape.in_features,
-                                ..frame_shape
-                            },
-                            &layer.weight,
-                            &frame_parts,
-                            1,
+                            GpuLinear::new(
+                                seqavatar_compute::nn::LinearShape {
+                                    in_features: layer.shape.in_features,
+                                    ..frame_shape
+                                },
+                                &layer.weight,
+                            ),
+                            GpuInput::new(&frame_parts, 1),
                             bias,
                             d_bias,
-                            grads(layer),
-                            &d_frame,
+                            grads(layer, &d_frame),
                         )?;
                     }
                 }
@@ -484,8 +475,7 @@ impl GpuNetworks {
                         encoding,
                         &work.values[index][0],
                         d_value,
-                        input_spec.rows.block_rows(n, window),
-                        input_spec.width,
+                        (input_spec.rows.block_rows(n, window), input_spec.width),
                         d_raw,
                     )?;
                 }
@@ -773,11 +763,13 @@ impl GpuNetworks {
                 &mut program,
                 config,
                 (&record, group_slot(param.group)),
-                param.values,
-                param.grads,
-                m,
-                v,
-                param.len,
+                GpuAdamValues {
+                    params: param.values,
+                    grads: param.grads,
+                    first_moment: m,
+                    second_moment: v,
+                    len: param.len,
+                },
             )?;
             self.nn.flag_non_finite(
                 &mut program,

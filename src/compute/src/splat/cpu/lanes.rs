@@ -580,6 +580,14 @@ fn lane_smooth_step<V: Lanes>(alpha: V) -> (V, V) {
     )
 }
 
+/// One tile's work: its `bounds = [x_start, x_end, y_start, y_end]` and its depth-sorted
+/// list of Gaussians.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct TileList<'a> {
+    pub list: &'a [u32],
+    pub bounds: [u32; 4],
+}
+
 /// Per-pixel compositing state of one tile, one array per quantity.
 pub(super) struct ForwardTile {
     transmittance: [f32; TILE_PIXELS],
@@ -607,12 +615,10 @@ impl ForwardTile {
 
     /// Composites one tile (`bounds = [x_start, x_end, y_start, y_end]`) and writes its
     /// pixels into the tile row's output slices (`width` pixels per image row).
-    #[allow(clippy::too_many_arguments)]
     pub fn composite<S: Scalar>(
         &mut self,
         lanes: LanePath<'_>,
-        list: &[u32],
-        bounds: [u32; 4],
+        TileList { list, bounds }: TileList<'_>,
         smooth: bool,
         background: [S; 3],
         width: usize,
@@ -883,14 +889,12 @@ impl BackwardTile {
 
     /// Walks the tile's first `count` list entries back to front, writing each one's
     /// gradient into `slots`. `upstream` must be the one [`Self::load`] read.
-    #[allow(clippy::too_many_arguments)]
     pub fn walk<S: Scalar>(
         &mut self,
         lanes: LanePath<'_>,
-        list: &[u32],
+        TileList { list, bounds }: TileList<'_>,
         count: u32,
         slots: &mut TileSlots<'_, S>,
-        bounds: [u32; 4],
         smooth: bool,
         upstream: &Upstream<'_, S>,
     ) {
@@ -1004,8 +1008,7 @@ impl BackwardTile {
                     self.group::<V, SMOOTH, ALPHA, DEPTH>(
                         row + start,
                         splat,
-                        column,
-                        dy,
+                        (column, dy),
                         skip,
                         j as u32,
                         &mut acc,
@@ -1038,16 +1041,14 @@ impl BackwardTile {
     }
 
     /// Backward of one Gaussian (list entry `j`) over the 8 pixels from `base` whose first
-    /// column is `column`, except the first `skip` lanes (see [`row_groups`]), adding to its
+    /// pixel is at `(column, dy)`, except the first `skip` lanes (see [`row_groups`]), adding to its
     /// per-lane sums.
-    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn group<V: Lanes, const SMOOTH: bool, const ALPHA: bool, const DEPTH: bool>(
         &mut self,
         base: usize,
         splat: &Splat2d<f32>,
-        column: f32,
-        dy: f32,
+        (column, dy): (f32, f32),
         skip: usize,
         j: u32,
         acc: &mut LaneSums<V>,

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use seqavatar_core::camera::Camera;
 
 use self::project::{CameraParams, Cull, Splat2d, Splat2dGradient, TileRect};
-use self::raster::{Binning, PixelState, Upstream};
+use self::raster::{Binning, Compositing, PixelState, Upstream};
 use super::{
     GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatDiagnostics, SplatError,
     SplatGradients, validate_call,
@@ -113,10 +113,12 @@ pub fn forward<S: Scalar>(
             &splats,
             fast_splats(&splats),
             &binning,
-            params.width,
-            params.height,
-            background,
-            options.smooth_cutoff,
+            Compositing {
+                width: params.width,
+                height: params.height,
+                background,
+                smooth: options.smooth_cutoff,
+            },
         );
         phases.composite_ms += lap(&mut clock);
         images.push(RenderedImage {
@@ -265,10 +267,12 @@ pub fn backward_with_phases<S: Scalar>(
             &state.binning,
             &state.pixels,
             up,
-            state.params.width,
-            state.params.height,
-            background,
-            forward.options.smooth_cutoff,
+            Compositing {
+                width: state.params.width,
+                height: state.params.height,
+                background,
+                smooth: forward.options.smooth_cutoff,
+            },
         );
         phases.walk_ms += lap(&mut clock);
         let dropped = accumulate_camera(state, gaussians, &slots, &mut out);

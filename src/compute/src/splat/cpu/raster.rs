@@ -11,7 +11,7 @@
 use rayon::prelude::*;
 
 use super::super::{ALPHA_THRESHOLD, MAX_ALPHA, MIN_TRANSMITTANCE, SplatError, TILE_SIZE};
-use super::lanes::{BackwardTile, ForwardRows, ForwardTile, LanePath};
+use super::lanes::{BackwardTile, ForwardRows, ForwardTile, LanePath, TileList};
 use super::project::{Splat2d, TileRect};
 use crate::scalar::Scalar;
 
@@ -309,17 +309,28 @@ pub(super) struct PixelState<S> {
     pub contributors: Vec<u32>,
 }
 
+/// How one camera's tiles are composited: a `width x height` image over `background`, with
+/// the smooth or the hard opacity cutoff.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Compositing<S> {
+    pub width: u32,
+    pub height: u32,
+    pub background: [S; 3],
+    pub smooth: bool,
+}
+
 /// Composites every tile front to back. `fast` holds `splats` itself when `S` is `f32`: then
 /// the lane-parallel path of `lanes.rs` runs instead of the generic one.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn forward<S: Scalar>(
     splats: &[Splat2d<S>],
     fast: Option<LanePath<'_>>,
     binning: &Binning,
-    width: u32,
-    height: u32,
-    background: [S; 3],
-    smooth: bool,
+    Compositing {
+        width,
+        height,
+        background,
+        smooth,
+    }: Compositing<S>,
 ) -> ForwardBuffers<S> {
     let (w, h) = (width as usize, height as usize);
     let tiles_x = width.div_ceil(TILE_SIZE);
@@ -354,8 +365,10 @@ pub(super) fn forward<S: Scalar>(
                         let x_end = (x_start + TILE_SIZE).min(width);
                         tile.composite(
                             fast,
-                            list,
-                            [x_start, x_end, y_start, y_end],
+                            TileList {
+                                list,
+                                bounds: [x_start, x_end, y_start, y_end],
+                            },
                             smooth,
                             background,
                             w,
@@ -481,17 +494,18 @@ pub(super) struct Upstream<'a, S> {
 pub(super) type Slot<S> = [S; 10];
 
 /// Walks every tile back to front and writes each intersection's gradient into its slot.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn backward<S: Scalar>(
     splats: &[Splat2d<S>],
     fast: Option<LanePath<'_>>,
     binning: &Binning,
     buffers: &PixelState<S>,
     upstream: &Upstream<'_, S>,
-    width: u32,
-    height: u32,
-    background: [S; 3],
-    smooth: bool,
+    Compositing {
+        width,
+        height,
+        background,
+        smooth,
+    }: Compositing<S>,
 ) -> Vec<Slot<S>> {
     let w = width as usize;
     let tiles_x = width.div_ceil(TILE_SIZE);
@@ -524,12 +538,14 @@ pub(super) fn backward<S: Scalar>(
                 let count = tile.load(buffers, upstream, bounds, w, background);
                 tile.walk(
                     fast,
-                    &binning.tile_gaussians[begin..end],
+                    TileList {
+                        list: &binning.tile_gaussians[begin..end],
+                        bounds,
+                    },
                     count,
                     &mut TileSlots {
                         slots: &mut row_slots[begin - row_base..end - row_base],
                     },
-                    bounds,
                     smooth,
                     upstream,
                 );

@@ -9,7 +9,7 @@ use seqavatar_core::camera::{Camera, Intrinsics};
 
 use super::lanes::{LanePath, available_isas};
 use super::project::{CameraParams, Splat2d};
-use super::raster;
+use super::raster::{self, Compositing};
 use super::*;
 use crate::splat::covariance::covariance_from_scale_rotation;
 use crate::splat::scene::SplitMix64;
@@ -266,10 +266,12 @@ fn composite_gradients_match_central_differences_of_projected_values() {
             &raster::sort_splats(splats, &binning),
             None,
             &binning,
-            params.width,
-            params.height,
-            background,
-            true,
+            Compositing {
+                width: params.width,
+                height: params.height,
+                background,
+                smooth: true,
+            },
         );
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
         dot(&buffers.colour, &loss.colour[0])
@@ -282,10 +284,12 @@ fn composite_gradients_match_central_differences_of_projected_values() {
         &sorted,
         None,
         &binning,
-        params.width,
-        params.height,
-        background,
-        true,
+        Compositing {
+            width: params.width,
+            height: params.height,
+            background,
+            smooth: true,
+        },
     );
     let upstream = Upstream {
         colour: &loss.colour[0],
@@ -298,10 +302,12 @@ fn composite_gradients_match_central_differences_of_projected_values() {
         &binning,
         &buffers.pixels,
         &upstream,
-        params.width,
-        params.height,
-        background,
-        true,
+        Compositing {
+            width: params.width,
+            height: params.height,
+            background,
+            smooth: true,
+        },
     );
     let mut per_splat = vec![[0.0; 10]; splats.len()];
     for (position, &rank) in binning.tile_gaussians.iter().enumerate() {
@@ -1032,18 +1038,29 @@ fn compare_lane_path_with_generic(scene: &str, gaussians: &GaussianBuffers<f64>,
             depth: with_depth.then_some(d_depth.as_slice()),
         };
         let run = |fast: Option<LanePath<'_>>| {
-            let buffers =
-                raster::forward(&sorted, fast, &binning, width, height, background, smooth);
+            let buffers = raster::forward(
+                &sorted,
+                fast,
+                &binning,
+                Compositing {
+                    width,
+                    height,
+                    background,
+                    smooth,
+                },
+            );
             let slots = raster::backward(
                 &sorted,
                 fast,
                 &binning,
                 &buffers.pixels,
                 &upstream,
-                width,
-                height,
-                background,
-                smooth,
+                Compositing {
+                    width,
+                    height,
+                    background,
+                    smooth,
+                },
             );
             (buffers, slots)
         };

@@ -133,7 +133,6 @@ fn tiles(camera: &Camera) -> (u32, u32) {
     )
 }
 
-#[allow(clippy::too_many_arguments)]
 fn camera_uniform(
     camera: &Camera,
     gaussians: u32,
@@ -858,12 +857,11 @@ impl SplatWorkspace {
             }
             for (band, rows) in slot.bands.iter().zip(&rows) {
                 let images = [&slot.colour, &slot.alpha, &slot.depth];
-                context.dispatch_grid(
+                context.dispatch(
                     encoder,
                     &rasterize,
                     &rasterize_bindings(band, slot, images),
-                    tiles_x,
-                    rows.1 - rows.0,
+                    (tiles_x, rows.1 - rows.0),
                 );
             }
             call_bands.push(rows);
@@ -1044,7 +1042,7 @@ impl SplatWorkspace {
                     &[(15, &parts.screen.buffer)],
                 ]
                 .concat();
-                context.dispatch_grid(encoder, &rasterize, &bindings, tiles_x, rows.1 - rows.0);
+                context.dispatch(encoder, &rasterize, &bindings, (tiles_x, rows.1 - rows.0));
             }
             let bindings = [
                 project_inputs(&slot.bands[0].camera, &gaussians).as_slice(),

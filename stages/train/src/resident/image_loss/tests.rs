@@ -578,7 +578,7 @@ fn bad_inputs_are_errors_naming_the_sizes() {
 fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
     use crate::losses::{ColourPair, LpipsLoss};
     use seqavatar_compute::backend::{Backend, DeviceChoice};
-    use seqavatar_compute::lpips::gpu::{Crop, DeviceImage};
+    use seqavatar_compute::lpips::gpu::{Crop, CropPair, DeviceImage, GpuLpips};
     use seqavatar_compute::lpips::seeded::seeded_weights;
     use seqavatar_compute::lpips::{Lpips, LpipsInput, LpipsNet};
     let Some(context) = gpu_test_context() else {
@@ -622,16 +622,9 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
         }
     }
     // The device path.
-    let device_lpips = Lpips::new(
-        seeded_weights(LpipsNet::Vgg, 7),
-        // The backend of the shared test context `context` is.
-        &seqavatar_compute::backend::test_support::gpu_test_backend().expect("a gpu context"),
-    )
-    .unwrap();
-    let gpu = device_lpips.gpu().unwrap();
-    let resident = gpu
-        .resident(device_lpips.weights(), input, h, w, 2)
-        .unwrap();
+    let weights = seeded_weights(LpipsNet::Vgg, 7);
+    let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
+    let resident = gpu.resident(&weights, input, h, w, 2).unwrap();
     let Uploaded {
         truth,
         rendered,
@@ -655,26 +648,28 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
         let crop = oracle_lpips.crop(info.rect, w, h).unwrap();
         resident
             .record(
-                gpu,
+                &gpu,
                 &mut encoder,
                 camera,
-                DeviceImage {
-                    buffer: &rendered.colour,
-                    offset: info.pixel_offset,
-                    width: w,
-                    height: h,
-                },
-                DeviceImage {
-                    buffer: target,
-                    offset: 0,
-                    width: w,
-                    height: h,
-                },
-                Crop {
-                    x0: crop.x0,
-                    y0: crop.y0,
-                    width: crop.width(),
-                    height: crop.height(),
+                CropPair {
+                    render: DeviceImage {
+                        buffer: &rendered.colour,
+                        offset: info.pixel_offset,
+                        width: w,
+                        height: h,
+                    },
+                    target: DeviceImage {
+                        buffer: target,
+                        offset: 0,
+                        width: w,
+                        height: h,
+                    },
+                    crop: Crop {
+                        x0: crop.x0,
+                        y0: crop.y0,
+                        width: crop.width(),
+                        height: crop.height(),
+                    },
                 },
                 (lpips_weight / cameras.len() as f64) as f32,
                 &gradients.colour,
