@@ -10,7 +10,7 @@ use anyhow::Context as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::config::{ConfigError, resolve_typed};
+use crate::config::{ConfigError, parse_config};
 use crate::entry::EntryReader;
 use crate::runner::StageContext;
 use crate::{PictureKind, PictureOptions, StageKind};
@@ -56,6 +56,8 @@ impl Default for TestArraysConfig {
 const STEPS_DONE_FILE: &str = "steps_done";
 
 impl StageKind for TestArrays {
+    type Config = TestArraysConfig;
+
     fn kind(&self) -> &'static str {
         "test_arrays"
     }
@@ -68,10 +70,8 @@ impl StageKind for TestArrays {
         &["test_arrays"]
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let resolved = resolve_typed::<TestArraysConfig>(raw)?;
-        let config: TestArraysConfig = serde_json::from_value(resolved.clone())
-            .map_err(|error| ConfigError::new(vec![], error.to_string()))?;
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<TestArraysConfig, ConfigError> {
+        let config: TestArraysConfig = parse_config(raw)?;
         if config.size == 0 || config.size > 4096 {
             return Err(ConfigError::at_key("size", "must be in 1..=4096"));
         }
@@ -81,11 +81,10 @@ impl StageKind for TestArrays {
         if config.steps == 0 {
             return Err(ConfigError::at_key("steps", "must be at least 1"));
         }
-        Ok(resolved)
+        Ok(config)
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: TestArraysConfig = ctx.config()?;
+    fn run(&self, config: &TestArraysConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         if let Some(count_file) = &config.count_file {
             let mut file = OpenOptions::new()
                 .create(true)

@@ -8,9 +8,11 @@ use anyhow::Context as _;
 
 use crate::array::Element;
 use crate::entry::EntryReader;
+use crate::local::{completion_marker, is_published};
+use crate::open_store;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{EntryId, EntryState, completion_marker, is_published, open_store};
+use crate::store::{EntryId, EntryState};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -687,7 +689,8 @@ mod tests {
 
     #[test]
     fn gc_respects_readers_and_reports_what_it_keeps() {
-        use crate::store::{LocalStore, Store as _};
+        use crate::local::LocalStore;
+        use crate::store::Store as _;
         let dir = tempfile::tempdir().unwrap();
         let cache = dir.path().join("cache");
         let registry = Registry::new();
@@ -753,7 +756,7 @@ mod tests {
     /// `gc` respects while the reader lives.
     #[test]
     fn leased_verified_readers_refuse_tampering_and_keep_gc_away() {
-        use crate::store::LocalStore;
+        use crate::local::LocalStore;
         let dir = tempfile::tempdir().unwrap();
         let cache = dir.path().join("cache");
         let registry = Registry::new();

@@ -69,17 +69,18 @@ impl fmt::Display for ConfigError {
     }
 }
 
-/// Deserializes `raw` into `T` (normally `#[serde(deny_unknown_fields, default)]`) and
-/// re-serializes it, so the result has every default explicit and a canonical form.
+/// Deserializes `raw` into `T` (normally `#[serde(deny_unknown_fields, default)]`; a null
+/// config is an empty mapping). The engine re-serializes the stage's resolved config, so the
+/// effective config has every default explicit and a canonical form.
 ///
 /// An unknown field is reported at the path of the unknown key itself, so the engine can
 /// point at its line.
-pub fn resolve_typed<T: serde::de::DeserializeOwned + serde::Serialize>(
+pub fn parse_config<T: serde::de::DeserializeOwned>(
     raw: &serde_json::Value,
-) -> Result<serde_json::Value, ConfigError> {
+) -> Result<T, ConfigError> {
     let empty = serde_json::Value::Object(serde_json::Map::new());
     let raw = if raw.is_null() { &empty } else { raw };
-    let typed: T = serde_path_to_error::deserialize(raw).map_err(|error| {
+    serde_path_to_error::deserialize(raw).map_err(|error| {
         let mut path: Vec<ConfigPathSegment> = error
             .path()
             .iter()
@@ -101,9 +102,7 @@ pub fn resolve_typed<T: serde::de::DeserializeOwned + serde::Serialize>(
             path.push(ConfigPathSegment::Key(unknown));
         }
         ConfigError::new(path, message)
-    })?;
-    serde_json::to_value(&typed)
-        .map_err(|error| ConfigError::new(vec![], format!("cannot re-serialize config: {error}")))
+    })
 }
 
 /// The field name in serde's "unknown field `x`, expected ..." message.
@@ -139,6 +138,12 @@ mod tests {
                 cameras: vec![],
             }
         }
+    }
+
+    fn resolve_typed<T: serde::de::DeserializeOwned + serde::Serialize>(
+        raw: &serde_json::Value,
+    ) -> Result<serde_json::Value, ConfigError> {
+        parse_config::<T>(raw).map(|typed| serde_json::to_value(typed).unwrap())
     }
 
     #[test]

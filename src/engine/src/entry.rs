@@ -481,6 +481,11 @@ fn region_ranges(
     Ok(ranges)
 }
 
+/// A hold on a published entry: shared while a run reads it, exclusive while `gc` deletes it.
+/// Released on drop (and by the kernel when the process dies, so a killed reader never
+/// blocks `gc`).
+pub trait ReadLease: Send {}
+
 /// Reads a published entry through a zarrs storage (local folder now, object store later).
 #[derive(Clone)]
 pub struct EntryReader {
@@ -490,7 +495,7 @@ pub struct EntryReader {
     attributes: serde_json::Map<String, serde_json::Value>,
     /// The read lease `gc` respects, held while this reader or a clone of it lives (set by
     /// [`crate::open_leased_verified`]).
-    lease: Option<std::sync::Arc<std::sync::Mutex<Box<dyn crate::store::ReadLease>>>>,
+    lease: Option<std::sync::Arc<std::sync::Mutex<Box<dyn ReadLease>>>>,
 }
 
 impl std::fmt::Debug for EntryReader {
@@ -525,7 +530,7 @@ impl EntryReader {
     }
 
     /// This reader, holding `lease` until it and all its clones are dropped.
-    pub fn holding(mut self, lease: Box<dyn crate::store::ReadLease>) -> Self {
+    pub fn holding(mut self, lease: Box<dyn ReadLease>) -> Self {
         self.lease = Some(std::sync::Arc::new(std::sync::Mutex::new(lease)));
         self
     }

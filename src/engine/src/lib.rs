@@ -10,8 +10,10 @@ mod builtin;
 pub mod commands;
 mod config;
 mod entry;
+mod erased;
 pub mod files;
 pub mod key;
+mod local;
 mod matrix;
 pub mod picture;
 mod pipeline;
@@ -26,41 +28,69 @@ use std::collections::BTreeMap;
 
 /// Version of this tool, recorded in every manifest.
 pub const TOOL_VERSION: &str = env!("CARGO_PKG_VERSION");
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub use array::{Element, NdArray};
 #[cfg(any(test, feature = "test-stages"))]
 pub use builtin::TestArrays;
 pub use config::{
     ConfigError, ConfigPathSegment, MEMORY_BUDGET_VAR, machine_memory_bytes, memory_budget_bytes,
-    parse_size, resolve_typed,
+    parse_config, parse_size,
 };
-pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray};
+pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray, ReadLease};
+pub use local::LocalStore;
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
     BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
     open_leased_verified, open_verified, run, selected_stages,
 };
-pub use store::{EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store, open_store};
+pub use store::{EntryId, EntryState, KeyLock, Staging, Store};
+
+/// Opens the cache `cache`: a local folder, or `s3://bucket/prefix` fronted by the local
+/// folder `$SEQAVATAR_LOCAL_CACHE` (default `cache`).
+pub fn open_store(cache: &Path) -> anyhow::Result<Box<dyn Store>> {
+    let text = cache.to_string_lossy();
+    if !text.starts_with("s3://") {
+        return Ok(Box::new(LocalStore::open(cache)?));
+    }
+    #[cfg(feature = "remote")]
+    {
+        let url = crate::remote::S3Url::parse(&text)?;
+        let local = std::env::var_os("SEQAVATAR_LOCAL_CACHE")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("cache"));
+        Ok(Box::new(crate::remote::RemoteStore::open(&url, &local)?))
+    }
+    #[cfg(not(feature = "remote"))]
+    anyhow::bail!(
+        "cache {text}: this binary was built without the \"remote\" feature of seqavatar-engine"
+    )
+}
 
 /// One kind of stage (`kind:` in the pipeline YAML): its identity, its configuration schema
 /// and the computation it performs.
-pub trait StageKind: Send + Sync {
+pub trait StageKind: Send + Sync + 'static {
+    /// The `config:` mapping, typed; resolved once, when the pipeline loads, and handed to
+    /// every hook. Its serialization (defaults explicit) is the config that keys hold.
+    type Config: serde::de::DeserializeOwned + serde::Serialize + Send + Sync + 'static;
     /// The name used as `kind:` in the pipeline YAML and as the cache folder name.
     fn kind(&self) -> &'static str;
     /// Implementation version; bump whenever the code changes the result.
     fn version(&self) -> u32;
     /// Kinds of stages accepted as inputs.
     fn input_kinds(&self) -> &'static [&'static str];
-    /// Validates the raw config and returns the effective config with all defaults explicit.
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError>;
+    /// Validates the raw config and returns it typed, in its canonical form. The default
+    /// deserializes it ([`parse_config`]); kinds with further checks call that first.
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<Self::Config, ConfigError> {
+        parse_config(raw)
+    }
     /// Checks, when the pipeline loads, that the inputs give this stage everything its run
     /// will need (before any upstream stage runs). `inputs` are the input stages with their
     /// effective configs, in order; the error text is shown with the stage's name. The
     /// default accepts any inputs of [`StageKind::input_kinds`].
     fn check_inputs(
         &self,
-        _config: &serde_json::Value,
+        _config: &Self::Config,
         _inputs: &[StageInput<'_>],
     ) -> Result<(), String> {
         Ok(())
@@ -70,15 +100,15 @@ pub trait StageKind: Send + Sync {
     /// [`StageKind::check_inputs`] sees it as [`StageInput::planned`]). A value of one of
     /// `seqavatar_schema`'s `Planned*` types, where a downstream stage reads it; `Null`
     /// (the default) when nothing is known before the run.
-    fn planned(&self, _config: &serde_json::Value) -> serde_json::Value {
+    fn planned(&self, _config: &Self::Config) -> serde_json::Value {
         serde_json::Value::Null
     }
     /// External files (raw dataset files) whose content the result depends on.
-    fn external_files(&self, _config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
+    fn external_files(&self, _config: &Self::Config) -> anyhow::Result<Vec<PathBuf>> {
         Ok(vec![])
     }
     /// Computes the entry: reads inputs from `ctx`, writes arrays to `ctx.output()`.
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()>;
+    fn run(&self, config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()>;
     /// Pictures `pipeline inspect --picture NAME` can draw from an entry of this kind.
     fn pictures(&self) -> Vec<PictureKind> {
         vec![]
@@ -227,7 +257,7 @@ impl PictureOptions {
 
 /// All stage kinds known to the binary.
 pub struct Registry {
-    kinds: BTreeMap<&'static str, Box<dyn StageKind>>,
+    kinds: BTreeMap<&'static str, Box<dyn erased::ErasedStage>>,
 }
 
 impl Default for Registry {
@@ -250,12 +280,12 @@ impl Registry {
     }
 
     /// Adds a stage kind; a later kind with the same name replaces the earlier one.
-    pub fn add(&mut self, stage: Box<dyn StageKind>) {
-        self.kinds.insert(stage.kind(), stage);
+    pub fn add<S: StageKind>(&mut self, stage: Box<S>) {
+        self.kinds.insert(StageKind::kind(stage.as_ref()), stage);
     }
 
     /// The stage kind named `kind`.
-    pub fn get(&self, kind: &str) -> Option<&dyn StageKind> {
+    pub(crate) fn get(&self, kind: &str) -> Option<&dyn erased::ErasedStage> {
         self.kinds.get(kind).map(|boxed| boxed.as_ref())
     }
 

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use crate::Registry;
 use crate::config::{ConfigPathSegment, path_to_string};
+use crate::erased::TypedConfig;
 use crate::yaml_lines::LineMap;
 
 /// A pipeline file that cannot be used.
@@ -24,12 +25,14 @@ pub enum PipelineError {
 }
 
 /// One stage of a validated pipeline.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct StageSpec {
     pub name: String,
     pub kind: String,
     /// The effective config: overrides applied, variables expanded, defaults explicit.
     pub config: serde_json::Value,
+    /// The same config as the stage kind resolved it, for its hooks.
+    pub(crate) typed: TypedConfig,
     /// Names of upstream stages, in the order given.
     pub inputs: Vec<String>,
     /// Line of the stage in the file.
@@ -442,7 +445,7 @@ impl Loader<'_> {
                 self.at(&[config_root.as_slice(), &path].concat(), text)
             })?;
             let kind = self.registry.get(&stage.kind).expect("kind checked above");
-            stage.config = kind.resolve_config(&raw).map_err(|error| {
+            (stage.config, stage.typed) = kind.resolve_config(&raw).map_err(|error| {
                 let text = format!("stage \"{}\": {error}{}", stage.name, set_note(&error.path));
                 self.at(&[config_root.as_slice(), &error.path].concat(), text)
             })?;
@@ -457,7 +460,7 @@ impl Loader<'_> {
             .iter()
             .map(|stage| {
                 let kind = self.registry.get(&stage.kind).expect("kind checked above");
-                kind.planned(&stage.config)
+                kind.planned(&stage.typed)
             })
             .collect();
         for (index, stage) in stages.iter().enumerate() {
@@ -474,7 +477,7 @@ impl Loader<'_> {
                     }
                 })
                 .collect();
-            kind.check_inputs(&stage.config, &inputs)
+            kind.check_inputs(&stage.typed, &inputs)
                 .map_err(|message| {
                     self.at(
                         &parsed.at_key(index, "inputs"),
@@ -511,6 +514,7 @@ impl Loader<'_> {
                 name,
                 kind,
                 config: serde_json::Value::Null,
+                typed: std::sync::Arc::new(()),
                 inputs,
                 line: self.lines.line_of(path),
             },
@@ -937,6 +941,7 @@ mod tests {
     struct NeedsArrays;
 
     impl crate::StageKind for NeedsArrays {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "needs_arrays"
         }
@@ -946,12 +951,6 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             &["test_arrays"]
         }
-        fn resolve_config(
-            &self,
-            _raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, crate::ConfigError> {
-            Ok(serde_json::json!({}))
-        }
         fn check_inputs(
             &self,
             _config: &serde_json::Value,
@@ -959,7 +958,11 @@ mod tests {
         ) -> Result<(), String> {
             crate::require_one_input_of_each(inputs, &["test_arrays"])
         }
-        fn run(&self, _ctx: &mut crate::StageContext<'_>) -> anyhow::Result<()> {
+        fn run(
+            &self,
+            _config: &serde_json::Value,
+            _ctx: &mut crate::StageContext<'_>,
+        ) -> anyhow::Result<()> {
             anyhow::bail!("never run by these tests")
         }
     }

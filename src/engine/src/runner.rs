@@ -11,13 +11,14 @@ use std::time::{Duration, Instant, SystemTime};
 
 use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use serde::de::DeserializeOwned;
 
 use crate::Registry;
-use crate::entry::{EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput};
+use crate::entry::{
+    EntryReader, EntryWriter, Manifest, ManifestExternalFile, ManifestInput, ReadLease,
+};
 use crate::key::{FileDigests, KeyMaterial, stage_key};
 use crate::pipeline::{Pipeline, StageSpec};
-use crate::store::{EntryId, EntryState, KeyLock, ReadLease, Staging, Store};
+use crate::store::{EntryId, EntryState, KeyLock, Staging, Store};
 
 /// The file (in the store's local state folder) remembering external file digests.
 const FILE_DIGEST_MEMO: &str = ".file-digests.json";
@@ -80,7 +81,6 @@ impl Progress {
 pub struct StageContext<'a> {
     stage_name: &'a str,
     key: &'a str,
-    config: &'a serde_json::Value,
     inputs: &'a [EntryReader],
     output: &'a EntryWriter,
     work_dir: &'a Path,
@@ -98,17 +98,6 @@ impl StageContext<'_> {
     /// The key of the entry being computed.
     pub fn key(&self) -> &str {
         self.key
-    }
-
-    /// The resolved config, deserialized.
-    pub fn config<T: DeserializeOwned>(&self) -> anyhow::Result<T> {
-        serde_json::from_value(self.config.clone())
-            .with_context(|| format!("stage \"{}\": config does not deserialize", self.stage_name))
-    }
-
-    /// The resolved config as JSON.
-    pub fn config_value(&self) -> &serde_json::Value {
-        self.config
     }
 
     /// The unique input of stage kind `kind`.
@@ -240,7 +229,7 @@ pub fn compute_keys(
             .get(&stage.kind)
             .ok_or_else(|| anyhow::anyhow!("unknown stage kind \"{}\"", stage.kind))?;
         let files = kind
-            .external_files(&stage.config)
+            .external_files(&stage.typed)
             .with_context(|| format!("stage \"{}\": cannot list its external files", stage.name))?;
         let mut external_files = Vec::with_capacity(files.len());
         for file in files {
@@ -430,7 +419,7 @@ struct Run<'r> {
 /// One stage of a run, as its steps see it.
 struct StageJob<'j> {
     stage: &'j StageSpec,
-    kind: &'j dyn crate::StageKind,
+    kind: &'j dyn crate::erased::ErasedStage,
     stage_key: &'j StageKey,
     id: EntryId,
     forced: bool,
@@ -633,7 +622,6 @@ impl Run<'_> {
         let mut context = StageContext {
             stage_name: &stage.name,
             key: &stage_key.key,
-            config: &stage.config,
             inputs,
             output: writer,
             work_dir: &staging.work_dir,
@@ -644,15 +632,16 @@ impl Run<'_> {
         if resumed {
             context.log("resuming from the work folder of an interrupted run");
         }
-        let result = std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&mut context)))
-            .unwrap_or_else(|panic| {
-                let text = panic
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "unknown panic".to_string());
-                Err(anyhow::anyhow!("panicked: {text}"))
-            });
+        let result =
+            std::panic::catch_unwind(AssertUnwindSafe(|| kind.run(&stage.typed, &mut context)))
+                .unwrap_or_else(|panic| {
+                    let text = panic
+                        .downcast_ref::<String>()
+                        .cloned()
+                        .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                        .unwrap_or_else(|| "unknown panic".to_string());
+                    Err(anyhow::anyhow!("panicked: {text}"))
+                });
         spinner.finish_and_clear();
         result?;
         let log = context.log.into_inner().expect("log poisoned");
@@ -756,13 +745,14 @@ mod tests {
     use crate::StageKind;
     use crate::builtin::TestArrays;
     use crate::config::ConfigError;
-    use crate::store::LocalStore;
+    use crate::local::LocalStore;
     use std::path::PathBuf;
 
     /// `test_arrays` with another implementation version.
     struct Bumped;
 
     impl StageKind for Bumped {
+        type Config = <TestArrays as StageKind>::Config;
         fn kind(&self) -> &'static str {
             "test_arrays"
         }
@@ -772,14 +762,11 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             TestArrays.input_kinds()
         }
-        fn resolve_config(
-            &self,
-            raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
+        fn resolve_config(&self, raw: &serde_json::Value) -> Result<Self::Config, ConfigError> {
             TestArrays.resolve_config(raw)
         }
-        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-            TestArrays.run(ctx)
+        fn run(&self, config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            TestArrays.run(config, ctx)
         }
     }
 
@@ -788,6 +775,7 @@ mod tests {
     struct Vandal;
 
     impl StageKind for Vandal {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "vandal"
         }
@@ -797,13 +785,7 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             &["test_arrays"]
         }
-        fn resolve_config(
-            &self,
-            _raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
-            Ok(serde_json::json!({}))
-        }
-        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        fn run(&self, _config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
             let input = ctx.input("test_arrays")?;
             let values = input.read::<f64>("values")?;
             std::fs::remove_file(Path::new(input.location()).join("values/c/0"))?;
@@ -842,6 +824,7 @@ mod tests {
     struct Editor;
 
     impl StageKind for Editor {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "editor"
         }
@@ -851,17 +834,11 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             &[]
         }
-        fn resolve_config(
-            &self,
-            raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
-            Ok(raw.clone())
-        }
         fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
             Ok(vec![PathBuf::from(config["file"].as_str().unwrap())])
         }
-        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-            let path = PathBuf::from(ctx.config_value()["file"].as_str().unwrap());
+        fn run(&self, config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            let path = PathBuf::from(config["file"].as_str().unwrap());
             let before = std::fs::read(&path)?;
             std::fs::write(&path, [before.as_slice(), b" edited"].concat())?;
             ctx.output()
@@ -898,6 +875,7 @@ mod tests {
     struct Flaky;
 
     impl StageKind for Flaky {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "flaky"
         }
@@ -907,13 +885,7 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             &[]
         }
-        fn resolve_config(
-            &self,
-            _raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
-            Ok(serde_json::json!({}))
-        }
-        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        fn run(&self, _config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
             let path = ctx.work_dir().join("attempts");
             let attempts = std::fs::read_to_string(&path).unwrap_or_default() + "x";
             std::fs::write(&path, &attempts)?;

@@ -223,8 +223,7 @@ impl TrackVerdicts {
 mod tests {
     use super::*;
     use seqavatar_engine::{
-        ConfigError, EntryId, LocalStore, Pipeline, Registry, RunOptions, StageContext, StageKind,
-        Store, run,
+        EntryId, LocalStore, Pipeline, Registry, RunOptions, StageContext, StageKind, Store, run,
     };
 
     fn verdict(iou_change: f64, keypoint_change: f64, kept_input: bool) -> TrackVerdict {
@@ -240,6 +239,7 @@ mod tests {
     struct Arrays;
 
     impl StageKind for Arrays {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "fit_arrays"
         }
@@ -249,16 +249,10 @@ mod tests {
         fn input_kinds(&self) -> &'static [&'static str] {
             &[]
         }
-        fn resolve_config(
-            &self,
-            raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
-            Ok(raw.clone())
-        }
-        fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        fn run(&self, config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
             let out = ctx.output();
             let vector = |name: &str, values: &[f64]| write_vector(out, name, "x", values);
-            match ctx.config_value()["case"].as_str().unwrap() {
+            match config["case"].as_str().unwrap() {
                 "good" => {
                     Jitter {
                         before: vec![0.5, 0.25, 1e-9],

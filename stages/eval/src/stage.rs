@@ -195,6 +195,8 @@ pub fn load_lpips(config: &EvalConfig, backend: &Backend) -> anyhow::Result<Lpip
 pub struct EvalStage;
 
 impl StageKind for EvalStage {
+    type Config = EvalConfig;
+
     fn kind(&self) -> &'static str {
         EVAL_KIND
     }
@@ -225,7 +227,7 @@ impl StageKind for EvalStage {
 
     fn check_inputs(
         &self,
-        _config: &serde_json::Value,
+        _config: &EvalConfig,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["train", "ingest"])?;
@@ -256,25 +258,21 @@ impl StageKind for EvalStage {
         Ok(())
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let resolved = seqavatar_engine::resolve_typed::<EvalConfig>(raw)?;
-        let config: EvalConfig = serde_json::from_value(resolved.clone())
-            .map_err(|error| ConfigError::new(vec![], error.to_string()))?;
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<EvalConfig, ConfigError> {
+        let config: EvalConfig = seqavatar_engine::parse_config(raw)?;
         config.validate()?;
-        Ok(resolved)
+        Ok(config)
     }
 
-    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
-        let config: EvalConfig =
-            serde_json::from_value(config.clone()).context("eval config does not deserialize")?;
-        Ok([config.lpips_vgg_weights, config.lpips_alex_weights]
+    fn external_files(&self, config: &EvalConfig) -> anyhow::Result<Vec<PathBuf>> {
+        Ok([&config.lpips_vgg_weights, &config.lpips_alex_weights]
             .into_iter()
             .flatten()
+            .cloned()
             .collect())
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: EvalConfig = ctx.config()?;
+    fn run(&self, config: &EvalConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let train = ctx.input("train")?.clone();
         let ingest = ctx.input("ingest")?.clone();
         let backend = Backend::select(config.device)
@@ -284,7 +282,7 @@ impl StageKind for EvalStage {
         // The path the renderer's networks take (`NnGpu::for_context` makes the same choice
         // from the same context and precision).
         ctx.log(&MatmulPath::of_backend(&backend, precision).describe());
-        let lpips = load_lpips(&config, &backend)?;
+        let lpips = load_lpips(config, &backend)?;
         if lpips.vgg.is_none() && lpips.alex.is_none() {
             ctx.log("LPIPS unavailable: no lpips_vgg_weights / lpips_alex_weights configured");
         }
@@ -318,7 +316,7 @@ impl StageKind for EvalStage {
             .and_then(|value| value.as_f64());
         evaluate_entry(
             ctx,
-            &config,
+            config,
             &ingest,
             &mut renderer,
             &lpips,
@@ -831,16 +829,18 @@ mod tests {
     fn precision_parses_defaults_to_mixed_and_leaves_the_key_alone() {
         use seqavatar_engine::key::{KeyMaterial, stage_key};
         for (text, precision) in [("f32", Precision::F32), ("mixed", Precision::Mixed)] {
-            let resolved = EvalStage
+            let config = EvalStage
                 .resolve_config(&json!({"precision": text}))
                 .unwrap();
-            assert_eq!(resolved["precision"], json!(text));
-            let config: EvalConfig = serde_json::from_value(resolved).unwrap();
+            assert_eq!(
+                serde_json::to_value(&config).unwrap()["precision"],
+                json!(text)
+            );
             assert_eq!(config.precision, Some(precision));
         }
-        let absent = EvalStage.resolve_config(&json!({})).unwrap();
+        let config = EvalStage.resolve_config(&json!({})).unwrap();
+        let absent = serde_json::to_value(&config).unwrap();
         assert!(absent.get("precision").is_none(), "{absent}");
-        let config: EvalConfig = serde_json::from_value(absent.clone()).unwrap();
         assert_eq!(config.precision.unwrap_or_default(), Precision::Mixed);
         // The key of the default config at version 9 as it was before `precision` existed
         // (commit 8f18229). A change to a field's default changes it (update it then); a
@@ -872,10 +872,16 @@ mod tests {
     fn device_is_spelled_as_before_and_unknown_names_are_errors() {
         for text in ["auto", "cpu", "gpu"] {
             let resolved = EvalStage.resolve_config(&json!({"device": text})).unwrap();
-            assert_eq!(resolved["device"], json!(text));
+            assert_eq!(
+                serde_json::to_value(resolved).unwrap()["device"],
+                json!(text)
+            );
         }
         let defaults = EvalStage.resolve_config(&json!({})).unwrap();
-        assert_eq!(defaults["device"], json!("auto"));
+        assert_eq!(
+            serde_json::to_value(defaults).unwrap()["device"],
+            json!("auto")
+        );
         let err = EvalStage
             .resolve_config(&json!({"device": "cuda"}))
             .unwrap_err()
@@ -909,7 +915,7 @@ mod tests {
                     planned: &ingest,
                 },
             ];
-            EvalStage.check_inputs(&json!({}), &inputs)
+            EvalStage.check_inputs(&EvalConfig::default(), &inputs)
         };
         // One camera: the default split has no test view.
         let error = check(1).unwrap_err();

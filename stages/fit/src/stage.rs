@@ -242,6 +242,8 @@ pub struct FitStage;
 const VERSION: u32 = 3;
 
 impl StageKind for FitStage {
+    type Config = FitConfig;
+
     fn kind(&self) -> &'static str {
         "fit"
     }
@@ -256,16 +258,14 @@ impl StageKind for FitStage {
 
     fn check_inputs(
         &self,
-        _config: &serde_json::Value,
+        _config: &FitConfig,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["ingest"])
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let resolved = seqavatar_engine::resolve_typed::<FitConfig>(raw)?;
-        let config: FitConfig = serde_json::from_value(resolved.clone())
-            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<FitConfig, ConfigError> {
+        let config: FitConfig = seqavatar_engine::parse_config(raw)?;
         if !(config.keypoint_noise_m > 0.0 && config.keypoint_noise_m.is_finite()) {
             return Err(ConfigError::at_key(
                 "keypoint_noise_m",
@@ -289,11 +289,10 @@ impl StageKind for FitStage {
             };
             return Err(ConfigError::at_key(field, e.to_string()));
         }
-        Ok(resolved)
+        Ok(config)
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: FitConfig = ctx.config()?;
+    fn run(&self, config: &FitConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let ingest = ctx.input("ingest")?.clone();
         let input = BodySequence::read(&ingest, "body")?;
         let model = read_body_model(&ingest)?;
@@ -653,12 +652,12 @@ stages:
         let ok = FitStage
             .resolve_config(&serde_json::json!({"mode": "keypoints"}))
             .unwrap();
-        assert_eq!(ok["keypoint_noise_m"], serde_json::json!(0.02));
+        assert_eq!(ok.keypoint_noise_m, 0.02);
         // YAML reads a bare `off` as `false`.
         let off = FitStage
             .resolve_config(&serde_json::json!({"mode": false}))
             .unwrap();
-        assert_eq!(off["mode"], serde_json::json!("off"));
+        assert_eq!(serde_json::to_value(off.mode).unwrap(), "off");
         for bad in [serde_json::json!(true), serde_json::json!("fast")] {
             let error = FitStage
                 .resolve_config(&serde_json::json!({ "mode": bad }))

@@ -261,10 +261,8 @@ mod tests {
     #[test]
     fn a_split_without_test_images_is_refused_at_load() {
         use super::IngestConfig;
-        let config = |raw: serde_json::Value| -> IngestConfig {
-            let resolved = seqavatar_engine::resolve_typed::<IngestConfig>(&raw).unwrap();
-            serde_json::from_value(resolved).unwrap()
-        };
+        let config =
+            |raw: serde_json::Value| seqavatar_engine::parse_config::<IngestConfig>(&raw).unwrap();
         let synthetic = |extra: serde_json::Value| {
             let mut raw = serde_json::json!({
                 "dataset": {"kind": "synthetic", "cameras": 8, "frames": 6, "width": 16, "height": 16}

@@ -34,6 +34,8 @@ pub struct Ingest;
 pub const INGEST_VERSION: u32 = 5;
 
 impl StageKind for Ingest {
+    type Config = IngestConfig;
+
     fn kind(&self) -> &'static str {
         "ingest"
     }
@@ -46,30 +48,23 @@ impl StageKind for Ingest {
         &[]
     }
 
-    fn planned(&self, config: &serde_json::Value) -> serde_json::Value {
-        serde_json::from_value::<IngestConfig>(config.clone())
-            .ok()
-            .and_then(|config| serde_json::to_value(config.planned()).ok())
-            .unwrap_or_default()
+    fn planned(&self, config: &IngestConfig) -> serde_json::Value {
+        serde_json::to_value(config.planned()).unwrap_or_default()
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let resolved = seqavatar_engine::resolve_typed::<IngestConfig>(raw)?;
-        let config: IngestConfig = serde_json::from_value(resolved.clone())
-            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<IngestConfig, ConfigError> {
+        let config: IngestConfig = seqavatar_engine::parse_config(raw)?;
         config.validate()?;
-        Ok(resolved)
+        Ok(config)
     }
 
-    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
-        let config: IngestConfig = serde_json::from_value(config.clone())?;
+    fn external_files(&self, config: &IngestConfig) -> anyhow::Result<Vec<PathBuf>> {
         let mut files: Vec<PathBuf> = config.body_model.iter().cloned().collect();
         files.extend(seqavatar_datasets::sources::source_files(&config.dataset));
         Ok(files)
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: IngestConfig = ctx.config()?;
+    fn run(&self, config: &IngestConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         // Ranges were checked when the pipeline loaded (resolve_config).
         let reader = open_reader(&config.dataset, config.body_model.as_deref())?;
         ctx.log(&format!("reading {}", reader.describe()));
@@ -106,7 +101,7 @@ impl StageKind for Ingest {
         }
 
         let image_split = write_images(ctx, reader.as_ref(), &plan, &cameras)?;
-        write_attributes(out, &config, &plan, kind, &image_split)
+        write_attributes(out, config, &plan, kind, &image_split)
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
@@ -709,7 +704,8 @@ mod stage_tests {
         let raw = serde_json::json!({"dataset": {"kind": "synthetic", "cameras": 2, "colour": 1}});
         let err = Ingest.resolve_config(&raw).unwrap_err().to_string();
         assert!(err.contains("colour"), "{err}");
-        let resolved = Ingest.resolve_config(&serde_json::json!({})).unwrap();
+        let resolved =
+            serde_json::to_value(Ingest.resolve_config(&serde_json::json!({})).unwrap()).unwrap();
         assert_eq!(resolved["dataset"]["kind"], "synthetic");
         assert_eq!(resolved["dataset"]["cameras"], 8);
         // The default scene and split resolve as before the history scene and the temporal
@@ -722,6 +718,7 @@ mod stage_tests {
         let history = Ingest
             .resolve_config(&serde_json::json!({"dataset": {"kind": "synthetic", "scene": "history", "fps": 30.0, "frames": 150}, "split": {"held_out_frames": {"start": 5, "end": null, "step": 10}}}))
             .unwrap();
+        let history = serde_json::to_value(history).unwrap();
         assert_eq!(history["dataset"]["scene"], "history");
         assert_eq!(history["split"]["held_out_frames"]["step"], 10);
         // The history scene's script fixes its rate and length.

@@ -80,6 +80,8 @@ fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
 }
 
 impl StageKind for MotionStage {
+    type Config = MotionConfig;
+
     fn kind(&self) -> &'static str {
         "motion"
     }
@@ -94,16 +96,14 @@ impl StageKind for MotionStage {
 
     fn check_inputs(
         &self,
-        _config: &serde_json::Value,
+        _config: &MotionConfig,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["ingest"])
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let resolved = seqavatar_engine::resolve_typed::<MotionConfig>(raw)?;
-        let mut config: MotionConfig = serde_json::from_value(resolved)
-            .map_err(|e| ConfigError::new(vec![], e.to_string()))?;
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<MotionConfig, ConfigError> {
+        let mut config: MotionConfig = seqavatar_engine::parse_config(raw)?;
         // Interval 1 checks everything but divisibility, which needs the ingest entry.
         let scales = Scales::new(&config.scales, 1)
             .map_err(|e| ConfigError::at_key("scales", e.to_string()))?;
@@ -128,11 +128,10 @@ impl StageKind for MotionStage {
         }
         // Canonical order (largest first) so [1, 2, 3] and [3, 2, 1] share a key.
         config.scales = scales.raw;
-        serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
+        Ok(config)
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: MotionConfig = ctx.config()?;
+    fn run(&self, config: &MotionConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let ingest = ctx.input("ingest")?.clone();
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
         let params_entry = fit.as_ref().unwrap_or(&ingest);
@@ -367,6 +366,7 @@ stages:
     struct TrainingSettingsProbe;
 
     impl StageKind for TrainingSettingsProbe {
+        type Config = serde_json::Value;
         fn kind(&self) -> &'static str {
             "training_settings_probe"
         }
@@ -376,13 +376,7 @@ stages:
         fn input_kinds(&self) -> &'static [&'static str] {
             &["motion"]
         }
-        fn resolve_config(
-            &self,
-            raw: &serde_json::Value,
-        ) -> Result<serde_json::Value, ConfigError> {
-            Ok(raw.clone())
-        }
-        fn run(&self, _ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+        fn run(&self, _config: &Self::Config, _ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
             anyhow::bail!("never run")
         }
     }

@@ -290,12 +290,10 @@ impl TrainConfig {
             _ => return Err(ConfigError::NotAMapping),
         };
         let preset: Preset = match object.get("preset") {
-            Some(value) => {
-                serde_json::from_value(value.clone()).map_err(|e| ConfigError::Field {
-                    field: "preset".into(),
-                    message: e.to_string(),
-                })?
-            }
+            Some(value) => Preset::deserialize(value).map_err(|e| ConfigError::Field {
+                field: "preset".into(),
+                message: e.to_string(),
+            })?,
             None => Preset::Balanced,
         };
         let mut merged = serde_json::to_value(Self::preset(preset)).expect("config serialises");

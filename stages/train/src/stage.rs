@@ -107,6 +107,8 @@ pub fn protocol_psnr(
 }
 
 impl StageKind for TrainStage {
+    type Config = TrainConfig;
+
     fn kind(&self) -> &'static str {
         "train"
     }
@@ -121,7 +123,7 @@ impl StageKind for TrainStage {
 
     fn check_inputs(
         &self,
-        config: &serde_json::Value,
+        config: &TrainConfig,
         inputs: &[seqavatar_engine::StageInput<'_>],
     ) -> Result<(), String> {
         seqavatar_engine::require_one_input_of_each(inputs, &["ingest", "motion"])?;
@@ -134,8 +136,6 @@ impl StageKind for TrainStage {
             return Ok(());
         };
         let images = TrainingImages::from_plan(&images);
-        let config: TrainConfig = serde_json::from_value(config.clone())
-            .map_err(|e| format!("train config does not deserialize: {e}"))?;
         match seqavatar_engine::memory_budget_bytes()? {
             Some(budget) => config
                 .check_memory(Some(&images), budget)
@@ -144,10 +144,7 @@ impl StageKind for TrainStage {
         }
     }
 
-    fn planned(&self, config: &serde_json::Value) -> serde_json::Value {
-        let Ok(config) = serde_json::from_value::<TrainConfig>(config.clone()) else {
-            return serde_json::Value::Null;
-        };
+    fn planned(&self, config: &TrainConfig) -> serde_json::Value {
         let motion_context = serde_json::to_value(config.motion_context)
             .ok()
             .and_then(|name| name.as_str().map(str::to_owned))
@@ -159,8 +156,8 @@ impl StageKind for TrainStage {
         .unwrap_or_default()
     }
 
-    fn resolve_config(&self, raw: &serde_json::Value) -> Result<serde_json::Value, ConfigError> {
-        let config = TrainConfig::resolve(raw).map_err(|e| match e {
+    fn resolve_config(&self, raw: &serde_json::Value) -> Result<TrainConfig, ConfigError> {
+        TrainConfig::resolve(raw).map_err(|e| match e {
             crate::config::ConfigError::Field { field, message } => {
                 let top = field.split(['.', '[']).next().unwrap_or("").to_owned();
                 if top.is_empty() {
@@ -170,22 +167,18 @@ impl StageKind for TrainStage {
                 }
             }
             other => ConfigError::new(vec![], other.to_string()),
-        })?;
-        serde_json::to_value(&config).map_err(|e| ConfigError::new(vec![], e.to_string()))
+        })
     }
 
-    fn external_files(&self, config: &serde_json::Value) -> anyhow::Result<Vec<PathBuf>> {
-        let config: TrainConfig =
-            serde_json::from_value(config.clone()).context("train config does not deserialize")?;
+    fn external_files(&self, config: &TrainConfig) -> anyhow::Result<Vec<PathBuf>> {
         Ok(if config.lpips_enabled() {
-            config.lpips_weights.into_iter().collect()
+            config.lpips_weights.iter().cloned().collect()
         } else {
             Vec::new()
         })
     }
 
-    fn run(&self, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
-        let config: TrainConfig = ctx.config()?;
+    fn run(&self, config: &TrainConfig, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
         let ingest = ctx.input("ingest")?.clone();
         let motion = ctx.input("motion")?.clone();
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
@@ -198,7 +191,7 @@ impl StageKind for TrainStage {
                 .map_err(anyhow::Error::msg)?;
         }
         let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
-        check_motion_window(&config, &data).with_context(|| {
+        check_motion_window(config, &data).with_context(|| {
             format!(
                 "train config against ingest entry {} (via motion entry {})",
                 ingest.location(),
@@ -211,9 +204,9 @@ impl StageKind for TrainStage {
         // The path every network built for this run takes (`NnGpu::for_context` makes the
         // same choice from the same context and precision).
         ctx.log(&MatmulPath::of_backend(&backend, config.networks_precision()).describe());
-        log_lpips_setting(ctx, &config);
-        let mut trainer = start_or_resume(ctx, &config, &data, &backend)?;
-        let timing = train_to_the_end(ctx, &config, &mut trainer)?;
+        log_lpips_setting(ctx, config);
+        let mut trainer = start_or_resume(ctx, config, &data, &backend)?;
+        let timing = train_to_the_end(ctx, config, &mut trainer)?;
         if timing.ran > 0 {
             log_iteration_costs(ctx, &trainer, &timing)?;
         }
@@ -230,7 +223,7 @@ impl StageKind for TrainStage {
 
         // Held-out PSNR on the test split, and on training images by the same protocol.
         let mut scorer = ProtocolScorer {
-            config: &config,
+            config,
             data: &data,
             avatar: &avatar,
             frames: &mut frames,
@@ -244,7 +237,7 @@ impl StageKind for TrainStage {
         let train_psnr = scorer.psnrs(&train_picks)?;
         let train_image_psnr = (!train_psnr.is_empty())
             .then(|| train_psnr.iter().sum::<f64>() / train_psnr.len() as f64);
-        let diagnostics = network_diagnostics(ctx, &config, &data, &trainer, &train_split)?;
+        let diagnostics = network_diagnostics(ctx, config, &data, &trainer, &train_split)?;
         let test_mean = if test_psnr.is_empty() {
             f64::NAN
         } else {
@@ -272,7 +265,7 @@ impl StageKind for TrainStage {
 
         let out = ctx.output();
         avatar.write(out, data.extent, &data.body_model_kind)?;
-        out.set_attribute("config", serde_json::to_value(&config)?)?;
+        out.set_attribute("config", serde_json::to_value(config)?)?;
         write_curves_and_cameras(out, &trainer.curve, &ingest)?;
         let t = test.len() as u64;
         out.write_array("test_psnr", &["image"], &[t], &[t.max(1)], &test_psnr)?;
@@ -676,6 +669,7 @@ mod tests {
             let resolved = TrainStage
                 .resolve_config(&json!({"preset": "fast", "precision": text}))
                 .unwrap();
+            let resolved = serde_json::to_value(resolved).unwrap();
             assert_eq!(resolved["precision"], json!(text));
             let config = TrainConfig::resolve(&resolved).unwrap();
             assert_eq!(config.networks_precision(), precision);
@@ -685,6 +679,7 @@ mod tests {
         let absent = TrainStage
             .resolve_config(&json!({"preset": "fast"}))
             .unwrap();
+        let absent = serde_json::to_value(absent).unwrap();
         assert!(absent.get("precision").is_none(), "{absent}");
         let config = TrainConfig::resolve(&absent).unwrap();
         assert_eq!(config.networks_precision(), Precision::Mixed);
@@ -758,7 +753,7 @@ mod tests {
 
     /// The ingest and train configs of `pipelines/synthetic.yaml` (the demo), resolved, with
     /// the ingest's scene size replaced by `scene`.
-    fn demo_configs(scene: serde_json::Value) -> (serde_json::Value, serde_json::Value) {
+    fn demo_configs(scene: serde_json::Value) -> (seqavatar_ingest::IngestConfig, TrainConfig) {
         use seqavatar_engine::StageKind as _;
         let mut dataset =
             json!({"kind": "synthetic", "cameras": 8, "frames": 48, "width": 256, "height": 256});
@@ -777,7 +772,7 @@ mod tests {
     }
 
     /// The images the ingest config plans, as the train stage's load-time check sees them.
-    fn planned_images(ingest: &serde_json::Value) -> Option<TrainingImages> {
+    fn planned_images(ingest: &seqavatar_ingest::IngestConfig) -> Option<TrainingImages> {
         use seqavatar_engine::StageKind as _;
         let planned = seqavatar_ingest::Ingest.planned(ingest);
         let input = seqavatar_engine::StageInput {
@@ -789,7 +784,7 @@ mod tests {
         plan.images.as_ref().map(TrainingImages::from_plan)
     }
 
-    fn check(ingest: &serde_json::Value, train: &serde_json::Value) -> Result<(), String> {
+    fn check(ingest: &seqavatar_ingest::IngestConfig, train: &TrainConfig) -> Result<(), String> {
         use seqavatar_engine::StageKind as _;
         let planned = seqavatar_ingest::Ingest.planned(ingest);
         let inputs = [
@@ -818,7 +813,7 @@ mod tests {
         let images = planned_images(&ingest).unwrap();
         // The default split: 48 training views on every frame, 16 test views on every other.
         assert_eq!(images.count, 48 * 1000 + 16 * 500);
-        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        let config = &train;
         // The demo trains at full resolution: 2048 x 2048, RGB and mask bytes.
         assert_eq!(config.resolution_scale, 1.0);
         let estimate = config.run_memory_estimate_bytes(Some(&images));
@@ -860,7 +855,7 @@ mod tests {
             (images.count, images.width, images.height),
             (6 * 48 + 2 * 24, 256, 256)
         );
-        let config: TrainConfig = serde_json::from_value(train.clone()).unwrap();
+        let config = &train;
         // At the demo's full resolution: 256 x 256 pixels per image and render.
         assert_eq!(config.resolution_scale, 1.0);
         let estimate = config.run_memory_estimate_bytes(Some(&images));

@@ -31,10 +31,10 @@ use bucket::Bucket;
 pub use bucket::S3Url;
 use lease::{Acquired, Lease, LeaseSettings, unique_name};
 
-use crate::entry::EntryReader;
+use crate::entry::{EntryReader, ReadLease};
+use crate::local::{LocalStore, fsync_tree, remove_dir_if_present, write_completion_marker};
 use crate::store::{
-    COMPLETION_MARKER, EntryId, EntryState, KeyLock, LocalStore, ReadLease, Staging, Store,
-    check_component, fsync_tree, remove_dir_if_present, write_completion_marker,
+    COMPLETION_MARKER, EntryId, EntryState, KeyLock, Staging, Store, check_component,
 };
 
 /// Local folder (inside the local front) of downloads in progress.

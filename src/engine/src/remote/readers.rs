@@ -21,7 +21,8 @@ use std::time::{Duration, SystemTime};
 
 use super::bucket::{Bucket, ObjectInfo};
 use super::lease::{Lease, LeaseSettings, unique_name};
-use crate::store::{EntryId, ReadLease};
+use crate::entry::ReadLease;
+use crate::store::EntryId;
 
 /// Remote folder of read leases.
 pub(crate) const READERS_DIR: &str = ".readers";
