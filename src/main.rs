@@ -183,13 +183,7 @@ enum Command {
 }
 
 fn registry() -> Registry {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    seqavatar_eval::register(&mut registry);
-    registry
+    seqavatar_registry::registry()
 }
 
 fn execute(cli: Cli) -> anyhow::Result<()> {

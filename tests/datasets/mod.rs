@@ -275,12 +275,7 @@ fn synthetic_pipelines_load() {
 /// Every stage's cache key of the pipeline file `file`, by stage name (the keys of a fresh
 /// local cache: nothing is run).
 fn stage_keys(file: &Path) -> std::collections::BTreeMap<String, (String, String)> {
-    let mut registry = seqavatar_engine::Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    seqavatar_eval::register(&mut registry);
+    let registry = seqavatar_registry::registry();
     let pipeline = seqavatar_engine::Pipeline::load(file, &registry, &[])
         .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
     let cache = tempfile::tempdir().unwrap();

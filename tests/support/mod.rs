@@ -120,14 +120,8 @@ impl Sandbox {
     }
 }
 
-/// Every stage of the five stage crates, as the `pipeline` binary registers them, for tests
-/// that run pipelines in process.
+/// Every stage kind, as the `pipeline` binary registers them, for tests that run pipelines in
+/// process.
 pub fn registry() -> Registry {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    seqavatar_eval::register(&mut registry);
-    registry
+    seqavatar_registry::registry()
 }

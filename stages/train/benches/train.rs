@@ -49,9 +49,7 @@ use seqavatar_compute::lpips::{LpipsNet, seeded::seeded_weights};
 use seqavatar_compute::nn::Precision;
 use seqavatar_compute::nn::gpu::MatmulPath;
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Rng, linear_forward};
-use seqavatar_engine::{
-    EntryId, EntryReader, LocalStore, Pipeline, Registry, RunOptions, Store, run,
-};
+use seqavatar_engine::{EntryId, EntryReader, LocalStore, Pipeline, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
 use seqavatar_train::densify::names;
@@ -115,9 +113,7 @@ fn gemm_peak(rows: usize, in_features: usize, out_features: usize) -> f64 {
 /// The ingest and motion entries of [`UPSTREAM`], computed by the real stages into a cache
 /// under `cache`.
 fn upstream_entries(cache: &Path) -> anyhow::Result<(EntryReader, EntryReader)> {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
+    let registry = seqavatar_registry::registry();
     let store = LocalStore::open(cache)?;
     let pipeline = Pipeline::parse(UPSTREAM, Path::new("bench.yaml"), &registry, &[])?;
     let reports = run(&pipeline, &registry, &store, &RunOptions::default())?;

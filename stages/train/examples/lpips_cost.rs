@@ -16,7 +16,7 @@ use std::time::Instant;
 use seqavatar_compute::backend::{Backend, DeviceChoice};
 use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsInput, LpipsNet, seeded};
-use seqavatar_engine::{EntryId, LocalStore, Pipeline, Registry, RunOptions, Store, run};
+use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
 use seqavatar_train::trainer::{Trainer, pad_rect};
@@ -49,9 +49,7 @@ fn main() -> anyhow::Result<()> {
         .and_then(|v| v.parse().ok())
         .unwrap_or(10);
     let dir = tempfile::tempdir()?;
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
+    let registry = seqavatar_registry::registry();
     let store = LocalStore::open(dir.path())?;
     let pipeline = Pipeline::parse(UPSTREAM, Path::new("lpips_cost.yaml"), &registry, &[])?;
     let reports = run(&pipeline, &registry, &store, &RunOptions::default())?;

@@ -12,6 +12,7 @@
 use anyhow::Context;
 use seqavatar_compute::backend::Backend;
 use seqavatar_compute::nn::adam::AdamState;
+use serde::Deserialize;
 
 use std::collections::BTreeMap;
 use std::ops::{Deref, DerefMut};
@@ -320,8 +321,8 @@ impl<'d> Trainer<'d> {
         checkpoint: &Checkpoint,
     ) -> anyhow::Result<Self> {
         let meta = &checkpoint.metadata;
-        let stored: TrainConfig = serde_json::from_value(meta["config"].clone())
-            .context("checkpoint metadata `config`")?;
+        let stored =
+            TrainConfig::deserialize(&meta["config"]).context("checkpoint metadata `config`")?;
         anyhow::ensure!(
             stored == config,
             "the checkpoint was written with a different configuration"

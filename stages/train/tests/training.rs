@@ -109,12 +109,7 @@ fn a_window_reaching_past_the_ingested_frames_is_an_error() {
 }
 
 fn registry() -> Registry {
-    let mut registry = Registry::new();
-    seqavatar_ingest::register(&mut registry);
-    seqavatar_fit::register(&mut registry);
-    seqavatar_motion::register(&mut registry);
-    seqavatar_train::register(&mut registry);
-    registry
+    seqavatar_registry::registry()
 }
 
 fn run_pipeline(cache: &Path, text: &str) -> anyhow::Result<Vec<seqavatar_engine::StageReport>> {
