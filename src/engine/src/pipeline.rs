@@ -744,7 +744,7 @@ fn parse_override(
     let value = if value_text.trim().is_empty() {
         serde_json::Value::String(String::new())
     } else {
-        crate::yaml_lines::check_bounds(value_text)
+        crate::yaml_lines::LineMap::build(value_text)
             .map_err(|error| format!("the value is refused: {}", error.message))?;
         serde_saphyr::from_str::<serde_json::Value>(value_text)
             .map_err(|error| format!("the value is not valid YAML: {error}"))?

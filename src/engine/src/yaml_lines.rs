@@ -219,28 +219,6 @@ fn check_node(
     Ok(())
 }
 
-/// Checks a YAML value given outside a file (`--set stage.key=value`) against the same
-/// bounds, without recording lines.
-pub(crate) fn check_bounds(text: &str) -> Result<(), SyntaxError> {
-    check_size(text)?;
-    let mut parser = Parser::new_from_str(text);
-    let mut depth = 0usize;
-    let mut nodes = 0usize;
-    while let Some(next) = parser.next_event() {
-        let (event, span) = next.map_err(|error| SyntaxError {
-            line: error.marker().line(),
-            message: error.info().to_string(),
-        })?;
-        check_node(&event, span.start.line(), depth, &mut nodes)?;
-        match event {
-            Event::MappingStart(..) | Event::SequenceStart(..) => depth += 1,
-            Event::MappingEnd | Event::SequenceEnd => depth = depth.saturating_sub(1),
-            _ => {}
-        }
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -296,7 +274,7 @@ mod tests {
             error.message.contains("more than 64 levels deep"),
             "{error:?}"
         );
-        assert_eq!(check_bounds(&text).unwrap_err(), error);
+        assert_eq!(LineMap::build(&text).unwrap_err(), error);
         // Just under the bound parses.
         let text: String = (0..MAX_YAML_DEPTH)
             .map(|i| format!("{}k:\n", "  ".repeat(i)))
@@ -321,7 +299,7 @@ mod tests {
         assert_eq!(error.line, MAX_YAML_NODES);
 
         let text = format!("description: \"{}\"\n", "x".repeat(MAX_YAML_BYTES));
-        let error = check_bounds(&text).unwrap_err();
+        let error = LineMap::build(&text).unwrap_err();
         assert_eq!(error.line, 1);
         assert!(
             error.message.contains("bytes, more than the 1048576"),
