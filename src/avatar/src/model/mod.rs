@@ -85,9 +85,6 @@ pub use lbs::LbsOffsetsCache;
 pub use non_rigid::{FrameInputs, GaussianInputs, NonRigidCache, NonRigidOutput};
 pub use pose_refiner::PoseRefinerCache;
 
-/// The encoding of canonical positions shared by the non-rigid and LBS-offset networks.
-pub const POSITION_ENCODING: PositionalEncoding = PositionalEncoding::NERF_XYZ;
-
 /// Width of the heads layer: `d_xyz` (3), `d_rot` (4), `d_scale` (3).
 pub const HEAD_WIDTH: usize = 10;
 
