@@ -8,13 +8,14 @@
 //! Run: `cargo bench -p seqavatar-avatar --bench networks` (f32). `SEQAVATAR_BENCH_SIZES`
 //! (comma-separated Gaussian counts) and `SEQAVATAR_BENCH_REPEATS` change the defaults.
 //! `SEQAVATAR_BENCH_GPU=1` also times `GpuNetworks` on a hardware adapter (`=software` allows
-//! lavapipe); gpu times include the input uploads and output downloads of each call, with the
+//! lavapipe) as the device-resident step runs them: the recorded programs on device buffers
+//! (no upload or read-back), forward and backward each one submission waited for, with the
 //! networks at `precision: mixed` (the `networks:` line says which path that is).
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use seqavatar_avatar::model::gpu::GpuNetworks;
+use seqavatar_avatar::model::gpu::{GpuNetworks, NonRigidDeviceInputs};
 use seqavatar_compute::backend::{AdapterChoice, GpuContext};
 use seqavatar_compute::nn::gpu::MatmulPath;
 
@@ -75,6 +76,36 @@ fn bench_gpu_context() -> Option<Arc<GpuContext>> {
     }
 }
 
+/// Median milliseconds of the resident forward and backward over `repeats` after one warm-up:
+/// `record(encoder, backward)` records one of them, each submitted and waited for alone.
+fn time_resident(
+    context: &GpuContext,
+    repeats: usize,
+    mut record: impl FnMut(&mut wgpu::CommandEncoder, bool),
+) -> (f64, f64) {
+    let (mut forward, mut backward) = (Vec::new(), Vec::new());
+    for repeat in 0..=repeats {
+        for (backward_pass, times) in [(false, &mut forward), (true, &mut backward)] {
+            let start = Instant::now();
+            let mut encoder = context.encoder();
+            record(&mut encoder, backward_pass);
+            context.submit_and_wait(encoder).expect("gpu submission");
+            if repeat > 0 {
+                times.push(start.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+    }
+    (median(forward), median(backward))
+}
+
+/// A device buffer of `len` random values.
+fn device_random(context: &GpuContext, rng: &mut Rng, len: usize) -> wgpu::Buffer {
+    context
+        .upload("bench input", &random(rng, len))
+        .expect("upload")
+        .buffer
+}
+
 fn bench_non_rigid(
     context: MotionContext,
     n: usize,
@@ -124,24 +155,35 @@ fn bench_non_rigid(
     let Some(gpu_context) = gpu_context else {
         return;
     };
-    let gpu =
+    let mut gpu =
         GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
-    let (mut forward, mut backward) = (Vec::new(), Vec::new());
-    for repeat in 0..=repeats {
-        let start = Instant::now();
-        let (_, cache) = gpu
-            .non_rigid_forward(&frame, &gaussians)
-            .expect("gpu forward");
-        let middle = Instant::now();
-        gpu.non_rigid_backward(&cache, &d_xyz, &d_rot, &d_scale)
-            .expect("gpu backward");
-        let end = Instant::now();
-        if repeat > 0 {
-            forward.push((middle - start).as_secs_f64() * 1e3);
-            backward.push((end - middle).as_secs_f64() * 1e3);
+    let up = |rng: &mut Rng, len| device_random(gpu_context, rng, len);
+    let (pose, xyz) = (up(&mut rng, pose.len()), up(&mut rng, xyz.len()));
+    let skeleton = up(&mut rng, skeleton.len());
+    let velocity: Vec<wgpu::Buffer> = (0..config.sequence_length)
+        .map(|_| up(&mut rng, n * config.seq_xyz_row()))
+        .collect();
+    let velocity: Vec<&wgpu::Buffer> = velocity.iter().collect();
+    let d_heads = up(&mut rng, 10 * n);
+    let inputs = NonRigidDeviceInputs {
+        local_pose: &pose,
+        skeleton_motion: context.has_skeleton_motion().then_some(&skeleton),
+        xyz: &xyz,
+        knn_velocity: if context.has_velocity() {
+            &velocity
+        } else {
+            &[]
+        },
+    };
+    let (f, b) = time_resident(gpu_context, repeats, |encoder, backward| {
+        if backward {
+            gpu.record_non_rigid_backward(encoder, &d_heads)
+                .expect("gpu backward");
+        } else {
+            gpu.record_non_rigid_forward(encoder, n, &inputs)
+                .expect("gpu forward");
         }
-    }
-    let (f, b) = (median(forward), median(backward));
+    });
     println!(
         "  gpu: forward {f:.1} ms, backward {b:.1} ms, total {:.1} ms",
         f + b
@@ -162,8 +204,8 @@ fn time_ms(repeats: usize, mut run: impl FnMut()) -> f64 {
 }
 
 /// The LBS-offset network (63 -> 128 x 3, skip, -> 24), forward + backward: `cpu` f64 (the
-/// trainer's networks before they became f32), `cpu` f32 (as it trains), and `GpuNetworks` (uploads and
-/// downloads included, as `avatar::deform` pays them on the gpu backend).
+/// trainer's networks before they became f32), `cpu` f32 (as it trains), and the resident
+/// `GpuNetworks` (as the device-resident step runs them).
 fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     let config = paper_config(MotionContext::None);
     let mut rng = Rng::new(3);
@@ -187,20 +229,26 @@ fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuConte
     });
     print!("lbs offsets n = {n}: forward + backward cpu f64 {cpu64:.1} ms, cpu f32 {cpu32:.1} ms");
     if let Some(gpu_context) = gpu_context {
-        let gpu =
+        let mut gpu =
             GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
-        let on_gpu = time_ms(repeats, || {
-            let (_, cache) = gpu.lbs_offsets_forward(&xyz).expect("gpu forward");
-            gpu.lbs_offsets_backward(&cache, &d_offsets)
-                .expect("gpu backward");
+        let xyz = device_random(gpu_context, &mut rng, xyz.len());
+        let d_offsets = device_random(gpu_context, &mut rng, d_offsets.len());
+        let (f, b) = time_resident(gpu_context, repeats, |encoder, backward| {
+            if backward {
+                gpu.record_lbs_offsets_backward(encoder, &d_offsets)
+                    .expect("gpu backward");
+            } else {
+                gpu.record_lbs_offsets_forward(encoder, n, &xyz)
+                    .expect("gpu forward");
+            }
         });
-        print!(", gpu {on_gpu:.1} ms");
+        print!(", gpu {:.1} ms", f + b);
     }
     println!();
 }
 
-/// The pose refiner (one row per frame), forward + backward: `cpu` f64 against the gpu
-/// round trips; the reason it stays on `cpu` (see `avatar::deform`).
+/// The pose refiner (one row per frame), forward + backward: `cpu` f64 and the resident
+/// `GpuNetworks`.
 fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     let config = paper_config(MotionContext::None);
     let mut rng = Rng::new(4);
@@ -219,14 +267,20 @@ fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
     print!("pose refiner (one frame): forward + backward cpu f64 {cpu:.3} ms");
     if let Some(gpu_context) = gpu_context {
         let networks = Networks::<f32>::new(&config, 0).expect("paper config is valid");
-        let gpu =
+        let mut gpu =
             GpuNetworks::upload(gpu_context.clone(), &networks, Precision::Mixed).expect("upload");
-        let on_gpu = time_ms(repeats, || {
-            let (_, cache) = gpu.pose_refiner_forward(&pose).expect("gpu forward");
-            gpu.pose_refiner_backward(&cache, &d_rotations)
-                .expect("gpu backward");
+        let pose = device_random(gpu_context, &mut rng, pose.len());
+        let d_rotations = device_random(gpu_context, &mut rng, d_rotations.len());
+        let (f, b) = time_resident(gpu_context, repeats, |encoder, backward| {
+            if backward {
+                gpu.record_pose_refiner_backward(encoder, &d_rotations)
+                    .expect("gpu backward");
+            } else {
+                gpu.record_pose_refiner_forward(encoder, &pose)
+                    .expect("gpu forward");
+            }
         });
-        print!(", gpu {on_gpu:.3} ms");
+        print!(", gpu {:.3} ms", f + b);
     }
     println!();
 }

@@ -187,7 +187,7 @@ impl<S> Deformed<S> {
 pub fn splat_on(
     world: &WorldGaussians,
     camera: &Camera,
-    device: &dyn AvatarBackend,
+    device: &AvatarBackend,
     background: [f64; 3],
 ) -> anyhow::Result<RenderedImage<f64>> {
     let options = RasterOptions {
@@ -216,7 +216,7 @@ pub fn deform<S: NnScalar>(
     rig: &BodyRig,
     template_grid: &KnnGrid,
     networks: Option<&Networks<S>>,
-    device: &dyn AvatarBackend<S>,
+    device: &AvatarBackend,
     gaussians: &AvatarGaussians,
     inputs: &FrameInputs,
     pose: &FramePose,
@@ -329,7 +329,7 @@ pub fn deform<S: NnScalar>(
 #[allow(clippy::too_many_arguments)]
 pub fn deform_backward<S: NnScalar>(
     networks: &mut Networks<S>,
-    device: &dyn AvatarBackend<S>,
+    device: &AvatarBackend,
     rig: &BodyRig,
     posed: &PosedFrame<S>,
     deformed: &Deformed<S>,
@@ -411,17 +411,13 @@ impl TrainedAvatar {
 
     /// The host backend `backend` names ([`avatar_backend`]: `cpu`'s; the gpu renders a
     /// sequence on the device, `crate::sequence::SequenceRenderer`).
-    pub fn backend(&self, backend: Backend) -> anyhow::Result<Box<dyn AvatarBackend>> {
+    pub fn backend(&self, backend: Backend) -> anyhow::Result<AvatarBackend> {
         avatar_backend(backend).context("the avatar's host backend")
     }
 
     /// The deformed Gaussians of one frame (pose refiner, networks, skinning), the
     /// per-Gaussian networks on `device` (built by [`TrainedAvatar::backend`]).
-    pub fn deform(
-        &self,
-        inputs: &FrameInputs,
-        device: &dyn AvatarBackend,
-    ) -> anyhow::Result<Deformed> {
+    pub fn deform(&self, inputs: &FrameInputs, device: &AvatarBackend) -> anyhow::Result<Deformed> {
         let posed = frame_pose(&self.rig, self.networks.as_ref(), &inputs.params)?;
         deform(
             &self.rig,
@@ -452,7 +448,7 @@ impl TrainedAvatar {
         &self,
         inputs: &FrameInputs,
         camera: &Camera,
-        device: &dyn AvatarBackend,
+        device: &AvatarBackend,
     ) -> anyhow::Result<RenderedImage<f64>> {
         self.render_on(inputs, camera, device, self.background)
     }
@@ -462,7 +458,7 @@ impl TrainedAvatar {
         &self,
         inputs: &FrameInputs,
         camera: &Camera,
-        device: &dyn AvatarBackend,
+        device: &AvatarBackend,
         background: [f64; 3],
     ) -> anyhow::Result<RenderedImage<f64>> {
         let deformed = self.deform(inputs, device)?;
@@ -656,7 +652,7 @@ mod tests {
     }
 
     /// The `cpu` backend, as every caller builds it.
-    fn cpu<S: NnScalar>() -> Box<dyn AvatarBackend<S>> {
+    fn cpu() -> AvatarBackend {
         avatar_backend(Backend::select(DeviceChoice::Cpu).unwrap()).unwrap()
     }
 
@@ -671,7 +667,7 @@ mod tests {
             &s.rig,
             &s.grid,
             Some(networks),
-            &*cpu(),
+            &cpu(),
             &gaussians,
             &s.inputs,
             &posed.pose,
@@ -805,7 +801,7 @@ mod tests {
             &setup.rig,
             &setup.grid,
             Some(&networks),
-            &*device,
+            &device,
             &setup.gaussians,
             &setup.inputs,
             &posed.pose,
@@ -825,7 +821,7 @@ mod tests {
         networks.zero_grad();
         let through = deform_backward(
             &mut networks,
-            &*device,
+            &device,
             &setup.rig,
             &posed,
             &deformed,

@@ -107,70 +107,26 @@ pub struct NonRigidOffsets {
     pub d_scale: Vec<f64>,
 }
 
-/// What the host render and training paths ask of a backend; `S` is the scalar of the
-/// networks (the parameter master: f32 in production, f64 the oracle in tests). Built by
-/// [`avatar_backend`].
-pub trait AvatarBackend<S: NnScalar = f32>: Send + Sync {
-    /// The non-rigid network's forward pass.
-    fn non_rigid_forward(
-        &self,
-        networks: &Networks<S>,
-        inputs: &NonRigidInputs<'_>,
-    ) -> anyhow::Result<(NonRigidOffsets, NonRigidCache<S>)>;
-
-    /// The LBS-offset network's forward pass: offsets `N x J` of the centres `positions`.
-    fn lbs_offsets_forward(
-        &self,
-        networks: &Networks<S>,
-        positions: &[f64],
-    ) -> anyhow::Result<(Vec<f64>, LbsOffsetsCache<S>)>;
-
-    /// Backward of the per-Gaussian networks' forward passes (`non_rigid`, `lbs_offsets`:
-    /// those that ran) from the skinning's gradients: their parameter gradients accumulate
-    /// into `networks`' (the master), and the gradient of the canonical centres through the
-    /// non-rigid network is returned (zeros without one).
-    fn networks_backward(
-        &self,
-        networks: &mut Networks<S>,
-        non_rigid: Option<&NonRigidCache<S>>,
-        lbs_offsets: Option<&LbsOffsetsCache<S>>,
-        skin: &SkinningGrads,
-    ) -> anyhow::Result<Vec<f64>>;
-
-    /// Renders `gaussians` from `cameras`, keeping what the backward needs.
-    fn splat_forward(
-        &self,
-        gaussians: &WorldGaussians,
-        cameras: &[Camera],
-        options: &RasterOptions,
-    ) -> anyhow::Result<SplatPass>;
-
-    /// Gradients with respect to the Gaussians given to the forward of `pass` (the pass keeps
-    /// the f32 copy both backends splat).
-    fn splat_backward(
-        &self,
-        pass: &SplatPass,
-        colour: &[Vec<f64>],
-        alpha: &[Vec<f64>],
-    ) -> anyhow::Result<SplatGradients<f64>>;
-}
+/// What the host render and training paths ask of a backend, in plain Rust on `cpu`: the
+/// per-Gaussian networks in their scalar `S` (the parameter master: f32 in production, f64
+/// the oracle in tests), splatting in f32 on the lane path. Built by [`avatar_backend`].
+#[derive(Debug)]
+pub struct AvatarBackend(());
 
 /// The host backend of `backend`: `cpu`'s; the gpu has no host path (it trains and renders
 /// on the device). The one place the host path looks at which backend it is.
-pub fn avatar_backend<S: NnScalar>(backend: Backend) -> anyhow::Result<Box<dyn AvatarBackend<S>>> {
+pub fn avatar_backend(backend: Backend) -> anyhow::Result<AvatarBackend> {
     match backend {
-        Backend::Cpu => Ok(Box::new(CpuBackend)),
+        Backend::Cpu => Ok(AvatarBackend(())),
         Backend::Gpu(_) => {
             anyhow::bail!("the host path runs on `cpu`; on the gpu, frames run on the device")
         }
     }
 }
 
-/// Plain Rust: the networks in their scalar, splatting in f32 on the lane path.
-struct CpuBackend;
-
-impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
-    fn non_rigid_forward(
+impl AvatarBackend {
+    /// The non-rigid network's forward pass.
+    pub fn non_rigid_forward<S: NnScalar>(
         &self,
         networks: &Networks<S>,
         inputs: &NonRigidInputs<'_>,
@@ -199,7 +155,8 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
         ))
     }
 
-    fn lbs_offsets_forward(
+    /// The LBS-offset network's forward pass: offsets `N x J` of the centres `positions`.
+    pub fn lbs_offsets_forward<S: NnScalar>(
         &self,
         networks: &Networks<S>,
         positions: &[f64],
@@ -208,7 +165,11 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
         Ok((to_f64(&offsets), cache))
     }
 
-    fn networks_backward(
+    /// Backward of the per-Gaussian networks' forward passes (`non_rigid`, `lbs_offsets`:
+    /// those that ran) from the skinning's gradients: their parameter gradients accumulate
+    /// into `networks`' (the master), and the gradient of the canonical centres through the
+    /// non-rigid network is returned (zeros without one).
+    pub fn networks_backward<S: NnScalar>(
         &self,
         networks: &mut Networks<S>,
         non_rigid: Option<&NonRigidCache<S>>,
@@ -230,7 +191,8 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
         Ok(through)
     }
 
-    fn splat_forward(
+    /// Renders `gaussians` from `cameras`, keeping what the backward needs.
+    pub fn splat_forward(
         &self,
         gaussians: &WorldGaussians,
         cameras: &[Camera],
@@ -239,7 +201,9 @@ impl<S: NnScalar> AvatarBackend<S> for CpuBackend {
         splatting::forward_cpu(gaussians, cameras, options)
     }
 
-    fn splat_backward(
+    /// Gradients with respect to the Gaussians given to the forward of `pass` (the pass keeps
+    /// the f32 copy it splatted).
+    pub fn splat_backward(
         &self,
         pass: &SplatPass,
         colour: &[Vec<f64>],

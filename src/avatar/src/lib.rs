@@ -5,8 +5,8 @@
 //! - [`config`]: [`AvatarConfig`], the part of the training configuration rendering needs,
 //!   and the enums it shares with the train config (motion context, background).
 //! - [`avatar`]: the trained avatar, its entry arrays and its render path.
-//! - [`device`]: [`device::AvatarBackend`], the backend the render and training paths run
-//!   on, chosen once ([`device::avatar_backend`]): networks and splatting on `cpu` or `gpu`.
+//! - [`device`]: [`device::AvatarBackend`], the host render and training paths' networks and
+//!   splatting on `cpu`, built once ([`device::avatar_backend`]).
 //! - [`model`]: the SeqAvatar networks (non-rigid with motion context, pose refiner, LBS
 //!   offsets) on `cpu` and `gpu`.
 //! - [`rig`]: canonical and per-frame skinning targets from the body model.

@@ -331,8 +331,8 @@ mod tests {
         let device = avatar
             .backend(Backend::select(DeviceChoice::Cpu).unwrap())
             .unwrap();
-        let rendered = avatar.render(&inputs, &camera, &*device).unwrap();
-        let deformed = avatar.deform(&inputs, &*device).unwrap();
+        let rendered = avatar.render(&inputs, &camera, &device).unwrap();
+        let deformed = avatar.deform(&inputs, &device).unwrap();
         let cloud = posed_cloud(&deformed.world, &avatar.gaussians.opacity_logit).unwrap();
         let back = read_ply(&write_ply(&cloud).unwrap()).unwrap();
         let world = cloud_to_world(&back).unwrap();

@@ -223,7 +223,7 @@ impl Frames {
 
 /// The `cpu` path: frame inputs on the host, the avatar's backend for networks and splatting.
 struct HostPath {
-    device: Box<dyn AvatarBackend>,
+    device: AvatarBackend,
     /// The last deformed frame, with its frame and history: eval renders every camera of a
     /// frame in turn and the viewer re-renders a paused frame from new views, and on `cpu`
     /// the deformation (the per-Gaussian networks) is most of a frame's cost. Valid because
@@ -245,7 +245,7 @@ impl HostPath {
         if !cached {
             self.last_deformed = None;
             let inputs = frames.inputs(avatar, frame, history)?;
-            let world = avatar.deform(&inputs, &*self.device)?.world;
+            let world = avatar.deform(&inputs, &self.device)?.world;
             self.deformations += 1;
             self.last_deformed = Some((frame, history, world));
         }
@@ -269,7 +269,7 @@ impl FramePath for HostPath {
         let Some((_, _, world)) = &self.last_deformed else {
             unreachable!("deformed above")
         };
-        splat_on(world, camera, &*self.device, background)
+        splat_on(world, camera, &self.device, background)
     }
 
     fn deform(

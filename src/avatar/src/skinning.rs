@@ -122,19 +122,6 @@ fn sym_grad_from_upper(g: &[f64]) -> DMat3 {
     sym_from_upper(&[g[0], 0.5 * g[1], 0.5 * g[2], g[3], 0.5 * g[4], g[5]])
 }
 
-/// Upper-triangle gradient of a full-matrix gradient of a symmetric argument.
-fn upper_grad_from_full(g: &DMat3) -> [f64; 6] {
-    let s = (*g + g.transpose()) * 0.5;
-    [
-        entry(&s, 0, 0),
-        2.0 * entry(&s, 0, 1),
-        2.0 * entry(&s, 0, 2),
-        entry(&s, 1, 1),
-        2.0 * entry(&s, 1, 2),
-        entry(&s, 2, 2),
-    ]
-}
-
 /// Hamilton product `a (x) b` of `[w, x, y, z]` quaternions.
 pub fn quat_mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
     let qa = DQuat::from_xyzw(a[1], a[2], a[3], a[0]);
@@ -518,11 +505,6 @@ pub fn canonical_covariances(log_scales: &[f64], rotations: &[f64]) -> Vec<f64> 
         .collect()
 }
 
-/// Upper-triangle gradient helper exposed for callers that build full-matrix gradients.
-pub fn symmetric_upper_gradient(g: &DMat3) -> [f64; 6] {
-    upper_grad_from_full(g)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -821,10 +803,22 @@ mod tests {
         assert_eq!(dr, [0.0; 4]);
     }
 
+    /// Upper-triangle gradient of a full-matrix gradient of a symmetric argument.
+    fn upper_grad_from_full(g: &DMat3) -> [f64; 6] {
+        let s = (*g + g.transpose()) * 0.5;
+        [
+            entry(&s, 0, 0),
+            2.0 * entry(&s, 0, 1),
+            2.0 * entry(&s, 0, 2),
+            entry(&s, 1, 1),
+            2.0 * entry(&s, 1, 2),
+            entry(&s, 2, 2),
+        ]
+    }
+
     #[test]
     fn upper_gradient_conventions_round_trip() {
         let g = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
         assert_eq!(upper_grad_from_full(&sym_grad_from_upper(&g)), g);
-        assert_eq!(symmetric_upper_gradient(&sym_grad_from_upper(&g)), g);
     }
 }

@@ -198,7 +198,7 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
         .unwrap();
     let camera = &data.cameras[record.view];
     let device = avatar.backend(cpu_backend()).unwrap();
-    let direct = avatar.render(&inputs, camera, &*device).unwrap();
+    let direct = avatar.render(&inputs, camera, &device).unwrap();
     assert!(direct.alpha.iter().any(|a| *a > 0.5), "the body is visible");
 
     // The same 5 iterations as a stage: its entry loads and renders identically.
@@ -209,7 +209,7 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
     assert_eq!(loaded.config, avatar.config);
     assert_eq!(loaded.sh_degree, avatar.sh_degree);
     let again = loaded
-        .render(&inputs, camera, &*loaded.backend(cpu_backend()).unwrap())
+        .render(&inputs, camera, &loaded.backend(cpu_backend()).unwrap())
         .unwrap();
     assert_eq!(again.colour, direct.colour);
     assert_eq!(again.alpha, direct.alpha);
@@ -300,7 +300,7 @@ fn initial_offsets(data: &TrainingData, config: &TrainConfig) -> (f64, f64) {
         &avatar.rig,
         &grid,
         networks,
-        &*avatar.backend(cpu_backend()).unwrap(),
+        &avatar.backend(cpu_backend()).unwrap(),
         &avatar.gaussians,
         &inputs,
         &posed.pose,
@@ -706,7 +706,7 @@ fn resident_training_matches_cpu_held_out_psnr() {
                 let camera = &data.cameras[record.view];
                 let background = seqavatar_avatar::config::PROTOCOL_BACKGROUND;
                 let image = avatar
-                    .render_on(&inputs, camera, &*device, background)
+                    .render_on(&inputs, camera, &device, background)
                     .unwrap();
                 let (w, h) = (camera.width as usize, camera.height as usize);
                 let bound = record

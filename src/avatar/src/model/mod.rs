@@ -35,7 +35,7 @@
 //! [`spec::NetworkSpec::pose_refiner`], [`spec::NetworkSpec::lbs_offsets`]: input blocks,
 //! layers with what they read, widths, activations, initialisation), and run by one forward
 //! and one backward per backend: [`network::Network`] on `cpu` (generic over f32/f64) and
-//! [`gpu::GpuNetworks`] on the `nn` kernels. Adding an input block or a layer is a change to
+//! [`gpu::GpuNetworks`]' resident programs on the `nn` kernels. Adding an input block or a layer is a change to
 //! the description (and, for an input, to the caller that supplies it).
 //!
 //! [`NetworkConfig::motion_context`] decides which blocks exist: `none` has no non-rigid
@@ -61,8 +61,8 @@
 //! - [`Networks::lbs_offsets_forward`] / [`Networks::lbs_offsets_backward`]: positions to
 //!   `n x J` offsets (input detached), plus [`lbs::blend_weights`] /
 //!   [`lbs::blend_weights_backward`].
-//! - [`gpu::GpuNetworks`]: the f32 twin on wgpu (same forward/backward, parameter and
-//!   gradient upload/download, buffers for Adam on the device).
+//! - [`gpu::GpuNetworks`]: the f32 twin on wgpu, resident: forward, backward and Adam
+//!   recorded on device buffers; parameters up once, back with their Adam moments.
 
 pub mod dense;
 pub mod gpu;
@@ -84,9 +84,6 @@ use spec::NetworkSpec;
 pub use lbs::LbsOffsetsCache;
 pub use non_rigid::{FrameInputs, GaussianInputs, NonRigidCache, NonRigidOutput};
 pub use pose_refiner::PoseRefinerCache;
-
-/// The encoding of canonical positions shared by the non-rigid and LBS-offset networks.
-pub const POSITION_ENCODING: PositionalEncoding = PositionalEncoding::NERF_XYZ;
 
 /// Width of the heads layer: `d_xyz` (3), `d_rot` (4), `d_scale` (3).
 pub const HEAD_WIDTH: usize = 10;

@@ -47,8 +47,7 @@ const BLEND_ROWS: usize = 128;
 const NO_PARENT: u32 = u32::MAX;
 
 /// Counters of non-finite values the kernels found, in the status buffer
-/// ([`ResidentPose::status`]), `u32` each: they accumulate until
-/// [`ResidentPose::clear_status`].
+/// ([`ResidentPose::status`]), `u32` each: they accumulate (a run stops at the first).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PoseStatus {
     /// Non-finite values written to the target joints.
@@ -424,11 +423,6 @@ impl ResidentPose {
         &self.status
     }
 
-    /// Records the clearing of the status counters.
-    pub fn clear_status(&self, encoder: &mut wgpu::CommandEncoder) {
-        encoder.clear_buffer(&self.status.buffer, 0, None);
-    }
-
     fn check_len(what: &str, buffer: &GpuBuffer, expected: usize) -> anyhow::Result<()> {
         anyhow::ensure!(
             buffer.len == expected,
@@ -531,29 +525,6 @@ impl ResidentPose {
             1,
         );
         Ok(())
-    }
-
-    /// Reads the target joints and vertex offsets back (tests, debugging): one round trip.
-    pub fn download_pose(&self) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
-        let mut values = self.context.download_all::<f32>(
-            self.context.encoder(),
-            &[
-                (&self.target_joints.buffer, self.target_joints.len),
-                (&self.vertex_offsets.buffer, self.vertex_offsets.len),
-            ],
-        )?;
-        let offsets = values.pop().unwrap_or_default();
-        let joints = values.pop().unwrap_or_default();
-        Ok((joints, offsets))
-    }
-
-    /// Reads `dL/dR_ref` back, `(J - 1) x 9` (tests, debugging): one round trip.
-    pub fn download_refinement_gradients(&self) -> anyhow::Result<Vec<f32>> {
-        Ok(self.context.download(
-            self.context.encoder(),
-            &self.refinement_gradients.buffer,
-            self.refinement_gradients.len,
-        )?)
     }
 
     /// Reads the refined rotations `R'_j` and their gradients `dL/dR'_j` of the last forward

@@ -23,8 +23,6 @@
 
 use std::sync::Mutex;
 
-use wgpu::util::DeviceExt;
-
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
 use super::linear::{Activation, LinearShape};
@@ -1257,34 +1255,11 @@ impl NnGpu {
         Ok(())
     }
 
-    /// Records one Adam update of `len` values at rate `lr`, `t` being the 1-based index of
-    /// this update (the `cpu` twin is [`adam_update`](super::adam::adam_update)). The step
-    /// factors go to the device in a small buffer created by the call; a resident step uses
-    /// [`NnGpu::adam_update_from_record`] with a record it writes once per iteration.
-    pub fn adam_update(
-        &self,
-        encoder: &mut impl Record,
-        config: &AdamConfig,
-        lr: f64,
-        t: u64,
-        values: GpuAdamValues<'_>,
-    ) -> Result<(), NnError> {
-        config.validate()?;
-        let factors = adam_factors_record(&[AdamStepFactors::new(config, lr, t)]);
-        let factors = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("adam factors"),
-                contents: bytemuck::cast_slice(&factors),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
-        self.adam_update_from_record(encoder, config, (&factors, 0), values)
-    }
-
     /// Records one Adam update of `len` values whose step factors are read on the device
     /// from `record.0` at slot `record.1` (`[step_size, correction]` at f32 index
-    /// `2 slot`, as [`adam_factors_record`] lays them out). Recorded into a [`NnProgram`],
-    /// the update replays every iteration while the host rewrites only the record.
+    /// `2 slot`, as [`adam_factors_record`] lays them out; the `cpu` twin is
+    /// [`adam_update`](super::adam::adam_update)). Recorded into a [`NnProgram`], the update
+    /// replays every iteration while the host rewrites only the record.
     pub fn adam_update_from_record(
         &self,
         encoder: &mut impl Record,
@@ -1538,6 +1513,21 @@ mod tests {
         context.upload("nn test", data).unwrap().buffer
     }
 
+    /// One Adam update at rate `lr`, `t` being its 1-based index, from a record of its own.
+    fn adam_step(
+        context: &GpuContext,
+        nn: &NnGpu,
+        encoder: &mut wgpu::CommandEncoder,
+        config: &AdamConfig,
+        (lr, t): (f64, u64),
+        values: GpuAdamValues<'_>,
+    ) {
+        let factors = adam_factors_record(&[AdamStepFactors::new(config, lr, t)]);
+        let record = upload(context, &factors);
+        nn.adam_update_from_record(encoder, config, (&record, 0), values)
+            .unwrap();
+    }
+
     fn download(
         context: &GpuContext,
         encoder: wgpu::CommandEncoder,
@@ -1771,11 +1761,12 @@ mod tests {
             adam_update(&config, lr, &mut params, &grads, &mut state).unwrap();
             let g_grads = upload(&context, &grads);
             let mut encoder = context.encoder();
-            nn.adam_update(
+            adam_step(
+                &context,
+                &nn,
                 &mut encoder,
                 &config,
-                lr,
-                step,
+                (lr, step),
                 GpuAdamValues {
                     params: &g_params,
                     grads: &g_grads,
@@ -1783,8 +1774,7 @@ mod tests {
                     second_moment: &g_v,
                     len,
                 },
-            )
-            .unwrap();
+            );
             context.submit_and_wait(encoder).unwrap();
         }
         assert_close(
@@ -2099,11 +2089,12 @@ mod tests {
                 let lr = 1e-2;
                 let t = step as u64;
                 let len = shape.weight_len();
-                nn.adam_update(
+                adam_step(
+                    context,
+                    nn,
                     &mut encoder,
                     &config,
-                    lr,
-                    t,
+                    (lr, t),
                     GpuAdamValues {
                         params: weight,
                         grads: d_weight,
@@ -2111,14 +2102,14 @@ mod tests {
                         second_moment: v_w,
                         len,
                     },
-                )
-                .unwrap();
+                );
                 let len = shape.out_features;
-                nn.adam_update(
+                adam_step(
+                    context,
+                    nn,
                     &mut encoder,
                     &config,
-                    lr,
-                    t,
+                    (lr, t),
                     GpuAdamValues {
                         params: bias,
                         grads: d_bias,
@@ -2126,8 +2117,7 @@ mod tests {
                         second_moment: v_b,
                         len,
                     },
-                )
-                .unwrap();
+                );
             }
             context.submit_and_wait(encoder).unwrap();
         }

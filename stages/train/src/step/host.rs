@@ -93,7 +93,7 @@ impl Gradients {
 /// phases keep between iterations.
 pub(crate) struct HostStep {
     /// The backend every phase runs on.
-    device: Box<dyn AvatarBackend>,
+    device: AvatarBackend,
     template_grid: KnnGrid,
     /// The AIAP loss's canonical neighbour lists, kept between iterations (exact every
     /// iteration; not checkpointed: a resumed run rebuilds them on its first step).
@@ -190,7 +190,7 @@ impl HostStep {
             &run.data.rig,
             &self.template_grid,
             run.networks.as_ref(),
-            &*self.device,
+            &self.device,
             &gaussians,
             &inputs,
             &posed.pose,
@@ -395,7 +395,7 @@ impl HostStep {
         if let Some(net) = run.networks.as_mut() {
             let through = deform_backward(
                 net,
-                &*self.device,
+                &self.device,
                 &run.data.rig,
                 &forward.posed,
                 deformed,

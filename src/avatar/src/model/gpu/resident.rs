@@ -491,8 +491,8 @@ impl GpuNetworks {
     /// `inputs[i]` are the blocks of the description's input `i` (one buffer, or `L` buffers
     /// of `n x width` for a per-Gaussian-window input), each holding at least its rows x
     /// width f32 values in the `cpu` layout. The output (the output layer's `rows x out`
-    /// values; for the pose refiner the `(J - 1) x 9` row-major matrices) stays in a buffer
-    /// of the networks ([`GpuNetworks::resident_output`]). Reallocates the workspace only
+    /// values; for the pose refiner the `(J - 1) x 9` row-major matrices), returned, stays in
+    /// a buffer of the networks. Reallocates the workspace only
     /// when `n` exceeds its capacity, and rebuilds the programs only when `n` changed.
     pub fn record_forward(
         &mut self,
@@ -609,17 +609,6 @@ impl GpuNetworks {
         }
         work.backward.replay(encoder);
         Ok(())
-    }
-
-    /// The device output of the last resident forward of `group` (see
-    /// [`GpuNetworks::record_forward`]), or `None` before the first.
-    pub fn resident_output(&self, group: NetworkGroup) -> Option<&wgpu::Buffer> {
-        let work = self.resident[group_index(group)].as_ref()?;
-        let spec = &self.resident_net(group).ok()?.spec;
-        Some(match &work.rotations {
-            Some([rotations, _]) => rotations,
-            None => &work.outputs[spec.output][0],
-        })
     }
 
     /// The device gradient of input `input` of `group` (its raw `rows x width` layout) written
@@ -827,8 +816,8 @@ impl GpuNetworks {
     /// Reads the non-finite flags of the device Adam (one read-back, for the logging
     /// iterations): the first parameter array, in [`GpuNetworks::parameters`] order, whose
     /// gradient (checked before the update) or values (after it) held a NaN or an infinity
-    /// since the flags were last cleared ([`GpuNetworks::record_clear_non_finite`]), with the
-    /// first bad index; `None` when all were finite or no update ran.
+    /// since the first update (the flags are never cleared: a run stops at a divergence), with
+    /// the first bad index; `None` when all were finite or no update ran.
     pub fn download_non_finite(&self) -> Result<Option<NetworkNonFinite>, ModelError> {
         let Some(adam) = &self.adam else {
             return Ok(None);
@@ -852,22 +841,10 @@ impl GpuNetworks {
         Ok(None)
     }
 
-    /// Records the clearing of the non-finite flags of the device Adam.
-    pub fn record_clear_non_finite(&self, encoder: &mut wgpu::CommandEncoder) {
-        if let Some(adam) = &self.adam {
-            encoder.clear_buffer(&adam.status, 0, None);
-        }
-    }
-
     /// How many resident programs were built so far (a steady-state iteration builds none).
     pub fn resident_programs_built(&self) -> usize {
         self.programs_built
             .load(std::sync::atomic::Ordering::Relaxed)
-    }
-
-    /// Updates applied by [`GpuNetworks::record_adam`] so far.
-    pub fn adam_step(&self) -> u64 {
-        self.adam.as_ref().map_or(0, |adam| adam.step)
     }
 
     /// Downloads the device Adam moments, by parameter name, as the `cpu` trainer keeps them

@@ -16,6 +16,36 @@ use seqavatar_core::rotation::axis_angle_to_matrix;
 use super::ResidentPose;
 use crate::rig::{BodyRig, refine_pose};
 
+/// Read-backs of the workspace (one round trip each) and the clearing of the status.
+impl ResidentPose {
+    /// Reads the target joints and vertex offsets back: one round trip.
+    fn download_pose(&self) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+        let mut values = self.context.download_all::<f32>(
+            self.context.encoder(),
+            &[
+                (&self.target_joints.buffer, self.target_joints.len),
+                (&self.vertex_offsets.buffer, self.vertex_offsets.len),
+            ],
+        )?;
+        let offsets = values.pop().unwrap_or_default();
+        let joints = values.pop().unwrap_or_default();
+        Ok((joints, offsets))
+    }
+
+    /// Reads `dL/dR_ref` back, `(J - 1) x 9`: one round trip.
+    fn download_refinement_gradients(&self) -> anyhow::Result<Vec<f32>> {
+        Ok(self.context.download(
+            self.context.encoder(),
+            &self.refinement_gradients.buffer,
+            self.refinement_gradients.len,
+        )?)
+    }
+
+    fn clear_status(&self, encoder: &mut wgpu::CommandEncoder) {
+        encoder.clear_buffer(&self.status.buffer, 0, None);
+    }
+}
+
 /// `model` with random pose blend shapes (the procedural body has none).
 fn with_pose_dirs(model: &BodyModel, seed: u64) -> BodyModel {
     let mut arrays = model.arrays().clone();
