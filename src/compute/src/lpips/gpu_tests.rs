@@ -9,7 +9,9 @@ use std::sync::Arc;
 use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
 use crate::backend::{GpuBuffer, GpuContext};
 
-use super::gpu::{ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape};
+use super::gpu::{
+    Call, ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape, Slot, Workspace,
+};
 use super::*;
 
 /// Deterministic values in [-1, 1).
@@ -32,23 +34,32 @@ fn dot(a: &[f32], b: &[f32]) -> (f64, f64) {
     (sum, magnitude)
 }
 
-/// Records work with `record`, then downloads `target`.
+/// Records `calls` on `workspace` with `lpips` (whose weights they bind), then downloads
+/// `target`.
 fn run_and_read(
     context: &GpuContext,
+    lpips: &GpuLpips,
+    workspace: &Workspace,
+    calls: &[Call],
     target: &GpuBuffer,
-    record: impl FnOnce(&mut wgpu::CommandEncoder),
 ) -> Vec<f32> {
     let mut encoder = context.encoder();
-    record(&mut encoder);
+    lpips.record(&mut encoder, workspace, calls, None).unwrap();
     context
         .download(encoder, &target.buffer, target.len)
         .unwrap()
 }
 
-/// A GpuLpips whose kernels the op tests drive with their own buffers (the small AlexNet
-/// weights are uploaded but unused by those tests).
-fn lpips_on(context: &Arc<GpuContext>) -> GpuLpips {
-    GpuLpips::new(context.clone(), &seeded::seeded_weights(LpipsNet::Alex, 1)).unwrap()
+/// A GpuLpips holding the op tests' weights: `convs` and `lins` (the net is a label only).
+fn lpips_with(context: &Arc<GpuContext>, convs: Vec<ConvWeights>, lins: Vec<Vec<f32>>) -> GpuLpips {
+    let weights = LpipsWeights {
+        net: LpipsNet::Alex,
+        convs,
+        lins,
+        shift: [0.0; 3],
+        scale: [1.0; 3],
+    };
+    GpuLpips::new(context.clone(), &weights).unwrap()
 }
 
 /// Host f64 transposed convolution as a scatter (the opposite loop order of the kernel's
@@ -107,7 +118,6 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
     // AlexNet's first layer (k11 s4 p2), VGG's 3x3, AlexNet's 5x5 p2, a stride-2 3x3, and
     // more than four input channels with a partial last group of four.
     for (in_channels, out_channels, kernel, stride, padding, height, width) in [
@@ -147,36 +157,40 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
         let weight = values(out_channels * in_channels * kernel * kernel, 11);
         let bias: Vec<f32> = values(out_channels, 12).iter().map(|b| 0.3 * b).collect();
         let upstream = values(2 * out_len, 13);
-        let input_buffer = context.upload("x", &input).unwrap();
-        let weight_buffer = context.upload("w", &weight).unwrap();
-        let bias_buffer = context.upload("b", &bias).unwrap();
-        let output = context.zeros("y", 4 * out_len, 4).unwrap();
-        let upstream_buffer = context.upload("g", &upstream).unwrap();
-        let target = context.zeros("dx", 2 * in_len, 4).unwrap();
-        let forward = run_and_read(&context, &output, |encoder| {
-            lpips
-                .record_conv(
-                    encoder,
-                    forward_shape,
-                    &input_buffer,
-                    &weight_buffer,
-                    &bias_buffer,
-                    &output,
-                )
-                .unwrap();
-        });
-        let gradient = run_and_read(&context, &target, |encoder| {
-            lpips
-                .record_conv_backward(
-                    encoder,
-                    shape,
-                    &output,
-                    &upstream_buffer,
-                    &weight_buffer,
-                    &target,
-                )
-                .unwrap();
-        });
+        let conv = ConvWeights {
+            spec,
+            weight: weight.clone(),
+            bias: bias.clone(),
+        };
+        let lpips = lpips_with(&context, vec![conv], Vec::new());
+        // Activation 0 into 1 forward; gradient 0 (masked in place) into 1 backward.
+        let workspace = Workspace {
+            activations: vec![
+                context.upload("x", &input).unwrap(),
+                context.zeros("y", 4 * out_len, 4).unwrap(),
+            ],
+            gradients: [
+                context.upload("g", &upstream).unwrap(),
+                context.zeros("dx", 2 * in_len, 4).unwrap(),
+            ],
+            maps: Vec::new(),
+        };
+        let calls = [Call::conv(forward_shape, 0, 0).unwrap()];
+        let forward = run_and_read(
+            &context,
+            &lpips,
+            &workspace,
+            &calls,
+            &workspace.activations[1],
+        );
+        let calls = Call::conv_backward(shape, 0, 1, 0).unwrap();
+        let gradient = run_and_read(
+            &context,
+            &lpips,
+            &workspace,
+            &calls,
+            &workspace.gradients[1],
+        );
         // The Jacobian of relu(conv(x) + b) at x is J = M conv with the mask M = [out > 0],
         // so J x = out - M b and <J x, g> must equal <x, J^T g> = <x, gradient>.
         let out_pixels = forward_shape.out_height * forward_shape.out_width;
@@ -255,7 +269,7 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
+    let lpips = lpips_with(&context, Vec::new(), Vec::new());
     // VGG's 2/2 and AlexNet's overlapping 3/2, with sizes floor mode truncates.
     for (kernel, stride, height, width) in [(2, 2, 7, 9), (3, 2, 9, 11), (3, 2, 8, 8)] {
         let forward_shape = PoolShape {
@@ -279,20 +293,33 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
             .map(|u| (u * 3.0).floor() as f32)
             .collect();
         let upstream = values(3 * out_plane, 31);
-        let input_buffer = context.upload("x", &input).unwrap();
-        let output = context.zeros("y", 6 * out_plane, 4).unwrap();
-        let upstream_buffer = context.upload("g", &upstream).unwrap();
-        let target = context.zeros("dx", 3 * plane, 4).unwrap();
-        let pooled = run_and_read(&context, &output, |encoder| {
-            lpips
-                .record_max_pool(encoder, forward_shape, &input_buffer, &output)
-                .unwrap();
-        });
-        let gradient = run_and_read(&context, &target, |encoder| {
-            lpips
-                .record_max_pool_backward(encoder, shape, &input_buffer, &upstream_buffer, &target)
-                .unwrap();
-        });
+        let workspace = Workspace {
+            activations: vec![
+                context.upload("x", &input).unwrap(),
+                context.zeros("y", 6 * out_plane, 4).unwrap(),
+            ],
+            gradients: [
+                context.upload("g", &upstream).unwrap(),
+                context.zeros("dx", 3 * plane, 4).unwrap(),
+            ],
+            maps: Vec::new(),
+        };
+        let calls = [Call::pool(forward_shape, 0).unwrap()];
+        let pooled = run_and_read(
+            &context,
+            &lpips,
+            &workspace,
+            &calls,
+            &workspace.activations[1],
+        );
+        let calls = [Call::pool_backward(shape, 0, 0).unwrap()];
+        let gradient = run_and_read(
+            &context,
+            &lpips,
+            &workspace,
+            &calls,
+            &workspace.gradients[1],
+        );
         // The pool is positively homogeneous, so J x = pool(x): <pool(x), g> = <x, J^T g>.
         let (left, magnitude) = dot(&pooled[..3 * out_plane], &upstream);
         let (right, _) = dot(&input[..3 * plane], &gradient);
@@ -326,7 +353,6 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
     let (pairs, channels, height, width) = (2, 5, 2, 3);
     let pixels = height * width;
     let mut features: Vec<f32> = values(2 * pairs * channels * pixels, 40)
@@ -348,21 +374,24 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
         .collect();
     // The kernel accumulates: start from a known gradient.
     let prior = values(pairs * channels * pixels, 42);
-    let feature_buffer = context.upload("f", &features).unwrap();
-    let lin_buffer = context.upload("lin", &lin).unwrap();
-    let target = context.upload("grad", &prior).unwrap();
-    let gradient = run_and_read(&context, &target, |encoder| {
-        lpips
-            .record_distance_backward(
-                encoder,
-                pairs,
-                [channels, height, width],
-                &feature_buffer,
-                &lin_buffer,
-                &target,
-            )
-            .unwrap();
-    });
+    let lpips = lpips_with(&context, Vec::new(), vec![lin.clone()]);
+    let workspace = Workspace {
+        activations: vec![context.upload("f", &features).unwrap()],
+        gradients: [
+            context.upload("grad", &prior).unwrap(),
+            context.zeros("unused", 1, 4).unwrap(),
+        ],
+        maps: Vec::new(),
+    };
+    let size = [channels, height, width];
+    let calls = [Call::distance(pairs, size, 0, 0, Slot::Gradient(0)).unwrap()];
+    let gradient = run_and_read(
+        &context,
+        &lpips,
+        &workspace,
+        &calls,
+        &workspace.gradients[0],
+    );
     assert!(gradient.iter().all(|g| g.is_finite()), "{gradient:?}");
     for pair in 0..pairs {
         for pixel in 0..pixels {
