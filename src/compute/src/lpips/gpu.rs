@@ -481,6 +481,9 @@ impl Workspace {
 pub struct GpuLpips {
     context: Arc<GpuContext>,
     net: LpipsNet,
+    /// The weights' input normalisation (the resident path applies it on the device).
+    shift: [f32; 3],
+    scale: [f32; 3],
     /// Per convolution: (weight, bias).
     convs: Vec<(GpuBuffer, GpuBuffer)>,
     lins: Vec<GpuBuffer>,
@@ -515,6 +518,8 @@ impl GpuLpips {
         Ok(Self {
             context,
             net: weights.net,
+            shift: weights.shift,
+            scale: weights.scale,
             convs,
             lins,
         })
@@ -840,11 +845,8 @@ struct ResidentSlot {
 /// 29 for AlexNet, 1504 bytes), since the crop's shape changes from call to call (computing
 /// them on the device from the crop's size would remove all but the first 112 bytes).
 pub struct ResidentLpips {
-    context: Arc<GpuContext>,
-    net: LpipsNet,
+    trunk: GpuLpips,
     input: super::LpipsInput,
-    shift: [f32; 3],
-    scale: [f32; 3],
     max_height: usize,
     max_width: usize,
     workspace: Workspace,
@@ -852,25 +854,15 @@ pub struct ResidentLpips {
 }
 
 impl GpuLpips {
-    /// A resident workspace for crops of at most `max_height x max_width` and `cameras`
-    /// calls per submission (one slot each), feeding images through `input`.
+    /// This trunk with a resident workspace for crops of at most `max_height x max_width` and
+    /// `cameras` calls per submission (one slot each), feeding images through `input`.
     pub fn resident(
-        &self,
-        weights: &LpipsWeights,
+        self,
         input: super::LpipsInput,
         max_height: usize,
         max_width: usize,
         cameras: usize,
     ) -> Result<ResidentLpips, LpipsError> {
-        if weights.net != self.net {
-            return Err(LpipsError::Input {
-                message: format!(
-                    "resident LPIPS: weights of {} for a {} trunk",
-                    weights.net.name(),
-                    self.net.name()
-                ),
-            });
-        }
         let plan = Plan::new(self.net, 1, max_height, max_width)?;
         let context = &self.context;
         let calls = plan.calls.len();
@@ -895,14 +887,11 @@ impl GpuLpips {
             context.kernel(&source(kernel))?;
         }
         Ok(ResidentLpips {
-            context: context.clone(),
-            net: self.net,
+            workspace: Workspace::new(context, &plan)?,
+            trunk: self,
             input,
-            shift: weights.shift,
-            scale: weights.scale,
             max_height,
             max_width,
-            workspace: Workspace::new(context, &plan)?,
             slots,
         })
     }
@@ -924,7 +913,6 @@ impl ResidentLpips {
     /// with respect to the render added into `gradient` (same layout as `render`) on the crop.
     pub fn record(
         &self,
-        gpu: &GpuLpips,
         encoder: &mut wgpu::CommandEncoder,
         slot: usize,
         CropPair {
@@ -942,11 +930,6 @@ impl ResidentLpips {
                 self.slots.len()
             ))
         })?;
-        if gpu.net != self.net {
-            return Err(input_error(
-                "resident LPIPS: another trunk's workspace".to_owned(),
-            ));
-        }
         if crop.height > self.max_height || crop.width > self.max_width {
             return Err(input_error(format!(
                 "resident LPIPS: a {} x {} crop exceeds the workspace's {} x {}",
@@ -978,7 +961,8 @@ impl ResidentLpips {
                 3 * (render.offset + render.width * render.height)
             )));
         }
-        let plan = Plan::new(self.net, 1, crop.height, crop.width)?;
+        let gpu = &self.trunk;
+        let plan = Plan::new(gpu.net, 1, crop.height, crop.width)?;
         let mut layer_pixels = [[0_u32; 4]; 2];
         for (layer, &pixels) in plan.maps.iter().enumerate() {
             layer_pixels[layer / 4][layer % 4] = to_u32("layer pixels", pixels)?;
@@ -995,8 +979,8 @@ impl ResidentLpips {
             gradient_factor: factor,
             signed_mapping: u32::from(self.input == super::LpipsInput::Unit),
             pad: [0; 2],
-            shift: [self.shift[0], self.shift[1], self.shift[2], 0.0],
-            scale: [self.scale[0], self.scale[1], self.scale[2], 1.0],
+            shift: [gpu.shift[0], gpu.shift[1], gpu.shift[2], 0.0],
+            scale: [gpu.scale[0], gpu.scale[1], gpu.scale[2], 1.0],
             layer_pixels,
         };
         // The call's record: one write, then device copies into the uniforms.
@@ -1004,7 +988,7 @@ impl ResidentLpips {
         for call in &plan.calls {
             words.extend_from_slice(bytemuck::cast_slice(&[call.params]));
         }
-        let context = &self.context;
+        let context = &gpu.context;
         context.write(&slot_state.staging.buffer, 0, &words)?;
         let resident_bytes = size_of::<ResidentParams>() as u64;
         encoder.copy_buffer_to_buffer(

@@ -725,9 +725,9 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     ] {
         let weights = seeded::seeded_weights(net, 7);
         let cpu = Lpips::new(weights.clone(), &Backend::Cpu).unwrap();
-        let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
         for mapping in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
-            let resident = gpu.resident(&weights, mapping, 37, 41, 2).unwrap();
+            let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
+            let resident = gpu.resident(mapping, 37, 41, 2).unwrap();
             let gradient = context
                 .upload("gradient", &vec![0.5_f32; render_values.len()])
                 .unwrap();
@@ -736,7 +736,6 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
                 for slot in 0..2 {
                     resident
                         .record(
-                            &gpu,
                             encoder,
                             slot,
                             CropPair {
@@ -838,7 +837,7 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     // A crop larger than the workspace is an error naming both sizes.
     let weights = seeded::seeded_weights(LpipsNet::Vgg, 7);
     let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
-    let resident = gpu.resident(&weights, LpipsInput::Unit, 20, 20, 1).unwrap();
+    let resident = gpu.resident(LpipsInput::Unit, 20, 20, 1).unwrap();
     let image = DeviceImage {
         buffer: &target_buffer,
         offset: 0,
@@ -847,7 +846,6 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     };
     let error = resident
         .record(
-            &gpu,
             &mut context.encoder(),
             0,
             CropPair {
