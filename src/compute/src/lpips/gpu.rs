@@ -1,11 +1,9 @@
-//! The `gpu` LPIPS trunk and its image gradient: the kernels of `shaders/lpips_forward.wgsl`
-//! and `shaders/lpips_backward.wgsl` run through the shared [`GpuContext`]. Weights are
-//! uploaded once. A [`Plan`] lists the calls of one evaluation, forward then backward (each
-//! kernel's bindings are [`Call`]'s constructors), and the sizes of the [`Workspace`] they
-//! bind: [`GpuLpips::distance_gradient`] records it once per group of pairs (a batch larger
-//! than the device's buffer limit is split) on a workspace of its own and downloads the maps
-//! and the gradient; [`ResidentLpips`] records it on device crops every training step, on a
-//! workspace allocated once.
+//! The `gpu` LPIPS trunk and its image gradient (`shaders/lpips_forward.wgsl`,
+//! `shaders/lpips_backward.wgsl`). A [`Plan`] lists one evaluation's [`Call`]s (forward, then
+//! backward; [`Call`]'s constructors are each kernel's bindings) and its [`Workspace`]'s sizes.
+//! [`GpuLpips`] (weights uploaded once) records it once per group of pairs (a batch over the
+//! buffer limit is split) on a workspace of its own and downloads the maps and the gradient;
+//! [`ResidentLpips`] records it on device crops every training step, on one workspace.
 
 use std::borrow::Cow;
 use std::sync::Arc;
@@ -20,28 +18,29 @@ const WORKGROUP: u32 = 64;
 /// Channels one convolution thread handles (`CHANNELS_PER_THREAD` in both shaders).
 const CHANNELS_PER_THREAD: usize = 4;
 
-/// The kernels: (cache name, WGSL text, entry point).
-const CONV: (&str, &str, &str) = ("lpips_conv2d_relu", FORWARD_WGSL, "conv2d_relu");
-const POOL: (&str, &str, &str) = ("lpips_max_pool", FORWARD_WGSL, "max_pool");
-const DISTANCE: (&str, &str, &str) = ("lpips_layer_distance", FORWARD_WGSL, "layer_distance");
-const DISTANCE_BACKWARD: (&str, &str, &str) = (
+/// A kernel: (cache name, WGSL text, entry point).
+type Source = (&'static str, &'static str, &'static str);
+const CONV: Source = ("lpips_conv2d_relu", FORWARD_WGSL, "conv2d_relu");
+const POOL: Source = ("lpips_max_pool", FORWARD_WGSL, "max_pool");
+const DISTANCE: Source = ("lpips_layer_distance", FORWARD_WGSL, "layer_distance");
+const DISTANCE_BACKWARD: Source = (
     "lpips_distance_backward",
     BACKWARD_WGSL,
     "distance_backward",
 );
-const RELU_MASK: (&str, &str, &str) = ("lpips_relu_mask", BACKWARD_WGSL, "relu_mask");
-const CONV_BACKWARD: (&str, &str, &str) = (
+const RELU_MASK: Source = ("lpips_relu_mask", BACKWARD_WGSL, "relu_mask");
+const CONV_BACKWARD: Source = (
     "lpips_conv2d_backward_data",
     BACKWARD_WGSL,
     "conv2d_backward_data",
 );
-const POOL_BACKWARD: (&str, &str, &str) = (
+const POOL_BACKWARD: Source = (
     "lpips_max_pool_backward",
     BACKWARD_WGSL,
     "max_pool_backward",
 );
 
-fn source((name, wgsl, entry_point): (&'static str, &'static str, &'static str)) -> KernelSource {
+fn source((name, wgsl, entry_point): Source) -> KernelSource {
     KernelSource {
         name,
         wgsl: Cow::Borrowed(wgsl),
@@ -194,7 +193,7 @@ pub(super) enum Slot {
 /// one list of each kernel's bindings.
 #[derive(Clone, Debug)]
 pub(super) struct Call {
-    kernel: (&'static str, &'static str, &'static str),
+    kernel: Source,
     params: Params,
     bindings: Vec<(u32, Slot)>,
 }
@@ -525,10 +524,7 @@ impl GpuLpips {
         })
     }
 
-    fn kernel(
-        &self,
-        kernel: (&'static str, &'static str, &'static str),
-    ) -> Result<Arc<Kernel>, LpipsError> {
+    fn kernel(&self, kernel: Source) -> Result<Arc<Kernel>, LpipsError> {
         Ok(self.context.kernel(&source(kernel))?)
     }
 
@@ -667,17 +663,17 @@ impl GpuLpips {
         width: usize,
         with_gradient: bool,
     ) -> Result<(DistanceMaps, Vec<f32>), LpipsError> {
-        let plan = Plan::new(self.net, pairs, height, width)?;
+        let mut plan = Plan::new(self.net, pairs, height, width)?;
+        if !with_gradient {
+            // The forward alone: no backward calls, no gradient buffers.
+            plan.calls.truncate(plan.backward);
+            plan.gradient_len = 0;
+        }
         let workspace = Workspace::new(&self.context, &plan)?;
         self.context
             .write(&workspace.activations[0].buffer, 0, data)?;
         let mut encoder = self.context.encoder();
-        let done = if with_gradient {
-            plan.calls.len()
-        } else {
-            plan.backward
-        };
-        self.record(&mut encoder, &workspace, &plan.calls[..done], None)?;
+        self.record(&mut encoder, &workspace, &plan.calls, None)?;
         let mut sources: Vec<_> = workspace
             .maps
             .iter()
@@ -729,17 +725,17 @@ fn pool_params(shape: PoolShape, total: u32) -> Result<Params, LpipsError> {
 }
 
 const RESIDENT_WGSL: &str = include_str!("../../../../shaders/lpips_resident.wgsl");
-const CROP_TO_TRUNK: (&str, &str, &str) = (
+const CROP_TO_TRUNK: Source = (
     "lpips_resident_crop_to_trunk",
     RESIDENT_WGSL,
     "crop_to_trunk",
 );
-const REDUCE_DISTANCE: (&str, &str, &str) = (
+const REDUCE_DISTANCE: Source = (
     "lpips_resident_reduce_distance",
     RESIDENT_WGSL,
     "reduce_distance",
 );
-const ADD_IMAGE_GRADIENT: (&str, &str, &str) = (
+const ADD_IMAGE_GRADIENT: Source = (
     "lpips_resident_add_image_gradient",
     RESIDENT_WGSL,
     "add_image_gradient",

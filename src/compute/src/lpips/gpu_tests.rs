@@ -6,8 +6,8 @@
 
 use std::sync::Arc;
 
+use crate::backend::GpuContext;
 use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
-use crate::backend::{GpuBuffer, GpuContext};
 
 use super::gpu::{
     Call, ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape, Slot, Workspace,
@@ -34,20 +34,28 @@ fn dot(a: &[f32], b: &[f32]) -> (f64, f64) {
     (sum, magnitude)
 }
 
-/// Records `calls` on `workspace` with `lpips` (whose weights they bind), then downloads
-/// `target`.
-fn run_and_read(
+/// Records `calls` with `lpips`'s weights on the activations `[input, zeros]` and the
+/// gradients `[upstream, zeros]` (`zeros` of `lens`), then downloads all four, in that order.
+fn run_calls(
     context: &GpuContext,
     lpips: &GpuLpips,
-    workspace: &Workspace,
     calls: &[Call],
-    target: &GpuBuffer,
-) -> Vec<f32> {
+    [input, upstream]: [&[f32]; 2],
+    lens: [usize; 2],
+) -> [Vec<f32>; 4] {
+    let [input, upstream] = [input, upstream].map(|data| context.upload("data", data).unwrap());
+    let [output, target] = lens.map(|len| context.zeros("zeros", len, 4).unwrap());
+    let workspace = Workspace {
+        activations: vec![input, output],
+        gradients: [upstream, target],
+        maps: Vec::new(),
+    };
     let mut encoder = context.encoder();
-    lpips.record(&mut encoder, workspace, calls, None).unwrap();
-    context
-        .download(encoder, &target.buffer, target.len)
-        .unwrap()
+    lpips.record(&mut encoder, &workspace, calls, None).unwrap();
+    let buffers = workspace.activations.iter().chain(&workspace.gradients);
+    let sources: Vec<_> = buffers.map(|b| (&b.buffer, b.len)).collect();
+    let read = context.download_all(encoder, &sources).unwrap();
+    read.try_into().unwrap()
 }
 
 /// A GpuLpips holding the op tests' weights: `convs` and `lins` (the net is a label only).
@@ -163,34 +171,12 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
             bias: bias.clone(),
         };
         let lpips = lpips_with(&context, vec![conv], Vec::new());
-        // Activation 0 into 1 forward; gradient 0 (masked in place) into 1 backward.
-        let workspace = Workspace {
-            activations: vec![
-                context.upload("x", &input).unwrap(),
-                context.zeros("y", 4 * out_len, 4).unwrap(),
-            ],
-            gradients: [
-                context.upload("g", &upstream).unwrap(),
-                context.zeros("dx", 2 * in_len, 4).unwrap(),
-            ],
-            maps: Vec::new(),
-        };
-        let calls = [Call::conv(forward_shape, 0, 0).unwrap()];
-        let forward = run_and_read(
-            &context,
-            &lpips,
-            &workspace,
-            &calls,
-            &workspace.activations[1],
-        );
-        let calls = Call::conv_backward(shape, 0, 1, 0).unwrap();
-        let gradient = run_and_read(
-            &context,
-            &lpips,
-            &workspace,
-            &calls,
-            &workspace.gradients[1],
-        );
+        // Activation 0 into 1, then gradient 0 (masked in place) into 1.
+        let mut calls = vec![Call::conv(forward_shape, 0, 0).unwrap()];
+        calls.extend(Call::conv_backward(shape, 0, 1, 0).unwrap());
+        let lens = [4 * out_len, 2 * in_len];
+        let [_, forward, _, gradient] =
+            run_calls(&context, &lpips, &calls, [&input, &upstream], lens);
         // The Jacobian of relu(conv(x) + b) at x is J = M conv with the mask M = [out > 0],
         // so J x = out - M b and <J x, g> must equal <x, J^T g> = <x, gradient>.
         let out_pixels = forward_shape.out_height * forward_shape.out_width;
@@ -293,33 +279,13 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
             .map(|u| (u * 3.0).floor() as f32)
             .collect();
         let upstream = values(3 * out_plane, 31);
-        let workspace = Workspace {
-            activations: vec![
-                context.upload("x", &input).unwrap(),
-                context.zeros("y", 6 * out_plane, 4).unwrap(),
-            ],
-            gradients: [
-                context.upload("g", &upstream).unwrap(),
-                context.zeros("dx", 3 * plane, 4).unwrap(),
-            ],
-            maps: Vec::new(),
-        };
-        let calls = [Call::pool(forward_shape, 0).unwrap()];
-        let pooled = run_and_read(
-            &context,
-            &lpips,
-            &workspace,
-            &calls,
-            &workspace.activations[1],
-        );
-        let calls = [Call::pool_backward(shape, 0, 0).unwrap()];
-        let gradient = run_and_read(
-            &context,
-            &lpips,
-            &workspace,
-            &calls,
-            &workspace.gradients[1],
-        );
+        let calls = [
+            Call::pool(forward_shape, 0).unwrap(),
+            Call::pool_backward(shape, 0, 0).unwrap(),
+        ];
+        let lens = [6 * out_plane, 3 * plane];
+        let [_, pooled, _, gradient] =
+            run_calls(&context, &lpips, &calls, [&input, &upstream], lens);
         // The pool is positively homogeneous, so J x = pool(x): <pool(x), g> = <x, J^T g>.
         let (left, magnitude) = dot(&pooled[..3 * out_plane], &upstream);
         let (right, _) = dot(&input[..3 * plane], &gradient);
@@ -375,23 +341,9 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
     // The kernel accumulates: start from a known gradient.
     let prior = values(pairs * channels * pixels, 42);
     let lpips = lpips_with(&context, Vec::new(), vec![lin.clone()]);
-    let workspace = Workspace {
-        activations: vec![context.upload("f", &features).unwrap()],
-        gradients: [
-            context.upload("grad", &prior).unwrap(),
-            context.zeros("unused", 1, 4).unwrap(),
-        ],
-        maps: Vec::new(),
-    };
     let size = [channels, height, width];
     let calls = [Call::distance(pairs, size, 0, 0, Slot::Gradient(0)).unwrap()];
-    let gradient = run_and_read(
-        &context,
-        &lpips,
-        &workspace,
-        &calls,
-        &workspace.gradients[0],
-    );
+    let [_, _, gradient, _] = run_calls(&context, &lpips, &calls, [&features, &prior], [1, 1]);
     assert!(gradient.iter().all(|g| g.is_finite()), "{gradient:?}");
     for pair in 0..pairs {
         for pixel in 0..pixels {
