@@ -1,9 +1,9 @@
-//! The `gpu` LPIPS trunk and its image gradient: the kernels of `shaders/lpips_forward.wgsl`
-//! and `shaders/lpips_backward.wgsl` run through the shared [`GpuContext`]. Weights are
-//! uploaded once; a batch larger than the device's buffer limit is split into groups of pairs.
-//!
-//! The gradient keeps every forward activation on the device, records the backward passes
-//! into the forward's encoder and downloads the maps and the gradient once per group.
+//! The `gpu` LPIPS trunk and its image gradient (`shaders/lpips_forward.wgsl`,
+//! `shaders/lpips_backward.wgsl`). A [`Plan`] lists one evaluation's [`Call`]s (forward, then
+//! backward; [`Call`]'s constructors are each kernel's bindings) and its [`Workspace`]'s sizes.
+//! [`GpuLpips`] (weights uploaded once) records it once per group of pairs (a batch over the
+//! buffer limit is split) on a workspace of its own and downloads the maps and the gradient;
+//! [`ResidentLpips`] records it on device crops every training step, on one workspace.
 
 use std::borrow::Cow;
 use std::sync::Arc;
@@ -18,28 +18,29 @@ const WORKGROUP: u32 = 64;
 /// Channels one convolution thread handles (`CHANNELS_PER_THREAD` in both shaders).
 const CHANNELS_PER_THREAD: usize = 4;
 
-/// The kernels: (cache name, WGSL text, entry point).
-const CONV: (&str, &str, &str) = ("lpips_conv2d_relu", FORWARD_WGSL, "conv2d_relu");
-const POOL: (&str, &str, &str) = ("lpips_max_pool", FORWARD_WGSL, "max_pool");
-const DISTANCE: (&str, &str, &str) = ("lpips_layer_distance", FORWARD_WGSL, "layer_distance");
-const DISTANCE_BACKWARD: (&str, &str, &str) = (
+/// A kernel: (cache name, WGSL text, entry point).
+type Source = (&'static str, &'static str, &'static str);
+const CONV: Source = ("lpips_conv2d_relu", FORWARD_WGSL, "conv2d_relu");
+const POOL: Source = ("lpips_max_pool", FORWARD_WGSL, "max_pool");
+const DISTANCE: Source = ("lpips_layer_distance", FORWARD_WGSL, "layer_distance");
+const DISTANCE_BACKWARD: Source = (
     "lpips_distance_backward",
     BACKWARD_WGSL,
     "distance_backward",
 );
-const RELU_MASK: (&str, &str, &str) = ("lpips_relu_mask", BACKWARD_WGSL, "relu_mask");
-const CONV_BACKWARD: (&str, &str, &str) = (
+const RELU_MASK: Source = ("lpips_relu_mask", BACKWARD_WGSL, "relu_mask");
+const CONV_BACKWARD: Source = (
     "lpips_conv2d_backward_data",
     BACKWARD_WGSL,
     "conv2d_backward_data",
 );
-const POOL_BACKWARD: (&str, &str, &str) = (
+const POOL_BACKWARD: Source = (
     "lpips_max_pool_backward",
     BACKWARD_WGSL,
     "max_pool_backward",
 );
 
-fn source((name, wgsl, entry_point): (&'static str, &'static str, &'static str)) -> KernelSource {
+fn source((name, wgsl, entry_point): Source) -> KernelSource {
     KernelSource {
         name,
         wgsl: Cow::Borrowed(wgsl),
@@ -172,16 +173,316 @@ enum Traced {
     Tap {
         layer: usize,
         features: usize,
-        channels: usize,
-        height: usize,
-        width: usize,
+        size: [usize; 3],
     },
+}
+
+/// The buffer a [`Call`] binds: of the [`Workspace`] or of the weights.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum Slot {
+    Activation(usize),
+    Gradient(usize),
+    Map(usize),
+    Weight(usize),
+    Bias(usize),
+    Lin(usize),
+}
+
+/// One kernel call of the trunk: its kernel, its uniform block (binding 0), its buffers by
+/// binding; `params.total` threads in workgroups of [`WORKGROUP`]. The constructors are the
+/// one list of each kernel's bindings.
+#[derive(Clone, Debug)]
+pub(super) struct Call {
+    kernel: Source,
+    params: Params,
+    bindings: Vec<(u32, Slot)>,
+}
+
+impl Call {
+    /// `relu(conv(input) + bias)` with convolution `conv` for `shape.images` images, from
+    /// activation `input` into `input + 1`.
+    pub(super) fn conv(shape: ConvShape, conv: usize, input: usize) -> Result<Self, LpipsError> {
+        let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
+        let total = shape.images * groups * shape.out_height * shape.out_width;
+        Ok(Self {
+            kernel: CONV,
+            params: conv_params(shape, to_u32("conv threads", total)?)?,
+            bindings: vec![
+                (1, Slot::Activation(input)),
+                (2, Slot::Weight(conv)),
+                (3, Slot::Bias(conv)),
+                (4, Slot::Activation(input + 1)),
+            ],
+        })
+    }
+
+    /// The max pool of `shape.planes` planes, from activation `input` into `input + 1`.
+    pub(super) fn pool(shape: PoolShape, input: usize) -> Result<Self, LpipsError> {
+        let total = shape.planes * shape.out_height * shape.out_width;
+        Ok(Self {
+            kernel: POOL,
+            params: pool_params(shape, to_u32("pool threads", total)?)?,
+            bindings: vec![
+                (1, Slot::Activation(input)),
+                (4, Slot::Activation(input + 1)),
+            ],
+        })
+    }
+
+    /// Distance `layer` of `pairs` pairs whose `[channels, height, width]` features (first
+    /// images, then second images) are activation `features`: into `Slot::Map(layer)`, or
+    /// `d(its spatial mean) / d(first features)` added (`+=`) into a `Slot::Gradient`.
+    pub(super) fn distance(
+        pairs: usize,
+        [channels, height, width]: [usize; 3],
+        layer: usize,
+        features: usize,
+        into: Slot,
+    ) -> Result<Self, LpipsError> {
+        let total = to_u32("distance threads", pairs * height * width)?;
+        Ok(Self {
+            kernel: match into {
+                Slot::Map(_) => DISTANCE,
+                _ => DISTANCE_BACKWARD,
+            },
+            params: Params {
+                images: to_u32("pairs", pairs)?,
+                in_channels: to_u32("channels", channels)?,
+                in_height: to_u32("height", height)?,
+                in_width: to_u32("width", width)?,
+                total,
+                ..Params::default()
+            },
+            bindings: vec![
+                (1, Slot::Activation(features)),
+                (2, Slot::Lin(layer)),
+                (4, into),
+            ],
+        })
+    }
+
+    /// The backward of `relu(conv(x) + bias)` for the first `shape.images` images: masks
+    /// gradient `upstream` in place where the forward output (activation `output`) is not
+    /// positive, then writes the transposed convolution of it into gradient `1 - upstream`.
+    pub(super) fn conv_backward(
+        shape: ConvShape,
+        conv: usize,
+        output: usize,
+        upstream: usize,
+    ) -> Result<[Self; 2], LpipsError> {
+        let mask_total = shape.images * shape.out_channels * shape.out_height * shape.out_width;
+        let groups = shape.in_channels.div_ceil(CHANNELS_PER_THREAD);
+        let total = shape.images * groups * shape.in_height * shape.in_width;
+        Ok([
+            Self {
+                kernel: RELU_MASK,
+                params: Params {
+                    total: to_u32("relu mask threads", mask_total)?,
+                    ..Params::default()
+                },
+                bindings: vec![(1, Slot::Activation(output)), (4, Slot::Gradient(upstream))],
+            },
+            Self {
+                kernel: CONV_BACKWARD,
+                params: conv_params(shape, to_u32("conv gradient threads", total)?)?,
+                bindings: vec![
+                    (2, Slot::Weight(conv)),
+                    (3, Slot::Gradient(upstream)),
+                    (4, Slot::Gradient(1 - upstream)),
+                ],
+            },
+        ])
+    }
+
+    /// The max pool's backward for `shape.planes` planes: gradient `1 - upstream` (the pool
+    /// input's) gathers gradient `upstream` at each window's first arg-max in activation
+    /// `input`.
+    pub(super) fn pool_backward(
+        shape: PoolShape,
+        input: usize,
+        upstream: usize,
+    ) -> Result<Self, LpipsError> {
+        let total = shape.planes * shape.in_height * shape.in_width;
+        Ok(Self {
+            kernel: POOL_BACKWARD,
+            params: pool_params(shape, to_u32("pool gradient threads", total)?)?,
+            bindings: vec![
+                (1, Slot::Activation(input)),
+                (3, Slot::Gradient(upstream)),
+                (4, Slot::Gradient(1 - upstream)),
+            ],
+        })
+    }
+}
+
+/// The calls of one evaluation of `pairs` pairs of images (the forward, then the backward
+/// for the first images) and the sizes of the buffers they bind.
+struct Plan {
+    calls: Vec<Call>,
+    /// Where the backward starts in `calls`.
+    backward: usize,
+    /// Values of gradient buffer 0 to zero before the backward (the last tap's features).
+    clear: usize,
+    /// The gradient buffer holding the input's gradient after the backward.
+    input_gradient: usize,
+    /// Values of each activation (0: the input), of each gradient buffer and of each
+    /// distance map (`pairs x height x width`).
+    activations: Vec<usize>,
+    gradient_len: usize,
+    maps: Vec<usize>,
+}
+
+impl Plan {
+    /// The plan of `pairs` pairs of `height x width` images through `net`'s trunk.
+    fn new(net: LpipsNet, pairs: usize, height: usize, width: usize) -> Result<Self, LpipsError> {
+        super::tap_sizes(net, height, width)?;
+        let mut calls = Vec::new();
+        let mut trace = Vec::new();
+        let mut activations = vec![2 * pairs * 3 * height * width];
+        let mut gradient_len = pairs * 3 * height * width;
+        let mut maps = Vec::new();
+        let (mut channels, mut h, mut w) = (3_usize, height, width);
+        let mut conv = 0;
+        for step in steps(net) {
+            let current = activations.len() - 1;
+            match step {
+                Step::Conv(spec) => {
+                    let shape = ConvShape::of(&spec, 2 * pairs, channels, h, w);
+                    calls.push(Call::conv(shape, conv, current)?);
+                    let shape = ConvShape {
+                        images: pairs,
+                        ..shape
+                    };
+                    let output = current + 1;
+                    trace.push(Traced::Conv {
+                        conv,
+                        shape,
+                        output,
+                    });
+                    conv += 1;
+                    (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
+                }
+                Step::MaxPool { kernel, stride } => {
+                    let shape = PoolShape::of(kernel, stride, 2 * pairs * channels, h, w);
+                    calls.push(Call::pool(shape, current)?);
+                    let shape = PoolShape {
+                        planes: pairs * channels,
+                        ..shape
+                    };
+                    trace.push(Traced::Pool {
+                        shape,
+                        input: current,
+                    });
+                    (h, w) = (shape.out_height, shape.out_width);
+                }
+                Step::Tap => {
+                    let (layer, size) = (maps.len(), [channels, h, w]);
+                    calls.push(Call::distance(
+                        pairs,
+                        size,
+                        layer,
+                        current,
+                        Slot::Map(layer),
+                    )?);
+                    let features = current;
+                    trace.push(Traced::Tap {
+                        layer,
+                        features,
+                        size,
+                    });
+                    maps.push(pairs * h * w);
+                    continue;
+                }
+            }
+            activations.push(2 * pairs * channels * h * w);
+            gradient_len = gradient_len.max(pairs * channels * h * w);
+        }
+        let backward = calls.len();
+        // The gradient with respect to the current activation lives in gradient buffer `at`
+        // (`None` while it is still zero).
+        let (mut at, mut clear) = (None, 0);
+        for traced in trace.iter().rev() {
+            match *traced {
+                Traced::Tap {
+                    layer,
+                    features,
+                    size,
+                } => {
+                    let target = at.unwrap_or_else(|| {
+                        clear = pairs * size.iter().product::<usize>();
+                        0
+                    });
+                    let into = Slot::Gradient(target);
+                    calls.push(Call::distance(pairs, size, layer, features, into)?);
+                    at = Some(target);
+                }
+                Traced::Conv {
+                    conv,
+                    shape,
+                    output,
+                } => {
+                    let Some(upstream) = at else { continue };
+                    calls.extend(Call::conv_backward(shape, conv, output, upstream)?);
+                    at = Some(1 - upstream);
+                }
+                Traced::Pool { shape, input } => {
+                    let Some(upstream) = at else { continue };
+                    calls.push(Call::pool_backward(shape, input, upstream)?);
+                    at = Some(1 - upstream);
+                }
+            }
+        }
+        let input_gradient = at.ok_or_else(|| LpipsError::Input {
+            message: "LPIPS: the trunk has no tap".to_owned(),
+        })?;
+        Ok(Self {
+            calls,
+            backward,
+            clear,
+            input_gradient,
+            activations,
+            gradient_len,
+            maps,
+        })
+    }
+}
+
+/// The buffers a [`Plan`]'s calls bind besides the weights: activations, two gradient
+/// buffers (ping-pong) and the distance maps.
+pub(super) struct Workspace {
+    pub activations: Vec<GpuBuffer>,
+    pub gradients: [GpuBuffer; 2],
+    pub maps: Vec<GpuBuffer>,
+}
+
+impl Workspace {
+    /// Zeroed buffers for `plan`; every extent grows with the input's, so they hold the plan
+    /// of any smaller input too.
+    fn new(context: &GpuContext, plan: &Plan) -> Result<Self, LpipsError> {
+        let zeros = |what: &str, len: usize| context.zeros(what, len, 4);
+        let all = |what: &str, lens: &[usize]| {
+            lens.iter()
+                .map(|&len| zeros(what, len))
+                .collect::<Result<Vec<_>, _>>()
+        };
+        Ok(Self {
+            activations: all("lpips activation", &plan.activations)?,
+            gradients: [
+                zeros("lpips gradient ping", plan.gradient_len)?,
+                zeros("lpips gradient pong", plan.gradient_len)?,
+            ],
+            maps: all("lpips distance map", &plan.maps)?,
+        })
+    }
 }
 
 /// LPIPS weights resident on the gpu.
 pub struct GpuLpips {
     context: Arc<GpuContext>,
     net: LpipsNet,
+    /// The weights' input normalisation (the resident path applies it on the device).
+    shift: [f32; 3],
+    scale: [f32; 3],
     /// Per convolution: (weight, bias).
     convs: Vec<(GpuBuffer, GpuBuffer)>,
     lins: Vec<GpuBuffer>,
@@ -216,38 +517,61 @@ impl GpuLpips {
         Ok(Self {
             context,
             net: weights.net,
+            shift: weights.shift,
+            scale: weights.scale,
             convs,
             lins,
         })
     }
 
-    fn kernel(
-        &self,
-        kernel: (&'static str, &'static str, &'static str),
-    ) -> Result<Arc<Kernel>, LpipsError> {
+    fn kernel(&self, kernel: Source) -> Result<Arc<Kernel>, LpipsError> {
         Ok(self.context.kernel(&source(kernel))?)
     }
 
-    /// The largest activation of one image, in f32 values.
-    fn largest_activation(&self, height: usize, width: usize) -> usize {
-        let (mut channels, mut h, mut w) = (3, height, width);
-        let mut largest = channels * h * w;
-        for step in steps(self.net) {
-            match step {
-                Step::Conv(spec) => {
-                    h = spec.output_extent(h).unwrap_or(0);
-                    w = spec.output_extent(w).unwrap_or(0);
-                    channels = spec.out_channels;
-                }
-                Step::MaxPool { kernel, stride } => {
-                    h = Step::pool_extent(kernel, stride, h).unwrap_or(0);
-                    w = Step::pool_extent(kernel, stride, w).unwrap_or(0);
-                }
-                Step::Tap => {}
+    /// Records `calls` on `workspace`, the uniform block of each one of `uniforms` (blocks a
+    /// resident workspace rewrites every call) or, without them, a new one holding its
+    /// params.
+    pub(super) fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        workspace: &Workspace,
+        calls: &[Call],
+        uniforms: Option<&[wgpu::Buffer]>,
+    ) -> Result<(), LpipsError> {
+        for (index, call) in calls.iter().enumerate() {
+            let mut bindings = Vec::new();
+            for &(binding, slot) in &call.bindings {
+                let buffer = match slot {
+                    Slot::Activation(i) => workspace.activations.get(i),
+                    Slot::Gradient(i) => workspace.gradients.get(i),
+                    Slot::Map(i) => workspace.maps.get(i),
+                    Slot::Weight(i) => self.convs.get(i).map(|(weight, _)| weight),
+                    Slot::Bias(i) => self.convs.get(i).map(|(_, bias)| bias),
+                    Slot::Lin(i) => self.lins.get(i),
+                };
+                let buffer = buffer.ok_or_else(|| LpipsError::Input {
+                    message: format!("LPIPS: no buffer {slot:?} (missing weights?)"),
+                })?;
+                bindings.push((binding, &buffer.buffer));
             }
-            largest = largest.max(channels * h * w);
+            let kernel = self.kernel(call.kernel)?;
+            let workgroups = call.params.total.div_ceil(WORKGROUP);
+            match uniforms {
+                None => {
+                    self.context
+                        .call(encoder, &kernel, &call.params, &bindings, workgroups);
+                }
+                Some(uniforms) => {
+                    let uniform = uniforms.get(index).ok_or_else(|| LpipsError::Input {
+                        message: "LPIPS: more calls than uniform blocks".to_owned(),
+                    })?;
+                    bindings.insert(0, (0, uniform));
+                    self.context
+                        .dispatch(encoder, &kernel, &bindings, workgroups);
+                }
+            }
         }
-        largest
+        Ok(())
     }
 
     /// Per-layer, per-pixel distance maps (same layout as [`super::cpu::distance_maps`]).
@@ -284,16 +608,20 @@ impl GpuLpips {
         }
         // Every buffer holds at most one activation of the group's 2 * group images (the
         // gradients hold only the first half).
-        let per_image = self.largest_activation(input.height, input.width);
+        let per_pair = Plan::new(self.net, 1, input.height, input.width)?
+            .activations
+            .into_iter()
+            .max()
+            .unwrap_or(0);
         let limit = (self.context.max_binding_bytes() / 4) as usize;
-        let pairs_per_group = limit / (2 * per_image).max(1);
+        let pairs_per_group = limit / per_pair.max(1);
         if pairs_per_group == 0 {
             return Err(LpipsError::Input {
                 message: format!(
                     "a {} x {} image needs {} MB activations, more than the gpu's {} MB buffer limit",
                     input.height,
                     input.width,
-                    2 * per_image * 4 / (1 << 20),
+                    per_pair * 4 / (1 << 20),
                     limit * 4 / (1 << 20)
                 ),
             });
@@ -325,8 +653,8 @@ impl GpuLpips {
         Ok((maps, gradient))
     }
 
-    /// Forward (and, when asked, backward) of one group of pairs: `data` holds the group's
-    /// first images then its second images.
+    /// Forward (and, when asked, backward) of one group of pairs, on a workspace of its own:
+    /// `data` holds the group's first images then its second images.
     fn run_group(
         &self,
         data: &[f32],
@@ -335,359 +663,33 @@ impl GpuLpips {
         width: usize,
         with_gradient: bool,
     ) -> Result<(DistanceMaps, Vec<f32>), LpipsError> {
-        let context = &self.context;
-        let images = 2 * pairs;
-        let mut encoder = context.encoder();
-        // activations[0] is the input; every conv and pool appends its output.
-        let mut activations = vec![context.upload("lpips input", data)?];
-        let mut trace = Vec::new();
-        let mut map_buffers: Vec<GpuBuffer> = Vec::new();
-        let (mut channels, mut h, mut w) = (3_usize, height, width);
-        let mut conv_index = 0;
-        for step in steps(self.net) {
-            let current = activations.len() - 1;
-            match step {
-                Step::Conv(spec) => {
-                    let (weight, bias) =
-                        self.convs
-                            .get(conv_index)
-                            .ok_or_else(|| LpipsError::Input {
-                                message: "missing convolution weights".to_owned(),
-                            })?;
-                    let shape = ConvShape::of(&spec, images, channels, h, w);
-                    let output = context.zeros(
-                        &spec.name,
-                        images * shape.out_channels * shape.out_height * shape.out_width,
-                        4,
-                    )?;
-                    self.record_conv(
-                        &mut encoder,
-                        shape,
-                        &activations[current],
-                        weight,
-                        bias,
-                        &output,
-                    )?;
-                    activations.push(output);
-                    trace.push(Traced::Conv {
-                        conv: conv_index,
-                        shape: ConvShape {
-                            images: pairs,
-                            ..shape
-                        },
-                        output: current + 1,
-                    });
-                    conv_index += 1;
-                    (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
-                }
-                Step::MaxPool { kernel, stride } => {
-                    let shape = PoolShape::of(kernel, stride, images * channels, h, w);
-                    let output = context.zeros(
-                        "lpips max pool",
-                        shape.planes * shape.out_height * shape.out_width,
-                        4,
-                    )?;
-                    self.record_max_pool(&mut encoder, shape, &activations[current], &output)?;
-                    activations.push(output);
-                    trace.push(Traced::Pool {
-                        shape: PoolShape {
-                            planes: pairs * channels,
-                            ..shape
-                        },
-                        input: current,
-                    });
-                    (h, w) = (shape.out_height, shape.out_width);
-                }
-                Step::Tap => {
-                    let layer = map_buffers.len();
-                    let lin = self.lins.get(layer).ok_or_else(|| LpipsError::Input {
-                        message: "more taps than lin layers".to_owned(),
-                    })?;
-                    let total = to_u32("distance threads", pairs * h * w)?;
-                    let params = Params {
-                        images: to_u32("pairs", pairs)?,
-                        in_channels: to_u32("channels", channels)?,
-                        in_height: to_u32("height", h)?,
-                        in_width: to_u32("width", w)?,
-                        total,
-                        ..Params::default()
-                    };
-                    let map = context.zeros("lpips distance map", pairs * h * w, 4)?;
-                    context.call(
-                        &mut encoder,
-                        &*self.kernel(DISTANCE)?,
-                        &params,
-                        &[
-                            (1, &activations[current].buffer),
-                            (2, &lin.buffer),
-                            (4, &map.buffer),
-                        ],
-                        total.div_ceil(WORKGROUP),
-                    );
-                    map_buffers.push(map);
-                    trace.push(Traced::Tap {
-                        layer,
-                        features: current,
-                        channels,
-                        height: h,
-                        width: w,
-                    });
-                }
-            }
+        let mut plan = Plan::new(self.net, pairs, height, width)?;
+        if !with_gradient {
+            // The forward alone: no backward calls, no gradient buffers.
+            plan.calls.truncate(plan.backward);
+            plan.gradient_len = 0;
         }
-        let mut gradients: Vec<GpuBuffer> = Vec::new();
-        if with_gradient {
-            // The gradient with respect to the current activation of the first images;
-            // `None` while it is still zero (no tap after this point).
-            let mut current: Option<GpuBuffer> = None;
-            for traced in trace.iter().rev() {
-                match *traced {
-                    Traced::Tap {
-                        layer,
-                        features,
-                        channels,
-                        height,
-                        width,
-                    } => {
-                        let target = match current.take() {
-                            Some(buffer) => buffer,
-                            None => context.zeros(
-                                "lpips feature gradient",
-                                pairs * channels * height * width,
-                                4,
-                            )?,
-                        };
-                        self.record_distance_backward(
-                            &mut encoder,
-                            pairs,
-                            [channels, height, width],
-                            &activations[features],
-                            &self.lins[layer],
-                            &target,
-                        )?;
-                        current = Some(target);
-                    }
-                    Traced::Conv {
-                        conv,
-                        shape,
-                        output,
-                    } => {
-                        let Some(upstream) = current.take() else {
-                            continue;
-                        };
-                        let target = context.zeros(
-                            "lpips conv input gradient",
-                            pairs * shape.in_channels * shape.in_height * shape.in_width,
-                            4,
-                        )?;
-                        self.record_conv_backward(
-                            &mut encoder,
-                            shape,
-                            &activations[output],
-                            &upstream,
-                            &self.convs[conv].0,
-                            &target,
-                        )?;
-                        gradients.push(upstream);
-                        current = Some(target);
-                    }
-                    Traced::Pool { shape, input } => {
-                        let Some(upstream) = current.take() else {
-                            continue;
-                        };
-                        let target = context.zeros(
-                            "lpips pool input gradient",
-                            shape.planes * shape.in_height * shape.in_width,
-                            4,
-                        )?;
-                        self.record_max_pool_backward(
-                            &mut encoder,
-                            shape,
-                            &activations[input],
-                            &upstream,
-                            &target,
-                        )?;
-                        gradients.push(upstream);
-                        current = Some(target);
-                    }
-                }
-            }
-            gradients.push(match current {
-                Some(buffer) => buffer,
-                None => context.zeros("lpips input gradient", pairs * 3 * height * width, 4)?,
-            });
-        }
-        let mut sources: Vec<_> = map_buffers
+        let workspace = Workspace::new(&self.context, &plan)?;
+        self.context
+            .write(&workspace.activations[0].buffer, 0, data)?;
+        let mut encoder = self.context.encoder();
+        self.record(&mut encoder, &workspace, &plan.calls, None)?;
+        let mut sources: Vec<_> = workspace
+            .maps
             .iter()
             .map(|map| (&map.buffer, map.len))
             .collect();
-        if let Some(input_gradient) = gradients.last() {
-            sources.push((&input_gradient.buffer, input_gradient.len));
+        let input_gradient = &workspace.gradients[plan.input_gradient].buffer;
+        if with_gradient {
+            sources.push((input_gradient, pairs * 3 * height * width));
         }
-        let mut values = context.download_all::<f32>(encoder, &sources)?;
-        drop((activations, gradients));
+        let mut values = self.context.download_all::<f32>(encoder, &sources)?;
         let gradient = if with_gradient {
             values.pop().unwrap_or_default()
         } else {
             Vec::new()
         };
         Ok((values, gradient))
-    }
-
-    /// Records `output = relu(conv(input) + bias)` for `shape.images` images.
-    pub(super) fn record_conv(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        shape: ConvShape,
-        input: &GpuBuffer,
-        weight: &GpuBuffer,
-        bias: &GpuBuffer,
-        output: &GpuBuffer,
-    ) -> Result<(), LpipsError> {
-        let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
-        let total = to_u32(
-            "conv threads",
-            shape.images * groups * shape.out_height * shape.out_width,
-        )?;
-        self.context.call(
-            encoder,
-            &*self.kernel(CONV)?,
-            &conv_params(shape, total)?,
-            &[
-                (1, &input.buffer),
-                (2, &weight.buffer),
-                (3, &bias.buffer),
-                (4, &output.buffer),
-            ],
-            total.div_ceil(WORKGROUP),
-        );
-        Ok(())
-    }
-
-    /// Records the max pool of `shape.planes` planes.
-    pub(super) fn record_max_pool(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        shape: PoolShape,
-        input: &GpuBuffer,
-        output: &GpuBuffer,
-    ) -> Result<(), LpipsError> {
-        let total = to_u32(
-            "pool threads",
-            shape.planes * shape.out_height * shape.out_width,
-        )?;
-        self.context.call(
-            encoder,
-            &*self.kernel(POOL)?,
-            &pool_params(shape, total)?,
-            &[(1, &input.buffer), (4, &output.buffer)],
-            total.div_ceil(WORKGROUP),
-        );
-        Ok(())
-    }
-
-    /// Records `target += d(spatial mean of the layer distance) / d(first features)` for
-    /// `pairs` pairs whose `[channels, height, width]` features (first images, then second
-    /// images) are in `features`.
-    pub(super) fn record_distance_backward(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        pairs: usize,
-        [channels, height, width]: [usize; 3],
-        features: &GpuBuffer,
-        lin: &GpuBuffer,
-        target: &GpuBuffer,
-    ) -> Result<(), LpipsError> {
-        let total = to_u32("distance gradient threads", pairs * height * width)?;
-        let params = Params {
-            images: to_u32("pairs", pairs)?,
-            in_channels: to_u32("channels", channels)?,
-            in_height: to_u32("height", height)?,
-            in_width: to_u32("width", width)?,
-            total,
-            ..Params::default()
-        };
-        self.context.call(
-            encoder,
-            &*self.kernel(DISTANCE_BACKWARD)?,
-            &params,
-            &[(1, &features.buffer), (2, &lin.buffer), (4, &target.buffer)],
-            total.div_ceil(WORKGROUP),
-        );
-        Ok(())
-    }
-
-    /// Records the backward of `relu(conv(x) + bias)` for the first `shape.images` images:
-    /// masks `upstream` in place where the forward `output` is not positive, then writes the
-    /// transposed convolution of it into `target` (`shape.images` inputs' gradient).
-    pub(super) fn record_conv_backward(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        shape: ConvShape,
-        output: &GpuBuffer,
-        upstream: &GpuBuffer,
-        weight: &GpuBuffer,
-        target: &GpuBuffer,
-    ) -> Result<(), LpipsError> {
-        let mask_total = to_u32(
-            "relu mask threads",
-            shape.images * shape.out_channels * shape.out_height * shape.out_width,
-        )?;
-        self.context.call(
-            encoder,
-            &*self.kernel(RELU_MASK)?,
-            &Params {
-                total: mask_total,
-                ..Params::default()
-            },
-            &[(1, &output.buffer), (4, &upstream.buffer)],
-            mask_total.div_ceil(WORKGROUP),
-        );
-        let groups = shape.in_channels.div_ceil(CHANNELS_PER_THREAD);
-        let total = to_u32(
-            "conv gradient threads",
-            shape.images * groups * shape.in_height * shape.in_width,
-        )?;
-        self.context.call(
-            encoder,
-            &*self.kernel(CONV_BACKWARD)?,
-            &conv_params(shape, total)?,
-            &[
-                (2, &weight.buffer),
-                (3, &upstream.buffer),
-                (4, &target.buffer),
-            ],
-            total.div_ceil(WORKGROUP),
-        );
-        Ok(())
-    }
-
-    /// Records the max pool's backward for `shape.planes` planes: `target` (the pool input's
-    /// gradient) gathers `upstream` at each window's first arg-max in the forward `input`.
-    pub(super) fn record_max_pool_backward(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        shape: PoolShape,
-        input: &GpuBuffer,
-        upstream: &GpuBuffer,
-        target: &GpuBuffer,
-    ) -> Result<(), LpipsError> {
-        let total = to_u32(
-            "pool gradient threads",
-            shape.planes * shape.in_height * shape.in_width,
-        )?;
-        self.context.call(
-            encoder,
-            &*self.kernel(POOL_BACKWARD)?,
-            &pool_params(shape, total)?,
-            &[
-                (1, &input.buffer),
-                (3, &upstream.buffer),
-                (4, &target.buffer),
-            ],
-            total.div_ceil(WORKGROUP),
-        );
-        Ok(())
     }
 }
 
@@ -723,17 +725,17 @@ fn pool_params(shape: PoolShape, total: u32) -> Result<Params, LpipsError> {
 }
 
 const RESIDENT_WGSL: &str = include_str!("../../../../shaders/lpips_resident.wgsl");
-const CROP_TO_TRUNK: (&str, &str, &str) = (
+const CROP_TO_TRUNK: Source = (
     "lpips_resident_crop_to_trunk",
     RESIDENT_WGSL,
     "crop_to_trunk",
 );
-const REDUCE_DISTANCE: (&str, &str, &str) = (
+const REDUCE_DISTANCE: Source = (
     "lpips_resident_reduce_distance",
     RESIDENT_WGSL,
     "reduce_distance",
 );
-const ADD_IMAGE_GRADIENT: (&str, &str, &str) = (
+const ADD_IMAGE_GRADIENT: Source = (
     "lpips_resident_add_image_gradient",
     RESIDENT_WGSL,
     "add_image_gradient",
@@ -815,159 +817,63 @@ pub struct Crop {
     pub height: usize,
 }
 
-/// Which buffer of the resident workspace an op reads or writes.
-#[derive(Clone, Copy, Debug)]
-enum Planned {
-    /// Forward conv from activation `input` into `input + 1`.
-    Conv { conv: usize, input: usize },
-    /// Forward max pool from activation `input` into `input + 1`.
-    Pool { input: usize },
-    /// Distance map `layer` of activation `features`.
-    Distance { layer: usize, features: usize },
-    /// Zeroes `len` values of gradient buffer `target` (before the last tap's backward).
-    Clear { target: usize, len: usize },
-    DistanceBackward {
-        layer: usize,
-        features: usize,
-        target: usize,
-    },
-    /// ReLU mask of gradient `upstream` by activation `output`.
-    ReluMask { output: usize, upstream: usize },
-    ConvBackward {
-        conv: usize,
-        upstream: usize,
-        target: usize,
-    },
-    PoolBackward {
-        input: usize,
-        upstream: usize,
-        target: usize,
-    },
-}
-
-/// One op of a resident LPIPS evaluation: what it touches, its kernel parameters and its
-/// workgroups (none for `Clear`).
-#[derive(Clone, Copy, Debug)]
-struct PlannedOp {
-    op: Planned,
-    params: Params,
-    workgroups: u32,
-}
-
 /// Per camera slot: its staging buffer (the call's record), its uniforms and its value.
 struct ResidentSlot {
-    /// `ResidentParams` then one `Params` per op, written with one `GpuContext::write` per
+    /// `ResidentParams` then one `Params` per call, written with one `GpuContext::write` per
     /// call and copied into the uniforms on the device.
     staging: GpuBuffer,
     resident_uniform: wgpu::Buffer,
-    op_uniforms: Vec<wgpu::Buffer>,
+    call_uniforms: Vec<wgpu::Buffer>,
     value: GpuBuffer,
 }
 
-/// The LPIPS loss on device buffers, for the resident training step: the workspace
-/// (activations for two crops of at most `max_height x max_width`, two gradient buffers,
-/// the distance maps) allocated once, per camera slot a staging buffer, the kernels'
-/// uniforms and a value buffer (one f32).
+/// The LPIPS loss on device buffers, for the resident training step: the [`Workspace`] (for
+/// one pair of crops of at most `max_height x max_width`) allocated once, per camera slot a
+/// staging buffer, the kernels' uniforms and a value buffer (one f32).
 ///
 /// [`ResidentLpips::record`] records, into the caller's encoder: the render and target crops
-/// cut from device images into the trunk input, the trunk forward, the distance reduced to
-/// one value (written to [`ResidentLpips::value`]), the backward, and `factor x` the image
-/// gradient added (`+=`) into the render's colour gradient buffer on the crop. The one
-/// upload per call is its record, one `GpuContext::write`: the crop and images (112 bytes)
-/// and the trunk's kernel parameters for the crop's shape (48 bytes per op: 57 ops for VGG,
-/// 2848 bytes in all; 29 for AlexNet, 1504 bytes), since the crop's shape changes from call
-/// to call (computing them on the device from the crop's size would remove all but the first
-/// 112 bytes).
+/// cut from device images into the trunk input, the trunk forward and backward (the calls of
+/// one plan, as [`GpuLpips::distance_gradient`]'s), the distance reduced to one value
+/// (written to [`ResidentLpips::value`]), and `factor x` the image gradient added (`+=`) into
+/// the render's colour gradient buffer on the crop. The one upload per call is its record,
+/// one `GpuContext::write`: the crop and images (112 bytes) and the trunk's kernel
+/// parameters for the crop's shape (48 bytes per call: 57 calls for VGG, 2848 bytes in all;
+/// 29 for AlexNet, 1504 bytes), since the crop's shape changes from call to call (computing
+/// them on the device from the crop's size would remove all but the first 112 bytes).
 pub struct ResidentLpips {
-    context: Arc<GpuContext>,
-    net: LpipsNet,
+    trunk: GpuLpips,
     input: super::LpipsInput,
-    shift: [f32; 3],
-    scale: [f32; 3],
     max_height: usize,
     max_width: usize,
-    /// activations[0] is the trunk input; every conv and pool appends its output (two
-    /// images each).
-    activations: Vec<GpuBuffer>,
-    gradients: [GpuBuffer; 2],
-    maps: Vec<GpuBuffer>,
+    workspace: Workspace,
     slots: Vec<ResidentSlot>,
 }
 
 impl GpuLpips {
-    /// A resident workspace for crops of at most `max_height x max_width` and `cameras`
-    /// calls per submission (one slot each), feeding images through `input`.
+    /// This trunk with a resident workspace for crops of at most `max_height x max_width` and
+    /// `cameras` calls per submission (one slot each), feeding images through `input`.
     pub fn resident(
-        &self,
-        weights: &LpipsWeights,
+        self,
         input: super::LpipsInput,
         max_height: usize,
         max_width: usize,
         cameras: usize,
     ) -> Result<ResidentLpips, LpipsError> {
-        if weights.net != self.net {
-            return Err(LpipsError::Input {
-                message: format!(
-                    "resident LPIPS: weights of {} for a {} trunk",
-                    weights.net.name(),
-                    self.net.name()
-                ),
-            });
-        }
-        let plan = self.plan(max_height, max_width)?;
+        let plan = Plan::new(self.net, 1, max_height, max_width)?;
         let context = &self.context;
-        // Every buffer is sized for the largest crop (every extent grows with the input's).
-        let mut activations =
-            vec![context.zeros("lpips trunk input", 6 * max_height * max_width, 4)?];
-        let mut gradient_len = 3 * max_height * max_width;
-        let (mut channels, mut h, mut w) = (3_usize, max_height, max_width);
-        for step in steps(self.net) {
-            match step {
-                Step::Conv(spec) => {
-                    channels = spec.out_channels;
-                    h = spec.output_extent(h).unwrap_or(0);
-                    w = spec.output_extent(w).unwrap_or(0);
-                }
-                Step::MaxPool { kernel, stride } => {
-                    h = Step::pool_extent(kernel, stride, h).unwrap_or(0);
-                    w = Step::pool_extent(kernel, stride, w).unwrap_or(0);
-                }
-                Step::Tap => continue,
-            }
-            gradient_len = gradient_len.max(channels * h * w);
-            activations.push(context.zeros("lpips activation", 2 * channels * h * w, 4)?);
-        }
-        let gradients = [
-            context.zeros("lpips gradient ping", gradient_len, 4)?,
-            context.zeros("lpips gradient pong", gradient_len, 4)?,
-        ];
-        let maps = plan
-            .iter()
-            .filter(|op| matches!(op.op, Planned::Distance { .. }))
-            .map(|op| {
-                context.zeros(
-                    "lpips distance map",
-                    (op.params.in_height * op.params.in_width) as usize,
-                    4,
-                )
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        let with_params = plan
-            .iter()
-            .filter(|op| !matches!(op.op, Planned::Clear { .. }))
-            .count();
+        let calls = plan.calls.len();
         let slots = (0..cameras.max(1))
             .map(|_| -> Result<ResidentSlot, LpipsError> {
                 Ok(ResidentSlot {
                     staging: context.zeros(
                         "lpips resident record",
-                        size_of::<ResidentParams>() / 4 + PARAMS_WORDS * with_params,
+                        size_of::<ResidentParams>() / 4 + PARAMS_WORDS * calls,
                         4,
                     )?,
                     resident_uniform: context
                         .uniform("lpips resident params", &ResidentParams::default()),
-                    op_uniforms: (0..with_params)
-                        .map(|_| context.uniform("lpips resident op params", &Params::default()))
+                    call_uniforms: (0..calls)
+                        .map(|_| context.uniform("lpips resident call params", &Params::default()))
                         .collect(),
                     value: context.zeros("lpips resident value", 1, 4)?,
                 })
@@ -977,212 +883,13 @@ impl GpuLpips {
             context.kernel(&source(kernel))?;
         }
         Ok(ResidentLpips {
-            context: context.clone(),
-            net: self.net,
+            workspace: Workspace::new(context, &plan)?,
+            trunk: self,
             input,
-            shift: weights.shift,
-            scale: weights.scale,
             max_height,
             max_width,
-            activations,
-            gradients,
-            maps,
             slots,
         })
-    }
-
-    /// The ops of one evaluation (forward, then backward for the first image) of one pair
-    /// of `height x width` crops, with their kernel parameters.
-    fn plan(&self, height: usize, width: usize) -> Result<Vec<PlannedOp>, LpipsError> {
-        super::tap_sizes(self.net, height, width)?;
-        let mut plan = Vec::new();
-        // Forward, with what the backward needs.
-        let mut trace = Vec::new();
-        let (mut channels, mut h, mut w) = (3_usize, height, width);
-        let (mut conv_index, mut layer, mut current) = (0, 0, 0);
-        for step in steps(self.net) {
-            match step {
-                Step::Conv(spec) => {
-                    let shape = ConvShape::of(&spec, 2, channels, h, w);
-                    let groups = shape.out_channels.div_ceil(CHANNELS_PER_THREAD);
-                    let total = to_u32(
-                        "conv threads",
-                        2 * groups * shape.out_height * shape.out_width,
-                    )?;
-                    plan.push(PlannedOp {
-                        op: Planned::Conv {
-                            conv: conv_index,
-                            input: current,
-                        },
-                        params: conv_params(shape, total)?,
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    trace.push(Traced::Conv {
-                        conv: conv_index,
-                        shape: ConvShape { images: 1, ..shape },
-                        output: current + 1,
-                    });
-                    conv_index += 1;
-                    current += 1;
-                    (channels, h, w) = (shape.out_channels, shape.out_height, shape.out_width);
-                }
-                Step::MaxPool { kernel, stride } => {
-                    let shape = PoolShape::of(kernel, stride, 2 * channels, h, w);
-                    let total = to_u32(
-                        "pool threads",
-                        shape.planes * shape.out_height * shape.out_width,
-                    )?;
-                    plan.push(PlannedOp {
-                        op: Planned::Pool { input: current },
-                        params: pool_params(shape, total)?,
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    trace.push(Traced::Pool {
-                        shape: PoolShape {
-                            planes: channels,
-                            ..shape
-                        },
-                        input: current,
-                    });
-                    current += 1;
-                    (h, w) = (shape.out_height, shape.out_width);
-                }
-                Step::Tap => {
-                    let total = to_u32("distance threads", h * w)?;
-                    plan.push(PlannedOp {
-                        op: Planned::Distance {
-                            layer,
-                            features: current,
-                        },
-                        params: Params {
-                            images: 1,
-                            in_channels: to_u32("channels", channels)?,
-                            in_height: to_u32("height", h)?,
-                            in_width: to_u32("width", w)?,
-                            total,
-                            ..Params::default()
-                        },
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    trace.push(Traced::Tap {
-                        layer,
-                        features: current,
-                        channels,
-                        height: h,
-                        width: w,
-                    });
-                    layer += 1;
-                }
-            }
-        }
-        // Backward: the gradient with respect to the current activation lives in gradient
-        // buffer `at` (`None` while it is still zero).
-        let mut at: Option<usize> = None;
-        for traced in trace.iter().rev() {
-            match *traced {
-                Traced::Tap {
-                    layer,
-                    features,
-                    channels,
-                    height,
-                    width,
-                } => {
-                    let target = match at {
-                        Some(target) => target,
-                        None => {
-                            plan.push(PlannedOp {
-                                op: Planned::Clear {
-                                    target: 0,
-                                    len: channels * height * width,
-                                },
-                                params: Params::default(),
-                                workgroups: 0,
-                            });
-                            0
-                        }
-                    };
-                    let total = to_u32("distance gradient threads", height * width)?;
-                    plan.push(PlannedOp {
-                        op: Planned::DistanceBackward {
-                            layer,
-                            features,
-                            target,
-                        },
-                        params: Params {
-                            images: 1,
-                            in_channels: to_u32("channels", channels)?,
-                            in_height: to_u32("height", height)?,
-                            in_width: to_u32("width", width)?,
-                            total,
-                            ..Params::default()
-                        },
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    at = Some(target);
-                }
-                Traced::Conv {
-                    conv,
-                    shape,
-                    output,
-                } => {
-                    let Some(upstream) = at else {
-                        continue;
-                    };
-                    let mask_total = to_u32(
-                        "relu mask threads",
-                        shape.out_channels * shape.out_height * shape.out_width,
-                    )?;
-                    plan.push(PlannedOp {
-                        op: Planned::ReluMask { output, upstream },
-                        params: Params {
-                            total: mask_total,
-                            ..Params::default()
-                        },
-                        workgroups: mask_total.div_ceil(WORKGROUP),
-                    });
-                    let groups = shape.in_channels.div_ceil(CHANNELS_PER_THREAD);
-                    let total = to_u32(
-                        "conv gradient threads",
-                        groups * shape.in_height * shape.in_width,
-                    )?;
-                    plan.push(PlannedOp {
-                        op: Planned::ConvBackward {
-                            conv,
-                            upstream,
-                            target: 1 - upstream,
-                        },
-                        params: conv_params(shape, total)?,
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    at = Some(1 - upstream);
-                }
-                Traced::Pool { shape, input } => {
-                    let Some(upstream) = at else {
-                        continue;
-                    };
-                    let total = to_u32(
-                        "pool gradient threads",
-                        shape.planes * shape.in_height * shape.in_width,
-                    )?;
-                    plan.push(PlannedOp {
-                        op: Planned::PoolBackward {
-                            input,
-                            upstream,
-                            target: 1 - upstream,
-                        },
-                        params: pool_params(shape, total)?,
-                        workgroups: total.div_ceil(WORKGROUP),
-                    });
-                    at = Some(1 - upstream);
-                }
-            }
-        }
-        if at.is_none() {
-            return Err(LpipsError::Input {
-                message: "resident LPIPS: the trunk has no tap".to_owned(),
-            });
-        }
-        Ok(plan)
     }
 }
 
@@ -1202,7 +909,6 @@ impl ResidentLpips {
     /// with respect to the render added into `gradient` (same layout as `render`) on the crop.
     pub fn record(
         &self,
-        gpu: &GpuLpips,
         encoder: &mut wgpu::CommandEncoder,
         slot: usize,
         CropPair {
@@ -1220,11 +926,6 @@ impl ResidentLpips {
                 self.slots.len()
             ))
         })?;
-        if gpu.net != self.net {
-            return Err(input_error(
-                "resident LPIPS: another trunk's workspace".to_owned(),
-            ));
-        }
         if crop.height > self.max_height || crop.width > self.max_width {
             return Err(input_error(format!(
                 "resident LPIPS: a {} x {} crop exceeds the workspace's {} x {}",
@@ -1256,12 +957,11 @@ impl ResidentLpips {
                 3 * (render.offset + render.width * render.height)
             )));
         }
-        let plan = gpu.plan(crop.height, crop.width)?;
+        let gpu = &self.trunk;
+        let plan = Plan::new(gpu.net, 1, crop.height, crop.width)?;
         let mut layer_pixels = [[0_u32; 4]; 2];
-        for op in &plan {
-            if let Planned::Distance { layer, .. } = op.op {
-                layer_pixels[layer / 4][layer % 4] = op.params.in_height * op.params.in_width;
-            }
+        for (layer, &pixels) in plan.maps.iter().enumerate() {
+            layer_pixels[layer / 4][layer % 4] = to_u32("layer pixels", pixels)?;
         }
         let resident = ResidentParams {
             render_offset: to_u32("render offset", render.offset)?,
@@ -1275,19 +975,16 @@ impl ResidentLpips {
             gradient_factor: factor,
             signed_mapping: u32::from(self.input == super::LpipsInput::Unit),
             pad: [0; 2],
-            shift: [self.shift[0], self.shift[1], self.shift[2], 0.0],
-            scale: [self.scale[0], self.scale[1], self.scale[2], 1.0],
+            shift: [gpu.shift[0], gpu.shift[1], gpu.shift[2], 0.0],
+            scale: [gpu.scale[0], gpu.scale[1], gpu.scale[2], 1.0],
             layer_pixels,
         };
         // The call's record: one write, then device copies into the uniforms.
         let mut words: Vec<u32> = bytemuck::cast_slice(&[resident]).to_vec();
-        for op in plan
-            .iter()
-            .filter(|op| !matches!(op.op, Planned::Clear { .. }))
-        {
-            words.extend_from_slice(bytemuck::cast_slice(&[op.params]));
+        for call in &plan.calls {
+            words.extend_from_slice(bytemuck::cast_slice(&[call.params]));
         }
-        let context = &self.context;
+        let context = &gpu.context;
         context.write(&slot_state.staging.buffer, 0, &words)?;
         let resident_bytes = size_of::<ResidentParams>() as u64;
         encoder.copy_buffer_to_buffer(
@@ -1297,16 +994,21 @@ impl ResidentLpips {
             0,
             resident_bytes,
         );
-        let op_bytes = (4 * PARAMS_WORDS) as u64;
-        for (index, uniform) in slot_state.op_uniforms.iter().enumerate() {
+        let call_bytes = (4 * PARAMS_WORDS) as u64;
+        for (index, uniform) in slot_state.call_uniforms.iter().enumerate() {
             encoder.copy_buffer_to_buffer(
                 &slot_state.staging.buffer,
-                resident_bytes + index as u64 * op_bytes,
+                resident_bytes + index as u64 * call_bytes,
                 uniform,
                 0,
-                op_bytes,
+                call_bytes,
             );
         }
+        let Workspace {
+            activations,
+            gradients,
+            maps,
+        } = &self.workspace;
         let crop_groups = to_u32("crop pixels", crop.width * crop.height)?.div_ceil(WORKGROUP);
         context.dispatch(
             encoder,
@@ -1315,161 +1017,35 @@ impl ResidentLpips {
                 (0, &slot_state.resident_uniform),
                 (1, &render.buffer.buffer),
                 (2, &target.buffer.buffer),
-                (3, &self.activations[0].buffer),
+                (3, &activations[0].buffer),
             ],
             crop_groups,
         );
-        let mut uniforms = slot_state.op_uniforms.iter();
-        let mut next_uniform = || {
-            uniforms
-                .next()
-                .ok_or_else(|| input_error("resident LPIPS: plan longer than its uniforms".into()))
-        };
-        let mut forward_done = false;
-        for op in &plan {
-            let a = |index: usize| &self.activations[index].buffer;
-            let g = |index: usize| &self.gradients[index].buffer;
-            match op.op {
-                Planned::Conv { conv, input } => {
-                    let (weight, bias) = &gpu.convs[conv];
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(CONV)?,
-                        &[
-                            (0, next_uniform()?),
-                            (1, a(input)),
-                            (2, &weight.buffer),
-                            (3, &bias.buffer),
-                            (4, a(input + 1)),
-                        ],
-                        op.workgroups,
-                    );
-                }
-                Planned::Pool { input } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(POOL)?,
-                        &[(0, next_uniform()?), (1, a(input)), (4, a(input + 1))],
-                        op.workgroups,
-                    );
-                }
-                Planned::Distance { layer, features } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(DISTANCE)?,
-                        &[
-                            (0, next_uniform()?),
-                            (1, a(features)),
-                            (2, &gpu.lins[layer].buffer),
-                            (4, &self.maps[layer].buffer),
-                        ],
-                        op.workgroups,
-                    );
-                }
-                Planned::Clear { target, len } => {
-                    if !forward_done {
-                        forward_done = true;
-                        self.record_reduce(gpu, encoder, slot_state)?;
-                    }
-                    encoder.clear_buffer(g(target), 0, Some((4 * len.max(1)) as u64));
-                }
-                Planned::DistanceBackward {
-                    layer,
-                    features,
-                    target,
-                } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(DISTANCE_BACKWARD)?,
-                        &[
-                            (0, next_uniform()?),
-                            (1, a(features)),
-                            (2, &gpu.lins[layer].buffer),
-                            (4, g(target)),
-                        ],
-                        op.workgroups,
-                    );
-                }
-                Planned::ReluMask { output, upstream } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(RELU_MASK)?,
-                        &[(0, next_uniform()?), (1, a(output)), (4, g(upstream))],
-                        op.workgroups,
-                    );
-                }
-                Planned::ConvBackward {
-                    conv,
-                    upstream,
-                    target,
-                } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(CONV_BACKWARD)?,
-                        &[
-                            (0, next_uniform()?),
-                            (2, &gpu.convs[conv].0.buffer),
-                            (3, g(upstream)),
-                            (4, g(target)),
-                        ],
-                        op.workgroups,
-                    );
-                }
-                Planned::PoolBackward {
-                    input,
-                    upstream,
-                    target,
-                } => {
-                    context.dispatch(
-                        encoder,
-                        &*gpu.kernel(POOL_BACKWARD)?,
-                        &[
-                            (0, next_uniform()?),
-                            (1, a(input)),
-                            (3, g(upstream)),
-                            (4, g(target)),
-                        ],
-                        op.workgroups,
-                    );
-                }
-            }
+        // The backward's first tap adds into gradient buffer 0.
+        let clear = (4 * plan.clear.max(1)) as u64;
+        encoder.clear_buffer(&gradients[0].buffer, 0, Some(clear));
+        gpu.record(
+            encoder,
+            &self.workspace,
+            &plan.calls,
+            Some(&slot_state.call_uniforms),
+        )?;
+        let mut bindings = vec![(0, &slot_state.resident_uniform)];
+        for (layer, map) in maps.iter().enumerate() {
+            bindings.push((6 + layer as u32, &map.buffer));
         }
-        let last = plan
-            .iter()
-            .rev()
-            .find_map(|op| match op.op {
-                Planned::ConvBackward { target, .. } | Planned::PoolBackward { target, .. } => {
-                    Some(target)
-                }
-                _ => None,
-            })
-            .ok_or_else(|| input_error("resident LPIPS: no backward to the input".into()))?;
+        bindings.push((11, &slot_state.value.buffer));
+        context.dispatch(encoder, &*gpu.kernel(REDUCE_DISTANCE)?, &bindings, 1);
         context.dispatch(
             encoder,
             &*gpu.kernel(ADD_IMAGE_GRADIENT)?,
             &[
                 (0, &slot_state.resident_uniform),
-                (4, &self.gradients[last].buffer),
+                (4, &gradients[plan.input_gradient].buffer),
                 (5, &gradient.buffer),
             ],
             crop_groups,
         );
-        Ok(())
-    }
-
-    fn record_reduce(
-        &self,
-        gpu: &GpuLpips,
-        encoder: &mut wgpu::CommandEncoder,
-        slot: &ResidentSlot,
-    ) -> Result<(), LpipsError> {
-        let mut bindings: Vec<(u32, &wgpu::Buffer)> = vec![(0, &slot.resident_uniform)];
-        for (layer, map) in self.maps.iter().enumerate() {
-            bindings.push((6 + layer as u32, &map.buffer));
-        }
-        bindings.push((11, &slot.value.buffer));
-        self.context
-            .dispatch(encoder, &*gpu.kernel(REDUCE_DISTANCE)?, &bindings, 1);
         Ok(())
     }
 }

@@ -6,10 +6,12 @@
 
 use std::sync::Arc;
 
+use crate::backend::GpuContext;
 use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
-use crate::backend::{GpuBuffer, GpuContext};
 
-use super::gpu::{ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape};
+use super::gpu::{
+    Call, ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape, Slot, Workspace,
+};
 use super::*;
 
 /// Deterministic values in [-1, 1).
@@ -32,23 +34,40 @@ fn dot(a: &[f32], b: &[f32]) -> (f64, f64) {
     (sum, magnitude)
 }
 
-/// Records work with `record`, then downloads `target`.
-fn run_and_read(
+/// Records `calls` with `lpips`'s weights on the activations `[input, zeros]` and the
+/// gradients `[upstream, zeros]` (`zeros` of `lens`), then downloads all four, in that order.
+fn run_calls(
     context: &GpuContext,
-    target: &GpuBuffer,
-    record: impl FnOnce(&mut wgpu::CommandEncoder),
-) -> Vec<f32> {
+    lpips: &GpuLpips,
+    calls: &[Call],
+    [input, upstream]: [&[f32]; 2],
+    lens: [usize; 2],
+) -> [Vec<f32>; 4] {
+    let [input, upstream] = [input, upstream].map(|data| context.upload("data", data).unwrap());
+    let [output, target] = lens.map(|len| context.zeros("zeros", len, 4).unwrap());
+    let workspace = Workspace {
+        activations: vec![input, output],
+        gradients: [upstream, target],
+        maps: Vec::new(),
+    };
     let mut encoder = context.encoder();
-    record(&mut encoder);
-    context
-        .download(encoder, &target.buffer, target.len)
-        .unwrap()
+    lpips.record(&mut encoder, &workspace, calls, None).unwrap();
+    let buffers = workspace.activations.iter().chain(&workspace.gradients);
+    let sources: Vec<_> = buffers.map(|b| (&b.buffer, b.len)).collect();
+    let read = context.download_all(encoder, &sources).unwrap();
+    read.try_into().unwrap()
 }
 
-/// A GpuLpips whose kernels the op tests drive with their own buffers (the small AlexNet
-/// weights are uploaded but unused by those tests).
-fn lpips_on(context: &Arc<GpuContext>) -> GpuLpips {
-    GpuLpips::new(context.clone(), &seeded::seeded_weights(LpipsNet::Alex, 1)).unwrap()
+/// A GpuLpips holding the op tests' weights: `convs` and `lins` (the net is a label only).
+fn lpips_with(context: &Arc<GpuContext>, convs: Vec<ConvWeights>, lins: Vec<Vec<f32>>) -> GpuLpips {
+    let weights = LpipsWeights {
+        net: LpipsNet::Alex,
+        convs,
+        lins,
+        shift: [0.0; 3],
+        scale: [1.0; 3],
+    };
+    GpuLpips::new(context.clone(), &weights).unwrap()
 }
 
 /// Host f64 transposed convolution as a scatter (the opposite loop order of the kernel's
@@ -107,7 +126,6 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
     // AlexNet's first layer (k11 s4 p2), VGG's 3x3, AlexNet's 5x5 p2, a stride-2 3x3, and
     // more than four input channels with a partial last group of four.
     for (in_channels, out_channels, kernel, stride, padding, height, width) in [
@@ -147,36 +165,18 @@ fn conv_backward_is_the_adjoint_of_the_masked_convolution() {
         let weight = values(out_channels * in_channels * kernel * kernel, 11);
         let bias: Vec<f32> = values(out_channels, 12).iter().map(|b| 0.3 * b).collect();
         let upstream = values(2 * out_len, 13);
-        let input_buffer = context.upload("x", &input).unwrap();
-        let weight_buffer = context.upload("w", &weight).unwrap();
-        let bias_buffer = context.upload("b", &bias).unwrap();
-        let output = context.zeros("y", 4 * out_len, 4).unwrap();
-        let upstream_buffer = context.upload("g", &upstream).unwrap();
-        let target = context.zeros("dx", 2 * in_len, 4).unwrap();
-        let forward = run_and_read(&context, &output, |encoder| {
-            lpips
-                .record_conv(
-                    encoder,
-                    forward_shape,
-                    &input_buffer,
-                    &weight_buffer,
-                    &bias_buffer,
-                    &output,
-                )
-                .unwrap();
-        });
-        let gradient = run_and_read(&context, &target, |encoder| {
-            lpips
-                .record_conv_backward(
-                    encoder,
-                    shape,
-                    &output,
-                    &upstream_buffer,
-                    &weight_buffer,
-                    &target,
-                )
-                .unwrap();
-        });
+        let conv = ConvWeights {
+            spec,
+            weight: weight.clone(),
+            bias: bias.clone(),
+        };
+        let lpips = lpips_with(&context, vec![conv], Vec::new());
+        // Activation 0 into 1, then gradient 0 (masked in place) into 1.
+        let mut calls = vec![Call::conv(forward_shape, 0, 0).unwrap()];
+        calls.extend(Call::conv_backward(shape, 0, 1, 0).unwrap());
+        let lens = [4 * out_len, 2 * in_len];
+        let [_, forward, _, gradient] =
+            run_calls(&context, &lpips, &calls, [&input, &upstream], lens);
         // The Jacobian of relu(conv(x) + b) at x is J = M conv with the mask M = [out > 0],
         // so J x = out - M b and <J x, g> must equal <x, J^T g> = <x, gradient>.
         let out_pixels = forward_shape.out_height * forward_shape.out_width;
@@ -255,7 +255,7 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
+    let lpips = lpips_with(&context, Vec::new(), Vec::new());
     // VGG's 2/2 and AlexNet's overlapping 3/2, with sizes floor mode truncates.
     for (kernel, stride, height, width) in [(2, 2, 7, 9), (3, 2, 9, 11), (3, 2, 8, 8)] {
         let forward_shape = PoolShape {
@@ -279,20 +279,13 @@ fn max_pool_backward_is_the_adjoint_and_routes_ties_to_the_first_maximum() {
             .map(|u| (u * 3.0).floor() as f32)
             .collect();
         let upstream = values(3 * out_plane, 31);
-        let input_buffer = context.upload("x", &input).unwrap();
-        let output = context.zeros("y", 6 * out_plane, 4).unwrap();
-        let upstream_buffer = context.upload("g", &upstream).unwrap();
-        let target = context.zeros("dx", 3 * plane, 4).unwrap();
-        let pooled = run_and_read(&context, &output, |encoder| {
-            lpips
-                .record_max_pool(encoder, forward_shape, &input_buffer, &output)
-                .unwrap();
-        });
-        let gradient = run_and_read(&context, &target, |encoder| {
-            lpips
-                .record_max_pool_backward(encoder, shape, &input_buffer, &upstream_buffer, &target)
-                .unwrap();
-        });
+        let calls = [
+            Call::pool(forward_shape, 0).unwrap(),
+            Call::pool_backward(shape, 0, 0).unwrap(),
+        ];
+        let lens = [6 * out_plane, 3 * plane];
+        let [_, pooled, _, gradient] =
+            run_calls(&context, &lpips, &calls, [&input, &upstream], lens);
         // The pool is positively homogeneous, so J x = pool(x): <pool(x), g> = <x, J^T g>.
         let (left, magnitude) = dot(&pooled[..3 * out_plane], &upstream);
         let (right, _) = dot(&input[..3 * plane], &gradient);
@@ -326,7 +319,6 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
     let Some(context) = gpu_test_context() else {
         return;
     };
-    let lpips = lpips_on(&context);
     let (pairs, channels, height, width) = (2, 5, 2, 3);
     let pixels = height * width;
     let mut features: Vec<f32> = values(2 * pairs * channels * pixels, 40)
@@ -348,21 +340,10 @@ fn distance_backward_matches_finite_differences_and_is_finite_at_zero() {
         .collect();
     // The kernel accumulates: start from a known gradient.
     let prior = values(pairs * channels * pixels, 42);
-    let feature_buffer = context.upload("f", &features).unwrap();
-    let lin_buffer = context.upload("lin", &lin).unwrap();
-    let target = context.upload("grad", &prior).unwrap();
-    let gradient = run_and_read(&context, &target, |encoder| {
-        lpips
-            .record_distance_backward(
-                encoder,
-                pairs,
-                [channels, height, width],
-                &feature_buffer,
-                &lin_buffer,
-                &target,
-            )
-            .unwrap();
-    });
+    let lpips = lpips_with(&context, Vec::new(), vec![lin.clone()]);
+    let size = [channels, height, width];
+    let calls = [Call::distance(pairs, size, 0, 0, Slot::Gradient(0)).unwrap()];
+    let [_, _, gradient, _] = run_calls(&context, &lpips, &calls, [&features, &prior], [1, 1]);
     assert!(gradient.iter().all(|g| g.is_finite()), "{gradient:?}");
     for pair in 0..pairs {
         for pixel in 0..pixels {
@@ -696,9 +677,9 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     ] {
         let weights = seeded::seeded_weights(net, 7);
         let cpu = Lpips::new(weights.clone(), &Backend::Cpu).unwrap();
-        let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
         for mapping in [LpipsInput::Unit, LpipsInput::UnitAsSigned] {
-            let resident = gpu.resident(&weights, mapping, 37, 41, 2).unwrap();
+            let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
+            let resident = gpu.resident(mapping, 37, 41, 2).unwrap();
             let gradient = context
                 .upload("gradient", &vec![0.5_f32; render_values.len()])
                 .unwrap();
@@ -707,7 +688,6 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
                 for slot in 0..2 {
                     resident
                         .record(
-                            &gpu,
                             encoder,
                             slot,
                             CropPair {
@@ -809,7 +789,7 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     // A crop larger than the workspace is an error naming both sizes.
     let weights = seeded::seeded_weights(LpipsNet::Vgg, 7);
     let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
-    let resident = gpu.resident(&weights, LpipsInput::Unit, 20, 20, 1).unwrap();
+    let resident = gpu.resident(LpipsInput::Unit, 20, 20, 1).unwrap();
     let image = DeviceImage {
         buffer: &target_buffer,
         offset: 0,
@@ -818,7 +798,6 @@ fn resident_lpips_matches_the_cpu_on_device_crops() {
     };
     let error = resident
         .record(
-            &gpu,
             &mut context.encoder(),
             0,
             CropPair {

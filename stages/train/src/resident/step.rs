@@ -92,8 +92,8 @@ pub struct ResidentStep {
     splat: SplatWorkspace,
     truth: GroundTruth,
     losses: ImageLoss,
-    /// The LPIPS trunk on the device and its workspace, when the loss is on.
-    lpips: Option<(GpuLpips, ResidentLpips)>,
+    /// The LPIPS trunk on the device with its workspace, when the loss is on.
+    lpips: Option<ResidentLpips>,
     gaussians: ResidentGaussians,
     adam: GaussianAdam,
     aiap: ResidentAiap,
@@ -142,30 +142,28 @@ fn upload_networks(
     Ok(Some(gpu))
 }
 
-/// The LPIPS trunk uploaded to `context` and its device workspace for the run's largest
+/// The LPIPS trunk uploaded to `context` with its device workspace for the run's largest
 /// camera.
 fn lpips_workspace(
     context: &Arc<GpuContext>,
     config: &TrainConfig,
     data: &TrainingData,
     loss: &LpipsLoss,
-) -> anyhow::Result<(GpuLpips, ResidentLpips)> {
+) -> anyhow::Result<ResidentLpips> {
     let trunk = GpuLpips::new(context.clone(), loss.lpips().weights()).context("LPIPS loss")?;
     let (max_height, max_width) = data
         .cameras
         .iter()
         .map(|c| (c.height as usize, c.width as usize))
         .fold((1, 1), |(h, w), (ch, cw)| (h.max(ch), w.max(cw)));
-    let workspace = trunk
+    trunk
         .resident(
-            loss.lpips().weights(),
             config.lpips_input(),
             max_height,
             max_width,
             config.cameras_per_step,
         )
-        .context("LPIPS on the device")?;
-    Ok((trunk, workspace))
+        .context("LPIPS on the device")
 }
 
 /// The canonical Gaussians' columns the deformation reads, from the optimiser's buffers.
@@ -467,7 +465,7 @@ impl ResidentStep {
                 },
                 DeviceImages { colour, alpha },
             )?;
-            if let (Some((trunk, workspace)), Some(loss)) = (&self.lpips, lpips) {
+            if let (Some(workspace), Some(loss)) = (&self.lpips, lpips) {
                 // Its image gradient joins the colour gradient before the splatting backward.
                 let (width, height) = (camera.width as usize, camera.height as usize);
                 let target = self.losses.record_target(encoder, c, &self.truth)?;
@@ -479,7 +477,6 @@ impl ResidentStep {
                     height,
                 };
                 workspace.record(
-                    trunk,
                     encoder,
                     c,
                     CropPair {

@@ -624,7 +624,7 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
     // The device path.
     let weights = seeded_weights(LpipsNet::Vgg, 7);
     let gpu = GpuLpips::new(context.clone(), &weights).unwrap();
-    let resident = gpu.resident(&weights, input, h, w, 2).unwrap();
+    let resident = gpu.resident(input, h, w, 2).unwrap();
     let Uploaded {
         truth,
         rendered,
@@ -648,7 +648,6 @@ fn resident_losses_with_lpips_match_image_loss_and_lpips_add_loss() {
         let crop = oracle_lpips.crop(info.rect, w, h).unwrap();
         resident
             .record(
-                &gpu,
                 &mut encoder,
                 camera,
                 CropPair {
