@@ -5,7 +5,7 @@
 //! way a user gives them: environment variables. Every stage of each pipeline is validated;
 //! ingest, fit and motion run (training would take hours at the datasets' settings), and
 //! `pipeline inspect` draws the ingest contact sheet. The readers' numerics are checked in
-//! `stages/ingest/tests/datasets.rs`; this checks the files users run.
+//! `src/datasets/tests/datasets.rs`; this checks the files users run.
 
 use std::path::{Path, PathBuf};
 

@@ -21,7 +21,7 @@
 //!   small opcodes build large values, so the values may take at most [`decode_budget`]`(size)`
 //!   bytes: [`EXPANSION`] times the pickle's size plus [`SLACK`], within the per-file limit.
 //!   Parser scratch (the pickle machine's objects, the zip directory) comes on top;
-//!   [`PEAK_LIMIT_FACTOR`] times the limit bounds the whole peak, and `stages/ingest/tests/bombs.rs`
+//!   [`PEAK_LIMIT_FACTOR`] times the limit bounds the whole peak, and `src/formats/tests/bombs.rs`
 //!   measures it with a counting allocator on crafted files.
 //! - images: see [`images`]: the header's size is checked against the camera and against
 //!   [`images::MAX_IMAGE_PIXELS`] before decoding, and decoding allocates at most
