@@ -87,6 +87,16 @@ fn missing_inputs_are_found_when_the_pipeline_loads() {
     );
     // An avatar without skeleton motion renders without the motion entry.
     parse(&pipeline_text("").replace(eval_inputs, "inputs: [train, ingest]")).unwrap();
+    // An ingest split without test images (one camera: the default split has no test view)
+    // is refused before training, through the ingest stage's plan, naming the split field.
+    let one_camera = pipeline_text("").replacen("cameras: 3", "cameras: 1", 1);
+    let error = parse(&one_camera).unwrap_err();
+    assert!(
+        error.contains("stage \"eval\"")
+            && error.contains("input ingest")
+            && error.contains("split.test_views"),
+        "{error}"
+    );
     let train_inputs = "kind: train\n    inputs: [ingest, motion]";
     assert!(multiscale.contains(train_inputs));
     let error =

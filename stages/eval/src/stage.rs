@@ -890,39 +890,4 @@ mod tests {
             assert!(err.contains(part), "`{err}` lacks {part}");
         }
     }
-
-    /// An eval whose ingest split yields no test image is refused when the pipeline loads
-    /// (before training runs), naming the input and the split field; the demo's split loads.
-    #[test]
-    fn an_ingest_split_without_test_images_is_refused_at_load() {
-        let check = |cameras: u64| {
-            let ingest = seqavatar_ingest::Ingest
-                .resolve_config(&json!({
-                    "dataset": {"kind": "synthetic", "cameras": cameras, "frames": 4, "width": 16, "height": 16}
-                }))
-                .unwrap();
-            let ingest = seqavatar_ingest::Ingest.planned(&ingest);
-            let train = json!({"motion_context": "none", "renders_from_motion_entry": false});
-            let inputs = [
-                seqavatar_engine::StageInput {
-                    name: "train",
-                    kind: "train",
-                    planned: &train,
-                },
-                seqavatar_engine::StageInput {
-                    name: "ingest",
-                    kind: "ingest",
-                    planned: &ingest,
-                },
-            ];
-            EvalStage.check_inputs(&EvalConfig::default(), &inputs)
-        };
-        // One camera: the default split has no test view.
-        let error = check(1).unwrap_err();
-        assert!(
-            error.contains("input ingest") && error.contains("split.test_views"),
-            "{error}"
-        );
-        check(8).unwrap();
-    }
 }
