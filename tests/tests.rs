@@ -6,4 +6,5 @@ mod eval;
 mod remote;
 mod support;
 mod tidy;
+mod train;
 mod viewer;
