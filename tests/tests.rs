@@ -3,6 +3,8 @@
 mod datasets;
 mod engine;
 mod eval;
+mod fit;
+mod motion;
 mod remote;
 mod support;
 mod tidy;
