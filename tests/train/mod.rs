@@ -4,8 +4,9 @@
 use std::time::Instant;
 
 use seqavatar_engine::StageKind as _;
+use seqavatar_schema::ingest::IngestImages;
 use seqavatar_train::TrainStage;
-use seqavatar_train::config::{TrainConfig, TrainingImages};
+use seqavatar_train::config::TrainConfig;
 use serde_json::json;
 
 /// The ingest and train configs of `pipelines/synthetic.yaml` (the demo), resolved, with
@@ -26,7 +27,7 @@ fn demo_configs(scene: serde_json::Value) -> (seqavatar_ingest::IngestConfig, Tr
 }
 
 /// The images the ingest config plans, as the train stage's load-time check sees them.
-fn planned_images(ingest: &seqavatar_ingest::IngestConfig) -> Option<TrainingImages> {
+fn planned_images(ingest: &seqavatar_ingest::IngestConfig) -> Option<IngestImages> {
     let planned = seqavatar_ingest::Ingest.planned(ingest);
     let input = seqavatar_engine::StageInput {
         name: "ingest",
@@ -34,7 +35,7 @@ fn planned_images(ingest: &seqavatar_ingest::IngestConfig) -> Option<TrainingIma
         planned: &planned,
     };
     let plan = seqavatar_schema::ingest::PlannedIngest::of(&input).unwrap();
-    plan.images.as_ref().map(TrainingImages::from_plan)
+    plan.images
 }
 
 fn check(ingest: &seqavatar_ingest::IngestConfig, train: &TrainConfig) -> Result<(), String> {

@@ -787,19 +787,39 @@ impl GarmentRegion {
 pub struct PlannedIngest {
     /// The images of the split, where the config determines them (the synthetic scene);
     /// `None` for file-based datasets, whose split comes from their files.
-    pub images: Option<PlannedImages>,
+    pub images: Option<IngestImages>,
     /// Why the entry will hold no test image, where the config already says so.
     pub no_test_images: Option<String>,
 }
 
-/// The images an ingest entry will hold: how many (training and test) and the largest view's
-/// size, and which config fields say so (for messages).
+/// The images an ingest entry holds, or will hold: how many (training and test) and the
+/// largest view's size, and where the figures come from (for messages: the config fields
+/// of a plan, or the entry).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct PlannedImages {
+pub struct IngestImages {
     pub count: u64,
     pub width: u64,
     pub height: u64,
     pub source: String,
+}
+
+impl IngestImages {
+    /// From the entry's `images` array (count, height, width), read from its metadata before
+    /// any image is.
+    pub fn of_entry(entry: &EntryReader) -> anyhow::Result<Self> {
+        let shape = entry.shape("images")?;
+        anyhow::ensure!(
+            shape.len() == 4,
+            "entry {}: array `images` has shape {shape:?}, expected (N, H, W, 3)",
+            entry.location()
+        );
+        Ok(Self {
+            count: shape[0],
+            width: shape[2],
+            height: shape[1],
+            source: format!("entry {}", entry.location()),
+        })
+    }
 }
 
 impl PlannedIngest {

@@ -9,7 +9,7 @@ use seqavatar_engine::{ConfigError, ConfigPathSegment};
 
 use crate::plan::ImageCounts;
 use seqavatar_datasets::{DatasetConfig, FrameRange, Split};
-use seqavatar_schema::ingest::{PlannedImages, PlannedIngest};
+use seqavatar_schema::ingest::{IngestImages, PlannedIngest};
 
 /// Split overrides from the stage config: any field left out keeps the dataset's default.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -142,7 +142,7 @@ impl IngestConfig {
         let images = match (&self.dataset, self.image_counts_at_load()) {
             (DatasetConfig::Synthetic(scene), Some((_, Ok(counts)))) => {
                 let side = |n: u32| ((f64::from(n) * self.resolution_scale).round() as u64).max(1);
-                Some(PlannedImages {
+                Some(IngestImages {
                     count: (counts.train + counts.test) as u64,
                     width: side(scene.width),
                     height: side(scene.height),

@@ -9,6 +9,7 @@ use std::path::PathBuf;
 pub use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use seqavatar_compute::nn::Precision;
+use seqavatar_schema::ingest::IngestImages;
 use serde::{Deserialize, Serialize};
 
 pub use seqavatar_avatar::config::{
@@ -463,11 +464,11 @@ impl TrainConfig {
     /// images held in memory for the whole run (every image of the ingest entry, training and
     /// test, RGB and mask bytes at the training resolution), and the per-pixel state of the
     /// `cameras_per_step` renders of one iteration (forward, losses and backward).
-    pub fn run_memory_estimate_bytes(&self, images: Option<&TrainingImages>) -> u64 {
+    pub fn run_memory_estimate_bytes(&self, images: Option<&IngestImages>) -> u64 {
         let Some(images) = images else {
             return self.memory_estimate_bytes();
         };
-        let pixels = images.pixels_at(self.resolution_scale);
+        let pixels = pixels_at(images, self.resolution_scale);
         let held = images
             .count
             .saturating_mul(pixels)
@@ -482,13 +483,13 @@ impl TrainConfig {
 
     /// Refuses a run whose [`Self::run_memory_estimate_bytes`] exceeds `budget` bytes,
     /// naming the fields that make it large and how to raise the budget.
-    pub fn check_memory(&self, images: Option<&TrainingImages>, budget: u64) -> Result<(), String> {
+    pub fn check_memory(&self, images: Option<&IngestImages>, budget: u64) -> Result<(), String> {
         let estimate = self.run_memory_estimate_bytes(images);
         if estimate <= budget {
             return Ok(());
         }
         let images_part = images.map_or_else(String::new, |images| {
-            let pixels = images.pixels_at(self.resolution_scale);
+            let pixels = pixels_at(images, self.resolution_scale);
             format!(
                 ", {} images of the ingest split ({}) at train.resolution_scale {} \
                  ({pixels} pixels each) and train.cameras_per_step {} renders",
@@ -604,51 +605,11 @@ const HELD_IMAGE_BYTES_PER_PIXEL: u64 = 4;
 /// bytes), and the splatting's per-pixel compositing state.
 const RENDER_BYTES_PER_PIXEL: u64 = 256;
 
-/// The images a training run holds, as far as known before reading them: how many, and the
-/// largest view's size at the ingest entry's resolution.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TrainingImages {
-    pub count: u64,
-    pub width: u64,
-    pub height: u64,
-    /// Where the numbers come from, for messages (the ingest stage's fields, or its entry).
-    pub source: String,
-}
-
-impl TrainingImages {
-    /// From the ingest stage's plan, where its config determines them.
-    pub fn from_plan(images: &seqavatar_schema::ingest::PlannedImages) -> Self {
-        Self {
-            count: images.count,
-            width: images.width,
-            height: images.height,
-            source: images.source.clone(),
-        }
-    }
-
-    /// From the ingest entry's `images` array (count, height, width), read from its metadata
-    /// before any image is.
-    pub fn from_entry(ingest: &seqavatar_engine::EntryReader) -> anyhow::Result<Self> {
-        let shape = ingest.shape("images")?;
-        anyhow::ensure!(
-            shape.len() == 4,
-            "entry {}: array `images` has shape {shape:?}, expected (N, H, W, 3)",
-            ingest.location()
-        );
-        Ok(Self {
-            count: shape[0],
-            width: shape[2],
-            height: shape[1],
-            source: format!("entry {}", ingest.location()),
-        })
-    }
-
-    /// Pixels of one image at the training resolution (`scale` of the entry's, rounded as
-    /// cameras are rescaled).
-    fn pixels_at(&self, scale: f64) -> u64 {
-        let side = |n: u64| ((n as f64 * scale).round() as u64).max(1);
-        side(self.width).saturating_mul(side(self.height))
-    }
+/// Pixels of one of `images` at the training resolution (`scale` of the entry's, rounded as
+/// cameras are rescaled).
+fn pixels_at(images: &IngestImages, scale: f64) -> u64 {
+    let side = |n: u64| ((n as f64 * scale).round() as u64).max(1);
+    side(images.width).saturating_mul(side(images.height))
 }
 
 /// A rejected configuration, naming the field.

@@ -30,9 +30,10 @@ use seqavatar_engine::{
 };
 
 use crate::checkpoint;
-use crate::config::{TrainConfig, TrainingImages};
+use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::trainer::{LossCurve, Phase, Trainer};
+use seqavatar_schema::ingest::{IngestImages, PlannedIngest};
 
 /// The stage kind.
 pub struct TrainStage;
@@ -132,10 +133,9 @@ impl StageKind for TrainStage {
             .iter()
             .find(|input| input.kind == "ingest")
             .expect("checked above");
-        let Some(images) = seqavatar_schema::ingest::PlannedIngest::of(ingest)?.images else {
+        let Some(images) = PlannedIngest::of(ingest)?.images else {
             return Ok(());
         };
-        let images = TrainingImages::from_plan(&images);
         match seqavatar_engine::memory_budget_bytes()? {
             Some(budget) => config
                 .check_memory(Some(&images), budget)
@@ -185,7 +185,7 @@ impl StageKind for TrainStage {
         let params_entry = fit.as_ref().unwrap_or(&ingest);
         // Refused before any image is read when the run would not fit the memory budget.
         if let Some(budget) = seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)? {
-            let images = TrainingImages::from_entry(&ingest)?;
+            let images = IngestImages::of_entry(&ingest)?;
             config
                 .check_memory(Some(&images), budget)
                 .map_err(anyhow::Error::msg)?;
