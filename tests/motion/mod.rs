@@ -204,3 +204,110 @@ fn motion_entry_is_consistent_with_its_definition() {
         .unwrap();
     assert_eq!((jitter.width(), jitter.height()), (800, 300));
 }
+
+/// The garment oracle: on the history scene the motion entry appends the garment's true
+/// state, normalised to RMS 1 per component, to every skeleton-motion block (the track reads
+/// two more rows per block, the joints' rows unchanged); off, the key is that of a config
+/// without the field; on a scene without a garment state it is refused, naming the field.
+#[test]
+fn garment_oracle_appends_the_true_garment_state_to_the_skeleton_motion() {
+    let pipeline_text = |dataset: &str| {
+        format!(
+            r#"
+stages:
+  - name: ingest
+    kind: ingest
+    config:
+      dataset: {dataset}
+      past_frames: 0
+  - name: motion
+    kind: motion
+    inputs: [ingest]
+    config: {{scales: [2, 1], knn: 4}}
+  - name: motion_off
+    kind: motion
+    inputs: [ingest]
+    config: {{scales: [2, 1], knn: 4, garment_oracle: false}}
+  - name: motion_oracle
+    kind: motion
+    inputs: [ingest]
+    config: {{scales: [2, 1], knn: 4, garment_oracle: true}}
+"#
+        )
+    };
+    let history = "{kind: synthetic, scene: history, fps: 30, frames: 40, cameras: 2, width: 32, height: 32, supersample: 1, body_grid_spacing: 0.04, jitter: {pose_radians: 0.0, translation_metres: 0.0, betas: 0.0}}";
+    let dir = tempfile::tempdir().unwrap();
+    let store = LocalStore::open(dir.path()).unwrap();
+    let registry = registry();
+    let pipeline = Pipeline::parse(
+        &pipeline_text(history),
+        Path::new("test.yaml"),
+        &registry,
+        &[],
+    )
+    .unwrap();
+    let reports = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap();
+    let key = |name: &str| reports.iter().find(|r| r.name == name).unwrap().key.clone();
+    assert_eq!(key("motion"), key("motion_off"));
+    assert_ne!(key("motion"), key("motion_oracle"));
+    let open = |name: &str| {
+        store
+            .open_entry(&EntryId::new("motion", &key(name)))
+            .unwrap()
+    };
+    let plain = seqavatar_schema::motion::MotionTrack::read(&open("motion")).unwrap();
+    let oracle = seqavatar_schema::motion::MotionTrack::read(&open("motion_oracle")).unwrap();
+    assert_eq!(plain.garment_rows, 0);
+    assert_eq!(oracle.garment_rows, 2);
+    assert_eq!(oracle.num_joints, plain.num_joints + 2);
+    let ingest = store
+        .open_entry(&EntryId::new("ingest", &key("ingest")))
+        .unwrap();
+    let states = seqavatar_schema::ingest::read_garment_history(&ingest)
+        .unwrap()
+        .unwrap()
+        .states;
+    let (j, rows) = (plain.num_joints, oracle.num_joints);
+    let mut sums = [0.0f64; seqavatar_schema::ingest::GARMENT_STATE_COMPONENTS];
+    for frame in 0..plain.num_frames {
+        for slot in 0..2 {
+            let joints = &plain.skeleton_motion[(frame * 2 + slot) * j * 3..][..j * 3];
+            let block = &oracle.skeleton_motion[(frame * 2 + slot) * rows * 3..][..rows * 3];
+            assert_eq!(&block[..j * 3], joints, "frame {frame}");
+            let garment = &block[j * 3..];
+            for (c, sum) in sums.iter_mut().enumerate() {
+                // Same sign as the state, and zero exactly where it is.
+                assert_eq!(
+                    garment[c] == 0.0,
+                    states[frame][c] == 0.0,
+                    "frame {frame} component {c}"
+                );
+                assert!(f64::from(garment[c]) * states[frame][c] >= 0.0);
+                if slot == 0 {
+                    *sum += f64::from(garment[c]).powi(2);
+                }
+            }
+        }
+    }
+    // RMS 1 per component, but for one that is zero throughout (no turn in 40 frames: no
+    // deflection across the body, nor twist), which stays zero.
+    let moving = states.iter().fold([false; 6], |mut any, s| {
+        for c in 0..6 {
+            any[c] |= s[c] != 0.0;
+        }
+        any
+    });
+    assert!(moving[0] && moving[2], "the hem swings forward and back");
+    for (c, sum) in sums.iter().enumerate() {
+        let rms = (sum / plain.num_frames as f64).sqrt();
+        let want = if moving[c] { 1.0 } else { 0.0 };
+        assert!((rms - want).abs() < 1e-4, "component {c}: RMS {rms}");
+    }
+    // The walk scene knows no garment state: the oracle is refused, naming the field.
+    let walk = "{kind: synthetic, cameras: 2, frames: 6, width: 32, height: 32, supersample: 1, body_grid_spacing: 0.04}";
+    let pipeline =
+        Pipeline::parse(&pipeline_text(walk), Path::new("test.yaml"), &registry, &[]).unwrap();
+    let error = run(&pipeline, &registry, &store, &RunOptions::default()).unwrap_err();
+    let text = format!("{error:#}");
+    assert!(text.contains("garment_oracle"), "{text}");
+}

@@ -126,6 +126,7 @@ pub fn uniform_track(
     MotionTrack {
         num_frames: frames,
         num_joints: j,
+        garment_rows: 0,
         num_vertices: v,
         scales: avatar.scales.clone(),
         scale_steps: avatar.scales.iter().map(|&k| k as usize).collect(),

@@ -131,6 +131,7 @@ pub fn motion_track_for(
     Ok(MotionTrack {
         num_frames: arrays.num_frames,
         num_joints: arrays.num_joints,
+        garment_rows: 0,
         num_vertices: arrays.num_vertices,
         scales: scales.raw.clone(),
         scale_steps: scales.steps.clone(),

@@ -48,12 +48,19 @@ impl BodyModelKind {
 }
 
 /// A garment's particles at one frame: as simulated, and its static drape under the same
-/// pose (world space, metres, one position per particle in both).
+/// pose (world space, metres, one position per particle in both), and the exact state of the
+/// dynamics that moved it off the drape, where the generator has one.
 #[derive(Clone, Debug, PartialEq)]
 pub struct GarmentHistory {
     pub simulated: Vec<seqavatar_core::glam::DVec3>,
     pub drape: Vec<seqavatar_core::glam::DVec3>,
+    /// The garment's dynamic state, [`GARMENT_STATE_COMPONENTS`] values (the history scene's
+    /// oscillator: [`synthetic::garment::Swing::in_body_frame`]); what a perfect motion
+    /// context would have to infer, the input of the ablation's oracle row.
+    pub state: [f64; GARMENT_STATE_COMPONENTS],
 }
+
+pub use seqavatar_schema::ingest::GARMENT_STATE_COMPONENTS;
 
 /// A selection of frame-list indices: `start, start + step, ...` below `end`
 /// (`end: None` = up to the last frame).

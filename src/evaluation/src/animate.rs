@@ -347,6 +347,16 @@ pub fn drive_avatar(
             .with_context(|| format!("poses, frame {frame}"))?;
     }
     let motion = if let Some(motion_entry) = &motion_entry {
+        anyhow::ensure!(
+            !motion_entry
+                .array_names()
+                .iter()
+                .any(|n| n == "garment_oracle"),
+            "the avatar's motion entry {} holds the garment oracle (the synthetic scene's true \
+             garment state, motion config `garment_oracle`): other poses have no such state; \
+             render the avatar on its own sequence (`pipeline run` with an eval stage)",
+            motion_entry.location()
+        );
         let (normalisation, input_scales) =
             seqavatar_schema::motion::read_input_scales(motion_entry)?;
         check_motion_memory(

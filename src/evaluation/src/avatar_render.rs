@@ -205,14 +205,27 @@ impl AvatarRenderer {
             );
             let model = &avatar.rig.model;
             anyhow::ensure!(
-                track.num_joints == model.num_joints()
+                track.num_joints - track.garment_rows == model.num_joints()
                     && track.num_vertices == model.num_vertices(),
                 "the motion track has {} joints and {} vertices, the avatar's body model {} and {}",
-                track.num_joints,
+                track.num_joints - track.garment_rows,
                 track.num_vertices,
                 model.num_joints(),
                 model.num_vertices()
             );
+            if let Some(networks) = &avatar.networks
+                && context.has_skeleton_motion()
+            {
+                let read = networks.config().motion_joints;
+                anyhow::ensure!(
+                    read == track.num_joints,
+                    "the avatar of {location} reads {read} skeleton-motion rows, the motion entry \
+                     gives {} ({} of them the garment oracle's): train and render with the same \
+                     motion entry",
+                    track.num_joints,
+                    track.garment_rows
+                );
+            }
             track.slots(&avatar.scales).with_context(|| {
                 format!(
                     "the avatar of {location} was trained with scales {:?}",
@@ -504,6 +517,7 @@ mod tests {
             let track = MotionTrack {
                 num_frames: frames,
                 num_joints: j,
+                garment_rows: 0,
                 num_vertices: v,
                 scales: vec![2],
                 scale_steps: vec![2],

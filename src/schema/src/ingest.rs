@@ -56,6 +56,10 @@
 //!   ingested view, RMS over particles and views, in pixels of the ingested images.
 //! - `history_frame` u8 `(frame)`: 1 where `history_displacement_px` exceeds the attribute
 //!   `history_frame_px` (1 px): the *history frames* eval scores separately.
+//! - `garment_state` f64 `(frame, component)`: the exact state of the skirt's oscillator in
+//!   the body's heading frame ([`GARMENT_STATE_COMPONENTS`]: hem deflection forward and
+//!   across, their rates, twist and its rate; m, m/s, rad, rad/s), the input of the motion
+//!   stage's `garment_oracle`.
 //!
 //! Body parameters per frame (the dataset's fits; for the synthetic scene, the jittered
 //! copy), in [`seqavatar_core::body::BodyParams`] conventions:
@@ -646,7 +650,13 @@ pub fn read_garment_region(entry: &EntryReader) -> anyhow::Result<Option<Garment
 /// many pixels RMS (ingested resolution).
 pub const HISTORY_FRAME_PX: f64 = 1.0;
 
-/// The garment's history-only displacement per frame (lib.rs schema: `history_*` arrays).
+/// Values per frame of `garment_state`: the history scene's skirt oscillator in the body's
+/// heading frame, `[forward, across, forward rate, across rate, twist, twist rate]` (hem
+/// deflection in metres and metres per second, twist in radians and radians per second).
+pub const GARMENT_STATE_COMPONENTS: usize = 6;
+
+/// The garment's history-only displacement per frame (lib.rs schema: `history_*` arrays) and
+/// the exact state of its dynamics (`garment_state`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GarmentHistoryArrays {
     /// RMS over particles of simulated minus static drape, millimetres.
@@ -655,6 +665,8 @@ pub struct GarmentHistoryArrays {
     pub pixels: Vec<f64>,
     /// `pixels > HISTORY_FRAME_PX`.
     pub frames: Vec<bool>,
+    /// Per frame, the garment's dynamic state ([`GARMENT_STATE_COMPONENTS`] values).
+    pub states: Vec<[f64; GARMENT_STATE_COMPONENTS]>,
 }
 
 /// Writes `history_displacement_mm`, `history_displacement_px` and `history_frame`, and the
@@ -665,11 +677,12 @@ pub fn write_garment_history(
 ) -> anyhow::Result<()> {
     let n = history.millimetres.len();
     anyhow::ensure!(
-        history.pixels.len() == n && history.frames.len() == n,
-        "garment history: {} mm, {} px, {} flags",
+        history.pixels.len() == n && history.frames.len() == n && history.states.len() == n,
+        "garment history: {} mm, {} px, {} flags, {} states",
         n,
         history.pixels.len(),
-        history.frames.len()
+        history.frames.len(),
+        history.states.len()
     );
     let n = n as u64;
     let chunk = [n.max(1)];
@@ -690,6 +703,15 @@ pub fn write_garment_history(
     let flags: Vec<u8> = history.frames.iter().map(|&f| u8::from(f)).collect();
     out.write_array("history_frame", &["frame"], &[n], &chunk, &flags)?;
     out.set_attribute("history_frame_px", HISTORY_FRAME_PX.into())?;
+    let states: Vec<f64> = history.states.iter().flatten().copied().collect();
+    let components = GARMENT_STATE_COMPONENTS as u64;
+    out.write_array(
+        "garment_state",
+        &["frame", "component"],
+        &[n, components],
+        &[n.max(1), components],
+        &states,
+    )?;
     Ok(())
 }
 
@@ -705,6 +727,7 @@ pub fn read_garment_history(entry: &EntryReader) -> anyhow::Result<Option<Garmen
     let millimetres = entry.read::<f64>("history_displacement_mm")?;
     let pixels = entry.read::<f64>("history_displacement_px")?;
     let flags = entry.read::<u8>("history_frame")?;
+    let states = entry.read::<f64>("garment_state")?;
     for (name, shape) in [
         ("history_displacement_mm", &millimetres.shape),
         ("history_displacement_px", &pixels.shape),
@@ -715,13 +738,29 @@ pub fn read_garment_history(entry: &EntryReader) -> anyhow::Result<Option<Garmen
             "entry {location}: array `{name}` has shape {shape:?}, expected ({frames}) (the frame axis)"
         );
     }
+    anyhow::ensure!(
+        states.shape == [frames, GARMENT_STATE_COMPONENTS],
+        "entry {location}: array `garment_state` has shape {:?}, expected ({frames}, {GARMENT_STATE_COMPONENTS})",
+        states.shape
+    );
     if let Some(bad) = flags.data.iter().find(|f| **f > 1) {
         anyhow::bail!("entry {location}: array `history_frame` holds {bad}, expected 0 or 1");
+    }
+    if let Some(bad) = states.data.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!(
+            "entry {location}: array `garment_state` has a non-finite value at frame {}",
+            bad / GARMENT_STATE_COMPONENTS
+        );
     }
     Ok(Some(GarmentHistoryArrays {
         millimetres: millimetres.data,
         pixels: pixels.data,
         frames: flags.data.iter().map(|&f| f == 1).collect(),
+        states: states
+            .data
+            .chunks_exact(GARMENT_STATE_COMPONENTS)
+            .map(|c| std::array::from_fn(|k| c[k]))
+            .collect(),
     }))
 }
 

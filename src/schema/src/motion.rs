@@ -14,6 +14,9 @@
 //!   over the block's RMS over the whole sequence, so every block has RMS 1 on the dataset;
 //!   1 for `authors` and `none`); [`read_input_scales`] reads them back.
 //! - `frame_source_id` i64 `(frame)` (copied from ingest).
+//! - `garment_oracle` f32 `(frame, scale, row, xyz)` and `garment_oracle_scale` f64
+//!   `(component)`, only with the stage's `garment_oracle`: the ingest entry's `garment_state`
+//!   normalised ([`write_garment_oracle`]), read as extra rows of every skeleton-motion block.
 //! - `canonical_vertices` f32 `(vertex, xyz)`; `canonical_knn` u32 and
 //!   `canonical_knn_distance` f32 `(vertex, neighbour)`, nearest first, self first.
 //! - `camera_K`, `camera_R` f64 `(view, row, col)`, `camera_t` f64 `(view, xyz)`,
@@ -582,17 +585,76 @@ pub fn read_input_scales(
     ))
 }
 
+/// Writes the garment oracle: `garment_oracle` f32 `(frame, scale, row, xyz)`, the ingest
+/// entry's `garment_state` with each component divided by its RMS over the sequence (1 for a
+/// component that is zero throughout), zero-padded to whole rows of 3 and repeated for every
+/// scale slot, and the factors as `garment_oracle_scale` f64 `(component)`. [`MotionTrack::read`]
+/// appends its rows to every skeleton-motion block, so the rows (c)-(e) read the garment's
+/// true state through the skeleton-motion encoder: the ablation's upper bound.
+pub fn write_garment_oracle(
+    out: &EntryWriter,
+    states: &[[f64; crate::ingest::GARMENT_STATE_COMPONENTS]],
+    n_scales: usize,
+) -> anyhow::Result<()> {
+    const C: usize = crate::ingest::GARMENT_STATE_COMPONENTS;
+    let rows = C.div_ceil(3);
+    let factors: Vec<f64> = (0..C)
+        .map(|c| {
+            let mean_square =
+                states.iter().map(|s| s[c] * s[c]).sum::<f64>() / states.len().max(1) as f64;
+            let rms = mean_square.sqrt();
+            if rms > 0.0 && rms.is_finite() {
+                1.0 / rms
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let mut values = Vec::with_capacity(states.len() * n_scales * rows * 3);
+    for state in states {
+        for _ in 0..n_scales {
+            values.extend((0..rows * 3).map(|c| {
+                if c < C {
+                    (state[c] * factors[c]) as f32
+                } else {
+                    0.0
+                }
+            }));
+        }
+    }
+    let (f, s, r) = (states.len() as u64, n_scales as u64, rows as u64);
+    out.write_array(
+        "garment_oracle",
+        &["frame", "scale", "row", "xyz"],
+        &[f, s, r, 3],
+        &[1, s, r, 3],
+        &values,
+    )?;
+    out.write_array(
+        "garment_oracle_scale",
+        &["component"],
+        &[C as u64],
+        &[C as u64],
+        &factors,
+    )?;
+    Ok(())
+}
+
 /// The motion entry's arrays a window gathers from.
 #[derive(Clone, Debug)]
 pub struct MotionTrack {
     pub num_frames: usize,
+    /// Rows of every skeleton-motion block: the body's joints, then `garment_rows`.
     pub num_joints: usize,
+    /// Rows of the garment oracle ([`write_garment_oracle`]) at the end of every
+    /// skeleton-motion block; 0 without one.
+    pub garment_rows: usize,
     pub num_vertices: usize,
     /// Raw scales, largest first.
     pub scales: Vec<u32>,
     /// The same scales in steps on the frame axis.
     pub scale_steps: Vec<usize>,
-    /// `(frame, scale, joint, 3)`.
+    /// `(frame, scale, joint, 3)`, the garment oracle's rows last.
     pub skeleton_motion: Vec<f32>,
     /// `(frame, scale, vertex, 3)`.
     pub vertex_velocity: Vec<f32>,
@@ -628,21 +690,54 @@ impl MotionTrack {
             "entry {location}: array `vertex_velocity` has shape {:?}, expected ({f}, {s}, vertex, 3)",
             velocity.shape
         );
+        let oracle = if entry.array_names().iter().any(|n| n == "garment_oracle") {
+            let oracle = entry.read::<f32>("garment_oracle")?;
+            anyhow::ensure!(
+                oracle.shape.len() == 4
+                    && oracle.shape[0] == f
+                    && oracle.shape[1] == s
+                    && oracle.shape[2] >= 1
+                    && oracle.shape[3] == 3
+                    && j >= 1,
+                "entry {location}: array `garment_oracle` has shape {:?}, expected ({f}, {s}, row, 3) beside {j} joints",
+                oracle.shape
+            );
+            Some(oracle)
+        } else {
+            None
+        };
         for (name, data) in [
             ("skeleton_motion", &skeleton.data),
             ("vertex_velocity", &velocity.data),
+            (
+                "garment_oracle",
+                oracle.as_ref().map_or(&Vec::new(), |o| &o.data),
+            ),
         ] {
             if let Some(bad) = data.iter().position(|v| !v.is_finite()) {
                 anyhow::bail!("entry {location}: array `{name}` has a non-finite value at {bad}");
             }
         }
+        let (garment_rows, skeleton_motion) = match oracle {
+            None => (0, skeleton.data),
+            Some(oracle) => {
+                let r = oracle.shape[2];
+                let blocks = skeleton.data.chunks_exact(j * 3);
+                let joined = blocks
+                    .zip(oracle.data.chunks_exact(r * 3))
+                    .flat_map(|(joints, garment)| joints.iter().chain(garment).copied())
+                    .collect();
+                (r, joined)
+            }
+        };
         Ok(Self {
             num_frames: f,
-            num_joints: j,
+            num_joints: j + garment_rows,
+            garment_rows,
             num_vertices: velocity.shape[2],
             scales,
             scale_steps: steps.iter().map(|&k| k as usize).collect(),
-            skeleton_motion: skeleton.data,
+            skeleton_motion,
             vertex_velocity: velocity.data,
             axis: FrameAxis::of_motion(entry)?,
         })
@@ -756,6 +851,7 @@ mod tests {
         MotionTrack {
             num_frames: f,
             num_joints: 1,
+            garment_rows: 0,
             num_vertices: 1,
             scales: vec![2, 1],
             scale_steps: vec![2, 1],

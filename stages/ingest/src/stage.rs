@@ -31,7 +31,8 @@ pub struct Ingest;
 /// 4: attribute `first_frame_index` (where the frame axis starts in the recording).
 /// 5: array `garment_masks` and attribute `garment_region` (the synthetic skirt, ZJU-MoCap's
 ///    CIHP clothing labels); the other arrays are unchanged.
-pub const INGEST_VERSION: u32 = 5;
+/// 6: array `garment_state` beside the garment history (the history scene's oscillator).
+pub const INGEST_VERSION: u32 = 6;
 
 impl StageKind for Ingest {
     type Config = IngestConfig;
@@ -333,9 +334,13 @@ fn garment_history(
                     }
                 }
             }
-            Ok((metres * 1e3, (squared / count.max(1) as f64).sqrt()))
+            Ok((
+                metres * 1e3,
+                (squared / count.max(1) as f64).sqrt(),
+                garment.state,
+            ))
         })
-        .collect::<anyhow::Result<Vec<(f64, f64)>>>()?;
+        .collect::<anyhow::Result<Vec<(f64, f64, _)>>>()?;
     let pixels: Vec<f64> = rows.iter().map(|r| r.1).collect();
     Ok(Some(schema::GarmentHistoryArrays {
         frames: pixels
@@ -344,6 +349,7 @@ fn garment_history(
             .collect(),
         millimetres: rows.iter().map(|r| r.0).collect(),
         pixels,
+        states: rows.iter().map(|r| r.2).collect(),
     }))
 }
 
@@ -627,9 +633,18 @@ mod stage_tests {
         for (f, (&px, &flag)) in arrays.pixels.iter().zip(&arrays.frames).enumerate() {
             assert_eq!(flag, px > schema::HISTORY_FRAME_PX, "frame {f}");
         }
-        // At rest before the first step: no displacement.
+        // At rest before the first step: no displacement and the oscillator at rest.
         assert_eq!(arrays.millimetres[0], 0.0);
         assert_eq!(arrays.pixels[0], 0.0);
+        assert_eq!(arrays.states[0], [0.0; schema::GARMENT_STATE_COMPONENTS]);
+        // The state moves the skirt: a frame with a displaced hem has a deflection.
+        let moving = arrays.millimetres.iter().position(|&mm| mm > 50.0).unwrap();
+        let [forward, across, ..] = arrays.states[moving];
+        assert!(
+            forward.hypot(across) > 0.01,
+            "frame {moving}: {:?}",
+            arrays.states[moving]
+        );
         // The millimetres are the scene's own RMS of simulated minus drape.
         let scene = seqavatar_datasets::synthetic::SyntheticScene::generate(
             &seqavatar_datasets::synthetic::SyntheticConfig {

@@ -15,12 +15,12 @@ use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
 use seqavatar_schema::body::BodySequence;
-use seqavatar_schema::ingest::read_body_model;
+use seqavatar_schema::ingest::{read_body_model, read_garment_history};
 
 use seqavatar_context::compute::{canonical_template, compute_motion, effective_velocity};
 use seqavatar_schema::motion::{
     FrameAxis, InputScales, InputScaling, MotionEntry, Scales, VelocityNormalisation,
-    read_input_scales, write_entry,
+    read_input_scales, write_entry, write_garment_oracle,
 };
 
 /// The `motion` stage configuration: only what changes the motion templates.
@@ -39,6 +39,13 @@ pub struct MotionConfig {
     /// sequence), `authors` (velocities x 300 / smallest scale, as the authors' code) or
     /// `none`.
     pub input_scaling: InputScaling,
+    /// Whether the entry also holds the garment's true dynamic state (the ingest entry's
+    /// `garment_state`: only the synthetic history scene has one), read by every row with
+    /// skeleton motion as extra skeleton-motion rows: the ablation's oracle row, the upper
+    /// bound of what a perfect motion context could give. Left out of the resolved config
+    /// when off, so other entries keep their keys.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub garment_oracle: bool,
 }
 
 impl Default for MotionConfig {
@@ -48,6 +55,7 @@ impl Default for MotionConfig {
             velocity: VelocityNormalisation::PerScale,
             knn: 8,
             input_scaling: InputScaling::Rms,
+            garment_oracle: false,
         }
     }
 }
@@ -179,6 +187,24 @@ impl StageKind for MotionStage {
                 axis: FrameAxis::of_ingest(&ingest)?,
             },
         )?;
+        if config.garment_oracle {
+            let history = read_garment_history(&ingest)?.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "config `garment_oracle`: entry {} has no `garment_state` (only the synthetic \
+                     history scene, `dataset.scene: history`, knows its garment's state)",
+                    ingest.location()
+                )
+            })?;
+            anyhow::ensure!(
+                history.states.len() == motion.num_frames,
+                "entry {}: `garment_state` has {} frames, the body parameters {}",
+                ingest.location(),
+                history.states.len(),
+                motion.num_frames
+            );
+            write_garment_oracle(ctx.output(), &history.states, scales.len())?;
+            ctx.log("garment oracle: the true garment state appended to the skeleton motion");
+        }
         Ok(())
     }
 

@@ -502,6 +502,7 @@ mod tests {
         MotionTrack {
             num_frames: frames,
             num_joints: joints,
+            garment_rows: 0,
             num_vertices: vertices,
             scales: vec![4, 2, 1],
             scale_steps: vec![4, 2, 1],

@@ -334,6 +334,25 @@ impl Swing {
         self.twist += self.twist_rate * dt;
     }
 
+    /// The state as seen from the body: the hem deflection and its rate along the body's
+    /// forward and left-to-right axes (world x and z turned by the heading `heading`, radians
+    /// about +y, whose forward direction is `(sin, cos)`), then the twist and its rate:
+    /// `[forward, across, forward rate, across rate, twist, twist rate]` in metres, metres
+    /// per second, radians and radians per second. The same skirt shape relative to the body
+    /// gives the same values whichever way the body faces.
+    pub fn in_body_frame(&self, heading: f64) -> [f64; crate::GARMENT_STATE_COMPONENTS] {
+        let forward = DVec2::new(heading.sin(), heading.cos());
+        let across = DVec2::new(heading.cos(), -heading.sin());
+        [
+            self.offset.dot(forward),
+            self.offset.dot(across),
+            self.velocity.dot(forward),
+            self.velocity.dot(across),
+            self.twist,
+            self.twist_rate,
+        ]
+    }
+
     /// The swinging skirt from its static drape (one position per particle, row-major as
     /// [`particle`]): row `r` turns about the waist centre by the fraction `r / (ROWS - 1)` of
     /// the twist (about +y) and of the swing (the rotation that moves the downward direction
@@ -521,6 +540,27 @@ mod tests {
         let mut rest = Swing::default();
         rest.step(&params, DVec2::ZERO, DVec2::ZERO, 0.0, dt);
         assert_eq!(rest, Swing::default());
+    }
+
+    /// The body-frame state: a deflection along the heading reads as forward whichever way the
+    /// body faces, one to its side as across, and the twist is unchanged.
+    #[test]
+    fn body_frame_state_follows_the_heading() {
+        for heading in [0.0, 0.7, std::f64::consts::PI, -2.0] {
+            let forward = DVec2::new(f64::sin(heading), f64::cos(heading));
+            let across = DVec2::new(f64::cos(heading), -f64::sin(heading));
+            let swing = Swing {
+                offset: forward * 0.1 + across * 0.02,
+                velocity: across * -0.3,
+                twist: 0.25,
+                twist_rate: -1.5,
+            };
+            let state = swing.in_body_frame(heading);
+            let want = [0.1, 0.02, 0.0, -0.3, 0.25, -1.5];
+            for (got, want) in state.iter().zip(want) {
+                assert!((got - want).abs() < 1e-12, "heading {heading}: {state:?}");
+            }
+        }
     }
 
     /// The swing turns rows about the waist centre: lengths to the centre are kept, the hem

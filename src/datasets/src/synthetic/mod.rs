@@ -78,6 +78,10 @@ pub enum SceneKind {
     History,
 }
 
+fn is_true(value: &bool) -> bool {
+    *value
+}
+
 impl SceneKind {
     fn is_walk(&self) -> bool {
         *self == Self::Walk
@@ -111,6 +115,12 @@ pub struct SyntheticConfig {
     pub body_grid_spacing: f64,
     /// Whether the subject wears the simulated skirt.
     pub garment: bool,
+    /// History scene: whether the skirt swings (its oscillator driven by the body's motion).
+    /// `false` keeps it in its static drape, carried by the pose alone: the control that
+    /// separates what the deformation model cannot do from what only history explains. Left
+    /// out of the resolved config when `true`, so existing keys stay.
+    #[serde(skip_serializing_if = "is_true")]
+    pub garment_swing: bool,
     /// The backdrop behind the person (`textured` or `black`); masks are the person's
     /// coverage either way.
     pub background: SyntheticBackground,
@@ -133,6 +143,7 @@ impl Default for SyntheticConfig {
             betas: [0.3, -0.2],
             body_grid_spacing: seqavatar_core::body::procedural::DEFAULT_GRID_SPACING,
             garment: true,
+            garment_swing: true,
             background: SyntheticBackground::Textured,
             jitter: JitterConfig::default(),
             seed: 7,
@@ -237,6 +248,11 @@ impl SyntheticConfig {
             (0.005..=0.05).contains(&self.body_grid_spacing),
             "{} must be within 0.005..0.05 metres",
             field("body_grid_spacing")
+        );
+        anyhow::ensure!(
+            self.garment_swing || self.scene == SceneKind::History,
+            "{} = false needs scene: history (the walk's skirt is a cloth simulation)",
+            field("garment_swing")
         );
         if self.scene == SceneKind::History {
             anyhow::ensure!(

@@ -30,8 +30,8 @@ use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
 use super::{SceneKind, SyntheticBackground, SyntheticConfig};
 use crate::{
-    BodyModelKind, DatasetReader, FrameRange, GarmentHistory, GarmentRegion, Keypoints3d,
-    SourceCamera, SourceImage, Split,
+    BodyModelKind, DatasetReader, FrameRange, GARMENT_STATE_COMPONENTS, GarmentHistory,
+    GarmentRegion, Keypoints3d, SourceCamera, SourceImage, Split,
 };
 
 /// Garment simulation rate (substeps per second).
@@ -58,6 +58,8 @@ pub struct SyntheticScene {
     skirt: Vec<Vec<DVec3>>,
     /// History scene: per frame, the skirt's static drape (its oscillator at rest).
     drapes: Vec<Vec<DVec3>>,
+    /// History scene: per frame, the oscillator's state in the body's heading frame.
+    garment_states: Vec<[f64; GARMENT_STATE_COMPONENTS]>,
     skirt_triangles: Vec<[u32; 3]>,
     skirt_texture: Vec<DVec3>,
     /// Per body vertex: albedo region colour.
@@ -144,6 +146,8 @@ struct SceneSequence {
     skirt_frames: Vec<Vec<DVec3>>,
     /// The skirt's static drape (history scene only, else empty).
     drapes: Vec<Vec<DVec3>>,
+    /// The skirt's oscillator state in the body's heading frame (history scene only).
+    garment_states: Vec<[f64; GARMENT_STATE_COMPONENTS]>,
 }
 
 /// Per-frame ground truth, simulated skirt and its static drape of the history scene
@@ -174,6 +178,9 @@ fn history_sequence(
             let t = (frame - 1) as f64 + (sub as f64 + 0.5) / substeps as f64;
             let sample = path_sample(&phase_curve, &heading_curve, t);
             position += sample.velocity * dt;
+            if !config.garment_swing {
+                continue;
+            }
             swing.step(
                 &swing_params,
                 sample.velocity,
@@ -212,6 +219,7 @@ fn history_sequence(
             ground_truth,
             skirt_frames: Vec::new(),
             drapes: Vec::new(),
+            garment_states: Vec::new(),
         });
     }
     let scale = 1.0 + procedural::HEIGHT_PER_BETA * config.betas[0];
@@ -229,10 +237,16 @@ fn history_sequence(
             (state.apply(&swing_params, &drape), drape)
         })
         .unzip();
+    let garment_states = states
+        .iter()
+        .zip(&headings)
+        .map(|(state, &heading)| state.in_body_frame(heading))
+        .collect();
     Ok(SceneSequence {
         ground_truth,
         skirt_frames: simulated,
         drapes,
+        garment_states,
     })
 }
 
@@ -371,6 +385,7 @@ fn walk_sequence(
         ground_truth,
         skirt_frames,
         drapes: Vec::new(),
+        garment_states: Vec::new(),
     })
 }
 
@@ -428,6 +443,7 @@ impl SyntheticScene {
             ground_truth,
             skirt_frames,
             drapes,
+            garment_states,
         } = match config.scene {
             SceneKind::History => {
                 history_sequence(config, &model, &shaped, &rest_joints, pelvis_height)?
@@ -469,6 +485,7 @@ impl SyntheticScene {
             jittered,
             skirt: skirt_frames,
             drapes,
+            garment_states,
             skirt_triangles: if config.garment {
                 garment::triangles()
             } else {
@@ -865,6 +882,7 @@ impl DatasetReader for SyntheticScene {
         Ok(Some(GarmentHistory {
             simulated: self.skirt[frame].clone(),
             drape: self.drapes[frame].clone(),
+            state: self.garment_states[frame],
         }))
     }
 
