@@ -728,7 +728,11 @@ stages:
     let reports = run_text(&cache, text, None).unwrap();
     let train = entry(&cache, &reports, "train");
     let joints = train.attribute("motion_joints").unwrap().as_u64().unwrap();
-    assert_eq!(joints, 24 + 2, "the procedural body's 24 joints and the oracle's 2 rows");
+    assert_eq!(
+        joints,
+        24 + 2,
+        "the procedural body's 24 joints and the oracle's 2 rows"
+    );
     let eval = entry(&cache, &reports, "eval");
     assert!(eval.attribute("summary").is_some());
     let options = RenderOptions {

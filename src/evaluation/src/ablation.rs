@@ -1,7 +1,8 @@
 //! The seed-averaged ablation table of `pipeline report`: eval stages whose train stages differ
-//! only in `seed` form one row, reported as mean ± sample standard deviation over the seeds
-//! for all test images, the history frames, each protocol, the training images, and the
-//! context probes' PSNR changes ([`crate::context_probe`]).
+//! only in `seed` (same config otherwise, same input stages) form one row, reported as mean ±
+//! sample standard deviation over the seeds for all test images, the history frames and the
+//! others (whole image, and the garment region where ingest has one), each protocol, the
+//! training images, and the context probes' PSNR changes ([`crate::context_probe`]).
 
 use std::collections::BTreeMap;
 
@@ -16,21 +17,24 @@ pub struct SeedRun {
     pub train_stage: String,
     /// The train stage's config as written (before presets are filled in).
     pub train_config: Value,
+    /// The train stage's input stages (by name): the ablation's oracle row trains like row
+    /// (e) on another motion entry, so runs are seeds of one row only when these match too.
+    pub train_inputs: Vec<String>,
     /// The eval entry's `summary` attribute.
     pub summary: Value,
     /// Training wall time (the train entry's `wall_seconds`), when known.
     pub train_seconds: Option<f64>,
 }
 
-/// The config without its `seed`, as canonical JSON: runs with the same key are seeds of one
-/// row.
-pub fn group_key(config: &Value) -> String {
+/// The config without its `seed` as canonical JSON, and the input stages: runs with the same
+/// key are seeds of one row.
+pub fn group_key(config: &Value, inputs: &[String]) -> String {
     let mut config = config.clone();
     if let Some(map) = config.as_object_mut() {
         map.remove("seed");
     }
     // serde_json's maps are sorted, so equal configs print equally.
-    config.to_string()
+    format!("{config} {inputs:?}")
 }
 
 /// Mean and sample standard deviation (0 for one value); `None` for no values.
@@ -49,11 +53,23 @@ pub fn mean_std(values: &[f64]) -> Option<(f64, f64)> {
 }
 
 /// The columns of the table: header and where the value sits in an eval summary.
-const COLUMNS: [(&str, Metric); 8] = [
+const COLUMNS: [(&str, Metric); 11] = [
     ("all test images", Metric::Path(&["means", "psnr"])),
     (
         "history frames",
         Metric::Path(&["subsets", "history", "psnr"]),
+    ),
+    (
+        "other frames",
+        Metric::Path(&["subsets", "not_history", "psnr"]),
+    ),
+    (
+        "garment region, history frames",
+        Metric::Path(&["subsets", "history", "garment", "psnr"]),
+    ),
+    (
+        "garment region, other frames",
+        Metric::Path(&["subsets", "not_history", "garment", "psnr"]),
     ),
     (
         "held-out cameras",
@@ -151,7 +167,7 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
     let mut order: Vec<String> = Vec::new();
     let mut groups: BTreeMap<String, Vec<&SeedRun>> = BTreeMap::new();
     for run in runs {
-        let key = group_key(&run.train_config);
+        let key = group_key(&run.train_config, &run.train_inputs);
         if !groups.contains_key(&key) {
             order.push(key.clone());
         }
@@ -171,13 +187,13 @@ pub fn ablation_table(runs: &[SeedRun]) -> anyhow::Result<Option<String>> {
         let group = &groups[key];
         let names: Vec<&str> = group.iter().map(|run| run.train_stage.as_str()).collect();
         let mut cells = vec![common_label(&names), group.len().to_string()];
-        for (index, (_, metric)) in COLUMNS.iter().enumerate() {
+        for (_, metric) in &COLUMNS {
             let values: Vec<f64> = group
                 .iter()
                 .filter_map(|run| metric.read(&run.summary))
                 .filter(|value| value.is_finite())
                 .collect();
-            let signed = index >= 5;
+            let signed = matches!(metric, Metric::Probe(..));
             // Changes get a third decimal: "no effect" and "a few hundredths" differ.
             cells.push(match (mean_std(&values), values.len()) {
                 (None, _) => "-".to_owned(),
@@ -209,9 +225,13 @@ mod tests {
         SeedRun {
             train_stage: name.to_owned(),
             train_config: json!({"preset": "fast", "seed": seed, "motion_context": context}),
+            train_inputs: vec!["ingest".into(), "motion".into()],
             summary: json!({
                 "means": {"psnr": all},
-                "subsets": {"history": {"psnr": history}, "held_out_frames": null},
+                "subsets": {
+                    "history": {"psnr": history, "garment": {"psnr": history - 14.0}},
+                    "held_out_frames": null
+                },
                 "train_image_psnr": 30.0,
                 "context_probes": [
                     {"probe": {"kind": "zeroed"}, "psnr_change": {"all": zeroed / 2.0, "history": zeroed}},
@@ -242,7 +262,9 @@ mod tests {
         let table = ablation_table(&runs).unwrap().unwrap();
         let lines: Vec<&str> = table.lines().collect();
         assert_eq!(lines.len(), 4, "{table}");
-        assert!(lines[2].starts_with("| train_b_pose | 2 | 27.10 ± 0.14 | 26.20 ± 0.28 |"));
+        assert!(lines[2].starts_with(
+            "| train_b_pose | 2 | 27.10 ± 0.14 | 26.20 ± 0.28 | - | 12.20 ± 0.28 | - |"
+        ));
         assert!(lines[3].starts_with("| train_e_multiscale | 2 | 28.20 ± 0.28 | 27.00 ± 0.00 |"));
         // Missing subsets are "-", changes are signed.
         assert!(
@@ -251,14 +273,22 @@ mod tests {
             ),
             "{table}"
         );
+        // The oracle row: (e)'s config on another motion entry is a row of its own.
+        let mut oracle = runs.to_vec();
+        for run in &mut oracle[2..] {
+            run.train_inputs = vec!["ingest".into(), "motion_oracle".into()];
+        }
+        let table = ablation_table(&oracle).unwrap().unwrap();
+        assert_eq!(table.lines().count(), 6, "{table}");
         // One run per config with history subsets (a sweep on the history scene): the table,
         // values without a spread.
         let single = ablation_table(&runs[..2]).unwrap().unwrap();
         let lines: Vec<&str> = single.lines().collect();
         assert_eq!(lines.len(), 4, "{single}");
         assert!(
-            lines[2]
-                .starts_with("| train_b_pose_s1 | 1 | 27.00 | 26.00 | - | - | 30.00 | +0.000 |"),
+            lines[2].starts_with(
+                "| train_b_pose_s1 | 1 | 27.00 | 26.00 | - | 12.00 | - | - | - | 30.00 | +0.000 |"
+            ),
             "{single}"
         );
         assert!(lines[3].ends_with("| -0.100 | 100 |"), "{single}");

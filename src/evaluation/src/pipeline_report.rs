@@ -369,6 +369,7 @@ fn eval_rows(states: &[StageState<'_>]) -> anyhow::Result<(Vec<EvalRow>, Vec<See
             seed_runs.push(SeedRun {
                 train_stage: train.spec.name.clone(),
                 train_config: train.spec.config.clone(),
+                train_inputs: train.spec.inputs.clone(),
                 summary: entry
                     .attribute(SUMMARY_ATTRIBUTE)
                     .unwrap_or(serde_json::Value::Null),
