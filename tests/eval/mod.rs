@@ -695,3 +695,72 @@ fn report_refuses_an_edited_eval_summary() {
     let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(!reported.contains("99.00"), "{reported}");
 }
+
+/// `gc` while `pipeline render` and `pipeline export` draw frames: every entry they read
+/// (the train entry, its ingest and motion entries) is leased until they end, so `gc`,
+/// keeping no pipeline, skips them and the command goes on; once it is gone, `gc` removes
+/// them.
+#[test]
+fn gc_leaves_the_entries_a_render_or_an_export_reads() {
+    let sandbox = crate::support::Sandbox::new();
+    // Skeleton motion, so that the avatar is driven through its motion entry too.
+    let text = pipeline_text("").replace(
+        r#""motion_context": "none""#,
+        r#""motion_context": "multiscale""#,
+    );
+    sandbox.write("p.yaml", &text);
+    sandbox.ok(&["run", "p.yaml", "--until", "train"]);
+    let read: Vec<String> = ["ingest", "motion", "train"]
+        .iter()
+        .map(|stage| format!("{stage}/{}", sandbox.key_of("p.yaml", stage)))
+        .collect();
+    let train_key = sandbox.key_of("p.yaml", "train");
+    let poses = fixture("poses_long.npz").display().to_string();
+    for (command, first_file) in [("render", "frame_00000.png"), ("export", "frame_00000.ply")] {
+        let out = sandbox.path().join(command);
+        let out_text = out.display().to_string();
+        let mut args = vec![command, "--avatar", &train_key, "--poses", &poses];
+        args.extend([
+            "--out",
+            &out_text,
+            "--device",
+            "cpu",
+            "--max-frames",
+            "5000",
+        ]);
+        let mut child = sandbox.spawn(&args);
+        let started = std::time::Instant::now();
+        while !out.join(first_file).exists() {
+            if let Some(status) = child.try_wait().unwrap() {
+                let output = child.wait_with_output().unwrap();
+                panic!(
+                    "{command} ended ({status}) before its first frame:\n{}",
+                    String::from_utf8_lossy(&output.stderr)
+                );
+            }
+            assert!(
+                started.elapsed() < std::time::Duration::from_secs(300),
+                "{command} wrote no frame"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let report = sandbox.ok(&["gc"]);
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "{command} ended before gc did: the test proves nothing\n{report}"
+        );
+        for id in &read {
+            assert!(
+                report.contains(&format!("skipped {id}: a running pipeline reads it")),
+                "{command}: gc did not skip {id}:\n{report}"
+            );
+        }
+        assert!(report.contains("removed 0 entries"), "{report}");
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+    let report = sandbox.ok(&["gc"]);
+    for id in &read {
+        assert!(report.contains(&format!("removed {id}")), "{report}");
+    }
+}

@@ -260,6 +260,10 @@ pub struct DrivenAvatar {
     pub train: EntryReader,
     /// The ingest entry the avatar was trained on (its cameras).
     pub trained_ingest: EntryReader,
+    /// The other entries it is driven from (its motion entry, the poses' ingest entry), kept
+    /// so that their read leases, like the two above, last as long as the avatar is driven:
+    /// `gc` meanwhile leaves every entry a render, export or view reads.
+    pub sources: Vec<EntryReader>,
     /// The avatar with the source's body parameters and motion windows.
     pub renderer: AvatarRenderer,
 }
@@ -279,8 +283,8 @@ pub fn drive_avatar(
     max_frames: usize,
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
-    let avatar = AvatarRenderer::load_avatar(&train)?;
     let trained_ingest = upstream(store, &train, "ingest")?;
+    let avatar = AvatarRenderer::load_avatar(&train)?;
     let model = avatar.rig.model.clone();
     let trained_params = seqavatar_schema::ingest::read_body_params(&trained_ingest, "body")?;
     let default_betas = trained_params
@@ -313,6 +317,7 @@ pub fn drive_avatar(
         let reach = avatar.config.sequence_length.saturating_mul(largest_step);
         max_frames.saturating_add(reach)
     };
+    let mut sources: Vec<EntryReader> = motion_entry.iter().cloned().collect();
     let (params, axis) = match poses {
         PoseSource::File(path) => (
             read_pose_file(path, model.num_joints(), &default_betas, pose_limit)?,
@@ -320,6 +325,7 @@ pub fn drive_avatar(
         ),
         PoseSource::Entry(spec) => {
             let entry = resolve_entry(store, "ingest", spec)?;
+            sources.push(entry.clone());
             let source_model = seqavatar_schema::ingest::read_body_model(&entry)?;
             anyhow::ensure!(
                 source_model.num_joints() == model.num_joints(),
@@ -377,6 +383,7 @@ pub fn drive_avatar(
     Ok(DrivenAvatar {
         train,
         trained_ingest,
+        sources,
         renderer,
     })
 }
@@ -432,18 +439,16 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
     );
     anyhow::ensure!(options.fps > 0, "--fps must be positive");
     let store = open_store(cache)?;
-    let DrivenAvatar {
-        trained_ingest,
-        mut renderer,
-        ..
-    } = drive_avatar(
+    // Kept whole to the end: its entries' read leases keep `gc` away while frames render.
+    let mut driven = drive_avatar(
         store.as_ref(),
         &options.avatar,
         &options.poses,
         &options.backend,
         options.max_frames,
     )?;
-    let cameras = seqavatar_schema::ingest::read_cameras(&trained_ingest)?;
+    let renderer = &mut driven.renderer;
+    let cameras = seqavatar_schema::ingest::read_cameras(&driven.trained_ingest)?;
     let camera = cameras
         .get(options.camera)
         .ok_or_else(|| {
@@ -455,7 +460,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             )
         })?
         .rescaled(options.resolution_scale);
-    let range = frames_to_draw(&renderer, options.max_frames);
+    let range = frames_to_draw(renderer, options.max_frames);
     let skipped = range.start;
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("cannot create {}", options.out.display()))?;
