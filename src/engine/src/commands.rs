@@ -8,11 +8,11 @@ use anyhow::Context as _;
 
 use crate::array::Element;
 use crate::entry::EntryReader;
-use crate::local::{completion_marker, is_published};
+use crate::local::{LocalStore, completion_marker, is_published};
 use crate::open_store;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{EntryId, EntryState};
+use crate::store::{EntryId, EntryState, Store};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -174,22 +174,26 @@ pub struct InspectOptions {
     pub sets: Vec<String>,
 }
 
-/// Resolves `FILE:STAGE[:ARRAY]` or `CACHE_PATH[/ARRAY]` to an entry and an optional array.
+/// Resolves `FILE:STAGE[:ARRAY]` or `CACHE_PATH[/ARRAY]` to the store holding an entry, the
+/// entry and an optional array.
 fn resolve_target(
     registry: &Registry,
     target: &str,
     sets: &[String],
     cache: &Path,
-) -> anyhow::Result<(EntryReader, Option<String>)> {
+) -> anyhow::Result<(Box<dyn Store>, EntryId, Option<String>)> {
     let as_path = Path::new(target);
     if is_published(as_path) {
-        return Ok((open_entry_folder(as_path)?, None));
+        let (store, id) = LocalStore::of_entry_folder(as_path)?;
+        return Ok((Box::new(store), id, None));
     }
     if let (Some(parent), Some(name)) = (as_path.parent(), as_path.file_name())
         && is_published(parent)
     {
+        let (store, id) = LocalStore::of_entry_folder(parent)?;
         return Ok((
-            open_entry_folder(parent)?,
+            Box::new(store),
+            id,
             Some(name.to_string_lossy().to_string()),
         ));
     }
@@ -228,22 +232,22 @@ fn resolve_target(
         cache.display(),
         file.display()
     );
-    Ok((store.open_entry(&id)?, array))
+    Ok((store, id, array))
 }
 
-fn open_entry_folder(folder: &Path) -> anyhow::Result<EntryReader> {
-    let storage = crate::files::entry_storage(folder)?;
-    EntryReader::open(storage, &folder.display().to_string())
-}
-
-/// `pipeline inspect`.
+/// `pipeline inspect`: prints an entry (or one array of it) under the read lease `gc`
+/// respects, and checks what it prints against the manifest: the attributes and the arrays
+/// shown (every array when `--picture` draws from the entry). On a mismatch it still prints
+/// what it could read, then fails with "UNVERIFIED" and writes no picture.
 pub fn inspect(
     registry: &Registry,
     target: &str,
     options: &InspectOptions,
     cache: &Path,
 ) -> anyhow::Result<()> {
-    let (entry, target_array) = resolve_target(registry, target, &options.sets, cache)?;
+    let (store, id, target_array) = resolve_target(registry, target, &options.sets, cache)?;
+    let _lease = store.read_lease(&id)?;
+    let entry = store.open_entry(&id)?;
     let array = options.array.clone().or(target_array);
     if let Some(name) = &array {
         anyhow::ensure!(
@@ -253,7 +257,29 @@ pub fn inspect(
             entry.array_names().join(", ")
         );
     }
-    print!("{}", describe_entry(&entry, array.as_deref(), registry)?);
+    let checked = if options.picture.is_some() {
+        None
+    } else {
+        array.as_deref()
+    };
+    let problems = runner::entry_problems(&entry, &id, checked);
+    let description = describe_entry(&entry, array.as_deref(), registry);
+    if !problems.is_empty() {
+        let unreadable = match &description {
+            Ok(text) => {
+                print!("{text}");
+                String::new()
+            }
+            Err(error) => format!("; reading it: {error:#}"),
+        };
+        anyhow::bail!(
+            "UNVERIFIED: entry {id} ({}) does not match its manifest ({}){unreadable}; what it \
+             holds may be damaged or tampered with (`pipeline run` on its pipeline recomputes it)",
+            entry.location(),
+            problems.join("; ")
+        );
+    }
+    print!("{}", description?);
     let picture_options = PictureOptions::parse(&options.picture_options)?;
     if let Some(picture) = &options.picture {
         let kind = registry.get(entry.kind()).ok_or_else(|| {
@@ -671,7 +697,8 @@ mod tests {
                 warnings: vec![],
             })
             .unwrap();
-        let entry = open_entry_folder(dir.path()).unwrap();
+        let storage = crate::files::entry_storage(dir.path()).unwrap();
+        let entry = EntryReader::open(storage, "entry").unwrap();
         let text = describe_entry(&entry, None, &Registry::new()).unwrap();
         assert!(text.contains("attribute note = \"xxx"), "{text}");
         assert!(text.contains("é..."), "{text}");

@@ -115,6 +115,30 @@ impl LocalStore {
         })
     }
 
+    /// The store and the entry of an entry folder `<root>/<kind>/<key>` named by a user (the
+    /// folder form of `render --avatar` and of `inspect`), so that it is read as any entry of
+    /// its cache is: under its read lease.
+    pub fn of_entry_folder(folder: &Path) -> anyhow::Result<(Self, EntryId)> {
+        let canonical = folder
+            .canonicalize()
+            .with_context(|| format!("cannot resolve {}", folder.display()))?;
+        fn name(path: Option<&Path>) -> Option<&str> {
+            path.and_then(Path::file_name)
+                .and_then(|name| name.to_str())
+        }
+        let (Some(key), Some(kind), Some(root)) = (
+            name(Some(&canonical)),
+            name(canonical.parent()),
+            canonical.parent().and_then(Path::parent),
+        ) else {
+            anyhow::bail!(
+                "{}: expected a cache entry folder <cache>/<kind>/<key>",
+                folder.display()
+            );
+        };
+        Ok((Self::open(root)?, EntryId::new(kind, key)))
+    }
+
     pub fn root(&self) -> &Path {
         &self.root
     }

@@ -84,24 +84,12 @@ pub struct RenderSummary {
 pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Result<EntryReader> {
     let path = Path::new(spec);
     if path.is_dir() {
-        let folder = path
-            .canonicalize()
-            .with_context(|| format!("cannot resolve {}", path.display()))?;
-        let key = folder.file_name().and_then(|name| name.to_str());
-        let folder_kind = folder
-            .parent()
-            .and_then(|parent| parent.file_name())
-            .and_then(|name| name.to_str());
-        let root = folder.parent().and_then(|parent| parent.parent());
-        let (Some(key), Some(folder_kind), Some(root)) = (key, folder_kind, root) else {
-            anyhow::bail!("{spec}: expected a cache entry folder <cache>/{kind}/<key>");
-        };
+        let (local, id) = LocalStore::of_entry_folder(path)?;
         anyhow::ensure!(
-            folder_kind == kind,
-            "{spec}: a \"{folder_kind}\" entry, expected a \"{kind}\" entry"
+            id.kind == kind,
+            "{spec}: a \"{}\" entry, expected a \"{kind}\" entry",
+            id.kind
         );
-        let local = LocalStore::open(root)?;
-        let id = EntryId::new(kind, key);
         anyhow::ensure!(
             local.entry_state(&id)? == EntryState::Complete,
             "{spec}: not a published cache entry (no completion marker; the entry may be incomplete)"
