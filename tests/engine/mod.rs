@@ -583,6 +583,46 @@ fn inspect_verifies_what_it_prints() {
     }
 }
 
+/// A read-only cache (permissions stripped, or a read-only bind mount where the tests run as
+/// root) serves what it holds: a fully cached `run`, `status --verify` and `inspect` work
+/// without making a lock file, saying once that they read without leases; a run that must
+/// compute, and `gc`, fail with one message naming the cache.
+#[test]
+fn a_read_only_cache_serves_reads() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("", ""));
+    sandbox.write("q.yaml", &two_stages("seed: 9", ""));
+    sandbox.ok(&["run", "p.yaml"]);
+    let locks = sandbox.cache().join(".locks");
+    fs::remove_dir_all(&locks).unwrap();
+    let Some(cache) = crate::support::ReadOnlyCache::new(&sandbox) else {
+        return;
+    };
+    let cache_text = sandbox.cache().display().to_string();
+    let note = format!("the cache {cache_text} is read-only here");
+    let (stdout, stderr) = cache.ok(&["run", "p.yaml"]);
+    assert!(stdout.contains("2 stages: 0 ran, 2 cached"), "{stdout}");
+    assert_eq!(stderr.matches(&note).count(), 1, "said once: {stderr}");
+    assert!(stderr.contains("without read leases"), "{stderr}");
+    let (stdout, stderr) = cache.ok(&["status", "--verify", "p.yaml"]);
+    assert_eq!(stdout.matches(" cached").count(), 2, "{stdout}");
+    assert_eq!(stderr.matches(&note).count(), 1, "{stderr}");
+    let (stdout, _) = cache.ok(&["inspect", "p.yaml:b"]);
+    assert!(stdout.contains("kind test_arrays"), "{stdout}");
+    for args in [&["run", "q.yaml"][..], &["gc"]] {
+        let (success, _, stderr) = cache.run(args);
+        assert!(!success, "{args:?} wrote to a read-only cache");
+        assert!(
+            stderr.contains(&note) && stderr.contains("nothing can be computed"),
+            "{args:?}: {stderr}"
+        );
+    }
+    assert!(!locks.exists(), "lock files were made in a read-only cache");
+    drop(cache);
+    // Writable again, the same cache computes.
+    sandbox.ok(&["run", "q.yaml"]);
+}
+
 /// Every file under `dir` (recursively), relative to `root`, with `/` separators.
 fn files_under(root: &Path, dir: &Path, out: &mut Vec<String>) {
     for entry in std::fs::read_dir(dir).unwrap() {

@@ -702,14 +702,7 @@ fn report_refuses_an_edited_eval_summary() {
 /// them.
 #[test]
 fn gc_leaves_the_entries_a_render_or_an_export_reads() {
-    let sandbox = crate::support::Sandbox::new();
-    // Skeleton motion, so that the avatar is driven through its motion entry too.
-    let text = pipeline_text("").replace(
-        r#""motion_context": "none""#,
-        r#""motion_context": "multiscale""#,
-    );
-    sandbox.write("p.yaml", &text);
-    sandbox.ok(&["run", "p.yaml", "--until", "train"]);
+    let sandbox = trained_with_motion();
     let read: Vec<String> = ["ingest", "motion", "train"]
         .iter()
         .map(|stage| format!("{stage}/{}", sandbox.key_of("p.yaml", stage)))
@@ -763,4 +756,68 @@ fn gc_leaves_the_entries_a_render_or_an_export_reads() {
     for id in &read {
         assert!(report.contains(&format!("removed {id}")), "{report}");
     }
+}
+
+/// A sandbox whose cache holds `p.yaml` run up to its train stage, trained with skeleton
+/// motion so that the avatar is driven through its motion entry too.
+fn trained_with_motion() -> crate::support::Sandbox {
+    let sandbox = crate::support::Sandbox::new();
+    let text = pipeline_text("").replace(
+        r#""motion_context": "none""#,
+        r#""motion_context": "multiscale""#,
+    );
+    sandbox.write("p.yaml", &text);
+    sandbox.ok(&["run", "p.yaml", "--until", "train"]);
+    sandbox
+}
+
+/// `render`, `export` and `report` work on a read-only cache (see
+/// `engine::a_read_only_cache_serves_reads` for how it is made one), without lock files.
+#[test]
+fn a_read_only_cache_renders_exports_and_reports() {
+    let sandbox = trained_with_motion();
+    let train_key = sandbox.key_of("p.yaml", "train");
+    let locks = sandbox.cache().join(".locks");
+    std::fs::remove_dir_all(&locks).unwrap();
+    let Some(cache) = crate::support::ReadOnlyCache::new(&sandbox) else {
+        return;
+    };
+    let poses = fixture("swing.npz").display().to_string();
+    let out = |name: &str| sandbox.path().join(name).display().to_string();
+    let (render, export, report) = (out("render"), out("export"), out("report"));
+    let note = "is read-only here";
+    let (_, stderr) = cache.ok(&[
+        "render",
+        "--avatar",
+        &train_key,
+        "--poses",
+        &poses,
+        "--out",
+        &render,
+        "--device",
+        "cpu",
+        "--max-frames",
+        "2",
+    ]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&render).join("frame_00001.png").is_file());
+    let (_, stderr) = cache.ok(&[
+        "export",
+        "--avatar",
+        &train_key,
+        "--poses",
+        &poses,
+        "--out",
+        &export,
+        "--device",
+        "cpu",
+        "--max-frames",
+        "1",
+    ]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&export).join("frame_00000.ply").is_file());
+    let (_, stderr) = cache.ok(&["report", "p.yaml", "--out", &report]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&report).join("report.md").is_file());
+    assert!(!locks.exists(), "lock files were made in a read-only cache");
 }

@@ -104,6 +104,44 @@ struct LocalReadLease {
 
 impl ReadLease for LocalReadLease {}
 
+/// What a read of a read-only cache holds instead of a lease: nothing (no lock file can be
+/// made there, and no `gc` can remove entries through this mount).
+struct Unleased;
+
+impl ReadLease for Unleased {}
+
+/// A cache that cannot be written here: a read-only file system, or folders this user may
+/// not write (a published or shared cache). Reads go ahead without read leases; whatever
+/// writes (computing, publishing, `gc`) fails with this error.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "the cache {root} is read-only here ({reason}): it serves the entries it holds, but nothing \
+     can be computed, published or removed in it"
+)]
+pub struct ReadOnlyCache {
+    root: String,
+    reason: std::io::Error,
+}
+
+/// Whether `error`, met making a file in the cache, says that the cache cannot be written.
+fn is_read_only(error: &std::io::Error) -> bool {
+    matches!(
+        error.kind(),
+        std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
+    )
+}
+
+/// Says once per process that a read-only cache is read without leases.
+fn note_unleased_reads(error: &ReadOnlyCache) {
+    static NOTED: std::sync::Once = std::sync::Once::new();
+    NOTED.call_once(|| {
+        eprintln!(
+            "note: the cache {} is read-only here ({}): reading it without read leases",
+            error.root, error.reason
+        );
+    });
+}
+
 impl LocalStore {
     /// A store rooted at `root` (created if missing).
     pub fn open(root: &Path) -> anyhow::Result<Self> {
@@ -170,19 +208,30 @@ impl LocalStore {
         self.open_lock_file_at(id, self.lock_path(id))
     }
 
+    /// Opens (making it if needed) a lock file; a cache that cannot be written here is a
+    /// [`ReadOnlyCache`] error.
     fn open_lock_file_at(&self, id: &EntryId, path: PathBuf) -> anyhow::Result<File> {
         check_component("stage kind", &id.kind)?;
         check_component("key", &id.key)?;
+        let read_only = |reason: std::io::Error| ReadOnlyCache {
+            root: self.root.display().to_string(),
+            reason,
+        };
         if let Some(parent) = path.parent() {
-            fs::create_dir_all(parent)
-                .with_context(|| format!("cannot create {}", parent.display()))?;
+            match fs::create_dir_all(parent) {
+                Err(error) if is_read_only(&error) => return Err(read_only(error).into()),
+                result => result.with_context(|| format!("cannot create {}", parent.display()))?,
+            }
         }
-        OpenOptions::new()
+        match OpenOptions::new()
             .create(true)
             .truncate(false)
             .write(true)
             .open(&path)
-            .with_context(|| format!("cannot open lock file {}", path.display()))
+        {
+            Err(error) if is_read_only(&error) => Err(read_only(error).into()),
+            result => result.with_context(|| format!("cannot open lock file {}", path.display())),
+        }
     }
 
     fn trash_destination(&self, id: &EntryId) -> PathBuf {
@@ -244,7 +293,16 @@ impl Store for LocalStore {
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
         let path = self.read_lock_path(id);
-        let file = self.open_lock_file_at(id, path.clone())?;
+        let file = match self.open_lock_file_at(id, path.clone()) {
+            Ok(file) => file,
+            Err(error) => match error.downcast::<ReadOnlyCache>() {
+                Ok(read_only) => {
+                    note_unleased_reads(&read_only);
+                    return Ok(Box::new(Unleased));
+                }
+                Err(error) => return Err(error),
+            },
+        };
         file.lock_shared()
             .with_context(|| format!("cannot lock {} (shared)", path.display()))?;
         Ok(Box::new(LocalReadLease { _file: file }))
@@ -421,6 +479,26 @@ impl Store for LocalStore {
     }
 
     fn clean_leftovers(&self) -> anyhow::Result<Vec<String>> {
+        match self.clean_leftovers_writable() {
+            // Nothing can be cleaned in a read-only cache, and nothing there needs it to be
+            // read.
+            Err(error) if error.is::<ReadOnlyCache>() => Ok(Vec::new()),
+            result => result,
+        }
+    }
+
+    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64> {
+        empty_trash(self, dry_run)
+    }
+
+    fn local_state_dir(&self) -> PathBuf {
+        self.root.clone()
+    }
+}
+
+impl LocalStore {
+    /// [`Store::clean_leftovers`], failing with [`ReadOnlyCache`] in a read-only cache.
+    fn clean_leftovers_writable(&self) -> anyhow::Result<Vec<String>> {
         let mut removed = Vec::new();
         let staging_root = self.root.join(STAGING_DIR);
         for kind in Self::plain_subdirs(&staging_root) {
@@ -455,14 +533,6 @@ impl Store for LocalStore {
             }
         }
         Ok(removed)
-    }
-
-    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64> {
-        empty_trash(self, dry_run)
-    }
-
-    fn local_state_dir(&self) -> PathBuf {
-        self.root.clone()
     }
 }
 

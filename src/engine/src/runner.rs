@@ -488,12 +488,14 @@ impl Run<'_> {
             }
         }
 
-        let lock = store.lock(id, &mut || {
-            progress.println(&format!(
-                "[{}] waiting for another run computing {id}",
-                stage.name
-            ));
-        })?;
+        let lock = store
+            .lock(id, &mut || {
+                progress.println(&format!(
+                    "[{}] waiting for another run computing {id}",
+                    stage.name
+                ));
+            })
+            .with_context(|| format!("stage \"{}\" ({id}) must be computed", stage.name))?;
         // Another run may have published it while we waited.
         if !forced && store.entry_state(id)? == EntryState::Complete {
             match open_verified(store, id) {
