@@ -71,6 +71,44 @@ fn remove_completion_markers(entry_dir: &Path) -> anyhow::Result<()> {
     }
     Ok(())
 }
+/// The file that marks a cache root, in the Cache Directory Tagging format
+/// (<https://bford.info/cachedir/>): backup tools that honour it skip the cache, and dataset
+/// digests leave out any folder holding ours ([`is_pipeline_cache`]), whichever cache a run
+/// uses.
+pub(crate) const CACHE_TAG: &str = "CACHEDIR.TAG";
+/// What the tag starts with, by the format.
+const CACHE_TAG_SIGNATURE: &str = "Signature: 8a477f597d28d172789f06886806bc55\n";
+/// The line after the signature that makes the tag a pipeline cache's.
+const CACHE_TAG_OWNER: &str = "# This file marks a seqavatar pipeline cache";
+
+/// Whether `dir` is the root of a pipeline cache: it holds our [`CACHE_TAG`] (a regular
+/// file, read through the checked open of [`crate::files`]).
+pub(crate) fn is_pipeline_cache(dir: &Path) -> bool {
+    let tag = dir.join(CACHE_TAG);
+    tag.is_file()
+        && crate::files::read_regular_file_at_most(&tag, 4096, "a cache tag").is_ok_and(|bytes| {
+            bytes.starts_with(format!("{CACHE_TAG_SIGNATURE}{CACHE_TAG_OWNER}").as_bytes())
+        })
+}
+
+/// Writes the [`CACHE_TAG`] of the cache at `root` where it is missing (atomically, as
+/// another process may be reading it). Best effort: a read-only cache has none to write.
+fn tag_cache_root(root: &Path) {
+    let tag = root.join(CACHE_TAG);
+    if tag.exists() {
+        return;
+    }
+    let text = format!(
+        "{CACHE_TAG_SIGNATURE}{CACHE_TAG_OWNER} (`pipeline --cache`): backup tools\n\
+         # that honour CACHEDIR.TAG skip it, and dataset digests leave it out.\n\
+         # For information about cache directory tags see https://bford.info/cachedir/\n"
+    );
+    let temporary = root.join(format!(".{CACHE_TAG}.{}", std::process::id()));
+    if fs::write(&temporary, text).is_ok() && fs::rename(&temporary, &tag).is_err() {
+        let _ = fs::remove_file(&temporary);
+    }
+}
+
 const STAGING_DIR: &str = ".staging";
 const LOCKS_DIR: &str = ".locks";
 const TRASH_DIR: &str = ".trash";
@@ -148,6 +186,7 @@ impl LocalStore {
         crate::files::require_utf8_path(root)?;
         fs::create_dir_all(root)
             .with_context(|| format!("cannot create cache folder {}", root.display()))?;
+        tag_cache_root(root);
         Ok(Self {
             root: root.to_path_buf(),
         })
