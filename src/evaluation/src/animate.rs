@@ -114,9 +114,14 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
     }
 }
 
-/// The entry of `kind` the avatar's train entry read, opened from `store`.
-fn upstream(store: &dyn Store, train: &EntryReader, kind: &str) -> anyhow::Result<EntryReader> {
-    upstream_input(store, train, kind)?
+/// `input`, the entry of `kind` that the avatar's train entry read ([`upstream_input`]),
+/// which the avatar needs.
+fn required(
+    input: anyhow::Result<Option<EntryReader>>,
+    train: &EntryReader,
+    kind: &str,
+) -> anyhow::Result<EntryReader> {
+    input?
         .ok_or_else(|| anyhow::anyhow!("train entry {} records no {kind} input", train.location()))
 }
 
@@ -271,7 +276,10 @@ pub fn drive_avatar(
     max_frames: usize,
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
-    let trained_ingest = upstream(store, &train, "ingest")?;
+    // The entries the avatar was trained from are leased as soon as the train entry is, before
+    // anything is read, so that a `gc` starting meanwhile finds them in use.
+    let trained_ingest = required(upstream_input(store, &train, "ingest"), &train, "ingest")?;
+    let recorded_motion = upstream_input(store, &train, "motion");
     let avatar = AvatarRenderer::load_avatar(&train)?;
     let model = avatar.rig.model.clone();
     let trained_params = seqavatar_schema::ingest::read_body_params(&trained_ingest, "body")?;
@@ -279,8 +287,9 @@ pub fn drive_avatar(
         .first()
         .map(|params| params.betas.clone())
         .unwrap_or_default();
+    // Only an avatar with skeleton motion needs its motion entry.
     let motion_entry = if avatar.config.motion_context.has_skeleton_motion() {
-        Some(upstream(store, &train, "motion")?)
+        Some(required(recorded_motion, &train, "motion")?)
     } else {
         None
     };
