@@ -375,8 +375,8 @@ impl ListableStorageTraits for CheckedFilesystemStore {
 /// The regular files under `root`, as sorted `/`-separated paths relative to it. Symbolic
 /// links are followed only while they stay inside `root`; folders in `excluded` (canonical
 /// paths, e.g. the cache in use kept inside the dataset) and every pipeline cache (a folder
-/// holding the cache tag, [`crate::local::is_pipeline_cache`]) are skipped; anything that is neither a
-/// regular file nor a folder is an error naming it, as are a walk deeper than
+/// holding the cache tag, [`crate::local::is_pipeline_cache`]) are skipped; anything that is
+/// neither a regular file nor a folder is an error naming it, as are a walk deeper than
 /// [`MAX_WALK_DEPTH`] and more than [`MAX_WALK_FILES`] files.
 pub fn walk_regular_files(root: &Path, excluded: &[PathBuf]) -> anyhow::Result<Vec<String>> {
     let canonical_root =

@@ -71,6 +71,7 @@ fn remove_completion_markers(entry_dir: &Path) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
 /// The file that marks a cache root, in the Cache Directory Tagging format
 /// (<https://bford.info/cachedir/>): backup tools that honour it skip the cache, and dataset
 /// digests leave out any folder holding ours ([`is_pipeline_cache`]), whichever cache a run
@@ -142,8 +143,8 @@ struct LocalReadLease {
 
 impl ReadLease for LocalReadLease {}
 
-/// What a read of a read-only cache holds instead of a lease: nothing (no lock file can be
-/// made there, and no `gc` can remove entries through this mount).
+/// What a read of a read-only cache holds instead of a lease: nothing, as no lock file can be
+/// made there (a `gc` by someone who can write the cache would not see the reader).
 struct Unleased;
 
 impl ReadLease for Unleased {}
