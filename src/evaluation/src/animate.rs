@@ -276,10 +276,16 @@ pub fn drive_avatar(
     max_frames: usize,
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
-    // The entries the avatar was trained from are leased as soon as the train entry is, before
-    // anything is read, so that a `gc` starting meanwhile finds them in use.
+    // Every entry the train entry read is leased at once, before any is verified or read, so
+    // that a `gc` starting meanwhile finds them in use; those the avatar needs are opened
+    // below under leases of their own, which last as long as it is driven.
+    let _inputs_leased = train
+        .manifest()
+        .inputs
+        .iter()
+        .map(|input| store.read_lease(&EntryId::new(&input.kind, &input.key)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     let trained_ingest = required(upstream_input(store, &train, "ingest"), &train, "ingest")?;
-    let recorded_motion = upstream_input(store, &train, "motion");
     let avatar = AvatarRenderer::load_avatar(&train)?;
     let model = avatar.rig.model.clone();
     let trained_params = seqavatar_schema::ingest::read_body_params(&trained_ingest, "body")?;
@@ -287,9 +293,12 @@ pub fn drive_avatar(
         .first()
         .map(|params| params.betas.clone())
         .unwrap_or_default();
-    // Only an avatar with skeleton motion needs its motion entry.
     let motion_entry = if avatar.config.motion_context.has_skeleton_motion() {
-        Some(required(recorded_motion, &train, "motion")?)
+        Some(required(
+            upstream_input(store, &train, "motion"),
+            &train,
+            "motion",
+        )?)
     } else {
         None
     };
