@@ -584,9 +584,9 @@ fn inspect_verifies_what_it_prints() {
 }
 
 /// A read-only cache (permissions stripped, or a read-only bind mount where the tests run as
-/// root) serves what it holds: a fully cached `run`, `status --verify` and `inspect` work
-/// without making a lock file, saying once that they read without leases; a run that must
-/// compute, and `gc`, fail with one message naming the cache.
+/// root) serves what it holds: a fully cached `run`, `status --verify`, `inspect` and
+/// `gc --dry-run` work without making a lock file, saying once that they read without
+/// leases; a run that must compute, and `gc`, fail with one message naming the cache.
 #[test]
 fn a_read_only_cache_serves_reads() {
     let sandbox = Sandbox::new();
@@ -609,6 +609,13 @@ fn a_read_only_cache_serves_reads() {
     assert_eq!(stderr.matches(&note).count(), 1, "{stderr}");
     let (stdout, _) = cache.ok(&["inspect", "p.yaml:b"]);
     assert!(stdout.contains("kind test_arrays"), "{stdout}");
+    // A dry run of gc says what a gc that can write the cache would remove.
+    let (stdout, _) = cache.ok(&["gc", "--dry-run"]);
+    assert_eq!(
+        stdout.matches("would remove test_arrays/").count(),
+        2,
+        "{stdout}"
+    );
     for args in [&["run", "q.yaml"][..], &["gc"]] {
         let (success, _, stderr) = cache.run(args);
         assert!(!success, "{args:?} wrote to a read-only cache");

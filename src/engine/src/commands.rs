@@ -582,27 +582,36 @@ pub fn gc(
     }
     let verb = if dry_run { "would remove" } else { "removed" };
     let mut report = GcReport::default();
+    // A dry run of a cache that cannot be written here takes no locks (it could make no lock
+    // file) and says what a gc that can write it would remove.
+    let unlocked_dry_run =
+        |error: &anyhow::Error| dry_run && error.is::<crate::local::ReadOnlyCache>();
     for id in store.list()? {
         if referenced.contains(&id) {
             report.kept += 1;
             continue;
         }
-        let Some(lock) = store.try_lock(&id)? else {
-            println!("skipped {id}: a running pipeline is computing it");
-            report.skipped.push(id);
-            continue;
+        let lock = match store.try_lock(&id) {
+            Err(error) if unlocked_dry_run(&error) => None,
+            result => {
+                let Some(lock) = result? else {
+                    println!("skipped {id}: a running pipeline is computing it");
+                    report.skipped.push(id);
+                    continue;
+                };
+                // Exclusive against the shared leases of runs reading the entry; held while
+                // deleting so that a run starting to read it waits, then finds it gone.
+                let Some(readers) = store.try_exclusive_read_lease(&id)? else {
+                    println!("skipped {id}: a running pipeline reads it");
+                    report.skipped.push(id);
+                    continue;
+                };
+                Some((lock, readers))
+            }
         };
-        // Exclusive against the shared leases of runs reading the entry; held while deleting
-        // so that a run starting to read it waits, then finds it gone.
-        let Some(_readers) = store.try_exclusive_read_lease(&id)? else {
-            println!("skipped {id}: a running pipeline reads it");
-            report.skipped.push(id);
-            continue;
-        };
-        let bytes = if dry_run {
-            store.entry_bytes(&id)
-        } else {
-            store.remove(lock.as_ref())?
+        let bytes = match &lock {
+            Some((lock, _readers)) if !dry_run => store.remove(lock.as_ref())?,
+            _ => store.entry_bytes(&id),
         };
         println!("{verb} {id} ({})", format_bytes(bytes));
         report.freed += bytes;
@@ -612,15 +621,20 @@ pub fn gc(
         if referenced.contains(&id) {
             continue; // Its work folder resumes a run of a kept pipeline.
         }
-        let Some(lock) = store.try_lock(&id)? else {
-            continue; // A live run owns it.
+        let lock = match store.try_lock(&id) {
+            Err(error) if unlocked_dry_run(&error) => None,
+            result => match result? {
+                Some(lock) => Some(lock),
+                None => continue, // A live run owns it.
+            },
         };
-        if dry_run {
-            println!("{verb} the work folder of {id}");
-        } else {
-            let bytes = store.remove_staging(lock.as_ref())?;
-            println!("{verb} the work folder of {id} ({})", format_bytes(bytes));
-            report.freed += bytes;
+        match &lock {
+            Some(lock) if !dry_run => {
+                let bytes = store.remove_staging(lock.as_ref())?;
+                println!("{verb} the work folder of {id} ({})", format_bytes(bytes));
+                report.freed += bytes;
+            }
+            _ => println!("{verb} the work folder of {id}"),
         }
         report.work_folders.push(id);
     }
