@@ -195,7 +195,8 @@ impl LocalStore {
 
     /// The store and the entry of an entry folder `<root>/<kind>/<key>` named by a user (the
     /// folder form of `render --avatar` and of `inspect`), so that it is read as any entry of
-    /// its cache is: under its read lease.
+    /// its cache is: under its read lease. Unlike [`LocalStore::open`], it makes and tags
+    /// nothing: the folder may lie anywhere.
     pub fn of_entry_folder(folder: &Path) -> anyhow::Result<(Self, EntryId)> {
         let canonical = folder
             .canonicalize()
@@ -214,7 +215,11 @@ impl LocalStore {
                 folder.display()
             );
         };
-        Ok((Self::open(root)?, EntryId::new(kind, key)))
+        crate::files::require_utf8_path(root)?;
+        let store = Self {
+            root: root.to_path_buf(),
+        };
+        Ok((store, EntryId::new(kind, key)))
     }
 
     pub fn root(&self) -> &Path {
@@ -782,6 +787,27 @@ mod tests {
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Incomplete);
         assert_eq!(store.clean_leftovers().unwrap().len(), 1);
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+    }
+
+    /// Every store root is tagged as a cache when it opens; an entry folder named by a user
+    /// resolves to its store and entry without making or tagging anything, wherever it lies.
+    #[test]
+    fn caches_are_tagged_and_entry_folders_are_read_in_place() {
+        let (dir, store) = temp_store();
+        assert!(is_pipeline_cache(dir.path()));
+        let id = EntryId::new("test_arrays", "k5");
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        fs::write(staging.output_dir.join("zarr.json"), b"{}").unwrap();
+        store.publish(lock.as_ref(), &staging).unwrap();
+        fs::remove_file(dir.path().join(CACHE_TAG)).unwrap();
+        let (found, found_id) = LocalStore::of_entry_folder(&store.entry_dir(&id)).unwrap();
+        assert_eq!(found_id, id);
+        assert_eq!(found.root(), fs::canonicalize(dir.path()).unwrap());
+        assert!(!dir.path().join(CACHE_TAG).exists());
+        // A tag of another tool does not make a folder a pipeline cache.
+        fs::write(dir.path().join(CACHE_TAG), CACHE_TAG_SIGNATURE).unwrap();
+        assert!(!is_pipeline_cache(dir.path()));
     }
 
     #[test]
