@@ -194,6 +194,64 @@ fn zju_mocap_yaml_ingests_the_fixture() {
     }
 }
 
+/// Two caches kept inside one dataset folder, used in turn: each is a pipeline cache (its
+/// `CACHEDIR.TAG`), left out of the dataset's digest whichever cache a run uses, so every run
+/// computes one ingest key and the later runs find it cached. (Each cache once left out only
+/// itself, so every run saw the other's new entries and got a new key.)
+#[test]
+fn caches_inside_a_dataset_are_left_out_of_its_digest() {
+    let sandbox = Sandbox::new();
+    let data = sandbox.path().join("zju");
+    let model = sandbox.path().join("smpl");
+    write_fixture("zju", &data);
+    write_fixture("smpl", &model);
+    let sequence = data.join("CoreView_377");
+    let caches = [sequence.join("cache_a"), sequence.join("cache_b")];
+    let file = pipeline_file("zju_mocap.yaml");
+    let run_in = |cache: &Path| -> (String, String) {
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_pipeline"))
+            .current_dir(sandbox.path())
+            .env_remove("SEQAVATAR_CACHE")
+            .env("ZJU_MOCAP_ROOT", &data)
+            .env("SMPL_NEUTRAL_NPZ", model.join("model.npz"))
+            .arg("--cache")
+            .arg(cache)
+            .args(["run", &file, "--until", "ingest"])
+            .output()
+            .expect("run pipeline binary");
+        let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+        assert!(
+            output.status.success(),
+            "{stdout}{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let row: Vec<String> = stdout
+            .lines()
+            .find(|line| line.starts_with("ingest "))
+            .unwrap_or_else(|| panic!("no ingest row in {stdout}"))
+            .split_whitespace()
+            .map(str::to_owned)
+            .collect();
+        (row[2].clone(), row[3].clone())
+    };
+    let runs: Vec<(String, String)> = caches.iter().cycle().take(4).map(|c| run_in(c)).collect();
+    for (run, (key, result)) in runs.iter().enumerate() {
+        assert_eq!(
+            key, &runs[0].0,
+            "run {run} got another ingest key: {runs:?}"
+        );
+        let expected = if run < 2 { "ran" } else { "cached" };
+        assert_eq!(result, expected, "run {run}: {runs:?}");
+    }
+    for cache in &caches {
+        let tag = std::fs::read_to_string(cache.join("CACHEDIR.TAG")).unwrap();
+        assert!(
+            tag.starts_with("Signature: 8a477f597d28d172789f06886806bc55"),
+            "{tag}"
+        );
+    }
+}
+
 #[test]
 fn i3d_human_yaml_ingests_the_fixture() {
     let sandbox = Sandbox::new();

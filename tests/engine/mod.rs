@@ -509,6 +509,127 @@ fn edited_attributes_and_missing_chunks_are_never_served() {
     sandbox.ok(&["status", "--verify", "p.yaml"]);
 }
 
+/// `inspect` checks what it prints against the manifest, under the read lease `gc`
+/// respects: a chunk swapped for another entry's (valid zstd and CRC, other values) or an
+/// edited attribute is still shown, but flagged "UNVERIFIED" on stderr with a failing exit
+/// status; an array of the same entry that is intact prints as usual.
+#[test]
+fn inspect_verifies_what_it_prints() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("seed: 1", ""));
+    sandbox.write("q.yaml", &two_stages("seed: 2", ""));
+    sandbox.ok(&["run", "p.yaml"]);
+    sandbox.ok(&["run", "q.yaml"]);
+    let folder = |file: &str| {
+        sandbox
+            .cache()
+            .join("test_arrays")
+            .join(sandbox.key_of(file, "a"))
+    };
+    let (entry, other) = (folder("p.yaml"), folder("q.yaml"));
+
+    // Read under its lease: the reader lock file is made again when it is gone.
+    let locks = sandbox.cache().join(".locks");
+    fs::remove_dir_all(&locks).unwrap();
+    let sound = sandbox.ok(&["inspect", "p.yaml:a"]);
+    let key = sandbox.key_of("p.yaml", "a");
+    assert!(
+        locks
+            .join("test_arrays")
+            .join(format!("{key}.read"))
+            .is_file()
+    );
+
+    let chunk = entry.join("values/c/0");
+    let original = fs::read(&chunk).unwrap();
+    fs::copy(other.join("values/c/0"), &chunk).unwrap();
+    let values_arg = entry.join("values").display().to_string();
+    for target in ["p.yaml:a", "p.yaml:a:values", values_arg.as_str()] {
+        let output = sandbox.run(&["inspect", target]);
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr),
+        );
+        assert!(!output.status.success(), "{target}: {stdout}");
+        assert!(
+            stderr.contains("UNVERIFIED")
+                && stderr.contains(&format!("test_arrays/{key}"))
+                && stderr.contains("values/c/0 does not match its digest"),
+            "{target}: {stderr}"
+        );
+        // What it read is still shown, for the diagnosis: the swapped values.
+        let values_line = stdout
+            .lines()
+            .find(|line| line.starts_with("values "))
+            .unwrap();
+        assert!(!sound.contains(values_line), "{values_line}");
+    }
+    sandbox.ok(&["inspect", "p.yaml:a:image"]);
+    fs::write(&chunk, &original).unwrap();
+    assert_eq!(sandbox.ok(&["inspect", "p.yaml:a"]), sound);
+
+    // An edited attribute.
+    let group = entry.join("zarr.json");
+    let mut document: serde_json::Value =
+        serde_json::from_slice(&fs::read(&group).unwrap()).unwrap();
+    document["attributes"]["sum"] = serde_json::json!(1e6);
+    fs::write(&group, serde_json::to_vec_pretty(&document).unwrap()).unwrap();
+    for target in ["p.yaml:a", "p.yaml:a:image"] {
+        let stderr = sandbox.fails(&["inspect", target]);
+        assert!(
+            stderr.contains("UNVERIFIED") && stderr.contains("zarr.json (group attributes)"),
+            "{target}: {stderr}"
+        );
+    }
+}
+
+/// A read-only cache (permissions stripped, or a read-only bind mount where the tests run as
+/// root) serves what it holds: a fully cached `run`, `status --verify`, `inspect` and
+/// `gc --dry-run` work without making a lock file, saying once that they read without
+/// leases; a run that must compute, and `gc`, fail with one message naming the cache.
+#[test]
+fn a_read_only_cache_serves_reads() {
+    let sandbox = Sandbox::new();
+    sandbox.write("p.yaml", &two_stages("", ""));
+    sandbox.write("q.yaml", &two_stages("seed: 9", ""));
+    sandbox.ok(&["run", "p.yaml"]);
+    let locks = sandbox.cache().join(".locks");
+    fs::remove_dir_all(&locks).unwrap();
+    let Some(cache) = crate::support::ReadOnlyCache::new(&sandbox) else {
+        return;
+    };
+    let cache_text = sandbox.cache().display().to_string();
+    let note = format!("the cache {cache_text} is read-only here");
+    let (stdout, stderr) = cache.ok(&["run", "p.yaml"]);
+    assert!(stdout.contains("2 stages: 0 ran, 2 cached"), "{stdout}");
+    assert_eq!(stderr.matches(&note).count(), 1, "said once: {stderr}");
+    assert!(stderr.contains("without read leases"), "{stderr}");
+    let (stdout, stderr) = cache.ok(&["status", "--verify", "p.yaml"]);
+    assert_eq!(stdout.matches(" cached").count(), 2, "{stdout}");
+    assert_eq!(stderr.matches(&note).count(), 1, "{stderr}");
+    let (stdout, _) = cache.ok(&["inspect", "p.yaml:b"]);
+    assert!(stdout.contains("kind test_arrays"), "{stdout}");
+    // A dry run of gc says what a gc that can write the cache would remove.
+    let (stdout, _) = cache.ok(&["gc", "--dry-run"]);
+    assert_eq!(
+        stdout.matches("would remove test_arrays/").count(),
+        2,
+        "{stdout}"
+    );
+    for args in [&["run", "q.yaml"][..], &["gc"]] {
+        let (success, _, stderr) = cache.run(args);
+        assert!(!success, "{args:?} wrote to a read-only cache");
+        assert!(
+            stderr.contains(&note) && stderr.contains("nothing can be computed"),
+            "{args:?}: {stderr}"
+        );
+    }
+    assert!(!locks.exists(), "lock files were made in a read-only cache");
+    drop(cache);
+    // Writable again, the same cache computes.
+    sandbox.ok(&["run", "q.yaml"]);
+}
+
 /// Every file under `dir` (recursively), relative to `root`, with `/` separators.
 fn files_under(root: &Path, dir: &Path, out: &mut Vec<String>) {
     for entry in std::fs::read_dir(dir).unwrap() {

@@ -748,3 +748,129 @@ stages:
     let error = format!("{:#}", render_poses(&cache, &options).unwrap_err());
     assert!(error.contains("garment oracle"), "{error}");
 }
+
+/// `gc` while `pipeline render` and `pipeline export` draw frames: every entry they read
+/// (the train entry, its ingest and motion entries) is leased until they end, so `gc`,
+/// keeping no pipeline, skips them and the command goes on; once it is gone, `gc` removes
+/// them.
+#[test]
+fn gc_leaves_the_entries_a_render_or_an_export_reads() {
+    let sandbox = trained_with_motion();
+    let read: Vec<String> = ["ingest", "motion", "train"]
+        .iter()
+        .map(|stage| format!("{stage}/{}", sandbox.key_of("p.yaml", stage)))
+        .collect();
+    let train_key = sandbox.key_of("p.yaml", "train");
+    let poses = fixture("poses_long.npz").display().to_string();
+    for (command, first_file) in [("render", "frame_00000.png"), ("export", "frame_00000.ply")] {
+        let out = sandbox.path().join(command);
+        let out_text = out.display().to_string();
+        let mut args = vec![command, "--avatar", &train_key, "--poses", &poses];
+        args.extend([
+            "--out",
+            &out_text,
+            "--device",
+            "cpu",
+            "--max-frames",
+            "5000",
+        ]);
+        let mut child = sandbox.spawn(&args);
+        let started = std::time::Instant::now();
+        while !out.join(first_file).exists() {
+            if let Some(status) = child.try_wait().unwrap() {
+                let output = child.wait_with_output().unwrap();
+                panic!(
+                    "{command} ended ({status}) before its first frame:\n{}",
+                    String::from_utf8_lossy(&output.stderr)
+                );
+            }
+            assert!(
+                started.elapsed() < std::time::Duration::from_secs(300),
+                "{command} wrote no frame"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let report = sandbox.ok(&["gc"]);
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "{command} ended before gc did: the test proves nothing\n{report}"
+        );
+        for id in &read {
+            assert!(
+                report.contains(&format!("skipped {id}: a running pipeline reads it")),
+                "{command}: gc did not skip {id}:\n{report}"
+            );
+        }
+        assert!(report.contains("removed 0 entries"), "{report}");
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+    let report = sandbox.ok(&["gc"]);
+    for id in &read {
+        assert!(report.contains(&format!("removed {id}")), "{report}");
+    }
+}
+
+/// A sandbox whose cache holds `p.yaml` run up to its train stage, trained with skeleton
+/// motion so that the avatar is driven through its motion entry too.
+fn trained_with_motion() -> crate::support::Sandbox {
+    let sandbox = crate::support::Sandbox::new();
+    let text = pipeline_text("").replace(
+        r#""motion_context": "none""#,
+        r#""motion_context": "multiscale""#,
+    );
+    sandbox.write("p.yaml", &text);
+    sandbox.ok(&["run", "p.yaml", "--until", "train"]);
+    sandbox
+}
+
+/// `render`, `export` and `report` work on a read-only cache (see
+/// `engine::a_read_only_cache_serves_reads` for how it is made one), without lock files.
+#[test]
+fn a_read_only_cache_renders_exports_and_reports() {
+    let sandbox = trained_with_motion();
+    let train_key = sandbox.key_of("p.yaml", "train");
+    let locks = sandbox.cache().join(".locks");
+    std::fs::remove_dir_all(&locks).unwrap();
+    let Some(cache) = crate::support::ReadOnlyCache::new(&sandbox) else {
+        return;
+    };
+    let poses = fixture("swing.npz").display().to_string();
+    let out = |name: &str| sandbox.path().join(name).display().to_string();
+    let (render, export, report) = (out("render"), out("export"), out("report"));
+    let note = "is read-only here";
+    let (_, stderr) = cache.ok(&[
+        "render",
+        "--avatar",
+        &train_key,
+        "--poses",
+        &poses,
+        "--out",
+        &render,
+        "--device",
+        "cpu",
+        "--max-frames",
+        "2",
+    ]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&render).join("frame_00001.png").is_file());
+    let (_, stderr) = cache.ok(&[
+        "export",
+        "--avatar",
+        &train_key,
+        "--poses",
+        &poses,
+        "--out",
+        &export,
+        "--device",
+        "cpu",
+        "--max-frames",
+        "1",
+    ]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&export).join("frame_00000.ply").is_file());
+    let (_, stderr) = cache.ok(&["report", "p.yaml", "--out", &report]);
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(Path::new(&report).join("report.md").is_file());
+    assert!(!locks.exists(), "lock files were made in a read-only cache");
+}

@@ -120,6 +120,108 @@ impl Sandbox {
     }
 }
 
+/// The sandbox's cache made read-only for the commands of [`ReadOnlyCache::command`], as a
+/// published or shared cache is: its permissions stripped (`chmod -R a-w`) and, where that
+/// does not stop writes (as root), each command run in a private mount namespace with the
+/// cache bind-mounted read-only (`unshare`). Permissions come back on drop.
+pub struct ReadOnlyCache<'s> {
+    sandbox: &'s Sandbox,
+    bind_mount: bool,
+}
+
+/// The shell step that bind-mounts `$1` read-only, then runs the rest of the arguments.
+const READ_ONLY_MOUNT: &str =
+    r#"mount --bind "$1" "$1" && mount -o remount,bind,ro "$1" && shift && exec "$@""#;
+
+impl<'s> ReadOnlyCache<'s> {
+    /// `None`, saying why, where neither way can make the cache read-only.
+    pub fn new(sandbox: &'s Sandbox) -> Option<Self> {
+        let chmod = |mode: &str| {
+            let status = Command::new("chmod")
+                .args(["-R", mode])
+                .arg(sandbox.cache())
+                .status()
+                .expect("run chmod");
+            assert!(status.success(), "chmod -R {mode} failed");
+        };
+        chmod("a-w");
+        let probe = sandbox.cache().join("write-probe");
+        if fs::write(&probe, b"").is_err() {
+            return Some(Self {
+                sandbox,
+                bind_mount: false,
+            });
+        }
+        fs::remove_file(&probe).expect("remove the write probe");
+        let mounted = Command::new("unshare")
+            .args(["-rm", "sh", "-c", READ_ONLY_MOUNT, "sh"])
+            .arg(sandbox.cache())
+            .arg("true")
+            .output()
+            .is_ok_and(|output| output.status.success());
+        if mounted {
+            return Some(Self {
+                sandbox,
+                bind_mount: true,
+            });
+        }
+        chmod("u+w");
+        eprintln!(
+            "skipped: permissions do not stop this user's writes (root) and `unshare -rm` \
+             cannot bind-mount the cache read-only here"
+        );
+        None
+    }
+
+    /// `pipeline ARGS` on the read-only cache.
+    pub fn command(&self, args: &[&str]) -> Command {
+        let sandbox = self.sandbox;
+        if !self.bind_mount {
+            return sandbox.command(args);
+        }
+        let mut command = Command::new("unshare");
+        command
+            .current_dir(sandbox.path())
+            .env_remove("SEQAVATAR_CACHE")
+            .args(["-rm", "sh", "-c", READ_ONLY_MOUNT, "sh"])
+            .arg(sandbox.cache())
+            .arg(env!("CARGO_BIN_EXE_pipeline"))
+            .arg("--cache")
+            .arg(sandbox.cache())
+            .args(args);
+        command
+    }
+
+    /// Runs `pipeline ARGS` on the read-only cache; its stdout and stderr.
+    pub fn run(&self, args: &[&str]) -> (bool, String, String) {
+        let output = self.command(args).output().expect("run pipeline binary");
+        (
+            output.status.success(),
+            String::from_utf8_lossy(&output.stdout).into_owned(),
+            String::from_utf8_lossy(&output.stderr).into_owned(),
+        )
+    }
+
+    /// Like [`Sandbox::ok`], on the read-only cache; returns stdout and stderr.
+    pub fn ok(&self, args: &[&str]) -> (String, String) {
+        let (success, stdout, stderr) = self.run(args);
+        assert!(
+            success,
+            "pipeline {args:?} failed on the read-only cache:\nstdout:\n{stdout}\nstderr:\n{stderr}"
+        );
+        (stdout, stderr)
+    }
+}
+
+impl Drop for ReadOnlyCache<'_> {
+    fn drop(&mut self) {
+        let _ = Command::new("chmod")
+            .args(["-R", "u+w"])
+            .arg(self.sandbox.cache())
+            .status();
+    }
+}
+
 /// Every stage kind, as the `pipeline` binary registers them, for tests that run pipelines in
 /// process.
 pub fn registry() -> Registry {

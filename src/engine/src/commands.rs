@@ -8,11 +8,11 @@ use anyhow::Context as _;
 
 use crate::array::Element;
 use crate::entry::EntryReader;
-use crate::local::{completion_marker, is_published};
+use crate::local::{LocalStore, completion_marker, is_published};
 use crate::open_store;
 use crate::pipeline::Pipeline;
 use crate::runner::{self, Outcome, RunOptions, StageReport};
-use crate::store::{EntryId, EntryState};
+use crate::store::{EntryId, EntryState, Store};
 use crate::{PictureOptions, Registry};
 
 /// Number of key characters shown in tables.
@@ -174,22 +174,26 @@ pub struct InspectOptions {
     pub sets: Vec<String>,
 }
 
-/// Resolves `FILE:STAGE[:ARRAY]` or `CACHE_PATH[/ARRAY]` to an entry and an optional array.
+/// Resolves `FILE:STAGE[:ARRAY]` or `CACHE_PATH[/ARRAY]` to the store holding an entry, the
+/// entry and an optional array.
 fn resolve_target(
     registry: &Registry,
     target: &str,
     sets: &[String],
     cache: &Path,
-) -> anyhow::Result<(EntryReader, Option<String>)> {
+) -> anyhow::Result<(Box<dyn Store>, EntryId, Option<String>)> {
     let as_path = Path::new(target);
     if is_published(as_path) {
-        return Ok((open_entry_folder(as_path)?, None));
+        let (store, id) = LocalStore::of_entry_folder(as_path)?;
+        return Ok((Box::new(store), id, None));
     }
     if let (Some(parent), Some(name)) = (as_path.parent(), as_path.file_name())
         && is_published(parent)
     {
+        let (store, id) = LocalStore::of_entry_folder(parent)?;
         return Ok((
-            open_entry_folder(parent)?,
+            Box::new(store),
+            id,
             Some(name.to_string_lossy().to_string()),
         ));
     }
@@ -228,22 +232,22 @@ fn resolve_target(
         cache.display(),
         file.display()
     );
-    Ok((store.open_entry(&id)?, array))
+    Ok((store, id, array))
 }
 
-fn open_entry_folder(folder: &Path) -> anyhow::Result<EntryReader> {
-    let storage = crate::files::entry_storage(folder)?;
-    EntryReader::open(storage, &folder.display().to_string())
-}
-
-/// `pipeline inspect`.
+/// `pipeline inspect`: prints an entry (or one array of it) under the read lease `gc`
+/// respects, and checks what it prints against the manifest: the attributes and the arrays
+/// shown (every array when `--picture` draws from the entry). On a mismatch it still prints
+/// what it could read, then fails with "UNVERIFIED" and writes no picture.
 pub fn inspect(
     registry: &Registry,
     target: &str,
     options: &InspectOptions,
     cache: &Path,
 ) -> anyhow::Result<()> {
-    let (entry, target_array) = resolve_target(registry, target, &options.sets, cache)?;
+    let (store, id, target_array) = resolve_target(registry, target, &options.sets, cache)?;
+    let _lease = store.read_lease(&id)?;
+    let entry = store.open_entry(&id)?;
     let array = options.array.clone().or(target_array);
     if let Some(name) = &array {
         anyhow::ensure!(
@@ -253,7 +257,29 @@ pub fn inspect(
             entry.array_names().join(", ")
         );
     }
-    print!("{}", describe_entry(&entry, array.as_deref(), registry)?);
+    let checked = if options.picture.is_some() {
+        None
+    } else {
+        array.as_deref()
+    };
+    let problems = runner::entry_problems(&entry, &id, checked);
+    let description = describe_entry(&entry, array.as_deref(), registry);
+    if !problems.is_empty() {
+        let unreadable = match &description {
+            Ok(text) => {
+                print!("{text}");
+                String::new()
+            }
+            Err(error) => format!("; reading it: {error:#}"),
+        };
+        anyhow::bail!(
+            "UNVERIFIED: entry {id} ({}) does not match its manifest ({}){unreadable}; what it \
+             holds may be damaged or tampered with (`pipeline run` on its pipeline recomputes it)",
+            entry.location(),
+            problems.join("; ")
+        );
+    }
+    print!("{}", description?);
     let picture_options = PictureOptions::parse(&options.picture_options)?;
     if let Some(picture) = &options.picture {
         let kind = registry.get(entry.kind()).ok_or_else(|| {
@@ -556,27 +582,36 @@ pub fn gc(
     }
     let verb = if dry_run { "would remove" } else { "removed" };
     let mut report = GcReport::default();
+    // A dry run of a cache that cannot be written here takes no locks (it could make no lock
+    // file) and says what a gc that can write it would remove.
+    let unlocked_dry_run =
+        |error: &anyhow::Error| dry_run && error.is::<crate::local::ReadOnlyCache>();
     for id in store.list()? {
         if referenced.contains(&id) {
             report.kept += 1;
             continue;
         }
-        let Some(lock) = store.try_lock(&id)? else {
-            println!("skipped {id}: a running pipeline is computing it");
-            report.skipped.push(id);
-            continue;
+        let lock = match store.try_lock(&id) {
+            Err(error) if unlocked_dry_run(&error) => None,
+            result => {
+                let Some(lock) = result? else {
+                    println!("skipped {id}: a running pipeline is computing it");
+                    report.skipped.push(id);
+                    continue;
+                };
+                // Exclusive against the shared leases of runs reading the entry; held while
+                // deleting so that a run starting to read it waits, then finds it gone.
+                let Some(readers) = store.try_exclusive_read_lease(&id)? else {
+                    println!("skipped {id}: a running pipeline reads it");
+                    report.skipped.push(id);
+                    continue;
+                };
+                Some((lock, readers))
+            }
         };
-        // Exclusive against the shared leases of runs reading the entry; held while deleting
-        // so that a run starting to read it waits, then finds it gone.
-        let Some(_readers) = store.try_exclusive_read_lease(&id)? else {
-            println!("skipped {id}: a running pipeline reads it");
-            report.skipped.push(id);
-            continue;
-        };
-        let bytes = if dry_run {
-            store.entry_bytes(&id)
-        } else {
-            store.remove(lock.as_ref())?
+        let bytes = match &lock {
+            Some((lock, _readers)) if !dry_run => store.remove(lock.as_ref())?,
+            _ => store.entry_bytes(&id),
         };
         println!("{verb} {id} ({})", format_bytes(bytes));
         report.freed += bytes;
@@ -586,15 +621,20 @@ pub fn gc(
         if referenced.contains(&id) {
             continue; // Its work folder resumes a run of a kept pipeline.
         }
-        let Some(lock) = store.try_lock(&id)? else {
-            continue; // A live run owns it.
+        let lock = match store.try_lock(&id) {
+            Err(error) if unlocked_dry_run(&error) => None,
+            result => match result? {
+                Some(lock) => Some(lock),
+                None => continue, // A live run owns it.
+            },
         };
-        if dry_run {
-            println!("{verb} the work folder of {id}");
-        } else {
-            let bytes = store.remove_staging(lock.as_ref())?;
-            println!("{verb} the work folder of {id} ({})", format_bytes(bytes));
-            report.freed += bytes;
+        match &lock {
+            Some(lock) if !dry_run => {
+                let bytes = store.remove_staging(lock.as_ref())?;
+                println!("{verb} the work folder of {id} ({})", format_bytes(bytes));
+                report.freed += bytes;
+            }
+            _ => println!("{verb} the work folder of {id}"),
         }
         report.work_folders.push(id);
     }
@@ -671,7 +711,8 @@ mod tests {
                 warnings: vec![],
             })
             .unwrap();
-        let entry = open_entry_folder(dir.path()).unwrap();
+        let storage = crate::files::entry_storage(dir.path()).unwrap();
+        let entry = EntryReader::open(storage, "entry").unwrap();
         let text = describe_entry(&entry, None, &Registry::new()).unwrap();
         assert!(text.contains("attribute note = \"xxx"), "{text}");
         assert!(text.contains("é..."), "{text}");

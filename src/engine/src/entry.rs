@@ -751,6 +751,15 @@ impl EntryReader {
     /// Checks every stored file against the manifest digests; returns one line per problem,
     /// naming the array and the file.
     pub fn verify(&self) -> Vec<String> {
+        let mut problems = self.verify_metadata();
+        for name in self.manifest.arrays.keys() {
+            problems.extend(self.verify_array(name));
+        }
+        problems
+    }
+
+    /// Checks the group metadata (the stage's attributes) against its digest.
+    pub fn verify_metadata(&self) -> Vec<String> {
         let mut problems = Vec::new();
         if self.manifest.metadata_digest.is_empty() {
             problems.push(
@@ -769,45 +778,51 @@ impl EntryReader {
                 Err(error) => problems.push(format!("zarr.json unreadable: {error}")),
             }
         }
-        for (name, record) in &self.manifest.arrays {
-            match StorePrefix::new(format!("{name}/"))
-                .map(|prefix| self.storage.list_prefix(&prefix))
-            {
-                Ok(Ok(stored)) => {
-                    for key in stored {
-                        if !record.files.contains_key(key.as_str()) {
-                            problems.push(format!(
-                                "array \"{name}\": file {} is not in the manifest",
-                                key.as_str()
-                            ));
-                        }
+        problems
+    }
+
+    /// Checks the stored files of the array `name` against the manifest: each listed file is
+    /// there with its digest, and no other file is.
+    pub fn verify_array(&self, name: &str) -> Vec<String> {
+        let mut problems = Vec::new();
+        let Some(record) = self.manifest.arrays.get(name) else {
+            return vec![format!("array \"{name}\" is not in the manifest")];
+        };
+        match StorePrefix::new(format!("{name}/")).map(|prefix| self.storage.list_prefix(&prefix)) {
+            Ok(Ok(stored)) => {
+                for key in stored {
+                    if !record.files.contains_key(key.as_str()) {
+                        problems.push(format!(
+                            "array \"{name}\": file {} is not in the manifest",
+                            key.as_str()
+                        ));
                     }
                 }
-                Ok(Err(error)) => {
-                    problems.push(format!("array \"{name}\": cannot list its files: {error}"))
-                }
-                Err(_) => problems.push(format!("array \"{name}\": invalid array name")),
             }
-            for (key, expected) in &record.files {
-                let store_key = match StoreKey::new(key.clone()) {
-                    Ok(store_key) => store_key,
-                    Err(_) => {
-                        problems.push(format!("array \"{name}\": invalid file name {key}"));
-                        continue;
+            Ok(Err(error)) => {
+                problems.push(format!("array \"{name}\": cannot list its files: {error}"))
+            }
+            Err(_) => problems.push(format!("array \"{name}\": invalid array name")),
+        }
+        for (key, expected) in &record.files {
+            let store_key = match StoreKey::new(key.clone()) {
+                Ok(store_key) => store_key,
+                Err(_) => {
+                    problems.push(format!("array \"{name}\": invalid file name {key}"));
+                    continue;
+                }
+            };
+            match self.storage.get(&store_key) {
+                Ok(Some(bytes)) => {
+                    if blake3::hash(&bytes).to_hex().as_str() != expected {
+                        problems.push(format!(
+                            "array \"{name}\": file {key} does not match its digest"
+                        ));
                     }
-                };
-                match self.storage.get(&store_key) {
-                    Ok(Some(bytes)) => {
-                        if blake3::hash(&bytes).to_hex().as_str() != expected {
-                            problems.push(format!(
-                                "array \"{name}\": file {key} does not match its digest"
-                            ));
-                        }
-                    }
-                    Ok(None) => problems.push(format!("array \"{name}\": file {key} is missing")),
-                    Err(error) => {
-                        problems.push(format!("array \"{name}\": file {key} unreadable: {error}"))
-                    }
+                }
+                Ok(None) => problems.push(format!("array \"{name}\": file {key} is missing")),
+                Err(error) => {
+                    problems.push(format!("array \"{name}\": file {key} unreadable: {error}"))
                 }
             }
         }

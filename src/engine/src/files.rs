@@ -374,8 +374,9 @@ impl ListableStorageTraits for CheckedFilesystemStore {
 
 /// The regular files under `root`, as sorted `/`-separated paths relative to it. Symbolic
 /// links are followed only while they stay inside `root`; folders in `excluded` (canonical
-/// paths, e.g. a cache kept inside the dataset) are skipped; anything that is neither a
-/// regular file nor a folder is an error naming it, as are a walk deeper than
+/// paths, e.g. the cache in use kept inside the dataset) and every pipeline cache (a folder
+/// holding the cache tag, [`crate::local::is_pipeline_cache`]) are skipped; anything that is
+/// neither a regular file nor a folder is an error naming it, as are a walk deeper than
 /// [`MAX_WALK_DEPTH`] and more than [`MAX_WALK_FILES`] files.
 pub fn walk_regular_files(root: &Path, excluded: &[PathBuf]) -> anyhow::Result<Vec<String>> {
     let canonical_root =
@@ -424,7 +425,9 @@ fn walk(
                 .with_context(|| format!("cannot read {}", path.display()))?
                 .file_type();
         }
-        if excluded.contains(&canonical) {
+        if excluded.contains(&canonical)
+            || (file_type.is_dir() && crate::local::is_pipeline_cache(&path))
+        {
             continue;
         }
         if file_type.is_dir() {

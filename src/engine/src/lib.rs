@@ -42,7 +42,7 @@ pub use local::LocalStore;
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
     BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
-    open_leased_verified, open_verified, run, selected_stages,
+    entry_problems, open_leased_verified, open_verified, run, selected_stages,
 };
 pub use store::{EntryId, EntryState, KeyLock, Staging, Store};
 

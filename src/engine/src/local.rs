@@ -71,6 +71,45 @@ fn remove_completion_markers(entry_dir: &Path) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// The file that marks a cache root, in the Cache Directory Tagging format
+/// (<https://bford.info/cachedir/>): backup tools that honour it skip the cache, and dataset
+/// digests leave out any folder holding ours ([`is_pipeline_cache`]), whichever cache a run
+/// uses.
+pub(crate) const CACHE_TAG: &str = "CACHEDIR.TAG";
+/// What the tag starts with, by the format.
+const CACHE_TAG_SIGNATURE: &str = "Signature: 8a477f597d28d172789f06886806bc55\n";
+/// The line after the signature that makes the tag a pipeline cache's.
+const CACHE_TAG_OWNER: &str = "# This file marks a seqavatar pipeline cache";
+
+/// Whether `dir` is the root of a pipeline cache: it holds our [`CACHE_TAG`] (a regular
+/// file, read through the checked open of [`crate::files`]).
+pub(crate) fn is_pipeline_cache(dir: &Path) -> bool {
+    let tag = dir.join(CACHE_TAG);
+    tag.is_file()
+        && crate::files::read_regular_file_at_most(&tag, 4096, "a cache tag").is_ok_and(|bytes| {
+            bytes.starts_with(format!("{CACHE_TAG_SIGNATURE}{CACHE_TAG_OWNER}").as_bytes())
+        })
+}
+
+/// Writes the [`CACHE_TAG`] of the cache at `root` where it is missing (atomically, as
+/// another process may be reading it). Best effort: a read-only cache has none to write.
+fn tag_cache_root(root: &Path) {
+    let tag = root.join(CACHE_TAG);
+    if tag.exists() {
+        return;
+    }
+    let text = format!(
+        "{CACHE_TAG_SIGNATURE}{CACHE_TAG_OWNER} (`pipeline --cache`): backup tools\n\
+         # that honour CACHEDIR.TAG skip it, and dataset digests leave it out.\n\
+         # For information about cache directory tags see https://bford.info/cachedir/\n"
+    );
+    let temporary = root.join(format!(".{CACHE_TAG}.{}", std::process::id()));
+    if fs::write(&temporary, text).is_ok() && fs::rename(&temporary, &tag).is_err() {
+        let _ = fs::remove_file(&temporary);
+    }
+}
+
 const STAGING_DIR: &str = ".staging";
 const LOCKS_DIR: &str = ".locks";
 const TRASH_DIR: &str = ".trash";
@@ -104,15 +143,83 @@ struct LocalReadLease {
 
 impl ReadLease for LocalReadLease {}
 
+/// What a read of a read-only cache holds instead of a lease: nothing, as no lock file can be
+/// made there (a `gc` by someone who can write the cache would not see the reader).
+struct Unleased;
+
+impl ReadLease for Unleased {}
+
+/// A cache that cannot be written here: a read-only file system, or folders this user may
+/// not write (a published or shared cache). Reads go ahead without read leases; whatever
+/// writes (computing, publishing, `gc`) fails with this error.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "the cache {root} is read-only here ({reason}): it serves the entries it holds, but nothing \
+     can be computed, published or removed in it"
+)]
+pub struct ReadOnlyCache {
+    root: String,
+    reason: std::io::Error,
+}
+
+/// Whether `error`, met making a file in the cache, says that the cache cannot be written.
+fn is_read_only(error: &std::io::Error) -> bool {
+    matches!(
+        error.kind(),
+        std::io::ErrorKind::ReadOnlyFilesystem | std::io::ErrorKind::PermissionDenied
+    )
+}
+
+/// Says once per process that a read-only cache is read without leases.
+fn note_unleased_reads(error: &ReadOnlyCache) {
+    static NOTED: std::sync::Once = std::sync::Once::new();
+    NOTED.call_once(|| {
+        eprintln!(
+            "note: the cache {} is read-only here ({}): reading it without read leases",
+            error.root, error.reason
+        );
+    });
+}
+
 impl LocalStore {
     /// A store rooted at `root` (created if missing).
     pub fn open(root: &Path) -> anyhow::Result<Self> {
         crate::files::require_utf8_path(root)?;
         fs::create_dir_all(root)
             .with_context(|| format!("cannot create cache folder {}", root.display()))?;
+        tag_cache_root(root);
         Ok(Self {
             root: root.to_path_buf(),
         })
+    }
+
+    /// The store and the entry of an entry folder `<root>/<kind>/<key>` named by a user (the
+    /// folder form of `render --avatar` and of `inspect`), so that it is read as any entry of
+    /// its cache is: under its read lease. Unlike [`LocalStore::open`], it makes and tags
+    /// nothing: the folder may lie anywhere.
+    pub fn of_entry_folder(folder: &Path) -> anyhow::Result<(Self, EntryId)> {
+        let canonical = folder
+            .canonicalize()
+            .with_context(|| format!("cannot resolve {}", folder.display()))?;
+        fn name(path: Option<&Path>) -> Option<&str> {
+            path.and_then(Path::file_name)
+                .and_then(|name| name.to_str())
+        }
+        let (Some(key), Some(kind), Some(root)) = (
+            name(Some(&canonical)),
+            name(canonical.parent()),
+            canonical.parent().and_then(Path::parent),
+        ) else {
+            anyhow::bail!(
+                "{}: expected a cache entry folder <cache>/<kind>/<key>",
+                folder.display()
+            );
+        };
+        crate::files::require_utf8_path(root)?;
+        let store = Self {
+            root: root.to_path_buf(),
+        };
+        Ok((store, EntryId::new(kind, key)))
     }
 
     pub fn root(&self) -> &Path {
@@ -146,19 +253,30 @@ impl LocalStore {
         self.open_lock_file_at(id, self.lock_path(id))
     }
 
+    /// Opens (making it if needed) a lock file; a cache that cannot be written here is a
+    /// [`ReadOnlyCache`] error.
     fn open_lock_file_at(&self, id: &EntryId, path: PathBuf) -> anyhow::Result<File> {
         check_component("stage kind", &id.kind)?;
         check_component("key", &id.key)?;
+        let read_only = |reason: std::io::Error| ReadOnlyCache {
+            root: self.root.display().to_string(),
+            reason,
+        };
         if let Some(parent) = path.parent() {
-            fs::create_dir_all(parent)
-                .with_context(|| format!("cannot create {}", parent.display()))?;
+            match fs::create_dir_all(parent) {
+                Err(error) if is_read_only(&error) => return Err(read_only(error).into()),
+                result => result.with_context(|| format!("cannot create {}", parent.display()))?,
+            }
         }
-        OpenOptions::new()
+        match OpenOptions::new()
             .create(true)
             .truncate(false)
             .write(true)
             .open(&path)
-            .with_context(|| format!("cannot open lock file {}", path.display()))
+        {
+            Err(error) if is_read_only(&error) => Err(read_only(error).into()),
+            result => result.with_context(|| format!("cannot open lock file {}", path.display())),
+        }
     }
 
     fn trash_destination(&self, id: &EntryId) -> PathBuf {
@@ -220,7 +338,16 @@ impl Store for LocalStore {
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
         let path = self.read_lock_path(id);
-        let file = self.open_lock_file_at(id, path.clone())?;
+        let file = match self.open_lock_file_at(id, path.clone()) {
+            Ok(file) => file,
+            Err(error) => match error.downcast::<ReadOnlyCache>() {
+                Ok(read_only) => {
+                    note_unleased_reads(&read_only);
+                    return Ok(Box::new(Unleased));
+                }
+                Err(error) => return Err(error),
+            },
+        };
         file.lock_shared()
             .with_context(|| format!("cannot lock {} (shared)", path.display()))?;
         Ok(Box::new(LocalReadLease { _file: file }))
@@ -397,6 +524,26 @@ impl Store for LocalStore {
     }
 
     fn clean_leftovers(&self) -> anyhow::Result<Vec<String>> {
+        match self.clean_leftovers_writable() {
+            // Nothing can be cleaned in a read-only cache, and nothing there needs it to be
+            // read.
+            Err(error) if error.is::<ReadOnlyCache>() => Ok(Vec::new()),
+            result => result,
+        }
+    }
+
+    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64> {
+        empty_trash(self, dry_run)
+    }
+
+    fn local_state_dir(&self) -> PathBuf {
+        self.root.clone()
+    }
+}
+
+impl LocalStore {
+    /// [`Store::clean_leftovers`], failing with [`ReadOnlyCache`] in a read-only cache.
+    fn clean_leftovers_writable(&self) -> anyhow::Result<Vec<String>> {
         let mut removed = Vec::new();
         let staging_root = self.root.join(STAGING_DIR);
         for kind in Self::plain_subdirs(&staging_root) {
@@ -431,14 +578,6 @@ impl Store for LocalStore {
             }
         }
         Ok(removed)
-    }
-
-    fn empty_trash(&self, dry_run: bool) -> anyhow::Result<u64> {
-        empty_trash(self, dry_run)
-    }
-
-    fn local_state_dir(&self) -> PathBuf {
-        self.root.clone()
     }
 }
 
@@ -648,6 +787,27 @@ mod tests {
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Incomplete);
         assert_eq!(store.clean_leftovers().unwrap().len(), 1);
         assert_eq!(store.entry_state(&id).unwrap(), EntryState::Missing);
+    }
+
+    /// Every store root is tagged as a cache when it opens; an entry folder named by a user
+    /// resolves to its store and entry without making or tagging anything, wherever it lies.
+    #[test]
+    fn caches_are_tagged_and_entry_folders_are_read_in_place() {
+        let (dir, store) = temp_store();
+        assert!(is_pipeline_cache(dir.path()));
+        let id = EntryId::new("test_arrays", "k5");
+        let lock = store.try_lock(&id).unwrap().unwrap();
+        let staging = store.begin_staging(lock.as_ref()).unwrap();
+        fs::write(staging.output_dir.join("zarr.json"), b"{}").unwrap();
+        store.publish(lock.as_ref(), &staging).unwrap();
+        fs::remove_file(dir.path().join(CACHE_TAG)).unwrap();
+        let (found, found_id) = LocalStore::of_entry_folder(&store.entry_dir(&id)).unwrap();
+        assert_eq!(found_id, id);
+        assert_eq!(found.root(), fs::canonicalize(dir.path()).unwrap());
+        assert!(!dir.path().join(CACHE_TAG).exists());
+        // A tag of another tool does not make a folder a pipeline cache.
+        fs::write(dir.path().join(CACHE_TAG), CACHE_TAG_SIGNATURE).unwrap();
+        assert!(!is_pipeline_cache(dir.path()));
     }
 
     #[test]

@@ -337,18 +337,29 @@ pub fn selected_stages<'p>(
 /// Opens a published entry and checks every file against its manifest.
 pub fn open_verified(store: &dyn Store, id: &EntryId) -> Result<EntryReader, String> {
     let reader = store.open_entry(id).map_err(|error| format!("{error:#}"))?;
-    if reader.kind() != id.kind || reader.key() != id.key {
-        return Err(format!(
-            "manifest names {}/{}, expected {id}",
-            reader.kind(),
-            reader.key()
-        ));
-    }
-    let problems = reader.verify();
+    let problems = entry_problems(&reader, id, None);
     if problems.is_empty() {
         Ok(reader)
     } else {
         Err(problems.join("; "))
+    }
+}
+
+/// What in `reader`, opened as the entry `id`, does not match its manifest: the entry it
+/// names, the group metadata, and the files of every array (of the array `only`, when
+/// given). The one check behind `run`'s reuse, `status --verify`, `inspect` and every
+/// reader outside a run.
+pub fn entry_problems(reader: &EntryReader, id: &EntryId, only: Option<&str>) -> Vec<String> {
+    if reader.kind() != id.kind || reader.key() != id.key {
+        return vec![format!(
+            "manifest names {}/{}, expected {id}",
+            reader.kind(),
+            reader.key()
+        )];
+    }
+    match only {
+        None => reader.verify(),
+        Some(name) => [reader.verify_metadata(), reader.verify_array(name)].concat(),
     }
 }
 
@@ -477,12 +488,14 @@ impl Run<'_> {
             }
         }
 
-        let lock = store.lock(id, &mut || {
-            progress.println(&format!(
-                "[{}] waiting for another run computing {id}",
-                stage.name
-            ));
-        })?;
+        let lock = store
+            .lock(id, &mut || {
+                progress.println(&format!(
+                    "[{}] waiting for another run computing {id}",
+                    stage.name
+                ));
+            })
+            .with_context(|| format!("stage \"{}\" ({id}) must be computed", stage.name))?;
         // Another run may have published it while we waited.
         if !forced && store.entry_state(id)? == EntryState::Complete {
             match open_verified(store, id) {

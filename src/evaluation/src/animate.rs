@@ -84,24 +84,12 @@ pub struct RenderSummary {
 pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Result<EntryReader> {
     let path = Path::new(spec);
     if path.is_dir() {
-        let folder = path
-            .canonicalize()
-            .with_context(|| format!("cannot resolve {}", path.display()))?;
-        let key = folder.file_name().and_then(|name| name.to_str());
-        let folder_kind = folder
-            .parent()
-            .and_then(|parent| parent.file_name())
-            .and_then(|name| name.to_str());
-        let root = folder.parent().and_then(|parent| parent.parent());
-        let (Some(key), Some(folder_kind), Some(root)) = (key, folder_kind, root) else {
-            anyhow::bail!("{spec}: expected a cache entry folder <cache>/{kind}/<key>");
-        };
+        let (local, id) = LocalStore::of_entry_folder(path)?;
         anyhow::ensure!(
-            folder_kind == kind,
-            "{spec}: a \"{folder_kind}\" entry, expected a \"{kind}\" entry"
+            id.kind == kind,
+            "{spec}: a \"{}\" entry, expected a \"{kind}\" entry",
+            id.kind
         );
-        let local = LocalStore::open(root)?;
-        let id = EntryId::new(kind, key);
         anyhow::ensure!(
             local.entry_state(&id)? == EntryState::Complete,
             "{spec}: not a published cache entry (no completion marker; the entry may be incomplete)"
@@ -126,9 +114,14 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
     }
 }
 
-/// The entry of `kind` the avatar's train entry read, opened from `store`.
-fn upstream(store: &dyn Store, train: &EntryReader, kind: &str) -> anyhow::Result<EntryReader> {
-    upstream_input(store, train, kind)?
+/// `input`, the entry of `kind` that the avatar's train entry read ([`upstream_input`]),
+/// which the avatar needs.
+fn required(
+    input: anyhow::Result<Option<EntryReader>>,
+    train: &EntryReader,
+    kind: &str,
+) -> anyhow::Result<EntryReader> {
+    input?
         .ok_or_else(|| anyhow::anyhow!("train entry {} records no {kind} input", train.location()))
 }
 
@@ -260,6 +253,10 @@ pub struct DrivenAvatar {
     pub train: EntryReader,
     /// The ingest entry the avatar was trained on (its cameras).
     pub trained_ingest: EntryReader,
+    /// The other entries it is driven from (its motion entry, the poses' ingest entry), kept
+    /// so that their read leases, like the two above, last as long as the avatar is driven:
+    /// `gc` meanwhile leaves every entry a render, export or view reads.
+    pub sources: Vec<EntryReader>,
     /// The avatar with the source's body parameters and motion windows.
     pub renderer: AvatarRenderer,
 }
@@ -279,8 +276,17 @@ pub fn drive_avatar(
     max_frames: usize,
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
+    // Every entry the train entry read is leased at once, before any is verified or read, so
+    // that a `gc` starting meanwhile finds them in use; those the avatar needs are opened
+    // below under leases of their own, which last as long as it is driven.
+    let _inputs_leased = train
+        .manifest()
+        .inputs
+        .iter()
+        .map(|input| store.read_lease(&EntryId::new(&input.kind, &input.key)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let trained_ingest = required(upstream_input(store, &train, "ingest"), &train, "ingest")?;
     let avatar = AvatarRenderer::load_avatar(&train)?;
-    let trained_ingest = upstream(store, &train, "ingest")?;
     let model = avatar.rig.model.clone();
     let trained_params = seqavatar_schema::ingest::read_body_params(&trained_ingest, "body")?;
     let default_betas = trained_params
@@ -288,7 +294,11 @@ pub fn drive_avatar(
         .map(|params| params.betas.clone())
         .unwrap_or_default();
     let motion_entry = if avatar.config.motion_context.has_skeleton_motion() {
-        Some(upstream(store, &train, "motion")?)
+        Some(required(
+            upstream_input(store, &train, "motion"),
+            &train,
+            "motion",
+        )?)
     } else {
         None
     };
@@ -313,6 +323,7 @@ pub fn drive_avatar(
         let reach = avatar.config.sequence_length.saturating_mul(largest_step);
         max_frames.saturating_add(reach)
     };
+    let mut sources: Vec<EntryReader> = motion_entry.iter().cloned().collect();
     let (params, axis) = match poses {
         PoseSource::File(path) => (
             read_pose_file(path, model.num_joints(), &default_betas, pose_limit)?,
@@ -320,6 +331,7 @@ pub fn drive_avatar(
         ),
         PoseSource::Entry(spec) => {
             let entry = resolve_entry(store, "ingest", spec)?;
+            sources.push(entry.clone());
             let source_model = seqavatar_schema::ingest::read_body_model(&entry)?;
             anyhow::ensure!(
                 source_model.num_joints() == model.num_joints(),
@@ -387,6 +399,7 @@ pub fn drive_avatar(
     Ok(DrivenAvatar {
         train,
         trained_ingest,
+        sources,
         renderer,
     })
 }
@@ -442,18 +455,16 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
     );
     anyhow::ensure!(options.fps > 0, "--fps must be positive");
     let store = open_store(cache)?;
-    let DrivenAvatar {
-        trained_ingest,
-        mut renderer,
-        ..
-    } = drive_avatar(
+    // Kept whole to the end: its entries' read leases keep `gc` away while frames render.
+    let mut driven = drive_avatar(
         store.as_ref(),
         &options.avatar,
         &options.poses,
         &options.backend,
         options.max_frames,
     )?;
-    let cameras = seqavatar_schema::ingest::read_cameras(&trained_ingest)?;
+    let renderer = &mut driven.renderer;
+    let cameras = seqavatar_schema::ingest::read_cameras(&driven.trained_ingest)?;
     let camera = cameras
         .get(options.camera)
         .ok_or_else(|| {
@@ -465,7 +476,7 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             )
         })?
         .rescaled(options.resolution_scale);
-    let range = frames_to_draw(&renderer, options.max_frames);
+    let range = frames_to_draw(renderer, options.max_frames);
     let skipped = range.start;
     std::fs::create_dir_all(&options.out)
         .with_context(|| format!("cannot create {}", options.out.display()))?;

@@ -11,7 +11,7 @@ use seqavatar_avatar::ply::{SplatCloud, canonical_cloud, posed_cloud, write_ply}
 use seqavatar_compute::backend::Backend;
 use seqavatar_engine::open_store;
 
-use crate::animate::{DrivenAvatar, PoseSource, drive_avatar, frames_to_draw, resolve_entry};
+use crate::animate::{PoseSource, drive_avatar, frames_to_draw, resolve_entry};
 use crate::avatar_render::AvatarRenderer;
 
 /// Options of `pipeline export`.
@@ -67,14 +67,16 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
             seconds: started.elapsed().as_secs_f64(),
         });
     };
-    let DrivenAvatar { mut renderer, .. } = drive_avatar(
+    // Kept whole to the end: its entries' read leases keep `gc` away while frames are written.
+    let mut driven = drive_avatar(
         store.as_ref(),
         &options.avatar,
         poses,
         &options.backend,
         options.max_frames,
     )?;
-    let range = frames_to_draw(&renderer, options.max_frames);
+    let renderer = &mut driven.renderer;
+    let range = frames_to_draw(renderer, options.max_frames);
     let skipped = range.start;
     let bar = if options.progress {
         indicatif::ProgressBar::new(range.len() as u64)

@@ -112,13 +112,15 @@ impl Scene {
                 let DrivenAvatar {
                     train,
                     trained_ingest,
+                    sources,
                     renderer,
                 } = drive_avatar(store, avatar, source, backend, 0)?;
                 let text = match source {
                     PoseSource::Entry(spec) => format!("ingest entry {spec}"),
                     PoseSource::File(path) => format!("pose file {}", path.display()),
                 };
-                let entries = vec![train, trained_ingest.clone()];
+                let mut entries = vec![train, trained_ingest.clone()];
+                entries.extend(sources);
                 (renderer, trained_ingest, None, text, entries)
             }
             None => {
