@@ -311,12 +311,18 @@ fn synthetic_pipelines_load() {
         "ablation_synthetic.yaml",
         "tradeoff_synthetic.yaml",
         "history_synthetic.yaml",
+        "garment_synthetic.yaml",
     ] {
         let status = sandbox.ok(&["status", &pipeline_file(name)]);
         assert!(status.contains("missing"), "{name}: {status}");
     }
     let status = sandbox.ok(&["status", &pipeline_file("history_synthetic.yaml")]);
     for stage in ["motion_authors", "eval_b_pose", "eval_e_authors"] {
+        assert!(status.contains(stage), "{stage}: {status}");
+    }
+    // The garment study: the oracle row on the oracle motion entry, the static control.
+    let status = sandbox.ok(&["status", &pipeline_file("garment_synthetic.yaml")]);
+    for stage in ["motion_oracle", "eval_oracle", "eval_static_b_pose", "eval_one_a"] {
         assert!(status.contains(stage), "{stage}: {status}");
     }
     // The ablation: rows (a)-(e) x 3 seeds, each evaluated.
