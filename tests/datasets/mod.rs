@@ -322,7 +322,12 @@ fn synthetic_pipelines_load() {
     }
     // The garment study: the oracle row on the oracle motion entry, the static control.
     let status = sandbox.ok(&["status", &pipeline_file("garment_synthetic.yaml")]);
-    for stage in ["motion_oracle", "eval_oracle", "eval_static_b_pose", "eval_one_a"] {
+    for stage in [
+        "motion_oracle",
+        "eval_oracle",
+        "eval_static_b_pose",
+        "eval_one_a",
+    ] {
         assert!(status.contains(stage), "{stage}: {status}");
     }
     // The ablation: rows (a)-(e) x 3 seeds, each evaluated.

@@ -269,7 +269,8 @@ stages:
         .states;
     let (j, rows) = (plain.num_joints, oracle.num_joints);
     let mut sums = [0.0f64; seqavatar_schema::ingest::GARMENT_STATE_COMPONENTS];
-    for frame in 0..plain.num_frames {
+    assert_eq!(states.len(), plain.num_frames);
+    for (frame, state) in states.iter().enumerate() {
         for slot in 0..2 {
             let joints = &plain.skeleton_motion[(frame * 2 + slot) * j * 3..][..j * 3];
             let block = &oracle.skeleton_motion[(frame * 2 + slot) * rows * 3..][..rows * 3];
@@ -279,10 +280,10 @@ stages:
                 // Same sign as the state, and zero exactly where it is.
                 assert_eq!(
                     garment[c] == 0.0,
-                    states[frame][c] == 0.0,
+                    state[c] == 0.0,
                     "frame {frame} component {c}"
                 );
-                assert!(f64::from(garment[c]) * states[frame][c] >= 0.0);
+                assert!(f64::from(garment[c]) * state[c] >= 0.0);
                 if slot == 0 {
                     *sum += f64::from(garment[c]).powi(2);
                 }
@@ -292,8 +293,8 @@ stages:
     // RMS 1 per component, but for one that is zero throughout (no turn in 40 frames: no
     // deflection across the body, nor twist), which stays zero.
     let moving = states.iter().fold([false; 6], |mut any, s| {
-        for c in 0..6 {
-            any[c] |= s[c] != 0.0;
+        for (moved, value) in any.iter_mut().zip(s) {
+            *moved |= *value != 0.0;
         }
         any
     });

@@ -50,7 +50,12 @@ fn main() -> anyhow::Result<()> {
             .collect();
         lengths.sort_by(f64::total_cmp);
         let rms = (lengths.iter().map(|l| l * l).sum::<f64>() / n as f64).sqrt();
-        rows.push((frame, rms, lengths[n * 99 / 100], lengths[n - 1]));
+        rows.push(FrameOffsets {
+            frame,
+            rms,
+            p99: lengths[n * 99 / 100],
+            largest: lengths[n - 1],
+        });
     }
     println!(
         "train entry {}: {n} Gaussians, {} frames",
@@ -64,28 +69,42 @@ fn main() -> anyhow::Result<()> {
     for (label, want) in [("history frames", true), ("other frames", false)] {
         let picked: Vec<_> = rows
             .iter()
-            .filter(|(frame, ..)| history.frames[*frame] == want)
+            .filter(|row| history.frames[row.frame] == want)
             .collect();
         let count = picked.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&(usize, f64, f64, f64)) -> f64| {
-            picked.iter().map(|row| f(row)).sum::<f64>() / count
-        };
+        let mean =
+            |f: fn(&FrameOffsets) -> f64| picked.iter().map(|row| f(row)).sum::<f64>() / count;
+        let garment = picked
+            .iter()
+            .map(|row| history.millimetres[row.frame])
+            .sum::<f64>()
+            / count;
         println!(
-            "| {label} | {} | {:.1} | {:.1} | {:.1} | {:.1} |",
+            "| {label} | {} | {garment:.1} | {:.1} | {:.1} | {:.1} |",
             picked.len(),
-            mean(&|row| history.millimetres[row.0]),
-            mean(&|row| row.1),
-            mean(&|row| row.2),
-            mean(&|row| row.3),
+            mean(|row| row.rms),
+            mean(|row| row.p99),
+            mean(|row| row.largest),
         );
     }
-    let xs: Vec<f64> = rows.iter().map(|row| history.millimetres[row.0]).collect();
-    let ys: Vec<f64> = rows.iter().map(|row| row.2).collect();
+    let xs: Vec<f64> = rows
+        .iter()
+        .map(|row| history.millimetres[row.frame])
+        .collect();
+    let ys: Vec<f64> = rows.iter().map(|row| row.p99).collect();
     println!(
         "correlation over frames of the offsets' p99 with the garment's displacement: {:.3}",
         correlation(&xs, &ys)
     );
     Ok(())
+}
+
+/// One frame's canonical offsets `|d_xyz|` over the Gaussians, millimetres.
+struct FrameOffsets {
+    frame: usize,
+    rms: f64,
+    p99: f64,
+    largest: f64,
 }
 
 /// Pearson correlation; 0 when either side is constant.
