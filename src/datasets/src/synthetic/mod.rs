@@ -82,6 +82,13 @@ fn is_true(value: &bool) -> bool {
     *value
 }
 
+/// Stripes around the skirt unless the config says otherwise.
+pub const DEFAULT_SKIRT_STRIPES: u32 = 24;
+
+fn is_default_stripes(value: &u32) -> bool {
+    *value == DEFAULT_SKIRT_STRIPES
+}
+
 impl SceneKind {
     fn is_walk(&self) -> bool {
         *self == Self::Walk
@@ -121,6 +128,12 @@ pub struct SyntheticConfig {
     /// out of the resolved config when `true`, so existing keys stay.
     #[serde(skip_serializing_if = "is_true")]
     pub garment_swing: bool,
+    /// Red and white stripes around the skirt (even, 2..=96). The default 24 are 6-7 cm
+    /// wide, narrower than the history scene's swing; fewer, wider stripes make a texture
+    /// whose photometric error does not alias a displacement of a few stripes' width onto
+    /// the neighbouring stripe. Left out of the resolved config when 24.
+    #[serde(skip_serializing_if = "is_default_stripes")]
+    pub skirt_stripes: u32,
     /// The backdrop behind the person (`textured` or `black`); masks are the person's
     /// coverage either way.
     pub background: SyntheticBackground,
@@ -144,6 +157,7 @@ impl Default for SyntheticConfig {
             body_grid_spacing: seqavatar_core::body::procedural::DEFAULT_GRID_SPACING,
             garment: true,
             garment_swing: true,
+            skirt_stripes: DEFAULT_SKIRT_STRIPES,
             background: SyntheticBackground::Textured,
             jitter: JitterConfig::default(),
             seed: 7,
@@ -248,6 +262,12 @@ impl SyntheticConfig {
             (0.005..=0.05).contains(&self.body_grid_spacing),
             "{} must be within 0.005..0.05 metres",
             field("body_grid_spacing")
+        );
+        anyhow::ensure!(
+            (2..=96).contains(&self.skirt_stripes) && self.skirt_stripes % 2 == 0,
+            "{} = {} must be even and within 2..96",
+            field("skirt_stripes"),
+            self.skirt_stripes
         );
         anyhow::ensure!(
             self.garment_swing || self.scene == SceneKind::History,

@@ -269,9 +269,9 @@ fn body_pattern(rest: DVec3) -> f64 {
     0.55 + 0.35 * checker + if stripe { 0.1 } else { 0.0 }
 }
 
-/// Skirt albedo from its (around, down) coordinates: 24 stripes around, bands down.
-fn skirt_albedo(tc: DVec3) -> DVec3 {
-    let stripe = (tc.x * 24.0).floor().rem_euclid(2.0) == 0.0;
+/// Skirt albedo from its (around, down) coordinates: `stripes` stripes around, bands down.
+fn skirt_albedo(tc: DVec3, stripes: u32) -> DVec3 {
+    let stripe = (tc.x * f64::from(stripes)).floor().rem_euclid(2.0) == 0.0;
     let band = (tc.y * 9.0).floor().rem_euclid(3.0) == 0.0;
     let base = if stripe {
         DVec3::new(0.8, 0.1, 0.15)
@@ -731,7 +731,10 @@ impl SyntheticScene {
                 if normal.dot(centre - position) < 0.0 {
                     normal = -normal;
                 }
-                skirt_albedo(interpolate(&|i| self.skirt_texture[i - body_count]))
+                skirt_albedo(
+                    interpolate(&|i| self.skirt_texture[i - body_count]),
+                    self.config.skirt_stripes,
+                )
             };
             let lambert = normal.dot(light).max(0.0);
             Some(albedo * (0.45 + 0.55 * lambert))
