@@ -264,7 +264,7 @@ impl SyntheticConfig {
             field("body_grid_spacing")
         );
         anyhow::ensure!(
-            (2..=96).contains(&self.skirt_stripes) && self.skirt_stripes % 2 == 0,
+            (2..=96).contains(&self.skirt_stripes) && self.skirt_stripes.is_multiple_of(2),
             "{} = {} must be even and within 2..96",
             field("skirt_stripes"),
             self.skirt_stripes
