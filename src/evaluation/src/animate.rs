@@ -360,10 +360,7 @@ pub fn drive_avatar(
     }
     let motion = if let Some(motion_entry) = &motion_entry {
         anyhow::ensure!(
-            !motion_entry
-                .array_names()
-                .iter()
-                .any(|n| n == "garment_oracle"),
+            !seqavatar_schema::motion::has_garment_oracle(motion_entry),
             "the avatar's motion entry {} holds the garment oracle (the synthetic scene's true \
              garment state, motion config `garment_oracle`): other poses have no such state; \
              render the avatar on its own sequence (`pipeline run` with an eval stage)",

@@ -205,10 +205,10 @@ impl AvatarRenderer {
             );
             let model = &avatar.rig.model;
             anyhow::ensure!(
-                track.num_joints - track.garment_rows == model.num_joints()
+                track.body_joints() == model.num_joints()
                     && track.num_vertices == model.num_vertices(),
                 "the motion track has {} joints and {} vertices, the avatar's body model {} and {}",
-                track.num_joints - track.garment_rows,
+                track.body_joints(),
                 track.num_vertices,
                 model.num_joints(),
                 model.num_vertices()

@@ -273,17 +273,8 @@ impl InputScales {
     /// `1 / RMS` of every block of `motion` ([`InputScaling::Rms`]); 1 for a block that is
     /// zero throughout (a still sequence, or one frame).
     pub fn rms_of(motion: &MotionArrays, n_scales: usize) -> Self {
-        let inverse = |rms: Vec<f64>| -> Vec<f64> {
-            rms.into_iter()
-                .map(|r| {
-                    if r > 0.0 && r.is_finite() {
-                        1.0 / r
-                    } else {
-                        1.0
-                    }
-                })
-                .collect()
-        };
+        let inverse =
+            |rms: Vec<f64>| -> Vec<f64> { rms.into_iter().map(unit_rms_factor).collect() };
         Self {
             skeleton_motion: inverse(block_rms(
                 &motion.skeleton_motion,
@@ -585,6 +576,21 @@ pub fn read_input_scales(
     ))
 }
 
+/// The factor that scales values of RMS `rms` to RMS 1: `1 / rms`, or 1 where the values are
+/// zero throughout (or their RMS is not finite).
+fn unit_rms_factor(rms: f64) -> f64 {
+    if rms > 0.0 && rms.is_finite() {
+        1.0 / rms
+    } else {
+        1.0
+    }
+}
+
+/// Whether the motion entry holds the garment oracle ([`write_garment_oracle`]).
+pub fn has_garment_oracle(entry: &EntryReader) -> bool {
+    entry.array_names().iter().any(|n| n == "garment_oracle")
+}
+
 /// Writes the garment oracle: `garment_oracle` f32 `(frame, scale, row, xyz)`, the ingest
 /// entry's `garment_state` with each component divided by its RMS over the sequence (1 for a
 /// component that is zero throughout), zero-padded to whole rows of 3 and repeated for every
@@ -602,12 +608,7 @@ pub fn write_garment_oracle(
         .map(|c| {
             let mean_square =
                 states.iter().map(|s| s[c] * s[c]).sum::<f64>() / states.len().max(1) as f64;
-            let rms = mean_square.sqrt();
-            if rms > 0.0 && rms.is_finite() {
-                1.0 / rms
-            } else {
-                1.0
-            }
+            unit_rms_factor(mean_square.sqrt())
         })
         .collect();
     let mut values = Vec::with_capacity(states.len() * n_scales * rows * 3);
@@ -663,6 +664,11 @@ pub struct MotionTrack {
 }
 
 impl MotionTrack {
+    /// The body's joints: the rows of a skeleton-motion block before the garment oracle's.
+    pub fn body_joints(&self) -> usize {
+        self.num_joints - self.garment_rows
+    }
+
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
         let location = entry.location();
         let scales = entry.read::<u32>("scales")?.data;
@@ -690,7 +696,7 @@ impl MotionTrack {
             "entry {location}: array `vertex_velocity` has shape {:?}, expected ({f}, {s}, vertex, 3)",
             velocity.shape
         );
-        let oracle = if entry.array_names().iter().any(|n| n == "garment_oracle") {
+        let oracle = if has_garment_oracle(entry) {
             let oracle = entry.read::<f32>("garment_oracle")?;
             anyhow::ensure!(
                 oracle.shape.len() == 4

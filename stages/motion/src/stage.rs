@@ -148,6 +148,26 @@ impl StageKind for MotionStage {
             .with_context(|| format!("config `scales` against entry {}", ingest.location()))?;
         let model = read_body_model(&ingest)?;
         let sequence = BodySequence::read(params_entry, "body")?;
+        // The oracle's input is checked before anything is computed.
+        let garment_states = if config.garment_oracle {
+            let history = read_garment_history(&ingest)?.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "config `garment_oracle`: entry {} has no `garment_state` (only the synthetic \
+                     history scene, `dataset.scene: history`, knows its garment's state)",
+                    ingest.location()
+                )
+            })?;
+            anyhow::ensure!(
+                history.states.len() == sequence.num_frames,
+                "entry {}: `garment_state` has {} frames, the body parameters {}",
+                ingest.location(),
+                history.states.len(),
+                sequence.num_frames
+            );
+            Some(history.states)
+        } else {
+            None
+        };
         let started = std::time::Instant::now();
         let velocity = effective_velocity(config.input_scaling, config.velocity);
         let mut motion = compute_motion(&model, &sequence, &scales, velocity)
@@ -187,22 +207,8 @@ impl StageKind for MotionStage {
                 axis: FrameAxis::of_ingest(&ingest)?,
             },
         )?;
-        if config.garment_oracle {
-            let history = read_garment_history(&ingest)?.ok_or_else(|| {
-                anyhow::anyhow!(
-                    "config `garment_oracle`: entry {} has no `garment_state` (only the synthetic \
-                     history scene, `dataset.scene: history`, knows its garment's state)",
-                    ingest.location()
-                )
-            })?;
-            anyhow::ensure!(
-                history.states.len() == motion.num_frames,
-                "entry {}: `garment_state` has {} frames, the body parameters {}",
-                ingest.location(),
-                history.states.len(),
-                motion.num_frames
-            );
-            write_garment_oracle(ctx.output(), &history.states, scales.len())?;
+        if let Some(states) = &garment_states {
+            write_garment_oracle(ctx.output(), states, scales.len())?;
             ctx.log("garment oracle: the true garment state appended to the skeleton motion");
         }
         Ok(())

@@ -93,11 +93,11 @@ fn read_body_and_motion(
     );
     anyhow::ensure!(
         motion_track.num_vertices == model.num_vertices()
-            && motion_track.num_joints - motion_track.garment_rows == model.num_joints(),
+            && motion_track.body_joints() == model.num_joints(),
         "entry {}: motion arrays have {} vertices and {} joints, the body model {} and {}",
         motion.location(),
         motion_track.num_vertices,
-        motion_track.num_joints - motion_track.garment_rows,
+        motion_track.body_joints(),
         model.num_vertices(),
         model.num_joints()
     );
