@@ -335,14 +335,13 @@ impl Swing {
     }
 
     /// The state as seen from the body: the hem deflection and its rate along the body's
-    /// forward and left-to-right axes (world x and z turned by the heading `heading`, radians
-    /// about +y, whose forward direction is `(sin, cos)`), then the twist and its rate:
+    /// forward and across axes ([`super::history::heading_axes`] of `heading`), then the
+    /// twist and its rate:
     /// `[forward, across, forward rate, across rate, twist, twist rate]` in metres, metres
     /// per second, radians and radians per second. The same skirt shape relative to the body
     /// gives the same values whichever way the body faces.
     pub fn in_body_frame(&self, heading: f64) -> [f64; crate::GARMENT_STATE_COMPONENTS] {
-        let forward = DVec2::new(heading.sin(), heading.cos());
-        let across = DVec2::new(heading.cos(), -heading.sin());
+        let (forward, across) = super::history::heading_axes(heading);
         [
             self.offset.dot(forward),
             self.offset.dot(across),

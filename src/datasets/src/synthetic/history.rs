@@ -203,6 +203,15 @@ pub struct PathSample {
     pub heading_acceleration: f64,
 }
 
+/// The body's horizontal axes (world x, z) at heading `heading` (radians about +y): forward
+/// `(sin, cos)` and across, to its side, `(cos, -sin)`.
+pub fn heading_axes(heading: f64) -> (DVec2, DVec2) {
+    (
+        DVec2::new(heading.sin(), heading.cos()),
+        DVec2::new(heading.cos(), -heading.sin()),
+    )
+}
+
 /// The path's derivatives at frame time `t` (the position is their integral).
 pub fn path_sample(phase: &MonotoneCubic, heading: &MonotoneCubic, t: f64) -> PathSample {
     let per_phase = STRIDE / PHASES as f64;
@@ -211,8 +220,7 @@ pub fn path_sample(phase: &MonotoneCubic, heading: &MonotoneCubic, t: f64) -> Pa
     // Per second: d/dt = FPS d/dframe.
     let (speed, speed_rate) = (per_phase * FPS * dc, per_phase * FPS * FPS * ddc);
     let (turn_rate, turn_acceleration) = (FPS * dpsi, FPS * FPS * ddpsi);
-    let direction = DVec2::new(psi.sin(), psi.cos());
-    let across = DVec2::new(psi.cos(), -psi.sin());
+    let (direction, across) = heading_axes(psi);
     PathSample {
         velocity: direction * speed,
         acceleration: direction * speed_rate + across * (speed * turn_rate),
