@@ -595,7 +595,7 @@ impl TrainedAvatar {
         };
         let model = seqavatar_schema::ingest::read_body_model(entry)
             .with_context(|| format!("entry {location}: body model"))?;
-        let rig = BodyRig::new(model)?;
+        let rig = config.rig(model)?;
         let networks = if needs_networks(&config) {
             let motion_joints = match attribute("motion_joints")?.as_u64() {
                 Some(j) => j as usize,

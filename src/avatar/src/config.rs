@@ -129,7 +129,17 @@ pub struct AvatarConfig {
     /// replaces it with its own config's `precision`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub precision: Option<Precision>,
+    /// Width (metres, the kernel's sigma) over which the template's skinning weights are
+    /// diffused across the canonical template before training
+    /// ([`crate::rig::BodyRig::smooth_template_weights`]); absent or 0: the template's own
+    /// weights, and the key of configs without it is unchanged (serialised only where set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skinning_smoothing: Option<f64>,
 }
+
+/// The largest [`AvatarConfig::skinning_smoothing`] (metres): half a body height already
+/// blends every joint into every other.
+pub const MAX_SKINNING_SMOOTHING: f64 = 1.0;
 
 /// A rejected avatar configuration, naming the field.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -180,12 +190,32 @@ impl AvatarConfig {
         {
             return bad("scale_min", "need 0 < scale_min < scale_max".into());
         }
+        if let Some(sigma) = self.skinning_smoothing
+            && !(0.0..=MAX_SKINNING_SMOOTHING).contains(&sigma)
+        {
+            return bad(
+                "skinning_smoothing",
+                format!("must be in [0, {MAX_SKINNING_SMOOTHING}] metres, got {sigma}"),
+            );
+        }
         Ok(())
     }
 
     /// Whether the avatar has networks (a non-rigid deformation or a refiner).
     pub fn needs_networks(&self) -> bool {
         self.motion_context.has_non_rigid() || self.pose_refiner || self.lbs_offsets
+    }
+
+    /// The body rig this avatar skins with: `model`'s, its template weights diffused by
+    /// [`AvatarConfig::skinning_smoothing`]. Training and every reader of a trained avatar
+    /// build it here, so they skin alike.
+    pub fn rig(
+        &self,
+        model: seqavatar_core::body::BodyModel,
+    ) -> anyhow::Result<crate::rig::BodyRig> {
+        let mut rig = crate::rig::BodyRig::new(model)?;
+        rig.smooth_template_weights(self.skinning_smoothing.unwrap_or(0.0));
+        Ok(rig)
     }
 
     /// The precision the networks' gpu kernels are built with: [`AvatarConfig::precision`],
@@ -213,6 +243,7 @@ impl AvatarConfig {
             background: Background::Black,
             // The gpu paths are compared with `cpu` at f32's tolerances.
             precision: Some(Precision::F32),
+            skinning_smoothing: None,
         }
     }
 }
@@ -252,7 +283,7 @@ mod tests {
     fn validation_names_the_field() {
         config().validate().unwrap();
         type Change = fn(&mut AvatarConfig);
-        let cases: [(Change, &str); 6] = [
+        let cases: [(Change, &str); 8] = [
             (|c| c.trunk_depth = 0, "trunk_width"),
             (|c| c.tau = 0, "tau"),
             (
@@ -262,6 +293,11 @@ mod tests {
             (|c| c.sh_degree = 4, "sh_degree"),
             (|c| c.scale_max = c.scale_min, "scale_min"),
             (|c| c.trunk_width = MAX_TRUNK_WIDTH + 1, "trunk_width"),
+            (|c| c.skinning_smoothing = Some(-0.1), "skinning_smoothing"),
+            (
+                |c| c.skinning_smoothing = Some(f64::NAN),
+                "skinning_smoothing",
+            ),
         ];
         for (change, field) in cases {
             let mut c = config();

@@ -86,6 +86,48 @@ impl BodyRig {
         })
     }
 
+    /// Replaces the template skinning weights by their average over the canonical
+    /// template, each vertex weighting the vertices within `3 sigma` by
+    /// `exp(-d^2 / (2 sigma^2))` of their canonical (big-pose) distance `d`; `sigma <= 0`
+    /// keeps them.
+    ///
+    /// Why: the skinning weights are `softmax(log(w + 1e-9) + offset)` at the nearest template
+    /// vertex, so a Gaussian that starts on the thigh has a pelvis weight of 1e-9, whose
+    /// softmax gradient is 1e-9 too: no training moves it. A loose skirt's Gaussians start
+    /// there and must follow the pelvis, not the legs. Diffused weights give every joint
+    /// near a vertex a weight the offsets can grow or remove (the "diffused skinning" of
+    /// volumetric avatars), at the price of softer joints where nothing asks for it.
+    pub fn smooth_template_weights(&mut self, sigma: f64) {
+        if sigma <= 0.0 || !sigma.is_finite() {
+            return;
+        }
+        let joints = self.joint_count();
+        let points = seqavatar_knn::as_points(&self.canonical_vertices);
+        let grid = seqavatar_knn::KnnGrid::new(&points, 8.0);
+        let weights = &self.template_weights;
+        let reach = 3.0 * sigma;
+        let smoothed: Vec<f64> = points
+            .par_iter()
+            .flat_map_iter(|p| {
+                let mut sum = vec![0.0; joints];
+                let mut total = 0.0;
+                // Never empty: a vertex is within any radius of itself.
+                for u in grid.within(p, reach) {
+                    let q = &points[u as usize];
+                    let d2 = (0..3).map(|a| (p[a] - q[a]).powi(2)).sum::<f64>();
+                    let kernel = (-d2 / (2.0 * sigma * sigma)).exp();
+                    total += kernel;
+                    let row = &weights[u as usize * joints..(u as usize + 1) * joints];
+                    for (s, w) in sum.iter_mut().zip(row) {
+                        *s += kernel * w;
+                    }
+                }
+                sum.into_iter().map(move |s| s / total)
+            })
+            .collect();
+        self.template_weights = smoothed;
+    }
+
     pub fn joint_count(&self) -> usize {
         self.model.num_joints()
     }
@@ -293,6 +335,65 @@ mod tests {
     use crate::skinning::{GaussianParams, skin_forward};
     use seqavatar_core::body::BodyModel;
     use seqavatar_core::body::procedural::procedural_body;
+
+    /// Diffused weights: each row is the kernel-weighted average of the rows within 3 sigma
+    /// (a brute-force loop over every pair here, against the grid search), rows still sum
+    /// to 1, a vanishing sigma keeps the template's weights, and a vertex of a pure-thigh
+    /// row next to the pelvis gains a pelvis weight the softmax gradient can act on.
+    #[test]
+    fn smoothed_weights_are_the_kernel_average_of_the_neighbours() {
+        let rig = BodyRig::new(procedural_body(0.05)).unwrap();
+        let (v, j) = (rig.vertex_count(), rig.joint_count());
+        let mut tiny = rig.clone();
+        tiny.smooth_template_weights(1e-6);
+        let close = tiny
+            .template_weights
+            .iter()
+            .zip(&rig.template_weights)
+            .all(|(a, b)| (a - b).abs() < 1e-9);
+        assert!(close, "sigma 1 um changed the weights");
+        let sigma = 0.08;
+        let mut smooth = rig.clone();
+        smooth.smooth_template_weights(sigma);
+        let c = &rig.canonical_vertices;
+        for i in (0..v).step_by(7) {
+            let mut expected = vec![0.0; j];
+            let mut total = 0.0;
+            for u in 0..v {
+                let d2: f64 = (0..3).map(|a| (c[3 * i + a] - c[3 * u + a]).powi(2)).sum();
+                if d2.sqrt() <= 3.0 * sigma {
+                    let k = (-d2 / (2.0 * sigma * sigma)).exp();
+                    total += k;
+                    for (e, w) in expected.iter_mut().zip(&rig.template_weights[u * j..]) {
+                        *e += k * w;
+                    }
+                }
+            }
+            let row = &smooth.template_weights[i * j..(i + 1) * j];
+            for (got, want) in row.iter().zip(&expected) {
+                assert!(
+                    (got - want / total).abs() < 1e-12,
+                    "vertex {i}: {got} vs {}",
+                    want / total
+                );
+            }
+            assert!((row.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+        // Thigh vertices (left-hip weight > 0.9) with a pelvis weight the softmax gradient
+        // can act on (>= 1e-3): few before, most after.
+        let thighs: Vec<usize> = (0..v)
+            .filter(|&u| rig.template_weights[u * j + 1] > 0.9)
+            .collect();
+        let reachable = |w: &[f64]| {
+            thighs.iter().filter(|&&u| w[u * j] >= 1e-3).count() as f64 / thighs.len() as f64
+        };
+        let (before, after) = (
+            reachable(&rig.template_weights),
+            reachable(&smooth.template_weights),
+        );
+        eprintln!("thigh vertices with pelvis weight >= 1e-3: {before} -> {after}");
+        assert!(after > 0.6 && after > 2.0 * before, "{before} -> {after}");
+    }
 
     /// Skinning the canonical template vertices with zero non-rigid offsets, each at its own
     /// vertex, reproduces the body model's posed vertices (an independent forward pass).

@@ -29,6 +29,7 @@ pub fn small_config(motion_context: MotionContext) -> AvatarConfig {
         // The gpu renders are compared with `cpu` at f32's tolerances (the tensor-core path
         // is tested against f32 in the compute crate).
         precision: Some(Precision::F32),
+        skinning_smoothing: None,
     }
 }
 

@@ -200,6 +200,11 @@ pub struct TrainConfig {
     /// `cpu` ignores it. Chosen once per run; the log's `networks:` line names the path.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub precision: Option<Precision>,
+    /// Diffuses the template's skinning weights over this width (metres) before training
+    /// (`AvatarConfig::skinning_smoothing`): loose garments, whose Gaussians start on the
+    /// legs but follow the pelvis, need it; absent or 0 (every preset) keeps the template's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skinning_smoothing: Option<f64>,
 }
 
 /// A config error naming `field`.
@@ -255,6 +260,7 @@ impl TrainConfig {
             checkpoint_every: 500,
             background: Background::Black,
             precision: None,
+            skinning_smoothing: None,
         };
         match preset {
             Preset::Balanced => base,
@@ -527,6 +533,7 @@ impl TrainConfig {
             scale_max: self.scale_max,
             background: self.background,
             precision: self.precision,
+            skinning_smoothing: self.skinning_smoothing,
         }
     }
 

@@ -190,7 +190,9 @@ impl StageKind for TrainStage {
                 .check_memory(Some(&images), budget)
                 .map_err(anyhow::Error::msg)?;
         }
-        let data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
+        let mut data = TrainingData::read(&ingest, params_entry, &motion, config.resolution_scale)?;
+        // The rig every reader of the trained avatar builds (`AvatarConfig::rig`).
+        data.rig = config.avatar().rig(data.rig.model.clone())?;
         check_motion_window(config, &data).with_context(|| {
             format!(
                 "train config against ingest entry {} (via motion entry {})",

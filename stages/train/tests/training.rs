@@ -185,8 +185,26 @@ fn tiny_training_runs_as_a_stage_and_its_loss_falls() {
 
 #[test]
 fn stored_avatar_renders_exactly_like_the_trainer() {
+    stored_avatar_renders_like_the_trainer(None);
+}
+
+/// Diffused skinning weights are part of the avatar: the stage trains with them and every
+/// reader of its entry skins with the same weights.
+#[test]
+fn stored_avatar_with_diffused_skinning_renders_exactly_like_the_trainer() {
+    stored_avatar_renders_like_the_trainer(Some(0.05));
+}
+
+fn stored_avatar_renders_like_the_trainer(skinning_smoothing: Option<f64>) {
     let dir = tempfile::tempdir().unwrap();
-    let (data, config) = tiny_data(dir.path(), 5);
+    let (mut data, mut config) = tiny_data(dir.path(), 5);
+    config.skinning_smoothing = skinning_smoothing;
+    let template = data.rig.template_weights.clone();
+    data.rig = config.avatar().rig(data.rig.model.clone()).unwrap();
+    assert_eq!(
+        data.rig.template_weights == template,
+        skinning_smoothing.is_none()
+    );
     let mut trainer = Trainer::new(config, &data, cpu_backend()).unwrap();
     for _ in 0..5 {
         trainer.step().unwrap();
@@ -202,11 +220,19 @@ fn stored_avatar_renders_exactly_like_the_trainer() {
     assert!(direct.alpha.iter().any(|a| *a > 0.5), "the body is visible");
 
     // The same 5 iterations as a stage: its entry loads and renders identically.
-    let reports = run_pipeline(dir.path(), &pipeline_text(5)).unwrap();
+    let text = match skinning_smoothing {
+        Some(sigma) => pipeline_text(5).replace(
+            r#""lbs_offsets": false"#,
+            &format!(r#""lbs_offsets": false, "skinning_smoothing": {sigma}"#),
+        ),
+        None => pipeline_text(5),
+    };
+    let reports = run_pipeline(dir.path(), &text).unwrap();
     let train = entry(dir.path(), &reports, "train");
     let loaded = TrainedAvatar::load(&train).unwrap();
     assert_eq!(loaded.gaussians, avatar.gaussians);
     assert_eq!(loaded.config, avatar.config);
+    assert_eq!(loaded.rig.template_weights, data.rig.template_weights);
     assert_eq!(loaded.sh_degree, avatar.sh_degree);
     let again = loaded
         .render(&inputs, camera, &loaded.backend(cpu_backend()).unwrap())
