@@ -165,6 +165,8 @@ impl Default for SyntheticConfig {
     }
 }
 
+/// The farthest `camera_distance`, in metres: at 1 km an f32 depth still resolves 0.1 mm.
+const MAX_CAMERA_DISTANCE: f64 = 1000.0;
 /// Bytes per supersample of the rasteriser's visibility buffer (triangle, barycentrics,
 /// depth).
 const VISIBILITY_BYTES_PER_SAMPLE: u64 = 4 + 12 + 4;
@@ -249,9 +251,24 @@ impl SyntheticConfig {
             field("supersample")
         );
         anyhow::ensure!(
-            self.camera_distance.is_finite() && self.camera_distance >= 2.0,
-            "{} must be at least 2 metres",
+            !self.camera_distance.is_nan(),
+            "{} is not a number",
             field("camera_distance")
+        );
+        anyhow::ensure!(
+            self.camera_distance >= 2.0,
+            "{} = {} is too close to the subject: it must be at least 2 metres",
+            field("camera_distance"),
+            self.camera_distance
+        );
+        // Farther, the f32 camera coordinates the renderers use no longer resolve the
+        // subject's depth (and by 1e155 the f64 projection overflows to infinity).
+        anyhow::ensure!(
+            self.camera_distance <= MAX_CAMERA_DISTANCE,
+            "{} = {} is too far from the subject: it must be at most {MAX_CAMERA_DISTANCE} \
+             metres, beyond which its projection loses precision and then is not finite",
+            field("camera_distance"),
+            self.camera_distance
         );
         anyhow::ensure!(
             self.betas.iter().all(|b| b.is_finite() && b.abs() <= 3.0),
@@ -344,5 +361,35 @@ mod memory_tests {
         );
         // The demo's scene fits a small budget.
         SyntheticConfig::default().check_memory(1 << 30).unwrap();
+    }
+
+    /// A huge or non-finite camera distance once said "too close to the subject".
+    #[test]
+    fn camera_distances_out_of_range_say_which_way() {
+        for (distance, says) in [
+            (1e308, "too far"),
+            (f64::INFINITY, "too far"),
+            (1001.0, "too far"),
+            (1.0, "too close"),
+            (f64::NAN, "not a number"),
+        ] {
+            let config = SyntheticConfig {
+                camera_distance: distance,
+                ..SyntheticConfig::default()
+            };
+            let error = config.validate_ranges().unwrap_err().to_string();
+            assert!(
+                error.contains("dataset.camera_distance") && error.contains(says),
+                "{distance}: {error}"
+            );
+        }
+        for distance in [2.0, MAX_CAMERA_DISTANCE] {
+            SyntheticConfig {
+                camera_distance: distance,
+                ..SyntheticConfig::default()
+            }
+            .validate_ranges()
+            .unwrap();
+        }
     }
 }
