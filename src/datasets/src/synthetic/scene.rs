@@ -51,7 +51,10 @@ const LIGHT: DVec3 = DVec3::new(0.35, 0.85, 0.4);
 pub struct SyntheticScene {
     config: SyntheticConfig,
     model: BodyModel,
+    /// The cameras the images are rendered with, at the origin.
     cameras: Vec<SourceCamera>,
+    /// The cameras the reader hands out: `cameras` in the world of `config.origin`.
+    world_cameras: Vec<SourceCamera>,
     ground_truth: Vec<BodyParams>,
     jittered: Vec<BodyParams>,
     /// Per frame, the skirt particle positions (empty without a garment).
@@ -481,6 +484,7 @@ impl SyntheticScene {
             config: config.clone(),
             model,
             cameras: Vec::new(),
+            world_cameras: Vec::new(),
             ground_truth,
             jittered,
             skirt: skirt_frames,
@@ -497,7 +501,26 @@ impl SyntheticScene {
             backdrops,
         };
         scene.cameras = scene.place_cameras(&mut rng)?;
+        scene.world_cameras = scene
+            .cameras
+            .iter()
+            .map(|source| SourceCamera {
+                id: source.id,
+                camera: source.camera.with_origin_at(-scene.origin()),
+            })
+            .collect();
         Ok(scene)
+    }
+
+    /// `config.origin`: where the reader's world puts the scene's origin.
+    fn origin(&self) -> DVec3 {
+        DVec3::from_array(self.config.origin)
+    }
+
+    /// `params` in the reader's world.
+    fn in_world(&self, mut params: BodyParams) -> BodyParams {
+        params.world_translation += self.origin();
+        params
     }
 
     /// World-space points of frame `frame`: body vertices then skirt particles.
@@ -829,7 +852,7 @@ impl DatasetReader for SyntheticScene {
     }
 
     fn cameras(&self) -> &[SourceCamera] {
-        &self.cameras
+        &self.world_cameras
     }
 
     fn num_frames(&self) -> usize {
@@ -853,7 +876,7 @@ impl DatasetReader for SyntheticScene {
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
         self.jittered
             .get(frame)
-            .cloned()
+            .map(|params| self.in_world(params.clone()))
             .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))
     }
 
@@ -861,15 +884,19 @@ impl DatasetReader for SyntheticScene {
     fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
         Ok(Some(Keypoints3d {
             joints: (0..self.model.num_joints()).map(Some).collect(),
-            positions: self.keypoints.clone(),
+            positions: self.keypoints.iter().map(|p| *p + self.origin()).collect(),
             confidence: vec![1.0; self.keypoints.len()],
         }))
     }
 
     fn ground_truth_body_params(&self, frame: usize) -> anyhow::Result<Option<BodyParams>> {
-        Ok(Some(self.ground_truth.get(frame).cloned().ok_or_else(
-            || anyhow::anyhow!("synthetic scene has no frame {frame}"),
-        )?))
+        Ok(Some(
+            self.ground_truth
+                .get(frame)
+                .cloned()
+                .map(|params| self.in_world(params))
+                .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))?,
+        ))
     }
 
     /// The history scene's skirt and its exact static drape; `None` for the walk scene (its
@@ -882,9 +909,10 @@ impl DatasetReader for SyntheticScene {
             frame < self.drapes.len(),
             "synthetic scene has no frame {frame}"
         );
+        let in_world = |points: &[DVec3]| points.iter().map(|p| *p + self.origin()).collect();
         Ok(Some(GarmentHistory {
-            simulated: self.skirt[frame].clone(),
-            drape: self.drapes[frame].clone(),
+            simulated: in_world(&self.skirt[frame]),
+            drape: in_world(&self.drapes[frame]),
             state: self.garment_states[frame],
         }))
     }
