@@ -52,9 +52,9 @@ pub struct SyntheticScene {
     config: SyntheticConfig,
     model: BodyModel,
     /// The cameras the images are rendered with, at the origin.
+    render_cameras: Vec<SourceCamera>,
+    /// The cameras the reader hands out: `render_cameras` in the world of `config.origin`.
     cameras: Vec<SourceCamera>,
-    /// The cameras the reader hands out: `cameras` in the world of `config.origin`.
-    world_cameras: Vec<SourceCamera>,
     ground_truth: Vec<BodyParams>,
     jittered: Vec<BodyParams>,
     /// Per frame, the skirt particle positions (empty without a garment).
@@ -483,8 +483,8 @@ impl SyntheticScene {
         let mut scene = Self {
             config: config.clone(),
             model,
+            render_cameras: Vec::new(),
             cameras: Vec::new(),
-            world_cameras: Vec::new(),
             ground_truth,
             jittered,
             skirt: skirt_frames,
@@ -500,9 +500,9 @@ impl SyntheticScene {
             keypoints,
             backdrops,
         };
-        scene.cameras = scene.place_cameras(&mut rng)?;
-        scene.world_cameras = scene
-            .cameras
+        scene.render_cameras = scene.place_cameras(&mut rng)?;
+        scene.cameras = scene
+            .render_cameras
             .iter()
             .map(|source| SourceCamera {
                 id: source.id,
@@ -715,7 +715,7 @@ impl SyntheticScene {
         body_count: usize,
     ) -> anyhow::Result<(SourceImage, image::GrayImage)> {
         let config = &self.config;
-        let camera = &self.cameras[view].camera;
+        let camera = &self.render_cameras[view].camera;
         let s = config.supersample as usize;
         let fine = camera.resized(camera.width * s as u32, camera.height * s as u32);
         let body_faces = self.model.faces();
@@ -852,7 +852,7 @@ impl DatasetReader for SyntheticScene {
     }
 
     fn cameras(&self) -> &[SourceCamera] {
-        &self.world_cameras
+        &self.cameras
     }
 
     fn num_frames(&self) -> usize {
