@@ -135,11 +135,12 @@ enum Command {
         #[arg(long, value_parser = entry_spec)]
         poses: Option<String>,
         /// Address to listen on; anything but a loopback address exposes the viewer to the
-        /// network, and needs --allow-remote.
+        /// network, needs --allow-remote and makes the viewer ask for an access token.
         #[arg(long, default_value = "127.0.0.1")]
         host: String,
-        /// Allow a --host that is not a loopback address (the viewer has no password: anyone
-        /// who can reach the address can use it).
+        /// Allow a --host that is not a loopback address: the viewer then answers only
+        /// requests carrying the random access token of its printed URL (over plain HTTP,
+        /// unencrypted: anyone who sees the URL or the traffic can use it).
         #[arg(long)]
         allow_remote: bool,
         /// Port to listen on (0: a free port; the URL is printed).
@@ -347,8 +348,9 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
             let address = viewer.address();
             if !address.ip().is_loopback() {
                 eprintln!(
-                    "warning: listening on {address}{}: anyone who can reach it can use the \
-                     viewer, which has no password",
+                    "warning: listening on {address}{}: anyone with the URL, token included, \
+                     can use the viewer; HTTP is not encrypted, so share it only on a network \
+                     you trust",
                     if address.ip().is_unspecified() {
                         " (every network interface)"
                     } else {
@@ -407,7 +409,7 @@ fn check_view_host(host: &str, allow_remote: bool) -> anyhow::Result<()> {
     if !allow_remote && !is_loopback_host(host) {
         anyhow::bail!(
             "--host {host} is not a loopback address: the viewer would be reachable from the \
-             network, and it has no password; add --allow-remote to mean that"
+             network (guarded by an access token in its URL); add --allow-remote to mean that"
         );
     }
     Ok(())

@@ -529,6 +529,9 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
     .unwrap();
     let camera =
         seqavatar_schema::ingest::read_cameras(&driven.trained_ingest).unwrap()[1].rescaled(0.5);
+    // The exported frames are in the dataset's world, the entry's cameras re-centred.
+    let offset = seqavatar_schema::ingest::read_world_offset(&driven.trained_ingest).unwrap();
+    let dataset_camera = camera.with_origin_at(-offset);
     let raster = seqavatar_compute::splat::RasterOptions {
         background: driven.renderer.avatar.background,
         smooth_cutoff: false,
@@ -540,7 +543,7 @@ fn eval_stage_render_and_report_on_a_tiny_trained_avatar() {
         let world = cloud_to_world(&cloud).unwrap();
         let replayed = seqavatar_avatar::splatting::forward_cpu(
             &world,
-            std::slice::from_ref(&camera),
+            std::slice::from_ref(&dataset_camera),
             &raster,
         )
         .unwrap()
@@ -873,4 +876,114 @@ fn a_read_only_cache_renders_exports_and_reports() {
     assert!(stderr.contains(note), "{stderr}");
     assert!(Path::new(&report).join("report.md").is_file());
     assert!(!locks.exists(), "lock files were made in a read-only cache");
+}
+
+/// A scene 10 km from its world's origin (body, cameras and keypoints moved together, the
+/// same images) trains to the held-out PSNR of the scene at the origin: ingest re-centres
+/// the world, so training sees the same numbers up to f64 rounding. Its exported frames are
+/// in its own world: the origin's frames moved by the 10 km. (Moved 9 km without
+/// re-centring, the ZJU scene lost 4.4 dB to f32 millimetres.)
+#[test]
+fn a_scene_10_km_from_the_origin_trains_as_at_the_origin() {
+    let shift = [10_000.0, -3.0, 10_000.0];
+    let train_at = |origin: [f64; 3]| {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("cache");
+        let text = pipeline_text("").replace(
+            "body_grid_spacing: 0.05}",
+            &format!("body_grid_spacing: 0.05, origin: {origin:?}}}"),
+        );
+        let reports = run_text(&cache, &text, Some("train")).unwrap();
+        let psnr = entry(&cache, &reports, "train")
+            .read::<f64>("test_psnr")
+            .unwrap()
+            .data;
+        let export = ExportOptions {
+            avatar: reports
+                .iter()
+                .find(|r| r.name == "train")
+                .unwrap()
+                .key
+                .clone(),
+            poses: Some(PoseSource::Entry(
+                folder_of(&cache, &reports, "ingest").display().to_string(),
+            )),
+            out: dir.path().join("export"),
+            backend: cpu(),
+            max_frames: 1,
+            progress: false,
+        };
+        let exported = export_avatar(&cache, &export).unwrap();
+        let posed = read_ply(&std::fs::read(&exported.frames[0]).unwrap()).unwrap();
+        (psnr, posed.xyz)
+    };
+    let (here_psnr, here_xyz) = train_at([0.0; 3]);
+    let (there_psnr, there_xyz) = train_at(shift);
+    eprintln!("held-out PSNR at the origin {here_psnr:?}, 10 km away {there_psnr:?}");
+    assert_eq!(here_psnr.len(), there_psnr.len());
+    for (here, there) in here_psnr.iter().zip(&there_psnr) {
+        assert!(
+            (here - there).abs() < 1e-6,
+            "held-out PSNR {there} 10 km away, {here} at the origin"
+        );
+    }
+    // f32 positions 10 km out round to 1 mm.
+    assert_eq!(here_xyz.len(), there_xyz.len());
+    for (i, (here, there)) in here_xyz.iter().zip(&there_xyz).enumerate() {
+        let moved = f64::from(*here) + shift[i % 3];
+        assert!(
+            (f64::from(*there) - moved).abs() < 2e-3,
+            "coordinate {i}: {there} exported, {moved} expected"
+        );
+    }
+}
+
+/// The other extreme: the body model fixes the subject's size (no 1 mm world to make), so the
+/// small and large scales are the cameras' distances, from the nearest the synthetic scene
+/// allows to the farthest (1 km, where the subject spans the image through a focal length of
+/// 20,000 px). Both ingest without a warning and train to a held-out PSNR near the default
+/// distance's. The position learning rate is in units of the camera ring's radius (3DGS's
+/// scene extent), so it is scaled by 4 m / distance to take the same steps in metres: left
+/// as it is, 1 km takes steps 250 times longer and loses 3.4 dB (as from 300 m on), which is
+/// the convention's doing, not the arithmetic's.
+#[test]
+fn the_nearest_and_farthest_cameras_train() {
+    let train_at = |distance: f64| {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("cache");
+        let scale = 4.0 / distance;
+        let text = pipeline_text("")
+            .replace(
+                "body_grid_spacing: 0.05}",
+                &format!("body_grid_spacing: 0.05, camera_distance: {distance:?}}}"),
+            )
+            .replace(
+                r#""position_initial": 0.0016, "position_final": 0.000016"#,
+                &format!(
+                    r#""position_initial": {:e}, "position_final": {:e}"#,
+                    0.0016 * scale,
+                    0.000016 * scale
+                ),
+            );
+        assert!(text.contains(&format!("{:e}", 0.0016 * scale)), "{text}");
+        let reports = run_text(&cache, &text, Some("train")).unwrap();
+        let warnings = entry(&cache, &reports, "ingest")
+            .manifest()
+            .warnings
+            .clone();
+        assert!(warnings.is_empty(), "{distance} m: {warnings:?}");
+        let psnr = entry(&cache, &reports, "train")
+            .read::<f64>("test_psnr")
+            .unwrap()
+            .data;
+        psnr.iter().sum::<f64>() / psnr.len() as f64
+    };
+    let (default, near, far) = (train_at(4.0), train_at(2.0), train_at(1000.0));
+    eprintln!("held-out PSNR: {near:.2} dB at 2 m, {default:.2} dB at 4 m, {far:.2} dB at 1 km");
+    for (distance, psnr) in [(2.0, near), (1000.0, far)] {
+        assert!(
+            (psnr - default).abs() < 1.5,
+            "{psnr} dB at {distance} m, {default} dB at 4 m"
+        );
+    }
 }

@@ -1,9 +1,10 @@
 //! `pipeline view` on a tiny avatar trained through the real ingest, motion and train stages:
-//! the endpoints over plain HTTP (statuses, validation, hostile paths, the Host check, several
-//! tabs at once), the frames against eval's renderer, the command line (FILE.yaml:STAGE, port
+//! the endpoints over plain HTTP (statuses, validation, hostile paths, the Host check, the
+//! access token beyond loopback, several tabs at once), the frames against eval's renderer, the command line (FILE.yaml:STAGE, port
 //! 0, loopback by default), and the page in headless Chromium driven over WebDriver: a frame
 //! arrives, the canvas is not blank, play advances the frame counter, the page's FPS is
-//! printed and a screenshot saved.
+//! printed and a screenshot saved; then the same on a viewer bound beyond loopback, opened
+//! with its token.
 //!
 //! The browser part needs `chromium` and `chromedriver` on PATH (Debian `chromium
 //! chromium-driver`); without them it is skipped with a printed reason, unless `CI` is set,
@@ -440,6 +441,7 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         "",
     );
     assert_eq!(by_name.status, 200);
+    let remote = remote_viewer_needs_its_token(&cache, &key);
 
     // Several tabs at once: every one gets its frame.
     std::thread::scope(|scope| {
@@ -510,8 +512,98 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         .unwrap_or_else(|| dir.path().join("viewer.png"));
     match std::env::var("SEQAVATAR_VIEWER_E2E_URL") {
         Ok(url) => browser_end_to_end(&url, &screenshot),
-        Err(_) => browser_end_to_end(&viewer.url(), &screenshot),
+        Err(_) => {
+            browser_end_to_end(&viewer.url(), &screenshot);
+            // Beyond loopback, the page opened with the token works on through its cookie.
+            let token = remote.url().rsplit_once('=').unwrap().1.to_owned();
+            let port = remote.address().port();
+            browser_end_to_end(
+                &format!("http://127.0.0.1:{port}/?token={token}"),
+                &screenshot.with_extension("remote.png"),
+            );
+        }
     }
+}
+
+/// Bound beyond loopback, the viewer answers only requests carrying the token of its URL, in
+/// the query or in the cookie the page sets.
+/// Returns the viewer, for the browser.
+fn remote_viewer_needs_its_token(cache: &Path, key: &str) -> Viewer {
+    let start = |cache: &Path| {
+        Viewer::start(ViewerOptions {
+            cache: cache.to_owned(),
+            avatar: key.to_owned(),
+            poses: None,
+            backend: cpu(),
+            host: "0.0.0.0".to_owned(),
+            port: 0,
+            max_size: 256,
+        })
+        .unwrap()
+    };
+    let (viewer, other) = (start(cache), start(cache));
+    let url = viewer.url();
+    let token = url.rsplit_once("/?token=").unwrap().1.to_owned();
+    assert!(
+        token.len() == 48 && token.bytes().all(|b| b.is_ascii_hexdigit()),
+        "{url}"
+    );
+    assert!(!url.contains("0.0.0.0"), "{url} names no reachable host");
+    // Drawn anew at every start.
+    assert!(!other.url().ends_with(&token));
+    let address = SocketAddr::from(([127, 0, 0, 1], viewer.address().port()));
+    let (host, frame) = ("example.org", "/frame?frame=5&camera=0");
+    let get_with = |target: &str, cookie: Option<&str>| {
+        let mut stream = TcpStream::connect(address).unwrap();
+        let cookie = cookie.map_or(String::new(), |cookie| format!("Cookie: {cookie}\r\n"));
+        write!(
+            stream,
+            "GET {target} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n{cookie}\r\n"
+        )
+        .unwrap();
+        let mut reply = Vec::new();
+        stream.read_to_end(&mut reply).unwrap();
+        String::from_utf8_lossy(&reply).into_owned()
+    };
+    let status = |reply: &str| reply.split(' ').nth(1).unwrap_or("").to_owned();
+    // Without the token, or with a wrong one: 403 on every route.
+    for target in [
+        "/",
+        "/info",
+        frame,
+        "/?token=",
+        &format!("/info?token={}", &token[1..]),
+    ] {
+        let reply = get_with(target, None);
+        assert_eq!(status(&reply), "403", "{target}: {reply}");
+        assert!(reply.contains("access token"), "{reply}");
+    }
+    let port = viewer.address().port();
+    let other_port = other.address().port();
+    let wrong_cookie = format!("seqavatar-view-{port}=0{}", &token[1..]);
+    assert_eq!(status(&get_with("/info", Some(&wrong_cookie))), "403");
+    // Another viewer's cookie opens only that viewer.
+    let other_token = other.url().rsplit_once("=").unwrap().1.to_owned();
+    let other_cookie = format!("seqavatar-view-{other_port}={other_token}");
+    assert_eq!(status(&get_with("/info", Some(&other_cookie))), "403");
+    // With it: the page sets the cookie its fetches then carry.
+    let page = get_with(&format!("/?token={token}&camera=1"), None);
+    assert_eq!(status(&page), "200", "{page}");
+    let cookie = format!("seqavatar-view-{port}={token}");
+    assert!(
+        page.lines()
+            .any(|line| line.to_ascii_lowercase().starts_with("set-cookie:")
+                && line.contains(&cookie)
+                && line.contains("HttpOnly")),
+        "{page}"
+    );
+    for target in ["/info", frame] {
+        let reply = get_with(target, Some(&format!("theme=dark; {cookie}")));
+        assert_eq!(status(&reply), "200", "{target}: {reply}");
+    }
+    let reply = get_with(&format!("{frame}&token={token}"), None);
+    assert_eq!(status(&reply), "200", "{reply}");
+    viewer
 }
 
 /// `pipeline view FILE.yaml:train --port 0` prints a loopback URL that serves the avatar.
@@ -756,7 +848,10 @@ fn browser_end_to_end(url: &str, screenshot: &Path) {
     driver.call(
         "POST",
         "/url",
-        serde_json::json!({"url": format!("{url}?size=256&speed=4")}),
+        serde_json::json!({"url": format!(
+            "{url}{}size=256&speed=4",
+            if url.contains('?') { '&' } else { '?' }
+        )}),
     );
     driver.wait_for(
         "the first frame",

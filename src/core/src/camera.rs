@@ -138,6 +138,15 @@ impl Camera {
         self.rotation * point + self.translation
     }
 
+    /// The same camera in a world whose origin is the point `origin` of this camera's world
+    /// (`x_new = x - origin`): `t' = t + R origin`. With `-origin` it maps back.
+    pub fn with_origin_at(&self, origin: DVec3) -> Self {
+        Self {
+            translation: self.translation + self.rotation * origin,
+            ..self.clone()
+        }
+    }
+
     /// Camera centre in world coordinates.
     pub fn center(&self) -> DVec3 {
         -(self.rotation.transpose() * self.translation)
@@ -256,6 +265,30 @@ mod tests {
         assert_eq!((half.width, half.height), (320, 240));
         let px = half.project(p).unwrap();
         assert!((px - full * 0.5).length() < 1e-9);
+    }
+
+    /// Moving the origin moves every world point and the centre with it: projections stay.
+    #[test]
+    fn a_camera_with_another_origin_projects_the_moved_points_alike() {
+        let intr = Intrinsics {
+            fx: 100.0,
+            fy: 90.0,
+            cx: 50.0,
+            cy: 40.0,
+        };
+        let eye = DVec3::new(3.0, 1.0, 0.5);
+        let camera = Camera::look_at(100, 80, intr, eye, DVec3::new(0.0, 1.2, 0.0), DVec3::Y);
+        let origin = DVec3::new(10_000.0, -3.0, 0.25);
+        let moved = camera.with_origin_at(origin);
+        assert!((moved.center() - (eye - origin)).length() < 1e-9);
+        let point = DVec3::new(0.1, 1.5, -0.2);
+        let (a, b) = (
+            camera.project(point).unwrap(),
+            moved.project(point - origin).unwrap(),
+        );
+        assert!((a - b).length() < 1e-9, "{a} {b}");
+        let back = moved.with_origin_at(-origin);
+        assert!((back.translation - camera.translation).length() < 1e-9);
     }
 
     #[test]

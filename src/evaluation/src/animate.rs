@@ -324,9 +324,24 @@ pub fn drive_avatar(
         max_frames.saturating_add(reach)
     };
     let mut sources: Vec<EntryReader> = motion_entry.iter().cloned().collect();
+    // The avatar lives in its ingest entry's re-centred world, and so must its poses: a pose
+    // file's translations are in the dataset's world, an ingest entry's in its own.
+    let trained_offset = seqavatar_schema::ingest::read_world_offset(&trained_ingest)?;
+    let moved = |params: Vec<BodyParams>, offset: DVec3| -> Vec<BodyParams> {
+        params
+            .into_iter()
+            .map(|mut frame| {
+                frame.world_translation += offset;
+                frame
+            })
+            .collect()
+    };
     let (params, axis) = match poses {
         PoseSource::File(path) => (
-            read_pose_file(path, model.num_joints(), &default_betas, pose_limit)?,
+            moved(
+                read_pose_file(path, model.num_joints(), &default_betas, pose_limit)?,
+                -trained_offset,
+            ),
             FrameAxis::FROM_START,
         ),
         PoseSource::Entry(spec) => {
@@ -341,6 +356,7 @@ pub fn drive_avatar(
                 model.num_joints()
             );
             // The subject's shape is the avatar's: keep the poses and world transform only.
+            let offset = seqavatar_schema::ingest::read_world_offset(&entry)? - trained_offset;
             let params = seqavatar_schema::ingest::read_body_params(&entry, "body")?
                 .into_iter()
                 .take(pose_limit)
@@ -350,7 +366,7 @@ pub fn drive_avatar(
                     frame
                 })
                 .collect();
-            (params, FrameAxis::of_ingest(&entry)?)
+            (moved(params, offset), FrameAxis::of_ingest(&entry)?)
         }
     };
     for (frame, frame_params) in params.iter().enumerate() {

@@ -2,7 +2,9 @@
 //! files ([`seqavatar_avatar::ply`]): `canonical.ply` (the canonical, big-pose Gaussians as
 //! trained) and, with a pose source (the sources `pipeline render` takes), one
 //! `frame_NNNNN.ply` per frame with the posed Gaussians exactly as the render path splats
-//! them (networks, skinning), so a splat viewer draws what `pipeline render` draws.
+//! them (networks, skinning), so a splat viewer draws what `pipeline render` draws. Posed
+//! frames are in the dataset's world (ingest's re-centring undone); PLY positions are f32,
+//! so a world far from its origin rounds them (to 1 mm at 10 km).
 
 use std::path::{Path, PathBuf};
 
@@ -76,6 +78,9 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
         options.max_frames,
     )?;
     let renderer = &mut driven.renderer;
+    // The posed Gaussians go back to the dataset's world, where the poses were given (a
+    // pose file's translations; an ingest entry of the same world's).
+    let offset = seqavatar_schema::ingest::read_world_offset(&driven.trained_ingest)?;
     let range = frames_to_draw(renderer, options.max_frames);
     let skipped = range.start;
     let bar = if options.progress {
@@ -90,7 +95,12 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
     let logits = renderer.avatar.gaussians.opacity_logit.clone();
     let mut frames = Vec::with_capacity(range.len());
     for frame in range {
-        let world = renderer.deform(frame)?;
+        let mut world = renderer.deform(frame)?;
+        for mean in world.means.chunks_exact_mut(3) {
+            for (value, shift) in mean.iter_mut().zip(offset.to_array()) {
+                *value += shift;
+            }
+        }
         let cloud =
             posed_cloud(&world, &logits).with_context(|| format!("frame {frame} of the poses"))?;
         let path = options.out.join(format!("frame_{frame:05}.ply"));

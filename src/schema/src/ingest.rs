@@ -7,6 +7,18 @@
 //! `beta`, `expression`, `pose_feature` = 9 (J - 1), `keypoint`. Every array has these
 //! `dimension_names`.
 //!
+//! World origin: ingest re-centres the dataset's world on the subject, so that a capture
+//! far from its world's origin (geographic coordinates, a scene moved 10 km away) keeps its
+//! millimetres in the f32 arithmetic of training and rendering. Attribute `world_offset`
+//! (`[x, y, z]`, metres) is the point of the dataset's world that is this entry's origin:
+//! the mean of the body fits' world translations over the frame axis, rounded to whole
+//! metres (so a scene moved by whole metres stores the same arrays, and one near its
+//! origin keeps its coordinates). Every world-space array below (camera extrinsics, body
+//! world translations, 3D keypoints) is relative to it: add it to a position, or give a
+//! camera `-world_offset` ([`Camera::with_origin_at`]), to return to the dataset's world.
+//! Entries made before it existed lack it: their offset is zero. Entries derived from this
+//! one (fit, motion, train) live in its world.
+//!
 //! Cameras (after undistortion and rescaling; the images are distortion free):
 //! - `camera_K` f64 `(view, row, col)`: intrinsics in the continuous pixel convention
 //!   (ARCHITECTURE.md: pixel centres at `+0.5`).
@@ -100,8 +112,8 @@
 //!
 //! Group attributes: `dataset` (the dataset kind), `body_model_kind` (`smpl`, `smplx` or
 //! `procedural`), `frame_interval`, `resolution_scale`, `past_frames`, `first_frame_index`,
-//! `num_train_images`, `num_test_images`, `background` (`[0, 0, 0]`); `history_frame_px`
-//! with the garment history arrays.
+//! `num_train_images`, `num_test_images`, `background` (`[0, 0, 0]`), `world_offset`
+//! (above); `history_frame_px` with the garment history arrays.
 
 use anyhow::Context;
 use seqavatar_core::body::{BodyModel, BodyModelArrays, BodyParams};
@@ -110,6 +122,32 @@ use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_engine::{EntryReader, EntryWriter};
 
 use serde::{Deserialize, Serialize};
+
+/// The attribute holding the point of the dataset's world that is the entry's origin.
+pub const WORLD_OFFSET_ATTRIBUTE: &str = "world_offset";
+
+/// Sets [`WORLD_OFFSET_ATTRIBUTE`].
+pub fn write_world_offset(out: &EntryWriter, offset: DVec3) -> anyhow::Result<()> {
+    out.set_attribute(WORLD_OFFSET_ATTRIBUTE, serde_json::json!(offset.to_array()))
+}
+
+/// The entry's [`WORLD_OFFSET_ATTRIBUTE`]: zero when absent (an entry made before ingest
+/// re-centred the world is in its dataset's world).
+pub fn read_world_offset(entry: &EntryReader) -> anyhow::Result<DVec3> {
+    let Some(value) = entry.attribute(WORLD_OFFSET_ATTRIBUTE) else {
+        return Ok(DVec3::ZERO);
+    };
+    serde_json::from_value::<[f64; 3]>(value)
+        .ok()
+        .map(DVec3::from_array)
+        .filter(|offset| offset.is_finite())
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "entry {}: attribute {WORLD_OFFSET_ATTRIBUTE} is not [x, y, z] in finite metres",
+                entry.location()
+            )
+        })
+}
 
 /// Writes the camera arrays of the ingested views: `cameras` are the rescaled,
 /// distortion-free cameras, `source` the dataset's cameras they came from (for

@@ -16,7 +16,11 @@
 //! Safety: the server binds to 127.0.0.1 unless told otherwise, serves only the page, the
 //! scene description and renders (no request reaches the file system), validates every
 //! parameter, and, when bound to a loopback address, answers only requests whose `Host` is a
-//! loopback name (a web page elsewhere cannot reach it through DNS rebinding).
+//! loopback name (a web page elsewhere cannot reach it through DNS rebinding). Bound beyond
+//! loopback, it answers only requests that carry the access token drawn when it started (as
+//! a notebook server does): in the query (`?token=...`, on any route) or in the cookie the
+//! page's first load with the token sets, so the page's own fetches carry it; anything else
+//! is 403. On loopback no token is asked for: the address and the Host check guard it.
 
 pub mod orbit;
 pub mod render;
@@ -121,11 +125,72 @@ struct AppState {
     info: String,
     /// `Some`: the server is bound to a loopback address and answers only these hosts.
     allowed_hosts: Option<Vec<String>>,
+    /// `Some`: the server is bound beyond loopback and answers only requests with the token.
+    access: Option<Access>,
+}
+
+/// The access token of a server bound beyond loopback, and the cookie that carries it.
+#[derive(Clone)]
+struct Access {
+    token: String,
+    /// Named after the port: cookies are per host, not per port, so viewers side by side on
+    /// one machine must not overwrite each other's.
+    cookie: String,
+}
+
+impl Access {
+    /// A fresh token: 24 bytes of the kernel's random source, as hex.
+    fn draw(port: u16) -> anyhow::Result<Self> {
+        use std::io::Read as _;
+        let mut bytes = [0u8; 24];
+        std::fs::File::open("/dev/urandom")
+            .and_then(|mut source| source.read_exact(&mut bytes))
+            .context("cannot draw the viewer's access token from /dev/urandom")?;
+        Ok(Self {
+            token: bytes.iter().map(|byte| format!("{byte:02x}")).collect(),
+            cookie: format!("seqavatar-view-{port}"),
+        })
+    }
+
+    /// Whether `given` is the token; compares every byte, so the time taken says nothing
+    /// about how much of a guess was right.
+    fn accepts(&self, given: &str) -> bool {
+        given.len() == self.token.len()
+            && given
+                .bytes()
+                .zip(self.token.bytes())
+                .fold(0u8, |difference, (a, b)| difference | (a ^ b))
+                == 0
+    }
+
+    /// The token the request carries: its `token` query parameter, else its cookie.
+    fn presented<'a>(
+        &self,
+        query: &'a [(String, String)],
+        headers: &'a HeaderMap,
+    ) -> Option<&'a str> {
+        let in_query = query
+            .iter()
+            .find(|(key, _)| key == "token")
+            .map(|(_, value)| value.as_str());
+        in_query.or_else(|| {
+            headers
+                .get_all(header::COOKIE)
+                .iter()
+                .filter_map(|value| value.to_str().ok())
+                .flat_map(|value| value.split(';'))
+                .filter_map(|pair| pair.trim().split_once('='))
+                .find(|(name, _)| *name == self.cookie)
+                .map(|(_, value)| value)
+        })
+    }
 }
 
 /// A running viewer: the render thread and the HTTP server. Dropping it stops both.
 pub struct Viewer {
     address: SocketAddr,
+    /// The access token, when bound beyond loopback.
+    token: Option<String>,
     scheduler: Arc<Scheduler>,
     shutdown: Option<oneshot::Sender<()>>,
     server: Option<JoinHandle<std::io::Result<()>>>,
@@ -197,11 +262,25 @@ impl Viewer {
         listener.set_nonblocking(true)?;
         let address = listener.local_addr()?;
         let allowed_hosts = address.ip().is_loopback().then(|| loopback_hosts(address));
+        let access = if address.ip().is_loopback() {
+            None
+        } else {
+            match Access::draw(address.port()) {
+                Ok(access) => Some(access),
+                Err(error) => {
+                    scheduler.close();
+                    let _ = renderer.join();
+                    return Err(error);
+                }
+            }
+        };
+        let token = access.as_ref().map(|access| access.token.clone());
         let state = Arc::new(AppState {
             scheduler: scheduler.clone(),
             limits,
             info,
             allowed_hosts,
+            access,
         });
         let app = Router::new()
             .route("/", get(page))
@@ -231,6 +310,7 @@ impl Viewer {
             .context("cannot start the server thread")?;
         Ok(Self {
             address,
+            token,
             scheduler,
             shutdown: Some(shutdown),
             server: Some(server),
@@ -243,14 +323,21 @@ impl Viewer {
         self.address
     }
 
-    /// The page's URL.
+    /// The page's URL, with the access token where one is needed. Bound to every interface
+    /// (`0.0.0.0`, `::`), it names this machine by its host name, which others can reach
+    /// (127.0.0.1 would send them to their own machine).
     pub fn url(&self) -> String {
-        let host = match self.address.ip() {
+        let ip = self.address.ip();
+        let host = match ip {
+            _ if ip.is_unspecified() => this_host_name(),
             IpAddr::V6(ip) => format!("[{ip}]"),
-            IpAddr::V4(ip) if ip.is_unspecified() => "127.0.0.1".to_owned(),
             IpAddr::V4(ip) => ip.to_string(),
         };
-        format!("http://{host}:{}/", self.address.port())
+        let query = match &self.token {
+            Some(token) => format!("?token={token}"),
+            None => String::new(),
+        };
+        format!("http://{host}:{}/{query}", self.address.port())
     }
 
     /// Serves until the server stops (an I/O error of the listener); `pipeline view` runs
@@ -285,6 +372,15 @@ impl Drop for Viewer {
     fn drop(&mut self) {
         self.stop();
     }
+}
+
+/// This machine's host name (Linux's, from /proc), or `localhost` where it cannot be read.
+fn this_host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .map(|name| name.trim().to_owned())
+        .filter(|name| !name.is_empty() && name.bytes().all(|b| b.is_ascii_graphic()))
+        .unwrap_or_else(|| "localhost".to_owned())
 }
 
 /// The `Host` values a loopback-bound server answers.
@@ -367,8 +463,19 @@ fn secured(mut response: Response) -> Response {
     response
 }
 
-/// The 421 answer when a loopback-bound server is reached under another host name.
-fn wrong_host(state: &AppState, headers: &HeaderMap) -> Option<Response> {
+/// The answer to a request the server refuses: 403 without the access token (bound beyond
+/// loopback), 421 under another host name (bound to loopback).
+fn refused(state: &AppState, query: &[(String, String)], headers: &HeaderMap) -> Option<Response> {
+    if let Some(access) = &state.access {
+        return match access.presented(query, headers) {
+            Some(token) if access.accepts(token) => None,
+            _ => Some(secured(text(
+                StatusCode::FORBIDDEN,
+                "this viewer needs its access token: open the URL `pipeline view` printed \
+                 (it ends in ?token=...)",
+            ))),
+        };
+    }
     let allowed = state.allowed_hosts.as_ref()?;
     let host = headers
         .get(header::HOST)
@@ -384,20 +491,47 @@ fn wrong_host(state: &AppState, headers: &HeaderMap) -> Option<Response> {
     }
 }
 
-async fn page(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
-    if let Some(response) = wrong_host(&state, &headers) {
+/// The query's pairs; a malformed query carries no token (and `/frame` says what is wrong).
+type QueryPairs = Result<Query<Vec<(String, String)>>, axum::extract::rejection::QueryRejection>;
+
+fn pairs_of(query: &QueryPairs) -> &[(String, String)] {
+    query.as_ref().map_or(&[], |Query(pairs)| pairs.as_slice())
+}
+
+async fn page(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    query: QueryPairs,
+) -> Response {
+    if let Some(response) = refused(&state, pairs_of(&query), &headers) {
         return response;
     }
     let mut response = PAGE.into_response();
-    response.headers_mut().insert(
+    let response_headers = response.headers_mut();
+    response_headers.insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static("text/html; charset=utf-8"),
     );
+    if let Some(access) = &state.access {
+        // The page's fetches of /info and /frame carry the token in this cookie; HttpOnly:
+        // no script reads it; Strict: no other site's page sends it.
+        let cookie = format!(
+            "{}={}; Path=/; HttpOnly; SameSite=Strict",
+            access.cookie, access.token
+        );
+        if let Ok(cookie) = HeaderValue::from_str(&cookie) {
+            response_headers.insert(header::SET_COOKIE, cookie);
+        }
+    }
     secured(response)
 }
 
-async fn info_route(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
-    if let Some(response) = wrong_host(&state, &headers) {
+async fn info_route(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    query: QueryPairs,
+) -> Response {
+    if let Some(response) = refused(&state, pairs_of(&query), &headers) {
         return response;
     }
     let mut response = state.info.clone().into_response();
@@ -411,13 +545,17 @@ async fn info_route(State(state): State<Arc<AppState>>, headers: HeaderMap) -> R
 async fn frame(
     State(state): State<Arc<AppState>>,
     headers: HeaderMap,
-    query: Result<Query<Vec<(String, String)>>, axum::extract::rejection::QueryRejection>,
+    query: QueryPairs,
 ) -> Response {
-    if let Some(response) = wrong_host(&state, &headers) {
+    if let Some(response) = refused(&state, pairs_of(&query), &headers) {
         return response;
     }
-    let pairs = match query {
-        Ok(Query(pairs)) => pairs,
+    let pairs: Vec<(String, String)> = match query {
+        // The token is the server's, not a render parameter.
+        Ok(Query(pairs)) => pairs
+            .into_iter()
+            .filter(|(key, _)| key != "token")
+            .collect(),
         Err(rejection) => {
             return secured(text(
                 StatusCode::BAD_REQUEST,

@@ -8,6 +8,7 @@ pub mod config;
 pub mod contact_sheet;
 pub mod plan;
 pub mod stage;
+pub mod world;
 
 pub use config::IngestConfig;
 pub use stage::Ingest;

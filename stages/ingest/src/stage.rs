@@ -15,6 +15,8 @@ use seqavatar_engine::{
 
 use crate::config::IngestConfig;
 use crate::plan::IngestPlan;
+use crate::world::{NamedCamera, geometry_warnings, world_offset};
+use seqavatar_core::glam::DVec3;
 use seqavatar_datasets::{BodyModelKind, DatasetReader, open_reader};
 use seqavatar_formats::resample::{resample, resample_with_region};
 use seqavatar_schema::ingest::{
@@ -32,7 +34,9 @@ pub struct Ingest;
 /// 5: array `garment_masks` and attribute `garment_region` (the synthetic skirt, ZJU-MoCap's
 ///    CIHP clothing labels); the other arrays are unchanged.
 /// 6: array `garment_state` beside the garment history (the history scene's oscillator).
-pub const INGEST_VERSION: u32 = 6;
+/// 7: the world re-centred on the subject (attribute `world_offset`): camera extrinsics,
+///    body translations and keypoints are relative to it.
+pub const INGEST_VERSION: u32 = 7;
 
 impl StageKind for Ingest {
     type Config = IngestConfig;
@@ -84,13 +88,34 @@ impl StageKind for Ingest {
             plan.images.len()
         ));
         let out = ctx.output();
+        // In the dataset's world: images are resampled and the garment's history measured
+        // there, where the reader's cameras and garment are.
         let cameras = ingested_cameras(reader.as_ref(), &plan, config.resolution_scale)?;
         let sources: Vec<&SourceCamera> =
             plan.views.iter().map(|&v| &reader.cameras()[v]).collect();
-        schema::write_cameras(out, &cameras, &sources)?;
         let (model, kind) = reader.body_model()?;
         write_body_model(out, &model)?;
-        write_frames(out, reader.as_ref(), &plan, &model)?;
+        let (offset, fits) = write_frames(out, reader.as_ref(), &plan, &model)?;
+        if offset != DVec3::ZERO {
+            ctx.log(&format!(
+                "world re-centred on the subject: the dataset's {offset} m is the origin"
+            ));
+        }
+        let centred: Vec<Camera> = cameras.iter().map(|c| c.with_origin_at(offset)).collect();
+        schema::write_cameras(out, &centred, &sources)?;
+        schema::write_world_offset(out, offset)?;
+        let named: Vec<NamedCamera<'_>> = centred
+            .iter()
+            .zip(&sources)
+            .map(|(camera, source)| NamedCamera {
+                id: source.id,
+                camera,
+            })
+            .collect();
+        let frame_ids: Vec<i64> = plan.frames.iter().map(|&f| reader.frame_id(f)).collect();
+        for warning in geometry_warnings(&model, &fits, &frame_ids, &named)? {
+            ctx.warn(&format!("{}: {warning}", reader.describe()));
+        }
         if let Some(history) = garment_history(reader.as_ref(), &plan, &cameras)? {
             let flagged = history.frames.iter().filter(|f| **f).count();
             ctx.log(&format!(
@@ -353,35 +378,44 @@ fn garment_history(
     }))
 }
 
-/// Writes the frame axis and the per-frame body parameters (fits and, where known, truth).
+/// Writes the frame axis and the per-frame body parameters (fits and, where known, truth)
+/// and keypoints, relative to the world offset; returns it and the fits as written.
 fn write_frames(
     out: &EntryWriter,
     reader: &dyn DatasetReader,
     plan: &IngestPlan,
     model: &BodyModel,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<(DVec3, Vec<BodyParams>)> {
     let n = plan.frames.len() as u64;
     let ids: Vec<i64> = plan.frames.iter().map(|&f| reader.frame_id(f)).collect();
     out.write_array("frame_source_id", &["frame"], &[n], &[n], &ids)?;
     out.write_array("frame_split", &["frame"], &[n], &[n], &plan.frame_split)?;
+    let fit_of = |f: usize| {
+        format!(
+            "{}: body fit of frame {}",
+            reader.describe(),
+            reader.frame_id(f)
+        )
+    };
     let fits = plan
         .frames
         .par_iter()
-        .map(|&f| {
-            let params = reader.body_params(f).with_context(|| {
-                format!(
-                    "{}: body fit of frame {}",
-                    reader.describe(),
-                    reader.frame_id(f)
-                )
-            })?;
-            model.check_params(&params).with_context(|| {
-                format!(
-                    "{}: body fit of frame {}",
-                    reader.describe(),
-                    reader.frame_id(f)
-                )
-            })?;
+        .map(|&f| reader.body_params(f).with_context(|| fit_of(f)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let offset = world_offset(&fits, &reader.describe())?;
+    let centred = |mut params: BodyParams| {
+        params.world_translation -= offset;
+        params
+    };
+    // Checked relative to the offset: the translation limit is about the scene, not about
+    // where its world put it.
+    let fits = plan
+        .frames
+        .par_iter()
+        .zip(fits)
+        .map(|(&f, params)| {
+            let params = centred(params);
+            model.check_params(&params).with_context(|| fit_of(f))?;
             Ok(params)
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
@@ -392,7 +426,7 @@ fn write_frames(
         .map(|&f| reader.ground_truth_body_params(f))
         .collect::<anyhow::Result<Vec<_>>>()?;
     if truth.iter().all(Option::is_some) {
-        let truth: Vec<BodyParams> = truth.into_iter().flatten().collect();
+        let truth: Vec<BodyParams> = truth.into_iter().flatten().map(centred).collect();
         write_body_params(out, "gt_body", &truth, model)?;
     }
     if let Some(keypoints) = reader.keypoints_3d()? {
@@ -413,7 +447,8 @@ fn write_frames(
             positions: plan
                 .frames
                 .iter()
-                .flat_map(|&f| keypoints.positions[f * k..(f + 1) * k].iter().copied())
+                .flat_map(|&f| keypoints.positions[f * k..(f + 1) * k].iter())
+                .map(|p| *p - offset)
                 .collect(),
             confidence: plan
                 .frames
@@ -424,7 +459,7 @@ fn write_frames(
         write_keypoints_3d(out, &selected, model)
             .with_context(|| format!("{describe}: 3D keypoints"))?;
     }
-    Ok(())
+    Ok((offset, fits))
 }
 
 #[cfg(test)]
@@ -559,7 +594,13 @@ mod stage_tests {
             },
         )
         .unwrap();
-        let cameras = schema::read_cameras(&entry).unwrap();
+        // The scene's own skirt is in the dataset's world; the entry's cameras are re-centred.
+        let offset = schema::read_world_offset(&entry).unwrap();
+        let cameras: Vec<Camera> = schema::read_cameras(&entry)
+            .unwrap()
+            .iter()
+            .map(|camera| camera.with_origin_at(-offset))
+            .collect();
         for image in 0..views.len() {
             let (v, f) = (views[image] as usize, frames[image] as usize);
             let read = |name: &str| {
@@ -614,6 +655,61 @@ mod stage_tests {
         // The walk scene records no garment history.
         assert!(schema::read_garment_history(&entry).unwrap().is_none());
         assert!(Ingest.draw_picture(&entry, "history", &options).is_err());
+    }
+
+    /// A scene 10 km from its world's origin (body, cameras and keypoints moved together,
+    /// the same images) is stored as at the origin, up to f64 rounding: the offset holds the
+    /// 10 km, the world-space arrays are near the origin, and nothing is warned about. Before
+    /// re-centring, its translations were refused as beyond 10 km, or, at 9 km, trained in
+    /// f32 millimetres.
+    #[test]
+    fn a_scene_far_from_the_origin_is_stored_as_at_the_origin() {
+        let moved = TINY.replace(
+            "body_grid_spacing: 0.04}",
+            "body_grid_spacing: 0.04, origin: [10000, -3, 10000]}",
+        );
+        assert_ne!(moved, TINY);
+        let (_here_dir, here) = run_pipeline(TINY);
+        let (_there_dir, there) = run_pipeline(&moved);
+        let offset = |entry: &EntryReader| schema::read_world_offset(entry).unwrap();
+        assert_eq!(
+            offset(&there) - offset(&here),
+            DVec3::new(10_000.0, -3.0, 10_000.0)
+        );
+        for entry in [&here, &there] {
+            assert!(
+                entry.manifest().warnings.is_empty(),
+                "{:?}",
+                entry.manifest().warnings
+            );
+        }
+        for name in [
+            "camera_K",
+            "camera_R",
+            "camera_t",
+            "body_pose",
+            "body_world_translation",
+            "gt_body_world_translation",
+            "keypoints_3d",
+        ] {
+            let (a, b) = (
+                here.read::<f64>(name).unwrap().data,
+                there.read::<f64>(name).unwrap().data,
+            );
+            assert_eq!(a.len(), b.len(), "{name}");
+            let largest = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max);
+            assert!(largest < 1e-9, "{name}: differs by {largest}");
+            let farthest = b.iter().map(|x| x.abs()).fold(0.0, f64::max);
+            assert!(farthest < 100.0, "{name}: {farthest} from the origin");
+        }
+        assert_eq!(
+            here.read::<u8>("images").unwrap().data,
+            there.read::<u8>("images").unwrap().data
+        );
     }
 
     /// The history scene's entry records the garment's history-only displacement per frame:

@@ -6,7 +6,7 @@
 //! synced, the directory is renamed to `ckpt-<iteration>/` and only then are checkpoints
 //! older than the previous one deleted, so a killed run always leaves the last complete
 //! checkpoint behind, and a damaged newest checkpoint has a previous one to fall back to
-//! ([`resume_newest_good`]).
+//! ([`resume_newest_good`]). A write that fails (a full disk) removes its `.partial` folder.
 //! f32 values survive the f64 round trip exactly, so a resumed `cpu` run is bit-identical.
 //!
 //! Integrity: a checkpoint carries a blake3 digest of its whole content (iteration,
@@ -89,12 +89,20 @@ pub fn save(dir: &Path, checkpoint: &Checkpoint) -> Result<PathBuf, CheckpointEr
     if partial.exists() {
         fs::remove_dir_all(&partial).map_err(io(&partial))?;
     }
-    write_group(&partial, checkpoint)?;
-    sync_tree(&partial)?;
-    if final_dir.exists() {
-        fs::remove_dir_all(&final_dir).map_err(io(&final_dir))?;
+    let written = write_group(&partial, checkpoint)
+        .and_then(|()| sync_tree(&partial))
+        .and_then(|()| {
+            if final_dir.exists() {
+                fs::remove_dir_all(&final_dir).map_err(io(&final_dir))?;
+            }
+            fs::rename(&partial, &final_dir).map_err(io(&final_dir))
+        });
+    if let Err(error) = written {
+        // A write that failed (most often on a full disk) takes its partial folder with it:
+        // left behind, it would keep the disk full until the next run's listing.
+        let _ = fs::remove_dir_all(&partial);
+        return Err(error);
     }
-    fs::rename(&partial, &final_dir).map_err(io(&final_dir))?;
     if let Ok(handle) = fs::File::open(dir) {
         // Persist the rename (directory fsync; not supported everywhere, hence best effort).
         let _ = handle.sync_all();
@@ -594,6 +602,22 @@ mod tests {
         let loaded = load_latest(dir.path()).unwrap().unwrap();
         assert_eq!(loaded.iteration, 5);
         assert!(!partial.exists());
+    }
+
+    /// A checkpoint whose write fails half-way leaves no `.partial` folder to fill the disk.
+    #[test]
+    fn a_failed_write_removes_its_partial_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(5)).unwrap();
+        // The first tensor reaches the disk, the last fails: the same path as a write that
+        // runs out of space part of the way through.
+        let mut failing = sample(9);
+        failing.tensors.last_mut().unwrap().values.pop();
+        assert!(failing.tensors.len() > 1);
+        save(dir.path(), &failing).unwrap_err();
+        assert!(!dir.path().join("ckpt-0000000009.partial").exists());
+        assert!(!dir.path().join("ckpt-0000000009").exists());
+        assert_eq!(load_latest(dir.path()).unwrap().unwrap().iteration, 5);
     }
 
     #[test]

@@ -140,6 +140,16 @@ pub struct SyntheticConfig {
     pub jitter: JitterConfig,
     /// Seed of the jitter and of the camera ring's irregularities.
     pub seed: u64,
+    /// Where the scene stands in its world (metres): the cameras, body fits, ground truth,
+    /// keypoints and garment the reader hands out are moved by it, the images are the same
+    /// (they are rendered at the origin). A far-away world for tests of numerical
+    /// stability; left out of the resolved config when zero, so existing keys stay.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub origin: [f64; 3],
+}
+
+fn is_zero(value: &[f64; 3]) -> bool {
+    *value == [0.0; 3]
 }
 
 impl Default for SyntheticConfig {
@@ -161,10 +171,16 @@ impl Default for SyntheticConfig {
             background: SyntheticBackground::Textured,
             jitter: JitterConfig::default(),
             seed: 7,
+            origin: [0.0; 3],
         }
     }
 }
 
+/// The farthest `camera_distance`, in metres: at 1 km an f32 depth still resolves 0.1 mm.
+const MAX_CAMERA_DISTANCE: f64 = 1000.0;
+/// The farthest `origin` on each axis, in metres: about the Earth's radius, as geographic
+/// coordinates can be.
+const MAX_ORIGIN: f64 = 1e7;
 /// Bytes per supersample of the rasteriser's visibility buffer (triangle, barycentrics,
 /// depth).
 const VISIBILITY_BYTES_PER_SAMPLE: u64 = 4 + 12 + 4;
@@ -249,9 +265,31 @@ impl SyntheticConfig {
             field("supersample")
         );
         anyhow::ensure!(
-            self.camera_distance.is_finite() && self.camera_distance >= 2.0,
-            "{} must be at least 2 metres",
+            !self.camera_distance.is_nan(),
+            "{} is not a number",
             field("camera_distance")
+        );
+        anyhow::ensure!(
+            self.camera_distance >= 2.0,
+            "{} = {} is too close to the subject: it must be at least 2 metres",
+            field("camera_distance"),
+            self.camera_distance
+        );
+        // Farther, the f32 camera coordinates the renderers use no longer resolve the
+        // subject's depth (and by 1e155 the f64 projection overflows to infinity).
+        anyhow::ensure!(
+            self.camera_distance <= MAX_CAMERA_DISTANCE,
+            "{} = {} is too far from the subject: it must be at most {MAX_CAMERA_DISTANCE} \
+             metres, beyond which its projection loses precision and then is not finite",
+            field("camera_distance"),
+            self.camera_distance
+        );
+        anyhow::ensure!(
+            self.origin
+                .iter()
+                .all(|x| x.is_finite() && x.abs() <= MAX_ORIGIN),
+            "{} must be finite and within {MAX_ORIGIN} metres of zero on each axis",
+            field("origin")
         );
         anyhow::ensure!(
             self.betas.iter().all(|b| b.is_finite() && b.abs() <= 3.0),
@@ -344,5 +382,52 @@ mod memory_tests {
         );
         // The demo's scene fits a small budget.
         SyntheticConfig::default().check_memory(1 << 30).unwrap();
+    }
+
+    /// A huge or non-finite camera distance once said "too close to the subject".
+    #[test]
+    fn camera_distances_and_origins_out_of_range_say_which_way() {
+        for (distance, says) in [
+            (1e308, "too far"),
+            (f64::INFINITY, "too far"),
+            (1001.0, "too far"),
+            (1.0, "too close"),
+            (f64::NAN, "not a number"),
+        ] {
+            let config = SyntheticConfig {
+                camera_distance: distance,
+                ..SyntheticConfig::default()
+            };
+            let error = config.validate_ranges().unwrap_err().to_string();
+            assert!(
+                error.contains("dataset.camera_distance") && error.contains(says),
+                "{distance}: {error}"
+            );
+        }
+        // The scene's place in its world: anywhere finite within the Earth's radius.
+        for (origin, good) in [
+            ([1e4, -3.0, 1e4], true),
+            ([0.0, 0.0, -MAX_ORIGIN], true),
+            ([2e7, 0.0, 0.0], false),
+            ([0.0, f64::NAN, 0.0], false),
+        ] {
+            let checked = SyntheticConfig {
+                origin,
+                ..SyntheticConfig::default()
+            }
+            .validate_ranges();
+            assert_eq!(checked.is_ok(), good, "{origin:?}: {checked:?}");
+            if let Err(error) = checked {
+                assert!(error.to_string().contains("dataset.origin"), "{error}");
+            }
+        }
+        for distance in [2.0, MAX_CAMERA_DISTANCE] {
+            SyntheticConfig {
+                camera_distance: distance,
+                ..SyntheticConfig::default()
+            }
+            .validate_ranges()
+            .unwrap();
+        }
     }
 }

@@ -51,6 +51,9 @@ const LIGHT: DVec3 = DVec3::new(0.35, 0.85, 0.4);
 pub struct SyntheticScene {
     config: SyntheticConfig,
     model: BodyModel,
+    /// The cameras the images are rendered with, at the origin.
+    render_cameras: Vec<SourceCamera>,
+    /// The cameras the reader hands out: `render_cameras` in the world of `config.origin`.
     cameras: Vec<SourceCamera>,
     ground_truth: Vec<BodyParams>,
     jittered: Vec<BodyParams>,
@@ -480,6 +483,7 @@ impl SyntheticScene {
         let mut scene = Self {
             config: config.clone(),
             model,
+            render_cameras: Vec::new(),
             cameras: Vec::new(),
             ground_truth,
             jittered,
@@ -496,8 +500,27 @@ impl SyntheticScene {
             keypoints,
             backdrops,
         };
-        scene.cameras = scene.place_cameras(&mut rng)?;
+        scene.render_cameras = scene.place_cameras(&mut rng)?;
+        scene.cameras = scene
+            .render_cameras
+            .iter()
+            .map(|source| SourceCamera {
+                id: source.id,
+                camera: source.camera.with_origin_at(-scene.origin()),
+            })
+            .collect();
         Ok(scene)
+    }
+
+    /// `config.origin`: where the reader's world puts the scene's origin.
+    fn origin(&self) -> DVec3 {
+        DVec3::from_array(self.config.origin)
+    }
+
+    /// `params` in the reader's world.
+    fn in_world(&self, mut params: BodyParams) -> BodyParams {
+        params.world_translation += self.origin();
+        params
     }
 
     /// World-space points of frame `frame`: body vertices then skirt particles.
@@ -692,7 +715,7 @@ impl SyntheticScene {
         body_count: usize,
     ) -> anyhow::Result<(SourceImage, image::GrayImage)> {
         let config = &self.config;
-        let camera = &self.cameras[view].camera;
+        let camera = &self.render_cameras[view].camera;
         let s = config.supersample as usize;
         let fine = camera.resized(camera.width * s as u32, camera.height * s as u32);
         let body_faces = self.model.faces();
@@ -853,7 +876,7 @@ impl DatasetReader for SyntheticScene {
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
         self.jittered
             .get(frame)
-            .cloned()
+            .map(|params| self.in_world(params.clone()))
             .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))
     }
 
@@ -861,15 +884,19 @@ impl DatasetReader for SyntheticScene {
     fn keypoints_3d(&self) -> anyhow::Result<Option<Keypoints3d>> {
         Ok(Some(Keypoints3d {
             joints: (0..self.model.num_joints()).map(Some).collect(),
-            positions: self.keypoints.clone(),
+            positions: self.keypoints.iter().map(|p| *p + self.origin()).collect(),
             confidence: vec![1.0; self.keypoints.len()],
         }))
     }
 
     fn ground_truth_body_params(&self, frame: usize) -> anyhow::Result<Option<BodyParams>> {
-        Ok(Some(self.ground_truth.get(frame).cloned().ok_or_else(
-            || anyhow::anyhow!("synthetic scene has no frame {frame}"),
-        )?))
+        Ok(Some(
+            self.ground_truth
+                .get(frame)
+                .cloned()
+                .map(|params| self.in_world(params))
+                .ok_or_else(|| anyhow::anyhow!("synthetic scene has no frame {frame}"))?,
+        ))
     }
 
     /// The history scene's skirt and its exact static drape; `None` for the walk scene (its
@@ -882,9 +909,10 @@ impl DatasetReader for SyntheticScene {
             frame < self.drapes.len(),
             "synthetic scene has no frame {frame}"
         );
+        let in_world = |points: &[DVec3]| points.iter().map(|p| *p + self.origin()).collect();
         Ok(Some(GarmentHistory {
-            simulated: self.skirt[frame].clone(),
-            drape: self.drapes[frame].clone(),
+            simulated: in_world(&self.skirt[frame]),
+            drape: in_world(&self.drapes[frame]),
             state: self.garment_states[frame],
         }))
     }
