@@ -119,7 +119,7 @@ use anyhow::Context;
 use seqavatar_core::body::{BodyModel, BodyModelArrays, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DMat3, DVec3};
-use seqavatar_engine::{EntryReader, EntryWriter};
+use seqavatar_engine::{ArrayWriter, EntryReader, EntryWriter};
 
 use serde::{Deserialize, Serialize};
 
@@ -265,6 +265,197 @@ pub fn read_cameras(entry: &EntryReader) -> anyhow::Result<Vec<Camera>> {
             Ok(camera)
         })
         .collect()
+}
+
+/// The per-image arrays of an ingest entry: `image_view`, `image_frame` and `image_split`, and
+/// the sizes of `images` and `masks` (and `garment_masks`), which [`ImageArrays::read`] checks
+/// against each other and the cameras; the images are read one at a time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageArrays {
+    /// Per image, its position on the `view` axis.
+    pub view: Vec<u32>,
+    /// Per image, its position on the `frame` axis.
+    pub frame: Vec<u32>,
+    /// Per image, 0 train or 1 test.
+    pub split: Vec<u8>,
+    /// Height and width of the stored images (the largest view).
+    pub height: u64,
+    pub width: u64,
+    /// Per view, `[height, width]` (`camera_image_size`).
+    view_size: Vec<[u64; 2]>,
+}
+
+/// `images`, `masks` and, where the dataset has a garment region, `garment_masks`, to fill.
+pub type ImageWriters = (ArrayWriter<u8>, ArrayWriter<u8>, Option<ArrayWriter<u8>>);
+
+impl ImageArrays {
+    /// Creates `images` and `masks` (and `garment_masks`, with the attribute naming
+    /// `garment`) for `count` images of up to `height x width`, one image per chunk, for the
+    /// ingest stage to fill; [`ImageArrays::write_index`] writes the rest.
+    pub fn create(
+        out: &EntryWriter,
+        count: u64,
+        [height, width]: [u64; 2],
+        garment: Option<GarmentRegion>,
+    ) -> anyhow::Result<ImageWriters> {
+        let dims = ["image", "height", "width", "rgb"];
+        let (shape, chunk) = ([count, height, width, 3], [1, height, width, 3]);
+        let images = out.create_array::<u8>("images", &dims, &shape, &chunk)?;
+        let plane = |name| out.create_array::<u8>(name, &dims[..3], &shape[..3], &chunk[..3]);
+        let masks = plane("masks")?;
+        let garment_masks = match garment {
+            Some(region) => {
+                out.set_attribute(GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
+                Some(plane(GARMENT_MASKS)?)
+            }
+            None => None,
+        };
+        Ok((images, masks, garment_masks))
+    }
+
+    /// Writes `image_view`, `image_frame` and `image_split` of `(view, frame, split)` per image.
+    pub fn write_index(out: &EntryWriter, images: &[(usize, usize, u8)]) -> anyhow::Result<()> {
+        let n = images.len() as u64;
+        let chunk = [n.max(1)];
+        let view: Vec<u32> = images.iter().map(|i| i.0 as u32).collect();
+        let frame: Vec<u32> = images.iter().map(|i| i.1 as u32).collect();
+        let split: Vec<u8> = images.iter().map(|i| i.2).collect();
+        out.write_array("image_view", &["image"], &[n], &chunk, &view)?;
+        out.write_array("image_frame", &["image"], &[n], &chunk, &frame)?;
+        out.write_array("image_split", &["image"], &[n], &chunk, &split)
+    }
+
+    /// Reads the per-image arrays and checks them: one length, views and frames the entry
+    /// has, splits 0 or 1, `images` `(image, height, width, 3)` and `masks` of the same
+    /// images, each image's view no larger than them. Errors name the entry and the array.
+    pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
+        let location = entry.location();
+        let view = entry.read::<u32>("image_view")?;
+        let count = view.data.len();
+        let frame = entry.read::<u32>("image_frame")?;
+        let split = entry.read::<u8>("image_split")?;
+        let sizes = entry.read::<u32>("camera_image_size")?;
+        let frames = entry.shape("frame_source_id")?.iter().product::<u64>();
+        let shape = entry.shape("images")?;
+        let masks = entry.shape("masks")?;
+        for (name, shape) in [
+            ("image_view", &view.shape),
+            ("image_frame", &frame.shape),
+            ("image_split", &split.shape),
+        ] {
+            anyhow::ensure!(
+                *shape == [count],
+                "entry {location}: array `{name}` has shape {shape:?}, expected ({count})"
+            );
+        }
+        anyhow::ensure!(
+            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3,
+            "entry {location}: array `images` has shape {shape:?}, expected ({count}, height, width, 3)"
+        );
+        anyhow::ensure!(
+            masks == shape[..3],
+            "entry {location}: array `masks` has shape {masks:?}, expected {:?}",
+            &shape[..3]
+        );
+        let view_size: Vec<[u64; 2]> = sizes
+            .data
+            .chunks_exact(2)
+            .map(|s| [s[0], s[1]].map(u64::from))
+            .collect();
+        for (i, ((&v, &f), &s)) in view
+            .data
+            .iter()
+            .zip(&frame.data)
+            .zip(&split.data)
+            .enumerate()
+        {
+            let (Some(&[h, w]), true) = (view_size.get(v as usize), u64::from(f) < frames) else {
+                anyhow::bail!(
+                    "entry {location}: image {i} names view {v} and frame {f}, but the entry has {} views and {frames} frames",
+                    view_size.len()
+                );
+            };
+            anyhow::ensure!(
+                s <= 1,
+                "entry {location}: `image_split` of image {i} is {s}, expected 0 or 1"
+            );
+            anyhow::ensure!(
+                h <= shape[1] && w <= shape[2],
+                "entry {location}: view {v} is {w}x{h} but `images` is {}x{}",
+                shape[2],
+                shape[1]
+            );
+        }
+        Ok(Self {
+            view: view.data,
+            frame: frame.data,
+            split: split.data,
+            height: shape[1],
+            width: shape[2],
+            view_size,
+        })
+    }
+
+    /// Number of images.
+    pub fn len(&self) -> usize {
+        self.view.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.view.is_empty()
+    }
+
+    /// Image `index` of `images`, cropped to its view's size.
+    pub fn image(&self, entry: &EntryReader, index: usize) -> anyhow::Result<image::RgbImage> {
+        read_image(entry, "images", index, self.cropped(index))
+    }
+
+    /// Mask `index` of `masks`, cropped to its view's size.
+    pub fn mask(&self, entry: &EntryReader, index: usize) -> anyhow::Result<image::GrayImage> {
+        read_image(entry, "masks", index, self.cropped(index))
+    }
+
+    /// Mask `index` of [`GARMENT_MASKS`], cropped to its view's size.
+    pub fn garment_mask(&self, entry: &EntryReader, i: usize) -> anyhow::Result<image::GrayImage> {
+        read_image(entry, GARMENT_MASKS, i, self.cropped(i))
+    }
+
+    /// Image `index` and its mask as stored: the whole padded `height x width`.
+    pub fn stored(
+        &self,
+        entry: &EntryReader,
+        index: usize,
+    ) -> anyhow::Result<(image::RgbImage, image::GrayImage)> {
+        let size = [self.height, self.width];
+        let rgb = read_image(entry, "images", index, size)?;
+        Ok((rgb, read_image(entry, "masks", index, size)?))
+    }
+
+    fn cropped(&self, index: usize) -> [u64; 2] {
+        self.view_size[self.view[index] as usize]
+    }
+}
+
+/// Image `index` of the array `name` (`(image, height, width)` or with a last axis of
+/// channels): its top-left `height x width` pixels.
+fn read_image<P: image::Pixel<Subpixel = u8>>(
+    entry: &EntryReader,
+    name: &str,
+    index: usize,
+    [height, width]: [u64; 2],
+) -> anyhow::Result<image::ImageBuffer<P, Vec<u8>>> {
+    let channels = u64::from(P::CHANNEL_COUNT);
+    let rank = if channels == 1 { 3 } else { 4 };
+    let (start, shape) = ([index as u64, 0, 0, 0], [1, height, width, channels]);
+    let data = entry
+        .read_region::<u8>(name, &start[..rank], &shape[..rank])?
+        .data;
+    image::ImageBuffer::from_raw(width as u32, height as u32, data).ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {}: array `{name}`: image {index} has the wrong size",
+            entry.location()
+        )
+    })
 }
 
 /// Writes `keypoints_3d`, `keypoints_3d_confidence` and the `keypoints_3d_joints` attribute
@@ -646,6 +837,13 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
     };
     BodyModel::new(arrays)
         .with_context(|| format!("body model arrays of entry {}", entry.location()))
+}
+
+/// The entry's `body_model_kind` attribute (ingest and train entries); `unknown` where absent.
+pub fn read_body_model_kind(entry: &EntryReader) -> String {
+    let kind = entry.attribute("body_model_kind");
+    kind.and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_else(|| "unknown".to_owned())
 }
 
 /// The per-image garment masks (lib.rs schema), `uint8` 0..255 `(image, height, width)`
