@@ -25,10 +25,6 @@ pub struct TestImage {
 pub struct TestSet {
     /// Every ingested camera, in `view` order.
     pub cameras: Vec<Camera>,
-    /// The dataset's camera id per view.
-    pub camera_source_ids: Vec<i64>,
-    /// The dataset's frame number per frame.
-    pub frame_source_ids: Vec<i64>,
     /// Test images, in ingest order (by view, then frame).
     pub images: Vec<TestImage>,
     /// Every image of the entry (either split), and the stored size of `images`.
@@ -41,15 +37,6 @@ impl TestSet {
     /// Reads the cameras and the test split of an ingest entry.
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
         let cameras = read_cameras(entry)?;
-        let camera_source_ids = entry.read::<i64>("camera_source_id")?;
-        anyhow::ensure!(
-            camera_source_ids.shape == [cameras.len()],
-            "entry {} ({}): array \"camera_source_id\" has shape {:?}, expected ({})",
-            entry.stage_name(),
-            entry.location(),
-            camera_source_ids.shape,
-            cameras.len()
-        );
         let arrays = ImageArrays::read(entry)?;
         let images = (0..arrays.len())
             .filter(|&index| arrays.split[index] == 1)
@@ -61,8 +48,6 @@ impl TestSet {
             .collect();
         Ok(Self {
             cameras,
-            camera_source_ids: camera_source_ids.data,
-            frame_source_ids: entry.read::<i64>("frame_source_id")?.data,
             images,
             arrays,
             garment_region: read_garment_region(entry)?,

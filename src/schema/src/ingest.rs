@@ -272,11 +272,9 @@ pub fn read_cameras(entry: &EntryReader) -> anyhow::Result<Vec<Camera>> {
 /// against each other and the cameras; the images are read one at a time.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImageArrays {
-    /// Per image, its position on the `view` axis.
+    /// Per image, its positions on the `view` and `frame` axes and its split (0 train, 1 test).
     pub view: Vec<u32>,
-    /// Per image, its position on the `frame` axis.
     pub frame: Vec<u32>,
-    /// Per image, 0 train or 1 test.
     pub split: Vec<u8>,
     /// Height and width of the stored images (the largest view).
     pub height: u64,
@@ -289,9 +287,8 @@ pub struct ImageArrays {
 pub type ImageWriters = (ArrayWriter<u8>, ArrayWriter<u8>, Option<ArrayWriter<u8>>);
 
 impl ImageArrays {
-    /// Creates `images` and `masks` (and `garment_masks`, with the attribute naming
-    /// `garment`) for `count` images of up to `height x width`, one image per chunk, for the
-    /// ingest stage to fill; [`ImageArrays::write_index`] writes the rest.
+    /// Creates the arrays of `count` images of up to `[height, width]`, one image per chunk
+    /// (with `garment`, its attribute too); [`ImageArrays::write_index`] writes the rest.
     pub fn create(
         out: &EntryWriter,
         count: u64,
@@ -300,29 +297,28 @@ impl ImageArrays {
     ) -> anyhow::Result<ImageWriters> {
         let dims = ["image", "height", "width", "rgb"];
         let (shape, chunk) = ([count, height, width, 3], [1, height, width, 3]);
-        let images = out.create_array::<u8>("images", &dims, &shape, &chunk)?;
         let plane = |name| out.create_array::<u8>(name, &dims[..3], &shape[..3], &chunk[..3]);
+        let images = out.create_array::<u8>("images", &dims, &shape, &chunk)?;
         let masks = plane("masks")?;
-        let garment_masks = match garment {
-            Some(region) => {
-                out.set_attribute(GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
-                Some(plane(GARMENT_MASKS)?)
-            }
-            None => None,
-        };
-        Ok((images, masks, garment_masks))
+        if let Some(region) = garment {
+            out.set_attribute(GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
+        }
+        Ok((
+            images,
+            masks,
+            garment.map(|_| plane(GARMENT_MASKS)).transpose()?,
+        ))
     }
 
     /// Writes `image_view`, `image_frame` and `image_split` of `(view, frame, split)` per image.
     pub fn write_index(out: &EntryWriter, images: &[(usize, usize, u8)]) -> anyhow::Result<()> {
         let n = images.len() as u64;
-        let chunk = [n.max(1)];
-        let view: Vec<u32> = images.iter().map(|i| i.0 as u32).collect();
-        let frame: Vec<u32> = images.iter().map(|i| i.1 as u32).collect();
+        let column =
+            |name, values: Vec<u32>| out.write_array(name, &["image"], &[n], &[n.max(1)], &values);
+        column("image_view", images.iter().map(|i| i.0 as u32).collect())?;
+        column("image_frame", images.iter().map(|i| i.1 as u32).collect())?;
         let split: Vec<u8> = images.iter().map(|i| i.2).collect();
-        out.write_array("image_view", &["image"], &[n], &chunk, &view)?;
-        out.write_array("image_frame", &["image"], &[n], &chunk, &frame)?;
-        out.write_array("image_split", &["image"], &[n], &chunk, &split)
+        out.write_array("image_split", &["image"], &[n], &[n.max(1)], &split)
     }
 
     /// Reads the per-image arrays and checks them: one length, views and frames the entry
@@ -330,14 +326,12 @@ impl ImageArrays {
     /// images, each image's view no larger than them. Errors name the entry and the array.
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
         let location = entry.location();
-        let view = entry.read::<u32>("image_view")?;
-        let count = view.data.len();
-        let frame = entry.read::<u32>("image_frame")?;
+        let (view, frame) = (
+            entry.read::<u32>("image_view")?,
+            entry.read::<u32>("image_frame")?,
+        );
         let split = entry.read::<u8>("image_split")?;
-        let sizes = entry.read::<u32>("camera_image_size")?;
-        let frames = entry.shape("frame_source_id")?.iter().product::<u64>();
-        let shape = entry.shape("images")?;
-        let masks = entry.shape("masks")?;
+        let count = view.data.len();
         for (name, shape) in [
             ("image_view", &view.shape),
             ("image_frame", &frame.shape),
@@ -348,20 +342,17 @@ impl ImageArrays {
                 "entry {location}: array `{name}` has shape {shape:?}, expected ({count})"
             );
         }
+        let (shape, masks) = (entry.shape("images")?, entry.shape("masks")?);
         anyhow::ensure!(
-            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3,
-            "entry {location}: array `images` has shape {shape:?}, expected ({count}, height, width, 3)"
+            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3 && masks == shape[..3],
+            "entry {location}: arrays `images` and `masks` have shapes {shape:?} and {masks:?}, expected ({count}, height, width, 3) and ({count}, height, width)"
         );
-        anyhow::ensure!(
-            masks == shape[..3],
-            "entry {location}: array `masks` has shape {masks:?}, expected {:?}",
-            &shape[..3]
-        );
+        let sizes = entry.read::<u32>("camera_image_size")?.data;
         let view_size: Vec<[u64; 2]> = sizes
-            .data
             .chunks_exact(2)
             .map(|s| [s[0], s[1]].map(u64::from))
             .collect();
+        let frames = entry.shape("frame_source_id")?.iter().product::<u64>();
         for (i, ((&v, &f), &s)) in view
             .data
             .iter()
@@ -386,12 +377,14 @@ impl ImageArrays {
                 shape[1]
             );
         }
+        let (height, width) = (shape[1], shape[2]);
+        let (view, frame, split) = (view.data, frame.data, split.data);
         Ok(Self {
-            view: view.data,
-            frame: frame.data,
-            split: split.data,
-            height: shape[1],
-            width: shape[2],
+            view,
+            frame,
+            split,
+            height,
+            width,
             view_size,
         })
     }
@@ -424,11 +417,13 @@ impl ImageArrays {
     pub fn stored(
         &self,
         entry: &EntryReader,
-        index: usize,
+        i: usize,
     ) -> anyhow::Result<(image::RgbImage, image::GrayImage)> {
         let size = [self.height, self.width];
-        let rgb = read_image(entry, "images", index, size)?;
-        Ok((rgb, read_image(entry, "masks", index, size)?))
+        Ok((
+            read_image(entry, "images", i, size)?,
+            read_image(entry, "masks", i, size)?,
+        ))
     }
 
     fn cropped(&self, index: usize) -> [u64; 2] {
@@ -436,7 +431,7 @@ impl ImageArrays {
     }
 }
 
-/// Image `index` of the array `name` (`(image, height, width)` or with a last axis of
+/// Image `index` of the array `name` (`(image, height, width)`, or with a last axis of
 /// channels): its top-left `height x width` pixels.
 fn read_image<P: image::Pixel<Subpixel = u8>>(
     entry: &EntryReader,
@@ -1079,20 +1074,16 @@ pub struct IngestImages {
 }
 
 impl IngestImages {
-    /// From the entry's `images` array (count, height, width), read from its metadata before
-    /// any image is.
+    /// From the entry's image arrays ([`ImageArrays`]), before any image is read.
     pub fn of_entry(entry: &EntryReader) -> anyhow::Result<Self> {
-        let shape = entry.shape("images")?;
-        anyhow::ensure!(
-            shape.len() == 4,
-            "entry {}: array `images` has shape {shape:?}, expected (N, H, W, 3)",
-            entry.location()
-        );
+        let arrays = ImageArrays::read(entry)?;
+        let (count, width, height) = (arrays.len() as u64, arrays.width, arrays.height);
+        let source = format!("entry {}", entry.location());
         Ok(Self {
-            count: shape[0],
-            width: shape[2],
-            height: shape[1],
-            source: format!("entry {}", entry.location()),
+            count,
+            width,
+            height,
+            source,
         })
     }
 }

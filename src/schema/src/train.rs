@@ -103,16 +103,12 @@ impl AvatarGaussians {
     /// values; errors name the entry and the array.
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
         let location = entry.location();
-        let shape = entry.shape("gaussian_xyz")?;
-        anyhow::ensure!(
-            shape.len() == 2 && shape[1] == 3,
-            "entry {location}: array `gaussian_xyz` has shape {shape:?}, expected (gaussian, 3)"
-        );
+        // The count of Gaussians; `gaussian_xyz`'s shape is checked with the others.
+        let n = entry.shape("gaussian_xyz")?.first().copied().unwrap_or(0);
         let [xyz, sh, opacity_logit, log_scale, rotation] =
             GAUSSIAN_ARRAYS.map(|(name, _, row)| -> anyhow::Result<Vec<f64>> {
                 let array = entry.read::<f64>(name)?;
-                let expected: Vec<usize> =
-                    [shape[0]].iter().chain(row).map(|&d| d as usize).collect();
+                let expected: Vec<usize> = [n].iter().chain(row).map(|&d| d as usize).collect();
                 anyhow::ensure!(
                     array.shape == expected,
                     "entry {location}: array `{name}` has shape {:?}, expected {expected:?}",

@@ -114,49 +114,6 @@ fn read_body_and_motion(
     Ok((params, model, motion_track))
 }
 
-/// The per-image arrays of an ingest entry, read into [`ImageRecord`]s one image at a time.
-struct ImageTable<'a> {
-    ingest: &'a EntryReader,
-    arrays: &'a ImageArrays,
-    /// The ingest entry's cameras, at the stored resolution.
-    source_cameras: &'a [Camera],
-    /// The cameras training renders with (after `resolution_scale`).
-    cameras: &'a [Camera],
-    /// Frames with body parameters.
-    frames: usize,
-}
-
-impl ImageTable<'_> {
-    /// Image `i`, resampled to its training camera, with its mask's bound box.
-    fn record(&self, i: usize) -> anyhow::Result<ImageRecord> {
-        let (location, cameras) = (self.ingest.location(), self.cameras);
-        let (view, frame) = (self.arrays.view[i] as usize, self.arrays.frame[i] as usize);
-        anyhow::ensure!(
-            frame < self.frames,
-            "entry {location}: image {i} names frame {frame}, but there are {} frames",
-            self.frames
-        );
-        let source = &self.source_cameras[view];
-        let source_image = SourceImage {
-            rgb: self.arrays.image(self.ingest, i)?,
-            mask: self.arrays.mask(self.ingest, i)?,
-        };
-        let target = &cameras[view];
-        let (rgb, mask) = resample(&source_image, source, target)
-            .with_context(|| format!("entry {location}: resampling image {i}"))?;
-        let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
-        let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
-        Ok(ImageRecord {
-            view,
-            frame,
-            split: self.arrays.split[i],
-            rgb,
-            mask,
-            bound,
-        })
-    }
-}
-
 impl TrainingData {
     /// Reads the entries. `params_entry` is the fit entry if the pipeline has one, else the
     /// ingest entry.
@@ -175,15 +132,35 @@ impl TrainingData {
         let arrays = ImageArrays::read(ingest)?;
         let (params, model, motion_track) = read_body_and_motion(ingest, params_entry, motion)?;
         let rig = BodyRig::new(model)?;
-        let table = ImageTable {
-            ingest,
-            arrays: &arrays,
-            source_cameras: &source_cameras,
-            cameras: &cameras,
-            frames: params.len(),
+        // Image `i`, resampled to its training camera, with its mask's bound box.
+        let record = |i: usize| -> anyhow::Result<ImageRecord> {
+            let (view, frame) = (arrays.view[i] as usize, arrays.frame[i] as usize);
+            anyhow::ensure!(
+                frame < params.len(),
+                "entry {location}: image {i} names frame {frame}, but there are {} frames",
+                params.len()
+            );
+            let source = &source_cameras[view];
+            let source_image = SourceImage {
+                rgb: arrays.image(ingest, i)?,
+                mask: arrays.mask(ingest, i)?,
+            };
+            let target = &cameras[view];
+            let (rgb, mask) = resample(&source_image, source, target)
+                .with_context(|| format!("entry {location}: resampling image {i}"))?;
+            let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
+            let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
+            Ok(ImageRecord {
+                view,
+                frame,
+                split: arrays.split[i],
+                rgb,
+                mask,
+                bound,
+            })
         };
         let images = (0..arrays.len())
-            .map(|i| table.record(i))
+            .map(record)
             .collect::<anyhow::Result<Vec<_>>>()?;
         let train_views: Vec<usize> = {
             let mut v: Vec<usize> = images
