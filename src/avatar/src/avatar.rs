@@ -13,6 +13,7 @@ use seqavatar_core::body::BodyParams;
 use seqavatar_core::camera::Camera;
 use seqavatar_engine::{EntryReader, EntryWriter};
 use seqavatar_schema::ingest::write_body_model;
+use seqavatar_schema::train::{AvatarAttributes, read_network_parameter, write_network_parameter};
 
 use seqavatar_knn::{KnnGrid, as_points};
 use seqavatar_schema::motion::MotionTrack;
@@ -28,29 +29,7 @@ use crate::splatting::WorldGaussians;
 
 /// Spherical-harmonics DC constant (3DGS `C0`).
 pub const SH_C0: f64 = 0.282_094_791_773_878_14;
-/// Coefficients stored per colour channel (degree 3).
-pub const SH_STORED: usize = 16;
-
-/// The per-Gaussian parameters of an avatar (flat, row-major).
-#[derive(Clone, Debug, PartialEq)]
-pub struct AvatarGaussians {
-    pub xyz: Vec<f64>,
-    /// `N x 16 x 3`.
-    pub sh: Vec<f64>,
-    pub opacity_logit: Vec<f64>,
-    pub log_scale: Vec<f64>,
-    pub rotation: Vec<f64>,
-}
-
-impl AvatarGaussians {
-    pub fn len(&self) -> usize {
-        self.opacity_logit.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.opacity_logit.is_empty()
-    }
-}
+pub use seqavatar_schema::train::{AvatarGaussians, SH_STORED};
 
 /// One frame's inputs: body parameters and (for motion contexts that use them) the gathered
 /// motion window.
@@ -472,160 +451,67 @@ impl TrainedAvatar {
         extent: f64,
         body_model_kind: &str,
     ) -> anyhow::Result<()> {
-        let g = &self.gaussians;
-        let n = g.len() as u64;
-        let chunk = n.max(1);
-        out.write_array(
-            "gaussian_xyz",
-            &["gaussian", "xyz"],
-            &[n, 3],
-            &[chunk, 3],
-            &g.xyz,
-        )?;
-        out.write_array(
-            "gaussian_sh",
-            &["gaussian", "coeff", "rgb"],
-            &[n, SH_STORED as u64, 3],
-            &[chunk, SH_STORED as u64, 3],
-            &g.sh,
-        )?;
-        out.write_array(
-            "gaussian_opacity",
-            &["gaussian"],
-            &[n],
-            &[chunk],
-            &g.opacity_logit,
-        )?;
-        out.write_array(
-            "gaussian_log_scale",
-            &["gaussian", "xyz"],
-            &[n, 3],
-            &[chunk, 3],
-            &g.log_scale,
-        )?;
-        out.write_array(
-            "gaussian_rotation",
-            &["gaussian", "wxyz"],
-            &[n, 4],
-            &[chunk, 4],
-            &g.rotation,
-        )?;
-        if let Some(networks) = &self.networks {
-            for param in networks.parameters() {
-                let shape: Vec<u64> = param.shape.iter().map(|&d| d as u64).collect();
-                let dims: &[&str] = if shape.len() == 2 {
-                    &["input", "output"]
-                } else {
-                    &["output"]
-                };
-                let chunk: Vec<u64> = shape.iter().map(|&d| d.max(1)).collect();
-                // Stored in f64 (exactly the f32 values), as the entry format has it.
-                out.write_array(
-                    &format!("network.{}", param.name),
-                    dims,
-                    &shape,
-                    &chunk,
-                    &to_f64(param.values),
-                )?;
-            }
+        self.gaussians.write(out)?;
+        for param in self.networks.iter().flat_map(Networks::parameters) {
+            // Stored in f64 (exactly the f32 values), as the entry format has it.
+            write_network_parameter(out, &param.name, &param.shape, &to_f64(param.values))?;
         }
         write_body_model(out, &self.rig.model)?;
-        out.set_attribute("avatar", serde_json::to_value(&self.config)?)?;
-        out.set_attribute("sh_degree", self.sh_degree.into())?;
-        out.set_attribute("scales", serde_json::to_value(&self.scales)?)?;
-        out.set_attribute("sequence_length", self.config.sequence_length.into())?;
-        out.set_attribute("background", serde_json::to_value(self.background)?)?;
-        out.set_attribute("body_model_kind", body_model_kind.into())?;
-        out.set_attribute("extent", extent.into())?;
-        if let Some(networks) = &self.networks {
-            out.set_attribute("motion_joints", networks.config().motion_joints.into())?;
-        }
-        Ok(())
+        let attributes = AvatarAttributes {
+            avatar: &self.config,
+            sh_degree: self.sh_degree,
+            scales: self.scales.clone(),
+            sequence_length: self.config.sequence_length,
+            background: self.background,
+            body_model_kind: body_model_kind.to_owned(),
+            extent,
+            motion_joints: self.networks.as_ref().map(|n| n.config().motion_joints),
+        };
+        attributes.write(out)
     }
 
     /// Reads an avatar from a `train` entry; errors name the entry and the array or
     /// attribute.
     pub fn load(entry: &EntryReader) -> anyhow::Result<Self> {
         let location = entry.location();
-        let attribute = |key: &str| {
-            entry
-                .attribute(key)
-                .ok_or_else(|| anyhow::anyhow!("entry {location}: attribute `{key}` is missing"))
-        };
-        let config: AvatarConfig = serde_json::from_value(attribute("avatar")?)
-            .with_context(|| format!("entry {location}: attribute `avatar`"))?;
+        let attributes = AvatarAttributes::<AvatarConfig>::read(entry)?;
+        let config = attributes.avatar;
         config
             .validate()
             .with_context(|| format!("entry {location}: attribute `avatar`"))?;
-        let sh_degree = attribute("sh_degree")?
-            .as_u64()
-            .filter(|d| *d <= 3)
-            .ok_or_else(|| {
-                anyhow::anyhow!("entry {location}: attribute `sh_degree` is not 0..=3")
-            })? as u32;
-        let scales: Vec<u32> = serde_json::from_value(attribute("scales")?)
-            .with_context(|| format!("entry {location}: attribute `scales`"))?;
-        let background: [f64; 3] = serde_json::from_value(attribute("background")?)
-            .with_context(|| format!("entry {location}: attribute `background`"))?;
-        let xyz = entry.read::<f64>("gaussian_xyz")?;
-        anyhow::ensure!(
-            xyz.shape.len() == 2 && xyz.shape[1] == 3,
-            "entry {location}: array `gaussian_xyz` has shape {:?}, expected (gaussian, 3)",
-            xyz.shape
-        );
-        let n = xyz.shape[0];
-        let read = |name: &str, shape: &[usize]| -> anyhow::Result<Vec<f64>> {
-            let a = entry.read::<f64>(name)?;
-            anyhow::ensure!(
-                a.shape == shape,
-                "entry {location}: array `{name}` has shape {:?}, expected {shape:?}",
-                a.shape
-            );
-            if let Some(bad) = a.data.iter().position(|v| !v.is_finite()) {
-                anyhow::bail!("entry {location}: array `{name}` has a non-finite value at {bad}");
-            }
-            Ok(a.data)
-        };
-        let gaussians = AvatarGaussians {
-            xyz: read("gaussian_xyz", &[n, 3])?,
-            sh: read("gaussian_sh", &[n, SH_STORED, 3])?,
-            opacity_logit: read("gaussian_opacity", &[n])?,
-            log_scale: read("gaussian_log_scale", &[n, 3])?,
-            rotation: read("gaussian_rotation", &[n, 4])?,
-        };
+        let gaussians = AvatarGaussians::read(entry)?;
         let model = seqavatar_schema::ingest::read_body_model(entry)
             .with_context(|| format!("entry {location}: body model"))?;
         let rig = config.rig(model)?;
+        let scales = attributes.scales;
         let networks = if needs_networks(&config) {
-            let motion_joints = match attribute("motion_joints")?.as_u64() {
-                Some(j) => j as usize,
-                None => anyhow::bail!("entry {location}: attribute `motion_joints` is not a count"),
-            };
+            let motion_joints = attributes.motion_joints.ok_or_else(|| {
+                anyhow::anyhow!("entry {location}: attribute `motion_joints` is missing")
+            })?;
             let net_config =
                 NetworkConfig::from_avatar(&config, rig.joint_count(), motion_joints, scales.len())
                     .with_context(|| format!("entry {location}: network configuration"))?;
             // Every parameter is loaded below; the initialisation seed does not matter.
             let mut networks = Networks::new(&net_config, 0)
                 .with_context(|| format!("entry {location}: network configuration"))?;
-            let names = entry.array_names();
             networks
                 .load_parameters(|name| {
-                    let array = format!("network.{name}");
-                    if !names.contains(&array) {
-                        return None;
-                    }
-                    entry
-                        .read::<f64>(&array)
-                        .ok()
-                        .map(|a| to_scalar::<f32>(&a.data))
+                    read_network_parameter(entry, name).map(|values| to_scalar::<f32>(&values))
                 })
                 .with_context(|| format!("entry {location}: network arrays `network.*`"))?;
             Some(networks)
         } else {
             None
         };
-        let mut avatar = Self::new(config, rig, gaussians, sh_degree, scales, networks);
-        avatar.background = background;
+        let mut avatar = Self::new(
+            config,
+            rig,
+            gaussians,
+            attributes.sh_degree,
+            scales,
+            networks,
+        );
+        avatar.background = attributes.background;
         Ok(avatar)
     }
 }

@@ -51,12 +51,7 @@ pub fn check_body_model(
     ingest: &EntryReader,
 ) -> anyhow::Result<()> {
     let ingest_model = seqavatar_schema::ingest::read_body_model(ingest)?;
-    let kind_of = |entry: &EntryReader| {
-        entry
-            .attribute("body_model_kind")
-            .and_then(|value| value.as_str().map(str::to_owned))
-            .unwrap_or_else(|| "unknown".to_owned())
-    };
+    let kind_of = seqavatar_schema::ingest::read_body_model_kind;
     let (avatar_kind, ingest_kind) = (kind_of(train), kind_of(ingest));
     let model = &avatar.rig.model;
     let same_kind = avatar_kind == ingest_kind;

@@ -22,7 +22,7 @@ use crate::report::{
 };
 use crate::scores::MeanScores;
 use crate::subsets::SubsetScores;
-use seqavatar_schema::eval::{EVAL_KIND, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE};
+use seqavatar_schema::eval::{EVAL_KIND, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE, read_summary_field};
 
 /// What the report found for one eval stage.
 #[derive(Clone, Debug)]
@@ -104,18 +104,7 @@ pub fn eval_summary(entry: &EntryReader) -> anyhow::Result<(String, MeanScores, 
         .and_then(|value| value.as_str())
         .unwrap_or("?")
         .to_owned();
-    let means: MeanScores = serde_json::from_value(
-        summary
-            .get("means")
-            .cloned()
-            .unwrap_or(serde_json::Value::Null),
-    )
-    .with_context(|| {
-        format!(
-            "eval entry {}: attribute {SUMMARY_ATTRIBUTE}.means",
-            entry.location()
-        )
-    })?;
+    let means: MeanScores = read_summary_field(entry, "means")?;
     let speed: Vec<SpeedRow> = match entry.attribute(SPEED_ATTRIBUTE) {
         None => Vec::new(),
         Some(value) => serde_json::from_value(value).with_context(|| {
@@ -475,24 +464,14 @@ fn write_garment_region(text: &mut String, states: &[StageState<'_>]) -> anyhow:
          counted.\n\n",
     );
     for (name, entry) in evals {
-        let location = entry.location();
-        let summary = entry
-            .attribute(SUMMARY_ATTRIBUTE)
-            .unwrap_or(serde_json::Value::Null);
-        let field = |key: &str| summary.get(key).cloned().unwrap_or(serde_json::Value::Null);
-        let means: MeanScores = serde_json::from_value(field("means")).with_context(|| {
-            format!("eval entry {location}: attribute {SUMMARY_ATTRIBUTE}.means")
-        })?;
-        let subsets: SubsetScores = match field("subsets") {
-            serde_json::Value::Null => SubsetScores::default(),
-            value => serde_json::from_value(value).with_context(|| {
-                format!("eval entry {location}: attribute {SUMMARY_ATTRIBUTE}.subsets")
-            })?,
-        };
-        let region = field("garment_region");
+        let field = |key| read_summary_field::<serde_json::Value>(entry, key);
+        let means: MeanScores = read_summary_field(entry, "means")?;
+        let subsets = read_summary_field::<Option<SubsetScores>>(entry, "subsets")?;
+        let subsets = subsets.unwrap_or_default();
+        let region = field("garment_region")?;
         match (region.as_str(), garment_table(&means, &subsets)) {
             (Some(region), Some(table)) => {
-                let lpips = field("garment_lpips");
+                let lpips = field("garment_lpips")?;
                 let lpips = lpips.as_str().unwrap_or("unavailable (no LPIPS weights)");
                 let _ = writeln!(
                     text,

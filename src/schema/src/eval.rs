@@ -51,6 +51,22 @@ pub const SPEED_ATTRIBUTE: &str = "speed";
 /// Train-entry attribute with the protocol PSNR on training images.
 pub const TRAIN_IMAGE_PSNR_ATTRIBUTE: &str = "train_image_psnr_mean";
 
+/// The field `key` of the entry's [`SUMMARY_ATTRIBUTE`] as a `T`, read from `null` where the
+/// attribute or the field is absent; errors name the entry and the field.
+pub fn read_summary_field<T: serde::de::DeserializeOwned>(
+    entry: &EntryReader,
+    key: &str,
+) -> anyhow::Result<T> {
+    let summary = entry.attribute(SUMMARY_ATTRIBUTE);
+    let field = summary.and_then(|summary| summary.get(key).cloned());
+    serde_json::from_value(field.unwrap_or_default()).with_context(|| {
+        format!(
+            "eval entry {}: attribute {SUMMARY_ATTRIBUTE}.{key}",
+            entry.location()
+        )
+    })
+}
+
 /// An RGB image array of an eval entry: the whole array, or image `index` of a stack.
 pub fn read_rgb(
     entry: &EntryReader,

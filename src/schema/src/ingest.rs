@@ -119,7 +119,7 @@ use anyhow::Context;
 use seqavatar_core::body::{BodyModel, BodyModelArrays, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DMat3, DVec3};
-use seqavatar_engine::{EntryReader, EntryWriter};
+use seqavatar_engine::{ArrayWriter, EntryReader, EntryWriter};
 
 use serde::{Deserialize, Serialize};
 
@@ -265,6 +265,192 @@ pub fn read_cameras(entry: &EntryReader) -> anyhow::Result<Vec<Camera>> {
             Ok(camera)
         })
         .collect()
+}
+
+/// The per-image arrays of an ingest entry: `image_view`, `image_frame` and `image_split`, and
+/// the sizes of `images` and `masks` (and `garment_masks`), which [`ImageArrays::read`] checks
+/// against each other and the cameras; the images are read one at a time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageArrays {
+    /// Per image, its positions on the `view` and `frame` axes and its split (0 train, 1 test).
+    pub view: Vec<u32>,
+    pub frame: Vec<u32>,
+    pub split: Vec<u8>,
+    /// Height and width of the stored images (the largest view).
+    pub height: u64,
+    pub width: u64,
+    /// Per view, `[height, width]` (`camera_image_size`).
+    view_size: Vec<[u64; 2]>,
+}
+
+/// `images`, `masks` and, where the dataset has a garment region, `garment_masks`, to fill.
+pub type ImageWriters = (ArrayWriter<u8>, ArrayWriter<u8>, Option<ArrayWriter<u8>>);
+
+impl ImageArrays {
+    /// Creates the arrays of `count` images of up to `[height, width]`, one image per chunk
+    /// (with `garment`, its attribute too); [`ImageArrays::write_index`] writes the rest.
+    pub fn create(
+        out: &EntryWriter,
+        count: u64,
+        [height, width]: [u64; 2],
+        garment: Option<GarmentRegion>,
+    ) -> anyhow::Result<ImageWriters> {
+        let dims = ["image", "height", "width", "rgb"];
+        let (shape, chunk) = ([count, height, width, 3], [1, height, width, 3]);
+        let plane = |name| out.create_array::<u8>(name, &dims[..3], &shape[..3], &chunk[..3]);
+        let images = out.create_array::<u8>("images", &dims, &shape, &chunk)?;
+        let masks = plane("masks")?;
+        if let Some(region) = garment {
+            out.set_attribute(GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
+        }
+        Ok((
+            images,
+            masks,
+            garment.map(|_| plane(GARMENT_MASKS)).transpose()?,
+        ))
+    }
+
+    /// Writes `image_view`, `image_frame` and `image_split` of `(view, frame, split)` per image.
+    pub fn write_index(out: &EntryWriter, images: &[(usize, usize, u8)]) -> anyhow::Result<()> {
+        let n = images.len() as u64;
+        let column =
+            |name, values: Vec<u32>| out.write_array(name, &["image"], &[n], &[n.max(1)], &values);
+        column("image_view", images.iter().map(|i| i.0 as u32).collect())?;
+        column("image_frame", images.iter().map(|i| i.1 as u32).collect())?;
+        let split: Vec<u8> = images.iter().map(|i| i.2).collect();
+        out.write_array("image_split", &["image"], &[n], &[n.max(1)], &split)
+    }
+
+    /// Reads the per-image arrays and checks them: one length, views and frames the entry
+    /// has, splits 0 or 1, `images` `(image, height, width, 3)` and `masks` of the same
+    /// images, each image's view no larger than them. Errors name the entry and the array.
+    pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
+        let location = entry.location();
+        let (view, frame) = (
+            entry.read::<u32>("image_view")?,
+            entry.read::<u32>("image_frame")?,
+        );
+        let split = entry.read::<u8>("image_split")?;
+        let count = view.data.len();
+        for (name, shape) in [
+            ("image_view", &view.shape),
+            ("image_frame", &frame.shape),
+            ("image_split", &split.shape),
+        ] {
+            anyhow::ensure!(
+                *shape == [count],
+                "entry {location}: array `{name}` has shape {shape:?}, expected ({count})"
+            );
+        }
+        let (shape, masks) = (entry.shape("images")?, entry.shape("masks")?);
+        anyhow::ensure!(
+            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3 && masks == shape[..3],
+            "entry {location}: arrays `images` and `masks` have shapes {shape:?} and {masks:?}, expected ({count}, height, width, 3) and ({count}, height, width)"
+        );
+        let sizes = entry.read::<u32>("camera_image_size")?.data;
+        let view_size: Vec<[u64; 2]> = sizes
+            .chunks_exact(2)
+            .map(|s| [s[0], s[1]].map(u64::from))
+            .collect();
+        let frames = entry.shape("frame_source_id")?.iter().product::<u64>();
+        for (i, ((&v, &f), &s)) in view
+            .data
+            .iter()
+            .zip(&frame.data)
+            .zip(&split.data)
+            .enumerate()
+        {
+            let (Some(&[h, w]), true) = (view_size.get(v as usize), u64::from(f) < frames) else {
+                anyhow::bail!(
+                    "entry {location}: image {i} names view {v} and frame {f}, but the entry has {} views and {frames} frames",
+                    view_size.len()
+                );
+            };
+            anyhow::ensure!(
+                s <= 1,
+                "entry {location}: `image_split` of image {i} is {s}, expected 0 or 1"
+            );
+            anyhow::ensure!(
+                h <= shape[1] && w <= shape[2],
+                "entry {location}: view {v} is {w}x{h} but `images` is {}x{}",
+                shape[2],
+                shape[1]
+            );
+        }
+        let (height, width) = (shape[1], shape[2]);
+        let (view, frame, split) = (view.data, frame.data, split.data);
+        Ok(Self {
+            view,
+            frame,
+            split,
+            height,
+            width,
+            view_size,
+        })
+    }
+
+    /// Number of images.
+    pub fn len(&self) -> usize {
+        self.view.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.view.is_empty()
+    }
+
+    /// Image `index` of `images`, cropped to its view's size.
+    pub fn image(&self, entry: &EntryReader, index: usize) -> anyhow::Result<image::RgbImage> {
+        read_image(entry, "images", index, self.cropped(index))
+    }
+
+    /// Mask `index` of `masks`, cropped to its view's size.
+    pub fn mask(&self, entry: &EntryReader, index: usize) -> anyhow::Result<image::GrayImage> {
+        read_image(entry, "masks", index, self.cropped(index))
+    }
+
+    /// Mask `index` of [`GARMENT_MASKS`], cropped to its view's size.
+    pub fn garment_mask(&self, entry: &EntryReader, i: usize) -> anyhow::Result<image::GrayImage> {
+        read_image(entry, GARMENT_MASKS, i, self.cropped(i))
+    }
+
+    /// Image `index` and its mask as stored: the whole padded `height x width`.
+    pub fn stored(
+        &self,
+        entry: &EntryReader,
+        i: usize,
+    ) -> anyhow::Result<(image::RgbImage, image::GrayImage)> {
+        let size = [self.height, self.width];
+        Ok((
+            read_image(entry, "images", i, size)?,
+            read_image(entry, "masks", i, size)?,
+        ))
+    }
+
+    fn cropped(&self, index: usize) -> [u64; 2] {
+        self.view_size[self.view[index] as usize]
+    }
+}
+
+/// Image `index` of the array `name` (`(image, height, width)`, or with a last axis of
+/// channels): its top-left `height x width` pixels.
+fn read_image<P: image::Pixel<Subpixel = u8>>(
+    entry: &EntryReader,
+    name: &str,
+    index: usize,
+    [height, width]: [u64; 2],
+) -> anyhow::Result<image::ImageBuffer<P, Vec<u8>>> {
+    let channels = u64::from(P::CHANNEL_COUNT);
+    let rank = if channels == 1 { 3 } else { 4 };
+    let (start, shape) = ([index as u64, 0, 0, 0], [1, height, width, channels]);
+    let data = entry
+        .read_region::<u8>(name, &start[..rank], &shape[..rank])?
+        .data;
+    image::ImageBuffer::from_raw(width as u32, height as u32, data).ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {}: array `{name}`: image {index} has the wrong size",
+            entry.location()
+        )
+    })
 }
 
 /// Writes `keypoints_3d`, `keypoints_3d_confidence` and the `keypoints_3d_joints` attribute
@@ -648,6 +834,13 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
         .with_context(|| format!("body model arrays of entry {}", entry.location()))
 }
 
+/// The entry's `body_model_kind` attribute (ingest and train entries); `unknown` where absent.
+pub fn read_body_model_kind(entry: &EntryReader) -> String {
+    let kind = entry.attribute("body_model_kind");
+    kind.and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_else(|| "unknown".to_owned())
+}
+
 /// The per-image garment masks (lib.rs schema), `uint8` 0..255 `(image, height, width)`
 /// chunked as `masks`; written only where the dataset has a garment region.
 pub const GARMENT_MASKS: &str = "garment_masks";
@@ -881,20 +1074,16 @@ pub struct IngestImages {
 }
 
 impl IngestImages {
-    /// From the entry's `images` array (count, height, width), read from its metadata before
-    /// any image is.
+    /// From the entry's image arrays ([`ImageArrays`]), before any image is read.
     pub fn of_entry(entry: &EntryReader) -> anyhow::Result<Self> {
-        let shape = entry.shape("images")?;
-        anyhow::ensure!(
-            shape.len() == 4,
-            "entry {}: array `images` has shape {shape:?}, expected (N, H, W, 3)",
-            entry.location()
-        );
+        let arrays = ImageArrays::read(entry)?;
+        let (count, width, height) = (arrays.len() as u64, arrays.width, arrays.height);
+        let source = format!("entry {}", entry.location());
         Ok(Self {
-            count: shape[0],
-            width: shape[2],
-            height: shape[1],
-            source: format!("entry {}", entry.location()),
+            count,
+            width,
+            height,
+            source,
         })
     }
 }

@@ -52,21 +52,14 @@ impl GroundTruth {
     /// Indexes the images of `ingest`, read with eval's reader of the ingest schema.
     pub fn read(ingest: &EntryReader) -> anyhow::Result<Self> {
         let testset = TestSet::read(ingest)?;
-        let views = ingest.read::<u32>("image_view")?.data;
-        let frames = ingest.read::<u32>("image_frame")?.data;
-        anyhow::ensure!(
-            views.len() == frames.len(),
-            "ingest entry {}: image_view has {} values, image_frame {}",
-            ingest.location(),
-            views.len(),
-            frames.len()
-        );
-        let by_view_frame = views
-            .iter()
-            .zip(&frames)
-            .enumerate()
-            .filter(|(_, (view, _))| (**view as usize) < testset.cameras.len())
-            .map(|(index, (&view, &frame))| ((view as usize, frame as usize), index))
+        let arrays = &testset.arrays;
+        let by_view_frame = (0..arrays.len())
+            .map(|index| {
+                (
+                    (arrays.view[index] as usize, arrays.frame[index] as usize),
+                    index,
+                )
+            })
             .collect();
         Ok(Self {
             ingest: ingest.clone(),

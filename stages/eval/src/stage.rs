@@ -491,11 +491,11 @@ impl Evaluation<'_, '_> {
     ) -> anyhow::Result<ScoredImages> {
         let (ctx, config, testset) = (self.ctx, self.config, self.testset);
         let count = self.tests.len();
-        let (height, width) = (testset.stored_height, testset.stored_width);
+        let (height, width) = (testset.arrays.height, testset.arrays.width);
         let out = ctx.output();
         let image_dims = ["image", "height", "width", "rgb"];
-        let image_shape = [count as u64, height as u64, width as u64, 3];
-        let image_chunk = [1, height as u64, width as u64, 3];
+        let image_shape = [count as u64, height, width, 3];
+        let image_chunk = [1, height, width, 3];
         let renders_array =
             out.create_array::<u8>("renders", &image_dims, &image_shape, &image_chunk)?;
         let errors_array =
@@ -639,7 +639,7 @@ impl Evaluation<'_, '_> {
         ] {
             out.write_array::<u32>(name, &["image"], &[count as u64], &[count as u64], &values)?;
         }
-        let (width, height) = (self.testset.stored_width, self.testset.stored_height);
+        let (width, height) = (self.testset.arrays.width, self.testset.arrays.height);
         let sheet = contact_sheet_rows(&scored.sheet_images, width as u32, height as u32)?;
         let (sheet_width, sheet_height) = sheet.dimensions();
         out.write_array::<u8>(

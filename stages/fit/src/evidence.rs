@@ -27,6 +27,7 @@ use seqavatar_formats::resample::{SourceImage, resample};
 use crate::keypoints::KeypointObservations;
 use seqavatar_schema::body::BodySequence;
 use seqavatar_schema::fit::TrackVerdict;
+use seqavatar_schema::ingest::ImageArrays;
 
 /// Longest side, in pixels, at which silhouettes are compared.
 pub const EVIDENCE_MAX_SIDE: u32 = 256;
@@ -63,54 +64,27 @@ impl Silhouettes {
     pub fn read(ingest: &EntryReader) -> anyhow::Result<Option<Self>> {
         let location = ingest.location();
         let source_cameras = seqavatar_schema::ingest::read_cameras(ingest)?;
-        let view_of = ingest.read::<u32>("image_view")?.data;
-        let frame_of = ingest.read::<u32>("image_frame")?.data;
-        anyhow::ensure!(
-            view_of.len() == frame_of.len(),
-            "entry {location}: arrays `image_view` and `image_frame` differ in length"
-        );
-        if view_of.is_empty() {
+        let arrays = ImageArrays::read(ingest)?;
+        if arrays.is_empty() {
             return Ok(None);
         }
-        let shape = ingest.shape("masks")?;
-        anyhow::ensure!(
-            shape.len() == 3 && shape[0] as usize == view_of.len(),
-            "entry {location}: array `masks` has shape {shape:?}, expected ({}, height, width)",
-            view_of.len()
-        );
         let cameras: Vec<Camera> = source_cameras.iter().map(evidence_camera).collect();
-        let images = (0..view_of.len())
+        let images = (0..arrays.len())
             .into_par_iter()
             .map(|i| -> anyhow::Result<MaskImage> {
-                let view = view_of[i] as usize;
-                let source = source_cameras.get(view).ok_or_else(|| {
-                    anyhow::anyhow!(
-                        "entry {location}: `image_view` of image {i} is {view}, but there are {} views",
-                        source_cameras.len()
-                    )
-                })?;
+                let view = arrays.view[i] as usize;
+                let source = &source_cameras[view];
                 let (w, h) = (source.width, source.height);
-                anyhow::ensure!(
-                    u64::from(w) <= shape[2] && u64::from(h) <= shape[1],
-                    "entry {location}: view {view} is {w}x{h} but array `masks` is {}x{}",
-                    shape[2],
-                    shape[1]
-                );
-                let mask = ingest
-                    .read_region::<u8>("masks", &[i as u64, 0, 0], &[1, u64::from(h), u64::from(w)])?
-                    .data;
                 let source_image = SourceImage {
                     rgb: image::RgbImage::new(w, h),
-                    mask: image::GrayImage::from_raw(w, h, mask).ok_or_else(|| {
-                        anyhow::anyhow!("entry {location}: array `masks`: image {i} has the wrong size")
-                    })?,
+                    mask: arrays.mask(ingest, i)?,
                 };
                 // `read_cameras` gives distortion-free cameras: only the size changes.
                 let (_, mask) = resample(&source_image, source, &cameras[view])
                     .map_err(|e| anyhow::anyhow!("entry {location}: mask of image {i}: {e}"))?;
                 Ok(MaskImage {
                     view,
-                    frame: frame_of[i] as usize,
+                    frame: arrays.frame[i] as usize,
                     foreground: mask.iter().map(|&m| m >= 128).collect(),
                 })
             })

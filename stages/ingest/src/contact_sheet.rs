@@ -18,43 +18,29 @@ pub fn contact_sheet(
         other => anyhow::bail!("picture option split={other}: expected train, test or all"),
     };
     let max = options.get_u64("max", 16)?.max(1) as usize;
-    let split = entry.read::<u8>("image_split")?;
-    let chosen: Vec<usize> = (0..split.data.len())
-        .filter(|&i| wanted.is_none_or(|w| split.data[i] == w))
+    let table = seqavatar_schema::ingest::ImageArrays::read(entry)?;
+    let chosen: Vec<usize> = (0..table.len())
+        .filter(|&i| wanted.is_none_or(|w| table.split[i] == w))
         .collect();
     anyhow::ensure!(!chosen.is_empty(), "the entry has no {which} images");
     // Spread the picks over the whole list.
     let picks: Vec<usize> = (0..max.min(chosen.len()))
         .map(|k| chosen[k * chosen.len() / max.min(chosen.len())])
         .collect();
-    let shape = entry.shape("images")?;
-    anyhow::ensure!(
-        shape.len() == 4,
-        "array images has shape {shape:?}, expected (image, height, width, 3)"
-    );
-    let (h, w) = (shape[1] as usize, shape[2] as usize);
+    let (h, w) = (table.height as usize, table.width as usize);
     let columns = (options.get_u64("columns", 4)?.max(1) as usize).min(picks.len());
     let rows = picks.len().div_ceil(columns);
     let mut sheet = image::RgbImage::new((columns * w) as u32, (rows * h) as u32);
     let history = seqavatar_schema::ingest::read_garment_history(entry)?;
-    let image_frame = match &history {
-        Some(_) => entry.read::<u32>("image_frame")?.data,
-        None => Vec::new(),
-    };
     for (k, &index) in picks.iter().enumerate() {
-        let rgb = entry.read_region::<u8>(
-            "images",
-            &[index as u64, 0, 0, 0],
-            &[1, h as u64, w as u64, 3],
-        )?;
-        let mask =
-            entry.read_region::<u8>("masks", &[index as u64, 0, 0], &[1, h as u64, w as u64])?;
+        let (rgb, mask) = table.stored(entry, index)?;
+        let (rgb, mask) = (rgb.as_raw(), mask.as_raw());
         let (ox, oy) = ((k % columns) * w, (k / columns) * h);
         for y in 0..h {
             for x in 0..w {
-                let m = mask.data[y * w + x];
+                let m = mask[y * w + x];
                 let p = (y * w + x) * 3;
-                let mut c = [rgb.data[p], rgb.data[p + 1], rgb.data[p + 2]];
+                let mut c = [rgb[p], rgb[p + 1], rgb[p + 2]];
                 let boundary = m >= 128
                     && [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)]
                         .iter()
@@ -64,7 +50,7 @@ pub fn contact_sheet(
                                 || ny < 0
                                 || nx >= w as i64
                                 || ny >= h as i64
-                                || mask.data[ny as usize * w + nx as usize] < 128
+                                || mask[ny as usize * w + nx as usize] < 128
                         });
                 if boundary {
                     c = [0, 255, 0];
@@ -75,13 +61,10 @@ pub fn contact_sheet(
                 sheet.put_pixel((ox + x) as u32, (oy + y) as u32, image::Rgb(c));
             }
         }
-        let flagged = history.as_ref().is_some_and(|history| {
-            image_frame
-                .get(index)
-                .and_then(|&f| history.frames.get(f as usize))
-                .copied()
-                .unwrap_or(false)
-        });
+        let frame = table.frame[index] as usize;
+        let flagged = history
+            .as_ref()
+            .is_some_and(|history| history.frames.get(frame) == Some(&true));
         if flagged {
             for y in 0..h {
                 for x in 0..w {

@@ -20,7 +20,7 @@ use seqavatar_core::glam::DVec3;
 use seqavatar_datasets::{BodyModelKind, DatasetReader, open_reader};
 use seqavatar_formats::resample::{resample, resample_with_region};
 use seqavatar_schema::ingest::{
-    self as schema, Keypoints3d, SourceCamera, write_body_model, write_body_params,
+    self as schema, ImageArrays, Keypoints3d, SourceCamera, write_body_model, write_body_params,
     write_keypoints_3d,
 };
 
@@ -126,8 +126,8 @@ impl StageKind for Ingest {
             schema::write_garment_history(out, &history)?;
         }
 
-        let image_split = write_images(ctx, reader.as_ref(), &plan, &cameras)?;
-        write_attributes(out, config, &plan, kind, &image_split)
+        write_images(ctx, reader.as_ref(), &plan, &cameras)?;
+        write_attributes(out, config, &plan, kind)
     }
 
     fn pictures(&self) -> Vec<PictureKind> {
@@ -160,42 +160,21 @@ impl StageKind for Ingest {
 /// Resamples every planned image (and its mask, and its garment mask where the reader has a
 /// garment region) to its ingested camera and writes them, in parallel, one chunk each
 /// (nothing but the images in flight is held), then the per-image view, frame and split
-/// arrays; returns the split of each image.
+/// arrays.
 fn write_images(
     ctx: &StageContext<'_>,
     reader: &dyn DatasetReader,
     plan: &IngestPlan,
     cameras: &[Camera],
-) -> anyhow::Result<Vec<u8>> {
+) -> anyhow::Result<()> {
     let out = ctx.output();
     let max_h = cameras.iter().map(|c| c.height).max().unwrap_or(1) as u64;
     let max_w = cameras.iter().map(|c| c.width).max().unwrap_or(1) as u64;
     let n = plan.images.len() as u64;
-    let images = out.create_array::<u8>(
-        "images",
-        &["image", "height", "width", "rgb"],
-        &[n, max_h, max_w, 3],
-        &[1, max_h, max_w, 3],
-    )?;
-    let masks = out.create_array::<u8>(
-        "masks",
-        &["image", "height", "width"],
-        &[n, max_h, max_w],
-        &[1, max_h, max_w],
-    )?;
-    // Chunked as `masks`, through the same resampling, so the two stay aligned.
-    let garment_region = reader.garment_region();
-    let garment_masks = garment_region
-        .map(|region| -> anyhow::Result<_> {
-            out.set_attribute(schema::GARMENT_REGION_ATTRIBUTE, region.as_str().into())?;
-            out.create_array::<u8>(
-                schema::GARMENT_MASKS,
-                &["image", "height", "width"],
-                &[n, max_h, max_w],
-                &[1, max_h, max_w],
-            )
-        })
-        .transpose()?;
+    // `garment_masks` is chunked as `masks`, through the same resampling, so the two stay
+    // aligned.
+    let (images, masks, garment_masks) =
+        ImageArrays::create(out, n, [max_h, max_w], reader.garment_region())?;
     let bar = ctx.progress_bar(n, "images");
     plan.images.par_iter().enumerate().try_for_each(
         |(index, &(view, frame, _))| -> anyhow::Result<()> {
@@ -246,15 +225,7 @@ fn write_images(
         },
     )?;
     bar.finish_and_clear();
-    let image_view: Vec<u32> = plan.images.iter().map(|i| i.0 as u32).collect();
-    let image_frame: Vec<u32> = plan.images.iter().map(|i| i.1 as u32).collect();
-    let image_split: Vec<u8> = plan.images.iter().map(|i| i.2).collect();
-    let chunk = [n.max(1)];
-    out.write_array("image_view", &["image"], &[n], &chunk, &image_view)?;
-    out.write_array("image_frame", &["image"], &[n], &chunk, &image_frame)?;
-    out.write_array("image_split", &["image"], &[n], &chunk, &image_split)?;
-
-    Ok(image_split)
+    ImageArrays::write_index(out, &plan.images)
 }
 
 /// The entry's attributes: where the data came from and how it was sampled.
@@ -263,7 +234,6 @@ fn write_attributes(
     config: &IngestConfig,
     plan: &IngestPlan,
     kind: BodyModelKind,
-    image_split: &[u8],
 ) -> anyhow::Result<()> {
     let dataset = serde_json::to_value(&config.dataset)?
         .get("kind")
@@ -277,9 +247,9 @@ fn write_attributes(
     // Where the frame axis starts in the recording, so that motion windows clamp only at
     // the recording's true start (`seqavatar_schema::motion::FrameAxis`).
     out.set_attribute("first_frame_index", plan.frames[0].into())?;
-    let train = image_split.iter().filter(|s| **s == 0).count();
+    let train = plan.images.iter().filter(|image| image.2 == 0).count();
     out.set_attribute("num_train_images", train.into())?;
-    out.set_attribute("num_test_images", (image_split.len() - train).into())?;
+    out.set_attribute("num_test_images", (plan.images.len() - train).into())?;
     out.set_attribute("background", serde_json::json!([0, 0, 0]))?;
     Ok(())
 }

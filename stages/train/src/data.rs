@@ -9,7 +9,9 @@ use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
 use seqavatar_engine::EntryReader;
 use seqavatar_formats::resample::{SourceImage, resample};
-use seqavatar_schema::ingest::{read_body_model, read_body_params};
+use seqavatar_schema::ingest::{
+    ImageArrays, read_body_model, read_body_model_kind, read_body_params,
+};
 
 use seqavatar_avatar::rig::BodyRig;
 use seqavatar_schema::motion::MotionTrack;
@@ -112,77 +114,6 @@ fn read_body_and_motion(
     Ok((params, model, motion_track))
 }
 
-/// The per-image arrays of an ingest entry, read into [`ImageRecord`]s one image at a time.
-struct ImageTable<'a> {
-    ingest: &'a EntryReader,
-    location: &'a str,
-    /// The ingest entry's cameras, at the stored resolution.
-    source_cameras: &'a [Camera],
-    /// The cameras training renders with (after `resolution_scale`).
-    cameras: &'a [Camera],
-    /// Frames with body parameters.
-    frames: usize,
-    view_of: &'a [u32],
-    frame_of: &'a [u32],
-    split_of: &'a [u8],
-    /// Stored size of the `images` array.
-    height: u64,
-    width: u64,
-}
-
-impl ImageTable<'_> {
-    /// Image `i`, resampled to its training camera, with its mask's bound box.
-    fn record(&self, i: usize) -> anyhow::Result<ImageRecord> {
-        let (location, cameras) = (self.location, self.cameras);
-        let (height, width) = (self.height, self.width);
-        let view = self.view_of[i] as usize;
-        let frame = self.frame_of[i] as usize;
-        anyhow::ensure!(
-            view < cameras.len() && frame < self.frames,
-            "entry {location}: image {i} names view {view} and frame {frame}, but there are {} views and {} frames",
-            cameras.len(),
-            self.frames
-        );
-        anyhow::ensure!(
-            self.split_of[i] <= 1,
-            "entry {location}: `image_split` of image {i} is {}, expected 0 or 1",
-            self.split_of[i]
-        );
-        let source = &self.source_cameras[view];
-        let (w, h) = (u64::from(source.width), u64::from(source.height));
-        anyhow::ensure!(
-            w <= width && h <= height,
-            "entry {location}: view {view} is {w}x{h} but `images` is {width}x{height}"
-        );
-        let rgb = self
-            .ingest
-            .read_region::<u8>("images", &[i as u64, 0, 0, 0], &[1, h, w, 3])?
-            .data;
-        let mask = self
-            .ingest
-            .read_region::<u8>("masks", &[i as u64, 0, 0], &[1, h, w])?
-            .data;
-        let source_image = SourceImage {
-            rgb: image::RgbImage::from_raw(w as u32, h as u32, rgb).context("image buffer size")?,
-            mask: image::GrayImage::from_raw(w as u32, h as u32, mask)
-                .context("mask buffer size")?,
-        };
-        let target = &cameras[view];
-        let (rgb, mask) = resample(&source_image, source, target)
-            .with_context(|| format!("entry {location}: resampling image {i}"))?;
-        let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
-        let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
-        Ok(ImageRecord {
-            view,
-            frame,
-            split: self.split_of[i],
-            rgb,
-            mask,
-            bound,
-        })
-    }
-}
-
 impl TrainingData {
     /// Reads the entries. `params_entry` is the fit entry if the pipeline has one, else the
     /// ingest entry.
@@ -198,41 +129,38 @@ impl TrainingData {
             .iter()
             .map(|c| c.rescaled(resolution_scale))
             .collect();
-        let view_of = ingest.read::<u32>("image_view")?.data;
-        let frame_of = ingest.read::<u32>("image_frame")?.data;
-        let split_of = ingest.read::<u8>("image_split")?.data;
-        let count = view_of.len();
-        anyhow::ensure!(
-            frame_of.len() == count && split_of.len() == count,
-            "entry {location}: `image_view`, `image_frame` and `image_split` differ in length"
-        );
-        let shape = ingest.shape("images")?;
-        anyhow::ensure!(
-            shape.len() == 4 && shape[0] as usize == count && shape[3] == 3,
-            "entry {location}: array `images` has shape {shape:?}, expected ({count}, H, W, 3)"
-        );
-        let mask_shape = ingest.shape("masks")?;
-        anyhow::ensure!(
-            mask_shape == shape[..3],
-            "entry {location}: array `masks` has shape {mask_shape:?}, expected {:?}",
-            &shape[..3]
-        );
+        let arrays = ImageArrays::read(ingest)?;
         let (params, model, motion_track) = read_body_and_motion(ingest, params_entry, motion)?;
         let rig = BodyRig::new(model)?;
-        let table = ImageTable {
-            ingest,
-            location,
-            source_cameras: &source_cameras,
-            cameras: &cameras,
-            frames: params.len(),
-            view_of: &view_of,
-            frame_of: &frame_of,
-            split_of: &split_of,
-            height: shape[1],
-            width: shape[2],
+        // Image `i`, resampled to its training camera, with its mask's bound box.
+        let record = |i: usize| -> anyhow::Result<ImageRecord> {
+            let (view, frame) = (arrays.view[i] as usize, arrays.frame[i] as usize);
+            anyhow::ensure!(
+                frame < params.len(),
+                "entry {location}: image {i} names frame {frame}, but there are {} frames",
+                params.len()
+            );
+            let source = &source_cameras[view];
+            let source_image = SourceImage {
+                rgb: arrays.image(ingest, i)?,
+                mask: arrays.mask(ingest, i)?,
+            };
+            let target = &cameras[view];
+            let (rgb, mask) = resample(&source_image, source, target)
+                .with_context(|| format!("entry {location}: resampling image {i}"))?;
+            let mask_f: Vec<f64> = mask.iter().map(|&b| f64::from(b) / 255.0).collect();
+            let bound = bound_box(&mask_f, target.width as usize, target.height as usize, 0);
+            Ok(ImageRecord {
+                view,
+                frame,
+                split: arrays.split[i],
+                rgb,
+                mask,
+                bound,
+            })
         };
-        let images = (0..count)
-            .map(|i| table.record(i))
+        let images = (0..arrays.len())
+            .map(record)
             .collect::<anyhow::Result<Vec<_>>>()?;
         let train_views: Vec<usize> = {
             let mut v: Vec<usize> = images
@@ -249,10 +177,7 @@ impl TrainingData {
             "entry {location}: no training images"
         );
         let extent = camera_extent(train_views.iter().map(|&v| &cameras[v]));
-        let body_model_kind = ingest
-            .attribute("body_model_kind")
-            .and_then(|v| v.as_str().map(str::to_owned))
-            .unwrap_or_else(|| "unknown".to_owned());
+        let body_model_kind = read_body_model_kind(ingest);
         Ok(Self {
             cameras,
             images,
