@@ -330,12 +330,14 @@ fn synthetic_pipelines_load() {
     ] {
         assert!(status.contains(stage), "{stage}: {status}");
     }
-    // The ablation: rows (a)-(e) x 3 seeds, each evaluated.
+    // The ablation: rows (a)-(e) and the oracle x 3 seeds, each evaluated.
     let status = sandbox.ok(&["status", &pipeline_file("ablation_synthetic.yaml")]);
     for stage in [
         "eval_a_none_s1",
         "eval_c_skeleton_s2",
         "eval_e_multiscale_s3",
+        "motion_oracle",
+        "eval_oracle_s2",
     ] {
         assert!(status.contains(stage), "{stage}: {status}");
     }
@@ -370,7 +372,7 @@ fn matrix_sweeps_keep_the_cache_keys_of_the_hand_written_runs() {
     let by_hand = |name: &str| root.join(format!("tests/fixtures/pipelines/{name}_by_hand.yaml"));
 
     let ablation = stage_keys(&root.join("pipelines/ablation_synthetic.yaml"));
-    assert_eq!(ablation.len(), 3 + 2 * 15);
+    assert_eq!(ablation.len(), 4 + 2 * 18);
     assert_eq!(ablation, stage_keys(&by_hand("ablation_synthetic")));
     let ablation_text = std::fs::read_to_string(root.join("pipelines/ablation_synthetic.yaml"));
     assert!(ablation_text.unwrap().lines().count() < 60);
