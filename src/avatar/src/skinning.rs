@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use seqavatar_core::rotation::{quat_is_degenerate, quat_wxyz_to_matrix};
 
 /// Added inside the logarithm of template weights (docs/method.md).
-const WEIGHT_LOG_EPS: f64 = 1e-9;
+pub const WEIGHT_LOG_EPS: f64 = 1e-9;
 
 /// Per-frame skinning data shared by all Gaussians.
 pub struct SkinningFrame<'a> {

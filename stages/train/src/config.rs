@@ -205,6 +205,11 @@ pub struct TrainConfig {
     /// legs but follow the pelvis, need it; absent or 0 (every preset) keeps the template's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub skinning_smoothing: Option<f64>,
+    /// Adds Gaussians on the masks' visual hull where the body template has no surface
+    /// (`crate::hull`: a loose garment's hem, hair); absent (every preset) starts from the
+    /// template alone, as the paper does. Serialised only where set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hull_init: Option<crate::hull::HullInit>,
 }
 
 /// A config error naming `field`.
@@ -261,6 +266,7 @@ impl TrainConfig {
             background: Background::Black,
             precision: None,
             skinning_smoothing: None,
+            hull_init: None,
         };
         match preset {
             Preset::Balanced => base,
@@ -317,6 +323,9 @@ impl TrainConfig {
     /// Iterations, resolution, the avatar's fields and the size bounds (Gaussians, cameras,
     /// neighbours, padding, scales).
     fn validate_sizes(&self) -> Result<(), ConfigError> {
+        if let Some(Err((field, message))) = self.hull_init.as_ref().map(|h| h.validate()) {
+            return bad(&field, message);
+        }
         if self.iterations == 0 {
             return bad("iterations", "must be at least 1".into());
         }
@@ -711,6 +720,13 @@ mod tests {
             (json!({"background": "green"}), "background"),
             (json!({"background": [0.0, 0.0, 0.0]}), "background"),
             (json!({"background": null}), "background"),
+            (json!({"hull_init": {"frames": 0}}), "hull_init.frames"),
+            (json!({"hull_init": {"voxel": 1e-6}}), "hull_init.voxel"),
+            (
+                json!({"hull_init": {"min_distance": -1.0}}),
+                "hull_init.min_distance",
+            ),
+            (json!({"hull_init": {"voxels": 0.01}}), "voxels"),
         ];
         for (raw, field) in cases {
             let err = TrainConfig::resolve(&raw).unwrap_err().to_string();

@@ -28,6 +28,7 @@ pub mod data;
 pub mod densify;
 pub mod diagnostics;
 pub mod gaussians;
+pub mod hull;
 pub mod losses;
 pub mod resident;
 pub mod rng;

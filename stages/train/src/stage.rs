@@ -366,7 +366,17 @@ fn start_or_resume<'d>(
             if !notes.is_empty() {
                 ctx.warn("no usable checkpoint left: training starts over");
             }
-            Trainer::new(config.clone(), data, backend.clone())?
+            let started = std::time::Instant::now();
+            let trainer = Trainer::new(config.clone(), data, backend.clone())?;
+            if config.hull_init.is_some() {
+                let added = trainer.state.len() - data.rig.vertex_count();
+                ctx.log(&format!(
+                    "hull_init: {added} Gaussians added where the masks' visual hull leaves the \
+                     body template, every Gaussian coloured from the images ({:.1} s)",
+                    started.elapsed().as_secs_f64()
+                ));
+            }
+            trainer
         }
     })
 }

@@ -102,17 +102,28 @@ impl<'d> Trainer<'d> {
             .effective_scales(&data.motion.scales)
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let mut rng = Rng::new(config.seed);
-        let centres = data.rig.canonical_vertices.clone();
+        let mut centres = data.rig.canonical_vertices.clone();
+        let mut colours: Vec<f64> = (0..centres.len()).map(|_| rng.next_f64()).collect();
+        if let Some(init) = &config.hull_init {
+            let hull = crate::hull::hull_gaussians(data, init)?;
+            for (slot, colour) in colours.chunks_exact_mut(3).zip(&hull.template_colours) {
+                if let Some(colour) = colour {
+                    slot.copy_from_slice(colour);
+                }
+            }
+            centres.extend(&hull.centres);
+            colours.extend(&hull.colours);
+        }
         // Density control never removes Gaussians to meet the cap, so a cap below the
         // starting count would be silently ignored: refuse it instead.
         let starting = centres.len() / 3;
         anyhow::ensure!(
             starting <= config.max_gaussians,
             "train config field `max_gaussians` is {}, below the {starting} Gaussians training \
-             starts with (one per vertex of the body template): set it to at least {starting}",
+             starts with (the body template's vertices and any `hull_init` points): set it to \
+             at least {starting}",
             config.max_gaussians
         );
-        let colours: Vec<f64> = (0..centres.len()).map(|_| rng.next_f64()).collect();
         let state = initial_state(&centres, &colours, 0.1, &initial_scales(&centres))?;
         let networks = build_networks(&config, data, scales.len())?;
         Self::assemble(

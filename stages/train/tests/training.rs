@@ -776,6 +776,51 @@ fn a_gaussian_cap_below_the_starting_count_is_refused() {
     assert!(Trainer::new(config, &data, cpu_backend()).is_ok());
 }
 
+/// `hull_init` on the tiny scene in its skirt: Gaussians are added beside the template's,
+/// at most `max_gaussians` of them, the template's Gaussians take their colours from the
+/// images instead of the random draw, the cap on the total counts them, and training runs.
+#[test]
+fn hull_init_adds_gaussians_and_colours_the_template() {
+    let dir = tempfile::tempdir().unwrap();
+    let upstream = UPSTREAM.replace("garment: false", "garment: true");
+    let reports = run_pipeline(dir.path(), &upstream).unwrap();
+    let ingest = entry(dir.path(), &reports, "ingest");
+    let motion = entry(dir.path(), &reports, "motion");
+    let raw: serde_json::Value =
+        serde_json::from_str(&TRAIN_CONFIG.replace("ITERATIONS", "3")).unwrap();
+    let config = TrainConfig::resolve(&raw).unwrap();
+    let data = TrainingData::read(&ingest, &ingest, &motion, config.resolution_scale).unwrap();
+    let vertices = data.rig.vertex_count();
+    let plain = Trainer::new(config.clone(), &data, cpu_backend()).unwrap();
+
+    let mut with_hull = config.clone();
+    with_hull.hull_init = Some(seqavatar_train::hull::HullInit {
+        max_gaussians: 40,
+        ..Default::default()
+    });
+    let mut trainer = Trainer::new(with_hull.clone(), &data, cpu_backend()).unwrap();
+    let added = trainer.state.len() - vertices;
+    assert!((1..=40).contains(&added), "{added} Gaussians added");
+    let sh = |t: &Trainer<'_>| t.state.values("sh").unwrap().to_vec();
+    let stride = sh(&plain).len() / vertices;
+    let (before, after) = (sh(&plain), sh(&trainer));
+    let recoloured = (0..vertices)
+        .filter(|v| before[v * stride..v * stride + 3] != after[v * stride..v * stride + 3])
+        .count();
+    assert!(
+        recoloured > vertices / 2,
+        "{recoloured} of {vertices} recoloured"
+    );
+    for _ in 0..3 {
+        trainer.step().unwrap();
+    }
+    assert!(trainer.curve.total.iter().all(|l| l.is_finite()));
+
+    with_hull.max_gaussians = vertices + added - 1;
+    let error = Trainer::new(with_hull, &data, cpu_backend()).err().unwrap();
+    assert!(error.to_string().contains("hull_init"), "{error}");
+}
+
 /// Child mode of the kill test: runs the pipeline in `SEQAVATAR_TRAIN_KILL_CACHE` (the
 /// parent kills this process while it trains).
 #[test]
