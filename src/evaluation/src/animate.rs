@@ -306,11 +306,7 @@ pub fn drive_avatar(
         Some(entry) => entry.read::<u32>("scales")?.data,
         None => Vec::new(),
     };
-    let interval = trained_ingest
-        .attribute("frame_interval")
-        .and_then(|value| value.as_u64())
-        .unwrap_or(1)
-        .max(1) as u32;
+    let interval = seqavatar_schema::ingest::read_frame_interval(&trained_ingest)?;
     // The poses drawing `max_frames` frames reads: the first drawn frame is at most one
     // full window after the axis start.
     let pose_limit = if max_frames == 0 {

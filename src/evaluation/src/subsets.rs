@@ -23,19 +23,10 @@ pub struct FrameFlags {
 
 /// Reads the per-frame flags of an ingest entry (all false where the entry records none).
 pub fn frame_flags(ingest: &EntryReader) -> anyhow::Result<Vec<FrameFlags>> {
-    let split = ingest.read::<u8>("frame_split")?;
+    // Both readers check their arrays against the frame axis.
+    let split = seqavatar_schema::ingest::read_frame_split(ingest)?;
     let history = seqavatar_schema::ingest::read_garment_history(ingest)?;
-    if let Some(history) = &history {
-        anyhow::ensure!(
-            history.frames.len() == split.data.len(),
-            "entry {}: `history_frame` has {} frames, `frame_split` {}",
-            ingest.location(),
-            history.frames.len(),
-            split.data.len()
-        );
-    }
     Ok(split
-        .data
         .iter()
         .enumerate()
         .map(|(frame, &bits)| FrameFlags {

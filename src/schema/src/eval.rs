@@ -11,11 +11,13 @@
 //!   where the region is empty (such images are left out of the region means).
 //! - `image_index` u32 `(image)` (position on the ingest `image` axis), `image_view`,
 //!   `image_frame` u32 `(image)`, `render_seconds` f64 `(image)` (whole render path).
+//!   These columns, each one chunk, are [`PerImageScores`].
 //! - `renders` and `error_maps` u8 `(image, height, width, rgb)`, one image per chunk, views
 //!   smaller than the largest stored in the top-left corner (the ingest layout). Renders are
 //!   after the protocol (background outside the bound box); error maps are the per-pixel mean
 //!   absolute error in the "hot" colour map, white at `error_full_scale`.
-//! - `contact_sheet` u8 `(sheet_height, sheet_width, rgb)`: ground truth | render | error.
+//! - `contact_sheet` u8 `(sheet_height, sheet_width, rgb)`: ground truth | render | error
+//!   ([`write_contact_sheet`]).
 //! - `speed_width`, `speed_height` u32 `(resolution)`, `speed_fps` f64 `(resolution)`.
 //!
 //! Attributes: `summary` (`sequence`, `means` = `MeanScores`, `subsets` =
@@ -37,7 +39,9 @@
 use std::path::Path;
 
 use anyhow::Context as _;
-use seqavatar_engine::EntryReader;
+use seqavatar_engine::{Element, EntryReader, EntryWriter};
+
+use crate::has_array;
 
 /// The kind name in pipeline files.
 pub const EVAL_KIND: &str = "eval";
@@ -65,6 +69,120 @@ pub fn read_summary_field<T: serde::de::DeserializeOwned>(
             entry.location()
         )
     })
+}
+
+/// The per-image columns (module docs: axis `image`, one chunk each), written in one piece by
+/// the eval stage; [`PerImageScores::read`] checks every column has one length.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PerImageScores {
+    /// `psnr`, `ssim`, `lpips_vgg`, `lpips_alex`.
+    pub whole: ScoreColumns,
+    /// `garment_pixels` and `garment_psnr`, ...; only where ingest has a garment region.
+    pub garment: Option<(Vec<u32>, ScoreColumns)>,
+    pub render_seconds: Vec<f64>,
+    /// Positions on the ingest `image`, `view` and `frame` axes.
+    pub image_index: Vec<u32>,
+    pub image_view: Vec<u32>,
+    pub image_frame: Vec<u32>,
+}
+
+/// One region's score columns; each LPIPS column only with its weights (NaN where missing).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ScoreColumns {
+    pub psnr: Vec<f64>,
+    pub ssim: Vec<f64>,
+    pub lpips_vgg: Option<Vec<f64>>,
+    pub lpips_alex: Option<Vec<f64>>,
+}
+
+const WHOLE: [&str; 4] = ["psnr", "ssim", "lpips_vgg", "lpips_alex"];
+const GARMENT: [&str; 4] = [
+    "garment_psnr",
+    "garment_ssim",
+    "garment_lpips_vgg",
+    "garment_lpips_alex",
+];
+
+impl ScoreColumns {
+    /// Writes the present columns of `n` images as `names` (psnr, ssim, vgg, alex).
+    fn write(&self, out: &EntryWriter, names: [&str; 4], n: [u64; 1]) -> anyhow::Result<()> {
+        let (vgg, alex) = (self.lpips_vgg.as_ref(), self.lpips_alex.as_ref());
+        let columns = [Some(&self.psnr), Some(&self.ssim), vgg, alex];
+        for (name, values) in names.into_iter().zip(columns) {
+            if let Some(values) = values {
+                out.write_array(name, &["image"], &n, &n, values)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn read(entry: &EntryReader, names: [&str; 4], n: usize) -> anyhow::Result<Self> {
+        let [psnr, ssim, vgg, alex] = names;
+        let optional = |name| match has_array(entry, name) {
+            true => read_column(entry, name, n).map(Some),
+            false => Ok(None),
+        };
+        Ok(Self {
+            psnr: read_column(entry, psnr, n)?,
+            ssim: read_column(entry, ssim, n)?,
+            lpips_vgg: optional(vgg)?,
+            lpips_alex: optional(alex)?,
+        })
+    }
+}
+
+/// The array `name` of shape `(n)`, or an error naming the entry and the array.
+fn read_column<T: Element>(entry: &EntryReader, name: &str, n: usize) -> anyhow::Result<Vec<T>> {
+    let array = entry.read::<T>(name)?;
+    anyhow::ensure!(
+        array.shape == [n],
+        "entry {}: array `{name}` has shape {:?}, expected ({n})",
+        entry.location(),
+        array.shape
+    );
+    Ok(array.data)
+}
+
+impl PerImageScores {
+    pub fn write(&self, out: &EntryWriter) -> anyhow::Result<()> {
+        let n = [self.image_index.len() as u64];
+        let u32s = |name, values: &[u32]| out.write_array(name, &["image"], &n, &n, values);
+        self.whole.write(out, WHOLE, n)?;
+        if let Some((pixels, scores)) = &self.garment {
+            u32s("garment_pixels", pixels)?;
+            scores.write(out, GARMENT, n)?;
+        }
+        out.write_array("render_seconds", &["image"], &n, &n, &self.render_seconds)?;
+        u32s("image_index", &self.image_index)?;
+        u32s("image_view", &self.image_view)?;
+        u32s("image_frame", &self.image_frame)
+    }
+
+    pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
+        let n = entry.shape("image_index")?.iter().product::<u64>() as usize;
+        let garment = match has_array(entry, "garment_pixels") {
+            true => Some((
+                read_column(entry, "garment_pixels", n)?,
+                ScoreColumns::read(entry, GARMENT, n)?,
+            )),
+            false => None,
+        };
+        Ok(Self {
+            whole: ScoreColumns::read(entry, WHOLE, n)?,
+            garment,
+            render_seconds: read_column(entry, "render_seconds", n)?,
+            image_index: read_column(entry, "image_index", n)?,
+            image_view: read_column(entry, "image_view", n)?,
+            image_frame: read_column(entry, "image_frame", n)?,
+        })
+    }
+}
+
+/// Writes `contact_sheet`, read back with [`read_rgb`].
+pub fn write_contact_sheet(out: &EntryWriter, sheet: &image::RgbImage) -> anyhow::Result<()> {
+    let shape = [sheet.height(), sheet.width(), 3].map(u64::from);
+    let dims = ["sheet_height", "sheet_width", "rgb"];
+    out.write_array("contact_sheet", &dims, &shape, &shape, sheet.as_raw())
 }
 
 /// An RGB image array of an eval entry: the whole array, or image `index` of a stack.
@@ -117,14 +235,9 @@ pub fn export_pngs(entry: &EntryReader, folder: &Path) -> anyhow::Result<usize> 
         read_rgb(entry, "contact_sheet", None)?,
         "contact_sheet.png".to_owned(),
     )?;
-    let count = entry.shape("renders")?.first().copied().unwrap_or(0) as usize;
-    let views = entry.read::<u32>("image_view")?.data;
-    let frames = entry.read::<u32>("image_frame")?.data;
-    for index in 0..count {
-        let (view, frame) = (
-            views.get(index).copied().unwrap_or(0),
-            frames.get(index).copied().unwrap_or(0),
-        );
+    let columns = PerImageScores::read(entry)?;
+    let (views, frames) = (&columns.image_view, &columns.image_frame);
+    for (index, (view, frame)) in views.iter().zip(frames).enumerate() {
         save(
             read_rgb(entry, "renders", Some(index))?,
             format!("render_{index:03}_view{view}_frame{frame}.png"),
@@ -134,5 +247,77 @@ pub fn export_pngs(entry: &EntryReader, folder: &Path) -> anyhow::Result<usize> 
             format!("error_{index:03}_view{view}_frame{frame}.png"),
         )?;
     }
-    Ok(count)
+    Ok(views.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_engine::LocalStore;
+
+    fn scores(garment: bool) -> PerImageScores {
+        let columns = |psnr: f64| ScoreColumns {
+            psnr: vec![psnr, psnr + 1.0],
+            ssim: vec![0.5, 0.25],
+            lpips_vgg: Some(vec![0.125, 0.0625]),
+            lpips_alex: None,
+        };
+        PerImageScores {
+            whole: columns(30.0),
+            garment: garment.then(|| (vec![7, 0], columns(20.0))),
+            render_seconds: vec![0.5, 0.75],
+            image_index: vec![3, 4],
+            image_view: vec![1, 1],
+            image_frame: vec![0, 2],
+        }
+    }
+
+    fn write(out: &EntryWriter, case: &str) -> anyhow::Result<()> {
+        match case {
+            "whole" => scores(false).write(out),
+            "garment" => scores(true).write(out),
+            _ => {
+                out.write_array("image_index", &["image"], &[2], &[2], &[3u32, 4])?;
+                out.write_array("psnr", &["image"], &[3], &[3], &[1.0, 2.0, 3.0])
+            }
+        }
+    }
+
+    #[test]
+    fn per_image_scores_read_back_as_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        for garment in [false, true] {
+            let case = if garment { "garment" } else { "whole" };
+            let entry = crate::testing::entry(&store, write, case);
+            assert_eq!(PerImageScores::read(&entry).unwrap(), scores(garment));
+            let mut names = entry.array_names();
+            names.sort();
+            let mut expected = vec![
+                "image_frame",
+                "image_index",
+                "image_view",
+                "lpips_vgg",
+                "psnr",
+                "render_seconds",
+                "ssim",
+            ];
+            if garment {
+                let garment = ["garment_lpips_vgg", "garment_pixels", "garment_psnr"];
+                expected.extend(garment.into_iter().chain(["garment_ssim"]));
+            }
+            expected.sort();
+            assert_eq!(names, expected);
+            assert_eq!(entry.shape("psnr").unwrap(), [2]);
+            assert_eq!(entry.dtype("image_view").unwrap(), "uint32");
+            assert_eq!(entry.dtype("render_seconds").unwrap(), "float64");
+        }
+        let damaged = crate::testing::entry(&store, write, "damaged");
+        let message = format!("{:#}", PerImageScores::read(&damaged).unwrap_err());
+        assert!(
+            message.contains("array `psnr` has shape [3], expected (2)")
+                && message.contains(damaged.location()),
+            "{message}"
+        );
+    }
 }

@@ -30,6 +30,7 @@
 //! metres per frame).
 
 use crate::body::BodySequence;
+use crate::has_array;
 use crate::ingest::{read_body_params, write_body_params};
 use seqavatar_core::body::BodyModel;
 use seqavatar_engine::{EntryReader, EntryWriter};
@@ -97,10 +98,6 @@ fn read_before_after(entry: &EntryReader, stem: &str) -> anyhow::Result<(Vec<f64
         after.len()
     );
     Ok((before, after))
-}
-
-fn has_array(entry: &EntryReader, name: &str) -> bool {
-    entry.array_names().iter().any(|n| n == name)
 }
 
 /// Per-frame joint jitter of the input and of the output fits (`jitter_before`,

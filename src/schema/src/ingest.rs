@@ -40,6 +40,7 @@
 //! - `frame_split` u8 `(frame)`: bit 0 = a training image uses it, bit 1 = a test image
 //!   does, bit 2 = a held-out frame (`split.held_out_frames`: never trained on, every view
 //!   has a test image of it); 0 = only the motion windows use it (no image ingested).
+//!   Read with [`read_frame_split`], and `frame_interval` with [`read_frame_interval`].
 //!
 //! Images (only those the split uses, one image per chunk):
 //! - `images` u8 `(image, height, width, rgb)` and `masks` u8 `(image, height, width)`
@@ -147,6 +148,46 @@ pub fn read_world_offset(entry: &EntryReader) -> anyhow::Result<DVec3> {
                 entry.location()
             )
         })
+}
+
+/// Sets the attribute `frame_interval`: the frame axis's step in dataset frames.
+pub fn write_frame_interval(out: &EntryWriter, interval: usize) -> anyhow::Result<()> {
+    out.set_attribute("frame_interval", interval.into())
+}
+
+/// The entry's attribute `frame_interval`; missing or not a positive integer is an error naming
+/// the entry.
+pub fn read_frame_interval(entry: &EntryReader) -> anyhow::Result<u32> {
+    let location = entry.location();
+    let value = entry.attribute("frame_interval").ok_or_else(|| {
+        anyhow::anyhow!("entry {location}: attribute `frame_interval` is missing")
+    })?;
+    value
+        .as_u64()
+        .filter(|&v| v >= 1 && v <= u64::from(u32::MAX))
+        .map(|v| v as u32)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "entry {location}: attribute `frame_interval` = {value} is not a positive integer"
+            )
+        })
+}
+
+/// The array `frame_split` (module docs: bits 0 train, 1 test, 2 held out), checked to be
+/// `(frame)` with no other bit set; errors name the entry and the array.
+pub fn read_frame_split(entry: &EntryReader) -> anyhow::Result<Vec<u8>> {
+    let location = entry.location();
+    let frames = entry.read::<i64>("frame_source_id")?.data.len();
+    let split = entry.read::<u8>("frame_split")?;
+    anyhow::ensure!(
+        split.shape == [frames],
+        "entry {location}: array `frame_split` has shape {:?}, expected ({frames}) (the frame axis)",
+        split.shape
+    );
+    if let Some(bad) = split.data.iter().find(|&&bits| bits > 7) {
+        anyhow::bail!("entry {location}: array `frame_split` holds {bad}, expected 0 .. 7");
+    }
+    Ok(split.data)
 }
 
 /// Writes the camera arrays of the ingested views: `cameras` are the rescaled,
@@ -1104,4 +1145,66 @@ pub(crate) fn planned_of<T: Default + serde::de::DeserializeOwned>(
     }
     serde_json::from_value(input.planned.clone())
         .map_err(|e| format!("input {} ({}): its plan: {e}", input.name, input.kind))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use seqavatar_engine::LocalStore;
+
+    fn write(out: &EntryWriter, case: &str) -> anyhow::Result<()> {
+        let (ids, split): (&[i64], &[u8]) = match case {
+            "good" => (&[10, 12, 14], &[0, 1, 7]),
+            "short" => (&[10, 12, 14], &[0, 1]),
+            _ => (&[10, 12], &[1, 9]),
+        };
+        let frames = ids.len() as u64;
+        out.write_array("frame_source_id", &["frame"], &[frames], &[frames], ids)?;
+        let n = split.len() as u64;
+        out.write_array("frame_split", &["frame"], &[n], &[n], split)?;
+        match case {
+            "good" => write_frame_interval(out, 2),
+            "short" => out.set_attribute("frame_interval", 0.into()),
+            _ => Ok(()),
+        }
+    }
+
+    #[test]
+    fn frame_split_and_interval_read_back_or_name_the_entry_and_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let good = crate::testing::entry(&store, write, "good");
+        assert_eq!(read_frame_interval(&good).unwrap(), 2);
+        assert_eq!(read_frame_split(&good).unwrap(), [0, 1, 7]);
+        let short = crate::testing::entry(&store, write, "short");
+        let bits = crate::testing::entry(&store, write, "bits");
+        for (entry, error, expected) in [
+            (
+                &short,
+                read_frame_interval(&short).unwrap_err(),
+                "attribute `frame_interval` = 0 is not a positive integer",
+            ),
+            (
+                &short,
+                read_frame_split(&short).unwrap_err(),
+                "array `frame_split` has shape [2], expected (3)",
+            ),
+            (
+                &bits,
+                read_frame_interval(&bits).unwrap_err(),
+                "attribute `frame_interval` is missing",
+            ),
+            (
+                &bits,
+                read_frame_split(&bits).unwrap_err(),
+                "array `frame_split` holds 9, expected 0 .. 7",
+            ),
+        ] {
+            let message = format!("{error:#}");
+            assert!(
+                message.contains(expected) && message.contains(entry.location()),
+                "{message}"
+            );
+        }
+    }
 }

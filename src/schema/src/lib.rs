@@ -7,7 +7,7 @@
 //!   model, 3D keypoints, the garment history of the synthetic scene.
 //! - [`body`], [`fit`]: body sequences (ingest and fit entries alike), the fit's diagnostics.
 //! - [`train`]: what a train entry will hold (the avatar's arrays are `seqavatar_avatar`'s).
-//! - [`eval`]: the eval entry's summary attributes and its images as PNGs.
+//! - [`eval`]: the eval entry's per-image columns, summary attributes and its images as PNGs.
 //! - [`motion`]: motion templates and the vocabulary of the motion context (scales,
 //!   normalisations, windows).
 
@@ -17,3 +17,51 @@ pub mod fit;
 pub mod ingest;
 pub mod motion;
 pub mod train;
+
+fn has_array(entry: &seqavatar_engine::EntryReader, name: &str) -> bool {
+    entry.array_names().iter().any(|n| n == name)
+}
+
+#[cfg(test)]
+mod testing {
+    //! A one-stage pipeline whose stage writes its entry with a test's function.
+
+    use seqavatar_engine::{
+        EntryId, EntryReader, EntryWriter, LocalStore, Pipeline, Registry, RunOptions,
+        StageContext, StageKind, Store, run,
+    };
+
+    type Write = fn(&EntryWriter, &str) -> anyhow::Result<()>;
+
+    struct Writes(Write);
+
+    impl StageKind for Writes {
+        type Config = serde_json::Value;
+        fn kind(&self) -> &'static str {
+            "schema_test"
+        }
+        fn version(&self) -> u32 {
+            1
+        }
+        fn input_kinds(&self) -> &'static [&'static str] {
+            &[]
+        }
+        fn run(&self, config: &Self::Config, ctx: &mut StageContext<'_>) -> anyhow::Result<()> {
+            (self.0)(ctx.output(), config["case"].as_str().unwrap())
+        }
+    }
+
+    /// The entry that `write` makes for `case` in `store`.
+    pub(crate) fn entry(store: &LocalStore, write: Write, case: &str) -> EntryReader {
+        let text =
+            format!("stages:\n  - {{name: a, kind: schema_test, config: {{case: {case}}}}}\n");
+        let mut registry = Registry::new();
+        registry.add(Box::new(Writes(write)));
+        let pipeline =
+            Pipeline::parse(&text, std::path::Path::new("t.yaml"), &registry, &[]).unwrap();
+        let reports = run(&pipeline, &registry, store, &RunOptions::default()).unwrap();
+        store
+            .open_entry(&EntryId::new("schema_test", &reports[0].key))
+            .unwrap()
+    }
+}

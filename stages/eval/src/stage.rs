@@ -37,8 +37,8 @@ use seqavatar_evaluation::scores::{ImageScore, MeanScores, mean_scores};
 use seqavatar_evaluation::testset::{TestImage, TestSet};
 
 use seqavatar_schema::eval::{
-    EVAL_KIND, GARMENT_TABLE_ATTRIBUTE, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE,
-    TRAIN_IMAGE_PSNR_ATTRIBUTE, read_rgb,
+    EVAL_KIND, GARMENT_TABLE_ATTRIBUTE, PerImageScores, SPEED_ATTRIBUTE, SUMMARY_ATTRIBUTE,
+    ScoreColumns, TRAIN_IMAGE_PSNR_ATTRIBUTE, read_rgb, write_contact_sheet,
 };
 use seqavatar_schema::ingest::PlannedIngest;
 use seqavatar_schema::train::PlannedTrain;
@@ -573,83 +573,42 @@ impl Evaluation<'_, '_> {
         scored: &ScoredImages,
         lpips: &LpipsModels,
     ) -> anyhow::Result<()> {
-        let (out, tests) = (self.ctx.output(), self.tests);
-        let scores = &scored.scores;
-        let count = tests.len();
-        let column = |name: &str, values: &[f64]| -> anyhow::Result<()> {
-            out.write_array::<f64>(name, &["image"], &[count as u64], &[count as u64], values)
+        let (out, tests, scores) = (self.ctx.output(), self.tests, &scored.scores);
+        let column = |pick: &dyn Fn(&ImageScore) -> Option<f64>| -> Vec<f64> {
+            scores.iter().map(|s| pick(s).unwrap_or(f64::NAN)).collect()
         };
-        column("psnr", &scores.iter().map(|s| s.psnr).collect::<Vec<_>>())?;
-        column("ssim", &scores.iter().map(|s| s.ssim).collect::<Vec<_>>())?;
-        if lpips.vgg.is_some() {
-            let values: Vec<f64> = scores
-                .iter()
-                .map(|s| s.lpips_vgg.unwrap_or(f64::NAN))
-                .collect();
-            column("lpips_vgg", &values)?;
-        }
-        if lpips.alex.is_some() {
-            let values: Vec<f64> = scores
-                .iter()
-                .map(|s| s.lpips_alex.unwrap_or(f64::NAN))
-                .collect();
-            column("lpips_alex", &values)?;
-        }
-        if self.testset.garment_region.is_some() {
-            let region = |pick: fn(&RegionScore) -> Option<f64>| -> Vec<f64> {
-                scores
-                    .iter()
-                    .map(|s| s.garment.as_ref().and_then(pick).unwrap_or(f64::NAN))
-                    .collect()
+        let region =
+            |pick: fn(&RegionScore) -> Option<f64>| column(&|s| s.garment.as_ref().and_then(pick));
+        let pixels = |s: &ImageScore| match s.garment {
+            Some(RegionScore::Scored { pixels, .. }) => pixels as u32,
+            _ => 0,
+        };
+        let garment = self.testset.garment_region.is_some().then(|| {
+            let columns = ScoreColumns {
+                psnr: region(|r| r.psnr()),
+                ssim: region(|r| r.ssim()),
+                lpips_vgg: lpips.vgg.as_ref().map(|_| region(|r| r.lpips_vgg())),
+                lpips_alex: lpips.alex.as_ref().map(|_| region(|r| r.lpips_alex())),
             };
-            let pixels: Vec<u32> = scores
-                .iter()
-                .map(|s| match s.garment {
-                    Some(RegionScore::Scored { pixels, .. }) => pixels as u32,
-                    _ => 0,
-                })
-                .collect();
-            out.write_array::<u32>(
-                "garment_pixels",
-                &["image"],
-                &[count as u64],
-                &[count as u64],
-                &pixels,
-            )?;
-            column("garment_psnr", &region(|r| r.psnr()))?;
-            column("garment_ssim", &region(|r| r.ssim()))?;
-            if lpips.vgg.is_some() {
-                column("garment_lpips_vgg", &region(|r| r.lpips_vgg()))?;
-            }
-            if lpips.alex.is_some() {
-                column("garment_lpips_alex", &region(|r| r.lpips_alex()))?;
-            }
+            (scores.iter().map(pixels).collect(), columns)
+        });
+        PerImageScores {
+            whole: ScoreColumns {
+                psnr: column(&|s| Some(s.psnr)),
+                ssim: column(&|s| Some(s.ssim)),
+                lpips_vgg: lpips.vgg.as_ref().map(|_| column(&|s| s.lpips_vgg)),
+                lpips_alex: lpips.alex.as_ref().map(|_| column(&|s| s.lpips_alex)),
+            },
+            garment,
+            render_seconds: scored.render_seconds.clone(),
+            image_index: tests.iter().map(|t| t.index as u32).collect(),
+            image_view: tests.iter().map(|t| t.view as u32).collect(),
+            image_frame: tests.iter().map(|t| t.frame as u32).collect(),
         }
-        column("render_seconds", &scored.render_seconds)?;
-        for (name, values) in [
-            (
-                "image_index",
-                tests.iter().map(|t| t.index as u32).collect::<Vec<_>>(),
-            ),
-            ("image_view", tests.iter().map(|t| t.view as u32).collect()),
-            (
-                "image_frame",
-                tests.iter().map(|t| t.frame as u32).collect(),
-            ),
-        ] {
-            out.write_array::<u32>(name, &["image"], &[count as u64], &[count as u64], &values)?;
-        }
+        .write(out)?;
         let (width, height) = (self.testset.arrays.width, self.testset.arrays.height);
         let sheet = contact_sheet_rows(&scored.sheet_images, width as u32, height as u32)?;
-        let (sheet_width, sheet_height) = sheet.dimensions();
-        out.write_array::<u8>(
-            "contact_sheet",
-            &["sheet_height", "sheet_width", "rgb"],
-            &[u64::from(sheet_height), u64::from(sheet_width), 3],
-            &[u64::from(sheet_height), u64::from(sheet_width), 3],
-            sheet.as_raw(),
-        )?;
-        Ok(())
+        write_contact_sheet(out, &sheet)
     }
 
     /// Rendering speed, the whole render path, on the first scored view at each configured

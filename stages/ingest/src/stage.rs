@@ -241,7 +241,7 @@ fn write_attributes(
         .unwrap_or(serde_json::Value::Null);
     out.set_attribute("dataset", dataset)?;
     out.set_attribute("body_model_kind", kind.as_str().into())?;
-    out.set_attribute("frame_interval", plan.frame_interval.into())?;
+    schema::write_frame_interval(out, plan.frame_interval)?;
     out.set_attribute("resolution_scale", config.resolution_scale.into())?;
     out.set_attribute("past_frames", config.past_frames.into())?;
     // Where the frame axis starts in the recording, so that motion windows clamp only at

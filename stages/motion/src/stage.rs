@@ -15,7 +15,7 @@ use seqavatar_engine::{
     ConfigError, EntryReader, PictureKind, PictureOptions, StageContext, StageKind,
 };
 use seqavatar_schema::body::BodySequence;
-use seqavatar_schema::ingest::{read_body_model, read_garment_history};
+use seqavatar_schema::ingest::{read_body_model, read_frame_interval, read_garment_history};
 
 use seqavatar_context::compute::{canonical_template, compute_motion, effective_velocity};
 use seqavatar_schema::motion::{
@@ -67,25 +67,6 @@ pub struct MotionStage;
 /// 3: attributes `past_frames` and `starts_recording` (the ingest entry's frame axis).
 /// 4: input blocks scaled to RMS 1 by default (`input_scaling`), scale factors recorded.
 const VERSION: u32 = 4;
-
-fn frame_interval(ingest: &EntryReader) -> anyhow::Result<u32> {
-    let value = ingest.attribute("frame_interval").ok_or_else(|| {
-        anyhow::anyhow!(
-            "entry {}: attribute `frame_interval` is missing",
-            ingest.location()
-        )
-    })?;
-    value
-        .as_u64()
-        .filter(|&v| v >= 1 && v <= u64::from(u32::MAX))
-        .map(|v| v as u32)
-        .ok_or_else(|| {
-            anyhow::anyhow!(
-                "entry {}: attribute `frame_interval` = {value} is not a positive integer",
-                ingest.location()
-            )
-        })
-}
 
 impl StageKind for MotionStage {
     type Config = MotionConfig;
@@ -143,7 +124,7 @@ impl StageKind for MotionStage {
         let ingest = ctx.input("ingest")?.clone();
         let fit = ctx.inputs().iter().find(|i| i.kind() == "fit").cloned();
         let params_entry = fit.as_ref().unwrap_or(&ingest);
-        let interval = frame_interval(&ingest)?;
+        let interval = read_frame_interval(&ingest)?;
         let scales = Scales::new(&config.scales, interval)
             .with_context(|| format!("config `scales` against entry {}", ingest.location()))?;
         let model = read_body_model(&ingest)?;
