@@ -194,6 +194,65 @@ fn zju_mocap_yaml_ingests_the_fixture() {
     }
 }
 
+/// A ZJU-MoCap sequence recorded by one camera has no camera to hold out: with the default
+/// split (train camera 0, test cameras 1..) the pipeline, whose eval measures test images,
+/// is refused when it loads, by `status` and by `run` before any stage runs, naming the
+/// dataset's camera count and the split's fields. (It used to ingest and train, then fail
+/// at eval.) With a temporal hold-out the same dataset is accepted.
+#[test]
+fn a_one_camera_dataset_is_refused_at_load_when_eval_needs_held_out_cameras() {
+    let sandbox = Sandbox::new();
+    let data = sandbox.path().join("zju");
+    let model = sandbox.path().join("smpl");
+    write_fixture("zju", &data);
+    write_fixture("smpl", &model);
+    // The sequence as Camera_B1 alone recorded it.
+    let sequence = data.join("CoreView_377");
+    std::fs::copy(
+        data.join("variants/annots_one_camera.npy"),
+        sequence.join("annots.npy"),
+    )
+    .unwrap();
+    for camera in ["Camera_B2", "Camera_B3"] {
+        std::fs::remove_dir_all(sequence.join(camera)).unwrap();
+        std::fs::remove_dir_all(sequence.join("mask_cihp").join(camera)).unwrap();
+    }
+    let file = pipeline_file("zju_mocap.yaml");
+    let model_npz = model.join("model.npz");
+    let vars: [(&str, &Path); 2] = [("ZJU_MOCAP_ROOT", &data), ("SMPL_NEUTRAL_NPZ", &model_npz)];
+    for verb in ["status", "run"] {
+        let mut command = sandbox.command(&[verb, &file]);
+        for (name, value) in vars {
+            command.env(name, value);
+        }
+        let output = command.output().expect("run pipeline binary");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{verb} was accepted: {stderr}");
+        for part in [
+            "CoreView_377 has 1 camera and 4 frames",
+            "no test images",
+            "split.test_views []",
+            "split.held_out_frames",
+        ] {
+            assert!(stderr.contains(part), "{verb}: no `{part}` in {stderr}");
+        }
+    }
+    assert!(
+        !sandbox.cache().join("ingest").exists(),
+        "a stage ran before the refusal"
+    );
+    ok_with_env(
+        &sandbox,
+        &vars,
+        &[
+            "status",
+            &file,
+            "--set",
+            "ingest.split.held_out_frames={start: 1, end: null, step: 2}",
+        ],
+    );
+}
+
 /// Two caches kept inside one dataset folder, used in turn: each is a pipeline cache (its
 /// `CACHEDIR.TAG`), left out of the dataset's digest whichever cache a run uses, so every run
 /// computes one ingest key and the later runs find it cached. (Each cache once left out only

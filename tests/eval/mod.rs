@@ -827,6 +827,125 @@ fn trained_with_motion() -> crate::support::Sandbox {
     sandbox
 }
 
+/// `np.savez_compressed` of zeros: `body_pose` `(frames, 69)`, `global_orient` and `transl`
+/// `(frames, 3)`, f64, each member deflated (streamed: the zeros are never all in memory).
+/// 700 000 frames take about 400 KB.
+fn write_zero_poses(path: &Path, frames: usize) {
+    use std::io::Write as _;
+    let mut out = Vec::new();
+    let mut central = Vec::new();
+    let members = [("body_pose", 69), ("global_orient", 3), ("transl", 3)];
+    for (name, width) in members {
+        let mut header =
+            format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({frames}, {width}), }}");
+        while (10 + header.len() + 1) % 64 != 0 {
+            header.push(' ');
+        }
+        header.push('\n');
+        let mut npy_header = b"\x93NUMPY\x01\x00".to_vec();
+        npy_header.extend((header.len() as u16).to_le_bytes());
+        npy_header.extend(header.as_bytes());
+        let mut crc = crc32fast::Hasher::new();
+        let mut encoder =
+            flate2::write::DeflateEncoder::new(Vec::new(), flate2::Compression::default());
+        crc.update(&npy_header);
+        encoder.write_all(&npy_header).unwrap();
+        let zeros = vec![0u8; 1 << 20];
+        let mut left = frames * width * 8;
+        while left > 0 {
+            let n = left.min(zeros.len());
+            crc.update(&zeros[..n]);
+            encoder.write_all(&zeros[..n]).unwrap();
+            left -= n;
+        }
+        let data = encoder.finish().unwrap();
+        let size = u32::try_from(npy_header.len() + frames * width * 8).unwrap();
+        let file_name = format!("{name}.npy");
+        // Version, flags, method 8 (deflate), time and date, CRC, sizes, name and extra lengths.
+        let mut fields = vec![20u8, 0, 0, 0, 8, 0, 0, 0, 0, 0];
+        fields.extend(crc.finalize().to_le_bytes());
+        fields.extend((data.len() as u32).to_le_bytes());
+        fields.extend(size.to_le_bytes());
+        fields.extend((file_name.len() as u16).to_le_bytes());
+        fields.extend([0, 0]);
+        let offset = out.len() as u32;
+        out.extend(0x0403_4b50_u32.to_le_bytes());
+        out.extend(&fields);
+        out.extend(file_name.as_bytes());
+        out.extend(&data);
+        central.extend(0x0201_4b50_u32.to_le_bytes());
+        central.extend([20, 0]); // made by
+        central.extend(&fields);
+        central.extend([0; 10]); // comment length, disk, internal and external attributes
+        central.extend(offset.to_le_bytes());
+        central.extend(file_name.as_bytes());
+    }
+    let central_start = out.len() as u32;
+    out.extend(&central);
+    out.extend(0x0605_4b50_u32.to_le_bytes());
+    out.extend([0; 4]);
+    out.extend((members.len() as u16).to_le_bytes());
+    out.extend((members.len() as u16).to_le_bytes());
+    out.extend((central.len() as u32).to_le_bytes());
+    out.extend(central_start.to_le_bytes());
+    out.extend([0; 2]);
+    std::fs::write(path, out).unwrap();
+}
+
+/// Failure 2 of issue 35, end to end: a 400 KB pose file declaring 700 000 frames, given
+/// to an avatar whose motion context builds motion windows from the poses. Without
+/// `--max-frames` `render` and `export` refuse it in under a second, naming the file, the
+/// frames, the estimate and `--max-frames` (the windows would need tens of GB; they once
+/// made a 49 GB allocation that aborted the process); with `--max-frames 2` they draw.
+#[test]
+fn a_pose_file_of_700000_frames_is_refused_at_once_or_cut_by_max_frames() {
+    let sandbox = trained_with_motion();
+    let train_key = sandbox.key_of("p.yaml", "train");
+    let big = sandbox.path().join("big.npz");
+    write_zero_poses(&big, 700_000);
+    assert!(std::fs::metadata(&big).unwrap().len() < 1 << 20);
+    let poses = big.display().to_string();
+    for (command, second_file) in [("render", "frame_00001.png"), ("export", "frame_00001.ply")] {
+        let out = sandbox.path().join(command);
+        let out_text = out.display().to_string();
+        let args = [
+            command, "--avatar", &train_key, "--poses", &poses, "--out", &out_text, "--device",
+            "cpu",
+        ];
+        let started = std::time::Instant::now();
+        let output = sandbox
+            .command(&args)
+            .env(seqavatar_engine::MEMORY_BUDGET_VAR, "4G")
+            .output()
+            .unwrap();
+        let took = started.elapsed();
+        eprintln!("{command} without --max-frames refused in {took:?}");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{command} was accepted: {stderr}");
+        for part in ["big.npz", "700000 frames", "GB", "--max-frames"] {
+            assert!(stderr.contains(part), "{command}: no `{part}` in {stderr}");
+        }
+        assert!(
+            took < std::time::Duration::from_secs(1),
+            "{command} took {took:?} to refuse"
+        );
+        let mut cut = args.to_vec();
+        cut.extend(["--max-frames", "2"]);
+        let mut command_line = sandbox.command(&cut);
+        command_line.env(seqavatar_engine::MEMORY_BUDGET_VAR, "4G");
+        let output = command_line.output().unwrap();
+        assert!(
+            output.status.success(),
+            "{command} --max-frames 2: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        assert!(
+            out.join(second_file).is_file(),
+            "{command} drew no second frame"
+        );
+    }
+}
+
 /// `render`, `export` and `report` work on a read-only cache (see
 /// `engine::a_read_only_cache_serves_reads` for how it is made one), without lock files.
 #[test]

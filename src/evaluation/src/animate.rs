@@ -332,6 +332,16 @@ pub fn drive_avatar(
             })
             .collect()
     };
+    // A pose file declares its frames in a few bytes (700 000 compress to 400 KB): their
+    // motion windows are estimated from the arrays' headers, before any array is inflated.
+    if let (Some(_), PoseSource::File(path)) = (&motion_entry, poses) {
+        check_motion_memory(
+            poses,
+            declared_pose_frames(path)?.min(pose_limit),
+            (model.num_vertices(), model.num_joints(), raw_scales.len()),
+            seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?,
+        )?;
+    }
     let (params, axis) = match poses {
         PoseSource::File(path) => (
             moved(
@@ -411,6 +421,21 @@ pub fn drive_avatar(
         sources,
         renderer,
     })
+}
+
+/// The frames a pose file declares (the first dimension of its `global_orient`), from that
+/// array's header alone.
+fn declared_pose_frames(path: &Path) -> anyhow::Result<usize> {
+    let bytes = seqavatar_engine::files::read_regular_file(path)?;
+    let file = path.display();
+    let entries = npz::list(&bytes).with_context(|| format!("{file}: not a readable .npz"))?;
+    let entry = entries
+        .iter()
+        .find(|entry| entry.name == "global_orient.npy")
+        .ok_or_else(|| anyhow::anyhow!("{file}: missing array `global_orient`"))?;
+    let header = npz::member_header(&bytes, entry)
+        .with_context(|| format!("{file}: not a readable .npz"))?;
+    Ok(header.shape.first().copied().unwrap_or(0))
 }
 
 /// Refuses motion windows for `frames` poses whose arrays would not fit the memory budget

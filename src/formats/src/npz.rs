@@ -318,23 +318,7 @@ pub fn extract_declared<'a>(
             let mut inflate = flate2::read::DeflateDecoder::new(compressed);
             let inflate_error =
                 |e: std::io::Error| NpzError::Corrupt(format!("member '{}': {e}", entry.name));
-            // The magic string, version and header length, then the header.
-            let mut out = Vec::with_capacity(256);
-            (&mut inflate)
-                .take(12)
-                .read_to_end(&mut out)
-                .map_err(inflate_error)?;
-            let header_end = npy_header_end(&out).map_err(member_error)?;
-            if header_end > MAX_NPY_HEADER_BYTES {
-                return Err(member_error(NpyError::BadHeader(format!(
-                    "the header is {header_end} bytes, more than the {MAX_NPY_HEADER_BYTES} \
-                     allowed"
-                ))));
-            }
-            (&mut inflate)
-                .take(header_end.saturating_sub(out.len()) as u64)
-                .read_to_end(&mut out)
-                .map_err(inflate_error)?;
+            let mut out = inflate_header(&mut inflate, entry)?;
             let header = npy::read_header(&out).map_err(member_error)?;
             check_declared_size(entry, &header, limits, file_left)?;
             // Within the limits: at most the decoded size of the declared array.
@@ -375,6 +359,59 @@ pub fn extract_declared<'a>(
         )));
     }
     Ok(data)
+}
+
+/// Inflates the `.npy` header of a deflated member (the magic string, version and header
+/// length, then the header), and nothing of its data.
+fn inflate_header(
+    inflate: &mut flate2::read::DeflateDecoder<&[u8]>,
+    entry: &ZipEntry,
+) -> Result<Vec<u8>, NpzError> {
+    let member_error = |source| NpzError::Member {
+        member: entry.name.clone(),
+        source,
+    };
+    let inflate_error =
+        |e: std::io::Error| NpzError::Corrupt(format!("member '{}': {e}", entry.name));
+    let mut out = Vec::with_capacity(256);
+    inflate
+        .take(12)
+        .read_to_end(&mut out)
+        .map_err(inflate_error)?;
+    let header_end = npy_header_end(&out).map_err(member_error)?;
+    if header_end > MAX_NPY_HEADER_BYTES {
+        return Err(member_error(NpyError::BadHeader(format!(
+            "the header is {header_end} bytes, more than the {MAX_NPY_HEADER_BYTES} allowed"
+        ))));
+    }
+    inflate
+        .take(header_end.saturating_sub(out.len()) as u64)
+        .read_to_end(&mut out)
+        .map_err(inflate_error)?;
+    Ok(out)
+}
+
+/// The `.npy` header of one member (the shape and dtype it declares), read without
+/// inflating its data: what an array will be, before deciding to read it.
+pub fn member_header(bytes: &[u8], entry: &ZipEntry) -> Result<npy::NpyHeader, NpzError> {
+    let member_error = |source| NpzError::Member {
+        member: entry.name.clone(),
+        source,
+    };
+    let (_, range) = member_span(bytes, entry)?;
+    let compressed = &bytes[range];
+    match entry.method {
+        0 => npy::read_header(compressed).map_err(member_error),
+        8 => {
+            let mut inflate = flate2::read::DeflateDecoder::new(compressed);
+            let out = inflate_header(&mut inflate, entry)?;
+            npy::read_header(&out).map_err(member_error)
+        }
+        other => Err(NpzError::Unsupported {
+            member: entry.name.clone(),
+            what: format!("compression method {other}"),
+        }),
+    }
 }
 
 /// Refuses a member whose declared array is over the limits (`file_left`: what the

@@ -169,8 +169,10 @@ impl IngestConfig {
     /// fields, when the split yields no test image, so the pipeline is refused when it loads
     /// rather than after training. Checked wherever the config decides it: the whole plan
     /// of a synthetic scene; for file-based datasets an explicit empty `split.test_views`
-    /// without `split.held_out_frames` (their default splits come from their files, which
-    /// the pipeline does not open when it loads).
+    /// without `split.held_out_frames`, and otherwise the split applied to the dataset's
+    /// cameras and frames, read from its files (a dataset with one camera has no held-out
+    /// camera for the default split). A dataset that cannot be opened is left to ingest,
+    /// which reports why.
     pub fn check_test_images_at_load(&self) -> Result<(), String> {
         let advice = "set split.test_views (and split.test_frames) to views and frames not \
                       trained on, or split.held_out_frames";
@@ -183,25 +185,43 @@ impl IngestConfig {
                      measure; {advice}"
                 ));
             }
+            let Ok(reader) = seqavatar_datasets::open_reader(&self.dataset, None) else {
+                return Ok(());
+            };
+            let split = self.split.apply(reader.default_split());
+            let (cameras, frames) = (reader.cameras().len(), reader.num_frames());
+            if ImageCounts::of(&split, cameras, frames).is_ok_and(|counts| counts.test == 0) {
+                let plural = if cameras == 1 { "" } else { "s" };
+                return Err(format!(
+                    "{} has {cameras} camera{plural} and {frames} frames: {}",
+                    reader.describe(),
+                    no_test_images(&split, advice)
+                ));
+            }
             return Ok(());
         };
         let counts = counts.map_err(|e| format!("split: {e:#}"))?;
         if counts.test > 0 {
             return Ok(());
         }
-        Err(format!(
-            "the split yields no test images (split.test_views {:?}, split.test_frames {}, \
-             split.held_out_frames {}; a (view, frame) also in split.train_views x \
-             split.train_frames is a training image): evaluation would have nothing to \
-             measure; {advice}",
-            split.test_views,
-            describe_range(&split.test_frames),
-            split
-                .held_out_frames
-                .as_ref()
-                .map_or_else(|| "not set".to_owned(), describe_range),
-        ))
+        Err(no_test_images(&split, advice))
     }
+}
+
+/// Why `split` yields no test image, naming its fields, and what to do (`advice`).
+fn no_test_images(split: &Split, advice: &str) -> String {
+    format!(
+        "the split yields no test images (split.test_views {:?}, split.test_frames {}, \
+         split.held_out_frames {}; a (view, frame) also in split.train_views x \
+         split.train_frames is a training image): evaluation would have nothing to measure; \
+         {advice}",
+        split.test_views,
+        describe_range(&split.test_frames),
+        split
+            .held_out_frames
+            .as_ref()
+            .map_or_else(|| "not set".to_owned(), describe_range),
+    )
 }
 
 fn describe_range(range: &FrameRange) -> String {
@@ -304,7 +324,8 @@ mod tests {
         }))
         .check_test_images_at_load()
         .unwrap();
-        // A file-based dataset's default split comes from its files: not refused here.
+        // A file-based dataset's default split comes from its files; one that cannot be
+        // opened is left to ingest, which says why.
         config(serde_json::json!({"dataset": {"kind": "zju_mocap", "root": "/nowhere"}}))
             .check_test_images_at_load()
             .unwrap();

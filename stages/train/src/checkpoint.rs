@@ -15,6 +15,10 @@
 //! valid encoding), that cannot be read (a file in place of its folder included) or that
 //! holds a non-finite value is unusable: [`resume_newest_good`] deletes it, says which and
 //! why, and falls back to the previous one or starts over, so a rerun is never stuck.
+//! Checkpoints are read through the engine's checked store
+//! ([`seqavatar_engine::files::entry_storage`]): a FIFO or device in place of one of their
+//! files is refused, naming it, without being opened. A file in place of the checkpoints'
+//! folder is deleted the same way, with a note.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -127,8 +131,7 @@ fn list(dir: &Path) -> Result<Vec<(u64, PathBuf)>, CheckpointError> {
             continue;
         };
         if rest.ends_with(PARTIAL) {
-            let path = entry.path();
-            fs::remove_dir_all(&path).map_err(io(&path))?;
+            remove(&entry.path())?;
             continue;
         }
         if let Ok(iteration) = rest.parse::<u64>() {
@@ -156,6 +159,15 @@ pub fn resume_newest_good<T>(
     mut resume: impl FnMut(Checkpoint) -> anyhow::Result<T>,
 ) -> Result<(Option<T>, Vec<String>), CheckpointError> {
     let mut notes = Vec::new();
+    // A file (a FIFO, a link to one) in place of the checkpoints' folder would fail every
+    // listing and every save ("Not a directory"): it is removed and training starts over.
+    if fs::symlink_metadata(dir).is_ok() && !fs::metadata(dir).is_ok_and(|m| m.is_dir()) {
+        remove(dir)?;
+        notes.push(format!(
+            "{} is not a folder of checkpoints and was deleted",
+            dir.display()
+        ));
+    }
     for (_, path) in list(dir)?.into_iter().rev() {
         let failure = match read_group(&path) {
             Ok(checkpoint) => match resume(checkpoint) {
@@ -164,19 +176,22 @@ pub fn resume_newest_good<T>(
             },
             Err(error) => error.to_string(),
         };
-        // A file (or link) in place of the checkpoint's folder is removed as a file.
-        let is_dir = fs::symlink_metadata(&path).is_ok_and(|m| m.is_dir());
-        if is_dir {
-            fs::remove_dir_all(&path).map_err(io(&path))?;
-        } else {
-            fs::remove_file(&path).map_err(io(&path))?;
-        }
+        remove(&path)?;
         notes.push(format!(
             "checkpoint {} is unusable and was deleted ({failure})",
             path.display()
         ));
     }
     Ok((None, notes))
+}
+
+/// Removes a folder with its content, or anything else (a file, a FIFO, a link) in its place.
+fn remove(path: &Path) -> Result<(), CheckpointError> {
+    if fs::symlink_metadata(path).is_ok_and(|m| m.is_dir()) {
+        fs::remove_dir_all(path).map_err(io(path))
+    } else {
+        fs::remove_file(path).map_err(io(path))
+    }
 }
 
 fn sync_tree(path: &Path) -> Result<(), CheckpointError> {
@@ -309,7 +324,10 @@ fn check_tensor(path: &Path, tensor: &Tensor) -> Result<(), CheckpointError> {
 }
 
 fn read_group(path: &Path) -> Result<Checkpoint, CheckpointError> {
-    let store = Arc::new(FilesystemStore::new(path).map_err(|e| invalid(path, e))?);
+    // Read through the checked store of cache entries: a FIFO or device in place of a
+    // chunk or metadata file is an error naming it, not an open that waits forever.
+    let store = seqavatar_engine::files::entry_storage(path)
+        .map_err(|e| invalid(path, format!("{e:#}")))?;
     let group = Group::open(store.clone(), "/").map_err(|e| invalid(path, e))?;
     let attributes = group.attributes();
     let field = |name: &str| {
@@ -590,6 +608,92 @@ mod tests {
         let (resumed, notes) =
             resume_newest_good(dir.path(), |checkpoint| Ok(checkpoint.iteration)).unwrap();
         assert_eq!((resumed, notes.len()), (None, 0));
+    }
+
+    fn make_fifo(path: &Path) {
+        let status = std::process::Command::new("mkfifo")
+            .arg(path)
+            .status()
+            .expect("mkfifo runs");
+        assert!(status.success());
+    }
+
+    /// Runs `work` on a thread and fails if it does not return within `seconds` (a read that
+    /// blocks on a FIFO would otherwise hang the test).
+    fn within<T: Send + 'static>(seconds: u64, work: impl FnOnce() -> T + Send + 'static) -> T {
+        let (sender, receiver) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = sender.send(work());
+        });
+        receiver
+            .recv_timeout(std::time::Duration::from_secs(seconds))
+            .expect("the call blocked")
+    }
+
+    /// A FIFO in place of a chunk (or of the group document) is refused when the checkpoint
+    /// is read, naming it, instead of an open that waits for a writer forever; the previous
+    /// checkpoint is used.
+    #[test]
+    fn a_fifo_in_place_of_a_chunk_is_refused_at_once() {
+        let dir = tempfile::tempdir().unwrap();
+        save(dir.path(), &sample(10)).unwrap();
+        save(dir.path(), &sample(20)).unwrap();
+        save(dir.path(), &sample(30)).unwrap();
+        let chunk = dir.path().join("ckpt-0000000030/gaussians/xyz/c/0/0");
+        fs::remove_file(&chunk).unwrap();
+        make_fifo(&chunk);
+        let document = dir.path().join("ckpt-0000000020/zarr.json");
+        fs::remove_file(&document).unwrap();
+        make_fifo(&document);
+        let root = dir.path().to_path_buf();
+        let (resumed, notes) = within(5, move || {
+            resume_newest_good(&root, |checkpoint| Ok(checkpoint.iteration)).unwrap()
+        });
+        assert_eq!(resumed, None, "{notes:?}");
+        assert_eq!(notes.len(), 2, "{notes:?}");
+        assert!(
+            notes[0].contains("ckpt-0000000030/gaussians/xyz/c/0/0") && notes[0].contains("a FIFO"),
+            "{notes:?}"
+        );
+        assert!(
+            notes[1].contains("ckpt-0000000020/zarr.json") && notes[1].contains("a FIFO"),
+            "{notes:?}"
+        );
+        assert!(list(dir.path()).unwrap().is_empty());
+    }
+
+    /// A file in place of the checkpoints' folder is deleted with a note (training starts
+    /// over), not "Not a directory" on every run; the next save works.
+    #[test]
+    fn a_file_in_place_of_the_checkpoints_folder_is_deleted() {
+        let parent = tempfile::tempdir().unwrap();
+        let dir = parent.path().join("checkpoints");
+        fs::write(&dir, b"not a folder").unwrap();
+        let (resumed, notes) =
+            resume_newest_good(&dir, |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!(resumed, None);
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert!(
+            notes[0].contains("checkpoints") && notes[0].contains("not a folder"),
+            "{notes:?}"
+        );
+        save(&dir, &sample(10)).unwrap();
+        let (resumed, notes) =
+            resume_newest_good(&dir, |checkpoint| Ok(checkpoint.iteration)).unwrap();
+        assert_eq!((resumed, notes.len()), (Some(10), 0));
+        // A FIFO there, and a file named like an interrupted write, go the same way.
+        fs::remove_dir_all(&dir).unwrap();
+        make_fifo(&dir);
+        let (resumed, notes) = within(5, {
+            let dir = dir.clone();
+            move || resume_newest_good(&dir, |checkpoint| Ok(checkpoint.iteration)).unwrap()
+        });
+        assert_eq!((resumed, notes.len()), (None, 1), "{notes:?}");
+        fs::create_dir(&dir).unwrap();
+        fs::write(dir.join("ckpt-0000000009.partial"), b"x").unwrap();
+        save(&dir, &sample(10)).unwrap();
+        assert_eq!(load_latest(&dir).unwrap().unwrap().iteration, 10);
+        assert!(!dir.join("ckpt-0000000009.partial").exists());
     }
 
     #[test]

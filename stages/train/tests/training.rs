@@ -1140,6 +1140,99 @@ fn a_corrupt_checkpoint_restarts_training_and_says_so() {
     );
 }
 
+/// The staging work folder of the train stage of `text`'s pipeline in the cache `cache`.
+fn train_work_dir(cache: &Path, text: &str) -> PathBuf {
+    let registry = registry();
+    let store = LocalStore::open(cache).unwrap();
+    let pipeline = Pipeline::parse(text, Path::new("test.yaml"), &registry, &[]).unwrap();
+    let keys = seqavatar_engine::compute_keys(&pipeline, &registry, &store).unwrap();
+    cache
+        .join(".staging/train")
+        .join(&keys["train"].key)
+        .join("work")
+}
+
+/// Runs the pipeline `text` on a thread and fails if it has not finished within `seconds`
+/// (a read that blocks on a FIFO would otherwise hang the test).
+fn run_within(seconds: u64, cache: &Path, text: &str) -> Vec<seqavatar_engine::StageReport> {
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let (cache, text) = (cache.to_path_buf(), text.to_owned());
+    std::thread::spawn(move || {
+        let _ = sender.send(run_pipeline(&cache, &text).map_err(|e| format!("{e:#}")));
+    });
+    receiver
+        .recv_timeout(Duration::from_secs(seconds))
+        .expect("the run blocked")
+        .unwrap()
+}
+
+/// A checkpoint chunk replaced by a FIFO used to block every rerun (the open waits for a
+/// writer): it is refused at once, naming the file, and training falls back to the previous
+/// checkpoint or, as here, starts over, and says so.
+#[test]
+fn a_fifo_in_place_of_a_checkpoint_chunk_is_refused_and_training_starts_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = pipeline_text(20);
+    run_pipeline(dir.path(), UPSTREAM).unwrap();
+    let checkpoints = train_work_dir(dir.path(), &text).join("checkpoints");
+    let sample = checkpoint::Checkpoint {
+        iteration: 10,
+        rng_state: 1,
+        metadata: serde_json::json!({}),
+        tensors: vec![checkpoint::Tensor {
+            name: "gaussians/xyz".into(),
+            shape: vec![2, 3],
+            dimension_names: vec!["gaussian".into(), "axis".into()],
+            values: vec![0.5; 6],
+        }],
+    };
+    let saved = checkpoint::save(&checkpoints, &sample).unwrap();
+    let chunk = saved.join("gaussians/xyz/c/0/0");
+    std::fs::remove_file(&chunk).unwrap();
+    let status = std::process::Command::new("mkfifo")
+        .arg(&chunk)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let reports = run_within(120, dir.path(), &text);
+    let train = entry(dir.path(), &reports, "train");
+    assert_eq!(train.attribute("resumed_from").unwrap().as_u64(), Some(0));
+    let warnings = &train.manifest().warnings;
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("ckpt-0000000010/gaussians/xyz/c/0/0")
+                && w.contains("a FIFO")
+                && w.contains("unusable and was deleted")),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings.iter().any(|w| w.contains("starts over")),
+        "{warnings:?}"
+    );
+}
+
+/// A file in place of the `work/checkpoints` folder used to fail every rerun with "Not a
+/// directory": it is deleted with a warning and training runs (and checkpoints) as usual.
+#[test]
+fn a_file_in_place_of_the_checkpoints_folder_is_deleted_and_training_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = pipeline_text(20);
+    let work = train_work_dir(dir.path(), &text);
+    std::fs::create_dir_all(&work).unwrap();
+    std::fs::write(work.join("checkpoints"), b"not a folder").unwrap();
+    let reports = run_within(120, dir.path(), &text);
+    let train = entry(dir.path(), &reports, "train");
+    assert_eq!(train.attribute("resumed_from").unwrap().as_u64(), Some(0));
+    let warnings = &train.manifest().warnings;
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("work/checkpoints") && w.contains("not a folder")),
+        "{warnings:?}"
+    );
+}
+
 /// The training targets are the person on the iteration's background: replacing what the
 /// cameras saw outside the masks changes no loss (L1, mask, SSIM, LPIPS, train PSNR), on
 /// black, white and random backgrounds and on both backends. (Comparing the raw images, as
