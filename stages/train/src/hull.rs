@@ -364,9 +364,12 @@ fn frame_points(
             let centre = grid.centre(cell);
             let v = template.query(&centre.to_array(), 1)[0] as usize;
             let distance = (centre - DVec3::from(posed[v])).length();
-            (distance > init.min_distance).then(|| {
+            // A blended transform near singular (weights split between opposed joint
+            // rotations) maps a point to no finite canonical position: it adds nothing.
+            let canonical = skinning.inverse(v, centre);
+            (distance > init.min_distance && canonical.is_finite()).then(|| {
                 (
-                    skinning.inverse(v, centre).to_array(),
+                    canonical.to_array(),
                     colour(&grid, &occupied, views, centre).0,
                 )
             })
