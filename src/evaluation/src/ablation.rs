@@ -53,7 +53,7 @@ pub fn mean_std(values: &[f64]) -> Option<(f64, f64)> {
 }
 
 /// The columns of the table: header and where the value sits in an eval summary.
-const COLUMNS: [(&str, Metric); 11] = [
+const COLUMNS: [(&str, Metric); 12] = [
     ("all test images", Metric::Path(&["means", "psnr"])),
     (
         "history frames",
@@ -82,15 +82,19 @@ const COLUMNS: [(&str, Metric); 11] = [
     ("training images", Metric::Path(&["train_image_psnr"])),
     (
         "context zeroed: change, history frames",
-        Metric::Probe("zeroed", "history"),
+        Metric::Probe("zeroed", &["history"]),
+    ),
+    (
+        "context zeroed: change, garment region, history frames",
+        Metric::Probe("zeroed", &["garment", "history"]),
     ),
     (
         "context zeroed: change, all",
-        Metric::Probe("zeroed", "all"),
+        Metric::Probe("zeroed", &["all"]),
     ),
     (
         "context from another frame: change, history frames",
-        Metric::Probe("from_frame", "history"),
+        Metric::Probe("from_frame", &["history"]),
     ),
 ];
 
@@ -98,8 +102,8 @@ const COLUMNS: [(&str, Metric); 11] = [
 enum Metric {
     /// A number at this path of the summary.
     Path(&'static [&'static str]),
-    /// `psnr_change.<subset>` of the context probe of this kind.
-    Probe(&'static str, &'static str),
+    /// `psnr_change.<path>` of the context probe of this kind.
+    Probe(&'static str, &'static [&'static str]),
 }
 
 impl Metric {
@@ -109,7 +113,7 @@ impl Metric {
                 .iter()
                 .try_fold(summary, |value, key| value.get(key))
                 .and_then(Value::as_f64),
-            Metric::Probe(kind, subset) => summary
+            Metric::Probe(kind, path) => summary
                 .get("context_probes")?
                 .as_array()?
                 .iter()
@@ -120,8 +124,8 @@ impl Metric {
                         .and_then(Value::as_str)
                         == Some(kind)
                 })?
-                .get("psnr_change")?
-                .get(subset)?
+                .get("psnr_change")
+                .and_then(|change| path.iter().try_fold(change, |value, key| value.get(key)))?
                 .as_f64(),
         }
     }
@@ -234,7 +238,8 @@ mod tests {
                 },
                 "train_image_psnr": 30.0,
                 "context_probes": [
-                    {"probe": {"kind": "zeroed"}, "psnr_change": {"all": zeroed / 2.0, "history": zeroed}},
+                    {"probe": {"kind": "zeroed"}, "psnr_change": {"all": zeroed / 2.0, "history": zeroed,
+                                                                  "garment": {"all": zeroed, "history": 2.0 * zeroed}}},
                     {"probe": {"kind": "from_frame", "offset": 50}, "psnr_change": {"all": 0.0, "history": -0.1}}
                 ],
             }),
@@ -269,7 +274,7 @@ mod tests {
         // Missing subsets are "-", changes are signed.
         assert!(
             lines[3].ends_with(
-                "| - | - | 30.00 ± 0.00 | -2.000 ± 1.414 | -1.000 ± 0.707 | -0.100 ± 0.000 | 150 ± 71 |"
+                "| - | - | 30.00 ± 0.00 | -2.000 ± 1.414 | -4.000 ± 2.828 | -1.000 ± 0.707 | -0.100 ± 0.000 | 150 ± 71 |"
             ),
             "{table}"
         );

@@ -76,22 +76,42 @@ pub struct PsnrChange {
     pub held_out_cameras: Option<f64>,
     pub held_out_frames: Option<f64>,
     pub held_out_history_frames: Option<f64>,
+    /// The same changes of the garment region's PSNR, where the images have one (absent in
+    /// summaries written before eval version 11).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub garment: Option<Box<PsnrChange>>,
 }
 
 impl PsnrChange {
-    /// The change of every subset from the probed and unprobed means.
+    /// The change of every subset from the probed and unprobed means, on the whole image and
+    /// on the garment region.
     pub fn between(
         probed: &MeanScores,
         probed_subsets: &SubsetScores,
         base: &MeanScores,
         base_subsets: &SubsetScores,
     ) -> Self {
-        let delta = |p: &Option<MeanScores>, b: &Option<MeanScores>| match (p, b) {
-            (Some(p), Some(b)) => Some(p.psnr - b.psnr),
-            _ => None,
+        let garment = |m: &MeanScores| m.garment.as_ref().and_then(|g| g.psnr);
+        let mut change = Self::of(probed, probed_subsets, base, base_subsets, |m| Some(m.psnr))
+            .unwrap_or_default();
+        change.garment =
+            Self::of(probed, probed_subsets, base, base_subsets, garment).map(Box::new);
+        change
+    }
+
+    /// The changes of the figure `pick` reads; `None` where the means over all images lack it.
+    fn of(
+        probed: &MeanScores,
+        probed_subsets: &SubsetScores,
+        base: &MeanScores,
+        base_subsets: &SubsetScores,
+        pick: impl Fn(&MeanScores) -> Option<f64>,
+    ) -> Option<Self> {
+        let delta = |p: &Option<MeanScores>, b: &Option<MeanScores>| {
+            Some(pick(p.as_ref()?)? - pick(b.as_ref()?)?)
         };
-        PsnrChange {
-            all: probed.psnr - base.psnr,
+        Some(PsnrChange {
+            all: pick(probed)? - pick(base)?,
             history: delta(&probed_subsets.history, &base_subsets.history),
             not_history: delta(&probed_subsets.not_history, &base_subsets.not_history),
             held_out_cameras: delta(
@@ -106,7 +126,8 @@ impl PsnrChange {
                 &probed_subsets.held_out_history_frames,
                 &base_subsets.held_out_history_frames,
             ),
-        }
+            garment: None,
+        })
     }
 }
 
@@ -132,6 +153,50 @@ pub fn probe_result(
 mod tests {
     use super::*;
     use seqavatar_core::glam::DVec3;
+
+    /// The garment region's changes come from the region's means, subset by subset, beside
+    /// the whole image's; without a region in both runs there are none.
+    #[test]
+    fn psnr_changes_cover_the_garment_region() {
+        use crate::region::RegionMeans;
+        let means = |psnr: f64, garment: Option<f64>| MeanScores {
+            images: 4,
+            psnr,
+            ssim: 0.9,
+            lpips_vgg: None,
+            lpips_alex: None,
+            garment: garment.map(|g| RegionMeans {
+                images: 4,
+                empty_images: 0,
+                psnr: Some(g),
+                ssim: Some(0.5),
+                lpips_vgg: None,
+                lpips_alex: None,
+            }),
+        };
+        let subsets = |history: MeanScores| SubsetScores {
+            history: Some(history),
+            ..SubsetScores::default()
+        };
+        let (base, probed) = (means(30.0, Some(16.0)), means(29.0, Some(14.5)));
+        let change = PsnrChange::between(
+            &probed,
+            &subsets(means(28.0, Some(14.0))),
+            &base,
+            &subsets(means(29.5, Some(16.5))),
+        );
+        assert_eq!((change.all, change.history), (-1.0, Some(-1.5)));
+        let garment = change.garment.expect("both runs have the region");
+        assert_eq!((garment.all, garment.history), (-1.5, Some(-2.5)));
+        assert_eq!((garment.not_history, garment.garment), (None, None));
+        let without = PsnrChange::between(
+            &means(29.0, None),
+            &SubsetScores::default(),
+            &base,
+            &SubsetScores::default(),
+        );
+        assert_eq!((without.all, without.garment), (-1.0, None));
+    }
 
     #[test]
     fn donors_are_drawn_from_the_frames_with_a_whole_window() {

@@ -26,7 +26,8 @@
 //! the train entry's `train_image_psnr_mean` (protocol PSNR on training images) or `null`;
 //! `context_probes` = a list of `ProbeResult`: the scores with the
 //! motion-history inputs zeroed and taken from frame `i + context_probe_offset`, and their
-//! PSNR change per subset, empty for avatars without such inputs; `lpips` =
+//! PSNR change per subset (`psnr_change`, with `psnr_change.garment` the same changes on the
+//! garment region where there is one), empty for avatars without such inputs; `lpips` =
 //! `"unavailable"` or the nets used, `backend`; `garment_region` = the ingest entry's
 //! `garment_region` (`synthetic_skirt`, `cihp_clothing`) or `null` (no garment region for
 //! this dataset), and then `means.garment` and each subset's `garment` =

@@ -213,12 +213,13 @@ impl StageKind for EvalStage {
         // 9: on the gpu backend each frame is deformed and splatted on the device.
         // 10: the garment region's figures (`summary.garment_region`, `garment` in `means`
         //     and each subset, per-image `garment_*` arrays) where ingest has garment masks.
+        // 11: the context probes score the garment region too (`psnr_change.garment`).
         // `precision` did not bump it: the f32 path is unchanged, so on machines
         // without tensor cores every output is as before, and a config without `precision`
         // keeps its key (the field is serialised only where set); an explicit one enters the
         // key through the canonical config. `mixed`, the default, changes results only on
         // adapters with tensor cores, which the key does not name (it names no adapter).
-        10
+        11
     }
 
     fn input_kinds(&self) -> &'static [&'static str] {
@@ -731,14 +732,14 @@ impl Evaluation<'_, '_> {
                     )
                 })?;
                 let (truth, mask) = testset.load(ingest, test)?;
-                // The probes compare whole-image figures; the garment region is not re-scored.
+                let garment = testset.load_garment(ingest, test)?;
                 let scored = score_image(
                     &config.protocol,
                     &LpipsModels::default(),
                     &render,
                     &truth,
                     &mask,
-                    None,
+                    garment.as_ref(),
                 )?;
                 scores.push(scored.score);
                 progress.inc(1);
@@ -750,8 +751,15 @@ impl Evaluation<'_, '_> {
             let change = &result.psnr_change;
             let show =
                 |value: Option<f64>| value.map_or_else(|| "-".to_owned(), |v| format!("{v:+.2}"));
+            let garment = change.garment.as_ref().map_or_else(String::new, |g| {
+                format!(
+                    "; garment region {:+.2} dB, history frames {}",
+                    g.all,
+                    show(g.history)
+                )
+            });
             ctx.log(&format!(
-                "{}: PSNR change {:+.2} dB on all {} images, history frames {}, other frames {}, held-out frames {}",
+                "{}: PSNR change {:+.2} dB on all {} images, history frames {}, other frames {}, held-out frames {}{garment}",
                 probe.describe(),
                 change.all,
                 scores.len(),
