@@ -32,6 +32,14 @@ pub fn affine_to_rows(a: &DAffine3) -> [f64; 12] {
     out
 }
 
+/// The affine transform of a row-major 3 x 4 (the inverse of [`affine_to_rows`]).
+pub fn rows_to_affine(rows: &[f64; 12]) -> DAffine3 {
+    DAffine3::from_cols_array(&[
+        rows[0], rows[4], rows[8], rows[1], rows[5], rows[9], rows[2], rows[6], rows[10], rows[3],
+        rows[7], rows[11],
+    ])
+}
+
 /// A body model with its canonical space.
 #[derive(Clone, Debug)]
 pub struct BodyRig {
@@ -335,6 +343,17 @@ mod tests {
     use crate::skinning::{GaussianParams, skin_forward};
     use seqavatar_core::body::BodyModel;
     use seqavatar_core::body::procedural::procedural_body;
+
+    /// `rows_to_affine` reads back what `affine_to_rows` wrote, entry for entry.
+    #[test]
+    fn rows_and_affine_transforms_round_trip() {
+        let a = DAffine3::from_cols_array(&[
+            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0,
+        ]);
+        let rows = affine_to_rows(&a);
+        assert_eq!(rows[..4], [1.0, 4.0, 7.0, 10.0]);
+        assert_eq!(rows_to_affine(&rows), a);
+    }
 
     /// Diffused weights: each row is the kernel-weighted average of the rows within 3 sigma
     /// (a brute-force loop over every pair here, against the grid search), rows still sum

@@ -9,10 +9,10 @@
 
 use rayon::prelude::*;
 use seqavatar_core::body::BodyParams;
-use seqavatar_core::glam::{DMat3, DVec3};
+use seqavatar_core::glam::{DAffine3, DVec3};
 use serde::{Deserialize, Serialize};
 
-use seqavatar_avatar::rig::BodyRig;
+use seqavatar_avatar::rig::{BodyRig, rows_to_affine};
 use seqavatar_core::camera::Camera;
 use seqavatar_knn::KnnGrid;
 
@@ -95,26 +95,16 @@ const MARGIN: f64 = 0.3;
 
 /// One frame's skinning at the template vertices: `y = A (B^-1 (x - b) + o) + a`.
 struct VertexSkinning {
-    /// Blended target transforms per vertex (linear part, translation).
-    target: Vec<(DMat3, DVec3)>,
+    /// Blended target transforms per vertex.
+    target: Vec<DAffine3>,
     /// Blended canonical transforms per vertex.
-    canonical: Vec<(DMat3, DVec3)>,
+    canonical: Vec<DAffine3>,
     /// Rest-space offsets per vertex.
     offsets: Vec<DVec3>,
 }
 
-fn rows_to_affine(rows: &[f64; 12]) -> (DMat3, DVec3) {
-    (
-        DMat3::from_cols(
-            DVec3::new(rows[0], rows[4], rows[8]),
-            DVec3::new(rows[1], rows[5], rows[9]),
-            DVec3::new(rows[2], rows[6], rows[10]),
-        ),
-        DVec3::new(rows[3], rows[7], rows[11]),
-    )
-}
-
-fn blend(joints: &[[f64; 12]], weights: &[f64]) -> (DMat3, DVec3) {
+/// The weighted sum of row-major 3 x 4 joint transforms, as the skinning blends them.
+fn blend(joints: &[[f64; 12]], weights: &[f64]) -> DAffine3 {
     let mut sum = [0.0; 12];
     for (w, rows) in weights.iter().zip(joints) {
         for e in 0..12 {
@@ -161,16 +151,16 @@ impl VertexSkinning {
 
     /// A canonical point skinned with vertex `v`'s transforms.
     fn forward(&self, v: usize, canonical: DVec3) -> DVec3 {
-        let (a, a_t) = self.target[v];
-        let (b, b_t) = self.canonical[v];
-        a * (b.inverse() * (canonical - b_t) + self.offsets[v]) + a_t
+        let (a, b) = (self.target[v], self.canonical[v]);
+        a.matrix3 * (b.matrix3.inverse() * (canonical - b.translation) + self.offsets[v])
+            + a.translation
     }
 
     /// The canonical point that vertex `v`'s transforms skin to `world`.
     fn inverse(&self, v: usize, world: DVec3) -> DVec3 {
-        let (a, a_t) = self.target[v];
-        let (b, b_t) = self.canonical[v];
-        b * (a.inverse() * (world - a_t) - self.offsets[v]) + b_t
+        let (a, b) = (self.target[v], self.canonical[v]);
+        b.matrix3 * (a.matrix3.inverse() * (world - a.translation) - self.offsets[v])
+            + b.translation
     }
 }
 
@@ -517,6 +507,17 @@ mod tests {
             .collect()
     }
 
+    fn hull_views<'a>(
+        cameras: &'a [Camera],
+        images: &'a [(Vec<u8>, Vec<u8>)],
+    ) -> Vec<HullView<'a>> {
+        cameras
+            .iter()
+            .zip(images)
+            .map(|(camera, (rgb, mask))| HullView { camera, rgb, mask })
+            .collect()
+    }
+
     fn grid() -> Grid {
         let voxel = 0.02;
         Grid {
@@ -534,11 +535,7 @@ mod tests {
     fn carving_a_sphere_gives_the_intersection_of_its_tangent_cones() {
         let cameras = axis_cameras();
         let images = sphere_views(&cameras);
-        let views: Vec<HullView<'_>> = cameras
-            .iter()
-            .zip(&images)
-            .map(|(camera, (rgb, mask))| HullView { camera, rgb, mask })
-            .collect();
+        let views = hull_views(&cameras, &images);
         let grid = grid();
         let occupied = carve(&grid, &views);
         let half_angle = (RADIUS / DISTANCE).asin();
@@ -575,11 +572,7 @@ mod tests {
     fn colours_come_from_the_views_that_see_the_point() {
         let cameras = axis_cameras();
         let images = sphere_views(&cameras);
-        let views: Vec<HullView<'_>> = cameras
-            .iter()
-            .zip(&images)
-            .map(|(camera, (rgb, mask))| HullView { camera, rgb, mask })
-            .collect();
+        let views = hull_views(&cameras, &images);
         let grid = grid();
         let occupied = carve(&grid, &views);
         let point = DVec3::new(RADIUS - 0.01, 0.0, 0.0);
