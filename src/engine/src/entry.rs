@@ -1052,24 +1052,14 @@ mod tests {
         writer.finish(&mut manifest()).unwrap();
         let chunk = dir.path().join("values/c/1");
         std::fs::remove_file(&chunk).unwrap();
-        assert!(
-            std::process::Command::new("mkfifo")
-                .arg(&chunk)
-                .status()
-                .unwrap()
-                .success()
-        );
+        crate::test_support::make_fifo(&chunk);
         let root = dir.path().to_path_buf();
-        let (sender, receiver) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
+        let (problems, read) = crate::test_support::finishes_within(2, move || {
             let storage = crate::files::entry_storage(&root).unwrap();
             let reader = EntryReader::open(storage, &root.display().to_string()).unwrap();
             let read = reader.read::<f64>("values").map(|_| ());
-            let _ = sender.send((reader.verify(), read.map_err(|error| format!("{error:#}"))));
+            (reader.verify(), read.map_err(|error| format!("{error:#}")))
         });
-        let (problems, read) = receiver
-            .recv_timeout(std::time::Duration::from_secs(2))
-            .expect("reading the entry blocked on the FIFO");
         assert_eq!(problems.len(), 1, "{problems:?}");
         assert!(
             problems[0].starts_with("array \"values\": file values/c/1 unreadable")

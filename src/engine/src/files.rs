@@ -452,15 +452,8 @@ fn walk(
 #[cfg(all(test, unix))]
 mod tests {
     use super::*;
+    use crate::test_support::{finishes_within, make_fifo};
     use std::time::{Duration, Instant};
-
-    fn make_fifo(path: &Path) {
-        let status = std::process::Command::new("mkfifo")
-            .arg(path)
-            .status()
-            .expect("mkfifo runs");
-        assert!(status.success());
-    }
 
     #[test]
     fn devices_and_fifos_are_refused_quickly() {
@@ -480,18 +473,6 @@ mod tests {
         assert_eq!(read_regular_file(&dir.path().join("file")).unwrap(), b"abc");
     }
 
-    /// Runs `work` on a thread and fails the test if it takes longer than two seconds (a
-    /// read that blocks must fail the test, not hang it).
-    fn within_two_seconds<T: Send + 'static>(work: impl FnOnce() -> T + Send + 'static) -> T {
-        let (sender, receiver) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let _ = sender.send(work());
-        });
-        receiver
-            .recv_timeout(Duration::from_secs(2))
-            .expect("the call blocked for more than two seconds")
-    }
-
     /// Files of `/proc` look regular, declare size 0 and yield data (or block, or never end):
     /// refused from their file system, by path and without reading, in milliseconds.
     #[cfg(target_os = "linux")]
@@ -504,7 +485,7 @@ mod tests {
                 let metadata = fs::metadata(path).unwrap();
                 assert!(metadata.is_file() && metadata.len() == 0, "{name}");
             }
-            let error = within_two_seconds(move || {
+            let error = finishes_within(2, move || {
                 let start = Instant::now();
                 let error = read_regular_file(Path::new(name)).unwrap_err();
                 (format!("{error:#}"), start.elapsed())
@@ -538,8 +519,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let fifo = dir.path().join("pipe");
         make_fifo(&fifo);
-        let error =
-            within_two_seconds(move || format!("{:#}", read_regular_file(&fifo).unwrap_err()));
+        let error = finishes_within(2, move || {
+            format!("{:#}", read_regular_file(&fifo).unwrap_err())
+        });
         assert!(error.contains("a FIFO (named pipe)"), "{error}");
         assert!(error.contains("pipe"), "{error}");
     }
@@ -587,7 +569,7 @@ mod tests {
         fs::write(dir.path().join("zarr.json"), b"{}").unwrap();
         make_fifo(&dir.path().join("c"));
         let root = dir.path().to_path_buf();
-        let (present, fifo, missing) = within_two_seconds(move || {
+        let (present, fifo, missing) = finishes_within(2, move || {
             let storage = entry_storage(&root).unwrap();
             let present = storage.get(&StoreKey::new("zarr.json").unwrap());
             let fifo = storage.get(&StoreKey::new("c").unwrap());

@@ -301,13 +301,7 @@ mod tests {
     fn devices_and_fifos_are_not_hashed() {
         let dir = tempfile::tempdir().unwrap();
         let fifo = dir.path().join("pipe");
-        assert!(
-            std::process::Command::new("mkfifo")
-                .arg(&fifo)
-                .status()
-                .unwrap()
-                .success()
-        );
+        crate::test_support::make_fifo(&fifo);
         let mut digests = FileDigests::load(&dir.path().join("memo.json"));
         for path in [Path::new("/dev/zero"), fifo.as_path()] {
             let start = std::time::Instant::now();

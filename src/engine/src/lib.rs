@@ -21,6 +21,7 @@ mod pipeline;
 pub mod remote;
 mod runner;
 mod store;
+pub mod test_support;
 mod timefmt;
 mod yaml_lines;
 

@@ -434,6 +434,7 @@ fn read_group(path: &Path) -> Result<Checkpoint, CheckpointError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use seqavatar_engine::test_support::{finishes_within, make_fifo};
 
     fn sample(iteration: u64) -> Checkpoint {
         Checkpoint {
@@ -610,26 +611,6 @@ mod tests {
         assert_eq!((resumed, notes.len()), (None, 0));
     }
 
-    fn make_fifo(path: &Path) {
-        let status = std::process::Command::new("mkfifo")
-            .arg(path)
-            .status()
-            .expect("mkfifo runs");
-        assert!(status.success());
-    }
-
-    /// Runs `work` on a thread and fails if it does not return within `seconds` (a read that
-    /// blocks on a FIFO would otherwise hang the test).
-    fn within<T: Send + 'static>(seconds: u64, work: impl FnOnce() -> T + Send + 'static) -> T {
-        let (sender, receiver) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let _ = sender.send(work());
-        });
-        receiver
-            .recv_timeout(std::time::Duration::from_secs(seconds))
-            .expect("the call blocked")
-    }
-
     /// A FIFO in place of a chunk (or of the group document) is refused when the checkpoint
     /// is read, naming it, instead of an open that waits for a writer forever; the previous
     /// checkpoint is used.
@@ -646,7 +627,7 @@ mod tests {
         fs::remove_file(&document).unwrap();
         make_fifo(&document);
         let root = dir.path().to_path_buf();
-        let (resumed, notes) = within(5, move || {
+        let (resumed, notes) = finishes_within(5, move || {
             resume_newest_good(&root, |checkpoint| Ok(checkpoint.iteration)).unwrap()
         });
         assert_eq!(resumed, None, "{notes:?}");
@@ -684,7 +665,7 @@ mod tests {
         // A FIFO there, and a file named like an interrupted write, go the same way.
         fs::remove_dir_all(&dir).unwrap();
         make_fifo(&dir);
-        let (resumed, notes) = within(5, {
+        let (resumed, notes) = finishes_within(5, {
             let dir = dir.clone();
             move || resume_newest_good(&dir, |checkpoint| Ok(checkpoint.iteration)).unwrap()
         });

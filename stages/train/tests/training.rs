@@ -1112,16 +1112,8 @@ fn a_corrupt_checkpoint_restarts_training_and_says_so() {
     let iterations = 20u32;
     let dir = tempfile::tempdir().unwrap();
     let text = pipeline_text(iterations);
-    let registry = registry();
-    let store = LocalStore::open(dir.path()).unwrap();
-    let pipeline = Pipeline::parse(&text, Path::new("test.yaml"), &registry, &[]).unwrap();
-    let keys = seqavatar_engine::compute_keys(&pipeline, &registry, &store).unwrap();
     // The only checkpoint of an interrupted run is damaged: it used to fail every run.
-    let damaged = dir
-        .path()
-        .join(".staging/train")
-        .join(&keys["train"].key)
-        .join("work/checkpoints/ckpt-0000000010");
+    let damaged = train_work_dir(dir.path(), &text).join("checkpoints/ckpt-0000000010");
     std::fs::create_dir_all(&damaged).unwrap();
     std::fs::write(damaged.join("zarr.json"), b"{not json").unwrap();
     let reports = run_pipeline(dir.path(), &text).unwrap();
@@ -1155,15 +1147,11 @@ fn train_work_dir(cache: &Path, text: &str) -> PathBuf {
 /// Runs the pipeline `text` on a thread and fails if it has not finished within `seconds`
 /// (a read that blocks on a FIFO would otherwise hang the test).
 fn run_within(seconds: u64, cache: &Path, text: &str) -> Vec<seqavatar_engine::StageReport> {
-    let (sender, receiver) = std::sync::mpsc::channel();
     let (cache, text) = (cache.to_path_buf(), text.to_owned());
-    std::thread::spawn(move || {
-        let _ = sender.send(run_pipeline(&cache, &text).map_err(|e| format!("{e:#}")));
-    });
-    receiver
-        .recv_timeout(Duration::from_secs(seconds))
-        .expect("the run blocked")
-        .unwrap()
+    seqavatar_engine::test_support::finishes_within(seconds, move || {
+        run_pipeline(&cache, &text).map_err(|e| format!("{e:#}"))
+    })
+    .unwrap()
 }
 
 /// A checkpoint chunk replaced by a FIFO used to block every rerun (the open waits for a
@@ -1189,11 +1177,7 @@ fn a_fifo_in_place_of_a_checkpoint_chunk_is_refused_and_training_starts_over() {
     let saved = checkpoint::save(&checkpoints, &sample).unwrap();
     let chunk = saved.join("gaussians/xyz/c/0/0");
     std::fs::remove_file(&chunk).unwrap();
-    let status = std::process::Command::new("mkfifo")
-        .arg(&chunk)
-        .status()
-        .unwrap();
-    assert!(status.success());
+    seqavatar_engine::test_support::make_fifo(&chunk);
     let reports = run_within(120, dir.path(), &text);
     let train = entry(dir.path(), &reports, "train");
     assert_eq!(train.attribute("resumed_from").unwrap().as_u64(), Some(0));
