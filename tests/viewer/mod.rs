@@ -580,7 +580,10 @@ fn remote_viewer_needs_its_token(cache: &Path, key: &str) -> Viewer {
     }
     let port = viewer.address().port();
     let other_port = other.address().port();
-    let wrong_cookie = format!("seqavatar-view-{port}=0{}", &token[1..]);
+    // The token with its first digit changed (a fixed "0" would be the token itself one time
+    // in sixteen).
+    let changed_first = if token.starts_with('0') { '1' } else { '0' };
+    let wrong_cookie = format!("seqavatar-view-{port}={changed_first}{}", &token[1..]);
     assert_eq!(status(&get_with("/info", Some(&wrong_cookie))), "403");
     // Another viewer's cookie opens only that viewer.
     let other_token = other.url().rsplit_once("=").unwrap().1.to_owned();
