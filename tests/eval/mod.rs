@@ -656,17 +656,41 @@ fn pose_files_are_read_and_checked() {
     assert!(error.contains("absent.npz"), "{error}");
 }
 
-/// `pipeline report` verifies the entries it reports as `run` does: after an eval entry's
-/// summary is edited to 99 dB (its `zarr.json` rewritten as valid JSON), the report is
-/// refused, naming the stage, the entry and the file, and no report shows the edited number;
-/// the unedited run reports fine, and a rerun recomputes the entry.
+/// `pipeline report` holds a read lease on every entry it reports (eval's too) until it ends:
+/// `gc` while it writes skips them all (the report is held at its last file, a FIFO no one
+/// reads yet). It verifies the entries as `run` does: after an eval entry's summary is edited
+/// to 99 dB (its `zarr.json` rewritten as valid JSON), the report is refused, naming the
+/// stage, the entry and the file, and no report shows the edited number; the unedited run
+/// reports fine, and a rerun recomputes the entry.
 #[test]
-fn report_refuses_an_edited_eval_summary() {
+fn report_leases_its_entries_and_refuses_an_edited_eval_summary() {
     let sandbox = crate::support::Sandbox::new();
     sandbox.write("p.yaml", &pipeline_text(""));
     sandbox.ok(&["run", "p.yaml"]);
     let out = sandbox.path().join("report");
     let out_arg = out.to_str().unwrap();
+    std::fs::create_dir_all(&out).unwrap();
+    seqavatar_engine::test_support::make_fifo(&out.join("report.md"));
+    let mut child = sandbox.spawn(&["report", "p.yaml", "--out", out_arg]);
+    // The eval stage's pictures are written once every entry is open, before `report.md`.
+    let started = std::time::Instant::now();
+    while !out.join("eval").join("contact_sheet.png").exists() {
+        assert!(child.try_wait().unwrap().is_none(), "report ended early");
+        assert!(started.elapsed().as_secs() < 300, "report wrote no picture");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let report = sandbox.ok(&["gc"]);
+    for stage in ["ingest", "motion", "train", "eval"] {
+        let id = format!("{stage}/{}", sandbox.key_of("p.yaml", stage));
+        assert!(
+            report.contains(&format!("skipped {id}: a running pipeline reads it")),
+            "gc did not skip {id}:\n{report}"
+        );
+    }
+    let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(reported.contains("## "), "{reported}");
+    assert!(child.wait().unwrap().success());
+    std::fs::remove_dir_all(&out).unwrap();
     sandbox.ok(&["report", "p.yaml", "--out", out_arg]);
     let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(!reported.contains("99.00"), "{reported}");
@@ -753,13 +777,13 @@ stages:
 }
 
 /// `gc` while `pipeline render` and `pipeline export` draw frames: every entry they read
-/// (the train entry, its ingest and motion entries) is leased until they end, so `gc`,
-/// keeping no pipeline, skips them and the command goes on; once it is gone, `gc` removes
-/// them.
+/// (the train entry, its ingest and motion entries) and the fit entry the avatar was trained
+/// on are leased until they end, so `gc`, keeping no pipeline, skips them and the command
+/// goes on; once it is gone, `gc` removes them.
 #[test]
 fn gc_leaves_the_entries_a_render_or_an_export_reads() {
     let sandbox = trained_with_motion();
-    let read: Vec<String> = ["ingest", "motion", "train"]
+    let read: Vec<String> = ["ingest", "fit", "motion", "train"]
         .iter()
         .map(|stage| format!("{stage}/{}", sandbox.key_of("p.yaml", stage)))
         .collect();
@@ -815,13 +839,21 @@ fn gc_leaves_the_entries_a_render_or_an_export_reads() {
 }
 
 /// A sandbox whose cache holds `p.yaml` run up to its train stage, trained with skeleton
-/// motion so that the avatar is driven through its motion entry too.
+/// motion so that the avatar is driven through its motion entry too, and on a fit entry
+/// (`mode: off`, the ingest entry's fits).
 fn trained_with_motion() -> crate::support::Sandbox {
     let sandbox = crate::support::Sandbox::new();
-    let text = pipeline_text("").replace(
-        r#""motion_context": "none""#,
-        r#""motion_context": "multiscale""#,
-    );
+    let text = pipeline_text("")
+        .replace(
+            r#""motion_context": "none""#,
+            r#""motion_context": "multiscale""#,
+        )
+        .replace(
+            "  - name: motion\n",
+            "  - {name: fit, kind: fit, inputs: [ingest], config: {mode: off}}\n  - name: motion\n",
+        )
+        .replace("inputs: [ingest, motion]", "inputs: [ingest, fit, motion]");
+    assert!(text.contains("inputs: [ingest, fit, motion]"), "{text}");
     sandbox.write("p.yaml", &text);
     sandbox.ok(&["run", "p.yaml", "--until", "train"]);
     sandbox

@@ -616,3 +616,64 @@ fn gc_on_another_machine_skips_an_entry_a_run_reads() {
     assert!(cluster.moto.list(".readers/").is_empty());
     assert!(cluster.moto.list("test_arrays/").is_empty());
 }
+
+/// `gc` on another machine while `pipeline render` draws an avatar of the shared cache: the
+/// render's read leases are objects in the bucket, so `gc` skips the train entry and every
+/// entry it read (ingest, fit, motion), and the render goes on.
+#[test]
+fn gc_on_another_machine_skips_the_entries_a_render_reads() {
+    let Some(cluster) = Cluster::new(10.0) else {
+        return;
+    };
+    cluster.write("p.yaml", crate::viewer::PIPELINE);
+    cluster.ok("m1", &["run", "p.yaml"]);
+    let keys: Vec<String> = cluster
+        .status("probe", "p.yaml")
+        .into_iter()
+        .map(|(stage, key, _)| format!("{stage}/{key}"))
+        .collect();
+    assert_eq!(keys.len(), 4, "{keys:?}");
+    let train = keys[3].strip_prefix("train/").unwrap();
+    let poses =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("stages/eval/tests/fixtures/poses_long.npz");
+    let out = cluster.path().join("render");
+    let mut render = cluster.spawn(
+        "m1",
+        &[
+            "render",
+            "--avatar",
+            train,
+            "--poses",
+            poses.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--device",
+            "cpu",
+        ],
+    );
+    let started = Instant::now();
+    while !out.join("frame_00000.png").exists() {
+        assert!(
+            render.try_wait().unwrap().is_none(),
+            "render ended before its first frame"
+        );
+        assert!(
+            started.elapsed() < Duration::from_secs(300),
+            "render wrote no frame"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let (gc, _) = cluster.ok("m2", &["gc"]);
+    assert!(
+        render.try_wait().unwrap().is_none(),
+        "render ended before gc did: the test proves nothing\n{gc}"
+    );
+    for id in &keys {
+        assert!(
+            gc.contains(&format!("skipped {id}: a running pipeline reads it")),
+            "gc did not skip {id}:\n{gc}"
+        );
+    }
+    render.kill().unwrap();
+    render.wait().unwrap();
+}

@@ -20,27 +20,29 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use seqavatar_compute::backend::{Backend, DeviceChoice};
-use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, StageReport};
+use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, StageReport, Store as _};
 use seqavatar_evaluation::avatar_render::AvatarRenderer;
 use seqavatar_evaluation::evaluate::ViewRenderer;
 use seqavatar_viewer::{Viewer, ViewerOptions};
 
 use crate::support::registry;
 
-const PIPELINE: &str = r#"description: tiny viewer test
+/// The tiny avatar, through fit (`mode: off`) and motion; the remote tests render it too.
+pub(crate) const PIPELINE: &str = r#"description: tiny viewer test
 stages:
   - name: ingest
     kind: ingest
     config:
       dataset: {kind: synthetic, cameras: 3, frames: 10, width: 48, height: 40, supersample: 1, garment: false, body_grid_spacing: 0.05}
       past_frames: 0
+  - {name: fit, kind: fit, inputs: [ingest], config: {mode: off}}
   - name: motion
     kind: motion
     inputs: [ingest]
     config: {scales: [1, 2], knn: 4}
   - name: train
     kind: train
-    inputs: [ingest, motion]
+    inputs: [ingest, fit, motion]
     config: {"preset": "fast", "device": "cpu", "seed": 5, "iterations": 30, "motion_context": "multiscale", "checkpoint_every": 100, "sh_degree": 1, "sh_degree_interval": 10}
 "#;
 
@@ -219,8 +221,8 @@ fn lit_pixels(image: &image::RgbImage) -> usize {
 
 #[test]
 fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
-    let dir = tempfile::tempdir().unwrap();
-    let cache = dir.path().join("cache");
+    let sandbox = crate::support::Sandbox::new();
+    let cache = sandbox.cache();
     let key = train_tiny_avatar(&cache);
     for max_size in [15, 8193] {
         let refused = Viewer::start(ViewerOptions {
@@ -293,9 +295,9 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
                 .clone();
             open(kind, &input.key)
         };
-        let (ingest, motion) = (input("ingest"), input("motion"));
+        let (ingest, fit, motion) = (input("ingest"), input("fit"), input("motion"));
         let mut renderer =
-            AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
+            AvatarRenderer::open(&train, &ingest, &fit, Some(&motion), &cpu()).unwrap();
         let camera = &seqavatar_schema::ingest::read_cameras(&ingest).unwrap()[0];
         renderer.render(frame, camera).unwrap().to_rgb_image()
     };
@@ -504,12 +506,12 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         );
     }
 
-    command_line_serves_a_pipeline_stage_on_loopback(dir.path(), &cache);
+    command_line_serves_a_pipeline_stage_on_loopback(&sandbox);
 
     // The browser, on this avatar or on the viewer the environment names.
     let screenshot = std::env::var_os("SEQAVATAR_VIEWER_SCREENSHOT")
         .map(PathBuf::from)
-        .unwrap_or_else(|| dir.path().join("viewer.png"));
+        .unwrap_or_else(|| sandbox.path().join("viewer.png"));
     match std::env::var("SEQAVATAR_VIEWER_E2E_URL") {
         Ok(url) => browser_end_to_end(&url, &screenshot),
         Err(_) => {
@@ -523,6 +525,86 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
             );
         }
     }
+    // The viewers of this process gone, the command line's alone holds the entries.
+    drop((viewer, remote));
+    a_read_only_cache_is_viewed_without_lock_files(&sandbox, &key);
+    gc_leaves_the_entries_a_viewer_serves(&sandbox, &key);
+}
+
+/// `pipeline view` on a read-only cache serves the scene and its frames, and makes no lock
+/// file (see `engine::a_read_only_cache_serves_reads` for how the cache is made read-only).
+fn a_read_only_cache_is_viewed_without_lock_files(sandbox: &crate::support::Sandbox, key: &str) {
+    let locks = sandbox.cache().join(".locks");
+    std::fs::remove_dir_all(&locks).unwrap();
+    let Some(cache) = crate::support::ReadOnlyCache::new(sandbox) else {
+        return;
+    };
+    let (_child, address) =
+        serve(cache.command(&["view", "--avatar", key, "--port", "0", "--device", "cpu"]));
+    let reply = http(address, "GET", "/info", &address.to_string(), "");
+    assert_eq!(reply.status, 200, "{}", reply.text());
+    let host = address.to_string();
+    let frame = http(address, "GET", "/frame?frame=5&camera=0", &host, "");
+    assert_eq!(decode_jpeg(&frame).dimensions(), (48, 40));
+    assert!(!locks.exists(), "lock files were made in a read-only cache");
+}
+
+/// `gc` while `pipeline view` serves the avatar skips every entry the viewer holds (its fit
+/// entry too), and the viewer serves on; once it is gone, `gc` removes them.
+fn gc_leaves_the_entries_a_viewer_serves(sandbox: &crate::support::Sandbox, key: &str) {
+    let entries: Vec<String> = LocalStore::open(&sandbox.cache())
+        .unwrap()
+        .list()
+        .unwrap()
+        .iter()
+        .map(ToString::to_string)
+        .collect();
+    assert_eq!(entries.len(), 4, "{entries:?}");
+    let (child, address) =
+        serve(sandbox.command(&["view", "--avatar", key, "--port", "0", "--device", "cpu"]));
+    let report = sandbox.ok(&["gc"]);
+    for id in &entries {
+        assert!(
+            report.contains(&format!("skipped {id}: a running pipeline reads it")),
+            "gc did not skip {id}:\n{report}"
+        );
+    }
+    let host = address.to_string();
+    let frame = http(address, "GET", "/frame?frame=5&camera=1", &host, "");
+    assert_eq!(decode_jpeg(&frame).dimensions(), (48, 40));
+    drop(child);
+    let report = sandbox.ok(&["gc"]);
+    for id in &entries {
+        assert!(report.contains(&format!("removed {id}")), "{report}");
+    }
+}
+
+/// Starts `command`, a `pipeline view` on port 0, and reads the URL it prints first: the
+/// child (killed when dropped) and the loopback address it serves.
+fn serve(mut command: Command) -> (ChildGuard, SocketAddr) {
+    let mut child = ChildGuard(
+        command
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let mut line = String::new();
+    BufReader::new(child.0.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .strip_prefix("viewer: ")
+        .and_then(|rest| rest.split_whitespace().next())
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"));
+    let address: SocketAddr = url
+        .strip_prefix("http://")
+        .and_then(|rest| rest.strip_suffix('/'))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert_eq!(address.ip().to_string(), "127.0.0.1");
+    (child, address)
 }
 
 /// Bound beyond loopback, the viewer answers only requests carrying the token of its URL, in
@@ -610,53 +692,17 @@ fn remote_viewer_needs_its_token(cache: &Path, key: &str) -> Viewer {
 }
 
 /// `pipeline view FILE.yaml:train --port 0` prints a loopback URL that serves the avatar.
-fn command_line_serves_a_pipeline_stage_on_loopback(dir: &Path, cache: &Path) {
-    let file = dir.join("viewer.yaml");
-    std::fs::write(&file, PIPELINE).unwrap();
-    let help = Command::new(env!("CARGO_BIN_EXE_pipeline"))
-        .args(["view", "--help"])
-        .output()
-        .unwrap();
-    let help = String::from_utf8_lossy(&help.stdout).into_owned();
+fn command_line_serves_a_pipeline_stage_on_loopback(sandbox: &crate::support::Sandbox) {
+    let file = sandbox.write("viewer.yaml", PIPELINE);
+    let help = sandbox.ok(&["view", "--help"]);
     assert!(help.contains("[default: 127.0.0.1]"), "{help}");
-    let mut child = ChildGuard(
-        Command::new(env!("CARGO_BIN_EXE_pipeline"))
-            .arg("--cache")
-            .arg(cache)
-            .arg("view")
-            .arg(format!("{}:train", file.display()))
-            .args(["--port", "0", "--device", "cpu"])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
-    let mut line = String::new();
-    BufReader::new(child.0.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let url = line
-        .strip_prefix("viewer: ")
-        .and_then(|rest| rest.split_whitespace().next())
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"));
-    let address: SocketAddr = url
-        .strip_prefix("http://")
-        .and_then(|rest| rest.strip_suffix('/'))
-        .unwrap()
-        .parse()
-        .unwrap();
-    assert_eq!(address.ip().to_string(), "127.0.0.1");
+    let stage = format!("{}:train", file.display());
+    let (_child, address) =
+        serve(sandbox.command(&["view", &stage, "--port", "0", "--device", "cpu"]));
     let reply = http(address, "GET", "/info", &address.to_string(), "");
     assert_eq!(reply.status, 200, "{}", reply.text());
     // A stage that is not a train stage is refused.
-    let output = Command::new(env!("CARGO_BIN_EXE_pipeline"))
-        .arg("--cache")
-        .arg(cache)
-        .args(["view", &format!("{}:motion", file.display()), "--port", "0"])
-        .output()
-        .unwrap();
-    assert!(!output.status.success());
-    let stderr = String::from_utf8_lossy(&output.stderr);
+    let stderr = sandbox.fails(&["view", &format!("{}:motion", file.display()), "--port", "0"]);
     assert!(
         stderr.contains("stage \"motion\" is a motion stage"),
         "{stderr}"

@@ -12,7 +12,9 @@ use anyhow::Context as _;
 use seqavatar_compute::backend::Backend;
 use seqavatar_core::body::BodyParams;
 use seqavatar_core::glam::DVec3;
-use seqavatar_engine::{EntryId, EntryReader, EntryState, LocalStore, Store, open_store};
+use seqavatar_engine::{
+    EntryId, EntryReader, EntryState, LocalStore, ReadLease, Store, open_store,
+};
 use seqavatar_formats::npz;
 use seqavatar_schema::motion::FrameAxis;
 
@@ -257,6 +259,10 @@ pub struct DrivenAvatar {
     /// so that their read leases, like the two above, last as long as the avatar is driven:
     /// `gc` meanwhile leaves every entry a render, export or view reads.
     pub sources: Vec<EntryReader>,
+    /// The read leases of every entry the train entry read (its fit entry too, of which
+    /// drawing reads nothing), held as long as the avatar is driven: `gc` meanwhile leaves
+    /// the avatar's whole pipeline.
+    pub inputs_leased: Vec<Box<dyn ReadLease>>,
     /// The avatar with the source's body parameters and motion windows.
     pub renderer: AvatarRenderer,
 }
@@ -277,9 +283,9 @@ pub fn drive_avatar(
 ) -> anyhow::Result<DrivenAvatar> {
     let train = resolve_entry(store, "train", avatar)?;
     // Every entry the train entry read is leased at once, before any is verified or read, so
-    // that a `gc` starting meanwhile finds them in use; those the avatar needs are opened
-    // below under leases of their own, which last as long as it is driven.
-    let _inputs_leased = train
+    // that a `gc` starting meanwhile finds them in use, and for as long as the avatar is
+    // driven; those the avatar needs are opened below under leases of their own.
+    let inputs_leased = train
         .manifest()
         .inputs
         .iter()
@@ -419,6 +425,7 @@ pub fn drive_avatar(
         train,
         trained_ingest,
         sources,
+        inputs_leased,
         renderer,
     })
 }

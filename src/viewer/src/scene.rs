@@ -10,7 +10,7 @@ use seqavatar_compute::backend::Backend;
 use seqavatar_compute::image::ImageF32;
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::DVec3;
-use seqavatar_engine::{EntryReader, Store};
+use seqavatar_engine::{EntryReader, ReadLease, Store};
 use seqavatar_evaluation::animate::{
     DrivenAvatar, PoseSource, drive_avatar, resolve_entry, upstream_input,
 };
@@ -37,8 +37,10 @@ pub struct Scene {
     pub avatar: String,
     /// Where the poses come from, in words.
     pub poses: String,
-    // The entries stay open (and under their read leases) while the viewer serves them.
+    // The entries stay open (and under their read leases) while the viewer serves them, and
+    // so do the leases of a driven avatar's other inputs.
     _entries: Vec<EntryReader>,
+    _leases: Vec<Box<dyn ReadLease>>,
 }
 
 /// The images of an ingest entry, found by (view, frame) on any split.
@@ -100,12 +102,13 @@ impl Scene {
         poses: Option<&PoseSource>,
         backend: &Backend,
     ) -> anyhow::Result<Self> {
-        let (mut renderer, ingest, truth, poses_text, entries) = match poses {
+        let (mut renderer, ingest, truth, poses_text, entries, leases) = match poses {
             Some(source) => {
                 let DrivenAvatar {
                     train,
                     trained_ingest,
                     sources,
+                    inputs_leased,
                     renderer,
                 } = drive_avatar(store, avatar, source, backend, 0)?;
                 let text = match source {
@@ -114,7 +117,7 @@ impl Scene {
                 };
                 let mut entries = vec![train, trained_ingest.clone()];
                 entries.extend(sources);
-                (renderer, trained_ingest, None, text, entries)
+                (renderer, trained_ingest, None, text, entries, inputs_leased)
             }
             None => {
                 let train = resolve_entry(store, "train", avatar)?;
@@ -139,7 +142,7 @@ impl Scene {
                 let mut entries = vec![train, ingest.clone()];
                 entries.extend(fit);
                 entries.extend(motion);
-                (renderer, ingest, Some(truth), text, entries)
+                (renderer, ingest, Some(truth), text, entries, Vec::new())
             }
         };
         let cameras = seqavatar_schema::ingest::read_cameras(&ingest)?;
@@ -196,6 +199,7 @@ impl Scene {
             avatar,
             poses: poses_text,
             _entries: entries,
+            _leases: leases,
         })
     }
 }
