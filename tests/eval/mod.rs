@@ -929,6 +929,8 @@ fn write_zero_poses(path: &Path, frames: usize) {
 /// `--max-frames` `render` and `export` refuse it in under a second, naming the file, the
 /// frames, the estimate and `--max-frames` (the windows would need tens of GB; they once
 /// made a 49 GB allocation that aborted the process); with `--max-frames 2` they draw.
+/// The other derived allocations are estimated before they are made too
+/// ([`frames_and_staged_images_over_the_budget_are_refused_at_once`]).
 #[test]
 fn a_pose_file_of_700000_frames_is_refused_at_once_or_cut_by_max_frames() {
     let sandbox = trained_with_motion();
@@ -975,6 +977,95 @@ fn a_pose_file_of_700000_frames_is_refused_at_once_or_cut_by_max_frames() {
             out.join(second_file).is_file(),
             "{command} drew no second frame"
         );
+    }
+    frames_and_staged_images_over_the_budget_are_refused_at_once(&sandbox, &train_key);
+}
+
+/// Under a small `SEQAVATAR_MEMORY_BUDGET`, each derived allocation is refused in under a
+/// second, before it is made, naming the option or field and the estimate: the frame
+/// `render` draws at `--resolution-scale 4` (160 x 160 pixels), the frames of `view
+/// --max-size 8192`, and the images ingest stages at `resolution_scale: 4` (a 64 x 64 scene
+/// staged at 256 x 256 on two threads, 2.1 MB, where the scene itself is estimated at 0.5 MB).
+fn frames_and_staged_images_over_the_budget_are_refused_at_once(
+    sandbox: &crate::support::Sandbox,
+    train_key: &str,
+) {
+    let poses = fixture("swing.npz").display().to_string();
+    let out = sandbox.path().join("over").display().to_string();
+    let ingest = pipeline_text("")
+        .split("  - name: motion")
+        .next()
+        .unwrap()
+        .replace("width: 40, height: 40", "width: 64, height: 64")
+        .replace(
+            "past_frames: 0",
+            "past_frames: 0\n      resolution_scale: 4",
+        );
+    assert!(ingest.contains("resolution_scale: 4"), "{ingest}");
+    sandbox.write("staged.yaml", &ingest);
+    let render = [
+        "render",
+        "--avatar",
+        train_key,
+        "--poses",
+        &poses,
+        "--out",
+        &out,
+        "--device",
+        "cpu",
+        "--resolution-scale",
+        "4",
+        "--max-frames",
+        "1",
+    ];
+    let view = [
+        "view",
+        "--avatar",
+        train_key,
+        "--max-size",
+        "8192",
+        "--port",
+        "0",
+        "--device",
+        "cpu",
+    ];
+    for (args, budget, parts) in [
+        (
+            &render[..],
+            "2M",
+            &["--resolution-scale 4", "160 x 160 pixels", "3.3 MB"][..],
+        ),
+        (&view[..], "4G", &["--max-size 8192", "17.2 GB"][..]),
+        (
+            &["run", "staged.yaml"][..],
+            "1M",
+            &["resolution_scale 4", "2.1 MB"][..],
+        ),
+    ] {
+        let started = std::time::Instant::now();
+        let mut child = sandbox
+            .command(&args)
+            .env(seqavatar_engine::MEMORY_BUDGET_VAR, budget)
+            .env("RAYON_NUM_THREADS", "2")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        while child.try_wait().unwrap().is_none() {
+            if started.elapsed().as_secs() > 60 {
+                child.kill().unwrap();
+                panic!("{args:?} was not refused");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        let took = started.elapsed();
+        let output = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{args:?} was accepted: {stderr}");
+        for part in parts.iter().chain(&["over the memory budget"]) {
+            assert!(stderr.contains(part), "{args:?}: no `{part}` in {stderr}");
+        }
+        assert!(took.as_secs_f64() < 1.0, "{args:?} took {took:?} to refuse");
     }
 }
 

@@ -206,6 +206,31 @@ pub fn memory_budget_bytes() -> Result<Option<u64>, String> {
     Ok(least.map(|bytes| (bytes as f64 * DEFAULT_MEMORY_FRACTION) as u64))
 }
 
+/// Refuses what is estimated to need `estimate` bytes when that exceeds `budget` (from
+/// [`memory_budget_bytes`]; `None`: no check), before it is allocated. The message names
+/// `what` (the field or option and the sizes that make it large), the estimate, the budget
+/// and `remedy`.
+pub fn check_memory_budget(
+    what: &str,
+    estimate: u64,
+    budget: Option<u64>,
+    remedy: &str,
+) -> Result<(), String> {
+    let bytes = |n: u64| match n {
+        n if n >= 1_000_000_000 => format!("{:.1} GB", n as f64 / 1e9),
+        n => format!("{:.1} MB", n as f64 / 1e6),
+    };
+    match budget {
+        Some(budget) if estimate > budget => Err(format!(
+            "{what} need about {}, over the memory budget of {}; {remedy} (or set \
+             {MEMORY_BUDGET_VAR})",
+            bytes(estimate),
+            bytes(budget)
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Limits at or above this many bytes mean "no limit" (cgroup v1 writes `2^63 - 4096`).
 const NO_LIMIT_BYTES: u64 = 1 << 60;
 

@@ -35,8 +35,8 @@ pub use array::{Element, NdArray};
 #[cfg(any(test, feature = "test-stages"))]
 pub use builtin::TestArrays;
 pub use config::{
-    ConfigError, ConfigPathSegment, MEMORY_BUDGET_VAR, machine_memory_bytes, memory_budget_bytes,
-    parse_config, parse_size,
+    ConfigError, ConfigPathSegment, MEMORY_BUDGET_VAR, check_memory_budget, machine_memory_bytes,
+    memory_budget_bytes, parse_config, parse_size,
 };
 pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray, ReadLease};
 pub use local::LocalStore;

@@ -457,19 +457,17 @@ fn check_motion_memory(
     // motion per scale; twice, for the arrays and the track built from them.
     let (v, j, s) = (vertices as u64, joints as u64, scales as u64);
     let per_frame = 4 * 2 * (v * 3 * (1 + s) + j * (9 + 3 * s));
-    let estimate = per_frame.saturating_mul(frames as u64);
-    match budget {
-        Some(budget) if estimate > budget => anyhow::bail!(
+    seqavatar_engine::check_memory_budget(
+        &format!(
             "--poses {}: motion windows for {frames} frames ({vertices} template vertices, \
-             {scales} scales) need about {:.1} GB, over the memory budget of {:.1} GB; draw \
-             fewer with --max-frames (or set {})",
-            poses.describe(),
-            estimate as f64 / 1e9,
-            budget as f64 / 1e9,
-            seqavatar_engine::MEMORY_BUDGET_VAR
+             {scales} scales)",
+            poses.describe()
         ),
-        _ => Ok(()),
-    }
+        per_frame.saturating_mul(frames as u64),
+        budget,
+        "draw fewer with --max-frames",
+    )
+    .map_err(anyhow::Error::msg)
 }
 
 /// The frames of a driven avatar to draw: from its first frame with a complete motion
@@ -517,6 +515,17 @@ pub fn render_poses(cache: &Path, options: &RenderOptions) -> anyhow::Result<Ren
             )
         })?
         .rescaled(options.resolution_scale);
+    // One frame in flight: drawn and written before the next is.
+    seqavatar_engine::check_memory_budget(
+        &format!(
+            "--resolution-scale {}: frames of {} x {} pixels (camera {}), one in flight,",
+            options.resolution_scale, camera.width, camera.height, options.camera
+        ),
+        crate::avatar_render::frames_memory_bytes(1, camera.width, camera.height),
+        seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?,
+        "lower --resolution-scale",
+    )
+    .map_err(anyhow::Error::msg)?;
     let range = frames_to_draw(renderer, options.max_frames);
     let skipped = range.start;
     std::fs::create_dir_all(&options.out)

@@ -16,6 +16,19 @@ use crate::context_probe::ContextProbe;
 use crate::evaluate::ViewRenderer;
 use seqavatar_compute::image::ImageF32;
 
+/// Bytes per pixel of one frame in flight: the splatting's colour, alpha and depth in f32
+/// and at its f64 boundary (60 bytes), its per-pixel compositing state, the frame as f32 and
+/// 8-bit RGB, and its encoded file.
+pub const FRAME_BYTES_PER_PIXEL: u64 = 128;
+
+/// The memory `frames` frames in flight of `width x height` pixels are estimated to need
+/// (for [`seqavatar_engine::check_memory_budget`], before any is drawn).
+pub fn frames_memory_bytes(frames: u64, width: u32, height: u32) -> u64 {
+    frames
+        .saturating_mul(u64::from(width) * u64::from(height))
+        .saturating_mul(FRAME_BYTES_PER_PIXEL)
+}
+
 /// Why an avatar cannot be evaluated on an entry.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MismatchError {

@@ -206,6 +206,23 @@ impl Viewer {
             "--max-size {} must be in {MIN_SIDE}..={LARGEST_MAX_SIZE}",
             options.max_size
         );
+        // One request is rendered at a time; with its comparison sheet (ground truth, the
+        // prepared pair, the error map and the sheet) it holds less than two frames' bytes.
+        seqavatar_engine::check_memory_budget(
+            &format!(
+                "--max-size {0}: frames of up to {0} x {0} pixels, one rendered at a time with \
+                 its comparison sheet,",
+                options.max_size
+            ),
+            seqavatar_evaluation::avatar_render::frames_memory_bytes(
+                2,
+                options.max_size,
+                options.max_size,
+            ),
+            seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?,
+            "lower --max-size",
+        )
+        .map_err(anyhow::Error::msg)?;
         let scheduler = Arc::new(Scheduler::default());
         let (ready_tx, ready_rx) = std::sync::mpsc::channel::<anyhow::Result<(Limits, String)>>();
         let renderer = {

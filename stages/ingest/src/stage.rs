@@ -91,6 +91,7 @@ impl StageKind for Ingest {
         // In the dataset's world: images are resampled and the garment's history measured
         // there, where the reader's cameras and garment are.
         let cameras = ingested_cameras(reader.as_ref(), &plan, config.resolution_scale)?;
+        check_staging_memory(reader.as_ref(), &plan, &cameras, config.resolution_scale)?;
         let sources: Vec<&SourceCamera> =
             plan.views.iter().map(|&v| &reader.cameras()[v]).collect();
         let (model, kind) = reader.body_model()?;
@@ -155,6 +156,42 @@ impl StageKind for Ingest {
             _ => Err(seqavatar_engine::unknown_picture(self, picture)),
         }
     }
+}
+
+/// Bytes per pixel of an ingested image staged in flight: RGB, mask and garment mask, as
+/// resampled, as padded into its chunk and as encoded.
+const STAGED_BYTES_PER_PIXEL: u64 = 3 * (3 + 1 + 1);
+
+/// Refuses, before any image is read, images in flight ([`write_images`]: one per thread,
+/// its decoded source and its staged chunks) that would not fit the memory budget.
+fn check_staging_memory(
+    reader: &dyn DatasetReader,
+    plan: &IngestPlan,
+    cameras: &[Camera],
+    resolution_scale: f64,
+) -> anyhow::Result<()> {
+    let pixels = |camera: &Camera| u64::from(camera.width) * u64::from(camera.height);
+    let source = plan
+        .views
+        .iter()
+        .map(|&view| pixels(&reader.cameras()[view].camera))
+        .max()
+        .unwrap_or(0);
+    let staged = cameras.iter().map(pixels).max().unwrap_or(0);
+    let threads = rayon::current_num_threads() as u64;
+    let per_image = source
+        .saturating_mul(seqavatar_formats::images::MAX_BYTES_PER_PIXEL)
+        .saturating_add(staged.saturating_mul(STAGED_BYTES_PER_PIXEL));
+    seqavatar_engine::check_memory_budget(
+        &format!(
+            "resolution_scale {resolution_scale}: the images in flight ({threads} threads, each \
+             a source image of up to {source} pixels staged as up to {staged} pixels)"
+        ),
+        threads.saturating_mul(per_image),
+        seqavatar_engine::memory_budget_bytes().map_err(anyhow::Error::msg)?,
+        "lower resolution_scale",
+    )
+    .map_err(anyhow::Error::msg)
 }
 
 /// Resamples every planned image (and its mask, and its garment mask where the reader has a
