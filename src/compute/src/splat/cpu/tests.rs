@@ -578,6 +578,81 @@ fn forward_matches_an_independent_per_pixel_renderer() {
     assert!(diag.culled_opacity > 0 && diag.visible > 200, "{diag:?}");
 }
 
+/// [`dense_scene`]'s cloud (2.4 units across) at `unit` metres per unit, seen from about 31
+/// units through a ten times longer lens: the same image at every unit, and every Gaussian
+/// beyond the near plane down to a cloud 1 mm across (then 13 mm from the camera).
+fn dense_scene_at(unit: f64) -> (GaussianBuffers<f64>, Camera) {
+    let (mut gaussians, camera) = dense_scene(70, 45);
+    gaussians.means.iter_mut().for_each(|value| *value *= unit);
+    gaussians
+        .covariances
+        .iter_mut()
+        .for_each(|value| *value *= unit * unit);
+    let mut lens = camera.intrinsics;
+    (lens.fx, lens.fy) = (lens.fx * 10.0, lens.fy * 10.0);
+    let eye = DVec3::new(0.4, -0.6, -3.0) * 10.0 * unit;
+    let camera = Camera::look_at(70, 45, lens, eye, DVec3::ZERO, DVec3::Y);
+    (gaussians, camera)
+}
+
+/// Numeric extremes of scale: a cloud 1 mm across (Gaussians of 4 to 100 um, covariances
+/// down to 1e-11 m^2) renders in f32 as the same cloud 2.4 m across does, every Gaussian
+/// drawn, and its gradients are the metre cloud's scaled by the unit (1/unit for means,
+/// 1/unit^2 for covariances, the same for opacities and colours): nothing in projection,
+/// compositing or backward depends on an absolute length but the near and far planes.
+#[test]
+fn a_millimetre_wide_scene_renders_and_differentiates_as_a_metre_wide_one() {
+    let millimetre = 1e-3 / 2.4;
+    let pass = |unit: f64| {
+        let (gaussians, camera) = dense_scene_at(unit);
+        let single = gaussians.convert::<f32>();
+        let fwd = forward(
+            &single.view(),
+            std::slice::from_ref(&camera),
+            &RasterOptions::default(),
+        )
+        .unwrap();
+        let ones = vec![1.0_f32; 70 * 45 * 3];
+        let upstream = ImageGradient {
+            colour: &ones,
+            alpha: Some(&ones[..70 * 45]),
+            depth: None,
+        };
+        let grads = backward(&fwd, &single.view(), &[upstream]).unwrap();
+        (fwd, grads)
+    };
+    let (metre, metre_grads) = pass(1.0);
+    let (small, small_grads) = pass(millimetre);
+    let diag = small.diagnostics[0];
+    assert_eq!(diag.culled_depth, 0, "{diag:?}");
+    assert!(diag.visible > 200, "{diag:?}");
+    assert_eq!(diag, metre.diagnostics[0]);
+    // `small` against `metre` times `scale`, relative to the largest value.
+    let check = |what: &str, small: &[f32], metre: &[f32], scale: f64, tolerance: f64| {
+        assert_all_finite(what, small);
+        let expected: Vec<f64> = metre.iter().map(|&v| f64::from(v) * scale).collect();
+        let largest = expected.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+        let error = max_abs_difference(small, &expected) / largest;
+        assert!(error < tolerance, "{what}: relative error {error:e}");
+    };
+    let (image, metre_image) = (&small.images[0], &metre.images[0]);
+    check("colour", &image.colour, &metre_image.colour, 1.0, 1e-4);
+    check("alpha", &image.alpha, &metre_image.alpha, 1.0, 1e-4);
+    check("depth", &image.depth, &metre_image.depth, millimetre, 1e-4);
+    let (g, m) = (&small_grads, &metre_grads);
+    check("d means", &g.means, &m.means, 1.0 / millimetre, 1e-3);
+    let per_area = 1.0 / (millimetre * millimetre);
+    check(
+        "d covariances",
+        &g.covariances,
+        &m.covariances,
+        per_area,
+        1e-3,
+    );
+    check("d opacities", &g.opacities, &m.opacities, 1.0, 1e-3);
+    check("d sh", &g.sh, &m.sh, 1.0, 1e-3);
+}
+
 #[test]
 fn repeated_calls_are_bitwise_identical() {
     let (gaussians, camera) = dense_scene(50, 40);
