@@ -673,20 +673,12 @@ fn report_leases_its_entries_and_refuses_an_edited_eval_summary() {
     seqavatar_engine::test_support::make_fifo(&out.join("report.md"));
     let mut child = sandbox.spawn(&["report", "p.yaml", "--out", out_arg]);
     // The eval stage's pictures are written once every entry is open, before `report.md`.
-    let started = std::time::Instant::now();
-    while !out.join("eval").join("contact_sheet.png").exists() {
-        assert!(child.try_wait().unwrap().is_none(), "report ended early");
-        assert!(started.elapsed().as_secs() < 300, "report wrote no picture");
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    let report = sandbox.ok(&["gc"]);
-    for stage in ["ingest", "motion", "train", "eval"] {
-        let id = format!("{stage}/{}", sandbox.key_of("p.yaml", stage));
-        assert!(
-            report.contains(&format!("skipped {id}: a running pipeline reads it")),
-            "gc did not skip {id}:\n{report}"
-        );
-    }
+    crate::support::wait_for_file(&mut child, &out.join("eval").join("contact_sheet.png"));
+    let read: Vec<String> = ["ingest", "motion", "train", "eval"]
+        .iter()
+        .map(|stage| format!("{stage}/{}", sandbox.key_of("p.yaml", stage)))
+        .collect();
+    crate::support::assert_gc_skipped(&sandbox.ok(&["gc"]), &read, &mut child);
     let reported = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(reported.contains("## "), "{reported}");
     assert!(child.wait().unwrap().success());
@@ -802,32 +794,9 @@ fn gc_leaves_the_entries_a_render_or_an_export_reads() {
             "5000",
         ]);
         let mut child = sandbox.spawn(&args);
-        let started = std::time::Instant::now();
-        while !out.join(first_file).exists() {
-            if let Some(status) = child.try_wait().unwrap() {
-                let output = child.wait_with_output().unwrap();
-                panic!(
-                    "{command} ended ({status}) before its first frame:\n{}",
-                    String::from_utf8_lossy(&output.stderr)
-                );
-            }
-            assert!(
-                started.elapsed() < std::time::Duration::from_secs(300),
-                "{command} wrote no frame"
-            );
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
+        crate::support::wait_for_file(&mut child, &out.join(first_file));
         let report = sandbox.ok(&["gc"]);
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "{command} ended before gc did: the test proves nothing\n{report}"
-        );
-        for id in &read {
-            assert!(
-                report.contains(&format!("skipped {id}: a running pipeline reads it")),
-                "{command}: gc did not skip {id}:\n{report}"
-            );
-        }
+        crate::support::assert_gc_skipped(&report, &read, &mut child);
         assert!(report.contains("removed 0 entries"), "{report}");
         child.kill().unwrap();
         child.wait().unwrap();
@@ -1044,7 +1013,7 @@ fn frames_and_staged_images_over_the_budget_are_refused_at_once(
     ] {
         let started = std::time::Instant::now();
         let mut child = sandbox
-            .command(&args)
+            .command(args)
             .env(seqavatar_engine::MEMORY_BUDGET_VAR, budget)
             .env("RAYON_NUM_THREADS", "2")
             .stdout(std::process::Stdio::null())

@@ -651,29 +651,9 @@ fn gc_on_another_machine_skips_the_entries_a_render_reads() {
             "cpu",
         ],
     );
-    let started = Instant::now();
-    while !out.join("frame_00000.png").exists() {
-        assert!(
-            render.try_wait().unwrap().is_none(),
-            "render ended before its first frame"
-        );
-        assert!(
-            started.elapsed() < Duration::from_secs(300),
-            "render wrote no frame"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    crate::support::wait_for_file(&mut render, &out.join("frame_00000.png"));
     let (gc, _) = cluster.ok("m2", &["gc"]);
-    assert!(
-        render.try_wait().unwrap().is_none(),
-        "render ended before gc did: the test proves nothing\n{gc}"
-    );
-    for id in &keys {
-        assert!(
-            gc.contains(&format!("skipped {id}: a running pipeline reads it")),
-            "gc did not skip {id}:\n{gc}"
-        );
-    }
+    crate::support::assert_gc_skipped(&gc, &keys, &mut render);
     render.kill().unwrap();
     render.wait().unwrap();
 }

@@ -224,6 +224,46 @@ impl Drop for ReadOnlyCache<'_> {
     }
 }
 
+/// Waits until `child` has written `path`; a child that ends first fails the test, showing
+/// its stderr.
+pub fn wait_for_file(child: &mut Child, path: &Path) {
+    let started = std::time::Instant::now();
+    while !path.exists() {
+        if let Some(status) = child.try_wait().expect("poll the child") {
+            let mut stderr = String::new();
+            if let Some(mut pipe) = child.stderr.take() {
+                let _ = std::io::Read::read_to_string(&mut pipe, &mut stderr);
+            }
+            panic!(
+                "ended ({status}) before writing {}:\n{stderr}",
+                path.display()
+            );
+        }
+        assert!(
+            started.elapsed().as_secs() < 300,
+            "{} was never written",
+            path.display()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+/// Asserts that `gc` (its stdout `report`) skipped every entry of `ids` (`kind/key`) as read
+/// by a running pipeline, and that the reader `child` outlived it (else the test proves
+/// nothing).
+pub fn assert_gc_skipped(report: &str, ids: &[String], child: &mut Child) {
+    assert!(
+        child.try_wait().expect("poll the child").is_none(),
+        "the reader ended before gc did: the test proves nothing\n{report}"
+    );
+    for id in ids {
+        assert!(
+            report.contains(&format!("skipped {id}: a running pipeline reads it")),
+            "gc did not skip {id}:\n{report}"
+        );
+    }
+}
+
 /// Every stage kind, as the `pipeline` binary registers them, for tests that run pipelines in
 /// process.
 pub fn registry() -> Registry {

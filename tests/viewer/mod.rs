@@ -560,15 +560,9 @@ fn gc_leaves_the_entries_a_viewer_serves(sandbox: &crate::support::Sandbox, key:
         .map(ToString::to_string)
         .collect();
     assert_eq!(entries.len(), 4, "{entries:?}");
-    let (child, address) =
+    let (mut child, address) =
         serve(sandbox.command(&["view", "--avatar", key, "--port", "0", "--device", "cpu"]));
-    let report = sandbox.ok(&["gc"]);
-    for id in &entries {
-        assert!(
-            report.contains(&format!("skipped {id}: a running pipeline reads it")),
-            "gc did not skip {id}:\n{report}"
-        );
-    }
+    crate::support::assert_gc_skipped(&sandbox.ok(&["gc"]), &entries, &mut child.0);
     let host = address.to_string();
     let frame = http(address, "GET", "/frame?frame=5&camera=1", &host, "");
     assert_eq!(decode_jpeg(&frame).dimensions(), (48, 40));
