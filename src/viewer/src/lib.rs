@@ -457,6 +457,7 @@ fn info_json(scene: &Scene, limits: &Limits, backend: &Backend) -> String {
             "alpha_threshold": splat::ALPHA_THRESHOLD,
             "max_alpha": splat::MAX_ALPHA,
             "max_extent_sigmas": splat::MAX_EXTENT_SIGMAS,
+            "sh_c1": splat::sh::SH_C1,
         },
         "stream": {
             "layout_version": stream::LAYOUT_VERSION,

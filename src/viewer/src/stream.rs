@@ -12,19 +12,21 @@
 //! 16           12    f32 x 3 centre: the mean of the positions (the orbit pivot)
 //! 28           4     f32 lo: the smallest log scale of the record
 //! 32           4     f32 hi: the largest log scale (at most LOG_SCALE_SPAN above lo)
-//! 36           12 n  f32 x 3 positions (world, metres)
-//! 36 + 12 n    4 n   i8 x 4 unit rotations w x y z, times 127
-//! 36 + 16 n    4 n   u8 x 4 colour r g b (the SH degree-0 term, 0..=255) and opacity
-//! 36 + 20 n    6 n   u16 x 3 log scales, lo + (hi - lo) q / 65535
-//! 36 + 26 n    0-2   zero padding to a multiple of 4 bytes
+//! 36           4     f32 sh: the largest magnitude of a degree-1 SH coefficient (0: none)
+//! 40           12 n  f32 x 3 positions (world, metres)
+//! 40 + 12 n    4 n   i8 x 4 unit rotations w x y z, times 127
+//! 40 + 16 n    4 n   u8 x 4 colour r g b (0.5 + the SH degree-0 term, 0..=255) and opacity
+//! 40 + 20 n    6 n   u16 x 3 log scales, lo + (hi - lo) q / 65535
+//! 40 + 26 n    9 n   i8 x 3 x 3 the degree-1 SH coefficients (rgb of Y_1, Y_2, Y_3), sh q / 127
+//! 40 + 35 n    0-3   zero padding to a multiple of 4 bytes
 //! ```
 //!
 //! Each covariance is sent as scales and a rotation, its eigen decomposition
 //! ([`seqavatar_avatar::ply::scale_rotation_of`], as `pipeline export` writes it), so every
 //! decoded covariance is positive definite whatever the rounding. The quantisation keeps
 //! scales within 0.02% and rotations within about half a degree: nothing a pixel shows.
-//! Colour is view-independent (the SH degree-0 term, as `.splat` files carry it); the exact,
-//! view-dependent pixels are the server's renders (compare mode).
+//! Colour is SH up to degree 1 (higher degrees are dropped); the exact pixels are the
+//! server's renders (compare mode).
 
 use seqavatar_avatar::ply::scale_rotation_of;
 use seqavatar_avatar::splatting::WorldGaussians;
@@ -35,9 +37,9 @@ pub const MAGIC: [u8; 4] = *b"SAGS";
 /// The layout's version: change it with any change to the layout.
 pub const LAYOUT_VERSION: u32 = 1;
 /// Bytes before the positions.
-pub const HEADER_BYTES: usize = 36;
+pub const HEADER_BYTES: usize = 40;
 /// Bytes per Gaussian (without the record's padding).
-pub const BYTES_PER_GAUSSIAN: usize = 26;
+pub const BYTES_PER_GAUSSIAN: usize = 35;
 /// Log scales more than this below the largest are raised to it (a scale 10^-6 of the
 /// largest draws as nothing either way), so the 16 bits are spent where a pixel can see them.
 pub const LOG_SCALE_SPAN: f32 = 13.8;
@@ -110,7 +112,21 @@ pub fn encode(frame: usize, world: &WorldGaussians, out: &mut Vec<u8>) -> Result
     for value in [LAYOUT_VERSION, frame as u32, n as u32] {
         out.extend_from_slice(&value.to_le_bytes());
     }
-    for value in centre.into_iter().chain([lo, hi]) {
+    // The degree-1 coefficients of each Gaussian (`N x K x 3`: coefficients 1..4).
+    let degree_one = |index: usize| -> &[f64] {
+        if coefficients >= 4 {
+            &world.sh[index * 3 * coefficients + 3..][..9]
+        } else {
+            &[]
+        }
+    };
+    let sh_scale = (0..n)
+        .flat_map(degree_one)
+        .fold(0.0f64, |largest, value| largest.max(value.abs())) as f32;
+    if !sh_scale.is_finite() {
+        return Err("an SH coefficient is not finite".to_owned());
+    }
+    for value in centre.into_iter().chain([lo, hi, sh_scale]) {
         out.extend_from_slice(&value.to_le_bytes());
     }
     for value in &world.means {
@@ -133,6 +149,18 @@ pub fn encode(frame: usize, world: &WorldGaussians, out: &mut Vec<u8>) -> Result
             out.extend_from_slice(&level.to_le_bytes());
         }
     }
+    for index in 0..n {
+        let values = degree_one(index);
+        for slot in 0..9 {
+            let value = values.get(slot).map_or(0.0, |&value| value as f32);
+            let level = if sh_scale > 0.0 {
+                (value / sh_scale * 127.0).round() as i8
+            } else {
+                0
+            };
+            out.push(level as u8);
+        }
+    }
     out.resize(start + record_bytes(n), 0);
     Ok(())
 }
@@ -148,8 +176,10 @@ pub struct Record {
     pub rotations: Vec<[f32; 4]>,
     /// Standard deviations along the rotation's axes.
     pub scales: Vec<[f32; 3]>,
-    /// Colour and opacity, `0..=1`.
+    /// Colour (0.5 + the degree-0 term) and opacity, `0..=1`.
     pub colours: Vec<[f32; 4]>,
+    /// The degree-1 SH coefficients, rgb of `Y_1`, `Y_2`, `Y_3`.
+    pub sh: Vec<[f32; 9]>,
 }
 
 /// Decodes the records of a `/gaussians` reply.
@@ -175,7 +205,7 @@ pub fn decode(mut bytes: &[u8]) -> Result<Vec<Record>, String> {
                 bytes.len()
             ));
         }
-        let (lo, hi) = (float(28), float(32));
+        let (lo, hi, sh_scale) = (float(28), float(32), float(36));
         let at =
             |section: usize, index: usize, size: usize| HEADER_BYTES + section * n + index * size;
         records.push(Record {
@@ -205,6 +235,13 @@ pub fn decode(mut bytes: &[u8]) -> Result<Vec<Record>, String> {
                         let offset = at(20, i, 6) + 2 * c;
                         let level = u16::from_le_bytes([bytes[offset], bytes[offset + 1]]);
                         (lo + (hi - lo) * f32::from(level) / 65535.0).exp()
+                    })
+                })
+                .collect(),
+            sh: (0..n)
+                .map(|i| {
+                    std::array::from_fn(|c| {
+                        f32::from(bytes[at(26, i, 9) + c] as i8) / 127.0 * sh_scale
                     })
                 })
                 .collect(),
@@ -244,7 +281,7 @@ mod tests {
         encode(7, &world, &mut bytes).unwrap();
         encode(8, &world, &mut bytes).unwrap();
         assert_eq!(bytes.len(), 2 * record_bytes(3));
-        assert_eq!(record_bytes(3), 36 + 78 + 2);
+        assert_eq!(record_bytes(3), 40 + 105 + 3);
         assert_eq!(&bytes[..4], b"SAGS");
         assert_eq!(bytes[4..8], 1u32.to_le_bytes());
         let records = decode(&bytes).unwrap();
@@ -277,6 +314,11 @@ mod tests {
             }
             let opacity = world.opacities[i] as f32;
             assert!((record.colours[i][3] - opacity).abs() <= 0.5 / 255.0 + 1e-6);
+            // Degree 1 to half a step of 1.7 / 127 (the largest magnitude here).
+            for c in 0..9 {
+                let expected = world.sh[i * 12 + 3 + c] as f32;
+                assert!((record.sh[i][c] - expected).abs() <= 0.5 * 1.7 / 127.0 + 1e-6);
+            }
         }
         // The scales themselves, above the span's floor, to 0.02%.
         let expected = [[0.02f32, 0.01, 0.005], [0.3, 1e-4, 1e-4]];
