@@ -67,6 +67,29 @@ fn train_tiny_avatar(cache: &Path) -> String {
         .clone()
 }
 
+/// The train entry `key`'s avatar as eval renders it (on `cpu`, driven by its ingest and
+/// motion entries), and its ingest entry.
+fn eval_renderer(cache: &Path, key: &str) -> (AvatarRenderer, seqavatar_engine::EntryReader) {
+    let store = LocalStore::open(cache).unwrap();
+    let open = |kind: &str, key: &str| {
+        seqavatar_engine::open_leased_verified(&store, &EntryId::new(kind, key)).unwrap()
+    };
+    let train = open("train", key);
+    let input = |kind: &str| {
+        let input = train
+            .manifest()
+            .inputs
+            .iter()
+            .find(|input| input.kind == kind)
+            .unwrap()
+            .clone();
+        open(kind, &input.key)
+    };
+    let (ingest, motion) = (input("ingest"), input("motion"));
+    let renderer = AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
+    (renderer, ingest)
+}
+
 fn start(cache: &Path, avatar: &str, max_size: u32) -> Viewer {
     Viewer::start(ViewerOptions {
         cache: cache.to_owned(),
@@ -278,24 +301,7 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
     let image = decode_jpeg(&get(&viewer, &format!("/frame?frame={frame}&camera=0")));
     assert_eq!(image.dimensions(), (48, 40));
     let expected = {
-        let store = LocalStore::open(&cache).unwrap();
-        let open = |kind: &str, key: &str| {
-            seqavatar_engine::open_leased_verified(&store, &EntryId::new(kind, key)).unwrap()
-        };
-        let train = open("train", &key);
-        let input = |kind: &str| {
-            let input = train
-                .manifest()
-                .inputs
-                .iter()
-                .find(|input| input.kind == kind)
-                .unwrap()
-                .clone();
-            open(kind, &input.key)
-        };
-        let (ingest, motion) = (input("ingest"), input("motion"));
-        let mut renderer =
-            AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
+        let (mut renderer, ingest) = eval_renderer(&cache, &key);
         let camera = &seqavatar_schema::ingest::read_cameras(&ingest).unwrap()[0];
         renderer.render(frame, camera).unwrap().to_rgb_image()
     };
@@ -1123,24 +1129,7 @@ fn gaussian_stream_is_versioned_and_bounds_checked(
     let frames: Vec<usize> = records.iter().map(|record| record.frame).collect();
     assert_eq!(frames, vec![first, first + 1, first + 2]);
     // The Gaussians the server's render splats: eval's renderer's, within the quantisation.
-    let store = LocalStore::open(cache).unwrap();
-    let open = |kind: &str, key: &str| {
-        seqavatar_engine::open_leased_verified(&store, &EntryId::new(kind, key)).unwrap()
-    };
-    let train = open("train", key);
-    let input = |kind: &str| {
-        let input = train
-            .manifest()
-            .inputs
-            .iter()
-            .find(|input| input.kind == kind)
-            .unwrap()
-            .clone();
-        open(kind, &input.key)
-    };
-    let (ingest, motion) = (input("ingest"), input("motion"));
-    let mut renderer =
-        AvatarRenderer::open(&train, &ingest, &ingest, Some(&motion), &cpu()).unwrap();
+    let (mut renderer, _) = eval_renderer(cache, key);
     let world = renderer.deform(first + 1).unwrap();
     let record = &records[1];
     let n = world.opacities.len();

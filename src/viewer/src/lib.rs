@@ -589,7 +589,7 @@ async fn frame(
     }
     let pairs = match parameters(query) {
         Ok(pairs) => pairs,
-        Err(response) => return response,
+        Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
     };
     let request = match parse_frame_request(&pairs, &state.limits) {
         Ok(request) => request,
@@ -668,18 +668,15 @@ fn refusal(error: JobError) -> Response {
     }
 }
 
-/// The query's pairs without the token (the server's, not a parameter), or the 400 of a
-/// malformed query.
-fn parameters(query: QueryPairs) -> Result<Vec<(String, String)>, Response> {
+/// The query's pairs without the token (the server's, not a parameter), or what is wrong
+/// with a malformed query.
+fn parameters(query: QueryPairs) -> Result<Vec<(String, String)>, String> {
     match query {
         Ok(Query(pairs)) => Ok(pairs
             .into_iter()
             .filter(|(key, _)| key != "token")
             .collect()),
-        Err(rejection) => Err(secured(text(
-            StatusCode::BAD_REQUEST,
-            format!("malformed query: {}", rejection.body_text()),
-        ))),
+        Err(rejection) => Err(format!("malformed query: {}", rejection.body_text())),
     }
 }
 
@@ -711,7 +708,7 @@ async fn posed_gaussians(
     }
     let pairs = match parameters(query) {
         Ok(pairs) => pairs,
-        Err(response) => return response,
+        Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
     };
     let request = match parse_gaussians_request(&pairs, &state.limits) {
         Ok(request) if format == GaussianFormat::Ply && request.count != 1 => {

@@ -362,16 +362,20 @@ mod tests {
         max_side: 512,
     };
 
-    fn parse(query: &str) -> Result<FrameRequest, String> {
-        let pairs: Vec<(String, String)> = query
+    /// The pairs of `name=value&...` (not percent-decoded).
+    fn pairs(query: &str) -> Vec<(String, String)> {
+        query
             .split('&')
             .filter(|pair| !pair.is_empty())
             .map(|pair| {
                 let (name, value) = pair.split_once('=').unwrap_or((pair, ""));
                 (name.to_owned(), value.to_owned())
             })
-            .collect();
-        parse_frame_request(&pairs, &LIMITS)
+            .collect()
+    }
+
+    fn parse(query: &str) -> Result<FrameRequest, String> {
+        parse_frame_request(&pairs(query), &LIMITS)
     }
 
     #[test]
@@ -489,15 +493,7 @@ mod tests {
     }
 
     fn parse_gaussians(query: &str) -> Result<GaussiansRequest, String> {
-        let pairs: Vec<(String, String)> = query
-            .split('&')
-            .filter(|pair| !pair.is_empty())
-            .map(|pair| {
-                let (name, value) = pair.split_once('=').unwrap_or((pair, ""));
-                (name.to_owned(), value.to_owned())
-            })
-            .collect();
-        parse_gaussians_request(&pairs, &LIMITS)
+        parse_gaussians_request(&pairs(query), &LIMITS)
     }
 
     #[test]

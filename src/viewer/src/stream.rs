@@ -269,7 +269,7 @@ mod tests {
             means: vec![0.1, -0.2, 3.0, 1.0, 1.0, 1.0, -5.0, 0.25, 2.0],
             covariances,
             opacities: vec![0.5, 1.0, 0.001],
-            sh: (0..36).map(|i| f64::from(i as i32 - 18) * 0.1).collect(),
+            sh: (0..36).map(|i| f64::from(i - 18) * 0.1).collect(),
             sh_degree: 1,
         }
     }
@@ -308,9 +308,9 @@ mod tests {
                 );
             }
             let dc = &world.sh[i * 12..i * 12 + 3];
-            for c in 0..3 {
-                let expected = (0.5 + SH_C0 * dc[c]).clamp(0.0, 1.0) as f32;
-                assert!((record.colours[i][c] - expected).abs() <= 0.5 / 255.0 + 1e-6);
+            for (decoded, value) in record.colours[i].iter().zip(dc) {
+                let expected = (0.5 + SH_C0 * value).clamp(0.0, 1.0) as f32;
+                assert!((decoded - expected).abs() <= 0.5 / 255.0 + 1e-6);
             }
             let opacity = world.opacities[i] as f32;
             assert!((record.colours[i][3] - opacity).abs() <= 0.5 / 255.0 + 1e-6);
