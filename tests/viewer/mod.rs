@@ -1,10 +1,15 @@
 //! `pipeline view` on a tiny avatar trained through the real ingest, motion and train stages:
 //! the endpoints over plain HTTP (statuses, validation, hostile paths, the Host check, the
-//! access token beyond loopback, several tabs at once), the frames against eval's renderer, the command line (FILE.yaml:STAGE, port
-//! 0, loopback by default), and the page in headless Chromium driven over WebDriver: a frame
-//! arrives, the canvas is not blank, play advances the frame counter, the page's FPS is
-//! printed and a screenshot saved; then the same on a viewer bound beyond loopback, opened
-//! with its token.
+//! access token beyond loopback, several tabs at once), the frames against eval's renderer, the
+//! Gaussian stream against eval's posed Gaussians (layout version, bounds-checked frame
+//! ranges, the PLY download), the command line (FILE.yaml:STAGE, port 0, loopback by
+//! default), and the page in headless Chromium (WebGL2 on SwiftShader) driven over
+//! WebDriver at 1280 x 720: the first frame splatted in the browser, not blank, the page's
+//! splat against the server's render of the same view, orbiting and 1x playback measured
+//! and printed (`viewer orbit: F FPS at 1280x720`, `viewer playback: P% of frames shown at
+//! 1x`; figures, never asserted on), a compare sheet zoomed in 2D, the narrow layout, a
+//! screenshot, no console error; a stopped server and its return; then the same page on a
+//! viewer bound beyond loopback, opened with its token.
 //!
 //! The browser part needs `chromium` and `chromedriver` on PATH (Debian `chromium
 //! chromium-driver`); without them it is skipped with a printed reason, unless `CI` is set,
@@ -522,6 +527,7 @@ fn the_viewer_serves_renders_of_a_trained_avatar_safely_and_in_a_browser() {
         Ok(url) => browser_end_to_end(&url, &screenshot, true),
         Err(_) => {
             browser_end_to_end(&viewer.url(), &screenshot, true);
+            the_page_pauses_while_the_server_is_down(&cache, &key);
             // Beyond loopback, the page opened with the token works on through its cookie.
             let token = remote.url().rsplit_once('=').unwrap().1.to_owned();
             let port = remote.address().port();
@@ -820,7 +826,29 @@ const ORBIT_SCRIPT: &str = "const done = arguments[arguments.length - 1];
 /// playback once the frames are buffered, printing the display rate and the share of frames
 /// shown (figures, never asserted on), a compare sheet zoomed in 2D with its labels and PSNR,
 /// and a screenshot; never a console error.
-fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
+/// Headless Chromium driven over WebDriver by its chromedriver; the session ends when dropped.
+struct Browser {
+    driver: Driver,
+    _profile: tempfile::TempDir,
+    _process: ChildGuard,
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let address = self.driver.address;
+        let _ = http(
+            address,
+            "DELETE",
+            &format!("/session/{}", self.driver.session),
+            &address.to_string(),
+            "",
+        );
+    }
+}
+
+/// A browser session, `None` (the test skipped, said why) without chromium and chromedriver
+/// outside CI.
+fn open_browser() -> Option<Browser> {
     let browser = ["chromium", "chromium-browser", "google-chrome"]
         .into_iter()
         .find_map(on_path);
@@ -832,10 +860,10 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
             "CI is set: the browser test must run, but {reason}"
         );
         eprintln!("skipped the browser test: {reason}");
-        return;
+        return None;
     };
     let port = free_port();
-    let _driver_process = ChildGuard(
+    let driver_process = ChildGuard(
         Command::new(&chromedriver)
             .arg(format!("--port={port}"))
             .stdout(Stdio::null())
@@ -891,6 +919,18 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
         address,
         session: created["value"]["sessionId"].as_str().unwrap().to_owned(),
     };
+    Some(Browser {
+        driver,
+        _profile: profile,
+        _process: driver_process,
+    })
+}
+
+fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
+    let Some(browser) = open_browser() else {
+        return;
+    };
+    let driver = &browser.driver;
     driver.call(
         "POST",
         "/url",
@@ -940,8 +980,8 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
     );
     println!("the page's splat of the orbit view against the server's render: PSNR {psnr:.1} dB");
     if measure {
-        measure_orbit_and_playback(&driver);
-        compare_zooms_in_2d(&driver);
+        measure_orbit_and_playback(driver);
+        compare_zooms_in_2d(driver);
         // Back to the orbit for the screenshot.
         driver.script(
             "const select = document.getElementById('camera'); select.value = '-1';
@@ -981,13 +1021,6 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
         .filter(|entry| entry["level"] == "SEVERE")
         .collect();
     assert!(errors.is_empty(), "console errors: {errors:?}");
-    let _ = http(
-        address,
-        "DELETE",
-        &format!("/session/{}", driver.session),
-        &address.to_string(),
-        "",
-    );
 }
 
 /// Orbits a paused frame and plays at 1x once every frame is buffered; prints the display
@@ -1212,4 +1245,58 @@ fn gaussian_stream_is_versioned_and_bounds_checked(
     let favicon = get(viewer, "/favicon.ico");
     assert_eq!(favicon.status, 200);
     assert_eq!(favicon.header("content-type"), Some("image/svg+xml"));
+}
+
+/// A stopped server: the page pauses, says so and retries with back-off; once a server
+/// listens again it goes on streaming.
+fn the_page_pauses_while_the_server_is_down(cache: &Path, key: &str) {
+    let Some(browser) = open_browser() else {
+        return;
+    };
+    let driver = &browser.driver;
+    let viewer = start(cache, key, 256);
+    let port = viewer.address().port();
+    driver.call("POST", "/url", serde_json::json!({"url": viewer.url()}));
+    driver.wait_for(
+        "the first frame",
+        "return !!window.viewerStats && viewerStats.frame >= 0",
+        Duration::from_secs(120),
+    );
+    driver.click("#play");
+    drop(viewer);
+    driver.wait_for(
+        "the page to notice the stopped server",
+        "return document.getElementById('message').textContent.startsWith('server stopped') \
+         && document.getElementById('play').textContent === 'Play'",
+        Duration::from_secs(60),
+    );
+    let _again = Viewer::start(ViewerOptions {
+        cache: cache.to_owned(),
+        avatar: key.to_owned(),
+        poses: None,
+        backend: cpu(),
+        host: "127.0.0.1".to_owned(),
+        port,
+        max_size: 256,
+    })
+    .unwrap();
+    driver.wait_for(
+        "the page to reconnect",
+        "return !document.getElementById('message').textContent.startsWith('server stopped')",
+        Duration::from_secs(60),
+    );
+    // A context probe needs new Gaussians from the new server.
+    let received = driver
+        .script("return viewerStats.received")
+        .as_u64()
+        .unwrap();
+    driver.script(
+        "const context = document.getElementById('context'); context.value = 'zeroed';
+         context.dispatchEvent(new Event('change'));",
+    );
+    driver.wait_for(
+        "frames from the new server",
+        &format!("return viewerStats.received > {received} && viewerStats.errors === 0"),
+        Duration::from_secs(120),
+    );
 }

@@ -296,8 +296,8 @@ impl Viewer {
             .route("/", get(page))
             .route("/info", get(info_route))
             .route("/frame", get(frame))
-            .route("/gaussians", get(gaussians))
-            .route("/ply", get(ply))
+            .route("/gaussians", get(gaussians::<false>))
+            .route("/ply", get(gaussians::<true>))
             .route("/favicon.ico", get(favicon))
             .fallback(not_found)
             .with_state(state);
@@ -680,21 +680,19 @@ fn parameters(query: QueryPairs) -> Result<Vec<(String, String)>, String> {
     }
 }
 
-async fn gaussians(
+/// `/gaussians` (`PLY` false: the records of [`stream`]) and `/ply` (`PLY` true: the frame's
+/// Gaussians as the PLY file `pipeline export` writes).
+async fn gaussians<const PLY: bool>(
     State(state): State<Arc<AppState>>,
     headers: HeaderMap,
     query: QueryPairs,
 ) -> Response {
-    posed_gaussians(&state, &headers, query, GaussianFormat::Stream).await
-}
-
-/// The current frame's Gaussians as the PLY file `pipeline export` writes.
-async fn ply(
-    State(state): State<Arc<AppState>>,
-    headers: HeaderMap,
-    query: QueryPairs,
-) -> Response {
-    posed_gaussians(&state, &headers, query, GaussianFormat::Ply).await
+    let format = if PLY {
+        GaussianFormat::Ply
+    } else {
+        GaussianFormat::Stream
+    };
+    posed_gaussians(&state, &headers, query, format).await
 }
 
 async fn posed_gaussians(
