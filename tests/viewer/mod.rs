@@ -979,6 +979,9 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
         "the page's splat against the server's render: {against}"
     );
     println!("the page's splat of the orbit view against the server's render: PSNR {psnr:.1} dB");
+    if !measure {
+        server_renders_without_webgl(driver, url);
+    }
     if measure {
         measure_orbit_and_playback(driver);
         compare_zooms_in_2d(driver);
@@ -1298,5 +1301,36 @@ fn the_page_pauses_while_the_server_is_down(cache: &Path, key: &str) {
         "frames from the new server",
         &format!("return viewerStats.received > {received} && viewerStats.errors === 0"),
         Duration::from_secs(120),
+    );
+}
+
+/// The fallback for browsers without WebGL2 (`?renderer=server` forces it): the server's
+/// JPEG renders of the orbit view, fitted to the stage.
+fn server_renders_without_webgl(driver: &Driver, url: &str) {
+    driver.call(
+        "POST",
+        "/url",
+        serde_json::json!({"url": format!(
+            "{url}{}renderer=server",
+            if url.contains('?') { '&' } else { '?' }
+        )}),
+    );
+    driver.wait_for(
+        "a frame rendered by the server",
+        "return !!window.viewerStats && viewerStats.mode === 'server' && viewerStats.frame >= 0 \
+         && viewerStats.size !== ''",
+        Duration::from_secs(120),
+    );
+    let canvas = driver.script(
+        "const c = document.getElementById('view');
+         const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+         let lit = 0;
+         for (let i = 0; i < d.length; i += 4) if (Math.max(d[i], d[i + 1], d[i + 2]) > 24) lit++;
+         return {width: c.width, height: c.height, lit, shown: document.getElementById('imagebox')
+           .getBoundingClientRect().height};",
+    );
+    assert!(
+        canvas["lit"].as_u64().unwrap() > 20 && canvas["shown"].as_f64().unwrap() > 100.0,
+        "the server's render is blank or not fitted: {canvas}"
     );
 }
