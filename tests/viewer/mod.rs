@@ -742,6 +742,16 @@ impl Driver {
         }
     }
 
+    /// Opens `url` with the query parameter `parameter` (`name=value`) added.
+    fn open(&self, url: &str, parameter: &str) {
+        let separator = if url.contains('?') { '&' } else { '?' };
+        self.call(
+            "POST",
+            "/url",
+            serde_json::json!({"url": format!("{url}{separator}{parameter}")}),
+        );
+    }
+
     fn click(&self, css: &str) {
         let element = self.call(
             "POST",
@@ -931,14 +941,7 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
         return;
     };
     let driver = &browser.driver;
-    driver.call(
-        "POST",
-        "/url",
-        serde_json::json!({"url": format!(
-            "{url}{}speed=1",
-            if url.contains('?') { '&' } else { '?' }
-        )}),
-    );
+    driver.open(url, "speed=1");
     driver.wait_for(
         "the first frame splatted in the browser",
         "return !!window.viewerStats && viewerStats.mode === 'webgl2' && viewerStats.frame >= 0 \
@@ -1307,14 +1310,7 @@ fn the_page_pauses_while_the_server_is_down(cache: &Path, key: &str) {
 /// The fallback for browsers without WebGL2 (`?renderer=server` forces it): the server's
 /// JPEG renders of the orbit view, fitted to the stage.
 fn server_renders_without_webgl(driver: &Driver, url: &str) {
-    driver.call(
-        "POST",
-        "/url",
-        serde_json::json!({"url": format!(
-            "{url}{}renderer=server",
-            if url.contains('?') { '&' } else { '?' }
-        )}),
-    );
+    driver.open(url, "renderer=server");
     driver.wait_for(
         "a frame rendered by the server",
         "return !!window.viewerStats && viewerStats.mode === 'server' && viewerStats.frame >= 0 \
