@@ -228,7 +228,7 @@ fn resolve_target(
     let id = EntryId::new(&stage.kind, &keys[&stage.name].key);
     anyhow::ensure!(
         store.entry_state(&id)? == EntryState::Complete,
-        "stage \"{stage_name}\" ({id}) is not in the cache {}; run `pipeline run {}` first",
+        "stage \"{stage_name}\" ({id}) is not in the cache at {}; run `pipeline run {}` first",
         cache.display(),
         file.display()
     );

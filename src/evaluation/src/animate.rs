@@ -106,7 +106,7 @@ pub fn resolve_entry(store: &dyn Store, kind: &str, spec: &str) -> anyhow::Resul
     match matches.as_slice() {
         [id] => seqavatar_engine::open_leased_verified(store, id),
         [] => anyhow::bail!(
-            "{spec}: neither a folder nor the key of a \"{kind}\" entry in the cache {}",
+            "{spec}: neither a folder nor the key of a \"{kind}\" entry in the cache at {}",
             store.describe()
         ),
         many => anyhow::bail!(
@@ -145,7 +145,7 @@ pub fn upstream_input(
     let id = EntryId::new(kind, &input.key);
     anyhow::ensure!(
         store.entry_state(&id)? == EntryState::Complete,
-        "the avatar's {kind} entry {id} (stage \"{}\") is not in the cache {}",
+        "the avatar's {kind} entry {id} (stage \"{}\") is not in the cache at {}",
         input.stage_name,
         store.describe()
     );

@@ -10,7 +10,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use seqavatar_avatar::ply::{SplatCloud, canonical_cloud, posed_cloud, write_ply};
+use seqavatar_avatar::splatting::WorldGaussians;
 use seqavatar_compute::backend::Backend;
+use seqavatar_core::glam::DVec3;
 use seqavatar_engine::open_store;
 
 use crate::animate::{PoseSource, drive_avatar, frames_to_draw, resolve_entry};
@@ -45,6 +47,24 @@ pub struct ExportSummary {
 fn write_file(path: &Path, cloud: &SplatCloud) -> anyhow::Result<()> {
     let bytes = write_ply(cloud).with_context(|| format!("cannot encode {}", path.display()))?;
     std::fs::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// One frame's posed Gaussians `world` (from [`AvatarRenderer::deform`]) as the 3DGS PLY
+/// file `pipeline export` writes: moved by `offset` back to the dataset's world (ingest's
+/// re-centring undone; `read_world_offset` of the ingest entry), with the avatar's opacity
+/// logits.
+pub fn posed_ply(
+    mut world: WorldGaussians,
+    offset: DVec3,
+    opacity_logit: &[f64],
+) -> anyhow::Result<Vec<u8>> {
+    for mean in world.means.chunks_exact_mut(3) {
+        for (value, shift) in mean.iter_mut().zip(offset.to_array()) {
+            *value += shift;
+        }
+    }
+    let cloud = posed_cloud(&world, opacity_logit)?;
+    Ok(write_ply(&cloud)?)
 }
 
 /// `pipeline export`.
@@ -95,16 +115,10 @@ pub fn export_avatar(cache: &Path, options: &ExportOptions) -> anyhow::Result<Ex
     let logits = renderer.avatar.gaussians.opacity_logit.clone();
     let mut frames = Vec::with_capacity(range.len());
     for frame in range {
-        let mut world = renderer.deform(frame)?;
-        for mean in world.means.chunks_exact_mut(3) {
-            for (value, shift) in mean.iter_mut().zip(offset.to_array()) {
-                *value += shift;
-            }
-        }
-        let cloud =
-            posed_cloud(&world, &logits).with_context(|| format!("frame {frame} of the poses"))?;
+        let bytes = posed_ply(renderer.deform(frame)?, offset, &logits)
+            .with_context(|| format!("frame {frame} of the poses"))?;
         let path = options.out.join(format!("frame_{frame:05}.ply"));
-        write_file(&path, &cloud)?;
+        std::fs::write(&path, bytes).with_context(|| format!("cannot write {}", path.display()))?;
         frames.push(path);
         bar.inc(1);
     }

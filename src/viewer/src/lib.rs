@@ -1,11 +1,16 @@
 //! `pipeline view`: a local web viewer of a trained avatar. One self-contained page (inline
-//! script and style, nothing fetched from elsewhere) asks the server for frames over plain
-//! HTTP GET; the server renders them with eval's public rendering API (networks, pose
-//! refiner, skinning, splatting: the renders eval scores) on a dedicated render thread and
-//! answers JPEG images.
+//! script and style, nothing fetched from elsewhere) asks the server over plain HTTP GET
+//! for each frame's posed Gaussians, which the server computes with eval's public rendering
+//! API (networks, pose refiner, skinning: what eval's renders splat) on a dedicated render
+//! thread, and splats them itself with a small WebGL2 renderer, so orbiting runs at the
+//! display's rate and playback from frames buffered ahead. Compare mode (exact pixels:
+//! ground truth | render | error) and pages without WebGL2 get JPEG images the server renders.
 //!
-//! Routes: `GET /` (the page), `GET /info` (the scene: frames, cameras, the orbit's home view,
-//! limits, as JSON), `GET /frame?...` (one image, see [`request`]); anything else is 404.
+//! Routes: `GET /` (the page), `GET /info` (the scene: frames, cameras, the orbit's frame and
+//! home view, the splatting constants, limits, as JSON), `GET /gaussians?frame=F&count=K`
+//! (the posed Gaussians of frames `F..F+K`, binary, see [`stream`]), `GET /frame?...` (one
+//! image, see [`request`]), `GET /ply?frame=F` (frame `F`'s Gaussians as the 3DGS PLY file
+//! `pipeline export` writes), `GET /favicon.ico`; anything else is 404.
 //! The page's own query (`/?size=256&speed=4&camera=1&compare=1&play=1`) sets its controls'
 //! starting state. A compared frame's reply carries its PSNR in `x-compare-psnr` and the
 //! garment region's in `x-compare-garment-psnr` (`n/a` without a region, `empty`).
@@ -26,6 +31,7 @@ pub mod orbit;
 pub mod render;
 pub mod request;
 pub mod scene;
+pub mod stream;
 
 use std::net::{IpAddr, SocketAddr, TcpListener};
 use std::path::{Path, PathBuf};
@@ -44,12 +50,16 @@ use seqavatar_evaluation::animate::PoseSource;
 use seqavatar_evaluation::report::format_metric;
 use tokio::sync::oneshot;
 
-use crate::render::{JobError, Scheduler};
-use crate::request::{Limits, MIN_SIDE, parse_frame_request};
+use crate::render::{Answer, GaussianFormat, JobError, Scheduler, Work};
+use crate::request::{Limits, MIN_SIDE, parse_frame_request, parse_gaussians_request};
 use crate::scene::Scene;
 
 /// The page: one HTML file with its script and style inline.
 pub const PAGE: &str = include_str!("page.html");
+/// The icon browsers ask for (a splat on the page's dark background).
+pub const FAVICON: &str = "<svg xmlns=\"http://www.w3.org/2000/svg\" viewBox=\"0 0 16 16\">\
+<rect width=\"16\" height=\"16\" rx=\"3\" fill=\"#111318\"/>\
+<ellipse cx=\"8\" cy=\"8\" rx=\"3.5\" ry=\"6\" transform=\"rotate(25 8 8)\" fill=\"#5fb3ff\"/></svg>";
 
 /// The default `--max-size`: the largest image side rendered.
 pub const DEFAULT_MAX_SIZE: u32 = 1024;
@@ -102,7 +112,7 @@ pub fn train_key_of_stage(
     let id = seqavatar_engine::EntryId::new("train", &key);
     anyhow::ensure!(
         store.entry_state(&id)? == seqavatar_engine::EntryState::Complete,
-        "stage \"{stage}\" ({id}) is not in the cache {}; run `pipeline run {}` first",
+        "stage \"{stage}\" ({id}) is not in the cache at {}; run `pipeline run {}` first",
         cache.display(),
         file.display()
     );
@@ -303,6 +313,9 @@ impl Viewer {
             .route("/", get(page))
             .route("/info", get(info_route))
             .route("/frame", get(frame))
+            .route("/gaussians", get(gaussians::<false>))
+            .route("/ply", get(gaussians::<true>))
+            .route("/favicon.ico", get(favicon))
             .fallback(not_found)
             .with_state(state);
         let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -412,6 +425,7 @@ fn loopback_hosts(address: SocketAddr) -> Vec<String> {
 }
 
 fn info_json(scene: &Scene, limits: &Limits, backend: &Backend) -> String {
+    use seqavatar_compute::splat;
     let cameras: Vec<serde_json::Value> = scene
         .cameras
         .iter()
@@ -431,6 +445,7 @@ fn info_json(scene: &Scene, limits: &Limits, backend: &Backend) -> String {
         })
         .collect();
     let [azimuth, elevation, distance, fov] = scene.home;
+    let vector = |v: seqavatar_core::glam::DVec3| [v.x, v.y, v.z];
     serde_json::json!({
         "avatar": scene.avatar,
         "poses": scene.poses,
@@ -443,6 +458,28 @@ fn info_json(scene: &Scene, limits: &Limits, backend: &Backend) -> String {
         "ground_truth": scene.truth.is_some(),
         "context_probes": scene.context_probes,
         "home": {"az": azimuth, "el": elevation, "dist": distance, "fov": fov},
+        // The frame the orbit angles are measured in (`orbit::OrbitFrame`), for the page's
+        // own camera; its centre is the pivot of the first drawable frame.
+        "orbit": {
+            "centre": vector(scene.orbit.centre),
+            "up": vector(scene.orbit.up),
+            "reference": vector(scene.orbit.reference),
+        },
+        "background": scene.renderer.avatar.background,
+        "error_full_scale": render::ERROR_FULL_SCALE,
+        // What the page's splatting does as the server's does.
+        "splat": {
+            "blur_variance": splat::BLUR_VARIANCE,
+            "near_plane": splat::NEAR_PLANE,
+            "alpha_threshold": splat::ALPHA_THRESHOLD,
+            "max_alpha": splat::MAX_ALPHA,
+            "max_extent_sigmas": splat::MAX_EXTENT_SIGMAS,
+            "sh_c1": splat::sh::SH_C1,
+        },
+        "stream": {
+            "layout_version": stream::LAYOUT_VERSION,
+            "max_frames": request::MAX_STREAM_FRAMES,
+        },
         "limits": {
             "max_elevation": request::MAX_ELEVATION_DEG,
             "distance": [request::DISTANCE_RANGE.0, request::DISTANCE_RANGE.1],
@@ -567,27 +604,22 @@ async fn frame(
     if let Some(response) = refused(&state, pairs_of(&query), &headers) {
         return response;
     }
-    let pairs: Vec<(String, String)> = match query {
-        // The token is the server's, not a render parameter.
-        Ok(Query(pairs)) => pairs
-            .into_iter()
-            .filter(|(key, _)| key != "token")
-            .collect(),
-        Err(rejection) => {
-            return secured(text(
-                StatusCode::BAD_REQUEST,
-                format!("malformed query: {}", rejection.body_text()),
-            ));
-        }
+    let pairs = match parameters(query) {
+        Ok(pairs) => pairs,
+        Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
     };
     let request = match parse_frame_request(&pairs, &state.limits) {
         Ok(request) => request,
         Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
     };
     let frame_index = request.frame;
-    let answer = state.scheduler.submit(request).await;
+    let answer = state.scheduler.submit(Work::Image(request)).await;
     let response = match answer {
-        Ok(Ok(rendered)) => {
+        Ok(Ok(Answer::Gaussians(_))) => text(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "the render thread answered Gaussians to an image request",
+        ),
+        Ok(Ok(Answer::Image(rendered))) => {
             let mut response = rendered.jpeg.into_response();
             let headers = response.headers_mut();
             headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("image/jpeg"));
@@ -624,30 +656,137 @@ async fn frame(
             }
             response
         }
-        Ok(Err(JobError::Superseded)) => text(
+        Ok(Err(error)) => refusal(error),
+        Err(_) => refusal(JobError::Closed),
+    };
+    secured(response)
+}
+
+/// The answer to a job the render thread did not do.
+fn refusal(error: JobError) -> Response {
+    match error {
+        JobError::Superseded => text(
             StatusCode::CONFLICT,
             "superseded by a newer request of the same tab",
         ),
-        Ok(Err(JobError::Busy)) => text(
+        JobError::Busy => text(
             StatusCode::SERVICE_UNAVAILABLE,
             "too many tabs are waiting for a render; try again",
         ),
-        Ok(Err(JobError::BadRequest(message))) => text(StatusCode::BAD_REQUEST, message),
-        Ok(Err(JobError::Failed(message))) => text(
+        JobError::BadRequest(message) => text(StatusCode::BAD_REQUEST, message),
+        JobError::Failed(message) => text(
             StatusCode::INTERNAL_SERVER_ERROR,
             format!("render failed: {message}"),
         ),
-        Ok(Err(JobError::Closed)) | Err(_) => text(
+        JobError::Closed => text(
             StatusCode::SERVICE_UNAVAILABLE,
             "the viewer is shutting down",
         ),
+    }
+}
+
+/// The query's pairs without the token (the server's, not a parameter), or what is wrong
+/// with a malformed query.
+fn parameters(query: QueryPairs) -> Result<Vec<(String, String)>, String> {
+    match query {
+        Ok(Query(pairs)) => Ok(pairs
+            .into_iter()
+            .filter(|(key, _)| key != "token")
+            .collect()),
+        Err(rejection) => Err(format!("malformed query: {}", rejection.body_text())),
+    }
+}
+
+/// `/gaussians` (`PLY` false: the records of [`stream`]) and `/ply` (`PLY` true: the frame's
+/// Gaussians as the PLY file `pipeline export` writes).
+async fn gaussians<const PLY: bool>(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    query: QueryPairs,
+) -> Response {
+    let format = if PLY {
+        GaussianFormat::Ply
+    } else {
+        GaussianFormat::Stream
     };
+    posed_gaussians(&state, &headers, query, format).await
+}
+
+async fn posed_gaussians(
+    state: &AppState,
+    headers: &HeaderMap,
+    query: QueryPairs,
+    format: GaussianFormat,
+) -> Response {
+    if let Some(response) = refused(state, pairs_of(&query), headers) {
+        return response;
+    }
+    let pairs = match parameters(query) {
+        Ok(pairs) => pairs,
+        Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
+    };
+    let request = match parse_gaussians_request(&pairs, &state.limits) {
+        Ok(request) if format == GaussianFormat::Ply && request.count != 1 => {
+            return secured(text(
+                StatusCode::BAD_REQUEST,
+                "a PLY file holds one frame: `count` must be 1",
+            ));
+        }
+        Ok(request) => request,
+        Err(message) => return secured(text(StatusCode::BAD_REQUEST, message)),
+    };
+    let frame = request.frame;
+    let response = match state
+        .scheduler
+        .submit(Work::Gaussians(request, format))
+        .await
+    {
+        Ok(Ok(Answer::Gaussians(bytes))) => {
+            let mut response = bytes.into_response();
+            let headers = response.headers_mut();
+            headers.insert(
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/octet-stream"),
+            );
+            let mut put = |name: header::HeaderName, value: String| {
+                if let Ok(value) = HeaderValue::from_str(&value) {
+                    headers.insert(name, value);
+                }
+            };
+            match format {
+                GaussianFormat::Stream => put(
+                    header::HeaderName::from_static("x-layout-version"),
+                    stream::LAYOUT_VERSION.to_string(),
+                ),
+                GaussianFormat::Ply => put(
+                    header::CONTENT_DISPOSITION,
+                    format!("attachment; filename=\"frame_{frame:05}.ply\""),
+                ),
+            }
+            response
+        }
+        Ok(Ok(Answer::Image(_))) => text(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "the render thread answered an image to a Gaussians request",
+        ),
+        Ok(Err(error)) => refusal(error),
+        Err(_) => refusal(JobError::Closed),
+    };
+    secured(response)
+}
+
+async fn favicon() -> Response {
+    let mut response = FAVICON.into_response();
+    response.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("image/svg+xml"),
+    );
     secured(response)
 }
 
 async fn not_found() -> Response {
     secured(text(
         StatusCode::NOT_FOUND,
-        "not found: this viewer serves /, /info and /frame",
+        "not found: this viewer serves /, /info, /gaussians, /frame and /ply",
     ))
 }

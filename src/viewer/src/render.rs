@@ -1,5 +1,6 @@
 //! The render thread and its queue. Rendering is CPU- or GPU-bound and blocking, so one
-//! dedicated thread owns the avatar and renders one request at a time; the HTTP tasks only
+//! dedicated thread owns the avatar and serves one request at a time (an image, or the
+//! posed Gaussians of a few frames for the page's own renderer); the HTTP tasks only
 //! queue requests and await the answers. The queue holds at most one pending request per
 //! browser tab, "newest wins": a newer request of a tab replaces its pending one, which is
 //! answered [`JobError::Superseded`] (HTTP 409) at once. Tabs are served first come, first
@@ -19,7 +20,7 @@ use seqavatar_evaluation::metrics::{Mask, Protocol};
 use seqavatar_evaluation::region::region_psnr;
 use tokio::sync::oneshot;
 
-use crate::request::{FrameRequest, View};
+use crate::request::{FrameRequest, GaussiansRequest, View};
 use crate::scene::Scene;
 
 /// The most tabs with a pending request; more are answered busy.
@@ -68,10 +69,51 @@ pub enum JobError {
     Closed,
 }
 
-pub type JobResult = Result<Rendered, JobError>;
+/// What the render thread is asked for.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Work {
+    /// An image rendered on the server.
+    Image(FrameRequest),
+    /// The posed Gaussians of frames.
+    Gaussians(GaussiansRequest, GaussianFormat),
+}
+
+/// How posed Gaussians are answered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GaussianFormat {
+    /// The records of [`crate::stream`], one per frame.
+    Stream,
+    /// The 3DGS PLY file `pipeline export` writes (one frame).
+    Ply,
+}
+
+impl Work {
+    fn tab(&self) -> &str {
+        match self {
+            Work::Image(request) => &request.tab,
+            Work::Gaussians(request, _) => &request.tab,
+        }
+    }
+
+    fn probe(&self) -> Option<ContextProbe> {
+        match self {
+            Work::Image(request) => request.probe,
+            Work::Gaussians(request, _) => request.probe,
+        }
+    }
+}
+
+/// What the render thread answers: an encoded image, or the records of [`crate::stream`].
+#[derive(Debug)]
+pub enum Answer {
+    Image(Rendered),
+    Gaussians(Vec<u8>),
+}
+
+pub type JobResult = Result<Answer, JobError>;
 
 struct Job {
-    request: FrameRequest,
+    work: Work,
     reply: oneshot::Sender<JobResult>,
 }
 
@@ -89,9 +131,9 @@ pub struct Scheduler {
 }
 
 impl Scheduler {
-    /// Queues `request`; the receiver gets its answer. A pending request of the same tab is
+    /// Queues `work`; the receiver gets its answer. A pending request of the same tab is
     /// replaced and answered [`JobError::Superseded`].
-    pub fn submit(&self, request: FrameRequest) -> oneshot::Receiver<JobResult> {
+    pub fn submit(&self, work: Work) -> oneshot::Receiver<JobResult> {
         let (reply, answer) = oneshot::channel();
         let mut queue = self
             .queue
@@ -101,11 +143,11 @@ impl Scheduler {
             let _ = reply.send(Err(JobError::Closed));
             return answer;
         }
-        let job = Job { request, reply };
+        let job = Job { work, reply };
         if let Some(slot) = queue
             .pending
             .iter_mut()
-            .find(|pending| pending.request.tab == job.request.tab)
+            .find(|pending| pending.work.tab() == job.work.tab())
         {
             let older = std::mem::replace(slot, job);
             let _ = older.reply.send(Err(JobError::Superseded));
@@ -169,7 +211,7 @@ pub fn render_loop(scene: &mut Scene, scheduler: &Scheduler) {
     while let Some(job) = scheduler.next() {
         // A panic in the render code answers 500 instead of taking the viewer down.
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            render_request(scene, &mut probe, &job.request)
+            serve(scene, &mut probe, &job.work)
         }))
         .unwrap_or_else(|panic| {
             let message = panic
@@ -197,20 +239,57 @@ pub fn fitted_size(width: u32, height: u32, max_width: u32, max_height: u32) -> 
     )
 }
 
-fn render_request(
-    scene: &mut Scene,
-    probe: &mut Option<ContextProbe>,
-    request: &FrameRequest,
-) -> JobResult {
-    if request.probe != *probe {
-        if request.probe.is_some() && !scene.context_probes {
+/// Serves `work` under its context probe (`probe`: the one the renderer has now).
+fn serve(scene: &mut Scene, probe: &mut Option<ContextProbe>, work: &Work) -> JobResult {
+    let wanted = work.probe();
+    if wanted != *probe {
+        if wanted.is_some() && !scene.context_probes {
             return Err(JobError::BadRequest(
                 "`context`: this avatar takes no motion-history inputs to replace (its motion context is none or pose)".to_owned(),
             ));
         }
-        scene.renderer.set_context_probe(request.probe);
-        *probe = request.probe;
+        scene.renderer.set_context_probe(wanted);
+        *probe = wanted;
     }
+    match work {
+        Work::Image(request) => render_request(scene, request).map(Answer::Image),
+        Work::Gaussians(request, format) => {
+            posed_gaussians(scene, request, *format).map(Answer::Gaussians)
+        }
+    }
+}
+
+/// The posed Gaussians of frames `request.frame..request.frame + request.count`, each
+/// frame's as the server's render splats them ([`AvatarRenderer::deform`]): records of
+/// [`crate::stream`], or the PLY file of the first frame.
+///
+/// [`AvatarRenderer::deform`]: seqavatar_evaluation::avatar_render::AvatarRenderer::deform
+fn posed_gaussians(
+    scene: &mut Scene,
+    request: &GaussiansRequest,
+    format: GaussianFormat,
+) -> Result<Vec<u8>, JobError> {
+    let failed = |error: anyhow::Error| JobError::Failed(format!("{error:#}"));
+    let mut bytes = Vec::new();
+    for frame in request.frame..request.frame + request.count {
+        let world = scene.renderer.deform(frame).map_err(failed)?;
+        match format {
+            GaussianFormat::Stream => crate::stream::encode(frame, &world, &mut bytes)
+                .map_err(|error| JobError::Failed(format!("frame {frame}: {error}")))?,
+            GaussianFormat::Ply => {
+                return seqavatar_evaluation::export::posed_ply(
+                    world,
+                    scene.world_offset,
+                    &scene.renderer.avatar.gaussians.opacity_logit,
+                )
+                .map_err(failed);
+            }
+        }
+    }
+    Ok(bytes)
+}
+
+fn render_request(scene: &mut Scene, request: &FrameRequest) -> Result<Rendered, JobError> {
     let (camera, dataset_view) = match request.view {
         View::Dataset {
             camera,
@@ -332,8 +411,8 @@ mod tests {
     use super::*;
     use crate::orbit::OrbitView;
 
-    fn request(tab: &str, frame: usize) -> FrameRequest {
-        FrameRequest {
+    fn request(tab: &str, frame: usize) -> Work {
+        Work::Image(FrameRequest {
             tab: tab.to_owned(),
             frame,
             view: View::Orbit(OrbitView {
@@ -348,6 +427,13 @@ mod tests {
             }),
             probe: None,
             compare: false,
+        })
+    }
+
+    fn frame_of(job: Job) -> usize {
+        match job.work {
+            Work::Image(request) => request.frame,
+            Work::Gaussians(request, _) => request.frame,
         }
     }
 
@@ -360,8 +446,8 @@ mod tests {
         assert_eq!(first.try_recv().unwrap().unwrap_err(), JobError::Superseded);
         assert_eq!(scheduler.pending(), 2);
         // First come, first served across tabs; the replaced request keeps its tab's place.
-        assert_eq!(scheduler.next().unwrap().request.frame, 2);
-        assert_eq!(scheduler.next().unwrap().request.frame, 5);
+        assert_eq!(frame_of(scheduler.next().unwrap()), 2);
+        assert_eq!(frame_of(scheduler.next().unwrap()), 5);
         drop((other, second));
     }
 
@@ -375,7 +461,7 @@ mod tests {
         assert_eq!(refused.try_recv().unwrap().unwrap_err(), JobError::Busy);
         // Tab "0" closed its connection: its request is skipped.
         drop(answers.remove(0));
-        assert_eq!(scheduler.next().unwrap().request.tab, "1");
+        assert_eq!(scheduler.next().unwrap().work.tab(), "1");
         scheduler.close();
         assert!(scheduler.next().is_none());
         for mut answer in answers.into_iter().skip(1) {

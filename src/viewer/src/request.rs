@@ -1,6 +1,6 @@
-//! Validation of the `/frame` query: every parameter is checked (known name, given once,
-//! finite number, in range) before anything is rendered; an error is a message naming the
-//! parameter, answered with status 400.
+//! Validation of the `/frame` and `/gaussians` queries: every parameter is checked (known
+//! name, given once, finite number, in range) before anything is rendered; an error is a
+//! message naming the parameter, answered with status 400.
 
 use seqavatar_evaluation::context_probe::ContextProbe;
 
@@ -55,33 +55,79 @@ pub struct FrameRequest {
     pub compare: bool,
 }
 
-/// Parses and validates the query pairs of `/frame`.
-pub fn parse_frame_request(
+/// A validated `/gaussians` request: the posed Gaussians of frames `frame..frame + count`
+/// ([`crate::stream`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GaussiansRequest {
+    /// The browser tab that asked (as [`FrameRequest::tab`]).
+    pub tab: String,
+    pub frame: usize,
+    /// Frames in the reply, `1..=`[`MAX_STREAM_FRAMES`].
+    pub count: usize,
+    pub probe: Option<ContextProbe>,
+}
+
+/// The most frames one `/gaussians` reply carries.
+pub const MAX_STREAM_FRAMES: usize = 8;
+
+/// Parses and validates the query pairs of `/gaussians`: `frame`, `count` (default 1; the
+/// frames `frame..frame + count` must all be drawable), `context` and `tab` as for `/frame`.
+pub fn parse_gaussians_request(
     pairs: &[(String, String)],
     limits: &Limits,
-) -> Result<FrameRequest, String> {
-    const KNOWN: [&str; 13] = [
-        "tab", "frame", "camera", "az", "el", "dist", "fov", "px", "py", "w", "h", "context",
-        "compare",
-    ];
+) -> Result<GaussiansRequest, String> {
+    let get = known_pairs(pairs, &["tab", "frame", "count", "context"])?;
+    let tab = parse_tab(&get)?;
+    let frame = parse_frame(&get, limits)?;
+    let count = get("count").map_or(Ok(1), |text| parse_index("count", text))?;
+    if !(1..=MAX_STREAM_FRAMES).contains(&count) {
+        return Err(format!(
+            "`count` {count} is out of range 1..={MAX_STREAM_FRAMES}"
+        ));
+    }
+    if frame + count > limits.num_frames {
+        return Err(format!(
+            "frames {frame}..={} reach past the last frame {}",
+            frame + count - 1,
+            limits.num_frames - 1
+        ));
+    }
+    Ok(GaussiansRequest {
+        tab,
+        frame,
+        count,
+        probe: parse_probe(&get, limits)?,
+    })
+}
+
+/// Checks that every name of `pairs` is in `known` and given once; returns the lookup of a
+/// parameter's value.
+fn known_pairs<'a>(
+    pairs: &'a [(String, String)],
+    known: &[&str],
+) -> Result<impl Fn(&str) -> Option<&'a str>, String> {
     for (index, (name, _)) in pairs.iter().enumerate() {
-        if !KNOWN.contains(&name.as_str()) {
+        if !known.contains(&name.as_str()) {
             return Err(format!(
                 "unknown parameter `{}` (known: {})",
                 printable(name),
-                KNOWN.join(", ")
+                known.join(", ")
             ));
         }
         if pairs[..index].iter().any(|(other, _)| other == name) {
             return Err(format!("parameter `{name}` is given more than once"));
         }
     }
-    let get = |name: &str| {
+    Ok(move |name: &str| {
         pairs
             .iter()
             .find(|(key, _)| key == name)
             .map(|(_, value)| value.as_str())
-    };
+    })
+}
+
+/// The `tab` parameter, `default` when absent.
+fn parse_tab<'a>(get: &impl Fn(&str) -> Option<&'a str>) -> Result<String, String> {
     let tab = get("tab").unwrap_or("default");
     if tab.is_empty()
         || tab.len() > MAX_TAB_LEN
@@ -93,6 +139,14 @@ pub fn parse_frame_request(
             "`tab` must be 1 to {MAX_TAB_LEN} letters, digits, '-' or '_'"
         ));
     }
+    Ok(tab.to_owned())
+}
+
+/// The required `frame` parameter, one of the drawable frames.
+fn parse_frame<'a>(
+    get: &impl Fn(&str) -> Option<&'a str>,
+    limits: &Limits,
+) -> Result<usize, String> {
     let frame_text = get("frame").ok_or("missing parameter `frame`")?;
     let frame = parse_index("frame", frame_text)?;
     if limits.first_frame >= limits.num_frames {
@@ -110,6 +164,51 @@ pub fn parse_frame_request(
             }
         ));
     }
+    Ok(frame)
+}
+
+/// The `context` parameter: `on` (default), `zeroed` or `from:OFFSET`.
+fn parse_probe<'a>(
+    get: &impl Fn(&str) -> Option<&'a str>,
+    limits: &Limits,
+) -> Result<Option<ContextProbe>, String> {
+    Ok(match get("context").unwrap_or("on") {
+        "on" => None,
+        "zeroed" => Some(ContextProbe::Zeroed),
+        other => {
+            let offset_text = other.strip_prefix("from:").ok_or_else(|| {
+                format!(
+                    "`context` must be on, zeroed or from:OFFSET, not `{}`",
+                    printable(other)
+                )
+            })?;
+            let offset = parse_index("context offset", offset_text)?;
+            let span = limits.num_frames - limits.first_frame;
+            if offset == 0 || offset >= span {
+                return Err(format!(
+                    "`context` offset {offset} is out of range 1..={} (the drawable frames)",
+                    span.saturating_sub(1)
+                ));
+            }
+            Some(ContextProbe::FromFrame { offset })
+        }
+    })
+}
+
+/// Parses and validates the query pairs of `/frame`.
+pub fn parse_frame_request(
+    pairs: &[(String, String)],
+    limits: &Limits,
+) -> Result<FrameRequest, String> {
+    let get = known_pairs(
+        pairs,
+        &[
+            "tab", "frame", "camera", "az", "el", "dist", "fov", "px", "py", "w", "h", "context",
+            "compare",
+        ],
+    )?;
+    let tab = parse_tab(&get)?;
+    let frame = parse_frame(&get, limits)?;
     let side = |name: &str| -> Result<Option<u32>, String> {
         get(name)
             .map(|text| {
@@ -197,27 +296,7 @@ pub fn parse_frame_request(
             height,
         })
     };
-    let probe = match get("context").unwrap_or("on") {
-        "on" => None,
-        "zeroed" => Some(ContextProbe::Zeroed),
-        other => {
-            let offset_text = other.strip_prefix("from:").ok_or_else(|| {
-                format!(
-                    "`context` must be on, zeroed or from:OFFSET, not `{}`",
-                    printable(other)
-                )
-            })?;
-            let offset = parse_index("context offset", offset_text)?;
-            let span = limits.num_frames - limits.first_frame;
-            if offset == 0 || offset >= span {
-                return Err(format!(
-                    "`context` offset {offset} is out of range 1..={} (the drawable frames)",
-                    span.saturating_sub(1)
-                ));
-            }
-            Some(ContextProbe::FromFrame { offset })
-        }
-    };
+    let probe = parse_probe(&get, limits)?;
     let compare = match get("compare").unwrap_or("0") {
         "0" => false,
         "1" => true,
@@ -232,7 +311,7 @@ pub fn parse_frame_request(
         return Err("`compare` needs a dataset `camera` (the ground truth is seen from it)".into());
     }
     Ok(FrameRequest {
-        tab: tab.to_owned(),
+        tab,
         frame,
         view,
         probe,
@@ -283,16 +362,20 @@ mod tests {
         max_side: 512,
     };
 
-    fn parse(query: &str) -> Result<FrameRequest, String> {
-        let pairs: Vec<(String, String)> = query
+    /// The pairs of `name=value&...` (not percent-decoded).
+    fn pairs(query: &str) -> Vec<(String, String)> {
+        query
             .split('&')
             .filter(|pair| !pair.is_empty())
             .map(|pair| {
                 let (name, value) = pair.split_once('=').unwrap_or((pair, ""));
                 (name.to_owned(), value.to_owned())
             })
-            .collect();
-        parse_frame_request(&pairs, &LIMITS)
+            .collect()
+    }
+
+    fn parse(query: &str) -> Result<FrameRequest, String> {
+        parse_frame_request(&pairs(query), &LIMITS)
     }
 
     #[test]
@@ -405,6 +488,38 @@ mod tests {
             (&format!("{base}&tab="), "`tab` must be"),
         ] {
             let error = parse(query).expect_err(query);
+            assert!(error.contains(needle), "{query}: {error}");
+        }
+    }
+
+    fn parse_gaussians(query: &str) -> Result<GaussiansRequest, String> {
+        parse_gaussians_request(&pairs(query), &LIMITS)
+    }
+
+    #[test]
+    fn gaussian_requests_name_drawable_frame_ranges() {
+        let request = parse_gaussians("frame=2&count=8&context=zeroed&tab=x").unwrap();
+        assert_eq!((request.frame, request.count), (2, 8));
+        assert_eq!(request.probe, Some(ContextProbe::Zeroed));
+        assert_eq!(request.tab, "x");
+        assert_eq!(parse_gaussians("frame=9").unwrap().count, 1);
+        for (query, needle) in [
+            ("", "missing parameter `frame`"),
+            ("frame=1", "`frame` 1 is out of range 2..=9"),
+            ("frame=10", "`frame` 10 is out of range"),
+            (
+                "frame=8&count=3",
+                "frames 8..=10 reach past the last frame 9",
+            ),
+            ("frame=2&count=0", "`count` 0 is out of range 1..=8"),
+            ("frame=2&count=9", "`count` 9 is out of range"),
+            ("frame=2&count=-1", "`count` must be a non-negative integer"),
+            ("frame=2&camera=0", "unknown parameter `camera`"),
+            ("frame=2&frame=3", "given more than once"),
+            ("frame=2&context=from:8", "offset 8 is out of range"),
+            ("frame=2&tab=a/b", "`tab` must be"),
+        ] {
+            let error = parse_gaussians(query).expect_err(query);
             assert!(error.contains(needle), "{query}: {error}");
         }
     }

@@ -37,6 +37,9 @@ pub struct Scene {
     pub avatar: String,
     /// Where the poses come from, in words.
     pub poses: String,
+    /// What moves the avatar's world back to the dataset's (ingest's re-centring undone), as
+    /// `pipeline export` writes posed frames.
+    pub world_offset: DVec3,
     // The entries stay open (and under their read leases) while the viewer serves them, and
     // so do the leases of a driven avatar's other inputs.
     _entries: Vec<EntryReader>,
@@ -146,6 +149,7 @@ impl Scene {
             }
         };
         let cameras = seqavatar_schema::ingest::read_cameras(&ingest)?;
+        let world_offset = seqavatar_schema::ingest::read_world_offset(&ingest)?;
         anyhow::ensure!(
             !cameras.is_empty(),
             "ingest entry {} has no cameras",
@@ -198,6 +202,7 @@ impl Scene {
             context_probes,
             avatar,
             poses: poses_text,
+            world_offset,
             _entries: entries,
             _leases: leases,
         })

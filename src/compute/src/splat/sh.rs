@@ -11,7 +11,8 @@ use crate::scalar::Scalar;
 
 /// `Y_0`.
 pub const SH_C0: f64 = 0.282_094_791_773_878_14;
-const SH_C1: f64 = 0.488_602_511_902_919_9;
+/// The factor of the degree-1 basis functions `Y_1..Y_3`.
+pub const SH_C1: f64 = 0.488_602_511_902_919_9;
 const SH_C2: [f64; 5] = [
     1.092_548_430_592_079_2,
     -1.092_548_430_592_079_2,
