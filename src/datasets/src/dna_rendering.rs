@@ -549,10 +549,6 @@ impl DnaRendering {
             warnings,
         })
     }
-
-    pub fn annotations_path(&self) -> &Path {
-        &self.annotations
-    }
 }
 
 impl DatasetReader for DnaRendering {
