@@ -568,10 +568,6 @@ impl DatasetReader for DnaRendering {
         self.num_frames
     }
 
-    fn frame_id(&self, frame: usize) -> i64 {
-        frame as i64
-    }
-
     fn default_split(&self) -> Split {
         let index_of = |ids: &mut dyn Iterator<Item = i64>| -> Vec<usize> {
             ids.filter_map(|id| self.cameras.iter().position(|c| c.id == id))
