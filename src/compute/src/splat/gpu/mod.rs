@@ -103,25 +103,11 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "splat_rasterize.wgsl",
             "splat_rasterize_backward.wgsl",
         ] {
-            "rotation0" => rotation[0],
-            "rotation1" => rotation[1],
-            "rotation2" => rotation[2],
-            "intrinsics" => intrinsics,
-            "center" => center,
-            "background" => background,
-            "image" => image,
-            "counts" => counts,
-            "flags" => flags,
+            rotation[0] as "rotation0", rotation[1] as "rotation1", rotation[2] as "rotation2",
+            intrinsics, center, background, image, counts, flags,
         }),
         wgsl_twin!(BinParams as "BinParams" in ["splat_bin.wgsl"] {
-            "gaussians" => gaussians,
-            "pairs" => pairs,
-            "tiles_x" => tiles_x,
-            "row_begin" => row_begin,
-            "row_end" => row_end,
-            "slot" => slot,
-            "tiles" => tiles,
-            "_pad" => pad,
+            gaussians, pairs, tiles_x, row_begin, row_end, slot, tiles, pad as "_pad",
         }),
     ]
 }
