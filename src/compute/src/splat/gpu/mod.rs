@@ -1414,33 +1414,6 @@ impl ResidentGradients {
     }
 }
 
-fn check_upstream(
-    camera_index: usize,
-    gradient: &ImageGradient<'_, f32>,
-    camera: &Camera,
-) -> Result<(), SplatError> {
-    let pixels = camera.width as usize * camera.height as usize;
-    let check = |field: &'static str, values: &[f32], expected: usize| {
-        super::check_len(field, values.len(), expected)?;
-        match values.iter().position(|v| !v.is_finite()) {
-            Some(index) => Err(SplatError::NonFiniteGradient {
-                camera: camera_index,
-                field,
-                index,
-            }),
-            None => Ok(()),
-        }
-    };
-    check("colour", gradient.colour, pixels * 3)?;
-    if let Some(alpha) = gradient.alpha {
-        check("alpha", alpha, pixels)?;
-    }
-    if let Some(depth) = gradient.depth {
-        check("depth", depth, pixels)?;
-    }
-    Ok(())
-}
-
 /// One camera's upstream gradient, uploaded (checked first: sizes and finiteness).
 pub struct ResidentImageGradient {
     colour: GpuBuffer,
@@ -1468,7 +1441,7 @@ impl ResidentImageGradient {
             .zip(cameras)
             .enumerate()
             .map(|(index, (gradient, camera))| {
-                check_upstream(index, gradient, camera)?;
+                gradient.check(index, camera.width as usize * camera.height as usize)?;
                 Ok(Self {
                     colour: context.upload("d colour", gradient.colour)?,
                     alpha: gradient
