@@ -5,69 +5,18 @@
 
 use anyhow::Context;
 use seqavatar_compute::splat::{
-    self, GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatGradients,
+    self, GaussianBuffers, ImageGradient, RasterOptions, RenderedImage, SplatGradients,
 };
 use seqavatar_core::camera::Camera;
 
-/// One frame's Gaussians in world space, f64.
-#[derive(Clone, Debug, PartialEq)]
-pub struct WorldGaussians {
-    pub means: Vec<f64>,
-    pub covariances: Vec<f64>,
-    pub opacities: Vec<f64>,
-    /// `N x K x 3` for the active degree.
-    pub sh: Vec<f64>,
-    pub sh_degree: u32,
-}
-
-impl WorldGaussians {
-    pub fn set(&self) -> GaussianSet<'_, f64> {
-        GaussianSet {
-            means: &self.means,
-            covariances: &self.covariances,
-            opacities: &self.opacities,
-            sh: &self.sh,
-            sh_degree: self.sh_degree,
-        }
-    }
-}
-
-struct F32Gaussians {
-    means: Vec<f32>,
-    covariances: Vec<f32>,
-    opacities: Vec<f32>,
-    sh: Vec<f32>,
-    sh_degree: u32,
-}
-
-impl F32Gaussians {
-    fn new(g: &WorldGaussians) -> Self {
-        let narrow = |v: &[f64]| v.iter().map(|x| *x as f32).collect::<Vec<f32>>();
-        Self {
-            means: narrow(&g.means),
-            covariances: narrow(&g.covariances),
-            opacities: narrow(&g.opacities),
-            sh: narrow(&g.sh),
-            sh_degree: g.sh_degree,
-        }
-    }
-
-    fn set(&self) -> GaussianSet<'_, f32> {
-        GaussianSet {
-            means: &self.means,
-            covariances: &self.covariances,
-            opacities: &self.opacities,
-            sh: &self.sh,
-            sh_degree: self.sh_degree,
-        }
-    }
-}
+/// One frame's Gaussians in world space, f64 (`sh`: `N x K x 3` for the active degree).
+pub type WorldGaussians = GaussianBuffers<f64>;
 
 /// A forward pass kept for its backward, with the f32 copy it splatted.
 pub struct SplatPass {
     pub images: Vec<RenderedImage<f64>>,
     forward: splat::cpu::CpuForward<f32>,
-    narrow: F32Gaussians,
+    narrow: GaussianBuffers<f32>,
 }
 
 fn widen(image: &RenderedImage<f32>) -> RenderedImage<f64> {
@@ -89,9 +38,9 @@ pub fn forward_cpu(
     cameras: &[Camera],
     options: &RasterOptions,
 ) -> anyhow::Result<SplatPass> {
-    let narrow = F32Gaussians::new(gaussians);
+    let narrow = gaussians.convert::<f32>();
     let f =
-        splat::cpu::forward(&narrow.set(), cameras, options).context("splatting forward (cpu)")?;
+        splat::cpu::forward(&narrow.view(), cameras, options).context("splatting forward (cpu)")?;
     Ok(SplatPass {
         images: f.images.iter().map(widen).collect(),
         forward: f,
@@ -107,8 +56,12 @@ pub fn backward_cpu(
     alpha: &[Vec<f64>],
 ) -> anyhow::Result<SplatGradients<f64>> {
     let (c32, a32) = (narrow_planes(colour), narrow_planes(alpha));
-    let g = splat::cpu::backward(&pass.forward, &pass.narrow.set(), &upstream_f32(&c32, &a32))
-        .context("splatting backward (cpu)")?;
+    let g = splat::cpu::backward(
+        &pass.forward,
+        &pass.narrow.view(),
+        &upstream_f32(&c32, &a32),
+    )
+    .context("splatting backward (cpu)")?;
     Ok(widen_gradients(g))
 }
 
@@ -178,7 +131,7 @@ mod tests {
             smooth_cutoff: false,
         };
         let pass = forward_cpu(&world, cameras, &options).unwrap();
-        let exact = splat::cpu::forward(&world.set(), cameras, &options).unwrap();
+        let exact = splat::cpu::forward(&world.view(), cameras, &options).unwrap();
         let (ours, theirs) = (&pass.images[0], &exact.images[0]);
         for (name, a, b) in [
             ("colour", &ours.colour, &theirs.colour),
@@ -211,7 +164,7 @@ mod tests {
             alpha: Some(&alpha[0]),
             depth: None,
         }];
-        let reference = splat::cpu::backward(&exact, &world.set(), &upstream).unwrap();
+        let reference = splat::cpu::backward(&exact, &world.view(), &upstream).unwrap();
         for (name, a, b) in [
             ("means", &grads.means, &reference.means),
             ("covariances", &grads.covariances, &reference.covariances),
@@ -228,7 +181,7 @@ mod tests {
             alpha: None,
             depth: None,
         }];
-        let colour_only = splat::cpu::backward(&exact, &world.set(), &no_alpha).unwrap();
+        let colour_only = splat::cpu::backward(&exact, &world.view(), &no_alpha).unwrap();
         assert!(relative_error(&colour_only.opacities, &reference.opacities) > 1e-2);
     }
 }

@@ -88,18 +88,6 @@ impl ImageF32 {
         })
     }
 
-    pub fn from_rgb_image(image: &RgbImage) -> Self {
-        Self {
-            width: image.width() as usize,
-            height: image.height() as usize,
-            data: image
-                .as_raw()
-                .iter()
-                .map(|&byte| f32::from(byte) / 255.0)
-                .collect(),
-        }
-    }
-
     /// Rounds to 8 bits, clamping to [0, 1].
     pub fn to_rgb_image(&self) -> RgbImage {
         let bytes = self

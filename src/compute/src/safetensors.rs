@@ -556,6 +556,7 @@ mod tests {
     #[test]
     fn rejects_malformed_files_with_the_field_named() {
         let data = f32_bytes(&[1.0, 2.0]);
+        let with = |header: &str| file_bytes(header, &data);
         let cases: Vec<(Vec<u8>, &str)> = vec![
             (vec![1, 2, 3], "shorter than the 8-byte header length"),
             (u64::MAX.to_le_bytes().to_vec(), "exceeds the limit"),
@@ -569,64 +570,44 @@ mod tests {
                 "runs past the end",
             ),
             (file_bytes("[1]", &[]), "not a JSON object"),
+            (with(r#"{"w": 3}"#), "entry is not a JSON object"),
             (
-                file_bytes(r#"{"w": 3}"#, &data),
-                "entry is not a JSON object",
-            ),
-            (
-                file_bytes(r#"{"w": {"shape": [2], "data_offsets": [0, 8]}}"#, &data),
+                with(r#"{"w": {"shape": [2], "data_offsets": [0, 8]}}"#),
                 "field dtype",
             ),
             (
-                file_bytes(
-                    r#"{"w": {"dtype": "I64", "shape": [1], "data_offsets": [0, 8]}}"#,
-                    &data,
-                ),
+                with(r#"{"w": {"dtype": "I64", "shape": [1], "data_offsets": [0, 8]}}"#),
                 "unsupported \"I64\"",
             ),
             (
-                file_bytes(
-                    r#"{"w": {"dtype": "F32", "shape": [-2], "data_offsets": [0, 8]}}"#,
-                    &data,
-                ),
+                with(r#"{"w": {"dtype": "F32", "shape": [-2], "data_offsets": [0, 8]}}"#),
                 "field shape",
             ),
             (
-                file_bytes(r#"{"w": {"dtype": "F32", "shape": [2]}}"#, &data),
+                with(r#"{"w": {"dtype": "F32", "shape": [2]}}"#),
                 "field data_offsets",
             ),
             (
-                file_bytes(
-                    r#"{"w": {"dtype": "F32", "shape": [2], "data_offsets": [0, 16]}}"#,
-                    &data,
-                ),
+                with(r#"{"w": {"dtype": "F32", "shape": [2], "data_offsets": [0, 16]}}"#),
                 "inside the 8-byte data",
             ),
             (
-                file_bytes(
-                    r#"{"w": {"dtype": "F32", "shape": [2], "data_offsets": [8, 0]}}"#,
-                    &data,
-                ),
+                with(r#"{"w": {"dtype": "F32", "shape": [2], "data_offsets": [8, 0]}}"#),
                 "not a range",
             ),
             (
-                file_bytes(
-                    r#"{"w": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}"#,
-                    &data,
-                ),
+                with(r#"{"w": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}"#),
                 "needs 12 bytes",
             ),
             (
-                file_bytes(
+                with(
                     r#"{"w": {"dtype": "F32", "shape": [4294967296, 4294967296, 4], "data_offsets": [0, 8]}}"#,
-                    &data,
                 ),
                 "overflows",
             ),
             (
-                file_bytes(
+                with(
                     r#"{"a": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}, "b": {"dtype": "F32", "shape": [1], "data_offsets": [4, 8]}}"#,
-                    &data,
                 ),
                 "overlap",
             ),

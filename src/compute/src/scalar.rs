@@ -71,6 +71,12 @@ pub trait Scalar:
 }
 
 macro_rules! impl_scalar {
+    (@delegate $t:ty: $($name:ident),+ -> $out:ty) => {$(
+        #[inline(always)]
+        fn $name(self) -> $out {
+            <$t>::$name(self)
+        }
+    )+};
     ($t:ty) => {
         impl Scalar for $t {
             const ZERO: Self = 0.0;
@@ -86,30 +92,8 @@ macro_rules! impl_scalar {
             fn to_f64(self) -> f64 {
                 f64::from(self)
             }
-            #[inline(always)]
-            fn exp(self) -> Self {
-                <$t>::exp(self)
-            }
-            #[inline(always)]
-            fn ln(self) -> Self {
-                <$t>::ln(self)
-            }
-            #[inline(always)]
-            fn sqrt(self) -> Self {
-                <$t>::sqrt(self)
-            }
-            #[inline(always)]
-            fn abs(self) -> Self {
-                <$t>::abs(self)
-            }
-            #[inline(always)]
-            fn ceil(self) -> Self {
-                <$t>::ceil(self)
-            }
-            #[inline(always)]
-            fn floor(self) -> Self {
-                <$t>::floor(self)
-            }
+            impl_scalar!(@delegate $t: exp, ln, sqrt, abs, ceil, floor -> Self);
+            impl_scalar!(@delegate $t: is_finite, is_nan -> bool);
             #[inline(always)]
             fn max(self, other: Self) -> Self {
                 <$t>::max(self, other)
@@ -117,14 +101,6 @@ macro_rules! impl_scalar {
             #[inline(always)]
             fn min(self, other: Self) -> Self {
                 <$t>::min(self, other)
-            }
-            #[inline(always)]
-            fn is_finite(self) -> bool {
-                <$t>::is_finite(self)
-            }
-            #[inline(always)]
-            fn is_nan(self) -> bool {
-                <$t>::is_nan(self)
             }
         }
     };

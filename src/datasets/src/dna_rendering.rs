@@ -549,10 +549,6 @@ impl DnaRendering {
             warnings,
         })
     }
-
-    pub fn annotations_path(&self) -> &Path {
-        &self.annotations
-    }
 }
 
 impl DatasetReader for DnaRendering {
@@ -570,10 +566,6 @@ impl DatasetReader for DnaRendering {
 
     fn num_frames(&self) -> usize {
         self.num_frames
-    }
-
-    fn frame_id(&self, frame: usize) -> i64 {
-        frame as i64
     }
 
     fn default_split(&self) -> Split {

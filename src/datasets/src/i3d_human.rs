@@ -425,10 +425,6 @@ impl DatasetReader for I3dHuman {
         self.num_frames
     }
 
-    fn frame_id(&self, frame: usize) -> i64 {
-        frame as i64
-    }
-
     fn default_split(&self) -> Split {
         let ids: Vec<i64> = self.cameras.iter().map(|c| c.id).collect();
         let index_of = |views: &[i64]| -> Vec<usize> {

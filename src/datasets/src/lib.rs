@@ -176,8 +176,11 @@ pub trait DatasetReader: Send + Sync {
     fn cameras(&self) -> &[SourceCamera];
     /// Number of frames in the dataset's frame list.
     fn num_frames(&self) -> usize;
-    /// The dataset's own number for frame-list index `frame` (file name number).
-    fn frame_id(&self, frame: usize) -> i64;
+    /// The dataset's own number for frame-list index `frame` (file name number; by default
+    /// the index itself).
+    fn frame_id(&self, frame: usize) -> i64 {
+        frame as i64
+    }
     /// The split docs/method.md prescribes for this sequence.
     fn default_split(&self) -> Split;
     /// The body model the fits refer to, and its kind.

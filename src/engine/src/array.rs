@@ -87,11 +87,6 @@ impl<T> NdArray<T> {
         self.data.is_empty()
     }
 
-    /// Number of dimensions.
-    pub fn ndim(&self) -> usize {
-        self.shape.len()
-    }
-
     /// Row-major offset of `index`, or `None` when it has the wrong rank or is out of bounds.
     pub fn offset(&self, index: &[usize]) -> Option<usize> {
         if index.len() != self.shape.len() {

@@ -133,47 +133,30 @@ impl DType {
             out
         }
         let chunks = bytes.chunks_exact(n.max(1));
+        // `ArrayData::$data` of the elements read as `$word`, each converted by `$convert`.
+        macro_rules! numbers {
+            ($data:ident, $word:ty $(, $convert:expr)?) => {
+                ArrayData::$data(
+                    chunks
+                        .map(|c| <$word>::from_le_bytes(word(c, be)))
+                        $(.map($convert))?
+                        .collect(),
+                )
+            };
+        }
         Ok(match (self.kind, n) {
             (Kind::Bool, _) => ArrayData::Bool(bytes.iter().map(|&b| b != 0).collect()),
             (Kind::UInt, 1) => ArrayData::U8(bytes.to_vec()),
             (Kind::Int, 1) => ArrayData::I64(bytes.iter().map(|&b| i64::from(b as i8)).collect()),
-            (Kind::Int, 2) => ArrayData::I64(
-                chunks
-                    .map(|c| i64::from(i16::from_le_bytes(word(c, be))))
-                    .collect(),
-            ),
-            (Kind::Int, 4) => ArrayData::I64(
-                chunks
-                    .map(|c| i64::from(i32::from_le_bytes(word(c, be))))
-                    .collect(),
-            ),
-            (Kind::Int, 8) => {
-                ArrayData::I64(chunks.map(|c| i64::from_le_bytes(word(c, be))).collect())
-            }
-            (Kind::UInt, 2) => ArrayData::I64(
-                chunks
-                    .map(|c| i64::from(u16::from_le_bytes(word(c, be))))
-                    .collect(),
-            ),
-            (Kind::UInt, 4) => ArrayData::I64(
-                chunks
-                    .map(|c| i64::from(u32::from_le_bytes(word(c, be))))
-                    .collect(),
-            ),
-            (Kind::UInt, 8) => {
-                ArrayData::U64(chunks.map(|c| u64::from_le_bytes(word(c, be))).collect())
-            }
-            (Kind::Float, 2) => ArrayData::F32(
-                chunks
-                    .map(|c| f16_to_f32(u16::from_le_bytes(word(c, be))))
-                    .collect(),
-            ),
-            (Kind::Float, 4) => {
-                ArrayData::F32(chunks.map(|c| f32::from_le_bytes(word(c, be))).collect())
-            }
-            (Kind::Float, 8) => {
-                ArrayData::F64(chunks.map(|c| f64::from_le_bytes(word(c, be))).collect())
-            }
+            (Kind::Int, 2) => numbers!(I64, i16, i64::from),
+            (Kind::Int, 4) => numbers!(I64, i32, i64::from),
+            (Kind::Int, 8) => numbers!(I64, i64),
+            (Kind::UInt, 2) => numbers!(I64, u16, i64::from),
+            (Kind::UInt, 4) => numbers!(I64, u32, i64::from),
+            (Kind::UInt, 8) => numbers!(U64, u64),
+            (Kind::Float, 2) => numbers!(F32, u16, f16_to_f32),
+            (Kind::Float, 4) => numbers!(F32, f32),
+            (Kind::Float, 8) => numbers!(F64, f64),
             (Kind::Unicode, _) => {
                 let mut out = Vec::with_capacity(count);
                 for c in chunks {

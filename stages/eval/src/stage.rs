@@ -23,7 +23,6 @@ use seqavatar_engine::{
     StageKind,
 };
 
-use seqavatar_compute::image::ImageF32;
 use seqavatar_compute::lpips::{Lpips, LpipsNet, LpipsWeights};
 use seqavatar_evaluation::context_probe::{ContextProbe, ProbeResult, probe_result};
 use seqavatar_evaluation::evaluate::{
@@ -772,16 +771,6 @@ impl Evaluation<'_, '_> {
         renderer.set_context_probe(None);
         Ok(results)
     }
-}
-
-/// Converts a render to the metrics' image type, naming the source in errors.
-pub fn render_image(
-    what: &str,
-    width: usize,
-    height: usize,
-    rgb: Vec<f32>,
-) -> anyhow::Result<ImageF32> {
-    ImageF32::from_f32(what, width, height, rgb).map_err(anyhow::Error::from)
 }
 
 #[cfg(test)]

@@ -79,14 +79,6 @@ impl BandedMatrix {
         }
     }
 
-    /// Adds `value` to every diagonal entry (Levenberg-Marquardt damping).
-    pub fn add_to_diagonal(&mut self, value: f64) {
-        let stride = self.half_bandwidth + 1;
-        for i in 0..self.n {
-            self.band[i * stride] += value;
-        }
-    }
-
     /// Solves `A x = b` by banded Cholesky (`A = L L^T`), consuming a copy of the band.
     pub fn solve(&self, rhs: &[f64]) -> Result<Vec<f64>, BandedError> {
         assert_eq!(rhs.len(), self.n, "right-hand side length");

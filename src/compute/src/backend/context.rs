@@ -534,6 +534,11 @@ impl GpuContext {
     /// Submits `encoder` and waits for the GPU to finish.
     pub fn submit_and_wait(&self, encoder: wgpu::CommandEncoder) -> Result<(), BackendError> {
         let index = self.queue.submit([encoder.finish()]);
+        self.wait_for(index)
+    }
+
+    /// Waits for the GPU to finish submission `index`.
+    fn wait_for(&self, index: wgpu::SubmissionIndex) -> Result<(), BackendError> {
         self.device
             .poll(wgpu::PollType::Wait {
                 submission_index: Some(index),
@@ -629,14 +634,7 @@ impl GpuContext {
                 });
         }
         drop(sender);
-        self.device
-            .poll(wgpu::PollType::Wait {
-                submission_index: Some(index),
-                timeout: None,
-            })
-            .map_err(|error| BackendError::Gpu {
-                message: error.to_string(),
-            })?;
+        self.wait_for(index)?;
         for (_, result) in receiver.iter() {
             result.map_err(|error| BackendError::Gpu {
                 message: format!("mapping a download buffer: {error}"),

@@ -44,16 +44,10 @@ pub(crate) fn wgsl_twins() -> Vec<super::shaders::WgslTwin> {
     use super::shaders::wgsl_twin;
     vec![
         wgsl_twin!(ScanParams as "ScanParams" in ["scan_exclusive.wgsl"] {
-            "count" => count,
-            "_pad0" => pad[0],
-            "_pad1" => pad[1],
-            "_pad2" => pad[2],
+            count, pad[0] as "_pad0", pad[1] as "_pad1", pad[2] as "_pad2",
         }),
         wgsl_twin!(SortParams as "SortParams" in ["sort_radix.wgsl"] {
-            "count" => count,
-            "shift" => shift,
-            "blocks" => blocks,
-            "_pad" => pad,
+            count, shift, blocks, pad as "_pad",
         }),
     ]
 }

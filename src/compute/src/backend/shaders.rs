@@ -224,13 +224,20 @@ impl TwinField {
 }
 
 /// Describes a Rust twin of a WGSL struct for the layout test:
-/// `wgsl_twin!(CameraUniform as "SplatCamera" in ["splat_project.wgsl"] { "rotation0" =>
-/// rotation[0], "intrinsics" => intrinsics, ... })`, one entry per WGSL member in order,
-/// each naming the Rust field (and array index) that holds it.
+/// `wgsl_twin!(CameraUniform as "SplatCamera" in ["splat_project.wgsl"] {
+/// rotation[0] as "rotation0", intrinsics, ... })`, one entry per WGSL member in order,
+/// each naming the Rust field (and array index) that holds it, and the member's name where
+/// it is not the field's.
 #[cfg(test)]
 macro_rules! wgsl_twin {
+    (@member $field:ident) => {
+        stringify!($field)
+    };
+    (@member $field:ident $member:literal) => {
+        $member
+    };
     ($rust:ty as $wgsl:literal in [$($kernel:literal),+ $(,)?] {
-        $($member:literal => $field:ident $([$index:literal])?),+ $(,)?
+        $($field:ident $([$index:literal])? $(as $member:literal)?),+ $(,)?
     }) => {{
         let value: $rust = bytemuck::Zeroable::zeroed();
         $crate::backend::shaders::WgslTwin {
@@ -239,7 +246,11 @@ macro_rules! wgsl_twin {
             rust_struct: stringify!($rust),
             size: size_of::<$rust>(),
             fields: vec![$(
-                $crate::backend::shaders::TwinField::of($member, &value, &value.$field $([$index])?)
+                $crate::backend::shaders::TwinField::of(
+                    $crate::backend::shaders::wgsl_twin!(@member $field $($member)?),
+                    &value,
+                    &value.$field $([$index])?,
+                )
             ),+],
         }
     }};

@@ -73,18 +73,8 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
     use crate::backend::shaders::wgsl_twin;
     vec![
         wgsl_twin!(Params as "LpipsParams" in ["lpips_forward.wgsl", "lpips_backward.wgsl"] {
-            "images" => images,
-            "in_channels" => in_channels,
-            "in_height" => in_height,
-            "in_width" => in_width,
-            "out_channels" => out_channels,
-            "out_height" => out_height,
-            "out_width" => out_width,
-            "kernel" => kernel,
-            "stride" => stride,
-            "padding" => padding,
-            "total" => total,
-            "_pad" => pad,
+            images, in_channels, in_height, in_width, out_channels, out_height, out_width, kernel,
+            stride, padding, total, pad as "_pad",
         }),
     ]
 }
@@ -769,22 +759,9 @@ pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
     use crate::backend::shaders::wgsl_twin;
     vec![
         wgsl_twin!(ResidentParams as "LpipsResidentParams" in ["lpips_resident.wgsl"] {
-            "render_offset" => render_offset,
-            "render_width" => render_width,
-            "target_offset" => target_offset,
-            "target_width" => target_width,
-            "x0" => x0,
-            "y0" => y0,
-            "crop_width" => crop_width,
-            "crop_height" => crop_height,
-            "gradient_factor" => gradient_factor,
-            "signed_mapping" => signed_mapping,
-            "_pad0" => pad[0],
-            "_pad1" => pad[1],
-            "shift" => shift,
-            "scale" => scale,
-            "layer_pixels0" => layer_pixels[0],
-            "layer_pixels1" => layer_pixels[1],
+            render_offset, render_width, target_offset, target_width, x0, y0, crop_width,
+            crop_height, gradient_factor, signed_mapping, pad[0] as "_pad0", pad[1] as "_pad1",
+            shift, scale, layer_pixels[0] as "layer_pixels0", layer_pixels[1] as "layer_pixels1",
         }),
     ]
 }

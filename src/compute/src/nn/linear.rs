@@ -661,6 +661,15 @@ mod tests {
             .collect()
     }
 
+    /// The input parts of column blocks of the given widths.
+    fn input_parts<'a>(blocks: &'a [Vec<f64>], widths: &[usize]) -> Vec<InputPart<'a, f64>> {
+        blocks
+            .iter()
+            .zip(widths)
+            .map(|(data, &cols)| InputPart { data, cols })
+            .collect()
+    }
+
     fn check_forward(rows: usize, widths: &[usize], out: usize, activation: Activation) {
         let mut rng = Rng::new(7);
         let n_in: usize = widths.iter().sum();
@@ -673,14 +682,7 @@ mod tests {
         let bias = random_vec(&mut rng, out);
         let input = random_vec(&mut rng, rows * n_in);
         let blocks = split_columns(&input, rows, widths);
-        let parts: Vec<_> = blocks
-            .iter()
-            .zip(widths)
-            .map(|(data, &cols)| InputPart {
-                data: data.as_slice(),
-                cols,
-            })
-            .collect();
+        let parts = input_parts(&blocks, widths);
         // NaN start: the forward must overwrite, never read, the output buffer.
         let mut output = vec![f64::NAN; rows * out];
         linear_forward(shape, &weight, &bias, &parts, rows, &mut output).unwrap();
@@ -709,14 +711,7 @@ mod tests {
         rows: usize,
         probe: &[f64],
     ) -> f64 {
-        let parts: Vec<_> = blocks
-            .iter()
-            .zip(widths)
-            .map(|(data, &cols)| InputPart {
-                data: data.as_slice(),
-                cols,
-            })
-            .collect();
+        let parts = input_parts(blocks, widths);
         let mut output = vec![0.0; rows * shape.out_features];
         linear_forward(shape, weight, bias, &parts, rows, &mut output).unwrap();
         output.iter().zip(probe).map(|(y, g)| y * g).sum()
@@ -742,14 +737,7 @@ mod tests {
                 .map(|&w| random_vec(&mut rng, rows * w))
                 .collect();
             let probe = random_vec(&mut rng, rows * out);
-            let parts: Vec<_> = blocks
-                .iter()
-                .zip(&widths)
-                .map(|(data, &cols)| InputPart {
-                    data: data.as_slice(),
-                    cols,
-                })
-                .collect();
+            let parts = input_parts(&blocks, &widths);
             let mut output = vec![0.0; rows * out];
             linear_forward(shape, &weight, &bias, &parts, rows, &mut output).unwrap();
 
@@ -885,14 +873,7 @@ mod tests {
                 let input = random_vec(&mut rng, rows * n_in);
                 let d_output = random_vec(&mut rng, rows * out);
                 let blocks = split_columns(&input, rows, widths);
-                let parts: Vec<_> = blocks
-                    .iter()
-                    .zip(widths)
-                    .map(|(data, &cols)| InputPart {
-                        data: data.as_slice(),
-                        cols,
-                    })
-                    .collect();
+                let parts = input_parts(&blocks, widths);
                 let output = naive_forward(shape, &weight, &bias, &input, rows);
                 let (d_weight, d_bias, d_input) =
                     naive_backward(shape, &weight, &input, rows, &output, &d_output);

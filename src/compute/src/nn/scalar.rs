@@ -13,24 +13,19 @@ pub trait NnScalar: Scalar {
     fn cos(self) -> Self;
 }
 
-impl NnScalar for f32 {
-    #[inline]
-    fn sin(self) -> Self {
-        f32::sin(self)
-    }
-    #[inline]
-    fn cos(self) -> Self {
-        f32::cos(self)
-    }
+macro_rules! impl_nn_scalar {
+    ($($t:ty),+) => {$(
+        impl NnScalar for $t {
+            #[inline]
+            fn sin(self) -> Self {
+                <$t>::sin(self)
+            }
+            #[inline]
+            fn cos(self) -> Self {
+                <$t>::cos(self)
+            }
+        }
+    )+};
 }
 
-impl NnScalar for f64 {
-    #[inline]
-    fn sin(self) -> Self {
-        f64::sin(self)
-    }
-    #[inline]
-    fn cos(self) -> Self {
-        f64::cos(self)
-    }
-}
+impl_nn_scalar!(f32, f64);

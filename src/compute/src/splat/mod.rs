@@ -215,6 +215,46 @@ pub struct ImageGradient<'a, S> {
     pub depth: Option<&'a [S]>,
 }
 
+impl<S: Scalar> ImageGradient<'_, S> {
+    /// Checks the sizes and finiteness of camera `camera`'s upstream gradient of an image of
+    /// `pixels` pixels.
+    pub(crate) fn check(&self, camera: usize, pixels: usize) -> Result<(), SplatError> {
+        use rayon::prelude::*;
+        let check = |field: &'static str, values: &[S], expected: usize| {
+            check_len(field, values.len(), expected)?;
+            // Parallel over chunks, each a branch-free (vectorised) test; the first bad index
+            // wins, so the error does not depend on the scheduling.
+            const CHUNK: usize = 1 << 14;
+            let first_bad = values
+                .par_chunks(CHUNK)
+                .position_first(|chunk| !chunk.iter().fold(true, |ok, v| ok & v.is_finite()))
+                .and_then(|k| {
+                    let chunk = &values[k * CHUNK..values.len().min((k + 1) * CHUNK)];
+                    chunk
+                        .iter()
+                        .position(|v| !v.is_finite())
+                        .map(|i| k * CHUNK + i)
+                });
+            match first_bad {
+                Some(index) => Err(SplatError::NonFiniteGradient {
+                    camera,
+                    field,
+                    index,
+                }),
+                None => Ok(()),
+            }
+        };
+        check("colour", self.colour, pixels * 3)?;
+        if let Some(alpha) = self.alpha {
+            check("alpha", alpha, pixels)?;
+        }
+        if let Some(depth) = self.depth {
+            check("depth", depth, pixels)?;
+        }
+        Ok(())
+    }
+}
+
 /// Gradients of the loss, summed over the cameras of a call, in the input layouts.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SplatGradients<S> {

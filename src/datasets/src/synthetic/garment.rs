@@ -240,10 +240,6 @@ impl Skirt {
     pub fn positions(&self) -> &[DVec3] {
         &self.position
     }
-
-    pub fn rest_positions(&self) -> &[DVec3] {
-        &self.rest
-    }
 }
 
 /// The skirt of the history scene as a damped oscillator driven by the body's motion.

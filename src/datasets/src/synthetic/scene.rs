@@ -859,10 +859,6 @@ impl DatasetReader for SyntheticScene {
         self.config.frames
     }
 
-    fn frame_id(&self, frame: usize) -> i64 {
-        frame as i64
-    }
-
     /// Every fourth camera (1, 5, ...) is a test view, the others train; training uses every
     /// frame, testing every second frame.
     fn default_split(&self) -> Split {

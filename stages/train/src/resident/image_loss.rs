@@ -666,14 +666,6 @@ impl ImageLoss {
         );
     }
 
-    /// Clears the log's sums, counts and non-finite flag on the device (after the host read
-    /// it, to average over the next logging period).
-    pub fn reset_log(&self, encoder: &mut wgpu::CommandEncoder) {
-        encoder.clear_buffer(&self.log.buffer, 0, None);
-        // `first_nonfinite_iteration` is meaningful only while the count is nonzero, so the
-        // zero the clear leaves there is never read as an iteration.
-    }
-
     /// Reads the log record back (one readback; submits `encoder` first).
     pub fn download_log(&self, encoder: wgpu::CommandEncoder) -> anyhow::Result<LossLog> {
         let words: Vec<u32> = self

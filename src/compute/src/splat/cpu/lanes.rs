@@ -74,6 +74,18 @@ const EXP_POLY: [f32; 6] = [
     0.5,
 ];
 
+/// Binary [`Lanes`] methods, `name(a, b) => body;` for `fn name(self, other: Self) -> Self`
+/// with `self` and `other` bound to `a` and `b`, each `#[inline(always)]`.
+macro_rules! binary_lanes {
+    ($($name:ident($a:ident, $b:ident) => $body:expr;)+) => {$(
+        #[inline(always)]
+        fn $name(self, other: Self) -> Self {
+            let ($a, $b) = (self, other);
+            $body
+        }
+    )+};
+}
+
 /// Eight `f32` lanes and the operations the compositing loops need. A mask is a value whose
 /// lanes are all-ones or all-zero bit patterns; selects and logic act on bits, so a mask can
 /// also carry `u32` values (contributor counts) through [`Lanes::select`] unchanged.
@@ -151,53 +163,19 @@ impl Lanes for Portable {
     fn store(self, out: &mut [f32; LANES]) {
         *out = self.0;
     }
-    #[inline(always)]
-    fn add(self, other: Self) -> Self {
-        self.map2(other, |a, b| a + b)
-    }
-    #[inline(always)]
-    fn sub(self, other: Self) -> Self {
-        self.map2(other, |a, b| a - b)
-    }
-    #[inline(always)]
-    fn mul(self, other: Self) -> Self {
-        self.map2(other, |a, b| a * b)
-    }
-    #[inline(always)]
-    fn div(self, other: Self) -> Self {
-        self.map2(other, |a, b| a / b)
-    }
-    #[inline(always)]
-    fn less(self, other: Self) -> Self {
-        self.mask(other, |a, b| a < b)
-    }
-    #[inline(always)]
-    fn less_equal(self, other: Self) -> Self {
-        self.mask(other, |a, b| a <= b)
-    }
-    #[inline(always)]
-    fn greater_equal(self, other: Self) -> Self {
-        self.mask(other, |a, b| a >= b)
-    }
-    #[inline(always)]
-    fn less_u32(self, other: Self) -> Self {
-        self.bitwise(other, |a, b| if a < b { u32::MAX } else { 0 })
-    }
-    #[inline(always)]
-    fn max_u32(self, other: Self) -> Self {
-        self.bitwise(other, u32::max)
-    }
-    #[inline(always)]
-    fn and(self, other: Self) -> Self {
-        self.bitwise(other, |a, b| a & b)
-    }
-    #[inline(always)]
-    fn or(self, other: Self) -> Self {
-        self.bitwise(other, |a, b| a | b)
-    }
-    #[inline(always)]
-    fn and_not(self, other: Self) -> Self {
-        self.bitwise(other, |a, b| a & !b)
+    binary_lanes! {
+        add(x, y) => x.map2(y, |a, b| a + b);
+        sub(x, y) => x.map2(y, |a, b| a - b);
+        mul(x, y) => x.map2(y, |a, b| a * b);
+        div(x, y) => x.map2(y, |a, b| a / b);
+        less(x, y) => x.mask(y, |a, b| a < b);
+        less_equal(x, y) => x.mask(y, |a, b| a <= b);
+        greater_equal(x, y) => x.mask(y, |a, b| a >= b);
+        less_u32(x, y) => x.bitwise(y, |a, b| if a < b { u32::MAX } else { 0 });
+        max_u32(x, y) => x.bitwise(y, u32::max);
+        and(x, y) => x.bitwise(y, |a, b| a & b);
+        or(x, y) => x.bitwise(y, |a, b| a | b);
+        and_not(x, y) => x.bitwise(y, |a, b| a & !b);
     }
     #[inline(always)]
     fn select(mask: Self, a: Self, b: Self) -> Self {
@@ -251,64 +229,30 @@ mod avx2 {
         fn store(self, out: &mut [f32; LANES]) {
             unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) }
         }
-        #[inline(always)]
-        fn add(self, other: Self) -> Self {
-            Self(unsafe { _mm256_add_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn sub(self, other: Self) -> Self {
-            Self(unsafe { _mm256_sub_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn mul(self, other: Self) -> Self {
-            Self(unsafe { _mm256_mul_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn div(self, other: Self) -> Self {
-            Self(unsafe { _mm256_div_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn less(self, other: Self) -> Self {
-            Self(unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn less_equal(self, other: Self) -> Self {
-            Self(unsafe { _mm256_cmp_ps::<_CMP_LE_OQ>(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn greater_equal(self, other: Self) -> Self {
-            Self(unsafe { _mm256_cmp_ps::<_CMP_GE_OQ>(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn less_u32(self, other: Self) -> Self {
+        binary_lanes! {
+            add(a, b) => Self(unsafe { _mm256_add_ps(a.0, b.0) });
+            sub(a, b) => Self(unsafe { _mm256_sub_ps(a.0, b.0) });
+            mul(a, b) => Self(unsafe { _mm256_mul_ps(a.0, b.0) });
+            div(a, b) => Self(unsafe { _mm256_div_ps(a.0, b.0) });
+            less(a, b) => Self(unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(a.0, b.0) });
+            less_equal(a, b) => Self(unsafe { _mm256_cmp_ps::<_CMP_LE_OQ>(a.0, b.0) });
+            greater_equal(a, b) => Self(unsafe { _mm256_cmp_ps::<_CMP_GE_OQ>(a.0, b.0) });
             // Values below 2^31 compare the same signed.
-            Self(unsafe {
+            less_u32(a, b) => Self(unsafe {
                 _mm256_castsi256_ps(_mm256_cmpgt_epi32(
-                    _mm256_castps_si256(other.0),
-                    _mm256_castps_si256(self.0),
+                    _mm256_castps_si256(b.0),
+                    _mm256_castps_si256(a.0),
                 ))
-            })
-        }
-        #[inline(always)]
-        fn max_u32(self, other: Self) -> Self {
-            Self(unsafe {
+            });
+            max_u32(a, b) => Self(unsafe {
                 _mm256_castsi256_ps(_mm256_max_epu32(
-                    _mm256_castps_si256(self.0),
-                    _mm256_castps_si256(other.0),
+                    _mm256_castps_si256(a.0),
+                    _mm256_castps_si256(b.0),
                 ))
-            })
-        }
-        #[inline(always)]
-        fn and(self, other: Self) -> Self {
-            Self(unsafe { _mm256_and_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn or(self, other: Self) -> Self {
-            Self(unsafe { _mm256_or_ps(self.0, other.0) })
-        }
-        #[inline(always)]
-        fn and_not(self, other: Self) -> Self {
-            Self(unsafe { _mm256_andnot_ps(other.0, self.0) })
+            });
+            and(a, b) => Self(unsafe { _mm256_and_ps(a.0, b.0) });
+            or(a, b) => Self(unsafe { _mm256_or_ps(a.0, b.0) });
+            and_not(a, b) => Self(unsafe { _mm256_andnot_ps(b.0, a.0) });
         }
         #[inline(always)]
         fn select(mask: Self, a: Self, b: Self) -> Self {

@@ -362,38 +362,10 @@ fn check_upstream<'a, S: Scalar>(
     grad: &ImageGradient<'a, S>,
     state: &CameraState<S>,
 ) -> Result<Upstream<'a, S>, SplatError> {
-    let pixels = state.params.width as usize * state.params.height as usize;
-    let check = |field: &'static str, values: &[S], expected: usize| {
-        super::check_len(field, values.len(), expected)?;
-        // Parallel over chunks, each a branch-free (vectorised) test; the first bad index
-        // wins, so the error does not depend on the scheduling.
-        const CHUNK: usize = 1 << 14;
-        let first_bad = values
-            .par_chunks(CHUNK)
-            .position_first(|chunk| !chunk.iter().fold(true, |ok, v| ok & v.is_finite()))
-            .and_then(|k| {
-                let chunk = &values[k * CHUNK..values.len().min((k + 1) * CHUNK)];
-                chunk
-                    .iter()
-                    .position(|v| !v.is_finite())
-                    .map(|i| k * CHUNK + i)
-            });
-        match first_bad {
-            Some(index) => Err(SplatError::NonFiniteGradient {
-                camera,
-                field,
-                index,
-            }),
-            None => Ok(()),
-        }
-    };
-    check("colour", grad.colour, pixels * 3)?;
-    if let Some(alpha) = grad.alpha {
-        check("alpha", alpha, pixels)?;
-    }
-    if let Some(depth) = grad.depth {
-        check("depth", depth, pixels)?;
-    }
+    grad.check(
+        camera,
+        state.params.width as usize * state.params.height as usize,
+    )?;
     Ok(Upstream {
         colour: grad.colour,
         alpha: grad.alpha,

@@ -103,25 +103,11 @@ pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
             "splat_rasterize.wgsl",
             "splat_rasterize_backward.wgsl",
         ] {
-            "rotation0" => rotation[0],
-            "rotation1" => rotation[1],
-            "rotation2" => rotation[2],
-            "intrinsics" => intrinsics,
-            "center" => center,
-            "background" => background,
-            "image" => image,
-            "counts" => counts,
-            "flags" => flags,
+            rotation[0] as "rotation0", rotation[1] as "rotation1", rotation[2] as "rotation2",
+            intrinsics, center, background, image, counts, flags,
         }),
         wgsl_twin!(BinParams as "BinParams" in ["splat_bin.wgsl"] {
-            "gaussians" => gaussians,
-            "pairs" => pairs,
-            "tiles_x" => tiles_x,
-            "row_begin" => row_begin,
-            "row_end" => row_end,
-            "slot" => slot,
-            "tiles" => tiles,
-            "_pad" => pad,
+            gaussians, pairs, tiles_x, row_begin, row_end, slot, tiles, pad as "_pad",
         }),
     ]
 }
@@ -1428,33 +1414,6 @@ impl ResidentGradients {
     }
 }
 
-fn check_upstream(
-    camera_index: usize,
-    gradient: &ImageGradient<'_, f32>,
-    camera: &Camera,
-) -> Result<(), SplatError> {
-    let pixels = camera.width as usize * camera.height as usize;
-    let check = |field: &'static str, values: &[f32], expected: usize| {
-        super::check_len(field, values.len(), expected)?;
-        match values.iter().position(|v| !v.is_finite()) {
-            Some(index) => Err(SplatError::NonFiniteGradient {
-                camera: camera_index,
-                field,
-                index,
-            }),
-            None => Ok(()),
-        }
-    };
-    check("colour", gradient.colour, pixels * 3)?;
-    if let Some(alpha) = gradient.alpha {
-        check("alpha", alpha, pixels)?;
-    }
-    if let Some(depth) = gradient.depth {
-        check("depth", depth, pixels)?;
-    }
-    Ok(())
-}
-
 /// One camera's upstream gradient, uploaded (checked first: sizes and finiteness).
 pub struct ResidentImageGradient {
     colour: GpuBuffer,
@@ -1482,7 +1441,7 @@ impl ResidentImageGradient {
             .zip(cameras)
             .enumerate()
             .map(|(index, (gradient, camera))| {
-                check_upstream(index, gradient, camera)?;
+                gradient.check(index, camera.width as usize * camera.height as usize)?;
                 Ok(Self {
                     colour: context.upload("d colour", gradient.colour)?,
                     alpha: gradient
