@@ -270,21 +270,20 @@ fn posed_gaussians(
     format: GaussianFormat,
 ) -> Result<Vec<u8>, JobError> {
     let failed = |error: anyhow::Error| JobError::Failed(format!("{error:#}"));
+    if format == GaussianFormat::Ply {
+        let world = scene.renderer.deform(request.frame).map_err(failed)?;
+        return seqavatar_evaluation::export::posed_ply(
+            world,
+            scene.world_offset,
+            &scene.renderer.avatar.gaussians.opacity_logit,
+        )
+        .map_err(failed);
+    }
     let mut bytes = Vec::new();
     for frame in request.frame..request.frame + request.count {
         let world = scene.renderer.deform(frame).map_err(failed)?;
-        match format {
-            GaussianFormat::Stream => crate::stream::encode(frame, &world, &mut bytes)
-                .map_err(|error| JobError::Failed(format!("frame {frame}: {error}")))?,
-            GaussianFormat::Ply => {
-                return seqavatar_evaluation::export::posed_ply(
-                    world,
-                    scene.world_offset,
-                    &scene.renderer.avatar.gaussians.opacity_logit,
-                )
-                .map_err(failed);
-            }
-        }
+        crate::stream::encode(frame, &world, &mut bytes)
+            .map_err(|error| JobError::Failed(format!("frame {frame}: {error}")))?;
     }
     Ok(bytes)
 }
