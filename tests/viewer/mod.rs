@@ -1030,6 +1030,7 @@ fn browser_end_to_end(url: &str, screenshot: &Path, measure: bool) {
     }
     if measure {
         measure_orbit_and_playback(driver);
+        records_the_playing_view_as_webm(driver);
         compare_zooms_in_2d(driver);
         // Back to the orbit for the screenshot.
         driver.script(
@@ -1123,6 +1124,24 @@ fn measure_orbit_and_playback(driver: &Driver) {
     // Paused, the HUD shows no frame rate.
     let hud = driver.script("return document.getElementById('hud').textContent");
     assert!(!hud.as_str().unwrap().contains("FPS"), "{hud}");
+}
+
+/// "record" while playing saves a WebM video of the view (MediaRecorder on the canvas).
+fn records_the_playing_view_as_webm(driver: &Driver) {
+    driver.click("#record");
+    driver.click("#play");
+    std::thread::sleep(Duration::from_secs(2));
+    driver.click("#play");
+    driver.click("#record");
+    driver.wait_for(
+        "the recording saved",
+        "const saved = viewerStats.saved;
+         return !!saved && saved.name.endsWith('.webm') && saved.type === 'video/webm'
+           && saved.bytes > 1000",
+        Duration::from_secs(20),
+    );
+    let saved = driver.script("return viewerStats.saved");
+    println!("viewer record: {saved}");
 }
 
 /// A dataset camera's compare sheet fills the stage, is labelled with the frame's PSNR and
