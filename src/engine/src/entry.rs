@@ -238,6 +238,17 @@ impl EntryWriter {
         writer.write_region(&origin, shape, data)
     }
 
+    /// [`EntryWriter::write_array`] as one chunk of the whole `shape`.
+    pub fn write_whole<T: Element>(
+        &self,
+        name: &str,
+        dimension_names: &[&str],
+        shape: &[u64],
+        data: &[T],
+    ) -> anyhow::Result<()> {
+        self.write_array(name, dimension_names, shape, shape, data)
+    }
+
     /// Sets a stage-level attribute of the entry (the key `manifest` is reserved).
     pub fn set_attribute(&self, key: &str, value: serde_json::Value) -> anyhow::Result<()> {
         anyhow::ensure!(

@@ -227,32 +227,13 @@ pub fn write_cameras(
         ids.push(source.id);
     }
     let v = cameras.len() as u64;
-    out.write_array(
-        "camera_K",
-        &["view", "row", "col"],
-        &[v, 3, 3],
-        &[v, 3, 3],
-        &k,
-    )?;
-    out.write_array(
-        "camera_R",
-        &["view", "row", "col"],
-        &[v, 3, 3],
-        &[v, 3, 3],
-        &r,
-    )?;
+    out.write_whole("camera_K", &["view", "row", "col"], &[v, 3, 3], &k)?;
+    out.write_whole("camera_R", &["view", "row", "col"], &[v, 3, 3], &r)?;
     out.write_array("camera_t", &["view", "xyz"], &[v, 3], &[v, 3], &t)?;
-    out.write_array(
-        "camera_image_size",
-        &["view", "hw"],
-        &[v, 2],
-        &[v, 2],
-        &size,
-    )?;
-    out.write_array(
+    out.write_whole("camera_image_size", &["view", "hw"], &[v, 2], &size)?;
+    out.write_whole(
         "camera_source_distortion",
         &["view", "coeff"],
-        &[v, 5],
         &[v, 5],
         &distortion,
     )?;
@@ -627,10 +608,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.pose.iter().flat_map(|v| v.to_array()))
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_pose"),
         &["frame", "joint", "xyz"],
-        &[n, j, 3],
         &[n, j, 3],
         &pose,
     )?;
@@ -638,10 +618,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.world_rotation.to_array())
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_world_rotation"),
         &["frame", "xyz"],
-        &[n, 3],
         &[n, 3],
         &rotation,
     )?;
@@ -649,10 +628,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.world_translation.to_array())
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_world_translation"),
         &["frame", "xyz"],
-        &[n, 3],
         &[n, 3],
         &translation,
     )?;
@@ -664,10 +642,9 @@ pub fn write_body_params(
     let b = model.num_betas();
     if b > 0 {
         let betas: Vec<f64> = params.iter().flat_map(|p| padded(&p.betas, b)).collect();
-        out.write_array(
+        out.write_whole(
             &format!("{prefix}_betas"),
             &["frame", "beta"],
-            &[n, b as u64],
             &[n, b as u64],
             &betas,
         )?;
@@ -678,10 +655,9 @@ pub fn write_body_params(
             .iter()
             .flat_map(|p| padded(&p.expression, e))
             .collect();
-        out.write_array(
+        out.write_whole(
             &format!("{prefix}_expression"),
             &["frame", "expression"],
-            &[n, e as u64],
             &[n, e as u64],
             &expression,
         )?;
@@ -745,10 +721,9 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
     let j = model.num_joints() as u64;
     let f = a.faces.len() as u64;
     let template: Vec<f64> = a.template.iter().flatten().copied().collect();
-    out.write_array(
+    out.write_whole(
         "body_model_template",
         &["vertex", "xyz"],
-        &[v, 3],
         &[v, 3],
         &template,
     )?;
@@ -761,36 +736,32 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
         &faces,
     )?;
     out.write_array("body_model_parents", &["joint"], &[j], &[j], &a.parents)?;
-    out.write_array(
+    out.write_whole(
         "body_model_weights",
         &["vertex", "joint"],
         &[v, j],
-        &[v, j],
         &a.weights,
     )?;
-    out.write_array(
+    out.write_whole(
         "body_model_joint_regressor",
         &["joint", "vertex"],
-        &[j, v],
         &[j, v],
         &a.joint_regressor,
     )?;
     if a.num_betas > 0 {
         let b = a.num_betas as u64;
-        out.write_array(
+        out.write_whole(
             "body_model_shape_dirs",
             &["vertex", "xyz", "beta"],
-            &[v, 3, b],
             &[v, 3, b],
             &a.shape_dirs,
         )?;
     }
     if a.num_expression > 0 {
         let e = a.num_expression as u64;
-        out.write_array(
+        out.write_whole(
             "body_model_expression_dirs",
             &["vertex", "xyz", "expression"],
-            &[v, 3, e],
             &[v, 3, e],
             &a.expression_dirs,
         )?;

@@ -456,25 +456,17 @@ pub fn write_entry(
     let steps: Vec<u32> = scales.steps.iter().map(|&k| k as u32).collect();
     out.write_array("scale_steps", &["scale"], &[s], &[s], &steps)?;
     let flat: Vec<f32> = canonical.iter().flatten().copied().collect();
-    out.write_array(
-        "canonical_vertices",
-        &["vertex", "xyz"],
-        &[v, 3],
-        &[v, 3],
-        &flat,
-    )?;
+    out.write_whole("canonical_vertices", &["vertex", "xyz"], &[v, 3], &flat)?;
     let k = graph.k as u64;
-    out.write_array(
+    out.write_whole(
         "canonical_knn",
         &["vertex", "neighbour"],
         &[v, k],
-        &[v, k],
         &graph.indices,
     )?;
-    out.write_array(
+    out.write_whole(
         "canonical_knn_distance",
         &["vertex", "neighbour"],
-        &[v, k],
         &[v, k],
         &graph.distances,
     )?;
@@ -518,17 +510,15 @@ pub fn write_entry(
         )?;
     }
     out.set_attribute("frame_interval", frame_interval.into())?;
-    out.write_array(
+    out.write_whole(
         "skeleton_motion_scale",
         &["scale"],
         &[s],
-        &[s],
         &input_scales.skeleton_motion,
     )?;
-    out.write_array(
+    out.write_whole(
         "vertex_velocity_scale",
         &["scale"],
-        &[s],
         &[s],
         &input_scales.vertex_velocity,
     )?;
@@ -631,10 +621,9 @@ pub fn write_garment_oracle(
         &[1, s, r, 3],
         &values,
     )?;
-    out.write_array(
+    out.write_whole(
         "garment_oracle_scale",
         &["component"],
-        &[C as u64],
         &[C as u64],
         &factors,
     )?;
