@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use seqavatar_engine::{
-    EntryId, EntryReader, EntryState, Pipeline, Registry, StageSpec, Store, compute_keys,
+    Element, EntryId, EntryReader, EntryState, Pipeline, Registry, StageSpec, Store, compute_keys,
     open_store,
 };
 
@@ -133,35 +133,21 @@ pub fn loss_curves(entry: &EntryReader) -> anyhow::Result<Vec<Curve>> {
         .filter(|(_, record)| record.dimension_names == ["iteration"])
         .map(|(name, _)| name)
         .collect();
-    let read_f64 = |name: &str| -> anyhow::Result<Vec<f64>> {
-        Ok(match entry.dtype(name)?.as_str() {
-            "float32" => entry
-                .read::<f32>(name)?
-                .data
-                .into_iter()
-                .map(f64::from)
-                .collect(),
-            "float64" => entry.read::<f64>(name)?.data,
-            "uint32" => entry
-                .read::<u32>(name)?
-                .data
-                .into_iter()
-                .map(f64::from)
-                .collect(),
-            "uint64" => entry
-                .read::<u64>(name)?
-                .data
-                .into_iter()
-                .map(|v| v as f64)
-                .collect(),
-            "int64" => entry
-                .read::<i64>(name)?
-                .data
-                .into_iter()
-                .map(|v| v as f64)
-                .collect(),
-            other => anyhow::bail!("array \"{name}\" has type {other}"),
-        })
+    fn read_as<T: Element>(entry: &EntryReader, name: &str) -> anyhow::Result<Vec<f64>> {
+        Ok(entry
+            .read::<T>(name)?
+            .data
+            .into_iter()
+            .map(T::to_f64)
+            .collect())
+    }
+    let read_f64 = |name: &str| match entry.dtype(name)?.as_str() {
+        "float32" => read_as::<f32>(entry, name),
+        "float64" => read_as::<f64>(entry, name),
+        "uint32" => read_as::<u32>(entry, name),
+        "uint64" => read_as::<u64>(entry, name),
+        "int64" => read_as::<i64>(entry, name),
+        other => anyhow::bail!("array \"{name}\" has type {other}"),
     };
     let x_axis = if arrays.contains_key("iteration") {
         Some(read_f64("iteration")?)
@@ -686,13 +672,8 @@ fn write_stages(text: &mut String, states: &[StageState<'_>]) -> anyhow::Result<
     let timing: Vec<Vec<String>> = states
         .iter()
         .map(|state| {
-            let (status, time, finished, backend) = match &state.entry {
-                None => (
-                    "missing".to_owned(),
-                    "-".to_owned(),
-                    "-".to_owned(),
-                    "-".to_owned(),
-                ),
+            let [status, time, finished, backend] = match &state.entry {
+                None => ["missing", "-", "-", "-"].map(str::to_owned),
                 Some(entry) => {
                     let manifest = entry.manifest();
                     let backend = manifest
@@ -702,12 +683,12 @@ fn write_stages(text: &mut String, states: &[StageState<'_>]) -> anyhow::Result<
                         .find_map(|line| line.strip_prefix(seqavatar_engine::BACKEND_LOG_PREFIX))
                         .map(|rest| rest.trim().to_owned())
                         .unwrap_or_else(|| "-".to_owned());
-                    (
+                    [
                         "cached".to_owned(),
                         format_seconds(manifest.wall_time_s),
                         manifest.finished_at.clone(),
                         backend,
-                    )
+                    ]
                 }
             };
             let consumers: Vec<&str> = states
