@@ -23,7 +23,6 @@ pub fn read_npy(path: &Path) -> anyhow::Result<Value> {
     Ok(value.unwrap_object_scalar().clone())
 }
 
-/// Reads a Python pickle file.
 pub fn read_pickle(path: &Path) -> anyhow::Result<Value> {
     let bytes = read_bytes(path)?;
     pickle::load(&bytes).with_context(|| format!("{}: not a readable pickle", path.display()))

@@ -398,12 +398,10 @@ pub struct ArrayWriter<T: Element> {
 }
 
 impl<T: Element> ArrayWriter<T> {
-    /// The array name.
     pub fn name(&self) -> &str {
         &self.name
     }
 
-    /// The array shape.
     pub fn shape(&self) -> &[u64] {
         self.array.shape()
     }

@@ -411,7 +411,6 @@ impl ImageArrays {
         })
     }
 
-    /// Number of images.
     pub fn len(&self) -> usize {
         self.view.len()
     }
@@ -1031,7 +1030,6 @@ pub struct Keypoints3d {
 }
 
 impl Keypoints3d {
-    /// Number of keypoints per frame.
     pub fn num_keypoints(&self) -> usize {
         self.joints.len()
     }

@@ -178,7 +178,6 @@ impl Scales {
         })
     }
 
-    /// Number of scales.
     pub fn len(&self) -> usize {
         self.raw.len()
     }
