@@ -115,6 +115,22 @@ impl<'a> Field<'a> {
         let v = self.finite_f64s(9)?;
         Ok([[v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]]])
     }
+
+    /// OpenCV distortion coefficients `(k1, k2, p1, p2[, k3])`, zero-padded to five.
+    pub fn distortion(&self) -> anyhow::Result<[f64; 5]> {
+        let d = self.finite_array()?.1;
+        if d.len() != 5 && d.len() != 4 {
+            bail!(
+                "{}: field `{}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
+                self.file.display(),
+                self.path,
+                d.len()
+            );
+        }
+        let mut out = [0.0; 5];
+        out[..d.len()].copy_from_slice(&d);
+        Ok(out)
+    }
 }
 
 /// Errors on the first NaN or infinity, naming where it is.
