@@ -676,12 +676,7 @@ fn write_stages(text: &mut String, states: &[StageState<'_>]) -> anyhow::Result<
                 None => ["missing", "-", "-", "-"].map(str::to_owned),
                 Some(entry) => {
                     let manifest = entry.manifest();
-                    let backend = manifest
-                        .log
-                        .iter()
-                        .rev()
-                        .find_map(|line| line.strip_prefix(seqavatar_engine::BACKEND_LOG_PREFIX))
-                        .map(|rest| rest.trim().to_owned())
+                    let backend = seqavatar_engine::backend_of(&manifest.log)
                         .unwrap_or_else(|| "-".to_owned());
                     [
                         "cached".to_owned(),
