@@ -792,26 +792,18 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
     );
     let faces = entry.read::<u32>("body_model_faces")?;
     let parents = entry.read::<i64>("body_model_parents")?;
-    let last_dim = |name: &str, shape: &[usize]| -> anyhow::Result<usize> {
-        shape
-            .last()
-            .copied()
-            .ok_or_else(|| anyhow::anyhow!("array {name} is zero-dimensional"))
+    // Blend shapes and their count (the last axis), or none where the array is absent.
+    let blend_shapes = |name: &str| -> anyhow::Result<(Vec<f64>, usize)> {
+        if !has(name) {
+            return Ok((Vec::new(), 0));
+        }
+        let a = entry.read::<f64>(name)?;
+        let count = a.shape.last().copied();
+        let count = count.ok_or_else(|| anyhow::anyhow!("array {name} is zero-dimensional"))?;
+        Ok((a.data, count))
     };
-    let (shape_dirs, num_betas) = if has("body_model_shape_dirs") {
-        let a = entry.read::<f64>("body_model_shape_dirs")?;
-        let b = last_dim("body_model_shape_dirs", &a.shape)?;
-        (a.data, b)
-    } else {
-        (Vec::new(), 0)
-    };
-    let (expression_dirs, num_expression) = if has("body_model_expression_dirs") {
-        let a = entry.read::<f64>("body_model_expression_dirs")?;
-        let e = last_dim("body_model_expression_dirs", &a.shape)?;
-        (a.data, e)
-    } else {
-        (Vec::new(), 0)
-    };
+    let (shape_dirs, num_betas) = blend_shapes("body_model_shape_dirs")?;
+    let (expression_dirs, num_expression) = blend_shapes("body_model_expression_dirs")?;
     let pose_dirs = if has("body_model_pose_dirs") {
         entry.read::<f32>("body_model_pose_dirs")?.data
     } else {
