@@ -671,6 +671,35 @@ impl EntryReader {
         NdArray::new(to_usize_shape(shape)?, data)
     }
 
+    /// [`EntryReader::read_region`] of whatever element type the array stores, as `f64`.
+    pub fn read_region_f64(
+        &self,
+        name: &str,
+        start: &[u64],
+        shape: &[u64],
+    ) -> anyhow::Result<Vec<f64>> {
+        fn typed<T: Element>(
+            entry: &EntryReader,
+            name: &str,
+            start: &[u64],
+            shape: &[u64],
+        ) -> anyhow::Result<Vec<f64>> {
+            let data = entry.read_region::<T>(name, start, shape)?.data;
+            Ok(data.into_iter().map(Element::to_f64).collect())
+        }
+        match self.dtype(name)?.as_str() {
+            "uint8" => typed::<u8>(self, name, start, shape),
+            "uint16" => typed::<u16>(self, name, start, shape),
+            "uint32" => typed::<u32>(self, name, start, shape),
+            "uint64" => typed::<u64>(self, name, start, shape),
+            "int32" => typed::<i32>(self, name, start, shape),
+            "int64" => typed::<i64>(self, name, start, shape),
+            "float32" => typed::<f32>(self, name, start, shape),
+            "float64" => typed::<f64>(self, name, start, shape),
+            other => anyhow::bail!("array \"{name}\": unsupported dtype {other}"),
+        }
+    }
+
     /// Checks that the stored chunk files under `subset` are exactly those the manifest
     /// lists: a listed chunk the store lacks is an error (zarrs would read it as the fill
     /// value), and so is a stored chunk the manifest does not list.

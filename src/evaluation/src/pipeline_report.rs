@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use seqavatar_engine::{
-    Element, EntryId, EntryReader, EntryState, Pipeline, Registry, StageSpec, Store, compute_keys,
+    EntryId, EntryReader, EntryState, Pipeline, Registry, StageSpec, Store, compute_keys,
     open_store,
 };
 
@@ -133,21 +133,14 @@ pub fn loss_curves(entry: &EntryReader) -> anyhow::Result<Vec<Curve>> {
         .filter(|(_, record)| record.dimension_names == ["iteration"])
         .map(|(name, _)| name)
         .collect();
-    fn read_as<T: Element>(entry: &EntryReader, name: &str) -> anyhow::Result<Vec<f64>> {
-        Ok(entry
-            .read::<T>(name)?
-            .data
-            .into_iter()
-            .map(T::to_f64)
-            .collect())
-    }
-    let read_f64 = |name: &str| match entry.dtype(name)?.as_str() {
-        "float32" => read_as::<f32>(entry, name),
-        "float64" => read_as::<f64>(entry, name),
-        "uint32" => read_as::<u32>(entry, name),
-        "uint64" => read_as::<u64>(entry, name),
-        "int64" => read_as::<i64>(entry, name),
-        other => anyhow::bail!("array \"{name}\" has type {other}"),
+    // Curves are floats, their `iteration` axis an integer or float array.
+    let read_f64 = |name: &str| -> anyhow::Result<Vec<f64>> {
+        let dtype = entry.dtype(name)?;
+        if !["float32", "float64", "uint32", "uint64", "int64"].contains(&dtype.as_str()) {
+            anyhow::bail!("array \"{name}\" has type {dtype}");
+        }
+        let shape = entry.shape(name)?;
+        entry.read_region_f64(name, &vec![0; shape.len()], &shape)
     };
     let x_axis = if arrays.contains_key("iteration") {
         Some(read_f64("iteration")?)
