@@ -120,7 +120,7 @@ use anyhow::Context;
 use seqavatar_core::body::{BodyModel, BodyModelArrays, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DMat3, DVec3};
-use seqavatar_engine::{ArrayWriter, EntryReader, EntryWriter};
+use seqavatar_engine::{ArrayWriter, Element, EntryReader, EntryWriter};
 
 use serde::{Deserialize, Serialize};
 
@@ -238,6 +238,43 @@ pub fn write_cameras(
         &distortion,
     )?;
     out.write_array("camera_source_id", &["view"], &[v], &[v], &ids)?;
+    Ok(())
+}
+
+/// Copies the camera arrays of [`write_cameras`] from `ingest` into `out` (train and motion
+/// entries carry them); with `only_present`, the ones `ingest` lacks are left out.
+pub fn copy_cameras(
+    out: &EntryWriter,
+    ingest: &EntryReader,
+    only_present: bool,
+) -> anyhow::Result<()> {
+    fn copy<T: Element>(
+        out: &EntryWriter,
+        ingest: &EntryReader,
+        name: &str,
+        dims: &[&str],
+    ) -> anyhow::Result<()> {
+        let a = ingest.read::<T>(name)?;
+        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+        out.write_array(name, dims, &shape, &chunk, &a.data)
+    }
+    let names = ingest.array_names();
+    for (name, dims) in [
+        ("camera_K", &["view", "row", "col"][..]),
+        ("camera_R", &["view", "row", "col"][..]),
+        ("camera_t", &["view", "xyz"][..]),
+        ("camera_image_size", &["view", "hw"][..]),
+    ] {
+        if only_present && !names.iter().any(|n| n == name) {
+            continue;
+        }
+        if name == "camera_image_size" {
+            copy::<u32>(out, ingest, name, dims)?;
+        } else {
+            copy::<f64>(out, ingest, name, dims)?;
+        }
+    }
     Ok(())
 }
 

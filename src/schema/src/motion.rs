@@ -480,34 +480,7 @@ pub fn write_entry(
         );
         out.write_array("frame_source_id", &["frame"], &[f], &[f.max(1)], &ids.data)?;
     }
-    for (name, dims) in [
-        ("camera_K", &["view", "row", "col"][..]),
-        ("camera_R", &["view", "row", "col"][..]),
-        ("camera_t", &["view", "xyz"][..]),
-    ] {
-        if names.iter().any(|n| n == name) {
-            let a = ingest.read::<f64>(name)?;
-            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-            out.write_array(
-                name,
-                dims,
-                &shape,
-                &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-                &a.data,
-            )?;
-        }
-    }
-    if names.iter().any(|n| n == "camera_image_size") {
-        let a = ingest.read::<u32>("camera_image_size")?;
-        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-        out.write_array(
-            "camera_image_size",
-            &["view", "hw"],
-            &shape,
-            &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-            &a.data,
-        )?;
-    }
+    crate::ingest::copy_cameras(out, ingest, true)?;
     out.set_attribute("frame_interval", frame_interval.into())?;
     out.write_whole(
         "skeleton_motion_scale",
