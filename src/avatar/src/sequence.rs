@@ -116,12 +116,10 @@ impl SequenceRenderer {
         self.path.host_deformations()
     }
 
-    /// Frames of the sequence.
     pub fn num_frames(&self) -> usize {
         self.frames.params.len()
     }
 
-    /// The frames' body parameters.
     pub fn params(&self) -> &[BodyParams] {
         &self.frames.params
     }

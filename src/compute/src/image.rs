@@ -19,7 +19,6 @@ pub struct ImageError {
 }
 
 impl ImageF32 {
-    /// A black image.
     pub fn black(width: usize, height: usize) -> Self {
         Self {
             width,

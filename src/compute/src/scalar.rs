@@ -36,9 +36,7 @@ pub trait Scalar:
 {
     const ZERO: Self;
     const ONE: Self;
-    /// Largest finite value.
     const MAX: Self;
-    /// Machine epsilon.
     const EPSILON: Self;
 
     /// Nearest representable value (rounds when narrowing to `f32`).

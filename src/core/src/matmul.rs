@@ -39,9 +39,7 @@ impl MatmulScalar for f64 {}
 pub struct Layout {
     /// Index of element `(0, 0)`.
     pub offset: usize,
-    /// Number of rows.
     pub rows: usize,
-    /// Number of columns.
     pub cols: usize,
     /// Distance in elements between vertically adjacent elements.
     pub row_stride: usize,
@@ -130,7 +128,6 @@ fn stride(value: usize, operand: &str) -> isize {
 /// A read-only matrix: a slice and where the matrix lies in it.
 #[derive(Clone, Copy, Debug)]
 pub struct Matrix<'a, T> {
-    /// The elements.
     pub data: &'a [T],
     /// Where the matrix lies in `data`.
     pub layout: Layout,
@@ -139,7 +136,6 @@ pub struct Matrix<'a, T> {
 /// A matrix to write: a unique slice and where the matrix lies in it.
 #[derive(Debug)]
 pub struct MatrixMut<'a, T> {
-    /// The elements.
     pub data: &'a mut [T],
     /// Where the matrix lies in `data`.
     pub layout: Layout,

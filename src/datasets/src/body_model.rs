@@ -55,26 +55,14 @@ pub fn load_body_model_npz(
     };
     let file = &npz.file;
 
-    let (shape, template) = npz.get("v_template")?;
-    expect_shape(&shape, &[None, Some(3)], "v_template", file)?;
+    let (shape, template) = npz.shaped("v_template", &[None, Some(3)])?;
     let num_vertices = shape[0];
     let (kind, parents) = npz.kinematic_tree()?;
     let num_joints = parents.len();
     let faces = npz.faces()?;
-    let (shape, weights) = npz.get("weights")?;
-    expect_shape(
-        &shape,
-        &[Some(num_vertices), Some(num_joints)],
-        "weights",
-        file,
-    )?;
-    let (shape, joint_regressor) = npz.get("J_regressor")?;
-    expect_shape(
-        &shape,
-        &[Some(num_joints), Some(num_vertices)],
-        "J_regressor",
-        file,
-    )?;
+    let (_, weights) = npz.shaped("weights", &[Some(num_vertices), Some(num_joints)])?;
+    let (_, joint_regressor) =
+        npz.shaped("J_regressor", &[Some(num_joints), Some(num_vertices)])?;
     let dirs = npz.shape_and_expression_dirs(kind, num_vertices, limits)?;
     let pose_dirs = npz.pose_dirs(num_vertices, num_joints)?;
     let hands_mean = npz.hands_mean(kind)?;
@@ -128,6 +116,32 @@ impl NpzArrays<'_> {
         array_f64(value).with_context(|| format!("{file}: array `{key}`"))
     }
 
+    /// [`NpzArrays::get`] of an array whose shape is `expected` (`None`: any extent).
+    fn shaped(
+        &self,
+        key: &str,
+        expected: &[Option<usize>],
+    ) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+        let (shape, values) = self.get(key)?;
+        let file = &self.file;
+        let ok = shape.len() == expected.len()
+            && shape
+                .iter()
+                .zip(expected)
+                .all(|(&s, e)| e.is_none_or(|e| e == s));
+        if !ok {
+            let want: Vec<String> = expected
+                .iter()
+                .map(|e| e.map_or_else(|| "N".to_owned(), |n| n.to_string()))
+                .collect();
+            bail!(
+                "{file}: array `{key}` has shape {shape:?}; expected ({})",
+                want.join(", ")
+            );
+        }
+        Ok((shape, values))
+    }
+
     fn has(&self, key: &str) -> bool {
         self.arrays.iter().any(|(name, _)| name == key)
     }
@@ -136,8 +150,7 @@ impl NpzArrays<'_> {
     /// `kintree_table`.
     fn kinematic_tree(&self) -> anyhow::Result<(BodyModelKind, Vec<i64>)> {
         let file = &self.file;
-        let (shape, kintree) = self.get("kintree_table")?;
-        expect_shape(&shape, &[Some(2), None], "kintree_table", file)?;
+        let (shape, kintree) = self.shaped("kintree_table", &[Some(2), None])?;
         let num_joints = shape[1];
         let kind = match num_joints {
             24 => BodyModelKind::Smpl,
@@ -165,8 +178,7 @@ impl NpzArrays<'_> {
     /// The triangles of `f`, as vertex indices.
     fn faces(&self) -> anyhow::Result<Vec<[u32; 3]>> {
         let file = &self.file;
-        let (shape, faces) = self.get("f")?;
-        expect_shape(&shape, &[None, Some(3)], "f", file)?;
+        let (_, faces) = self.shaped("f", &[None, Some(3)])?;
         faces
             .chunks_exact(3)
             .map(|c| {
@@ -192,14 +204,7 @@ impl NpzArrays<'_> {
         num_vertices: usize,
         limits: ComponentLimits,
     ) -> anyhow::Result<ShapeAndExpressionDirs> {
-        let file = &self.file;
-        let (shape, shapedirs) = self.get("shapedirs")?;
-        expect_shape(
-            &shape,
-            &[Some(num_vertices), Some(3), None],
-            "shapedirs",
-            file,
-        )?;
+        let (shape, shapedirs) = self.shaped("shapedirs", &[Some(num_vertices), Some(3), None])?;
         let components = shape[2];
         let (num_shape, expression_in_shapedirs) = match (kind, self.has("exprdirs"), components) {
             (BodyModelKind::Smplx, false, 400) => (300, 100),
@@ -209,13 +214,8 @@ impl NpzArrays<'_> {
         let num_betas = num_shape.min(limits.max_betas);
         let shape_dirs = take_components(&shapedirs, components, 0, num_betas);
         let (expression_dirs, num_expression) = if self.has("exprdirs") {
-            let (shape, exprdirs) = self.get("exprdirs")?;
-            expect_shape(
-                &shape,
-                &[Some(num_vertices), Some(3), None],
-                "exprdirs",
-                file,
-            )?;
+            let (shape, exprdirs) =
+                self.shaped("exprdirs", &[Some(num_vertices), Some(3), None])?;
             let n = shape[2].min(limits.max_expression);
             (take_components(&exprdirs, shape[2], 0, n), n)
         } else {
@@ -272,30 +272,6 @@ fn array_f64(value: &Value) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
         )),
         other => bail!("expected a numeric array, found {other}"),
     }
-}
-
-fn expect_shape(
-    shape: &[usize],
-    expected: &[Option<usize>],
-    key: &str,
-    file: &impl std::fmt::Display,
-) -> anyhow::Result<()> {
-    let ok = shape.len() == expected.len()
-        && shape
-            .iter()
-            .zip(expected)
-            .all(|(&s, e)| e.is_none_or(|e| e == s));
-    if !ok {
-        let want: Vec<String> = expected
-            .iter()
-            .map(|e| e.map_or_else(|| "N".to_owned(), |n| n.to_string()))
-            .collect();
-        bail!(
-            "{file}: array `{key}` has shape {shape:?}; expected ({})",
-            want.join(", ")
-        );
-    }
-    Ok(())
 }
 
 /// Components `first..first + count` of a `(V, 3, total)` array, as `(V, 3, count)`.

@@ -23,7 +23,6 @@ pub fn read_npy(path: &Path) -> anyhow::Result<Value> {
     Ok(value.unwrap_object_scalar().clone())
 }
 
-/// Reads a Python pickle file.
 pub fn read_pickle(path: &Path) -> anyhow::Result<Value> {
     let bytes = read_bytes(path)?;
     pickle::load(&bytes).with_context(|| format!("{}: not a readable pickle", path.display()))
@@ -115,6 +114,22 @@ impl<'a> Field<'a> {
     pub fn matrix3(&self) -> anyhow::Result<[[f64; 3]; 3]> {
         let v = self.finite_f64s(9)?;
         Ok([[v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]]])
+    }
+
+    /// OpenCV distortion coefficients `(k1, k2, p1, p2[, k3])`, zero-padded to five.
+    pub fn distortion(&self) -> anyhow::Result<[f64; 5]> {
+        let d = self.finite_array()?.1;
+        if d.len() != 5 && d.len() != 4 {
+            bail!(
+                "{}: field `{}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
+                self.file.display(),
+                self.path,
+                d.len()
+            );
+        }
+        let mut out = [0.0; 5];
+        out[..d.len()].copy_from_slice(&d);
+        Ok(out)
     }
 }
 

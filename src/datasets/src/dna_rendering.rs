@@ -78,10 +78,6 @@ pub fn annotation_candidates(main: &Path) -> Vec<PathBuf> {
     out
 }
 
-fn h5_context(file: &Path, what: &str) -> String {
-    format!("{}: {what}", file.display())
-}
-
 /// A numeric dataset, checked finite.
 fn read_f64s(file: &SmcFile, path: &str) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
     let (shape, values) = file.read_f64s(path)?;
@@ -268,16 +264,13 @@ impl TakeFiles<'_> {
         }
         if cameras.is_empty() {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    "no camera in `Camera_Parameter` has images in the main file"
-                )
+                "{}: no camera in `Camera_Parameter` has images in the main file",
+                annotations.display()
             );
         }
         let num_frames = num_frames.unwrap_or(0);
         if num_frames == 0 {
-            bail!("{}", h5_context(main, "the cameras hold no frame"));
+            bail!("{}: the cameras hold no frame", main.display());
         }
         Ok(TakeCameras {
             cameras,
@@ -293,18 +286,15 @@ impl TakeFiles<'_> {
             .main_file
             .f64s_attr(group_name, "resolution")?
             .with_context(|| {
-                h5_context(
-                    main,
-                    &format!("group `{group_name}` has no attribute `resolution`"),
+                format!(
+                    "{}: group `{group_name}` has no attribute `resolution`",
+                    main.display()
                 )
             })?;
         let [height, width] = resolution[..] else {
             bail!(
-                "{}",
-                h5_context(
-                    main,
-                    &format!("group `{group_name}` attribute `resolution` must be (height, width)")
-                )
+                "{}: group `{group_name}` attribute `resolution` must be (height, width)",
+                main.display()
             );
         };
         let pixels = |v: f64| {
@@ -312,14 +302,9 @@ impl TakeFiles<'_> {
         };
         let (Some(width), Some(height)) = (pixels(width), pixels(height)) else {
             bail!(
-                "{}",
-                h5_context(
-                    main,
-                    &format!(
-                        "group `{group_name}` attribute `resolution` {resolution:?} is not \
-                         two pixel counts"
-                    )
-                )
+                "{}: group `{group_name}` attribute `resolution` {resolution:?} is not two pixel \
+                 counts",
+                main.display()
             );
         };
         Ok((width, height))
@@ -334,16 +319,11 @@ impl TakeFiles<'_> {
         let (_, rt) = read_f64s(self.annot_file, &format!("{prefix}/RT"))?;
         if k.len() != 9 || rt.len() != 16 || d.len() < 4 || d.len() > 5 {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    &format!(
-                        "`{prefix}`: K must be 3x3, RT 4x4 and D 5 values; got {}, {}, {} values",
-                        k.len(),
-                        rt.len(),
-                        d.len()
-                    )
-                )
+                "{}: `{prefix}`: K must be 3x3, RT 4x4 and D 5 values; got {}, {}, {} values",
+                annotations.display(),
+                k.len(),
+                rt.len(),
+                d.len()
             );
         }
         let mut distortion = [0.0; 5];
@@ -357,7 +337,7 @@ impl TakeFiles<'_> {
         let translation = -(rotation * centre);
         let kk = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
         Camera::from_opencv(width, height, kk, rotation, translation, distortion)
-            .with_context(|| h5_context(annotations, &format!("`{prefix}`")))
+            .with_context(|| format!("{}: `{prefix}`", annotations.display()))
     }
 
     /// The SMPL-X fits of the first `num_frames` frames (`SMPLx/*`).
@@ -369,71 +349,48 @@ impl TakeFiles<'_> {
         let (annotations, annot_file) = (self.annotations, self.annot_file);
         if !annot_file.has_group("SMPLx")? {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    "missing group `SMPLx` (fits exist for parts 1 and 2 only)",
-                )
+                "{}: missing group `SMPLx` (fits exist for parts 1 and 2 only)",
+                annotations.display()
             );
         }
         let (pose_shape, fullpose) = read_f64s(annot_file, "SMPLx/fullpose")?;
         if fullpose.len() % 165 != 0 {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    &format!(
-                        "dataset `SMPLx/fullpose` has shape {pose_shape:?}; expected (frames, 55, 3)"
-                    )
-                )
+                "{}: dataset `SMPLx/fullpose` has shape {pose_shape:?}; expected (frames, 55, 3)",
+                annotations.display()
             );
         }
         let pose_frames = fullpose.len() / 165;
         if pose_frames < num_frames {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    &format!(
-                        "dataset `SMPLx/fullpose` has {pose_frames} frames but the main file has {num_frames}"
-                    )
-                )
+                "{}: dataset `SMPLx/fullpose` has {pose_frames} frames but the main file has {num_frames}",
+                annotations.display()
             );
         }
         let file_what = |path: &str| format!("{} dataset `{path}`", annotations.display());
         let (transl_shape, transl) = read_f64s(annot_file, "SMPLx/transl")?;
         if transl.len() / 3 < num_frames || transl.len() % 3 != 0 {
             bail!(
-                "{}",
-                h5_context(
-                    annotations,
-                    &format!(
-                        "dataset `SMPLx/transl` has shape {transl_shape:?}; expected ({num_frames}, 3)"
-                    )
-                )
+                "{}: dataset `SMPLx/transl` has shape {transl_shape:?}; expected ({num_frames}, 3)",
+                annotations.display()
             );
         }
-        let (betas_shape, betas) = read_f64s(annot_file, "SMPLx/betas")?;
-        let beta_width = *betas_shape.last().unwrap_or(&0);
-        let betas = per_frame(
-            betas,
-            &betas_shape,
-            beta_width,
-            num_frames,
-            &file_what("SMPLx/betas"),
-            warnings,
-        )?;
-        let expression = if annot_file.has_dataset("SMPLx/expression")? {
-            let (shape, values) = read_f64s(annot_file, "SMPLx/expression")?;
+        // Coefficients per frame, as wide as the dataset's last axis.
+        let mut per_frame_rows = |path: &str| {
+            let (shape, values) = read_f64s(annot_file, path)?;
             let width = *shape.last().unwrap_or(&0);
             per_frame(
                 values,
                 &shape,
                 width,
                 num_frames,
-                &file_what("SMPLx/expression"),
+                &file_what(path),
                 warnings,
-            )?
+            )
+        };
+        let betas = per_frame_rows("SMPLx/betas")?;
+        let expression = if annot_file.has_dataset("SMPLx/expression")? {
+            per_frame_rows("SMPLx/expression")?
         } else {
             vec![Vec::new(); num_frames]
         };

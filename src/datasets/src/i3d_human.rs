@@ -127,19 +127,7 @@ fn camera_from_entry(
     let e = field.get("extrinsics", &path_e)?.finite_f64s(16)?;
     let distortion = match entry.get("distortions") {
         Some(Value::None) | None => [0.0; 5],
-        Some(_) => {
-            let d = field.get("distortions", &path_d)?.finite_array()?.1;
-            if d.len() != 5 && d.len() != 4 {
-                bail!(
-                    "{}: field `{path_d}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
-                    file.display(),
-                    d.len()
-                );
-            }
-            let mut out = [0.0; 5];
-            out[..d.len()].copy_from_slice(&d);
-            out
-        }
+        Some(_) => field.get("distortions", &path_d)?.distortion()?,
     };
     let rotation = DMat3::from_cols_array(&[e[0], e[4], e[8], e[1], e[5], e[9], e[2], e[6], e[10]]);
     let translation = DVec3::new(e[3], e[7], e[11]);
@@ -147,52 +135,28 @@ fn camera_from_entry(
         .with_context(|| format!("{}: camera `{name}`", file.display()))
 }
 
-fn params_from_mesh_info(file: &Path, name: &str, entry: &Value) -> anyhow::Result<BodyParams> {
+/// The fit `name` (`Rh`, `Th`, `poses`): `mesh_infos.pkl` holds 72 pose values, root first;
+/// `frameid_pose.pkl` 69, without the root (then zero).
+fn params_from_fit(
+    file: &Path,
+    name: &str,
+    entry: &Value,
+    pose_values: usize,
+) -> anyhow::Result<BodyParams> {
     let field = Field {
         file,
         path: name,
         value: entry,
     };
-    let (p_rh, p_th, p_poses) = (
-        format!("{name}.Rh"),
-        format!("{name}.Th"),
-        format!("{name}.poses"),
-    );
+    let [p_rh, p_th, p_poses] = ["Rh", "Th", "poses"].map(|key| format!("{name}.{key}"));
     let rh = field.get("Rh", &p_rh)?.finite_f64s(3)?;
     let th = field.get("Th", &p_th)?.finite_f64s(3)?;
-    let poses = field.get("poses", &p_poses)?.finite_f64s(72)?;
-    Ok(BodyParams {
-        pose: poses
-            .chunks_exact(3)
-            .map(|c| DVec3::new(c[0], c[1], c[2]))
-            .collect(),
-        betas: Vec::new(),
-        expression: Vec::new(),
-        world_rotation: DVec3::new(rh[0], rh[1], rh[2]),
-        world_translation: DVec3::new(th[0], th[1], th[2]),
-    })
-}
-
-fn params_from_frameid_pose(
-    file: &Path,
-    index: usize,
-    entry: &Value,
-) -> anyhow::Result<BodyParams> {
-    let name = format!("[{index}]");
-    let field = Field {
-        file,
-        path: &name,
-        value: entry,
+    let poses = field.get("poses", &p_poses)?.finite_f64s(pose_values)?;
+    let mut pose = if pose_values == 72 {
+        Vec::new()
+    } else {
+        vec![DVec3::ZERO]
     };
-    let (p_rh, p_th, p_poses) = (
-        format!("[{index}].Rh"),
-        format!("[{index}].Th"),
-        format!("[{index}].poses"),
-    );
-    let rh = field.get("Rh", &p_rh)?.finite_f64s(3)?;
-    let th = field.get("Th", &p_th)?.finite_f64s(3)?;
-    let poses = field.get("poses", &p_poses)?.finite_f64s(69)?;
-    let mut pose = vec![DVec3::ZERO];
     pose.extend(poses.chunks_exact(3).map(|c| DVec3::new(c[0], c[1], c[2])));
     Ok(BodyParams {
         pose,
@@ -338,7 +302,7 @@ impl SequenceScan {
         let mesh_value = read_pickle(&mesh_path)?;
         for (key, entry) in dict_items(&mesh_path, &mesh_value)? {
             let (name, frame, _) = key_name(&mesh_path, key)?;
-            let p = params_from_mesh_info(&mesh_path, name, entry)?;
+            let p = params_from_fit(&mesh_path, name, entry, 72)?;
             self.nonzero_root |= p.pose[0] != DVec3::ZERO;
             self.params.entry(frame).or_insert(p);
         }
@@ -354,7 +318,7 @@ impl SequenceScan {
         let mut filled = 0;
         for (index, entry) in list.iter().enumerate() {
             if let std::collections::btree_map::Entry::Vacant(slot) = self.params.entry(index) {
-                slot.insert(params_from_frameid_pose(path, index, entry)?);
+                slot.insert(params_from_fit(path, &format!("[{index}]"), entry, 69)?);
                 filled += 1;
             }
         }

@@ -166,14 +166,11 @@ impl SmcFile {
             self.len
         };
         if declared > MAX_DATASET_BYTES || declared > holdable {
-            bail!(
-                "{}",
-                what(&format!(
-                    "declares shape {shape:?} ({declared} bytes), more than the file ({} bytes) \
+            bail!(what(&format!(
+                "declares shape {shape:?} ({declared} bytes), more than the file ({} bytes) \
                      can hold or the {MAX_DATASET_BYTES}-byte limit of one dataset",
-                    self.len
-                ))
-            );
+                self.len
+            )));
         }
         let bytes = dataset
             .read_raw_bytes()
@@ -186,13 +183,10 @@ impl SmcFile {
         let (_, dtype, bytes) = self.raw(path)?;
         match dtype {
             Datatype::FixedPoint { size: 1, .. } => Ok(bytes),
-            other => bail!(
-                "{}",
-                self.context(&format!(
-                    "dataset `{path}` holds {} values, not bytes",
-                    describe(&other)
-                ))
-            ),
+            other => bail!(self.context(&format!(
+                "dataset `{path}` holds {} values, not bytes",
+                describe(&other)
+            ))),
         }
     }
 
@@ -336,12 +330,9 @@ impl SmcFile {
         while let Some((path, depth)) = stack.pop() {
             visited += 1;
             if depth > MAX_WALK_DEPTH || visited > MAX_WALK_OBJECTS {
-                bail!(
-                    "{}",
-                    self.context(&format!(
-                        "more than {MAX_WALK_DEPTH} group levels or {MAX_WALK_OBJECTS} objects"
-                    ))
-                );
+                bail!(self.context(&format!(
+                    "more than {MAX_WALK_DEPTH} group levels or {MAX_WALK_OBJECTS} objects"
+                )));
             }
             group(&path)?;
             let (groups, datasets) = self

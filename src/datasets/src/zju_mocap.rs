@@ -210,48 +210,17 @@ impl<'a> CameraLists<'a> {
     ) -> anyhow::Result<SourceCamera> {
         let annots_path = self.annots_path;
         let at = |name: &str| format!("{name}[{c}]");
-        let k_path = at("cams.K");
-        let k = Field {
+        let [k_path, r_path, t_path, d_path] = ["cams.K", "cams.R", "cams.T", "cams.D"].map(at);
+        let field = |path, value| Field {
             file: annots_path,
-            path: &k_path,
-            value: &self.k[c],
-        }
-        .matrix3()?;
-        let r_path = at("cams.R");
-        let r = Field {
-            file: annots_path,
-            path: &r_path,
-            value: &self.r[c],
-        }
-        .matrix3()?;
-        let t_path = at("cams.T");
-        let t = Field {
-            file: annots_path,
-            path: &t_path,
-            value: &self.t[c],
-        }
-        .finite_f64s(3)?;
+            path,
+            value,
+        };
+        let k = field(&k_path, &self.k[c]).matrix3()?;
+        let r = field(&r_path, &self.r[c]).matrix3()?;
+        let t = field(&t_path, &self.t[c]).finite_f64s(3)?;
         let distortion = match self.d {
-            Some(ds) => {
-                let d_path = at("cams.D");
-                let d = Field {
-                    file: annots_path,
-                    path: &d_path,
-                    value: &ds[c],
-                }
-                .finite_array()?
-                .1;
-                if d.len() != 5 && d.len() != 4 {
-                    bail!(
-                        "{}: field `{d_path}` has {} coefficients; expected 5 (k1 k2 p1 p2 k3)",
-                        annots_path.display(),
-                        d.len()
-                    );
-                }
-                let mut out = [0.0; 5];
-                out[..d.len()].copy_from_slice(&d);
-                out
-            }
+            Some(ds) => field(&d_path, &ds[c]).distortion()?,
             None => [0.0; 5],
         };
         let first_image = join_relative(root, &images[0][c], annots_path, "ims[0].ims")?;

@@ -77,7 +77,6 @@ impl<T> NdArray<T> {
         Ok(Self { shape, data })
     }
 
-    /// Number of elements.
     pub fn len(&self) -> usize {
         self.data.len()
     }

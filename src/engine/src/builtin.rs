@@ -155,10 +155,9 @@ impl StageKind for TestArrays {
                 pixel[2] = ((row + col) % 256) as u8;
             }
         }
-        output.write_array::<u8>(
+        output.write_whole::<u8>(
             "image",
             &["height", "width", "channel"],
-            &[config.size, config.size, 3],
             &[config.size, config.size, 3],
             &image,
         )?;

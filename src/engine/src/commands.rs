@@ -415,8 +415,8 @@ fn describe_entry(
             format!("{:?}", record.chunk_shape),
             record.dimension_names.join(","),
             format_bytes(entry.stored_bytes(name)),
-            stats.min_text(),
-            stats.max_text(),
+            stats.text(stats.min),
+            stats.text(stats.max),
             stats.mean_text(),
             stats.nan.to_string(),
         ]);
@@ -468,28 +468,17 @@ impl Stats {
         self.finite += 1;
     }
 
-    fn min_text(&self) -> String {
+    /// `value` (the minimum, maximum or mean), or `-` where no value was finite.
+    fn text(&self, value: f64) -> String {
         if self.finite == 0 {
             "-".into()
         } else {
-            format!("{:.6}", self.min)
-        }
-    }
-
-    fn max_text(&self) -> String {
-        if self.finite == 0 {
-            "-".into()
-        } else {
-            format!("{:.6}", self.max)
+            format!("{value:.6}")
         }
     }
 
     fn mean_text(&self) -> String {
-        if self.finite == 0 {
-            "-".into()
-        } else {
-            format!("{:.6}", self.sum / self.finite as f64)
-        }
+        self.text(self.sum / self.finite as f64)
     }
 }
 

@@ -238,6 +238,17 @@ impl EntryWriter {
         writer.write_region(&origin, shape, data)
     }
 
+    /// [`EntryWriter::write_array`] as one chunk of the whole `shape`.
+    pub fn write_whole<T: Element>(
+        &self,
+        name: &str,
+        dimension_names: &[&str],
+        shape: &[u64],
+        data: &[T],
+    ) -> anyhow::Result<()> {
+        self.write_array(name, dimension_names, shape, shape, data)
+    }
+
     /// Sets a stage-level attribute of the entry (the key `manifest` is reserved).
     pub fn set_attribute(&self, key: &str, value: serde_json::Value) -> anyhow::Result<()> {
         anyhow::ensure!(
@@ -387,12 +398,10 @@ pub struct ArrayWriter<T: Element> {
 }
 
 impl<T: Element> ArrayWriter<T> {
-    /// The array name.
     pub fn name(&self) -> &str {
         &self.name
     }
 
-    /// The array shape.
     pub fn shape(&self) -> &[u64] {
         self.array.shape()
     }
@@ -660,6 +669,35 @@ impl EntryReader {
         })?;
         self.check_chunks(name, &array, &subset)?;
         NdArray::new(to_usize_shape(shape)?, data)
+    }
+
+    /// [`EntryReader::read_region`] of whatever element type the array stores, as `f64`.
+    pub fn read_region_f64(
+        &self,
+        name: &str,
+        start: &[u64],
+        shape: &[u64],
+    ) -> anyhow::Result<Vec<f64>> {
+        fn typed<T: Element>(
+            entry: &EntryReader,
+            name: &str,
+            start: &[u64],
+            shape: &[u64],
+        ) -> anyhow::Result<Vec<f64>> {
+            let data = entry.read_region::<T>(name, start, shape)?.data;
+            Ok(data.into_iter().map(Element::to_f64).collect())
+        }
+        match self.dtype(name)?.as_str() {
+            "uint8" => typed::<u8>(self, name, start, shape),
+            "uint16" => typed::<u16>(self, name, start, shape),
+            "uint32" => typed::<u32>(self, name, start, shape),
+            "uint64" => typed::<u64>(self, name, start, shape),
+            "int32" => typed::<i32>(self, name, start, shape),
+            "int64" => typed::<i64>(self, name, start, shape),
+            "float32" => typed::<f32>(self, name, start, shape),
+            "float64" => typed::<f64>(self, name, start, shape),
+            other => anyhow::bail!("array \"{name}\": unsupported dtype {other}"),
+        }
     }
 
     /// Checks that the stored chunk files under `subset` are exactly those the manifest

@@ -42,8 +42,8 @@ pub use entry::{ArrayWriter, EntryReader, EntryWriter, Manifest, ManifestArray, 
 pub use local::LocalStore;
 pub use pipeline::{Pipeline, PipelineError, StageSpec};
 pub use runner::{
-    BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, compute_keys,
-    entry_problems, open_leased_verified, open_verified, run, selected_stages,
+    BACKEND_LOG_PREFIX, Outcome, RunOptions, StageContext, StageKey, StageReport, backend_of,
+    compute_keys, entry_problems, open_leased_verified, open_verified, run, selected_stages,
 };
 pub use store::{EntryId, EntryState, KeyLock, Staging, Store};
 

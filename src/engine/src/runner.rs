@@ -745,7 +745,7 @@ fn check_reads_unchanged(
 }
 
 /// The backend named by a `backend: NAME` log line, if any.
-fn backend_of(log: &[String]) -> Option<String> {
+pub fn backend_of(log: &[String]) -> Option<String> {
     log.iter().rev().find_map(|line| {
         line.strip_prefix(BACKEND_LOG_PREFIX)
             .map(|rest| rest.trim().to_string())

@@ -104,18 +104,9 @@ pub fn trained_on_ingest(train: &EntryReader) -> Option<String> {
 /// avatar trained at a lower `resolution_scale` still matches).
 pub fn same_camera(a: &Camera, b: &Camera) -> bool {
     let close = |x: f64, y: f64| (x - y).abs() <= 1e-6 * (1.0 + x.abs().max(y.abs()));
-    let rotation_close = a
-        .rotation
-        .to_cols_array()
-        .iter()
-        .zip(b.rotation.to_cols_array())
-        .all(|(&x, y)| close(x, y));
-    let translation_close = a
-        .translation
-        .to_array()
-        .iter()
-        .zip(b.translation.to_array())
-        .all(|(&x, y)| close(x, y));
+    let all_close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(&x, &y)| close(x, y));
+    let rotation_close = all_close(&a.rotation.to_cols_array(), &b.rotation.to_cols_array());
+    let translation_close = all_close(&a.translation.to_array(), &b.translation.to_array());
     let (aw, ah) = (f64::from(a.width), f64::from(a.height));
     let (bw, bh) = (f64::from(b.width), f64::from(b.height));
     let intrinsics_close = close(a.intrinsics.fx / aw, b.intrinsics.fx / bw)

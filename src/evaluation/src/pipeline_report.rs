@@ -133,35 +133,14 @@ pub fn loss_curves(entry: &EntryReader) -> anyhow::Result<Vec<Curve>> {
         .filter(|(_, record)| record.dimension_names == ["iteration"])
         .map(|(name, _)| name)
         .collect();
+    // Curves are floats, their `iteration` axis an integer or float array.
     let read_f64 = |name: &str| -> anyhow::Result<Vec<f64>> {
-        Ok(match entry.dtype(name)?.as_str() {
-            "float32" => entry
-                .read::<f32>(name)?
-                .data
-                .into_iter()
-                .map(f64::from)
-                .collect(),
-            "float64" => entry.read::<f64>(name)?.data,
-            "uint32" => entry
-                .read::<u32>(name)?
-                .data
-                .into_iter()
-                .map(f64::from)
-                .collect(),
-            "uint64" => entry
-                .read::<u64>(name)?
-                .data
-                .into_iter()
-                .map(|v| v as f64)
-                .collect(),
-            "int64" => entry
-                .read::<i64>(name)?
-                .data
-                .into_iter()
-                .map(|v| v as f64)
-                .collect(),
-            other => anyhow::bail!("array \"{name}\" has type {other}"),
-        })
+        let dtype = entry.dtype(name)?;
+        if !["float32", "float64", "uint32", "uint64", "int64"].contains(&dtype.as_str()) {
+            anyhow::bail!("array \"{name}\" has type {dtype}");
+        }
+        let shape = entry.shape(name)?;
+        entry.read_region_f64(name, &vec![0; shape.len()], &shape)
     };
     let x_axis = if arrays.contains_key("iteration") {
         Some(read_f64("iteration")?)
@@ -686,28 +665,18 @@ fn write_stages(text: &mut String, states: &[StageState<'_>]) -> anyhow::Result<
     let timing: Vec<Vec<String>> = states
         .iter()
         .map(|state| {
-            let (status, time, finished, backend) = match &state.entry {
-                None => (
-                    "missing".to_owned(),
-                    "-".to_owned(),
-                    "-".to_owned(),
-                    "-".to_owned(),
-                ),
+            let [status, time, finished, backend] = match &state.entry {
+                None => ["missing", "-", "-", "-"].map(str::to_owned),
                 Some(entry) => {
                     let manifest = entry.manifest();
-                    let backend = manifest
-                        .log
-                        .iter()
-                        .rev()
-                        .find_map(|line| line.strip_prefix(seqavatar_engine::BACKEND_LOG_PREFIX))
-                        .map(|rest| rest.trim().to_owned())
+                    let backend = seqavatar_engine::backend_of(&manifest.log)
                         .unwrap_or_else(|| "-".to_owned());
-                    (
+                    [
                         "cached".to_owned(),
                         format_seconds(manifest.wall_time_s),
                         manifest.finished_at.clone(),
                         backend,
-                    )
+                    ]
                 }
             };
             let consumers: Vec<&str> = states

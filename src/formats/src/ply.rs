@@ -64,7 +64,6 @@ pub fn coefficient_count(degree: u32) -> usize {
 }
 
 impl SplatCloud {
-    /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.opacity.len()
     }

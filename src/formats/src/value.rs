@@ -49,7 +49,6 @@ pub enum ArrayData {
 }
 
 impl ArrayData {
-    /// Number of elements.
     pub fn len(&self) -> usize {
         match self {
             ArrayData::Bool(v) => v.len(),

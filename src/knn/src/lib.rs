@@ -421,7 +421,6 @@ impl MovingKnn {
         self.lists.rebuilds
     }
 
-    /// Calls so far.
     pub fn calls(&self) -> u64 {
         self.lists.calls
     }

@@ -120,7 +120,7 @@ use anyhow::Context;
 use seqavatar_core::body::{BodyModel, BodyModelArrays, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
 use seqavatar_core::glam::{DMat3, DVec3};
-use seqavatar_engine::{ArrayWriter, EntryReader, EntryWriter};
+use seqavatar_engine::{ArrayWriter, Element, EntryReader, EntryWriter};
 
 use serde::{Deserialize, Serialize};
 
@@ -227,36 +227,54 @@ pub fn write_cameras(
         ids.push(source.id);
     }
     let v = cameras.len() as u64;
-    out.write_array(
-        "camera_K",
-        &["view", "row", "col"],
-        &[v, 3, 3],
-        &[v, 3, 3],
-        &k,
-    )?;
-    out.write_array(
-        "camera_R",
-        &["view", "row", "col"],
-        &[v, 3, 3],
-        &[v, 3, 3],
-        &r,
-    )?;
+    out.write_whole("camera_K", &["view", "row", "col"], &[v, 3, 3], &k)?;
+    out.write_whole("camera_R", &["view", "row", "col"], &[v, 3, 3], &r)?;
     out.write_array("camera_t", &["view", "xyz"], &[v, 3], &[v, 3], &t)?;
-    out.write_array(
-        "camera_image_size",
-        &["view", "hw"],
-        &[v, 2],
-        &[v, 2],
-        &size,
-    )?;
-    out.write_array(
+    out.write_whole("camera_image_size", &["view", "hw"], &[v, 2], &size)?;
+    out.write_whole(
         "camera_source_distortion",
         &["view", "coeff"],
-        &[v, 5],
         &[v, 5],
         &distortion,
     )?;
     out.write_array("camera_source_id", &["view"], &[v], &[v], &ids)?;
+    Ok(())
+}
+
+/// Copies the camera arrays of [`write_cameras`] from `ingest` into `out` (train and motion
+/// entries carry them); with `only_present`, the ones `ingest` lacks are left out.
+pub fn copy_cameras(
+    out: &EntryWriter,
+    ingest: &EntryReader,
+    only_present: bool,
+) -> anyhow::Result<()> {
+    fn copy<T: Element>(
+        out: &EntryWriter,
+        ingest: &EntryReader,
+        name: &str,
+        dims: &[&str],
+    ) -> anyhow::Result<()> {
+        let a = ingest.read::<T>(name)?;
+        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
+        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
+        out.write_array(name, dims, &shape, &chunk, &a.data)
+    }
+    let names = ingest.array_names();
+    for (name, dims) in [
+        ("camera_K", &["view", "row", "col"][..]),
+        ("camera_R", &["view", "row", "col"][..]),
+        ("camera_t", &["view", "xyz"][..]),
+        ("camera_image_size", &["view", "hw"][..]),
+    ] {
+        if only_present && !names.iter().any(|n| n == name) {
+            continue;
+        }
+        if name == "camera_image_size" {
+            copy::<u32>(out, ingest, name, dims)?;
+        } else {
+            copy::<f64>(out, ingest, name, dims)?;
+        }
+    }
     Ok(())
 }
 
@@ -430,7 +448,6 @@ impl ImageArrays {
         })
     }
 
-    /// Number of images.
     pub fn len(&self) -> usize {
         self.view.len()
     }
@@ -627,10 +644,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.pose.iter().flat_map(|v| v.to_array()))
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_pose"),
         &["frame", "joint", "xyz"],
-        &[n, j, 3],
         &[n, j, 3],
         &pose,
     )?;
@@ -638,10 +654,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.world_rotation.to_array())
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_world_rotation"),
         &["frame", "xyz"],
-        &[n, 3],
         &[n, 3],
         &rotation,
     )?;
@@ -649,10 +664,9 @@ pub fn write_body_params(
         .iter()
         .flat_map(|p| p.world_translation.to_array())
         .collect();
-    out.write_array(
+    out.write_whole(
         &format!("{prefix}_world_translation"),
         &["frame", "xyz"],
-        &[n, 3],
         &[n, 3],
         &translation,
     )?;
@@ -664,10 +678,9 @@ pub fn write_body_params(
     let b = model.num_betas();
     if b > 0 {
         let betas: Vec<f64> = params.iter().flat_map(|p| padded(&p.betas, b)).collect();
-        out.write_array(
+        out.write_whole(
             &format!("{prefix}_betas"),
             &["frame", "beta"],
-            &[n, b as u64],
             &[n, b as u64],
             &betas,
         )?;
@@ -678,10 +691,9 @@ pub fn write_body_params(
             .iter()
             .flat_map(|p| padded(&p.expression, e))
             .collect();
-        out.write_array(
+        out.write_whole(
             &format!("{prefix}_expression"),
             &["frame", "expression"],
-            &[n, e as u64],
             &[n, e as u64],
             &expression,
         )?;
@@ -745,10 +757,9 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
     let j = model.num_joints() as u64;
     let f = a.faces.len() as u64;
     let template: Vec<f64> = a.template.iter().flatten().copied().collect();
-    out.write_array(
+    out.write_whole(
         "body_model_template",
         &["vertex", "xyz"],
-        &[v, 3],
         &[v, 3],
         &template,
     )?;
@@ -761,36 +772,32 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
         &faces,
     )?;
     out.write_array("body_model_parents", &["joint"], &[j], &[j], &a.parents)?;
-    out.write_array(
+    out.write_whole(
         "body_model_weights",
         &["vertex", "joint"],
         &[v, j],
-        &[v, j],
         &a.weights,
     )?;
-    out.write_array(
+    out.write_whole(
         "body_model_joint_regressor",
         &["joint", "vertex"],
-        &[j, v],
         &[j, v],
         &a.joint_regressor,
     )?;
     if a.num_betas > 0 {
         let b = a.num_betas as u64;
-        out.write_array(
+        out.write_whole(
             "body_model_shape_dirs",
             &["vertex", "xyz", "beta"],
-            &[v, 3, b],
             &[v, 3, b],
             &a.shape_dirs,
         )?;
     }
     if a.num_expression > 0 {
         let e = a.num_expression as u64;
-        out.write_array(
+        out.write_whole(
             "body_model_expression_dirs",
             &["vertex", "xyz", "expression"],
-            &[v, 3, e],
             &[v, 3, e],
             &a.expression_dirs,
         )?;
@@ -822,26 +829,18 @@ pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
     );
     let faces = entry.read::<u32>("body_model_faces")?;
     let parents = entry.read::<i64>("body_model_parents")?;
-    let last_dim = |name: &str, shape: &[usize]| -> anyhow::Result<usize> {
-        shape
-            .last()
-            .copied()
-            .ok_or_else(|| anyhow::anyhow!("array {name} is zero-dimensional"))
+    // Blend shapes and their count (the last axis), or none where the array is absent.
+    let blend_shapes = |name: &str| -> anyhow::Result<(Vec<f64>, usize)> {
+        if !has(name) {
+            return Ok((Vec::new(), 0));
+        }
+        let a = entry.read::<f64>(name)?;
+        let count = a.shape.last().copied();
+        let count = count.ok_or_else(|| anyhow::anyhow!("array {name} is zero-dimensional"))?;
+        Ok((a.data, count))
     };
-    let (shape_dirs, num_betas) = if has("body_model_shape_dirs") {
-        let a = entry.read::<f64>("body_model_shape_dirs")?;
-        let b = last_dim("body_model_shape_dirs", &a.shape)?;
-        (a.data, b)
-    } else {
-        (Vec::new(), 0)
-    };
-    let (expression_dirs, num_expression) = if has("body_model_expression_dirs") {
-        let a = entry.read::<f64>("body_model_expression_dirs")?;
-        let e = last_dim("body_model_expression_dirs", &a.shape)?;
-        (a.data, e)
-    } else {
-        (Vec::new(), 0)
-    };
+    let (shape_dirs, num_betas) = blend_shapes("body_model_shape_dirs")?;
+    let (expression_dirs, num_expression) = blend_shapes("body_model_expression_dirs")?;
     let pose_dirs = if has("body_model_pose_dirs") {
         entry.read::<f32>("body_model_pose_dirs")?.data
     } else {
@@ -1060,7 +1059,6 @@ pub struct Keypoints3d {
 }
 
 impl Keypoints3d {
-    /// Number of keypoints per frame.
     pub fn num_keypoints(&self) -> usize {
         self.joints.len()
     }

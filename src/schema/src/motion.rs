@@ -178,7 +178,6 @@ impl Scales {
         })
     }
 
-    /// Number of scales.
     pub fn len(&self) -> usize {
         self.raw.len()
     }
@@ -456,25 +455,17 @@ pub fn write_entry(
     let steps: Vec<u32> = scales.steps.iter().map(|&k| k as u32).collect();
     out.write_array("scale_steps", &["scale"], &[s], &[s], &steps)?;
     let flat: Vec<f32> = canonical.iter().flatten().copied().collect();
-    out.write_array(
-        "canonical_vertices",
-        &["vertex", "xyz"],
-        &[v, 3],
-        &[v, 3],
-        &flat,
-    )?;
+    out.write_whole("canonical_vertices", &["vertex", "xyz"], &[v, 3], &flat)?;
     let k = graph.k as u64;
-    out.write_array(
+    out.write_whole(
         "canonical_knn",
         &["vertex", "neighbour"],
         &[v, k],
-        &[v, k],
         &graph.indices,
     )?;
-    out.write_array(
+    out.write_whole(
         "canonical_knn_distance",
         &["vertex", "neighbour"],
-        &[v, k],
         &[v, k],
         &graph.distances,
     )?;
@@ -489,46 +480,17 @@ pub fn write_entry(
         );
         out.write_array("frame_source_id", &["frame"], &[f], &[f.max(1)], &ids.data)?;
     }
-    for (name, dims) in [
-        ("camera_K", &["view", "row", "col"][..]),
-        ("camera_R", &["view", "row", "col"][..]),
-        ("camera_t", &["view", "xyz"][..]),
-    ] {
-        if names.iter().any(|n| n == name) {
-            let a = ingest.read::<f64>(name)?;
-            let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-            out.write_array(
-                name,
-                dims,
-                &shape,
-                &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-                &a.data,
-            )?;
-        }
-    }
-    if names.iter().any(|n| n == "camera_image_size") {
-        let a = ingest.read::<u32>("camera_image_size")?;
-        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-        out.write_array(
-            "camera_image_size",
-            &["view", "hw"],
-            &shape,
-            &shape.iter().map(|&x| x.max(1)).collect::<Vec<_>>(),
-            &a.data,
-        )?;
-    }
+    crate::ingest::copy_cameras(out, ingest, true)?;
     out.set_attribute("frame_interval", frame_interval.into())?;
-    out.write_array(
+    out.write_whole(
         "skeleton_motion_scale",
         &["scale"],
         &[s],
-        &[s],
         &input_scales.skeleton_motion,
     )?;
-    out.write_array(
+    out.write_whole(
         "vertex_velocity_scale",
         &["scale"],
-        &[s],
         &[s],
         &input_scales.vertex_velocity,
     )?;
@@ -631,10 +593,9 @@ pub fn write_garment_oracle(
         &[1, s, r, 3],
         &values,
     )?;
-    out.write_array(
+    out.write_whole(
         "garment_oracle_scale",
         &["component"],
-        &[C as u64],
         &[C as u64],
         &factors,
     )?;

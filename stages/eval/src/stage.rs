@@ -644,18 +644,11 @@ impl Evaluation<'_, '_> {
                 ),
                 ("speed_height", speed.iter().map(|r| r.height).collect()),
             ] {
-                out.write_array::<u32>(
-                    name,
-                    &["resolution"],
-                    &[resolutions],
-                    &[resolutions],
-                    &values,
-                )?;
+                out.write_whole::<u32>(name, &["resolution"], &[resolutions], &values)?;
             }
-            out.write_array::<f64>(
+            out.write_whole::<f64>(
                 "speed_fps",
                 &["resolution"],
-                &[resolutions],
                 &[resolutions],
                 &speed.iter().map(|r| r.fps).collect::<Vec<_>>(),
             )?;

@@ -49,7 +49,6 @@ impl BandedMatrix {
         }
     }
 
-    /// Size of the matrix.
     pub fn size(&self) -> usize {
         self.n
     }

@@ -491,7 +491,7 @@ pub(crate) fn levenberg_marquardt<S: Clone>(
     let mut current = initial_energy;
     let mut damping = 1e-4;
     let mut iterations = 0;
-    while iterations < max_iterations {
+    'outer: while iterations < max_iterations {
         iterations += 1;
         let (h, g) = model(&state);
         // Marquardt's scaling: each unknown is damped in proportion to its own curvature
@@ -517,14 +517,7 @@ pub(crate) fn levenberg_marquardt<S: Clone>(
                 accepted = true;
                 let step_norm = step.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
                 if step_norm < 1e-10 || decrease <= relative_tolerance * current.max(1e-300) {
-                    return Ok((
-                        state,
-                        TrackReport {
-                            iterations,
-                            initial_energy,
-                            final_energy: current,
-                        },
-                    ));
+                    break 'outer;
                 }
                 break;
             }

@@ -86,7 +86,6 @@ impl LossCurve {
         ]
     }
 
-    /// The named curve.
     pub fn get(&self, name: &str) -> Option<&Vec<f64>> {
         Self::NAMES
             .iter()

@@ -601,28 +601,7 @@ fn write_curves_and_cameras(
             values,
         )?;
     }
-    for name in ["camera_K", "camera_R", "camera_t"] {
-        let a = ingest.read::<f64>(name)?;
-        let shape: Vec<u64> = a.shape.iter().map(|&x| x as u64).collect();
-        let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
-        let dims: &[&str] = if name == "camera_t" {
-            &["view", "xyz"]
-        } else {
-            &["view", "row", "col"]
-        };
-        out.write_array(name, dims, &shape, &chunk, &a.data)?;
-    }
-    let sizes = ingest.read::<u32>("camera_image_size")?;
-    let shape: Vec<u64> = sizes.shape.iter().map(|&x| x as u64).collect();
-    let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
-    out.write_array(
-        "camera_image_size",
-        &["view", "hw"],
-        &shape,
-        &chunk,
-        &sizes.data,
-    )?;
-    Ok(())
+    seqavatar_schema::ingest::copy_cameras(out, ingest, false)
 }
 
 /// Moving average over a trailing window of `window` values.

@@ -240,7 +240,6 @@ impl<'d> Trainer<'d> {
         self.phase_times = PhaseTimes::default();
     }
 
-    /// Whether the LPIPS loss runs.
     pub fn lpips_active(&self) -> bool {
         self.lpips.is_some()
     }

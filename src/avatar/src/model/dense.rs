@@ -73,7 +73,6 @@ impl<S: NnScalar> Dense<S> {
         }
     }
 
-    /// Output width.
     pub fn out_features(&self) -> usize {
         self.shape.out_features
     }
@@ -114,7 +113,6 @@ impl<S: NnScalar> Dense<S> {
         )
     }
 
-    /// Sets both gradients to zero.
     pub fn zero_grad(&mut self) {
         self.d_weight.fill(S::ZERO);
         self.d_bias.fill(S::ZERO);

@@ -48,11 +48,9 @@ pub struct GpuNamedParam<'a> {
     pub name: String,
     /// Number of f32 values.
     pub len: usize,
-    /// The values.
     pub values: &'a wgpu::Buffer,
     /// The accumulated gradient.
     pub grads: &'a wgpu::Buffer,
-    /// The optimiser group.
     pub group: NetworkGroup,
 }
 

@@ -125,7 +125,6 @@ impl<S: NnScalar> Network<S> {
         Ok(Network { spec, layers })
     }
 
-    /// The description.
     pub fn spec(&self) -> &NetworkSpec {
         &self.spec
     }

@@ -132,9 +132,7 @@ pub struct LayerSpec {
     pub sources: Vec<Source>,
     /// Output width.
     pub out: usize,
-    /// Activation.
     pub activation: Activation,
-    /// Initialisation.
     pub init: Init,
 }
 

@@ -170,7 +170,6 @@ impl ResidentDeformer {
         self.has_lbs
     }
 
-    /// Whether the pose refiner runs.
     pub fn has_pose_refiner(&self) -> bool {
         self.has_refiner
     }
@@ -300,7 +299,6 @@ impl ResidentDeformer {
         }
     }
 
-    /// The context the pieces live on.
     pub fn context(&self) -> &Arc<GpuContext> {
         &self.context
     }

@@ -352,7 +352,6 @@ impl ResidentPose {
         self.vertices
     }
 
-    /// Frames of the sequence.
     pub fn frame_count(&self) -> usize {
         self.frame_shapes.len()
     }

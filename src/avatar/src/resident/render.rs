@@ -114,7 +114,6 @@ impl ResidentRenderer {
         })
     }
 
-    /// Frames of the sequence.
     pub fn frames(&self) -> usize {
         self.deformer.pose.frame_count()
     }

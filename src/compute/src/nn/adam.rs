@@ -252,7 +252,6 @@ impl Adam {
         Ok(Adam { config, groups })
     }
 
-    /// The shared hyper-parameters.
     pub fn config(&self) -> &AdamConfig {
         &self.config
     }

@@ -161,7 +161,6 @@ impl Record for NnProgram {
 }
 
 impl NnProgram {
-    /// An empty program.
     pub fn new() -> Self {
         NnProgram::default()
     }
@@ -171,17 +170,8 @@ impl NnProgram {
         self.steps.len()
     }
 
-    /// Whether nothing was recorded.
     pub fn is_empty(&self) -> bool {
         self.steps.is_empty()
-    }
-
-    /// Number of recorded dispatches.
-    pub fn dispatches(&self) -> usize {
-        self.steps
-            .iter()
-            .filter(|step| matches!(step, ProgramStep::Dispatch(_)))
-            .count()
     }
 
     /// Records the program into `encoder`: consecutive dispatches share one compute pass

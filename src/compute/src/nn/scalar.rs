@@ -7,9 +7,7 @@ use crate::scalar::Scalar;
 
 /// A [`Scalar`] with sine and cosine: `f32` or `f64`.
 pub trait NnScalar: Scalar {
-    /// Sine.
     fn sin(self) -> Self;
-    /// Cosine.
     fn cos(self) -> Self;
 }
 

@@ -149,22 +149,13 @@ pub(crate) fn check_len(
 }
 
 /// Rendering options shared by forward and backward.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct RasterOptions {
     /// Linear RGB composited behind the Gaussians (`colour + T * background`).
     pub background: [f64; 3],
     /// Tests only: replace the hard `alpha < 1/255` cutoff with Brush's C1 cutoff so central
     /// finite differences are meaningful (see SPLATTING.md).
     pub smooth_cutoff: bool,
-}
-
-impl Default for RasterOptions {
-    fn default() -> Self {
-        Self {
-            background: [0.0; 3],
-            smooth_cutoff: false,
-        }
-    }
 }
 
 /// The rendered outputs of one camera.

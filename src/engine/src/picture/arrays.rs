@@ -6,7 +6,6 @@ use std::path::Path;
 use anyhow::Context as _;
 
 use crate::PictureOptions;
-use crate::array::Element;
 use crate::entry::EntryReader;
 
 /// Where one picture lies inside an array.
@@ -68,30 +67,7 @@ fn read_picture(
         start.push(0);
         shape.push(layout.channels);
     }
-    fn typed<T: Element>(
-        entry: &EntryReader,
-        name: &str,
-        start: &[u64],
-        shape: &[u64],
-    ) -> anyhow::Result<Vec<f64>> {
-        Ok(entry
-            .read_region::<T>(name, start, shape)?
-            .data
-            .into_iter()
-            .map(Element::to_f64)
-            .collect())
-    }
-    match entry.dtype(name)?.as_str() {
-        "uint8" => typed::<u8>(entry, name, &start, &shape),
-        "uint16" => typed::<u16>(entry, name, &start, &shape),
-        "uint32" => typed::<u32>(entry, name, &start, &shape),
-        "uint64" => typed::<u64>(entry, name, &start, &shape),
-        "int32" => typed::<i32>(entry, name, &start, &shape),
-        "int64" => typed::<i64>(entry, name, &start, &shape),
-        "float32" => typed::<f32>(entry, name, &start, &shape),
-        "float64" => typed::<f64>(entry, name, &start, &shape),
-        other => anyhow::bail!("array \"{name}\": unsupported dtype {other}"),
-    }
+    entry.read_region_f64(name, &start, &shape)
 }
 
 fn checked_dimensions(name: &str, layout: &ImageLayout) -> anyhow::Result<(u32, u32)> {

@@ -187,7 +187,6 @@ impl RemoteStore {
         })
     }
 
-    /// The local front.
     pub fn local(&self) -> &LocalStore {
         &self.local
     }

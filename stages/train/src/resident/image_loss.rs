@@ -233,7 +233,6 @@ impl GroundTruth {
         self.bytes
     }
 
-    /// Number of chunk buffers.
     pub fn chunks(&self) -> usize {
         self.chunks.len()
     }

@@ -348,7 +348,6 @@ impl ResidentGaussians {
         Ok(())
     }
 
-    /// Gaussians held.
     pub fn len(&self) -> usize {
         self.count
     }
