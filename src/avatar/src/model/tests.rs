@@ -1641,9 +1641,7 @@ fn resident_adam_matches_cpu_adam_update_and_round_trips() {
 fn resident_steady_state_iteration_reads_back_nothing_and_uploads_under_one_kib() {
     use seqavatar_compute::nn::adam::AdamConfig;
     // A context of its own: the shared one counts the traffic of tests running beside this.
-    let Some(context) =
-        seqavatar_compute::backend::test_support::gpu_test_context_with_dispatch_limit(u32::MAX)
-    else {
+    let Some(context) = seqavatar_compute::backend::test_support::gpu_test_context_alone() else {
         return;
     };
     let mut config = small_config(MotionContext::Multiscale, 3, 3);

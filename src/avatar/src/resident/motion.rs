@@ -484,7 +484,7 @@ mod tests {
     use crate::device::knn_velocity;
     use crate::rig::BodyRig;
     use seqavatar_compute::backend::test_support::{
-        gpu_test_context, gpu_test_context_with_dispatch_limit,
+        gpu_test_context, gpu_test_context_alone, gpu_test_context_with_dispatch_limit,
     };
     use seqavatar_core::body::procedural::procedural_body;
     use seqavatar_core::rng::SplitMix64 as Rng;
@@ -625,7 +625,7 @@ mod tests {
     #[test]
     fn resident_motion_matches_cpu() {
         // A context of its own: the traffic counts are per context and tests run in parallel.
-        if let Some(context) = gpu_test_context_with_dispatch_limit(u32::MAX) {
+        if let Some(context) = gpu_test_context_alone() {
             motion_matches_cpu(context);
         }
     }

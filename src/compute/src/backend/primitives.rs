@@ -517,9 +517,7 @@ mod tests {
     #[test]
     fn reused_workspaces_match_the_cpu_as_counts_change_and_upload_nothing_when_steady() {
         // A context of its own: tests running in parallel on the shared one add their traffic.
-        let Some(context) =
-            crate::backend::test_support::gpu_test_context_with_dispatch_limit(u32::MAX)
-        else {
+        let Some(context) = crate::backend::test_support::gpu_test_context_alone() else {
             return;
         };
         let mut scan = ScanWorkspace::new(&context, 70_000).unwrap();

@@ -40,23 +40,30 @@ pub fn gpu_test_backend() -> Option<Backend> {
     gpu_test_context().map(Backend::Gpu)
 }
 
-/// A separate context whose dispatches go 2D beyond `limit` workgroups per dimension, or
-/// `None` under the same rules as [`gpu_test_context`].
-pub fn gpu_test_context_with_dispatch_limit(limit: u32) -> Option<Arc<GpuContext>> {
+/// A context of its own, not shared with other tests, under the same rules as
+/// [`gpu_test_context`].
+fn own_context() -> Option<GpuContext> {
     gpu_test_context()?;
     match GpuContext::new(AdapterChoice::AllowSoftware) {
-        Ok(context) => Some(Arc::new(context.with_dispatch_limit(limit))),
+        Ok(context) => Some(context),
         Err(error) => panic!("a second gpu context could not be opened: {error}"),
     }
 }
 
-/// The gpu backend on a context of its own (not shared with other tests), or `None` under
-/// the same rules as [`gpu_test_context`]: for tests that count the context's host-device
-/// traffic ([`GpuContext::transfers`]) while other tests run in parallel.
+/// A separate context whose dispatches go 2D beyond `limit` workgroups per dimension, or
+/// `None` under the same rules as [`gpu_test_context`].
+pub fn gpu_test_context_with_dispatch_limit(limit: u32) -> Option<Arc<GpuContext>> {
+    own_context().map(|context| Arc::new(context.with_dispatch_limit(limit)))
+}
+
+/// A context of its own (not shared with other tests), or `None` under the same rules as
+/// [`gpu_test_context`]: for tests that count the context's host-device traffic
+/// ([`GpuContext::transfers`]) while other tests run in parallel.
+pub fn gpu_test_context_alone() -> Option<Arc<GpuContext>> {
+    own_context().map(Arc::new)
+}
+
+/// The gpu backend on a context of its own ([`gpu_test_context_alone`]).
 pub fn gpu_test_backend_alone() -> Option<Backend> {
-    gpu_test_context()?;
-    match GpuContext::new(AdapterChoice::AllowSoftware) {
-        Ok(context) => Some(Backend::Gpu(Arc::new(context))),
-        Err(error) => panic!("a second gpu context could not be opened: {error}"),
-    }
+    gpu_test_context_alone().map(Backend::Gpu)
 }

@@ -7,7 +7,9 @@
 use std::sync::Arc;
 
 use crate::backend::GpuContext;
-use crate::backend::test_support::{gpu_test_context, gpu_test_context_with_dispatch_limit};
+use crate::backend::test_support::{
+    gpu_test_context, gpu_test_context_alone, gpu_test_context_with_dispatch_limit,
+};
 
 use super::gpu::{
     Call, ConvShape, Crop, CropPair, DeviceImage, GpuLpips, PoolShape, Slot, Workspace,
@@ -608,7 +610,7 @@ fn pairs_are_independent_and_two_dimensional_dispatch_agrees() {
 #[test]
 fn resident_lpips_matches_the_cpu_on_device_crops() {
     // A context of its own, so that its traffic counters see only this test.
-    let Some(context) = gpu_test_context_with_dispatch_limit(u32::MAX) else {
+    let Some(context) = gpu_test_context_alone() else {
         return;
     };
     let (width, height) = (41, 37);

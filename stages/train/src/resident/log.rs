@@ -106,12 +106,12 @@ impl LogRing {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use seqavatar_compute::backend::test_support::gpu_test_context_with_dispatch_limit;
+    use seqavatar_compute::backend::test_support::gpu_test_context_alone;
 
     #[test]
     fn recorded_scalars_come_back_in_their_slots_and_wrap() {
         // A context of its own: the shared one's traffic counters see the other tests' uploads.
-        let Some(context) = gpu_test_context_with_dispatch_limit(u32::MAX) else {
+        let Some(context) = gpu_test_context_alone() else {
             return;
         };
         let ring = LogRing::new(&context, 3).unwrap();

@@ -663,9 +663,7 @@ fn an_overflow_beyond_the_band_limit_adds_bands_and_stays_exact() {
 #[test]
 fn a_steady_state_forward_and_backward_reads_nothing_back_and_writes_only_the_cameras() {
     // A context of its own: tests running in parallel on the shared one add their traffic.
-    let Some(context) =
-        crate::backend::test_support::gpu_test_context_with_dispatch_limit(u32::MAX)
-    else {
+    let Some(context) = crate::backend::test_support::gpu_test_context_alone() else {
         return;
     };
     let gaussians = scene(150, 3, 27);
