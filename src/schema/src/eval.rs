@@ -111,7 +111,7 @@ impl ScoreColumns {
         let columns = [Some(&self.psnr), Some(&self.ssim), vgg, alex];
         for (name, values) in names.into_iter().zip(columns) {
             if let Some(values) = values {
-                out.write_array(name, &["image"], &n, &n, values)?;
+                out.write_whole(name, &["image"], &n, values)?;
             }
         }
         Ok(())
@@ -147,13 +147,13 @@ fn read_column<T: Element>(entry: &EntryReader, name: &str, n: usize) -> anyhow:
 impl PerImageScores {
     pub fn write(&self, out: &EntryWriter) -> anyhow::Result<()> {
         let n = [self.image_index.len() as u64];
-        let u32s = |name, values: &[u32]| out.write_array(name, &["image"], &n, &n, values);
+        let u32s = |name, values: &[u32]| out.write_whole(name, &["image"], &n, values);
         self.whole.write(out, WHOLE, n)?;
         if let Some((pixels, scores)) = &self.garment {
             u32s("garment_pixels", pixels)?;
             scores.write(out, GARMENT, n)?;
         }
-        out.write_array("render_seconds", &["image"], &n, &n, &self.render_seconds)?;
+        out.write_whole("render_seconds", &["image"], &n, &self.render_seconds)?;
         u32s("image_index", &self.image_index)?;
         u32s("image_view", &self.image_view)?;
         u32s("image_frame", &self.image_frame)
@@ -183,7 +183,7 @@ impl PerImageScores {
 pub fn write_contact_sheet(out: &EntryWriter, sheet: &image::RgbImage) -> anyhow::Result<()> {
     let shape = [sheet.height(), sheet.width(), 3].map(u64::from);
     let dims = ["sheet_height", "sheet_width", "rgb"];
-    out.write_array("contact_sheet", &dims, &shape, &shape, sheet.as_raw())
+    out.write_whole("contact_sheet", &dims, &shape, sheet.as_raw())
 }
 
 /// An RGB image array of an eval entry: the whole array, or image `index` of a stack.

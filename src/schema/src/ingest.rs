@@ -229,7 +229,7 @@ pub fn write_cameras(
     let v = cameras.len() as u64;
     out.write_whole("camera_K", &["view", "row", "col"], &[v, 3, 3], &k)?;
     out.write_whole("camera_R", &["view", "row", "col"], &[v, 3, 3], &r)?;
-    out.write_array("camera_t", &["view", "xyz"], &[v, 3], &[v, 3], &t)?;
+    out.write_whole("camera_t", &["view", "xyz"], &[v, 3], &t)?;
     out.write_whole("camera_image_size", &["view", "hw"], &[v, 2], &size)?;
     out.write_whole(
         "camera_source_distortion",
@@ -237,7 +237,7 @@ pub fn write_cameras(
         &[v, 5],
         &distortion,
     )?;
-    out.write_array("camera_source_id", &["view"], &[v], &[v], &ids)?;
+    out.write_whole("camera_source_id", &["view"], &[v], &ids)?;
     Ok(())
 }
 
@@ -771,7 +771,7 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
         &[f.max(1), 3],
         &faces,
     )?;
-    out.write_array("body_model_parents", &["joint"], &[j], &[j], &a.parents)?;
+    out.write_whole("body_model_parents", &["joint"], &[j], &a.parents)?;
     out.write_whole(
         "body_model_weights",
         &["vertex", "joint"],

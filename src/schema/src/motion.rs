@@ -451,9 +451,9 @@ pub fn write_entry(
         &[1, s, v, 3],
         &motion.vertex_velocity,
     )?;
-    out.write_array("scales", &["scale"], &[s], &[s], &scales.raw)?;
+    out.write_whole("scales", &["scale"], &[s], &scales.raw)?;
     let steps: Vec<u32> = scales.steps.iter().map(|&k| k as u32).collect();
-    out.write_array("scale_steps", &["scale"], &[s], &[s], &steps)?;
+    out.write_whole("scale_steps", &["scale"], &[s], &steps)?;
     let flat: Vec<f32> = canonical.iter().flatten().copied().collect();
     out.write_whole("canonical_vertices", &["vertex", "xyz"], &[v, 3], &flat)?;
     let k = graph.k as u64;
