@@ -20,7 +20,9 @@ use seqavatar_compute::backend::{AdapterChoice, GpuContext};
 use seqavatar_compute::nn::gpu::MatmulPath;
 
 use seqavatar_avatar::config::MotionContext;
-use seqavatar_avatar::model::{FrameInputs, GaussianInputs, NetworkConfig, Networks, Widths};
+use seqavatar_avatar::model::{
+    FrameInputs, GaussianInputs, NetworkConfig, NetworkGroup, Networks, Widths,
+};
 use seqavatar_compute::nn::{Activation, InputPart, LinearShape, Precision, Rng, linear_forward};
 
 fn random(rng: &mut Rng, len: usize) -> Vec<f32> {
@@ -235,10 +237,10 @@ fn bench_lbs_offsets(n: usize, repeats: usize, gpu_context: Option<&Arc<GpuConte
         let d_offsets = device_random(gpu_context, &mut rng, d_offsets.len());
         let (f, b) = time_resident(gpu_context, repeats, |encoder, backward| {
             if backward {
-                gpu.record_lbs_offsets_backward(encoder, &d_offsets)
+                gpu.record_backward(encoder, NetworkGroup::LbsOffsets, &d_offsets)
                     .expect("gpu backward");
             } else {
-                gpu.record_lbs_offsets_forward(encoder, n, &xyz)
+                gpu.record_forward(encoder, NetworkGroup::LbsOffsets, n, &[&[&xyz]])
                     .expect("gpu forward");
             }
         });
@@ -273,10 +275,10 @@ fn bench_pose_refiner(repeats: usize, gpu_context: Option<&Arc<GpuContext>>) {
         let d_rotations = device_random(gpu_context, &mut rng, d_rotations.len());
         let (f, b) = time_resident(gpu_context, repeats, |encoder, backward| {
             if backward {
-                gpu.record_pose_refiner_backward(encoder, &d_rotations)
+                gpu.record_backward(encoder, NetworkGroup::PoseRefiner, &d_rotations)
                     .expect("gpu backward");
             } else {
-                gpu.record_pose_refiner_forward(encoder, &pose)
+                gpu.record_forward(encoder, NetworkGroup::PoseRefiner, 0, &[&[&pose]])
                     .expect("gpu forward");
             }
         });

@@ -98,34 +98,28 @@ pub fn frame_pose<S: NnScalar>(
     networks: Option<&Networks<S>>,
     params: &BodyParams,
 ) -> anyhow::Result<PosedFrame<S>> {
-    match networks.filter(|n| n.has_pose_refiner()) {
+    let mut refiner = None;
+    let refined;
+    let params = match networks.filter(|n| n.has_pose_refiner()) {
         Some(net) => {
             let (matrices, cache) = net.pose_refiner_forward(&to_scalar(&local_pose(params)))?;
+            // Row-major matrices.
             let refinements: Vec<seqavatar_core::glam::DMat3> = to_f64(&matrices)
                 .chunks_exact(9)
-                .map(|m| {
-                    seqavatar_core::glam::DMat3::from_cols_array(&[
-                        m[0], m[3], m[6], m[1], m[4], m[7], m[2], m[5], m[8],
-                    ])
-                })
+                .map(|m| seqavatar_core::glam::DMat3::from_cols_slice(m).transpose())
                 .collect();
-            let refined = refine_pose(params, &refinements);
-            let (pose, chain) = rig.pose_with_chain(&refined)?;
-            Ok(PosedFrame {
-                pose,
-                chain,
-                refiner: Some((cache, matrices)),
-            })
+            refined = refine_pose(params, &refinements);
+            refiner = Some((cache, matrices));
+            &refined
         }
-        None => {
-            let (pose, chain) = rig.pose_with_chain(params)?;
-            Ok(PosedFrame {
-                pose,
-                chain,
-                refiner: None,
-            })
-        }
-    }
+        None => params,
+    };
+    let (pose, chain) = rig.pose_with_chain(params)?;
+    Ok(PosedFrame {
+        pose,
+        chain,
+        refiner,
+    })
 }
 
 /// The deformed Gaussians of one frame and the intermediates the backward needs; `S` is the
@@ -338,11 +332,6 @@ pub fn deform_backward<S: NnScalar>(
     Ok(through)
 }
 
-/// Whether a configuration has networks.
-pub fn needs_networks(config: &AvatarConfig) -> bool {
-    config.needs_networks()
-}
-
 /// A grid over the canonical template vertices for nearest-vertex queries.
 pub fn template_grid(rig: &BodyRig) -> KnnGrid {
     KnnGrid::new(&as_points(&rig.canonical_vertices), 4.0)
@@ -484,7 +473,7 @@ impl TrainedAvatar {
             .with_context(|| format!("entry {location}: body model"))?;
         let rig = config.rig(model)?;
         let scales = attributes.scales;
-        let networks = if needs_networks(&config) {
+        let networks = if config.needs_networks() {
             let motion_joints = attributes.motion_joints.ok_or_else(|| {
                 anyhow::anyhow!("entry {location}: attribute `motion_joints` is missing")
             })?;

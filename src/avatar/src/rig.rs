@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use seqavatar_core::body::{BodyModel, BodyParams, big_pose};
 use seqavatar_core::rotation::{axis_angle_to_matrix, matrix_to_axis_angle};
 
-use crate::skinning::SkinningFrame;
+use crate::skinning::{SkinningFrame, mat_lin, mat_trans, outer};
 
 /// A row-major 3 x 4 `[r00 r01 r02 t0 r10 ... t2]` from an affine transform.
 pub fn affine_to_rows(a: &DAffine3) -> [f64; 12] {
@@ -225,13 +225,8 @@ impl BodyRig {
         let mut d_g = vec![DVec3::ZERO; j_count];
         for j in 0..j_count {
             let t = &d_target_joints[12 * j..12 * j + 12];
-            let d_lin = DMat3::from_cols(
-                DVec3::new(t[0], t[4], t[8]),
-                DVec3::new(t[1], t[5], t[9]),
-                DVec3::new(t[2], t[6], t[10]),
-            );
-            let d_t = wt * DVec3::new(t[3], t[7], t[11]);
-            d_m[j] = wt * d_lin - outer(d_t, chain.rest_joints[j]);
+            let d_t = wt * mat_trans(t);
+            d_m[j] = wt * mat_lin(t) - outer(d_t, chain.rest_joints[j]);
             d_g[j] = d_t;
         }
         let mut d_r = vec![DMat3::ZERO; j_count];
@@ -267,12 +262,8 @@ impl BodyRig {
                 }
             }
             for j in 1..j_count {
-                let f = &d_feature[9 * (j - 1)..9 * j];
-                d_r[j] += DMat3::from_cols(
-                    DVec3::new(f[0], f[3], f[6]),
-                    DVec3::new(f[1], f[4], f[7]),
-                    DVec3::new(f[2], f[5], f[8]),
-                );
+                // Row-major.
+                d_r[j] += DMat3::from_cols_slice(&d_feature[9 * (j - 1)..9 * j]).transpose();
             }
         }
         d_r
@@ -295,10 +286,6 @@ impl BodyRig {
             scale_max,
         }
     }
-}
-
-fn outer(a: DVec3, b: DVec3) -> DMat3 {
-    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
 }
 
 /// `A_v^-1 y_v` for every vertex, `A_v` the template-weight blend of `transforms`.

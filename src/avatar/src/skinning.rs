@@ -21,7 +21,7 @@ use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
 use seqavatar_core::rotation::{quat_is_degenerate, quat_wxyz_to_matrix};
 
-/// Added inside the logarithm of template weights (docs/method.md).
+/// Added inside the logarithm of template weights (docs/method.md; the reference's value).
 pub const WEIGHT_LOG_EPS: f64 = 1e-9;
 
 /// Per-frame skinning data shared by all Gaussians.
@@ -79,7 +79,8 @@ pub struct SkinningGrads {
     pub vertex_offsets: Vec<f64>,
 }
 
-fn mat_lin(t: &[f64; 12]) -> DMat3 {
+/// The linear part of a row-major 3 x 4.
+pub(crate) fn mat_lin(t: &[f64]) -> DMat3 {
     DMat3::from_cols(
         DVec3::new(t[0], t[4], t[8]),
         DVec3::new(t[1], t[5], t[9]),
@@ -87,7 +88,8 @@ fn mat_lin(t: &[f64; 12]) -> DMat3 {
     )
 }
 
-fn mat_trans(t: &[f64; 12]) -> DVec3 {
+/// The translation of a row-major 3 x 4.
+pub(crate) fn mat_trans(t: &[f64]) -> DVec3 {
     DVec3::new(t[3], t[7], t[11])
 }
 
@@ -350,6 +352,7 @@ pub fn skin_backward(
         rotation: [f64; 4],
         d_rotation: [f64; 4],
         logits: Vec<f64>,
+        weights: Vec<f64>,
         d_a: [f64; 12],
         d_offset: [f64; 3],
     }
@@ -413,8 +416,6 @@ pub fn skin_backward(
                 get4(params.rotations, i),
                 d_rot_product,
             );
-            let _ = f.position;
-            let _ = f.covariance;
             One {
                 position: d_x.to_array(),
                 log_scale,
@@ -422,6 +423,7 @@ pub fn skin_backward(
                 rotation,
                 d_rotation,
                 logits,
+                weights: f.weights,
                 d_a,
                 d_offset: d_rest.to_array(),
             }
@@ -449,23 +451,18 @@ pub fn skin_backward(
         for a in 0..3 {
             grads.vertex_offsets[3 * v + a] += one.d_offset[a];
         }
-    }
-    // dL/dG_k^target = sum_i w_ik dL/dA_i; weights recomputed in parallel per joint.
-    let weights: Vec<Vec<f64>> = (0..n)
-        .into_par_iter()
-        .map(|i| forward_one(frame, params, i).weights)
-        .collect();
-    for (i, one) in per.iter().enumerate() {
+        // dL/dG_k^target = sum_i w_ik dL/dA_i.
         for k in 0..j {
             for e in 0..12 {
-                grads.target_joints[12 * k + e] += weights[i][k] * one.d_a[e];
+                grads.target_joints[12 * k + e] += one.weights[k] * one.d_a[e];
             }
         }
     }
     grads
 }
 
-fn outer(a: DVec3, b: DVec3) -> DMat3 {
+/// The outer product `a b^T`.
+pub(crate) fn outer(a: DVec3, b: DVec3) -> DMat3 {
     DMat3::from_cols(a * b.x, a * b.y, a * b.z)
 }
 

@@ -19,7 +19,7 @@ use seqavatar_compute::lpips::{Lpips, LpipsInput, LpipsNet, seeded};
 use seqavatar_engine::{EntryId, LocalStore, Pipeline, RunOptions, Store, run};
 use seqavatar_train::config::{Preset, TrainConfig};
 use seqavatar_train::data::TrainingData;
-use seqavatar_train::trainer::{Trainer, pad_rect};
+use seqavatar_train::trainer::Trainer;
 
 const UPSTREAM: &str = r#"
 stages:
@@ -67,17 +67,8 @@ fn main() -> anyhow::Result<()> {
         .split(0)
         .into_iter()
         .filter_map(|index| {
-            let record = &data.images[index];
-            let camera = &data.cameras[record.view];
-            record.bound.map(|bound| {
-                let rect = pad_rect(
-                    bound,
-                    base.bound_padding,
-                    camera.width as usize,
-                    camera.height as usize,
-                );
-                (rect.width(), rect.height())
-            })
+            let rect = data.padded_bound(index, base.bound_padding)?;
+            Some((rect.width(), rect.height()))
         })
         .collect();
     crops.sort_by_key(|&(w, h)| w * h);

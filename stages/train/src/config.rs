@@ -6,9 +6,11 @@
 
 use std::path::PathBuf;
 
+use seqavatar_avatar::model::NetworkGroup;
 pub use seqavatar_compute::backend::DeviceChoice;
 use seqavatar_compute::lpips::{LpipsInput, LpipsNet};
 use seqavatar_compute::nn::Precision;
+use seqavatar_compute::nn::adam::AdamConfig;
 use seqavatar_schema::ingest::IngestImages;
 use serde::{Deserialize, Serialize};
 
@@ -221,6 +223,29 @@ fn bad(field: &str, message: String) -> Result<(), ConfigError> {
 }
 
 impl TrainConfig {
+    /// The Adam configuration of the run (both the Gaussians' and the networks').
+    pub fn adam(&self) -> AdamConfig {
+        AdamConfig {
+            eps: self.learning_rates.adam_eps,
+            ..AdamConfig::default()
+        }
+    }
+
+    /// The rate of network group `group` at (1-based) `iteration`: its learning rate decayed
+    /// by `network_decay^((iteration - 1) / iterations)`.
+    pub fn network_rate(&self, group: NetworkGroup, iteration: u64) -> f64 {
+        let lr = &self.learning_rates;
+        let decay = lr
+            .network_decay
+            .powf((iteration - 1) as f64 / f64::from(self.iterations));
+        decay
+            * match group {
+                NetworkGroup::NonRigid => lr.non_rigid,
+                NetworkGroup::PoseRefiner => lr.pose_refiner,
+                NetworkGroup::LbsOffsets => lr.lbs_offsets,
+            }
+    }
+
     /// The preset's full configuration.
     pub fn preset(preset: Preset) -> Self {
         let base = Self {

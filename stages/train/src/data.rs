@@ -115,6 +115,21 @@ fn read_body_and_motion(
 }
 
 impl TrainingData {
+    /// The bound box of image `index` grown by `padding` pixels and clipped to its camera's
+    /// image; `None` for an image without foreground.
+    pub fn padded_bound(&self, index: usize, padding: usize) -> Option<Rect> {
+        let record = &self.images[index];
+        let camera = &self.cameras[record.view];
+        record.bound.map(|bound| {
+            crate::run::pad_rect(
+                bound,
+                padding,
+                camera.width as usize,
+                camera.height as usize,
+            )
+        })
+    }
+
     /// Reads the entries. `params_entry` is the fit entry if the pipeline has one, else the
     /// ingest entry.
     pub fn read(

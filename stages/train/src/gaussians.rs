@@ -63,18 +63,10 @@ pub fn initial_state(
         [1.0, 0.0, 0.0, 0.0].repeat(n),
     )?;
     for (name, width) in TRAINABLE {
-        state.add(
-            &format!("{name}.adam_m"),
-            width,
-            Growth::Zero,
-            vec![0.0; n * width],
-        )?;
-        state.add(
-            &format!("{name}.adam_v"),
-            width,
-            Growth::Zero,
-            vec![0.0; n * width],
-        )?;
+        for moment in ["adam_m", "adam_v"] {
+            let zeros = vec![0.0; n * width];
+            state.add(&format!("{name}.{moment}"), width, Growth::Zero, zeros)?;
+        }
     }
     state.add(names::GRAD_ACCUM, 1, Growth::Zero, vec![0.0; n])?;
     state.add(names::GRAD_COUNT, 1, Growth::Zero, vec![0.0; n])?;

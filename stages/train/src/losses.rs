@@ -58,12 +58,12 @@ pub fn bound_box(mask: &[f64], width: usize, height: usize, pad: usize) -> Optio
     if x0 == usize::MAX {
         return None;
     }
-    Some(Rect {
-        x0: x0.saturating_sub(pad),
-        y0: y0.saturating_sub(pad),
-        x1: (x1 + pad).min(width),
-        y1: (y1 + pad).min(height),
-    })
+    Some(crate::run::pad_rect(
+        Rect { x0, y0, x1, y1 },
+        pad,
+        width,
+        height,
+    ))
 }
 
 /// Weights of the photometric loss `l1 + mask_weight mask_mse + ssim_weight (1 - SSIM)`.

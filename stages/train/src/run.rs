@@ -33,6 +33,25 @@ pub struct IterationStats {
     pub densified: Option<DensifyReport>,
 }
 
+impl IterationStats {
+    /// A [`Divergence`] naming the terms when the total loss is not finite.
+    pub(crate) fn check_finite(&self) -> anyhow::Result<()> {
+        if self.total.is_finite() {
+            return Ok(());
+        }
+        Err(Divergence {
+            iteration: self.iteration,
+            what: "loss",
+            tensor: "total".into(),
+            detail: format!(
+                " (l1 {}, mask {}, dssim {}, lpips {}, aiap {})",
+                self.l1, self.mask_mse, self.dssim, self.lpips, self.aiap
+            ),
+        }
+        .into())
+    }
+}
+
 /// Per-iteration curves (one value per completed iteration).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LossCurve {

@@ -513,14 +513,7 @@ impl ProtocolScorer<'_> {
             camera,
             PROTOCOL_BACKGROUND,
         )?;
-        let bound = record.bound.map(|b| {
-            crate::trainer::pad_rect(
-                b,
-                self.config.bound_padding,
-                camera.width as usize,
-                camera.height as usize,
-            )
-        });
+        let bound = data.padded_bound(index, self.config.bound_padding);
         Ok(protocol_psnr(
             &image.colour,
             &record.rgb,

@@ -17,7 +17,7 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::ops::{Deref, DerefMut};
 
-use seqavatar_avatar::avatar::{TrainedAvatar, needs_networks};
+use seqavatar_avatar::avatar::TrainedAvatar;
 use seqavatar_avatar::model::{NetworkConfig, Networks};
 use seqavatar_knn::{KnnGrid, as_points, knn_brute_force};
 
@@ -438,7 +438,7 @@ fn build_networks(
     scale_count: usize,
 ) -> anyhow::Result<Option<Networks<f32>>> {
     let avatar_config = config.avatar();
-    if !needs_networks(&avatar_config) {
+    if !avatar_config.needs_networks() {
         return Ok(None);
     }
     let net_config = NetworkConfig::from_avatar(

@@ -69,10 +69,9 @@ pub struct GpuNetworks {
     nn: NnGpu,
     config: NetworkConfig,
     layers: Vec<GpuDense>,
-    non_rigid: Option<GpuNet>,
-    pose_refiner: Option<GpuNet>,
-    lbs_offsets: Option<GpuNet>,
-    /// The resident workspaces, by network group (non-rigid, pose refiner, LBS offsets).
+    /// The networks, by network group (non-rigid, pose refiner, LBS offsets).
+    nets: [Option<GpuNet>; 3],
+    /// The resident workspaces, by network group.
     resident: [Option<resident::ResidentNet>; 3],
     /// Adam of every parameter on the device (created by the first resident update).
     adam: Option<resident::ResidentAdam>,
@@ -114,11 +113,7 @@ impl GpuNetworks {
             .with_max_workgroups_per_dimension(context.max_workgroups_per_dimension());
         let mut layers = Vec::new();
         let mut nets = [None, None, None];
-        for (slot, network) in nets.iter_mut().zip([
-            &networks.non_rigid,
-            &networks.pose_refiner,
-            &networks.lbs_offsets,
-        ]) {
+        for (slot, network) in nets.iter_mut().zip(&networks.nets) {
             let Some(network) = network else { continue };
             *slot = Some(GpuNet {
                 spec: network.spec().clone(),
@@ -156,15 +151,12 @@ impl GpuNetworks {
                 });
             }
         }
-        let [non_rigid, pose_refiner, lbs_offsets] = nets;
         Ok(GpuNetworks {
             context,
             nn,
             config: networks.config().clone(),
             layers,
-            non_rigid,
-            pose_refiner,
-            lbs_offsets,
+            nets,
             resident: [None, None, None],
             adam: None,
             programs_built: std::sync::atomic::AtomicUsize::new(0),
@@ -181,20 +173,23 @@ impl GpuNetworks {
     pub fn parameters(&self) -> Vec<GpuNamedParam<'_>> {
         let mut params = Vec::with_capacity(2 * self.layers.len());
         for layer in &self.layers {
-            params.push(GpuNamedParam {
-                name: format!("{}.weight", layer.name),
-                len: layer.shape.weight_len(),
-                values: &layer.weight,
-                grads: &layer.d_weight,
-                group: layer.group,
-            });
-            params.push(GpuNamedParam {
-                name: format!("{}.bias", layer.name),
-                len: layer.shape.out_features,
-                values: &layer.bias,
-                grads: &layer.d_bias,
-                group: layer.group,
-            });
+            for (what, len, values, grads) in [
+                (
+                    "weight",
+                    layer.shape.weight_len(),
+                    &layer.weight,
+                    &layer.d_weight,
+                ),
+                ("bias", layer.shape.out_features, &layer.bias, &layer.d_bias),
+            ] {
+                params.push(GpuNamedParam {
+                    name: format!("{}.{what}", layer.name),
+                    len,
+                    values,
+                    grads,
+                    group: layer.group,
+                });
+            }
         }
         params
     }
@@ -237,10 +232,5 @@ impl GpuNetworks {
             .zeros(what, len, 4)
             .map(|buffer| buffer.buffer)
             .map_err(gpu_error)
-    }
-
-    /// The description of a network, or that it is disabled.
-    fn net<'a>(net: &'a Option<GpuNet>, block: &'static str) -> Result<&'a GpuNet, ModelError> {
-        net.as_ref().ok_or(ModelError::Disabled { block })
     }
 }

@@ -9,8 +9,16 @@ use seqavatar_compute::nn::NnScalar;
 use super::network::Activations;
 use super::{ModelError, check_input};
 
-/// Added to the template weights before the logarithm (the reference's value).
-pub const LOG_WEIGHT_EPSILON: f64 = 1e-9;
+/// An error unless `len` values are a whole number of rows of `joints`.
+fn check_rows(field: &str, len: usize, joints: usize) -> Result<(), ModelError> {
+    if joints == 0 || !len.is_multiple_of(joints) {
+        return Err(ModelError::Input {
+            field: field.into(),
+            message: format!("{len} values is not a whole number of rows of {joints} joints"),
+        });
+    }
+    Ok(())
+}
 
 /// Skinning weights `softmax(log(template + 1e-9) + offsets)` per row (`n x J` each).
 ///
@@ -22,15 +30,7 @@ pub fn blend_weights<S: NnScalar>(
     joints: usize,
 ) -> Result<Vec<S>, ModelError> {
     check_input("lbs offsets", template.len(), offsets.len())?;
-    if joints == 0 || !template.len().is_multiple_of(joints) {
-        return Err(ModelError::Input {
-            field: "lbs template weights".into(),
-            message: format!(
-                "{} values is not a whole number of rows of {joints} joints",
-                template.len()
-            ),
-        });
-    }
+    check_rows("lbs template weights", template.len(), joints)?;
     if let Some(index) = template
         .iter()
         .position(|w| !(w.is_finite() && *w >= S::ZERO))
@@ -45,7 +45,7 @@ pub fn blend_weights<S: NnScalar>(
             ),
         });
     }
-    let epsilon = S::from_f64(LOG_WEIGHT_EPSILON);
+    let epsilon = S::from_f64(crate::skinning::WEIGHT_LOG_EPS);
     let mut weights = vec![S::ZERO; template.len()];
     for ((w_row, t_row), o_row) in weights
         .chunks_exact_mut(joints)
@@ -77,15 +77,7 @@ pub fn blend_weights_backward<S: NnScalar>(
     joints: usize,
 ) -> Result<Vec<S>, ModelError> {
     check_input("lbs weight gradient", weights.len(), d_weights.len())?;
-    if joints == 0 || !weights.len().is_multiple_of(joints) {
-        return Err(ModelError::Input {
-            field: "lbs weights".into(),
-            message: format!(
-                "{} values is not a whole number of rows of {joints} joints",
-                weights.len()
-            ),
-        });
-    }
+    check_rows("lbs weights", weights.len(), joints)?;
     let mut d_offsets = vec![S::ZERO; weights.len()];
     for ((d_row, w_row), g_row) in d_offsets
         .chunks_exact_mut(joints)

@@ -43,26 +43,6 @@
 //! `skeleton` adds `SeqPoseEncoder`, `velocity` adds `SeqXYZEncoder`, `multiscale` uses all
 //! scales (the other levels use one scale slot, chosen by the caller). The pose refiner and
 //! the LBS offsets are independent switches.
-//!
-//! # API
-//!
-//! - [`Networks::new`]`(&NetworkConfig, seed)`; [`NetworkConfig::from_avatar`] derives the
-//!   configuration from an [`AvatarConfig`] and the body sizes.
-//! - [`Networks::parameters`] / [`Networks::parameters_mut`]: every array with its stable
-//!   name (`{layer}.weight` `(in, out)` and `{layer}.bias` `(out)`), its gradient and its
-//!   [`NetworkGroup`] (learning rates differ per group); [`Networks::zero_grad`];
-//!   [`Networks::load_parameters`] (named arrays back, checked).
-//! - [`Networks::non_rigid_forward`]`(&FrameInputs, &GaussianInputs) -> (NonRigidOutput,
-//!   NonRigidCache)` and [`Networks::non_rigid_backward`]`(cache, d_dxyz, d_drot, d_dscale)
-//!   -> d_canonical_xyz` (parameter gradients accumulate; the position gradient goes through
-//!   the encoding).
-//! - [`Networks::pose_refiner_forward`] / [`Networks::pose_refiner_backward`]: local pose to
-//!   `(J - 1)` row-major 3x3 matrices and back from their gradient.
-//! - [`Networks::lbs_offsets_forward`] / [`Networks::lbs_offsets_backward`]: positions to
-//!   `n x J` offsets (input detached), plus [`lbs::blend_weights`] /
-//!   [`lbs::blend_weights_backward`].
-//! - [`gpu::GpuNetworks`]: the f32 twin on wgpu, resident: forward, backward and Adam
-//!   recorded on device buffers; parameters up once, back with their Adam moments.
 
 pub mod dense;
 pub mod gpu;
@@ -94,43 +74,22 @@ pub enum ModelError {
     /// An input array does not have the length the configuration implies.
     #[error("{field}: expected {expected} values, got {actual}")]
     InputLength {
-        /// Which input (e.g. `gaussians.xyz`).
         field: String,
-        /// The length the configuration implies.
         expected: usize,
-        /// The length given.
         actual: usize,
     },
     /// An input the configuration needs is missing, or one it does not use is given.
     #[error("{field}: {message}")]
-    Input {
-        /// Which input.
-        field: String,
-        /// What is wrong.
-        message: String,
-    },
+    Input { field: String, message: String },
     /// The network configuration is invalid.
     #[error("network config {field}: {message}")]
-    Config {
-        /// Which field.
-        field: String,
-        /// What is wrong.
-        message: String,
-    },
+    Config { field: String, message: String },
     /// A parameter array being loaded is missing or has the wrong size.
     #[error("parameter {name}: {message}")]
-    Parameter {
-        /// The parameter's stable name.
-        name: String,
-        /// What is wrong.
-        message: String,
-    },
+    Parameter { name: String, message: String },
     /// A backward pass was asked of a block that is disabled by the configuration.
     #[error("{block} is disabled by the network configuration")]
-    Disabled {
-        /// The block.
-        block: &'static str,
-    },
+    Disabled { block: &'static str },
     /// A dense-layer operation failed (an internal shape error).
     #[error(transparent)]
     Nn(#[from] NnError),
@@ -148,6 +107,22 @@ pub enum NetworkGroup {
     PoseRefiner,
     /// The LBS-weight offsets (lr 5e-5).
     LbsOffsets,
+}
+
+impl NetworkGroup {
+    /// The group's place in parameter order (non-rigid, pose refiner, LBS offsets).
+    pub(crate) fn index(self) -> usize {
+        self as usize
+    }
+
+    /// The block's name in errors.
+    pub(crate) fn block(self) -> &'static str {
+        match self {
+            NetworkGroup::NonRigid => "the non-rigid network",
+            NetworkGroup::PoseRefiner => "the pose refiner",
+            NetworkGroup::LbsOffsets => "the LBS offsets",
+        }
+    }
 }
 
 /// Hidden and output widths of the blocks; [`Widths::PAPER`] is the reference architecture,
@@ -399,22 +374,16 @@ pub struct NamedParam<'a, S> {
     pub values: &'a [S],
     /// The accumulated gradient, same layout.
     pub grads: &'a [S],
-    /// Its optimiser group.
     pub group: NetworkGroup,
 }
 
-/// One parameter array, values writable (an optimiser step), gradient read-only.
+/// A [`NamedParam`] with its values writable (an optimiser step).
 #[derive(Debug)]
 pub struct NamedParamMut<'a, S> {
-    /// Stable name.
     pub name: String,
-    /// `[in, out]` for weights, `[out]` for biases.
     pub shape: Vec<usize>,
-    /// The values, row-major.
     pub values: &'a mut [S],
-    /// The accumulated gradient.
     pub grads: &'a [S],
-    /// Its optimiser group.
     pub group: NetworkGroup,
 }
 
@@ -422,9 +391,8 @@ pub struct NamedParamMut<'a, S> {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Networks<S> {
     config: NetworkConfig,
-    non_rigid: Option<Network<S>>,
-    pose_refiner: Option<Network<S>>,
-    lbs_offsets: Option<Network<S>>,
+    /// By [`NetworkGroup::index`].
+    nets: [Option<Network<S>>; 3],
 }
 
 /// A generator per block, so switching one block off leaves the others' initial values as
@@ -466,21 +434,14 @@ impl<S: NnScalar> Networks<S> {
     /// refiner's last layer `U(-1e-5, 1e-5)` with zero bias).
     pub fn new(config: &NetworkConfig, seed: u64) -> Result<Self, ModelError> {
         config.validate()?;
-        let mut networks = Networks {
-            config: config.clone(),
-            non_rigid: None,
-            pose_refiner: None,
-            lbs_offsets: None,
-        };
+        let mut nets = [None, None, None];
         for (stream, spec) in config.specs() {
-            let network = Some(Network::new(spec, &mut block_rng(seed, stream))?);
-            match stream {
-                1 => networks.non_rigid = network,
-                2 => networks.pose_refiner = network,
-                _ => networks.lbs_offsets = network,
-            }
+            nets[stream as usize - 1] = Some(Network::new(spec, &mut block_rng(seed, stream))?);
         }
-        Ok(networks)
+        Ok(Networks {
+            config: config.clone(),
+            nets,
+        })
     }
 
     /// The configuration the networks were built from.
@@ -490,24 +451,39 @@ impl<S: NnScalar> Networks<S> {
 
     /// Whether the non-rigid network exists (`motion_context` is not `none`).
     pub fn has_non_rigid(&self) -> bool {
-        self.non_rigid.is_some()
+        self.nets[0].is_some()
     }
 
     /// Whether the body-pose refiner exists.
     pub fn has_pose_refiner(&self) -> bool {
-        self.pose_refiner.is_some()
+        self.nets[1].is_some()
     }
 
     /// Whether the LBS-offset network exists.
     pub fn has_lbs_offsets(&self) -> bool {
-        self.lbs_offsets.is_some()
+        self.nets[2].is_some()
+    }
+
+    /// The network of `group`, or that it is disabled.
+    fn net(&self, group: NetworkGroup) -> Result<&Network<S>, ModelError> {
+        self.nets[group.index()]
+            .as_ref()
+            .ok_or(ModelError::Disabled {
+                block: group.block(),
+            })
+    }
+
+    fn net_mut(&mut self, group: NetworkGroup) -> Result<&mut Network<S>, ModelError> {
+        self.nets[group.index()]
+            .as_mut()
+            .ok_or(ModelError::Disabled {
+                block: group.block(),
+            })
     }
 
     /// The enabled networks in parameter order (non-rigid, pose refiner, LBS offsets).
     pub fn networks(&self) -> impl Iterator<Item = &Network<S>> {
-        [&self.non_rigid, &self.pose_refiner, &self.lbs_offsets]
-            .into_iter()
-            .flatten()
+        self.nets.iter().flatten()
     }
 
     /// Every layer, in a fixed order (non-rigid, pose refiner, LBS offsets).
@@ -516,35 +492,35 @@ impl<S: NnScalar> Networks<S> {
     }
 
     fn layers_mut(&mut self) -> Vec<&mut Dense<S>> {
-        [
-            &mut self.non_rigid,
-            &mut self.pose_refiner,
-            &mut self.lbs_offsets,
-        ]
-        .into_iter()
-        .flatten()
-        .flat_map(|net| net.layers.iter_mut())
-        .collect()
+        self.nets
+            .iter_mut()
+            .flatten()
+            .flat_map(|net| net.layers.iter_mut())
+            .collect()
     }
 
     /// Every parameter array with its gradient, weights before biases, layers in order.
     pub fn parameters(&self) -> Vec<NamedParam<'_, S>> {
         let mut params = Vec::new();
         for layer in self.layers() {
-            params.push(NamedParam {
-                name: format!("{}.weight", layer.name),
-                shape: vec![layer.shape.in_features, layer.shape.out_features],
-                values: &layer.weight,
-                grads: &layer.d_weight,
-                group: layer.group,
-            });
-            params.push(NamedParam {
-                name: format!("{}.bias", layer.name),
-                shape: vec![layer.shape.out_features],
-                values: &layer.bias,
-                grads: &layer.d_bias,
-                group: layer.group,
-            });
+            let (shape, group) = (layer.shape, layer.group);
+            for (what, dims, values, grads) in [
+                (
+                    "weight",
+                    vec![shape.in_features, shape.out_features],
+                    &layer.weight,
+                    &layer.d_weight,
+                ),
+                ("bias", vec![shape.out_features], &layer.bias, &layer.d_bias),
+            ] {
+                params.push(NamedParam {
+                    name: format!("{}.{what}", layer.name),
+                    shape: dims,
+                    values,
+                    grads,
+                    group,
+                });
+            }
         }
         params
     }
@@ -562,20 +538,23 @@ impl<S: NnScalar> Networks<S> {
                 d_weight,
                 d_bias,
             } = layer;
-            params.push(NamedParamMut {
-                name: format!("{name}.weight"),
-                shape: vec![shape.in_features, shape.out_features],
-                values: weight.as_mut_slice(),
-                grads: d_weight.as_slice(),
-                group: *group,
-            });
-            params.push(NamedParamMut {
-                name: format!("{name}.bias"),
-                shape: vec![shape.out_features],
-                values: bias.as_mut_slice(),
-                grads: d_bias.as_slice(),
-                group: *group,
-            });
+            for (what, dims, values, grads) in [
+                (
+                    "weight",
+                    vec![shape.in_features, shape.out_features],
+                    weight,
+                    &*d_weight,
+                ),
+                ("bias", vec![shape.out_features], bias, &*d_bias),
+            ] {
+                params.push(NamedParamMut {
+                    name: format!("{name}.{what}"),
+                    shape: dims,
+                    values: values.as_mut_slice(),
+                    grads: grads.as_slice(),
+                    group: *group,
+                });
+            }
         }
         params
     }
@@ -603,26 +582,21 @@ impl<S: NnScalar> Networks<S> {
     ) -> Result<(), ModelError> {
         let mut loaded = Vec::new();
         for param in self.parameters() {
-            let values = source(&param.name).ok_or_else(|| ModelError::Parameter {
+            let bad = |message: String| ModelError::Parameter {
                 name: param.name.clone(),
-                message: "missing".into(),
-            })?;
+                message,
+            };
+            let values = source(&param.name).ok_or_else(|| bad("missing".into()))?;
             if values.len() != param.values.len() {
-                return Err(ModelError::Parameter {
-                    name: param.name.clone(),
-                    message: format!(
-                        "expected {} values (shape {:?}), got {}",
-                        param.values.len(),
-                        param.shape,
-                        values.len()
-                    ),
-                });
+                return Err(bad(format!(
+                    "expected {} values (shape {:?}), got {}",
+                    param.values.len(),
+                    param.shape,
+                    values.len()
+                )));
             }
             if let Some(index) = values.iter().position(|v| !v.is_finite()) {
-                return Err(ModelError::Parameter {
-                    name: param.name.clone(),
-                    message: format!("value {index} is not finite"),
-                });
+                return Err(bad(format!("value {index} is not finite")));
             }
             loaded.push(values);
         }
@@ -638,9 +612,7 @@ impl<S: NnScalar> Networks<S> {
         frame: &FrameInputs<'_, S>,
         gaussians: &GaussianInputs<'_, S>,
     ) -> Result<(NonRigidOutput<S>, NonRigidCache<S>), ModelError> {
-        let net = self.non_rigid.as_ref().ok_or(ModelError::Disabled {
-            block: "the non-rigid network",
-        })?;
+        let net = self.net(NetworkGroup::NonRigid)?;
         let inputs = non_rigid::inputs(&self.config, frame, gaussians)?;
         let activations = net.forward(&inputs)?;
         let output = non_rigid::split_heads(activations.output());
@@ -656,9 +628,7 @@ impl<S: NnScalar> Networks<S> {
         d_drot: &[S],
         d_dscale: &[S],
     ) -> Result<Vec<S>, ModelError> {
-        let net = self.non_rigid.as_mut().ok_or(ModelError::Disabled {
-            block: "the non-rigid network",
-        })?;
+        let net = self.net_mut(NetworkGroup::NonRigid)?;
         let d_heads = non_rigid::heads_gradient(cache.rows(), d_dxyz, d_drot, d_dscale)?;
         let gradients = net.backward(&cache.activations, &d_heads)?;
         Ok(gradients.into_iter().flatten().next().unwrap_or_default())
@@ -670,9 +640,7 @@ impl<S: NnScalar> Networks<S> {
         &self,
         local_pose: &[S],
     ) -> Result<(Vec<S>, PoseRefinerCache<S>), ModelError> {
-        let net = self.pose_refiner.as_ref().ok_or(ModelError::Disabled {
-            block: "the pose refiner",
-        })?;
+        let net = self.net(NetworkGroup::PoseRefiner)?;
         let activations = net.forward(&[local_pose])?;
         let rotations = pose_refiner::rotations_from_vectors(activations.output());
         Ok((rotations, PoseRefinerCache { activations }))
@@ -684,9 +652,7 @@ impl<S: NnScalar> Networks<S> {
         cache: &PoseRefinerCache<S>,
         d_rotations: &[S],
     ) -> Result<(), ModelError> {
-        let net = self.pose_refiner.as_mut().ok_or(ModelError::Disabled {
-            block: "the pose refiner",
-        })?;
+        let net = self.net_mut(NetworkGroup::PoseRefiner)?;
         let vectors = cache.rotation_vectors();
         check_input("d_rotations", 3 * vectors.len(), d_rotations.len())?;
         let d_vectors = pose_refiner::rotation_vectors_backward(vectors, d_rotations);
@@ -699,9 +665,7 @@ impl<S: NnScalar> Networks<S> {
         &self,
         xyz: &[S],
     ) -> Result<(Vec<S>, LbsOffsetsCache<S>), ModelError> {
-        let net = self.lbs_offsets.as_ref().ok_or(ModelError::Disabled {
-            block: "the LBS offsets",
-        })?;
+        let net = self.net(NetworkGroup::LbsOffsets)?;
         let activations = net.forward(&[xyz])?;
         Ok((
             activations.output().to_vec(),
@@ -715,14 +679,9 @@ impl<S: NnScalar> Networks<S> {
         cache: &LbsOffsetsCache<S>,
         d_offsets: &[S],
     ) -> Result<(), ModelError> {
-        let net = self.lbs_offsets.as_mut().ok_or(ModelError::Disabled {
-            block: "the LBS offsets",
-        })?;
-        check_input(
-            "d_offsets",
-            cache.rows() * self.config.skinning_joints,
-            d_offsets.len(),
-        )?;
+        let joints = self.config.skinning_joints;
+        let net = self.net_mut(NetworkGroup::LbsOffsets)?;
+        check_input("d_offsets", cache.rows() * joints, d_offsets.len())?;
         net.backward(&cache.activations, d_offsets)?;
         Ok(())
     }

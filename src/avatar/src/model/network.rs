@@ -50,6 +50,17 @@ impl<S> Activations<S> {
             .and_then(|blocks| blocks.first())
             .map_or(&[][..], Vec::as_slice)
     }
+
+    /// The column blocks `parts` of one product's input.
+    fn parts(&self, parts: &[Part]) -> Vec<InputPart<'_, S>> {
+        parts
+            .iter()
+            .map(|part| InputPart {
+                data: part.pick::<Vec<S>>(&self.inputs, &self.outputs),
+                cols: part.cols,
+            })
+            .collect()
+    }
 }
 
 /// The per-Gaussian and per-frame shapes of a layer whose per-frame inputs are folded into a
@@ -66,21 +77,6 @@ pub(crate) fn folded_shapes(shape: LinearShape, rows_in: usize) -> (LinearShape,
             ..shape
         },
     )
-}
-
-fn block<'a, S>(
-    inputs: &'a [Vec<Vec<S>>],
-    outputs: &'a [Vec<Vec<S>>],
-    part: &Part,
-) -> InputPart<'a, S> {
-    let blocks = match part.value {
-        Value::Input(i) => &inputs[i],
-        Value::Layer(j) => &outputs[j],
-    };
-    InputPart {
-        data: &blocks[part.block],
-        cols: part.cols,
-    }
 }
 
 /// The input-gradient sinks of taken gradient buffers: skip, write (first contribution) or
@@ -169,11 +165,7 @@ impl<S: NnScalar> Network<S> {
             let mut frame_bias = None;
             for call in 0..rows_space.calls(window) {
                 let plan = spec.plan(index, call);
-                let parts: Vec<InputPart<'_, S>> = plan
-                    .rows
-                    .iter()
-                    .map(|p| block(&cache.inputs, &cache.outputs, p))
-                    .collect();
+                let parts = cache.parts(&plan.rows);
                 let mut out = Vec::new();
                 if plan.frame.is_empty() {
                     layer.forward(&parts, rows, &mut out)?;
@@ -181,11 +173,7 @@ impl<S: NnScalar> Network<S> {
                     let width = layer.out_features();
                     let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
                     let (rows_weight, frame_weight) = layer.weight.split_at(plan.rows_in() * width);
-                    let frame_parts: Vec<InputPart<'_, S>> = plan
-                        .frame
-                        .iter()
-                        .map(|p| block(&cache.inputs, &cache.outputs, p))
-                        .collect();
+                    let frame_parts = cache.parts(&plan.frame);
                     let mut bias = vec![S::ZERO; width];
                     linear_forward(
                         frame_shape,
@@ -291,11 +279,7 @@ impl<S: NnScalar> Network<S> {
                 };
                 let mut rows_d = take(&plan.rows);
                 let mut frame_d = take(&plan.frame);
-                let parts: Vec<InputPart<'_, S>> = plan
-                    .rows
-                    .iter()
-                    .map(|p| block(&cache.inputs, &cache.outputs, p))
-                    .collect();
+                let parts = cache.parts(&plan.rows);
                 let out = &cache.outputs[index][call];
                 if plan.frame.is_empty() {
                     layer.backward(&parts, rows, out, &mut d_out, &mut sinks(&mut rows_d))?;
@@ -304,11 +288,7 @@ impl<S: NnScalar> Network<S> {
                     let split = plan.rows_in() * width;
                     let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
                     let frame_bias = cache.frame_bias[index].as_deref().unwrap_or_default();
-                    let frame_parts: Vec<InputPart<'_, S>> = plan
-                        .frame
-                        .iter()
-                        .map(|p| block(&cache.inputs, &cache.outputs, p))
-                        .collect();
+                    let frame_parts = cache.parts(&plan.frame);
                     let Dense {
                         weight,
                         d_weight,

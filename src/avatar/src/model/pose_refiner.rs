@@ -10,6 +10,7 @@ use seqavatar_core::glam::{DMat3, DVec3};
 use seqavatar_core::rotation::skew;
 
 use super::network::Activations;
+use crate::skinning::outer;
 
 /// The `theta^2` regulariser of [`regularised_rodrigues`].
 pub const THETA_SQUARED_EPSILON: f64 = 1e-5;
@@ -44,10 +45,6 @@ pub fn regularised_rodrigues_backward(v: DVec3, g: DMat3) -> DVec3 {
     k * d_theta + (d_k - k * k.dot(d_k)) / theta
 }
 
-fn outer(a: DVec3, b: DVec3) -> DMat3 {
-    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
-}
-
 /// The refiner's activations for its backward.
 #[derive(Clone, Debug, Default)]
 pub struct PoseRefinerCache<S> {
@@ -79,17 +76,8 @@ pub(crate) fn rotations_from_vectors<S: NnScalar>(vectors: &[S]) -> Vec<S> {
 pub(crate) fn rotation_vectors_backward<S: NnScalar>(vectors: &[S], d_rotations: &[S]) -> Vec<S> {
     let mut d_vectors = Vec::with_capacity(vectors.len());
     for (v, d) in vectors.chunks_exact(3).zip(d_rotations.chunks_exact(9)) {
-        let g = DMat3::from_cols_array(&[
-            d[0].to_f64(),
-            d[3].to_f64(),
-            d[6].to_f64(),
-            d[1].to_f64(),
-            d[4].to_f64(),
-            d[7].to_f64(),
-            d[2].to_f64(),
-            d[5].to_f64(),
-            d[8].to_f64(),
-        ]);
+        // Row-major.
+        let g = DMat3::from_cols_array(&std::array::from_fn(|i| d[i].to_f64())).transpose();
         let dv = regularised_rodrigues_backward(
             DVec3::new(v[0].to_f64(), v[1].to_f64(), v[2].to_f64()),
             g,

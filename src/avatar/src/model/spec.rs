@@ -177,6 +177,17 @@ pub(crate) struct Plan {
     pub(crate) frame: Vec<Part>,
 }
 
+impl Part {
+    /// The block this part reads, from the per-value blocks of the inputs and the layers.
+    pub(crate) fn pick<'a, T>(&self, inputs: &'a [Vec<T>], outputs: &'a [Vec<T>]) -> &'a T {
+        let blocks = match self.value {
+            Value::Input(i) => &inputs[i],
+            Value::Layer(j) => &outputs[j],
+        };
+        &blocks[self.block]
+    }
+}
+
 impl Plan {
     /// Width of the parts with the layer's rows (the leading weight rows).
     pub(crate) fn rows_in(&self) -> usize {

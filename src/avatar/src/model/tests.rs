@@ -1339,19 +1339,37 @@ fn resident_iteration(
     }
     let joints = config.pose_dim() / 3;
     let rotations = gpu
-        .record_pose_refiner_forward(&mut encoder, &case.pose.buffer)
+        .record_forward(
+            &mut encoder,
+            NetworkGroup::PoseRefiner,
+            0,
+            &[&[&case.pose.buffer]],
+        )
         .unwrap()
         .clone();
     sources.push((rotations, 9 * joints));
-    gpu.record_pose_refiner_backward(&mut encoder, &case.d_rotations.buffer)
-        .unwrap();
+    gpu.record_backward(
+        &mut encoder,
+        NetworkGroup::PoseRefiner,
+        &case.d_rotations.buffer,
+    )
+    .unwrap();
     let offsets = gpu
-        .record_lbs_offsets_forward(&mut encoder, n, &case.xyz.buffer)
+        .record_forward(
+            &mut encoder,
+            NetworkGroup::LbsOffsets,
+            n,
+            &[&[&case.xyz.buffer]],
+        )
         .unwrap()
         .clone();
     sources.push((offsets, n * config.skinning_joints));
-    gpu.record_lbs_offsets_backward(&mut encoder, &case.d_offsets.buffer)
-        .unwrap();
+    gpu.record_backward(
+        &mut encoder,
+        NetworkGroup::LbsOffsets,
+        &case.d_offsets.buffer,
+    )
+    .unwrap();
     if let Some((adam, rate)) = adam {
         gpu.record_adam(&mut encoder, adam, |_| rate).unwrap();
     }

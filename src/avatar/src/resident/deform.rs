@@ -17,8 +17,8 @@ use super::motion::{MotionSetup, ResidentMotion};
 use super::pose::ResidentPose;
 use super::skinning::{GaussianColumns, ResidentSkinning, SkinInputs, SkinningSetup};
 use crate::config::AvatarConfig;
-use crate::model::HEAD_WIDTH;
 use crate::model::gpu::{GpuNetworks, NonRigidDeviceInputs};
+use crate::model::{HEAD_WIDTH, NetworkGroup};
 use crate::rig::BodyRig;
 
 /// Which motion-history inputs (skeleton motion window, vertex velocities) a frame's
@@ -224,7 +224,12 @@ impl ResidentDeformer {
         self.pose.record_refiner_input(encoder, frame)?;
         let refinements = match (self.has_refiner, self.networks.as_mut()) {
             (true, Some(networks)) => Some(device_view(
-                networks.record_pose_refiner_forward(encoder, &self.pose.refiner_input().buffer)?,
+                networks.record_forward(
+                    encoder,
+                    NetworkGroup::PoseRefiner,
+                    0,
+                    &[&[&self.pose.refiner_input().buffer]],
+                )?,
                 9 * (self.joints - 1),
             )),
             _ => None,
@@ -265,7 +270,12 @@ impl ResidentDeformer {
             .record_deform(encoder, columns.xyz, self.heads.as_ref())?;
         self.weight_offsets = match self.networks.as_mut() {
             Some(networks) if self.has_lbs => Some(device_view(
-                networks.record_lbs_offsets_forward(encoder, n, &self.skinning.positions.buffer)?,
+                networks.record_forward(
+                    encoder,
+                    NetworkGroup::LbsOffsets,
+                    n,
+                    &[&[&self.skinning.positions.buffer]],
+                )?,
                 self.joints * n,
             )),
             _ => None,

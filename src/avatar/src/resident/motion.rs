@@ -43,12 +43,6 @@ fn kernel(
     })?)
 }
 
-/// The shape words of `avatar_knn.wgsl`: length, scales, joints, vertices, k, element,
-/// fallback, padding.
-fn shape_uniform(context: &GpuContext, values: [u32; 8]) -> wgpu::Buffer {
-    context.uniform("avatar motion shape", &values)
-}
-
 /// What a resident motion input is made of, fixed for a training run.
 pub struct MotionSetup<'a> {
     /// The motion entry's arrays; `None` for a motion context without history inputs (then
@@ -193,19 +187,14 @@ impl ResidentMotion {
             None => Vec::new(),
         };
         let steps: Vec<u32> = scale_steps.iter().map(|&k| k as u32).collect();
-        let base = [setup.length as u32, s as u32, j as u32, v as u32];
+        // The shape words of `avatar_knn.wgsl`: length, scales, joints, vertices, k, element,
+        // fallback, padding.
         let shape = |k: usize, element: usize| {
-            shape_uniform(
-                context,
-                [
-                    base[0],
-                    base[1],
-                    base[2],
-                    base[3],
-                    k as u32,
-                    element as u32,
-                    fallback,
-                    0,
+            let words = [setup.length, s, j, v, k, element].map(|x| x as u32);
+            context.uniform(
+                "avatar motion shape",
+                &[
+                    words[0], words[1], words[2], words[3], words[4], words[5], fallback, 0,
                 ],
             )
         };

@@ -65,48 +65,6 @@ impl PoseStatus {
     }
 }
 
-/// Sizes and offsets fixed per sequence, the shader's `params` uniform (16 `u32` as
-/// `array<vec4u, 4>`, in the order of [`PoseParams::words`]).
-#[derive(Clone, Copy, Debug, Default)]
-struct PoseParams {
-    joints: u32,
-    vertices: u32,
-    features: u32,
-    blend_groups: u32,
-    frame_rotations_at: u32,
-    frame_world_at: u32,
-    rest_joints_at: u32,
-    rotations_at: u32,
-    globals_at: u32,
-    feature_at: u32,
-    d_globals_at: u32,
-    d_rotations_at: u32,
-}
-
-impl PoseParams {
-    /// The uniform's 16 words, in the order of the shader's accessors (`joint_count()`...).
-    fn words(&self) -> [u32; 16] {
-        [
-            self.joints,
-            self.vertices,
-            self.features,
-            self.blend_groups,
-            self.frame_rotations_at,
-            self.frame_world_at,
-            self.rest_joints_at,
-            self.rotations_at,
-            self.globals_at,
-            self.feature_at,
-            self.d_globals_at,
-            self.d_rotations_at,
-            0,
-            0,
-            0,
-            0,
-        ]
-    }
-}
-
 /// The per-iteration record, the shader's `record` uniform (`vec4u`):
 /// `[frame, shape, refine, 0]`.
 type PoseRecord = [u32; 4];
@@ -151,7 +109,7 @@ pub struct ResidentPose {
     shape_count: usize,
     rotations_at: usize,
     d_rotations_at: usize,
-    /// [`PoseParams`] (uniform, 16 `u32`), fixed per sequence.
+    /// Sizes and offsets (uniform, 16 `u32`), fixed per sequence.
     params: wgpu::Buffer,
     /// [`PoseRecord`] (uniform, 4 `u32`), written once per iteration by the forward.
     record: wgpu::Buffer,
@@ -208,12 +166,9 @@ fn u32_len(what: &str, value: usize) -> anyhow::Result<u32> {
 }
 
 impl ResidentPose {
-    /// Uploads what the pose path of a sequence needs, once: the kinematic tree, for every
-    /// frame of `frames` (its unrefined body parameters, indexed as [`ResidentPose::forward`]
-    /// indexes them) the local rotation matrices, the local pose (the refiner's input) and
-    /// the world transform `(R(Rh), Th)`, for
-    /// every distinct body shape among them the rest joints and the base offsets
-    /// `shape_v - P_v f(big)`, and `posedirs`; and allocates the workspace and outputs.
+    /// Uploads what the pose path of a sequence needs (see the module documentation; `frames`
+    /// are the unrefined body parameters, indexed as [`ResidentPose::forward`] indexes them)
+    /// and allocates the workspace and outputs.
     pub fn new(
         context: Arc<GpuContext>,
         rig: &BodyRig,
@@ -293,20 +248,33 @@ impl ResidentPose {
         } else {
             (3 * vertices).div_ceil(BLEND_ROWS)
         };
-        let params = PoseParams {
-            joints: u32_len("joints", joints)?,
-            vertices: u32_len("vertices", vertices)?,
-            features: u32_len("pose features", features)?,
-            blend_groups: u32_len("pose blend workgroups", blend_groups)?,
-            frame_rotations_at: u32_len("sequence size", frame_rotations_at)?,
-            frame_world_at: u32_len("sequence size", frame_world_at)?,
-            rest_joints_at: u32_len("sequence size", rest_joints_at)?,
-            rotations_at: u32_len("workspace size", rotations_at)?,
-            globals_at: u32_len("workspace size", globals_at)?,
-            feature_at: u32_len("workspace size", feature_at)?,
-            d_globals_at: u32_len("workspace size", d_globals_at)?,
-            d_rotations_at: u32_len("workspace size", d_rotations_at)?,
-        };
+        // The shader's `params` uniform (16 `u32`), in the order of its accessors
+        // (`joint_count()`...): sizes, then the offsets into the sequence and the workspace.
+        let sizes = [
+            ("joints", joints),
+            ("vertices", vertices),
+            ("pose features", features),
+            ("pose blend workgroups", blend_groups),
+        ];
+        let sequence_offsets =
+            [frame_rotations_at, frame_world_at, rest_joints_at].map(|at| ("sequence size", at));
+        let workspace_offsets = [
+            rotations_at,
+            globals_at,
+            feature_at,
+            d_globals_at,
+            d_rotations_at,
+        ]
+        .map(|at| ("workspace size", at));
+        let mut params = [0_u32; 16];
+        for (word, (what, value)) in params.iter_mut().zip(
+            sizes
+                .into_iter()
+                .chain(sequence_offsets)
+                .chain(workspace_offsets),
+        ) {
+            *word = u32_len(what, value)?;
+        }
         let pose_dirs = &model.arrays().pose_dirs;
         let kernels = PoseKernels::new(&context)?;
         Ok(Self {
@@ -319,7 +287,7 @@ impl ResidentPose {
             shape_count,
             rotations_at,
             d_rotations_at,
-            params: context.uniform("pose params", &params.words()),
+            params: context.uniform("pose params", &params),
             record: context.uniform("pose record", &PoseRecord::default()),
             sequence: context.upload("pose sequence", &sequence)?,
             parents: context.upload("pose parents", &parents)?,

@@ -4,15 +4,8 @@
 //! splatting layout, and the exact backward with the per-joint and per-vertex reductions the
 //! pose backward reads.
 //!
-//! Buffers (f32 unless said, row-major, the cpu layouts), `N` Gaussians, `J` joints, `V`
-//! template vertices, `k` SH coefficients per channel of the active degree:
-//! - inputs owned by others: the Gaussians' columns ([`GaussianColumns`]: `xyz` `N x 3`,
-//!   `log_scale` `N x 3`, `rotation` `N x 4` `[w x y z]`, `opacity_logit` `N`, `sh`
-//!   `N x 16 x 3`), the trunk's heads `N x 10` (`[d_xyz, d_rot - (1, 0, 0, 0), d_scale]`),
-//!   the LBS weight offsets `N x J`, the nearest template vertex `N` (u32,
-//!   [`super::motion::ResidentMotion::nearest`]), the target joints `J x 12` (3 x 4 row-major,
-//!   world transform included) and vertex offsets `V x 3` (the pose piece's);
-//! - outputs in [`ResidentSkinning`]'s public fields, described there.
+//! Buffers are f32 unless said, row-major, in the cpu layouts ([`GaussianColumns`],
+//! [`SkinInputs`] and [`ResidentSkinning`]'s public fields say which).
 //!
 //! Order of calls in an iteration: [`ResidentSkinning::set_iteration`] (one 16-byte write),
 //! then recorded into the step's encoder [`ResidentSkinning::record_deform`] (before the
@@ -29,6 +22,7 @@ use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
 
 use crate::avatar::SH_STORED;
 use crate::model::HEAD_WIDTH;
+use crate::skinning::WEIGHT_LOG_EPS;
 
 const SKIN_WGSL: &str = include_str!("../../../../shaders/avatar_skin.wgsl");
 
@@ -36,8 +30,6 @@ const SKIN_WGSL: &str = include_str!("../../../../shaders/avatar_skin.wgsl");
 const WORKGROUP: usize = 64;
 /// Gaussians per chunk of the per-joint reduction (partial sums `chunks x J x 12`).
 const JOINT_CHUNK: usize = 4096;
-/// Added inside the logarithm of template weights (`docs/method.md`; as [`crate::skinning`]).
-const WEIGHT_LOG_EPS: f64 = 1e-9;
 /// `SkinShape.flags` bits.
 const HAS_HEADS: u32 = 1;
 const HAS_WEIGHT_OFFSETS: u32 = 2;

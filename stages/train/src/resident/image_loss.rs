@@ -43,24 +43,6 @@ const MEAN_PLANES: usize = 15;
 /// Planes of the second SSIM workspace (three adjoints per channel, then the SSIM map).
 const ADJOINT_PLANES: usize = 10;
 
-fn kernel_source(entry_point: &'static str) -> KernelSource {
-    KernelSource {
-        name: match entry_point {
-            "ssim_rows" => "train_image_loss_ssim_rows",
-            "ssim_columns" => "train_image_loss_ssim_columns",
-            "ssim_gradient_rows" => "train_image_loss_ssim_gradient_rows",
-            "image_loss_gradient" => "train_image_loss_gradient",
-            "image_loss_reduce" => "train_image_loss_reduce",
-            "add_lpips" => "train_image_loss_add_lpips",
-            "composite_target" => "train_image_loss_composite_target",
-            "finish_iteration" => "train_image_loss_finish_iteration",
-            other => unreachable!("no entry point {other}"),
-        },
-        wgsl: Cow::Borrowed(WGSL),
-        entry_point,
-    }
-}
-
 /// Where one image of [`GroundTruth`] lives.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TruthSlot {
@@ -276,8 +258,9 @@ pub struct LossValues {
 }
 
 impl LossValues {
-    fn from_words(words: &[f32]) -> Self {
-        let v = |i: usize| f64::from(words[i]);
+    /// The values in `words`, each divided by `divisor`.
+    fn from_words(words: &[f32], divisor: f64) -> Self {
+        let v = |i: usize| f64::from(words[i]) / divisor;
         Self {
             l1: v(0),
             mask_mse: v(1),
@@ -369,16 +352,25 @@ impl ImageLoss {
                 && u32::try_from(MEAN_PLANES * max_pixels).is_ok(),
             "image losses: {max_pixels} pixels exceed the kernels' 32-bit indexing"
         );
-        let kernel = |entry| context.kernel(&kernel_source(entry));
+        let kernel = |name, entry_point| {
+            context.kernel(&KernelSource {
+                name,
+                wgsl: Cow::Borrowed(WGSL),
+                entry_point,
+            })
+        };
         let kernels = Kernels {
-            ssim_rows: kernel("ssim_rows")?,
-            ssim_columns: kernel("ssim_columns")?,
-            ssim_gradient_rows: kernel("ssim_gradient_rows")?,
-            gradient: kernel("image_loss_gradient")?,
-            reduce: kernel("image_loss_reduce")?,
-            add_lpips: kernel("add_lpips")?,
-            composite_target: kernel("composite_target")?,
-            finish: kernel("finish_iteration")?,
+            ssim_rows: kernel("train_image_loss_ssim_rows", "ssim_rows")?,
+            ssim_columns: kernel("train_image_loss_ssim_columns", "ssim_columns")?,
+            ssim_gradient_rows: kernel(
+                "train_image_loss_ssim_gradient_rows",
+                "ssim_gradient_rows",
+            )?,
+            gradient: kernel("train_image_loss_gradient", "image_loss_gradient")?,
+            reduce: kernel("train_image_loss_reduce", "image_loss_reduce")?,
+            add_lpips: kernel("train_image_loss_add_lpips", "add_lpips")?,
+            composite_target: kernel("train_image_loss_composite_target", "composite_target")?,
+            finish: kernel("train_image_loss_finish_iteration", "finish_iteration")?,
         };
         let window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA);
         let slots = (0..max_cameras)
@@ -672,23 +664,9 @@ impl ImageLoss {
             .download(encoder, &self.log.buffer, LOG_WORDS)?;
         let floats: Vec<f32> = words.iter().map(|&w| f32::from_bits(w)).collect();
         let iterations = words[16];
-        let mut mean = LossValues::from_words(&floats[8..16]);
-        if iterations > 0 {
-            let n = f64::from(iterations);
-            for value in [
-                &mut mean.l1,
-                &mut mean.mask_mse,
-                &mut mean.dssim,
-                &mut mean.lpips,
-                &mut mean.psnr,
-                &mut mean.total,
-            ] {
-                *value /= n;
-            }
-        }
         Ok(LossLog {
-            last: LossValues::from_words(&floats[0..8]),
-            mean,
+            last: LossValues::from_words(&floats[0..8], 1.0),
+            mean: LossValues::from_words(&floats[8..16], f64::from(iterations.max(1))),
             iterations,
             last_iteration: words[19],
             first_nonfinite_iteration: (words[17] > 0).then_some(words[18]),

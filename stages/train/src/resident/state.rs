@@ -190,37 +190,37 @@ impl ResidentGaussians {
         })
     }
 
-    /// Writes `state` into the buffers (which must hold it).
-    fn write_state(&mut self, state: &GaussianState) -> anyhow::Result<()> {
-        let count = state.len();
-        ensure!(count <= self.capacity, "resident Gaussians: capacity");
+    /// Every buffer with its [`GaussianState`] column name and values per Gaussian: each
+    /// trainable column and its moments, then the statistics.
+    fn buffers(&self) -> Vec<(String, usize, &GpuBuffer)> {
+        let mut buffers = Vec::new();
         for column in &self.columns {
-            let name = column.name;
             for (suffix, buffer) in [
                 ("", &column.values),
                 (".adam_m", &column.first_moment),
                 (".adam_v", &column.second_moment),
             ] {
-                let full = format!("{name}{suffix}");
-                let values = state
-                    .values(&full)
-                    .with_context(|| format!("uploading the Gaussians' column `{full}`"))?;
-                ensure!(
-                    values.len() == count * column.width,
-                    "column `{full}` has {} values, not {count} x {}",
-                    values.len(),
-                    column.width
-                );
-                self.context.write(&buffer.buffer, 0, &to_f32(values))?;
+                buffers.push((format!("{}{suffix}", column.name), column.width, buffer));
             }
         }
-        for (name, buffer) in [
-            (names::GRAD_ACCUM, &self.grad_accum),
-            (names::GRAD_COUNT, &self.grad_count),
-        ] {
+        buffers.push((names::GRAD_ACCUM.into(), 1, &self.grad_accum));
+        buffers.push((names::GRAD_COUNT.into(), 1, &self.grad_count));
+        buffers
+    }
+
+    /// Writes `state` into the buffers (which must hold it).
+    fn write_state(&mut self, state: &GaussianState) -> anyhow::Result<()> {
+        let count = state.len();
+        ensure!(count <= self.capacity, "resident Gaussians: capacity");
+        for (name, width, buffer) in self.buffers() {
             let values = state
-                .values(name)
+                .values(&name)
                 .with_context(|| format!("uploading the Gaussians' column `{name}`"))?;
+            ensure!(
+                values.len() == count * width,
+                "column `{name}` has {} values, not {count} x {width}",
+                values.len()
+            );
             self.context.write(&buffer.buffer, 0, &to_f32(values))?;
         }
         self.count = count;
@@ -257,36 +257,15 @@ impl ResidentGaussians {
     /// values (a `GaussianState` with other columns must already have this many Gaussians).
     /// One read-back.
     pub fn download_into(&self, state: &mut GaussianState) -> anyhow::Result<()> {
-        let mut sources: Vec<(&wgpu::Buffer, usize, String)> = Vec::new();
-        for column in &self.columns {
-            let len = self.count * column.width;
-            sources.push((&column.values.buffer, len, column.name.to_owned()));
-            sources.push((
-                &column.first_moment.buffer,
-                len,
-                format!("{}.adam_m", column.name),
-            ));
-            sources.push((
-                &column.second_moment.buffer,
-                len,
-                format!("{}.adam_v", column.name),
-            ));
-        }
-        sources.push((
-            &self.grad_accum.buffer,
-            self.count,
-            names::GRAD_ACCUM.into(),
-        ));
-        sources.push((
-            &self.grad_count.buffer,
-            self.count,
-            names::GRAD_COUNT.into(),
-        ));
-        let read: Vec<(&wgpu::Buffer, usize)> = sources.iter().map(|(b, l, _)| (*b, *l)).collect();
+        let sources = self.buffers();
+        let read: Vec<(&wgpu::Buffer, usize)> = sources
+            .iter()
+            .map(|(_, width, buffer)| (&buffer.buffer, self.count * width))
+            .collect();
         let values = self
             .context
             .download_all::<f32>(self.context.encoder(), &read)?;
-        for ((_, _, name), values) in sources.iter().zip(values) {
+        for ((name, _, _), values) in sources.iter().zip(values) {
             let column = state
                 .column_mut(name)
                 .with_context(|| format!("downloading the Gaussians' column `{name}`"))?;

@@ -26,7 +26,7 @@ use seqavatar_compute::backend::{GpuBuffer, GpuContext, Kernel, KernelSource, Ph
 use seqavatar_compute::lpips::gpu::{
     Crop, CropPair, DeviceImage as LpipsImage, GpuLpips, ResidentLpips,
 };
-use seqavatar_compute::nn::adam::{AdamConfig, AdamState};
+use seqavatar_compute::nn::adam::AdamState;
 use seqavatar_compute::splat::RasterOptions;
 use seqavatar_compute::splat::gpu::{DeviceImageGradient, GpuOptions, SplatWorkspace};
 use seqavatar_core::camera::Camera;
@@ -35,14 +35,14 @@ use super::adam::{GaussianAdam, GaussianGradients};
 use super::aiap::ResidentAiap;
 use super::densify::GradientStats;
 use super::image_loss::{DeviceImages, GroundTruth, ImageLoss, LossCamera};
-use super::log::{LOG_FIELDS, LogField, LogRing};
+use super::log::{LogField, LogRing};
 use super::state::{GaussianRates, OptimiserStep, ResidentGaussians};
 use crate::config::TrainConfig;
 use crate::data::TrainingData;
 use crate::densify::{GaussianState, names};
 use crate::gaussians::SH;
 use crate::losses::{AiapWeights, ImageLossWeights, LpipsLoss};
-use crate::run::{Divergence, Run, pad_rect};
+use crate::run::{Divergence, IterationStats, Run};
 
 const STEP_WGSL: &str = include_str!("../../../../shaders/train_step.wgsl");
 
@@ -68,19 +68,6 @@ pub struct IterationPlan<'a> {
     pub adam_step: u64,
     /// Whether this iteration accumulates densification statistics.
     pub density_statistics: bool,
-}
-
-/// The logged scalars of one iteration as read back.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct LoggedIteration {
-    pub l1: f64,
-    pub mask_mse: f64,
-    pub dssim: f64,
-    pub lpips: f64,
-    pub aiap: f64,
-    pub psnr: f64,
-    /// The image losses' weighted total (without AIAP).
-    pub image_total: f64,
 }
 
 /// The device state and workspaces of a resident training run.
@@ -136,7 +123,7 @@ fn upload_networks(
             .iter()
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect();
-        gpu.upload_adam(&adam_config(config), &states)
+        gpu.upload_adam(&config.adam(), &states)
             .context("uploading the networks' Adam moments")?;
     }
     Ok(Some(gpu))
@@ -379,7 +366,7 @@ impl ResidentStep {
         self.gaussians.write_step(&OptimiserStep {
             iteration: plan.iteration,
             adam_step: plan.adam_step,
-            adam: adam_config(config),
+            adam: config.adam(),
             rates: GaussianRates::at(&config.learning_rates, data.extent, plan.iteration),
             sh_degree: plan.sh_degree as usize,
             half_size: half_size(data, plan.images),
@@ -434,20 +421,13 @@ impl ResidentStep {
         let loss_cameras: Vec<LossCamera> = plan
             .images
             .iter()
-            .zip(cameras)
-            .map(|(&i, camera)| {
-                let record = &data.images[i];
-                LossCamera {
-                    image: i,
-                    pixel_offset: 0,
-                    rect: pad_rect(
-                        record.bound.expect("training images have a foreground"),
-                        config.bound_padding,
-                        camera.width as usize,
-                        camera.height as usize,
-                    ),
-                    background: plan.background,
-                }
+            .map(|&i| LossCamera {
+                image: i,
+                pixel_offset: 0,
+                rect: data
+                    .padded_bound(i, config.bound_padding)
+                    .expect("training images have a foreground"),
+                background: plan.background,
             })
             .collect();
         self.losses
@@ -561,8 +541,9 @@ impl ResidentStep {
         if let Some(networks) = deformer.networks.as_mut()
             && has_lbs
         {
-            networks.record_lbs_offsets_backward(
+            networks.record_backward(
                 encoder,
+                NetworkGroup::LbsOffsets,
                 &deformer.skinning.grad_weight_offsets.buffer,
             )?;
         }
@@ -588,8 +569,9 @@ impl ResidentStep {
                 &deformer.skinning.grad_vertex_offsets,
             )?;
             let networks = deformer.networks.as_mut().expect("has a pose refiner");
-            networks.record_pose_refiner_backward(
+            networks.record_backward(
                 encoder,
+                NetworkGroup::PoseRefiner,
                 &deformer.pose.refinement_gradients().buffer,
             )?;
         }
@@ -627,17 +609,8 @@ impl ResidentStep {
             plan.sh_degree as usize,
         )?;
         if let Some(networks) = deformer.networks.as_mut() {
-            let lr = &config.learning_rates;
-            let decay = lr
-                .network_decay
-                .powf((plan.iteration - 1) as f64 / f64::from(config.iterations));
-            networks.record_adam(encoder, &adam_config(config), |group| {
-                decay
-                    * match group {
-                        NetworkGroup::NonRigid => lr.non_rigid,
-                        NetworkGroup::PoseRefiner => lr.pose_refiner,
-                        NetworkGroup::LbsOffsets => lr.lbs_offsets,
-                    }
+            networks.record_adam(encoder, &config.adam(), |group| {
+                config.network_rate(group, plan.iteration)
             })?;
         }
         if plan.density_statistics {
@@ -698,17 +671,38 @@ impl ResidentStep {
         Ok(())
     }
 
-    /// Reads the logged scalars of the iterations recorded since the last read (one round
-    /// trip, after they have run) and checks every piece's status: a non-finite value is a
-    /// [`Divergence`] naming the iteration and tensor, as on `cpu`.
-    pub fn read_log(&mut self, last_iteration: u64) -> anyhow::Result<Vec<LoggedIteration>> {
+    /// Reads the statistics of the iterations recorded since the last read (one round trip,
+    /// after they have run; `gaussians` is the run's count) and checks every piece's status:
+    /// a non-finite value is a [`Divergence`] naming the iteration and tensor, as on `cpu`.
+    pub fn read_log(
+        &mut self,
+        last_iteration: u64,
+        gaussians: usize,
+    ) -> anyhow::Result<Vec<IterationStats>> {
         let slots = self
             .log
             .read(&self.context, self.first_unread, self.unread)?;
         let first_iteration = last_iteration + 1 - self.unread as u64;
         self.first_unread = (self.first_unread + self.unread) % self.log.capacity();
         self.unread = 0;
-        let logged: Vec<LoggedIteration> = slots.iter().map(logged_from).collect();
+        let logged: Vec<IterationStats> = (first_iteration..)
+            .zip(&slots)
+            .map(|(iteration, values)| {
+                let v = |field: LogField| f64::from(values[field as usize]);
+                IterationStats {
+                    iteration,
+                    total: v(LogField::ImageTotal) + v(LogField::Aiap),
+                    l1: v(LogField::L1),
+                    mask_mse: v(LogField::MaskMse),
+                    dssim: v(LogField::Dssim),
+                    lpips: v(LogField::Lpips),
+                    aiap: v(LogField::Aiap),
+                    psnr: v(LogField::Psnr),
+                    gaussians,
+                    densified: None,
+                }
+            })
+            .collect();
         if let Some(timer) = self.timer.as_mut() {
             for phases in timer.read(&self.context)? {
                 for (total, seconds) in self.device_seconds.iter_mut().zip(phases) {
@@ -731,20 +725,8 @@ impl ResidentStep {
             }
             .into());
         }
-        for (offset, values) in logged.iter().enumerate() {
-            let total = values.image_total + values.aiap;
-            if !total.is_finite() {
-                return Err(Divergence {
-                    iteration: first_iteration + offset as u64,
-                    what: "loss",
-                    tensor: "total".into(),
-                    detail: format!(
-                        " (l1 {}, mask {}, dssim {}, lpips {}, aiap {})",
-                        values.l1, values.mask_mse, values.dssim, values.lpips, values.aiap
-                    ),
-                }
-                .into());
-            }
+        for stats in &logged {
+            stats.check_finite()?;
         }
         if let Some(found) = self
             .deformer
@@ -833,14 +815,6 @@ impl ResidentStep {
     }
 }
 
-/// The Adam configuration of the run (both the Gaussians' and the networks').
-fn adam_config(config: &TrainConfig) -> AdamConfig {
-    AdamConfig {
-        eps: config.learning_rates.adam_eps,
-        ..AdamConfig::default()
-    }
-}
-
 /// Half the largest side of the iteration's cameras, in pixels.
 fn half_size(data: &TrainingData, images: &[usize]) -> f64 {
     images
@@ -852,17 +826,4 @@ fn half_size(data: &TrainingData, images: &[usize]) -> f64 {
         .max()
         .unwrap_or(1) as f64
         * 0.5
-}
-
-fn logged_from(values: &[f32; LOG_FIELDS]) -> LoggedIteration {
-    let v = |field: LogField| f64::from(values[field as usize]);
-    LoggedIteration {
-        l1: v(LogField::L1),
-        mask_mse: v(LogField::MaskMse),
-        dssim: v(LogField::Dssim),
-        lpips: v(LogField::Lpips),
-        aiap: v(LogField::Aiap),
-        psnr: v(LogField::Psnr),
-        image_total: v(LogField::ImageTotal),
-    }
 }

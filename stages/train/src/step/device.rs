@@ -37,21 +37,7 @@ impl DeviceStep {
     /// read into the loss curve (and checks them: a non-finite value is a
     /// [`crate::run::Divergence`]).
     fn read_log(&mut self, run: &mut Run<'_>) -> anyhow::Result<()> {
-        let count = self.resident.unread() as u64;
-        let logged = self.resident.read_log(run.iteration)?;
-        for (offset, values) in logged.iter().enumerate() {
-            let stats = IterationStats {
-                iteration: run.iteration + 1 - count + offset as u64,
-                total: values.image_total + values.aiap,
-                l1: values.l1,
-                mask_mse: values.mask_mse,
-                dssim: values.dssim,
-                lpips: values.lpips,
-                aiap: values.aiap,
-                psnr: values.psnr,
-                gaussians: run.state.len(),
-                densified: None,
-            };
+        for stats in self.resident.read_log(run.iteration, run.state.len())? {
             run.curve.push(&stats);
             self.last_logged = stats;
         }

@@ -15,7 +15,6 @@ use seqavatar_avatar::avatar::{
     gather_frame_inputs, template_grid,
 };
 use seqavatar_avatar::device::{AvatarBackend, avatar_backend};
-use seqavatar_avatar::model::NetworkGroup;
 use seqavatar_avatar::rig::{FramePose, PoseChain};
 use seqavatar_avatar::skinning::skin_backward;
 use seqavatar_avatar::splatting::SplatPass;
@@ -31,9 +30,7 @@ use crate::losses::{
     AiapGaussianGrads, AiapGaussians, AiapWeights, ColourPair, ImageLossWeights, ImagePair,
     aiap_gaussians, image_loss,
 };
-use crate::run::{
-    Divergence, IterationStats, Phase, PhaseClock, Run, TrainingStep, pad_rect, sh_degree_at,
-};
+use crate::run::{Divergence, IterationStats, Phase, PhaseClock, Run, TrainingStep, sh_degree_at};
 
 /// What the deform phase hands to the rest of the iteration.
 struct Forward {
@@ -254,12 +251,10 @@ impl HostStep {
         for (image, &index) in rendered.pass.images.iter().zip(chosen) {
             let record = &run.data.images[index];
             let (w, h) = (image.width as usize, image.height as usize);
-            let bound = pad_rect(
-                record.bound.expect("training images have a foreground"),
-                run.config.bound_padding,
-                w,
-                h,
-            );
+            let bound = run
+                .data
+                .padded_bound(index, run.config.bound_padding)
+                .expect("training images have a foreground");
             let target_colour = record.colour_on(rendered.background);
             let target_mask = record.mask_f64();
             let (terms, mut grads) = image_loss(
@@ -321,18 +316,7 @@ impl HostStep {
             stats.aiap = aiap.value;
             stats.total += stats.aiap;
         }
-        if !stats.total.is_finite() {
-            return Err(Divergence {
-                iteration,
-                what: "loss",
-                tensor: "total".into(),
-                detail: format!(
-                    " (l1 {}, mask {}, dssim {}, lpips {}, aiap {})",
-                    stats.l1, stats.mask_mse, stats.dssim, stats.lpips, stats.aiap
-                ),
-            }
-            .into());
-        }
+        stats.check_finite()?;
         Ok(Losses {
             stats,
             upstream_colour,
@@ -363,16 +347,8 @@ impl HostStep {
         drop(rendered.pass);
         let (mut d_xyz, d_log_scale_aiap, d_rotation_aiap) = match losses.aiap {
             Some(aiap) => {
-                for (a, b) in splat_grads.means.iter_mut().zip(&aiap.deformed_centres) {
-                    *a += b;
-                }
-                for (a, b) in splat_grads
-                    .covariances
-                    .iter_mut()
-                    .zip(&aiap.deformed_covariances)
-                {
-                    *a += b;
-                }
+                add_into(&mut splat_grads.means, &aiap.deformed_centres);
+                add_into(&mut splat_grads.covariances, &aiap.deformed_covariances);
                 (aiap.xyz, aiap.log_scale, aiap.rotation)
             }
             None => (vec![0.0; 3 * n], vec![0.0; 3 * n], vec![0.0; 4 * n]),
@@ -389,9 +365,7 @@ impl HostStep {
             &splat_grads.means,
             &splat_grads.covariances,
         );
-        for (a, b) in d_xyz.iter_mut().zip(&skin.positions) {
-            *a += b;
-        }
+        add_into(&mut d_xyz, &skin.positions);
         if let Some(net) = run.networks.as_mut() {
             let through = deform_backward(
                 net,
@@ -402,22 +376,12 @@ impl HostStep {
                 &run.data.params[forward.frame],
                 &skin,
             )?;
-            for (a, b) in d_xyz.iter_mut().zip(&through) {
-                *a += b;
-            }
+            add_into(&mut d_xyz, &through);
         }
-        let d_log_scale: Vec<f64> = skin
-            .log_scales
-            .iter()
-            .zip(&d_log_scale_aiap)
-            .map(|(a, b)| a + b)
-            .collect();
-        let d_rotation: Vec<f64> = skin
-            .rotations
-            .iter()
-            .zip(&d_rotation_aiap)
-            .map(|(a, b)| a + b)
-            .collect();
+        let mut d_log_scale = skin.log_scales.clone();
+        add_into(&mut d_log_scale, &d_log_scale_aiap);
+        let mut d_rotation = skin.rotations.clone();
+        add_into(&mut d_rotation, &d_rotation_aiap);
         let opacities = &deformed.world.opacities;
         let d_opacity: Vec<f64> = (0..n)
             .map(|i| splat_grads.opacities[i] * opacities[i] * (1.0 - opacities[i]))
@@ -475,10 +439,7 @@ impl HostStep {
             iteration,
             u64::from(lr.position_decay_steps),
         );
-        let adam = AdamConfig {
-            eps: lr.adam_eps,
-            ..AdamConfig::default()
-        };
+        let adam = run.config.adam();
         for (name, gradient) in gradients.columns() {
             let mut moments = AdamState {
                 m: std::mem::take(run.state.values_mut(&format!("{name}.adam_m"))?),
@@ -532,16 +493,8 @@ impl HostStep {
                     .into());
                 }
             }
-            let decay = lr
-                .network_decay
-                .powf((iteration - 1) as f64 / f64::from(run.config.iterations));
             for param in net.parameters_mut() {
-                let rate = decay
-                    * match param.group {
-                        NetworkGroup::NonRigid => lr.non_rigid,
-                        NetworkGroup::PoseRefiner => lr.pose_refiner,
-                        NetworkGroup::LbsOffsets => lr.lbs_offsets,
-                    };
+                let rate = run.config.network_rate(param.group, iteration);
                 let moments = run
                     .network_adam
                     .entry(param.name.clone())
@@ -584,6 +537,13 @@ impl HostStep {
             return run.density_control(iteration).map(Some);
         }
         Ok(None)
+    }
+}
+
+/// `into += from`, element by element.
+fn add_into(into: &mut [f64], from: &[f64]) {
+    for (a, b) in into.iter_mut().zip(from) {
+        *a += b;
     }
 }
 

@@ -16,18 +16,18 @@
 
 use std::collections::HashMap;
 
-use seqavatar_compute::nn::AdamConfig;
 use seqavatar_compute::nn::adam::{AdamState, AdamStepFactors};
 use seqavatar_compute::nn::gpu::{
     GpuAdamValues, GpuInput, GpuInputGrad, GpuInputPart, GpuLinear, GpuLinearGrads, NnProgram,
     Record, adam_factors_record, first_non_finite,
 };
+use seqavatar_compute::nn::{AdamConfig, LinearShape};
 
 use super::super::network::folded_shapes;
 use super::super::pose_refiner::THETA_SQUARED_EPSILON;
 use super::super::spec::{NetworkSpec, Value};
 use super::super::{ModelError, NetworkGroup};
-use super::{GpuNet, GpuNetworks, gpu_error, grads, input};
+use super::{GpuDense, GpuNet, GpuNetworks, gpu_error, grads, input};
 
 /// The device input blocks of the non-rigid network for [`GpuNetworks::record_non_rigid_forward`].
 #[derive(Clone, Copy, Debug)]
@@ -92,7 +92,7 @@ pub(super) struct ResidentAdam {
     config: AdamConfig,
     /// Per parameter array (order of [`GpuNetworks::parameters`]): first and second moments.
     moments: Vec<[wgpu::Buffer; 2]>,
-    /// `[step_size, correction]` per network group (slot = [`group_slot`]).
+    /// `[step_size, correction]` per network group (slot = [`NetworkGroup::index`]).
     record: wgpu::Buffer,
     /// Non-finite flags (`nn_finite.wgsl`), `u32`: per parameter array `p`, slot `2 p` for its
     /// gradient (checked before the update) and `2 p + 1` for its values (after).
@@ -102,32 +102,11 @@ pub(super) struct ResidentAdam {
     step: u64,
 }
 
-/// The Adam record slot of a network group.
-fn group_slot(group: NetworkGroup) -> usize {
-    match group {
-        NetworkGroup::NonRigid => 0,
-        NetworkGroup::PoseRefiner => 1,
-        NetworkGroup::LbsOffsets => 2,
-    }
-}
-
 const GROUPS: [NetworkGroup; 3] = [
     NetworkGroup::NonRigid,
     NetworkGroup::PoseRefiner,
     NetworkGroup::LbsOffsets,
 ];
-
-fn group_index(group: NetworkGroup) -> usize {
-    group_slot(group)
-}
-
-fn group_name(group: NetworkGroup) -> &'static str {
-    match group {
-        NetworkGroup::NonRigid => "the non-rigid network",
-        NetworkGroup::PoseRefiner => "the pose refiner",
-        NetworkGroup::LbsOffsets => "the LBS offsets",
-    }
-}
 
 fn per_gaussian(spec: &NetworkSpec) -> bool {
     spec.inputs.iter().any(|i| i.rows.per_gaussian())
@@ -137,14 +116,52 @@ fn byte_len(values: usize) -> u64 {
     4 * values as u64
 }
 
+/// An error unless the device buffer `buffer` holds at least `len` f32 values.
+fn check_holds(buffer: &wgpu::Buffer, len: usize, field: String) -> Result<(), ModelError> {
+    if buffer.size() < byte_len(len) {
+        return Err(ModelError::Input {
+            field,
+            message: format!(
+                "a device buffer of {} bytes holds fewer than {len} values",
+                buffer.size()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The two products of a layer whose per-frame inputs fold into a per-frame bias: the
+/// per-Gaussian one (the leading `rows_in` weight rows) and the 1-row per-frame one, whose
+/// input is `frame` after the zero `placeholder` of the per-Gaussian rows (so that it reads
+/// the one weight buffer whole), with that input.
+fn folded<'a>(
+    layer: &'a GpuDense,
+    rows_in: usize,
+    placeholder: &'a wgpu::Buffer,
+    frame: Vec<GpuInputPart<'a>>,
+) -> (GpuLinear<'a>, GpuLinear<'a>, Vec<GpuInputPart<'a>>) {
+    let (rows_shape, frame_shape) = folded_shapes(layer.shape, rows_in);
+    let frame_shape = LinearShape {
+        in_features: layer.shape.in_features,
+        ..frame_shape
+    };
+    let mut parts = vec![input(placeholder, rows_in)];
+    parts.extend(frame);
+    (
+        GpuLinear::new(rows_shape, &layer.weight),
+        GpuLinear::new(frame_shape, &layer.weight),
+        parts,
+    )
+}
+
 impl GpuNetworks {
+    /// The description of a network, or that it is disabled.
     fn resident_net(&self, group: NetworkGroup) -> Result<&GpuNet, ModelError> {
-        let net = match group {
-            NetworkGroup::NonRigid => &self.non_rigid,
-            NetworkGroup::PoseRefiner => &self.pose_refiner,
-            NetworkGroup::LbsOffsets => &self.lbs_offsets,
-        };
-        Self::net(net, group_name(group))
+        self.nets[group.index()]
+            .as_ref()
+            .ok_or(ModelError::Disabled {
+                block: group.block(),
+            })
     }
 
     /// Allocates the workspace of `group` for `capacity` Gaussians.
@@ -268,13 +285,7 @@ impl GpuNetworks {
         let parts_of = |parts: &[super::super::spec::Part]| -> Vec<GpuInputPart<'_>> {
             parts
                 .iter()
-                .map(|part| {
-                    let blocks = match part.value {
-                        Value::Input(i) => &work.values[i],
-                        Value::Layer(j) => &work.outputs[j],
-                    };
-                    input(&blocks[part.block], part.cols)
-                })
+                .map(|part| input(part.pick(&work.values, &work.outputs), part.cols))
                 .collect()
         };
 
@@ -310,25 +321,18 @@ impl GpuNetworks {
                         out,
                     )?,
                     Some([placeholder, bias, _]) => {
-                        let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
-                        let mut frame_parts = vec![input(placeholder, plan.rows_in())];
-                        frame_parts.extend(parts_of(&plan.frame));
+                        let (rows_linear, frame_linear, frame_parts) =
+                            folded(layer, plan.rows_in(), placeholder, parts_of(&plan.frame));
                         self.nn.linear_forward(
                             &mut forward,
-                            GpuLinear::new(
-                                seqavatar_compute::nn::LinearShape {
-                                    in_features: layer.shape.in_features,
-                                    ..frame_shape
-                                },
-                                &layer.weight,
-                            ),
+                            frame_linear,
                             &layer.bias,
                             GpuInput::new(&frame_parts, 1),
                             bias,
                         )?;
                         self.nn.linear_forward(
                             &mut forward,
-                            GpuLinear::new(rows_shape, &layer.weight),
+                            rows_linear,
                             bias,
                             GpuInput::new(&parts, rows),
                             out,
@@ -422,11 +426,12 @@ impl GpuNetworks {
                         grads(layer, &rows_d),
                     )?,
                     Some([placeholder, bias, d_bias]) => {
-                        let (rows_shape, frame_shape) = folded_shapes(layer.shape, plan.rows_in());
+                        let (rows_linear, frame_linear, frame_parts) =
+                            folded(layer, plan.rows_in(), placeholder, parts_of(&plan.frame));
                         backward.record_clear(d_bias);
                         self.nn.linear_backward(
                             &mut backward,
-                            GpuLinear::new(rows_shape, &layer.weight),
+                            rows_linear,
                             GpuInput::new(&parts, rows),
                             out,
                             d_out,
@@ -436,19 +441,11 @@ impl GpuNetworks {
                                 inputs: &rows_d,
                             },
                         )?;
-                        let mut frame_parts = vec![input(placeholder, plan.rows_in())];
-                        frame_parts.extend(parts_of(&plan.frame));
                         let mut d_frame = vec![GpuInputGrad::Skip];
                         d_frame.extend(frame_d);
                         self.nn.linear_backward(
                             &mut backward,
-                            GpuLinear::new(
-                                seqavatar_compute::nn::LinearShape {
-                                    in_features: layer.shape.in_features,
-                                    ..frame_shape
-                                },
-                                &layer.weight,
-                            ),
+                            frame_linear,
                             GpuInput::new(&frame_parts, 1),
                             bias,
                             d_bias,
@@ -522,18 +519,10 @@ impl GpuNetworks {
             }
             let len = input_spec.rows.block_rows(n, spec.window) * input_spec.width;
             for buffer in blocks.iter() {
-                if buffer.size() < byte_len(len) {
-                    return Err(ModelError::Input {
-                        field: input_spec.name.clone(),
-                        message: format!(
-                            "a device buffer of {} bytes holds fewer than {len} values",
-                            buffer.size()
-                        ),
-                    });
-                }
+                check_holds(buffer, len, input_spec.name.clone())?;
             }
         }
-        let slot = group_index(group);
+        let slot = group.index();
         let mut work = match self.resident[slot].take() {
             Some(work) if work.capacity >= n => work,
             _ => self.allocate_resident(group, n)?,
@@ -576,7 +565,7 @@ impl GpuNetworks {
     ) -> Result<(), ModelError> {
         let net = self.resident_net(group)?;
         let spec = &net.spec;
-        let work = self.resident[group_index(group)]
+        let work = self.resident[group.index()]
             .as_ref()
             .filter(|work| work.forward_recorded)
             .ok_or_else(|| ModelError::Input {
@@ -596,15 +585,7 @@ impl GpuNetworks {
         };
         let ran = n > 0 || !per_gaussian(spec);
         if ran && len > 0 {
-            if d_output.size() < byte_len(len) {
-                return Err(ModelError::Input {
-                    field: format!("{} output gradient", spec.prefix),
-                    message: format!(
-                        "a device buffer of {} bytes holds fewer than {len} values",
-                        d_output.size()
-                    ),
-                });
-            }
+            check_holds(d_output, len, format!("{} output gradient", spec.prefix))?;
             encoder.copy_buffer_to_buffer(d_output, 0, target, 0, byte_len(len));
         }
         work.backward.replay(encoder);
@@ -619,7 +600,7 @@ impl GpuNetworks {
         group: NetworkGroup,
         input: usize,
     ) -> Option<&wgpu::Buffer> {
-        self.resident[group_index(group)]
+        self.resident[group.index()]
             .as_ref()?
             .d_raw
             .get(input)?
@@ -670,46 +651,6 @@ impl GpuNetworks {
             .ok_or_else(|| gpu_error("the non-rigid xyz input has no gradient"))
     }
 
-    /// Records the pose refiner's forward on `local_pose` (`1 x 3 (J - 1)`); returns the
-    /// `(J - 1) x 9` row-major correction matrices.
-    pub fn record_pose_refiner_forward(
-        &mut self,
-        encoder: &mut wgpu::CommandEncoder,
-        local_pose: &wgpu::Buffer,
-    ) -> Result<&wgpu::Buffer, ModelError> {
-        self.record_forward(encoder, NetworkGroup::PoseRefiner, 0, &[&[local_pose]])
-    }
-
-    /// Records the pose refiner's backward from the matrices' gradient (`(J - 1) x 9`).
-    pub fn record_pose_refiner_backward(
-        &mut self,
-        encoder: &mut wgpu::CommandEncoder,
-        d_rotations: &wgpu::Buffer,
-    ) -> Result<(), ModelError> {
-        self.record_backward(encoder, NetworkGroup::PoseRefiner, d_rotations)
-    }
-
-    /// Records the LBS-offset network's forward on the canonical centres (`n x 3`); returns
-    /// the offsets, `n x J`.
-    pub fn record_lbs_offsets_forward(
-        &mut self,
-        encoder: &mut wgpu::CommandEncoder,
-        n: usize,
-        xyz: &wgpu::Buffer,
-    ) -> Result<&wgpu::Buffer, ModelError> {
-        self.record_forward(encoder, NetworkGroup::LbsOffsets, n, &[&[xyz]])
-    }
-
-    /// Records the LBS-offset backward from `d_offsets` (`n x J`). The network's input is
-    /// detached (as on `cpu`), so only the parameter gradients are accumulated.
-    pub fn record_lbs_offsets_backward(
-        &mut self,
-        encoder: &mut wgpu::CommandEncoder,
-        d_offsets: &wgpu::Buffer,
-    ) -> Result<(), ModelError> {
-        self.record_backward(encoder, NetworkGroup::LbsOffsets, d_offsets)
-    }
-
     /// Records the zeroing of every parameter gradient.
     pub fn record_zero_grad(&self, encoder: &mut wgpu::CommandEncoder) {
         for layer in &self.layers {
@@ -751,7 +692,7 @@ impl GpuNetworks {
             self.nn.adam_update_from_record(
                 &mut program,
                 config,
-                (&record, group_slot(param.group)),
+                (&record, param.group.index()),
                 GpuAdamValues {
                     params: param.values,
                     grads: param.grads,
@@ -891,30 +832,27 @@ impl GpuNetworks {
         let mut adam = self.build_adam(config, None, 0)?;
         let mut step = None;
         for (param, [m, v]) in self.parameters().iter().zip(&adam.moments) {
-            let state = states.get(&param.name).ok_or_else(|| ModelError::Input {
+            let bad = |message: String| ModelError::Input {
                 field: format!("adam state of {}", param.name),
-                message: "missing".into(),
-            })?;
+                message,
+            };
+            let state = states
+                .get(&param.name)
+                .ok_or_else(|| bad("missing".into()))?;
             if state.m.len() != param.len || state.v.len() != param.len {
-                return Err(ModelError::Input {
-                    field: format!("adam state of {}", param.name),
-                    message: format!(
-                        "moments of {} and {} values for {} parameters",
-                        state.m.len(),
-                        state.v.len(),
-                        param.len
-                    ),
-                });
+                return Err(bad(format!(
+                    "moments of {} and {} values for {} parameters",
+                    state.m.len(),
+                    state.v.len(),
+                    param.len
+                )));
             }
             if *step.get_or_insert(state.step) != state.step {
-                return Err(ModelError::Input {
-                    field: format!("adam state of {}", param.name),
-                    message: format!(
-                        "update count {} differs from the others' {}",
-                        state.step,
-                        step.unwrap_or_default()
-                    ),
-                });
+                return Err(bad(format!(
+                    "update count {} differs from the others' {}",
+                    state.step,
+                    step.unwrap_or_default()
+                )));
             }
             self.context.write(m, 0, &state.m).map_err(gpu_error)?;
             self.context.write(v, 0, &state.v).map_err(gpu_error)?;
