@@ -1,9 +1,7 @@
 //! Generic GPU building blocks: an exclusive prefix sum and a stable key-value radix sort,
 //! both recorded into a caller's command encoder so data stays on the GPU.
 
-use std::borrow::Cow;
-
-use super::{BackendError, GpuBuffer, GpuContext, KernelSource};
+use super::{BackendError, GpuBuffer, GpuContext};
 
 const BLOCK: u32 = 256;
 const DIGIT_BITS: u32 = 4;
@@ -11,14 +9,6 @@ const DIGITS: u32 = 1 << DIGIT_BITS;
 
 const SCAN_WGSL: &str = include_str!("../../../../shaders/scan_exclusive.wgsl");
 const SORT_WGSL: &str = include_str!("../../../../shaders/sort_radix.wgsl");
-
-fn source(name: &'static str, wgsl: &'static str, entry_point: &'static str) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
-    }
-}
 
 /// `ScanParams` in `scan_exclusive.wgsl`.
 #[repr(C)]
@@ -120,8 +110,8 @@ impl ScanWorkspace {
             self.total_level = 0;
             return Ok(());
         }
-        let scan = context.kernel(&source("scan_blocks", SCAN_WGSL, "scan_blocks"))?;
-        let add = context.kernel(&source("scan_add", SCAN_WGSL, "scan_add"))?;
+        let scan = context.static_kernel("scan_blocks", SCAN_WGSL, "scan_blocks")?;
+        let add = context.static_kernel("scan_add", SCAN_WGSL, "scan_add")?;
         // Down: scan each level's blocks, whose totals the next level scans.
         let mut level = 0;
         let mut level_count = count;
@@ -289,8 +279,8 @@ impl SortWorkspace {
             }
             self.written_count = count;
         }
-        let count_kernel = context.kernel(&source("sort_count", SORT_WGSL, "sort_count"))?;
-        let scatter_kernel = context.kernel(&source("sort_scatter", SORT_WGSL, "sort_scatter"))?;
+        let count_kernel = context.static_kernel("sort_count", SORT_WGSL, "sort_count")?;
+        let scatter_kernel = context.static_kernel("sort_scatter", SORT_WGSL, "sort_scatter")?;
         for pass in 0..passes {
             let (keys_in, values_in, keys_out, values_out) = if pass % 2 == 0 {
                 (keys, values, &self.keys.buffer, &self.values.buffer)

@@ -5,10 +5,9 @@
 //! buffer limit is split) on a workspace of its own and downloads the maps and the gradient;
 //! [`ResidentLpips`] records it on device crops every training step, on one workspace.
 
-use std::borrow::Cow;
 use std::sync::Arc;
 
-use crate::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use crate::backend::{GpuBuffer, GpuContext, Kernel};
 
 use super::{ConvSpec, DistanceMaps, LpipsError, LpipsNet, LpipsWeights, Step, TrunkInput, steps};
 
@@ -39,14 +38,6 @@ const POOL_BACKWARD: Source = (
     BACKWARD_WGSL,
     "max_pool_backward",
 );
-
-fn source((name, wgsl, entry_point): Source) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
-    }
-}
 
 /// The uniform block shared by all kernels (`LpipsParams` in `shaders/lpips_types.wgsl`;
 /// see the kernels for each one's reading).
@@ -502,7 +493,7 @@ impl GpuLpips {
             CONV_BACKWARD,
             POOL_BACKWARD,
         ] {
-            context.kernel(&source(kernel))?;
+            context.static_kernel(kernel.0, kernel.1, kernel.2)?;
         }
         Ok(Self {
             context,
@@ -515,7 +506,8 @@ impl GpuLpips {
     }
 
     fn kernel(&self, kernel: Source) -> Result<Arc<Kernel>, LpipsError> {
-        Ok(self.context.kernel(&source(kernel))?)
+        let (name, wgsl, entry_point) = kernel;
+        Ok(self.context.static_kernel(name, wgsl, entry_point)?)
     }
 
     /// Records `calls` on `workspace`, the uniform block of each one of `uniforms` (blocks a
@@ -857,7 +849,7 @@ impl GpuLpips {
             })
             .collect::<Result<Vec<_>, _>>()?;
         for kernel in [CROP_TO_TRUNK, REDUCE_DISTANCE, ADD_IMAGE_GRADIENT] {
-            context.kernel(&source(kernel))?;
+            context.static_kernel(kernel.0, kernel.1, kernel.2)?;
         }
         Ok(ResidentLpips {
             workspace: Workspace::new(context, &plan)?,

@@ -25,7 +25,7 @@ use std::sync::Mutex;
 
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
-use super::linear::{Activation, LinearShape};
+use super::linear::{Activation, LinearShape, check_features, check_grad_count, check_widths};
 use super::{NnError, Precision};
 use crate::backend::{GpuContext, Kernel, TensorCores};
 pub use crate::backend::{PreparedDispatch, Record};
@@ -207,6 +207,17 @@ struct Operand<'a> {
     offset: usize,
     row_stride: usize,
     col_stride: usize,
+}
+
+impl<'a> Operand<'a> {
+    fn new(buffer: &'a wgpu::Buffer, offset: usize, row_stride: usize, col_stride: usize) -> Self {
+        Self {
+            buffer,
+            offset,
+            row_stride,
+            col_stride,
+        }
+    }
 }
 
 /// One product `C (+)= A (m x k) * B (k x n)` of the matrix kernel, `dims = (m, n, k)`: `mask`
@@ -436,24 +447,21 @@ struct TensorCoreKernels {
 
 impl TensorCoreKernels {
     fn new(device: &wgpu::Device, cores: TensorCores) -> Result<Self, NnError> {
-        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
-            Kernel::compile(device, name, wgsl, entry)
-                .map_err(|error| NnError::Gpu(error.to_string()))
-        };
-        let multiply = Kernel::compile_with_constants(
+        let subgroup = [("SUBGROUP_SIZE", f64::from(cores.subgroup_size))];
+        let multiply = compile(
             device,
             "nn_matmul_coop",
             MATMUL_COOP_WGSL,
             "multiply",
-            &[("SUBGROUP_SIZE", f64::from(cores.subgroup_size))],
-        )
-        .map_err(|error| NnError::Gpu(error.to_string()))?;
+            &subgroup,
+        )?;
+        let staging = |name, entry| compile(device, name, MATMUL_F16_WGSL, entry, &[]);
         Ok(TensorCoreKernels {
             cores,
-            operand_max: compile("nn_matmul_operand_max", MATMUL_F16_WGSL, "operand_max")?,
-            pack: compile("nn_matmul_pack", MATMUL_F16_WGSL, "pack")?,
+            operand_max: staging("nn_matmul_operand_max", "operand_max")?,
+            pack: staging("nn_matmul_pack", "pack")?,
             multiply,
-            epilogue: compile("nn_matmul_epilogue", MATMUL_F16_WGSL, "epilogue")?,
+            epilogue: staging("nn_matmul_epilogue", "epilogue")?,
             scales: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn tensor-core scales"),
                 size: 16,
@@ -467,37 +475,16 @@ impl TensorCoreKernels {
     }
 }
 
-/// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is too
-/// small (sizes rounded up to powers of two within `max_binding_bytes`).
-fn grown_buffer(
+/// [`Kernel::compile_with_constants`], its error as an [`NnError`].
+fn compile(
     device: &wgpu::Device,
-    slot: &Mutex<Option<wgpu::Buffer>>,
-    label: &'static str,
-    bytes: u64,
-    max_binding_bytes: u64,
-) -> Result<wgpu::Buffer, NnError> {
-    let bytes = bytes.max(16).div_ceil(4) * 4;
-    if bytes > max_binding_bytes {
-        return Err(NnError::Gpu(format!(
-            "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
-        )));
-    }
-    let mut slot = slot
-        .lock()
-        .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
-    match &*slot {
-        Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
-        _ => {
-            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes.next_power_of_two().min(max_binding_bytes),
-                usage: wgpu::BufferUsages::STORAGE,
-                mapped_at_creation: false,
-            });
-            *slot = Some(buffer.clone());
-            Ok(buffer)
-        }
-    }
+    name: &'static str,
+    wgsl: &'static str,
+    entry: &'static str,
+    constants: &[(&str, f64)],
+) -> Result<Kernel, NnError> {
+    Kernel::compile_with_constants(device, name, wgsl, entry, constants)
+        .map_err(|error| NnError::Gpu(error.to_string()))
 }
 
 /// The dense-network kernels compiled for one device.
@@ -563,10 +550,7 @@ impl NnGpu {
     /// Compiles every kernel for `device`, with f32 matrix products (see
     /// [`NnGpu::for_context`] for the choice of tensor cores).
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
-        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
-            Kernel::compile(device, name, wgsl, entry)
-                .map_err(|error| NnError::Gpu(error.to_string()))
-        };
+        let compile = |name, wgsl, entry| compile(device, name, wgsl, entry, &[]);
         let limits = device.limits();
         Ok(NnGpu {
             device: device.clone(),
@@ -631,27 +615,30 @@ impl NnGpu {
         Ok(())
     }
 
-    /// A scratch buffer of at least `elements` f32 values.
-    fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
-        let bytes = (elements.max(4) * 4) as u64;
-        if bytes > self.max_binding_bytes {
+    /// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is
+    /// too small (sizes rounded up to powers of two within the binding limit).
+    fn grown(
+        &self,
+        slot: &Mutex<Option<wgpu::Buffer>>,
+        label: &'static str,
+        bytes: u64,
+    ) -> Result<wgpu::Buffer, NnError> {
+        let max_binding_bytes = self.max_binding_bytes;
+        let bytes = bytes.max(16).div_ceil(4) * 4;
+        if bytes > max_binding_bytes {
             return Err(NnError::Gpu(format!(
-                "reduction scratch of {bytes} bytes exceeds the device's binding limit of {} bytes",
-                self.max_binding_bytes
+                "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
             )));
         }
-        let mut slot = self
-            .scratch
+        let mut slot = slot
             .lock()
-            .map_err(|_| NnError::Gpu("scratch lock poisoned".into()))?;
+            .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
         match &*slot {
             Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
             _ => {
                 let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("nn reduction scratch"),
-                    size: bytes
-                        .next_power_of_two()
-                        .min(self.max_binding_bytes.max(bytes)),
+                    label: Some(label),
+                    size: bytes.next_power_of_two().min(max_binding_bytes),
                     usage: wgpu::BufferUsages::STORAGE,
                     mapped_at_creation: false,
                 });
@@ -659,6 +646,11 @@ impl NnGpu {
                 Ok(buffer)
             }
         }
+    }
+
+    /// A scratch buffer of at least `elements` f32 values.
+    fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
+        self.grown(&self.scratch, "reduction scratch", (elements * 4) as u64)
     }
 
     /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
@@ -814,28 +806,20 @@ impl NnGpu {
         to_u32("padded operand size", m_pad * k_pad)?;
         to_u32("padded operand size", k_pad * n_pad)?;
         to_u32("partial products", splits * partial_len)?;
-        let device = &self.device;
-        let limit = self.max_binding_bytes;
-        let packed_a = grown_buffer(
-            device,
+        let packed_a = self.grown(
             &kernels.packed_a,
             "nn tensor-core A",
             (m_pad * k_pad * 2) as u64,
-            limit,
         )?;
-        let packed_b = grown_buffer(
-            device,
+        let packed_b = self.grown(
             &kernels.packed_b,
             "nn tensor-core B",
             (k_pad * n_pad * 2) as u64,
-            limit,
         )?;
-        let partials = grown_buffer(
-            device,
+        let partials = self.grown(
             &kernels.partials,
             "nn tensor-core partial products",
             (splits * partial_len * 4) as u64,
-            limit,
         )?;
         let mask_buffer = mask.unwrap_or(&self.placeholder);
         encoder.record_clear(&kernels.scales);
@@ -953,26 +937,8 @@ impl NnGpu {
         inputs: &[GpuInputPart<'_>],
         rows: usize,
     ) -> Result<(), NnError> {
-        if shape.in_features == 0 || shape.out_features == 0 {
-            return Err(NnError::Shape {
-                operand: "linear layer".into(),
-                message: format!(
-                    "in_features ({}) and out_features ({}) must be positive",
-                    shape.in_features, shape.out_features
-                ),
-            });
-        }
-        let total: usize = inputs.iter().map(|part| part.cols).sum();
-        if total != shape.in_features || inputs.iter().any(|part| part.cols == 0) {
-            return Err(NnError::Shape {
-                operand: "linear input".into(),
-                message: format!(
-                    "input part widths {:?} must be positive and sum to in_features = {}",
-                    inputs.iter().map(|part| part.cols).collect::<Vec<_>>(),
-                    shape.in_features
-                ),
-            });
-        }
+        check_features(shape)?;
+        check_widths(shape, inputs.iter().map(|part| part.cols))?;
         self.check_buffer("linear weight", weight, shape.weight_len())?;
         for (index, part) in inputs.iter().enumerate() {
             self.check_buffer(
@@ -1014,18 +980,8 @@ impl NnGpu {
                 encoder,
                 Product {
                     dims: (rows, out, part.cols),
-                    a: Operand {
-                        buffer: part.buffer,
-                        offset: 0,
-                        row_stride: part.cols,
-                        col_stride: 1,
-                    },
-                    b: Operand {
-                        buffer: weight,
-                        offset: weight_row * out,
-                        row_stride: out,
-                        col_stride: 1,
-                    },
+                    a: Operand::new(part.buffer, 0, part.cols, 1),
+                    b: Operand::new(weight, weight_row * out, out, 1),
                     mask: None,
                     bias: Some(bias),
                     c: output,
@@ -1060,16 +1016,7 @@ impl NnGpu {
         self.check_buffer("linear output gradient", d_output, rows * out)?;
         self.check_buffer("linear weight gradient", grads.weight, shape.weight_len())?;
         self.check_buffer("linear bias gradient", grads.bias, out)?;
-        if d_inputs.len() != inputs.len() {
-            return Err(NnError::Shape {
-                operand: "linear input gradients".into(),
-                message: format!(
-                    "{} entries for {} input parts",
-                    d_inputs.len(),
-                    inputs.len()
-                ),
-            });
-        }
+        check_grad_count(d_inputs.len(), inputs.len())?;
         for (index, (part, grad)) in inputs.iter().zip(d_inputs).enumerate() {
             if let GpuInputGrad::Write(buffer) | GpuInputGrad::Accumulate(buffer) = grad {
                 self.check_buffer(
@@ -1124,18 +1071,8 @@ impl NnGpu {
                 encoder,
                 Product {
                     dims: (cols, out, rows),
-                    a: Operand {
-                        buffer: part.buffer,
-                        offset: 0,
-                        row_stride: 1,
-                        col_stride: cols,
-                    },
-                    b: Operand {
-                        buffer: d_output,
-                        offset: 0,
-                        row_stride: out,
-                        col_stride: 1,
-                    },
+                    a: Operand::new(part.buffer, 0, 1, cols),
+                    b: Operand::new(d_output, 0, out, 1),
                     mask,
                     bias: None,
                     c: grads.weight,
@@ -1154,18 +1091,8 @@ impl NnGpu {
                     encoder,
                     Product {
                         dims: (rows, cols, out),
-                        a: Operand {
-                            buffer: d_output,
-                            offset: 0,
-                            row_stride: out,
-                            col_stride: 1,
-                        },
-                        b: Operand {
-                            buffer: weight,
-                            offset: weight_row * out,
-                            row_stride: 1,
-                            col_stride: out,
-                        },
+                        a: Operand::new(d_output, 0, out, 1),
+                        b: Operand::new(weight, weight_row * out, 1, out),
                         mask,
                         bias: None,
                         c: target,

@@ -167,18 +167,6 @@ fn camera_uniform(
     }
 }
 
-fn kernel_source(
-    name: &'static str,
-    wgsl: &'static str,
-    entry_point: &'static str,
-) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
-    }
-}
-
 /// The Gaussians of one call, uploaded and owned (the host path; a resident step passes its
 /// own buffers as [`DeviceGaussians`]).
 pub struct ResidentGaussians {
@@ -683,23 +671,13 @@ impl SplatWorkspace {
         self.reserve(context, &gaussians, cameras)?;
         let n = gaussians.count;
         let k = gaussians.sh_coefficients();
-        let project = context.kernel(&kernel_source(
-            "project_forward",
-            PROJECT_WGSL,
-            "project_forward",
-        ))?;
-        let count_kernel =
-            context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
-        let emit_kernel = context.kernel(&kernel_source("emit_pairs", BIN_WGSL, "emit_pairs"))?;
-        let finish_kernel =
-            context.kernel(&kernel_source("finish_pairs", BIN_WGSL, "finish_pairs"))?;
-        let ranges_kernel =
-            context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
-        let rasterize = context.kernel(&kernel_source(
-            "rasterize_forward",
-            RASTERIZE_WGSL,
-            "rasterize_forward",
-        ))?;
+        let project = context.static_kernel("project_forward", PROJECT_WGSL, "project_forward")?;
+        let count_kernel = context.static_kernel("count_tiles", BIN_WGSL, "count_tiles")?;
+        let emit_kernel = context.static_kernel("emit_pairs", BIN_WGSL, "emit_pairs")?;
+        let finish_kernel = context.static_kernel("finish_pairs", BIN_WGSL, "finish_pairs")?;
+        let ranges_kernel = context.static_kernel("tile_ranges", BIN_WGSL, "tile_ranges")?;
+        let rasterize =
+            context.static_kernel("rasterize_forward", RASTERIZE_WGSL, "rasterize_forward")?;
         let pairs = self.pairs_per_band;
         let Some(parts) = self.gaussians.as_mut() else {
             unreachable!("reserve allocates the per-Gaussian buffers");
@@ -987,11 +965,8 @@ impl SplatWorkspace {
             }
         }
         let rasterize = rasterize_backward_kernel(context, self.gpu_options)?;
-        let project = context.kernel(&kernel_source(
-            "project_backward",
-            PROJECT_WGSL,
-            "project_backward",
-        ))?;
+        let project =
+            context.static_kernel("project_backward", PROJECT_WGSL, "project_backward")?;
         let out = &parts.gradients;
         for buffer in [
             &out.means,
