@@ -30,8 +30,8 @@ pub(crate) struct SortParams {
 
 /// This module's uniform structs for the layout test in [`super::shaders`].
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<super::shaders::WgslTwin> {
-    use super::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<super::shaders::tests::WgslTwin> {
+    use super::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(ScanParams as "ScanParams" in ["scan_exclusive.wgsl"] {
             count, pad[0] as "_pad0", pad[1] as "_pad1", pad[2] as "_pad2",
@@ -175,10 +175,6 @@ impl ScanWorkspace {
     pub fn total(&self) -> &GpuBuffer {
         &self.levels[self.total_level].1
     }
-
-    fn into_total(mut self) -> GpuBuffer {
-        self.levels.swap_remove(self.total_level).1
-    }
 }
 
 /// A stable key-value radix sort recorded from buffers allocated once for up to `capacity`
@@ -314,56 +310,56 @@ impl SortWorkspace {
     }
 }
 
-/// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a
-/// buffer whose first element is the total of all `count` values.
-pub fn exclusive_scan(
-    context: &GpuContext,
-    encoder: &mut wgpu::CommandEncoder,
-    data: &wgpu::Buffer,
-    count: u32,
-) -> Result<GpuBuffer, BackendError> {
-    let mut workspace = ScanWorkspace::new(context, count)?;
-    workspace.record(context, encoder, data, count)?;
-    Ok(workspace.into_total())
-}
-
-/// Records a stable sort of `count` pairs by the low `key_bits` bits of their keys.
-/// Consumes the buffers and returns the sorted `(keys, values)` (possibly the same buffers).
-pub fn radix_sort(
-    context: &GpuContext,
-    encoder: &mut wgpu::CommandEncoder,
-    keys: GpuBuffer,
-    values: GpuBuffer,
-    count: u32,
-    key_bits: u32,
-) -> Result<(GpuBuffer, GpuBuffer), BackendError> {
-    let passes = key_bits.min(32).div_ceil(DIGIT_BITS);
-    if count <= 1 || passes == 0 {
-        return Ok((keys, values));
-    }
-    let mut workspace = SortWorkspace::new(context, count)?;
-    let in_scratch = workspace.record(
-        context,
-        encoder,
-        &keys.buffer,
-        &values.buffer,
-        count,
-        key_bits,
-    )?;
-    let (mut keys, mut values) = if in_scratch {
-        (workspace.keys, workspace.values)
-    } else {
-        (keys, values)
-    };
-    keys.len = count as usize;
-    values.len = count as usize;
-    Ok((keys, values))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::backend::test_support::gpu_test_context;
+
+    /// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a
+    /// buffer whose first element is the total of all `count` values.
+    fn exclusive_scan(
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        count: u32,
+    ) -> Result<GpuBuffer, BackendError> {
+        let mut workspace = ScanWorkspace::new(context, count)?;
+        workspace.record(context, encoder, data, count)?;
+        Ok(workspace.levels.swap_remove(workspace.total_level).1)
+    }
+
+    /// Records a stable sort of `count` pairs by the low `key_bits` bits of their keys.
+    /// Consumes the buffers and returns the sorted `(keys, values)` (possibly the same buffers).
+    fn radix_sort(
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: GpuBuffer,
+        values: GpuBuffer,
+        count: u32,
+        key_bits: u32,
+    ) -> Result<(GpuBuffer, GpuBuffer), BackendError> {
+        let passes = key_bits.min(32).div_ceil(DIGIT_BITS);
+        if count <= 1 || passes == 0 {
+            return Ok((keys, values));
+        }
+        let mut workspace = SortWorkspace::new(context, count)?;
+        let in_scratch = workspace.record(
+            context,
+            encoder,
+            &keys.buffer,
+            &values.buffer,
+            count,
+            key_bits,
+        )?;
+        let (mut keys, mut values) = if in_scratch {
+            (workspace.keys, workspace.values)
+        } else {
+            (keys, values)
+        };
+        keys.len = count as usize;
+        values.len = count as usize;
+        Ok((keys, values))
+    }
 
     /// A small deterministic generator (xorshift) so tests need no extra crate.
     fn pseudo_random(seed: u64, count: usize) -> Vec<u32> {

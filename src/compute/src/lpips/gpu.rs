@@ -60,8 +60,8 @@ pub(crate) struct Params {
 
 /// This module's uniform struct for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(Params as "LpipsParams" in ["lpips_forward.wgsl", "lpips_backward.wgsl"] {
             images, in_channels, in_height, in_width, out_channels, out_height, out_width, kernel,
@@ -747,8 +747,8 @@ pub(crate) struct ResidentParams {
 
 /// The resident path's uniform struct for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(ResidentParams as "LpipsResidentParams" in ["lpips_resident.wgsl"] {
             render_offset, render_width, target_offset, target_width, x0, y0, crop_width,

@@ -346,8 +346,8 @@ pub(crate) struct ReduceParams {
 
 /// This module's uniform structs for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(MatmulParams as "Params" in ["nn_matmul.wgsl"] {
             m, n, k, flags, a_offset, a_row_stride, a_col_stride, b_offset, b_row_stride,

@@ -95,8 +95,8 @@ pub(crate) struct BinParams {
 
 /// This module's uniform structs for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(CameraUniform as "SplatCamera" in [
             "splat_project.wgsl",
