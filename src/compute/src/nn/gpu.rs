@@ -688,29 +688,16 @@ impl NnGpu {
         let n_tiles = n.div_ceil(TILE);
         // Split along k when the output has few tiles and the reduction is long (the weight
         // gradient); partials go to scratch and are summed in order afterwards.
-        let tiles = m_tiles * n_tiles;
-        let epilogue = flags & (ADD_BIAS | RELU) != 0;
-        let mut splits = if epilogue {
+        let wanted = if flags & (ADD_BIAS | RELU) != 0 {
             1
         } else {
             TARGET_WORKGROUPS
-                .div_ceil(tiles)
+                .div_ceil(m_tiles * n_tiles)
                 .min(k.div_ceil(256))
-                .max(1)
         };
-        let max_scratch_splits = (self.max_binding_bytes as usize / 4) / (m * n).max(1);
-        splits = splits.min(max_scratch_splits.max(1));
-        let k_per_split = k.div_ceil(splits).div_ceil(TILE_K).max(1) * TILE_K;
-        let splits = k.div_ceil(k_per_split).max(1);
+        let (k_per_split, splits) =
+            self.split_reduction((m, n, k), (m_tiles, n_tiles), TILE_K, wanted, m * n)?;
         let groups_y = m_tiles * splits;
-        if groups_y > self.max_groups_per_dimension as usize
-            || n_tiles > self.max_groups_per_dimension as usize
-        {
-            return Err(NnError::Gpu(format!(
-                "a {m} x {n} product needs a {n_tiles} x {groups_y} grid, beyond the device limit {}",
-                self.max_groups_per_dimension
-            )));
-        }
         let scratch = if splits > 1 {
             Some(self.scratch(splits * m * n)?)
         } else {
@@ -763,6 +750,32 @@ impl NnGpu {
         Ok(())
     }
 
+    /// Splits the reduction of `k` of an `m x n` product of `blocks` output blocks into at
+    /// most `wanted` slices of a multiple of `tile_k`, no more than partials of
+    /// `partial_len` values fit a binding: `(k_per_split, splits)`, once the product's grid
+    /// (`n_blocks x m_blocks * splits` workgroups) is within the device limit.
+    fn split_reduction(
+        &self,
+        (m, n, k): (usize, usize, usize),
+        (m_blocks, n_blocks): (usize, usize),
+        tile_k: usize,
+        wanted: usize,
+        partial_len: usize,
+    ) -> Result<(usize, usize), NnError> {
+        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len.max(1);
+        let splits = wanted.min(max_splits).max(1);
+        let k_per_split = k.div_ceil(splits).div_ceil(tile_k).max(1) * tile_k;
+        let splits = k.div_ceil(k_per_split).max(1);
+        let groups_y = m_blocks * splits;
+        let max_groups = self.max_groups_per_dimension as usize;
+        if groups_y > max_groups || n_blocks > max_groups {
+            return Err(NnError::Gpu(format!(
+                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
+            )));
+        }
+        Ok((k_per_split, splits))
+    }
+
     /// [`NnGpu::matmul`] on the tensor cores: both operands' largest magnitudes, their
     /// scaled and padded f16 copies, the products split along k, and the epilogue.
     fn matmul_tensor_cores(
@@ -787,21 +800,13 @@ impl NnGpu {
         // Split along k when the output has few blocks and the reduction is long (the weight
         // gradient), within the scratch the device can bind.
         let partial_len = m_pad * n_pad;
-        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len;
-        let splits = COOP_TARGET_WORKGROUPS
+        let wanted = COOP_TARGET_WORKGROUPS
             .div_ceil(m_blocks * n_blocks)
-            .min(k_pad.div_ceil(256))
-            .min(max_splits)
-            .max(1);
-        let k_per_split = k_pad.div_ceil(splits).div_ceil(COOP_TILE_K).max(1) * COOP_TILE_K;
-        let splits = k_pad.div_ceil(k_per_split).max(1);
+            .min(k_pad.div_ceil(256));
+        let dims = (m, n, k_pad);
+        let (k_per_split, splits) =
+            self.split_reduction(dims, (m_blocks, n_blocks), COOP_TILE_K, wanted, partial_len)?;
         let groups_y = m_blocks * splits;
-        let max_groups = self.max_groups_per_dimension as usize;
-        if groups_y > max_groups || n_blocks > max_groups {
-            return Err(NnError::Gpu(format!(
-                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
-            )));
-        }
         // Every flat index of the kernels is a u32.
         to_u32("padded operand size", m_pad * k_pad)?;
         to_u32("padded operand size", k_pad * n_pad)?;

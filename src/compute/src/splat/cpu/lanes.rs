@@ -360,6 +360,37 @@ pub(super) fn available_isas() -> Vec<Isa> {
         .collect()
 }
 
+/// Calls the lane loop `$tile.$method::<V, ..>(args)` with the lanes of `$isa`: on x86-64
+/// through a function compiled with that instruction set's features (the lane methods are
+/// all `#[inline(always)]`, so they inline into it), elsewhere with [`Portable`] lanes. The
+/// arguments are the caller's variables of those names.
+macro_rules! on_isa {
+    ($isa:expr, $tile:ident: $Tile:ty, $method:ident $(<$S:ident: $bound:path>)? (
+        $($arg:ident: $ty:ty),* $(,)?
+    )) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma,popcnt")]
+            fn avx2_lanes $(<$S: $bound>)? (tile: &mut $Tile, $($arg: $ty),*) {
+                tile.$method::<avx2::Avx2 $(, $S)?>($($arg),*);
+            }
+            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
+            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
+            fn avx512_lanes $(<$S: $bound>)? (tile: &mut $Tile, $($arg: $ty),*) {
+                tile.$method::<avx2::Avx2 $(, $S)?>($($arg),*);
+            }
+            match $isa {
+                // SAFETY: the CPU has the features (`isa` found them).
+                Isa::Avx512 => return unsafe { avx512_lanes($tile, $($arg),*) },
+                // SAFETY: as above.
+                Isa::Avx2 => return unsafe { avx2_lanes($tile, $($arg),*) },
+                Isa::Portable => {}
+            }
+        }
+        $tile.$method::<Portable $(, $S)?>($($arg),*);
+    }};
+}
+
 /// The splats in depth order as `f32` and the instruction set to composite them with.
 #[derive(Clone, Copy)]
 pub(super) struct LanePath<'a> {
@@ -592,40 +623,13 @@ impl ForwardTile {
     }
 
     fn run<const SMOOTH: bool>(&mut self, lanes: LanePath<'_>, list: &[u32], bounds: [u32; 4]) {
-        let splats = lanes.splats;
-        #[cfg(target_arch = "x86_64")]
-        {
-            /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma,popcnt")]
-            fn run_avx2(
-                tile: &mut ForwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                bounds: [u32; 4],
-                smooth: bool,
-            ) {
-                tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
-            }
-            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
-            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
-            fn run_avx512(
-                tile: &mut ForwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                bounds: [u32; 4],
-                smooth: bool,
-            ) {
-                tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
-            }
-            match lanes.isa {
-                // SAFETY: the CPU has the features (`isa` found them).
-                Isa::Avx512 => return unsafe { run_avx512(self, splats, list, bounds, SMOOTH) },
-                // SAFETY: as above.
-                Isa::Avx2 => return unsafe { run_avx2(self, splats, list, bounds, SMOOTH) },
-                Isa::Portable => {}
-            }
-        }
-        self.run_lanes::<Portable>(splats, list, bounds, SMOOTH);
+        let (splats, smooth) = (lanes.splats, SMOOTH);
+        on_isa!(lanes.isa, self: ForwardTile, run_lanes(
+            splats: &[Splat2d<f32>],
+            list: &[u32],
+            bounds: [u32; 4],
+            smooth: bool,
+        ));
     }
 
     #[inline(always)]
@@ -848,49 +852,14 @@ impl BackwardTile {
             depth: upstream.depth.is_some(),
         };
         let splats = lanes.splats;
-        #[cfg(target_arch = "x86_64")]
-        {
-            /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma,popcnt")]
-            fn walk_avx2<S: Scalar>(
-                tile: &mut BackwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                count: u32,
-                slots: &mut TileSlots<'_, S>,
-                bounds: [u32; 4],
-                variant: Variant,
-            ) {
-                tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
-            }
-            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
-            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
-            fn walk_avx512<S: Scalar>(
-                tile: &mut BackwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                count: u32,
-                slots: &mut TileSlots<'_, S>,
-                bounds: [u32; 4],
-                variant: Variant,
-            ) {
-                tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
-            }
-            match lanes.isa {
-                Isa::Avx512 => {
-                    // SAFETY: the CPU has the features (`isa` found them).
-                    return unsafe {
-                        walk_avx512(self, splats, list, count, slots, bounds, variant)
-                    };
-                }
-                Isa::Avx2 => {
-                    // SAFETY: the CPU has the features (`isa` found them).
-                    return unsafe { walk_avx2(self, splats, list, count, slots, bounds, variant) };
-                }
-                Isa::Portable => {}
-            }
-        }
-        self.walk_variant::<Portable, S>(splats, list, count, slots, bounds, variant);
+        on_isa!(lanes.isa, self: BackwardTile, walk_variant<S: Scalar>(
+            splats: &[Splat2d<f32>],
+            list: &[u32],
+            count: u32,
+            slots: &mut TileSlots<'_, S>,
+            bounds: [u32; 4],
+            variant: Variant,
+        ));
     }
 
     /// [`Self::walk_lanes`] compiled for the variant (each drops the work it does not need).
