@@ -637,16 +637,7 @@ impl Lpips {
         &self,
         pairs: &[(&ImageF32, &ImageF32)],
     ) -> Result<Vec<LpipsDistance>, LpipsError> {
-        let Some((first, _)) = pairs.first() else {
-            return Ok(Vec::new());
-        };
-        tap_sizes(self.weights.net, first.height, first.width)?;
-        let input = trunk_input(&self.weights, pairs, LpipsInput::Unit)?;
-        let maps = match &self.gpu {
-            None => cpu::distance_maps(&self.weights, &input)?,
-            Some(gpu) => gpu.distance_maps(&input)?,
-        };
-        Ok(reduce_maps(&maps, pairs.len()))
+        Ok(self.evaluate(pairs, LpipsInput::Unit, false)?.0)
     }
 
     /// LPIPS of each pair and the gradient of each pair's `total` with respect to its first
@@ -658,14 +649,26 @@ impl Lpips {
         pairs: &[(&ImageF32, &ImageF32)],
         input: LpipsInput,
     ) -> Result<(Vec<LpipsDistance>, Vec<Vec<f32>>), LpipsError> {
+        self.evaluate(pairs, input, true)
+    }
+
+    /// The distances and, `with_gradient`, the first images' gradients (else none).
+    fn evaluate(
+        &self,
+        pairs: &[(&ImageF32, &ImageF32)],
+        input: LpipsInput,
+        with_gradient: bool,
+    ) -> Result<(Vec<LpipsDistance>, Vec<Vec<f32>>), LpipsError> {
         let Some((first, _)) = pairs.first() else {
             return Ok((Vec::new(), Vec::new()));
         };
         tap_sizes(self.weights.net, first.height, first.width)?;
         let trunk = trunk_input(&self.weights, pairs, input)?;
-        let (maps, gradient) = match &self.gpu {
-            None => cpu::distance_gradient(&self.weights, &trunk)?,
-            Some(gpu) => gpu.distance_gradient(&trunk)?,
+        let (maps, gradient) = match (&self.gpu, with_gradient) {
+            (None, false) => (cpu::distance_maps(&self.weights, &trunk)?, Vec::new()),
+            (None, true) => cpu::distance_gradient(&self.weights, &trunk)?,
+            (Some(gpu), false) => (gpu.distance_maps(&trunk)?, Vec::new()),
+            (Some(gpu), true) => gpu.distance_gradient(&trunk)?,
         };
         let plane_values = 3 * first.height * first.width;
         let gradients = gradient

@@ -621,10 +621,10 @@ impl NnGpu {
         &self,
         slot: &Mutex<Option<wgpu::Buffer>>,
         label: &'static str,
-        bytes: u64,
+        bytes: usize,
     ) -> Result<wgpu::Buffer, NnError> {
         let max_binding_bytes = self.max_binding_bytes;
-        let bytes = bytes.max(16).div_ceil(4) * 4;
+        let bytes = (bytes as u64).max(16).div_ceil(4) * 4;
         if bytes > max_binding_bytes {
             return Err(NnError::Gpu(format!(
                 "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
@@ -650,7 +650,7 @@ impl NnGpu {
 
     /// A scratch buffer of at least `elements` f32 values.
     fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
-        self.grown(&self.scratch, "reduction scratch", (elements * 4) as u64)
+        self.grown(&self.scratch, "reduction scratch", elements * 4)
     }
 
     /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
@@ -811,20 +811,12 @@ impl NnGpu {
         to_u32("padded operand size", m_pad * k_pad)?;
         to_u32("padded operand size", k_pad * n_pad)?;
         to_u32("partial products", splits * partial_len)?;
-        let packed_a = self.grown(
-            &kernels.packed_a,
-            "nn tensor-core A",
-            (m_pad * k_pad * 2) as u64,
-        )?;
-        let packed_b = self.grown(
-            &kernels.packed_b,
-            "nn tensor-core B",
-            (k_pad * n_pad * 2) as u64,
-        )?;
+        let packed_a = self.grown(&kernels.packed_a, "nn tensor-core A", m_pad * k_pad * 2)?;
+        let packed_b = self.grown(&kernels.packed_b, "nn tensor-core B", k_pad * n_pad * 2)?;
         let partials = self.grown(
             &kernels.partials,
             "nn tensor-core partial products",
-            (splits * partial_len * 4) as u64,
+            splits * partial_len * 4,
         )?;
         let mask_buffer = mask.unwrap_or(&self.placeholder);
         encoder.record_clear(&kernels.scales);

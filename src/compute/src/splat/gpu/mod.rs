@@ -25,8 +25,8 @@ use seqavatar_core::camera::Camera;
 use bytemuck::Zeroable;
 
 use super::{
-    GaussianSet, ImageGradient, MAX_SH_DEGREE, RasterOptions, RenderedImage, SplatDiagnostics,
-    SplatError, SplatGradients, TILE_SIZE, sh_coefficient_count, validate_call,
+    GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatDiagnostics, SplatError,
+    SplatGradients, TILE_SIZE, check_degree_and_count, sh_coefficient_count, validate_call,
 };
 use crate::backend::primitives::{ScanWorkspace, SortWorkspace};
 use crate::backend::shaders::{AtomicAdd, with_atomic_add};
@@ -293,17 +293,8 @@ impl DeviceGaussians<'_> {
     }
 
     fn validate(&self) -> Result<(), SplatError> {
-        if self.sh_degree > MAX_SH_DEGREE {
-            return Err(SplatError::ShDegree {
-                degree: self.sh_degree,
-            });
-        }
-        if self.count > u32::MAX / 2 {
-            return Err(SplatError::TooManyGaussians {
-                count: self.count as usize,
-            });
-        }
         let n = self.count as usize;
+        check_degree_and_count(self.sh_degree, n)?;
         check_at_least("means", self.means, n * 3)?;
         check_at_least("covariances", self.covariances, n * 6)?;
         check_at_least("opacities", self.opacities, n)?;
