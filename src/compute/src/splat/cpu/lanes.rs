@@ -851,29 +851,16 @@ impl BackwardTile {
             alpha: upstream.alpha.is_some(),
             depth: upstream.depth.is_some(),
         };
-        let splats = lanes.splats;
+        let args = (lanes.splats, list, count, slots, bounds);
         on_isa!(lanes.isa, self: BackwardTile, walk_variant<S: Scalar>(
-            splats: &[Splat2d<f32>],
-            list: &[u32],
-            count: u32,
-            slots: &mut TileSlots<'_, S>,
-            bounds: [u32; 4],
+            args: WalkArgs<'_, '_, S>,
             variant: Variant,
         ));
     }
 
     /// [`Self::walk_lanes`] compiled for the variant (each drops the work it does not need).
     #[inline(always)]
-    fn walk_variant<V: Lanes, S: Scalar>(
-        &mut self,
-        splats: &[Splat2d<f32>],
-        list: &[u32],
-        count: u32,
-        slots: &mut TileSlots<'_, S>,
-        bounds: [u32; 4],
-        variant: Variant,
-    ) {
-        let args = (splats, list, count, slots, bounds);
+    fn walk_variant<V: Lanes, S: Scalar>(&mut self, args: WalkArgs<'_, '_, S>, variant: Variant) {
         match (variant.smooth, variant.alpha, variant.depth) {
             (false, false, false) => self.walk_lanes::<V, S, false, false, false>(args),
             (false, true, false) => self.walk_lanes::<V, S, false, true, false>(args),
@@ -888,17 +875,10 @@ impl BackwardTile {
 
     /// The walk for the smooth cutoff (`SMOOTH`, tests only) and upstream alpha (`ALPHA`)
     /// and depth (`DEPTH`) gradients present or not.
-    #[allow(clippy::type_complexity)]
     #[inline(always)]
     fn walk_lanes<V: Lanes, S: Scalar, const SMOOTH: bool, const ALPHA: bool, const DEPTH: bool>(
         &mut self,
-        (splats, list, count, slots, bounds): (
-            &[Splat2d<f32>],
-            &[u32],
-            u32,
-            &mut TileSlots<'_, S>,
-            [u32; 4],
-        ),
+        (splats, list, count, slots, bounds): WalkArgs<'_, '_, S>,
     ) {
         let x_start = bounds[0];
         for j in (0..count as usize).rev() {
@@ -1039,6 +1019,15 @@ impl BackwardTile {
         acc[SUM_QYY] = acc[SUM_QYY].add(qy.mul(dyv));
     }
 }
+
+/// The backward walk's splats, tile list, entry count, gradient slots and tile bounds.
+type WalkArgs<'a, 'b, S> = (
+    &'a [Splat2d<f32>],
+    &'a [u32],
+    u32,
+    &'a mut TileSlots<'b, S>,
+    [u32; 4],
+);
 
 /// Which specialisation of the backward walk runs.
 #[derive(Clone, Copy)]
