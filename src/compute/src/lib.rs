@@ -8,7 +8,7 @@
 //! - [`backend`]: device selection (`auto | cpu | gpu`), the wgpu context, buffers, limits,
 //!   float-atomic detection.
 //! - [`splat`]: differentiable Gaussian splatting (projection, SH colour, tile binning and
-//!   sort, compositing, backward), the benchmark scene and the render-only entry point.
+//!   sort, compositing, backward) and the benchmark scene.
 //! - [`nn`]: dense layers (matrix products with fused bias and activation), their backward,
 //!   and Adam, for the SeqAvatar networks.
 //! - [`lpips`]: the LPIPS perceptual distance (VGG16, AlexNet trunks), used by evaluation as a

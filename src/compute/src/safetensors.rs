@@ -26,14 +26,9 @@ pub enum Dtype {
 
 impl Dtype {
     fn parse(text: &str) -> Option<Self> {
-        Some(match text {
-            "U8" => Self::U8,
-            "F16" => Self::F16,
-            "BF16" => Self::BF16,
-            "F32" => Self::F32,
-            "F64" => Self::F64,
-            _ => return None,
-        })
+        [Self::U8, Self::F16, Self::BF16, Self::F32, Self::F64]
+            .into_iter()
+            .find(|dtype| dtype.name() == text)
     }
 
     /// The name used in the header.

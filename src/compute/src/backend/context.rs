@@ -362,6 +362,20 @@ impl GpuContext {
         Ok(kernel)
     }
 
+    /// [`GpuContext::kernel`] of WGSL text built into the binary.
+    pub fn static_kernel(
+        &self,
+        name: &'static str,
+        wgsl: &'static str,
+        entry_point: &'static str,
+    ) -> Result<Arc<Kernel>, BackendError> {
+        self.kernel(&KernelSource {
+            name,
+            wgsl: Cow::Borrowed(wgsl),
+            entry_point,
+        })
+    }
+
     fn check_size(&self, what: &str, bytes: u64) -> Result<(), BackendError> {
         let limit = self.max_binding_bytes();
         if bytes > limit {
@@ -415,23 +429,21 @@ impl GpuContext {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         self.check_size(what, bytes.len() as u64)?;
         self.transfers.up(bytes.len());
-        let buffer = if bytes.len() >= 16 {
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(what),
-                    contents: bytes,
-                    usage: storage_usage(),
-                })
+        // At least 16 bytes, so that empty inputs still bind.
+        let mut padded = [0_u8; 16];
+        let contents = if bytes.len() >= 16 {
+            bytes
         } else {
-            let mut padded = [0_u8; 16];
             padded[..bytes.len()].copy_from_slice(bytes);
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(what),
-                    contents: &padded,
-                    usage: storage_usage(),
-                })
+            &padded
         };
+        let buffer = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(what),
+                contents,
+                usage: storage_usage(),
+            });
         Ok(GpuBuffer {
             buffer,
             len: data.len(),

@@ -1,9 +1,7 @@
 //! Generic GPU building blocks: an exclusive prefix sum and a stable key-value radix sort,
 //! both recorded into a caller's command encoder so data stays on the GPU.
 
-use std::borrow::Cow;
-
-use super::{BackendError, GpuBuffer, GpuContext, KernelSource};
+use super::{BackendError, GpuBuffer, GpuContext};
 
 const BLOCK: u32 = 256;
 const DIGIT_BITS: u32 = 4;
@@ -11,14 +9,6 @@ const DIGITS: u32 = 1 << DIGIT_BITS;
 
 const SCAN_WGSL: &str = include_str!("../../../../shaders/scan_exclusive.wgsl");
 const SORT_WGSL: &str = include_str!("../../../../shaders/sort_radix.wgsl");
-
-fn source(name: &'static str, wgsl: &'static str, entry_point: &'static str) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
-    }
-}
 
 /// `ScanParams` in `scan_exclusive.wgsl`.
 #[repr(C)]
@@ -40,8 +30,8 @@ pub(crate) struct SortParams {
 
 /// This module's uniform structs for the layout test in [`super::shaders`].
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<super::shaders::WgslTwin> {
-    use super::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<super::shaders::tests::WgslTwin> {
+    use super::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(ScanParams as "ScanParams" in ["scan_exclusive.wgsl"] {
             count, pad[0] as "_pad0", pad[1] as "_pad1", pad[2] as "_pad2",
@@ -120,8 +110,8 @@ impl ScanWorkspace {
             self.total_level = 0;
             return Ok(());
         }
-        let scan = context.kernel(&source("scan_blocks", SCAN_WGSL, "scan_blocks"))?;
-        let add = context.kernel(&source("scan_add", SCAN_WGSL, "scan_add"))?;
+        let scan = context.static_kernel("scan_blocks", SCAN_WGSL, "scan_blocks")?;
+        let add = context.static_kernel("scan_add", SCAN_WGSL, "scan_add")?;
         // Down: scan each level's blocks, whose totals the next level scans.
         let mut level = 0;
         let mut level_count = count;
@@ -184,10 +174,6 @@ impl ScanWorkspace {
     /// The buffer whose first element is the total of the last recorded scan.
     pub fn total(&self) -> &GpuBuffer {
         &self.levels[self.total_level].1
-    }
-
-    fn into_total(mut self) -> GpuBuffer {
-        self.levels.swap_remove(self.total_level).1
     }
 }
 
@@ -289,8 +275,8 @@ impl SortWorkspace {
             }
             self.written_count = count;
         }
-        let count_kernel = context.kernel(&source("sort_count", SORT_WGSL, "sort_count"))?;
-        let scatter_kernel = context.kernel(&source("sort_scatter", SORT_WGSL, "sort_scatter"))?;
+        let count_kernel = context.static_kernel("sort_count", SORT_WGSL, "sort_count")?;
+        let scatter_kernel = context.static_kernel("sort_scatter", SORT_WGSL, "sort_scatter")?;
         for pass in 0..passes {
             let (keys_in, values_in, keys_out, values_out) = if pass % 2 == 0 {
                 (keys, values, &self.keys.buffer, &self.values.buffer)
@@ -324,56 +310,56 @@ impl SortWorkspace {
     }
 }
 
-/// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a
-/// buffer whose first element is the total of all `count` values.
-pub fn exclusive_scan(
-    context: &GpuContext,
-    encoder: &mut wgpu::CommandEncoder,
-    data: &wgpu::Buffer,
-    count: u32,
-) -> Result<GpuBuffer, BackendError> {
-    let mut workspace = ScanWorkspace::new(context, count)?;
-    workspace.record(context, encoder, data, count)?;
-    Ok(workspace.into_total())
-}
-
-/// Records a stable sort of `count` pairs by the low `key_bits` bits of their keys.
-/// Consumes the buffers and returns the sorted `(keys, values)` (possibly the same buffers).
-pub fn radix_sort(
-    context: &GpuContext,
-    encoder: &mut wgpu::CommandEncoder,
-    keys: GpuBuffer,
-    values: GpuBuffer,
-    count: u32,
-    key_bits: u32,
-) -> Result<(GpuBuffer, GpuBuffer), BackendError> {
-    let passes = key_bits.min(32).div_ceil(DIGIT_BITS);
-    if count <= 1 || passes == 0 {
-        return Ok((keys, values));
-    }
-    let mut workspace = SortWorkspace::new(context, count)?;
-    let in_scratch = workspace.record(
-        context,
-        encoder,
-        &keys.buffer,
-        &values.buffer,
-        count,
-        key_bits,
-    )?;
-    let (mut keys, mut values) = if in_scratch {
-        (workspace.keys, workspace.values)
-    } else {
-        (keys, values)
-    };
-    keys.len = count as usize;
-    values.len = count as usize;
-    Ok((keys, values))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::backend::test_support::gpu_test_context;
+
+    /// Records an in-place exclusive prefix sum of the first `count` u32 of `data`. Returns a
+    /// buffer whose first element is the total of all `count` values.
+    fn exclusive_scan(
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        count: u32,
+    ) -> Result<GpuBuffer, BackendError> {
+        let mut workspace = ScanWorkspace::new(context, count)?;
+        workspace.record(context, encoder, data, count)?;
+        Ok(workspace.levels.swap_remove(workspace.total_level).1)
+    }
+
+    /// Records a stable sort of `count` pairs by the low `key_bits` bits of their keys.
+    /// Consumes the buffers and returns the sorted `(keys, values)` (possibly the same buffers).
+    fn radix_sort(
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: GpuBuffer,
+        values: GpuBuffer,
+        count: u32,
+        key_bits: u32,
+    ) -> Result<(GpuBuffer, GpuBuffer), BackendError> {
+        let passes = key_bits.min(32).div_ceil(DIGIT_BITS);
+        if count <= 1 || passes == 0 {
+            return Ok((keys, values));
+        }
+        let mut workspace = SortWorkspace::new(context, count)?;
+        let in_scratch = workspace.record(
+            context,
+            encoder,
+            &keys.buffer,
+            &values.buffer,
+            count,
+            key_bits,
+        )?;
+        let (mut keys, mut values) = if in_scratch {
+            (workspace.keys, workspace.values)
+        } else {
+            (keys, values)
+        };
+        keys.len = count as usize;
+        values.len = count as usize;
+        Ok((keys, values))
+    }
 
     /// A small deterministic generator (xorshift) so tests need no extra crate.
     fn pseudo_random(seed: u64, count: usize) -> Vec<u32> {

@@ -56,33 +56,22 @@ pub fn compile_module(device: &wgpu::Device, name: &str, wgsl: String) -> wgpu::
 pub const ATOMIC_ADD_FLOAT_WGSL: &str = include_str!("../../../../shaders/atomic_add_float.wgsl");
 pub const ATOMIC_ADD_CAS_WGSL: &str = include_str!("../../../../shaders/atomic_add_cas.wgsl");
 
+/// `(file name, text)` of the given files in `shaders/`.
+macro_rules! shader_files {
+    ($($name:literal),+ $(,)?) => {
+        &[$(($name, include_str!(concat!("../../../../shaders/", $name)))),+]
+    };
+}
+
 /// The shared headers kernels may include, by file name (each is a file in `shaders/`).
-pub const HEADERS: &[(&str, &str)] = &[
-    (
-        "splat_types.wgsl",
-        include_str!("../../../../shaders/splat_types.wgsl"),
-    ),
-    (
-        "lpips_types.wgsl",
-        include_str!("../../../../shaders/lpips_types.wgsl"),
-    ),
-    (
-        "linear_index.wgsl",
-        include_str!("../../../../shaders/linear_index.wgsl"),
-    ),
-    (
-        "splat_pixel.wgsl",
-        include_str!("../../../../shaders/splat_pixel.wgsl"),
-    ),
-    (
-        "finite.wgsl",
-        include_str!("../../../../shaders/finite.wgsl"),
-    ),
-    (
-        "quaternion.wgsl",
-        include_str!("../../../../shaders/quaternion.wgsl"),
-    ),
-    ("atomic_add_cas.wgsl", ATOMIC_ADD_CAS_WGSL),
+pub const HEADERS: &[(&str, &str)] = shader_files![
+    "splat_types.wgsl",
+    "lpips_types.wgsl",
+    "linear_index.wgsl",
+    "splat_pixel.wgsl",
+    "finite.wgsl",
+    "quaternion.wgsl",
+    "atomic_add_cas.wgsl",
 ];
 
 const INCLUDE: &str = "//#include";
@@ -155,109 +144,6 @@ fn expand_with(name: &str, wgsl: &str, headers: &[(&str, &str)]) -> Result<Strin
     Ok(expanded)
 }
 
-/// A WGSL uniform or storage struct and its Rust `#[repr(C)]` twin, as the layout test
-/// compares them: each module that uploads such a struct lists its twins next to it
-/// (`wgsl_twins()`, built with [`wgsl_twin!`]).
-#[cfg(test)]
-pub(crate) struct WgslTwin {
-    /// The kernel files (in `shaders/`) whose struct this is.
-    pub kernels: &'static [&'static str],
-    pub wgsl_struct: &'static str,
-    pub rust_struct: &'static str,
-    pub size: usize,
-    /// The Rust places of the WGSL members, in the WGSL order.
-    pub fields: Vec<TwinField>,
-}
-
-/// Where the Rust twin keeps one WGSL member.
-#[cfg(test)]
-pub(crate) struct TwinField {
-    pub wgsl: &'static str,
-    pub offset: usize,
-    pub size: usize,
-    pub kind: naga::ScalarKind,
-}
-
-/// The scalar kind of a Rust field's elements, to compare with the WGSL member's.
-#[cfg(test)]
-pub(crate) trait TwinScalar {
-    const KIND: naga::ScalarKind;
-}
-
-#[cfg(test)]
-impl TwinScalar for u32 {
-    const KIND: naga::ScalarKind = naga::ScalarKind::Uint;
-}
-
-#[cfg(test)]
-impl TwinScalar for i32 {
-    const KIND: naga::ScalarKind = naga::ScalarKind::Sint;
-}
-
-#[cfg(test)]
-impl TwinScalar for f32 {
-    const KIND: naga::ScalarKind = naga::ScalarKind::Float;
-}
-
-#[cfg(test)]
-impl<T: TwinScalar, const N: usize> TwinScalar for [T; N] {
-    const KIND: naga::ScalarKind = T::KIND;
-}
-
-#[cfg(test)]
-impl TwinField {
-    /// The place `field` inside `value` (a reference into it) holding the WGSL member `wgsl`.
-    pub fn of<T, F: TwinScalar>(wgsl: &'static str, value: &T, field: &F) -> Self {
-        let start = std::ptr::from_ref(value).addr();
-        let at = std::ptr::from_ref(field).addr();
-        assert!(
-            at >= start && at + size_of::<F>() <= start + size_of::<T>(),
-            "{wgsl}: the place given is not inside the value"
-        );
-        Self {
-            wgsl,
-            offset: at - start,
-            size: size_of::<F>(),
-            kind: F::KIND,
-        }
-    }
-}
-
-/// Describes a Rust twin of a WGSL struct for the layout test:
-/// `wgsl_twin!(CameraUniform as "SplatCamera" in ["splat_project.wgsl"] {
-/// rotation[0] as "rotation0", intrinsics, ... })`, one entry per WGSL member in order,
-/// each naming the Rust field (and array index) that holds it, and the member's name where
-/// it is not the field's.
-#[cfg(test)]
-macro_rules! wgsl_twin {
-    (@member $field:ident) => {
-        stringify!($field)
-    };
-    (@member $field:ident $member:literal) => {
-        $member
-    };
-    ($rust:ty as $wgsl:literal in [$($kernel:literal),+ $(,)?] {
-        $($field:ident $([$index:literal])? $(as $member:literal)?),+ $(,)?
-    }) => {{
-        let value: $rust = bytemuck::Zeroable::zeroed();
-        $crate::backend::shaders::WgslTwin {
-            kernels: &[$($kernel),+],
-            wgsl_struct: $wgsl,
-            rust_struct: stringify!($rust),
-            size: size_of::<$rust>(),
-            fields: vec![$(
-                $crate::backend::shaders::TwinField::of(
-                    $crate::backend::shaders::wgsl_twin!(@member $field $($member)?),
-                    &value,
-                    &value.$field $([$index])?,
-                )
-            ),+],
-        }
-    }};
-}
-#[cfg(test)]
-pub(crate) use wgsl_twin;
-
 const BEGIN: &str = "// @atomic-add-begin";
 const END: &str = "// @atomic-add-end";
 
@@ -318,8 +204,101 @@ pub fn with_atomic_add(name: &str, wgsl: &str, mode: AtomicAdd) -> Result<String
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+
+    /// A WGSL uniform or storage struct and its Rust `#[repr(C)]` twin, as the layout test
+    /// compares them: each module that uploads such a struct lists its twins next to it
+    /// (`wgsl_twins()`, built with `wgsl_twin!`).
+    pub(crate) struct WgslTwin {
+        /// The kernel files (in `shaders/`) whose struct this is.
+        pub kernels: &'static [&'static str],
+        pub wgsl_struct: &'static str,
+        pub rust_struct: &'static str,
+        pub size: usize,
+        /// The Rust places of the WGSL members, in the WGSL order.
+        pub fields: Vec<TwinField>,
+    }
+
+    /// Where the Rust twin keeps one WGSL member.
+    pub(crate) struct TwinField {
+        pub wgsl: &'static str,
+        pub offset: usize,
+        pub size: usize,
+        pub kind: naga::ScalarKind,
+    }
+
+    /// The scalar kind of a Rust field's elements, to compare with the WGSL member's.
+    pub(crate) trait TwinScalar {
+        const KIND: naga::ScalarKind;
+    }
+
+    impl TwinScalar for u32 {
+        const KIND: naga::ScalarKind = naga::ScalarKind::Uint;
+    }
+
+    impl TwinScalar for i32 {
+        const KIND: naga::ScalarKind = naga::ScalarKind::Sint;
+    }
+
+    impl TwinScalar for f32 {
+        const KIND: naga::ScalarKind = naga::ScalarKind::Float;
+    }
+
+    impl<T: TwinScalar, const N: usize> TwinScalar for [T; N] {
+        const KIND: naga::ScalarKind = T::KIND;
+    }
+
+    impl TwinField {
+        /// The place `field` inside `value` (a reference into it) holding the WGSL member `wgsl`.
+        pub fn of<T, F: TwinScalar>(wgsl: &'static str, value: &T, field: &F) -> Self {
+            let start = std::ptr::from_ref(value).addr();
+            let at = std::ptr::from_ref(field).addr();
+            assert!(
+                at >= start && at + size_of::<F>() <= start + size_of::<T>(),
+                "{wgsl}: the place given is not inside the value"
+            );
+            Self {
+                wgsl,
+                offset: at - start,
+                size: size_of::<F>(),
+                kind: F::KIND,
+            }
+        }
+    }
+
+    /// Describes a Rust twin of a WGSL struct for the layout test:
+    /// `wgsl_twin!(CameraUniform as "SplatCamera" in ["splat_project.wgsl"] {
+    /// rotation[0] as "rotation0", intrinsics, ... })`, one entry per WGSL member in order,
+    /// each naming the Rust field (and array index) that holds it, and the member's name where
+    /// it is not the field's.
+    macro_rules! wgsl_twin {
+        (@member $field:ident) => {
+            stringify!($field)
+        };
+        (@member $field:ident $member:literal) => {
+            $member
+        };
+        ($rust:ty as $wgsl:literal in [$($kernel:literal),+ $(,)?] {
+            $($field:ident $([$index:literal])? $(as $member:literal)?),+ $(,)?
+        }) => {{
+            let value: $rust = bytemuck::Zeroable::zeroed();
+            $crate::backend::shaders::tests::WgslTwin {
+                kernels: &[$($kernel),+],
+                wgsl_struct: $wgsl,
+                rust_struct: stringify!($rust),
+                size: size_of::<$rust>(),
+                fields: vec![$(
+                    $crate::backend::shaders::tests::TwinField::of(
+                        $crate::backend::shaders::tests::wgsl_twin!(@member $field $($member)?),
+                        &value,
+                        &value.$field $([$index])?,
+                    )
+                ),+],
+            }
+        }};
+    }
+    pub(crate) use wgsl_twin;
 
     /// The capabilities a kernel may use: f32 atomics (the native atomic-add variant), and
     /// f16 or cooperative matrices only where the kernel enables them, so an f32 kernel that

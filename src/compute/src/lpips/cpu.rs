@@ -35,7 +35,6 @@ pub fn distance_maps(
     weights: &LpipsWeights,
     input: &TrunkInput,
 ) -> Result<DistanceMaps, LpipsError> {
-    check_input(input)?;
     let trunk = TrunkWeights::<f32>::new(weights);
     let shape = [input.batch, input.height, input.width];
     Ok(forward(&trunk, &input.data, shape, false)?.maps)
@@ -48,7 +47,6 @@ pub fn distance_gradient(
     weights: &LpipsWeights,
     input: &TrunkInput,
 ) -> Result<(DistanceMaps, Vec<f32>), LpipsError> {
-    check_input(input)?;
     distance_gradient_in::<f32>(
         weights,
         &input.data,
@@ -90,24 +88,6 @@ pub fn totals_in<S: Scalar>(
         }
     }
     Ok(totals)
-}
-
-fn check_input(input: &TrunkInput) -> Result<(), LpipsError> {
-    let images = input.batch;
-    if images == 0
-        || !images.is_multiple_of(2)
-        || input.data.len() != images * 3 * input.height * input.width
-    {
-        return Err(LpipsError::Input {
-            message: format!(
-                "trunk input of {} values does not hold {images} (an even, non-zero number of) 3 x {} x {} images",
-                input.data.len(),
-                input.height,
-                input.width
-            ),
-        });
-    }
-    Ok(())
 }
 
 /// `values` as `S`: borrowed when `S` is `f32`, widened otherwise.
@@ -201,17 +181,16 @@ fn forward<S: Scalar>(
         ),
     };
     for step in steps(trunk.net) {
+        let extents = |step: &Step| match (step.extent(height), step.extent(width)) {
+            (Some(out_height), Some(out_width)) => Ok([out_height, out_width]),
+            _ => Err(too_small(step.label())),
+        };
         let next = match &step {
             Step::Conv(spec) => {
                 let conv = convs
                     .next()
                     .ok_or_else(|| too_small("missing convolution weights"))?;
-                let out_height = spec
-                    .output_extent(height)
-                    .ok_or_else(|| too_small(&spec.name))?;
-                let out_width = spec
-                    .output_extent(width)
-                    .ok_or_else(|| too_small(&spec.name))?;
+                let [out_height, out_width] = extents(&step)?;
                 let output = conv_relu(
                     &activation,
                     images,
@@ -222,10 +201,7 @@ fn forward<S: Scalar>(
                 Some((output, [spec.out_channels, out_height, out_width]))
             }
             Step::MaxPool { kernel, stride } => {
-                let out_height = Step::pool_extent(*kernel, *stride, height)
-                    .ok_or_else(|| too_small("max pool"))?;
-                let out_width = Step::pool_extent(*kernel, *stride, width)
-                    .ok_or_else(|| too_small("max pool"))?;
+                let [out_height, out_width] = extents(&step)?;
                 let output = max_pool(
                     &activation,
                     images * channels,
@@ -254,25 +230,23 @@ fn forward<S: Scalar>(
                 None
             }
         };
-        if let Some((output, output_shape)) = next {
-            if keep {
-                // The backward needs only the first images' activations.
-                activation.truncate(pairs * channels * height * width);
-                pass.saved.push(SavedStep {
-                    input: activation,
-                    shape: [channels, height, width],
-                    output_shape,
-                });
+        let shape = [channels, height, width];
+        let (mut input, output_shape) = match next {
+            Some((output, output_shape)) => {
+                (std::mem::replace(&mut activation, output), output_shape)
             }
-            activation = output;
-            [channels, height, width] = output_shape;
-        } else if keep {
+            None => (Vec::new(), shape),
+        };
+        if keep {
+            // The backward needs only the first images' activations.
+            input.truncate(pairs * channels * height * width);
             pass.saved.push(SavedStep {
-                input: Vec::new(),
-                shape: [channels, height, width],
-                output_shape: [channels, height, width],
+                input,
+                shape,
+                output_shape,
             });
         }
+        [channels, height, width] = output_shape;
     }
     if keep {
         // The last tap's features: the final activation.
@@ -392,31 +366,11 @@ fn conv_relu<S: Scalar>(
                 let rows = rows_per_block.min(out_height - row_start);
                 let block = rows * out_width;
                 // im2col: columns[(c, ky, kx)][(row, col)] is the input under that tap.
-                for channel in 0..in_channels {
-                    for ky in 0..kernel {
-                        for kx in 0..kernel {
-                            let tap = (channel * kernel + ky) * kernel + kx;
-                            let destination = &mut columns[tap * block..(tap + 1) * block];
-                            for row in 0..rows {
-                                let y = ((row_start + row) * spec.stride + ky) as isize
-                                    - spec.padding as isize;
-                                for col in 0..out_width {
-                                    let x =
-                                        (col * spec.stride + kx) as isize - spec.padding as isize;
-                                    destination[row * out_width + col] = if y >= 0
-                                        && (y as usize) < height
-                                        && x >= 0
-                                        && (x as usize) < width
-                                    {
-                                        source[(channel * height + y as usize) * width + x as usize]
-                                    } else {
-                                        S::ZERO
-                                    };
-                                }
-                            }
-                        }
-                    }
-                }
+                columns[..depth * block].fill(S::ZERO);
+                let rows = (row_start, rows, out_width);
+                im2col(spec, [in_channels, height, width], rows, |at, pixel| {
+                    columns[at] = source[pixel];
+                });
                 // out[:, block] (out x block) = W (out x depth) * columns (depth x block).
                 let offset = row_start * out_width;
                 matmul(
@@ -480,33 +434,46 @@ fn conv_data_backward<S: Scalar>(
                     parallelism_for(out_channels * block * depth),
                 );
                 // col2im: every tap adds its column back onto the input pixel it read.
-                for channel in 0..in_channels {
-                    for ky in 0..kernel {
-                        for kx in 0..kernel {
-                            let tap = (channel * kernel + ky) * kernel + kx;
-                            let source = &d_columns[tap * block..(tap + 1) * block];
-                            for row in 0..rows {
-                                let y = ((row_start + row) * spec.stride + ky) as isize
-                                    - spec.padding as isize;
-                                if y < 0 || y as usize >= height {
-                                    continue;
-                                }
-                                let line =
-                                    &mut d_in[(channel * height + y as usize) * width..][..width];
-                                for col in 0..out_width {
-                                    let x =
-                                        (col * spec.stride + kx) as isize - spec.padding as isize;
-                                    if x >= 0 && (x as usize) < width {
-                                        line[x as usize] += source[row * out_width + col];
-                                    }
-                                }
-                            }
+                let rows = (row_start, rows, out_width);
+                im2col(spec, [in_channels, height, width], rows, |at, pixel| {
+                    d_in[pixel] += d_columns[at];
+                });
+            }
+        });
+    d_input
+}
+
+/// Calls `f(at, pixel)` for every im2col entry of output rows `row_start..row_start + rows`
+/// (rows of `out_width`) that reads an input pixel (padding reads none), in the order
+/// `(channel, ky, kx)`, row, column: `at` indexes the `(depth, rows * out_width)` column
+/// block, `pixel` the `(c, h, w)` image.
+fn im2col(
+    spec: &ConvSpec,
+    [in_channels, height, width]: [usize; 3],
+    (row_start, rows, out_width): (usize, usize, usize),
+    mut f: impl FnMut(usize, usize),
+) {
+    let (kernel, block) = (spec.kernel, rows * out_width);
+    for channel in 0..in_channels {
+        for ky in 0..kernel {
+            for kx in 0..kernel {
+                let tap = (channel * kernel + ky) * kernel + kx;
+                for row in 0..rows {
+                    let y = ((row_start + row) * spec.stride + ky) as isize - spec.padding as isize;
+                    if y < 0 || y as usize >= height {
+                        continue;
+                    }
+                    for col in 0..out_width {
+                        let x = (col * spec.stride + kx) as isize - spec.padding as isize;
+                        if x >= 0 && (x as usize) < width {
+                            let pixel = (channel * height + y as usize) * width + x as usize;
+                            f(tap * block + row * out_width + col, pixel);
                         }
                     }
                 }
             }
-        });
-    d_input
+        }
+    }
 }
 
 /// Max pool without padding (floor mode) of `planes` planes of `height x width`.

@@ -5,10 +5,9 @@
 //! buffer limit is split) on a workspace of its own and downloads the maps and the gradient;
 //! [`ResidentLpips`] records it on device crops every training step, on one workspace.
 
-use std::borrow::Cow;
 use std::sync::Arc;
 
-use crate::backend::{GpuBuffer, GpuContext, Kernel, KernelSource};
+use crate::backend::{GpuBuffer, GpuContext, Kernel};
 
 use super::{ConvSpec, DistanceMaps, LpipsError, LpipsNet, LpipsWeights, Step, TrunkInput, steps};
 
@@ -40,14 +39,6 @@ const POOL_BACKWARD: Source = (
     "max_pool_backward",
 );
 
-fn source((name, wgsl, entry_point): Source) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
-    }
-}
-
 /// The uniform block shared by all kernels (`LpipsParams` in `shaders/lpips_types.wgsl`;
 /// see the kernels for each one's reading).
 #[repr(C)]
@@ -69,8 +60,8 @@ pub(crate) struct Params {
 
 /// This module's uniform struct for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(Params as "LpipsParams" in ["lpips_forward.wgsl", "lpips_backward.wgsl"] {
             images, in_channels, in_height, in_width, out_channels, out_height, out_width, kernel,
@@ -502,7 +493,7 @@ impl GpuLpips {
             CONV_BACKWARD,
             POOL_BACKWARD,
         ] {
-            context.kernel(&source(kernel))?;
+            context.static_kernel(kernel.0, kernel.1, kernel.2)?;
         }
         Ok(Self {
             context,
@@ -515,7 +506,8 @@ impl GpuLpips {
     }
 
     fn kernel(&self, kernel: Source) -> Result<Arc<Kernel>, LpipsError> {
-        Ok(self.context.kernel(&source(kernel))?)
+        let (name, wgsl, entry_point) = kernel;
+        Ok(self.context.static_kernel(name, wgsl, entry_point)?)
     }
 
     /// Records `calls` on `workspace`, the uniform block of each one of `uniforms` (blocks a
@@ -755,8 +747,8 @@ pub(crate) struct ResidentParams {
 
 /// The resident path's uniform struct for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn resident_wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(ResidentParams as "LpipsResidentParams" in ["lpips_resident.wgsl"] {
             render_offset, render_width, target_offset, target_width, x0, y0, crop_width,
@@ -857,7 +849,7 @@ impl GpuLpips {
             })
             .collect::<Result<Vec<_>, _>>()?;
         for kernel in [CROP_TO_TRUNK, REDUCE_DISTANCE, ADD_IMAGE_GRADIENT] {
-            context.kernel(&source(kernel))?;
+            context.static_kernel(kernel.0, kernel.1, kernel.2)?;
         }
         Ok(ResidentLpips {
             workspace: Workspace::new(context, &plan)?,

@@ -77,6 +77,16 @@ pub struct ConvSpec {
 }
 
 impl ConvSpec {
+    /// The weight tensor's shape `(out, in, k, k)`.
+    pub fn weight_shape(&self) -> [usize; 4] {
+        [
+            self.out_channels,
+            self.in_channels,
+            self.kernel,
+            self.kernel,
+        ]
+    }
+
     /// Output extent along one axis for an input extent (PyTorch's floor formula), or `None`
     /// when the input is smaller than the kernel.
     pub fn output_extent(&self, input: usize) -> Option<usize> {
@@ -100,6 +110,25 @@ impl Step {
     /// Output extent of a max pool along one axis, `None` when the input is too small.
     pub fn pool_extent(kernel: usize, stride: usize, input: usize) -> Option<usize> {
         (input >= kernel).then(|| (input - kernel) / stride + 1)
+    }
+
+    /// The step's output extent along one axis (a tap keeps it), `None` when the input is
+    /// smaller than the kernel.
+    pub fn extent(&self, input: usize) -> Option<usize> {
+        match self {
+            Self::Conv(spec) => spec.output_extent(input),
+            Self::MaxPool { kernel, stride } => Self::pool_extent(*kernel, *stride, input),
+            Self::Tap => Some(input),
+        }
+    }
+
+    /// What an error about an image too small for the step names.
+    fn label(&self) -> &str {
+        match self {
+            Self::Conv(spec) => &spec.name,
+            Self::MaxPool { .. } => "max pool",
+            Self::Tap => "tap",
+        }
     }
 }
 
@@ -184,30 +213,21 @@ pub fn tap_sizes(
 ) -> Result<Vec<(usize, usize)>, LpipsError> {
     let (mut h, mut w) = (height, width);
     let mut sizes = Vec::new();
-    let too_small = |what: String| LpipsError::Input {
+    let too_small = |what: &str| LpipsError::Input {
         message: format!(
             "a {height} x {width} image is too small for the {} trunk ({what})",
             net.name()
         ),
     };
     for step in steps(net) {
-        match step {
-            Step::Conv(spec) => {
-                h = spec
-                    .output_extent(h)
-                    .ok_or_else(|| too_small(spec.name.clone()))?;
-                w = spec
-                    .output_extent(w)
-                    .ok_or_else(|| too_small(spec.name.clone()))?;
-            }
-            Step::MaxPool { kernel, stride } => {
-                h = Step::pool_extent(kernel, stride, h)
-                    .ok_or_else(|| too_small("max pool".to_owned()))?;
-                w = Step::pool_extent(kernel, stride, w)
-                    .ok_or_else(|| too_small("max pool".to_owned()))?;
-            }
-            Step::Tap => sizes.push((h, w)),
+        if step == Step::Tap {
+            sizes.push((h, w));
+            continue;
         }
+        (h, w) = match (step.extent(h), step.extent(w)) {
+            (Some(h), Some(w)) => (h, w),
+            _ => return Err(too_small(step.label())),
+        };
     }
     Ok(sizes)
 }
@@ -277,12 +297,7 @@ impl LpipsWeights {
             let spec = &conv.spec;
             tensors.push((
                 format!("{}.weight", spec.name),
-                vec![
-                    spec.out_channels,
-                    spec.in_channels,
-                    spec.kernel,
-                    spec.kernel,
-                ],
+                spec.weight_shape().to_vec(),
                 &conv.weight,
             ));
             tensors.push((
@@ -317,15 +332,8 @@ impl LpipsWeights {
         let mut convs = Vec::new();
         for step in steps(net) {
             if let Step::Conv(spec) = step {
-                let weight = file.f32_tensor(
-                    &format!("{}.weight", spec.name),
-                    &[
-                        spec.out_channels,
-                        spec.in_channels,
-                        spec.kernel,
-                        spec.kernel,
-                    ],
-                )?;
+                let weight =
+                    file.f32_tensor(&format!("{}.weight", spec.name), &spec.weight_shape())?;
                 let bias = file.f32_tensor(&format!("{}.bias", spec.name), &[spec.out_channels])?;
                 convs.push(ConvWeights { spec, weight, bias });
             }
@@ -356,12 +364,19 @@ impl LpipsWeights {
             shift: constant("scaling_layer.shift", SCALING_SHIFT)?,
             scale: constant("scaling_layer.scale", SCALING_SCALE)?,
         };
-        weights.validate().map_err(|message| LpipsError::Weights {
-            path: file.path().display().to_string(),
-            net: net.name(),
-            message,
-        })?;
-        Ok(weights)
+        weights.checked(&file.path().display().to_string())
+    }
+
+    /// The weights when they [`validate`](Self::validate); else the error, naming `path`.
+    fn checked(self, path: &str) -> Result<Self, LpipsError> {
+        match self.validate() {
+            Ok(()) => Ok(self),
+            Err(message) => Err(LpipsError::Weights {
+                path: path.to_owned(),
+                net: self.net.name(),
+                message,
+            }),
+        }
     }
 
     /// Checks internal consistency (shapes against the architecture, usable constants).
@@ -381,9 +396,8 @@ impl LpipsWeights {
             ));
         }
         for (spec, conv) in specs.iter().zip(&self.convs) {
-            let expected = spec.out_channels * spec.in_channels * spec.kernel * spec.kernel;
             if conv.spec != *spec
-                || conv.weight.len() != expected
+                || conv.weight.len() != spec.weight_shape().iter().product::<usize>()
                 || conv.bias.len() != spec.out_channels
             {
                 return Err(format!(
@@ -530,17 +544,9 @@ pub fn trunk_gradient_to_image<S: Scalar>(
         .collect()
 }
 
-/// Stacks the pairs' first images, then their second images, mapped from [0, 1] to [-1, 1]
+/// Stacks the pairs' first images, then their second images, mapped from [0, 1] by `input`
 /// and through the scaling layer (f32 arithmetic, as the package does).
 pub fn trunk_input(
-    weights: &LpipsWeights,
-    pairs: &[(&ImageF32, &ImageF32)],
-) -> Result<TrunkInput, LpipsError> {
-    trunk_input_mapped(weights, pairs, LpipsInput::Unit)
-}
-
-/// [`trunk_input`] with a choice of input mapping.
-pub fn trunk_input_mapped(
     weights: &LpipsWeights,
     pairs: &[(&ImageF32, &ImageF32)],
     input: LpipsInput,
@@ -614,11 +620,7 @@ pub struct Lpips {
 
 impl Lpips {
     pub fn new(weights: LpipsWeights, backend: &Backend) -> Result<Self, LpipsError> {
-        weights.validate().map_err(|message| LpipsError::Weights {
-            path: "(in memory)".to_owned(),
-            net: weights.net.name(),
-            message,
-        })?;
+        let weights = weights.checked("(in memory)")?;
         let gpu = match backend {
             Backend::Cpu => None,
             Backend::Gpu(context) => Some(gpu::GpuLpips::new(context.clone(), &weights)?),
@@ -635,16 +637,7 @@ impl Lpips {
         &self,
         pairs: &[(&ImageF32, &ImageF32)],
     ) -> Result<Vec<LpipsDistance>, LpipsError> {
-        let Some((first, _)) = pairs.first() else {
-            return Ok(Vec::new());
-        };
-        tap_sizes(self.weights.net, first.height, first.width)?;
-        let input = trunk_input(&self.weights, pairs)?;
-        let maps = match &self.gpu {
-            None => cpu::distance_maps(&self.weights, &input)?,
-            Some(gpu) => gpu.distance_maps(&input)?,
-        };
-        Ok(reduce_maps(&maps, pairs.len()))
+        Ok(self.evaluate(pairs, LpipsInput::Unit, false)?.0)
     }
 
     /// LPIPS of each pair and the gradient of each pair's `total` with respect to its first
@@ -656,14 +649,26 @@ impl Lpips {
         pairs: &[(&ImageF32, &ImageF32)],
         input: LpipsInput,
     ) -> Result<(Vec<LpipsDistance>, Vec<Vec<f32>>), LpipsError> {
+        self.evaluate(pairs, input, true)
+    }
+
+    /// The distances and, `with_gradient`, the first images' gradients (else none).
+    fn evaluate(
+        &self,
+        pairs: &[(&ImageF32, &ImageF32)],
+        input: LpipsInput,
+        with_gradient: bool,
+    ) -> Result<(Vec<LpipsDistance>, Vec<Vec<f32>>), LpipsError> {
         let Some((first, _)) = pairs.first() else {
             return Ok((Vec::new(), Vec::new()));
         };
         tap_sizes(self.weights.net, first.height, first.width)?;
-        let trunk = trunk_input_mapped(&self.weights, pairs, input)?;
-        let (maps, gradient) = match &self.gpu {
-            None => cpu::distance_gradient(&self.weights, &trunk)?,
-            Some(gpu) => gpu.distance_gradient(&trunk)?,
+        let trunk = trunk_input(&self.weights, pairs, input)?;
+        let (maps, gradient) = match (&self.gpu, with_gradient) {
+            (None, false) => (cpu::distance_maps(&self.weights, &trunk)?, Vec::new()),
+            (None, true) => cpu::distance_gradient(&self.weights, &trunk)?,
+            (Some(gpu), false) => (gpu.distance_maps(&trunk)?, Vec::new()),
+            (Some(gpu), true) => gpu.distance_gradient(&trunk)?,
         };
         let plane_values = 3 * first.height * first.width;
         let gradients = gradient

@@ -362,7 +362,7 @@ fn gpu_ops_match_cpu_ops_on_odd_shapes() {
         })
         .collect();
     let pairs = [(&images[0], &images[1]), (&images[2], &images[3])];
-    let input = trunk_input(&weights, &pairs).unwrap();
+    let input = trunk_input(&weights, &pairs, LpipsInput::Unit).unwrap();
     let cpu_maps = cpu::distance_maps(&weights, &input).unwrap();
     let gpu_maps = gpu.distance_maps(&input).unwrap();
     assert_eq!(cpu_maps.len(), 5);

@@ -25,7 +25,7 @@ use std::sync::Mutex;
 
 use super::adam::{AdamConfig, AdamStepFactors};
 use super::encoding::PositionalEncoding;
-use super::linear::{Activation, LinearShape};
+use super::linear::{Activation, LinearShape, check_features, check_grad_count, check_widths};
 use super::{NnError, Precision};
 use crate::backend::{GpuContext, Kernel, TensorCores};
 pub use crate::backend::{PreparedDispatch, Record};
@@ -209,6 +209,17 @@ struct Operand<'a> {
     col_stride: usize,
 }
 
+impl<'a> Operand<'a> {
+    fn new(buffer: &'a wgpu::Buffer, offset: usize, row_stride: usize, col_stride: usize) -> Self {
+        Self {
+            buffer,
+            offset,
+            row_stride,
+            col_stride,
+        }
+    }
+}
+
 /// One product `C (+)= A (m x k) * B (k x n)` of the matrix kernel, `dims = (m, n, k)`: `mask`
 /// (the ReLU mask, by `flags`) and `bias` where the flags use them, C row-major at `c_offset`.
 #[derive(Clone, Copy)]
@@ -335,8 +346,8 @@ pub(crate) struct ReduceParams {
 
 /// This module's uniform structs for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(MatmulParams as "Params" in ["nn_matmul.wgsl"] {
             m, n, k, flags, a_offset, a_row_stride, a_col_stride, b_offset, b_row_stride,
@@ -436,24 +447,21 @@ struct TensorCoreKernels {
 
 impl TensorCoreKernels {
     fn new(device: &wgpu::Device, cores: TensorCores) -> Result<Self, NnError> {
-        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
-            Kernel::compile(device, name, wgsl, entry)
-                .map_err(|error| NnError::Gpu(error.to_string()))
-        };
-        let multiply = Kernel::compile_with_constants(
+        let subgroup = [("SUBGROUP_SIZE", f64::from(cores.subgroup_size))];
+        let multiply = compile(
             device,
             "nn_matmul_coop",
             MATMUL_COOP_WGSL,
             "multiply",
-            &[("SUBGROUP_SIZE", f64::from(cores.subgroup_size))],
-        )
-        .map_err(|error| NnError::Gpu(error.to_string()))?;
+            &subgroup,
+        )?;
+        let staging = |name, entry| compile(device, name, MATMUL_F16_WGSL, entry, &[]);
         Ok(TensorCoreKernels {
             cores,
-            operand_max: compile("nn_matmul_operand_max", MATMUL_F16_WGSL, "operand_max")?,
-            pack: compile("nn_matmul_pack", MATMUL_F16_WGSL, "pack")?,
+            operand_max: staging("nn_matmul_operand_max", "operand_max")?,
+            pack: staging("nn_matmul_pack", "pack")?,
             multiply,
-            epilogue: compile("nn_matmul_epilogue", MATMUL_F16_WGSL, "epilogue")?,
+            epilogue: staging("nn_matmul_epilogue", "epilogue")?,
             scales: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("nn tensor-core scales"),
                 size: 16,
@@ -467,37 +475,16 @@ impl TensorCoreKernels {
     }
 }
 
-/// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is too
-/// small (sizes rounded up to powers of two within `max_binding_bytes`).
-fn grown_buffer(
+/// [`Kernel::compile_with_constants`], its error as an [`NnError`].
+fn compile(
     device: &wgpu::Device,
-    slot: &Mutex<Option<wgpu::Buffer>>,
-    label: &'static str,
-    bytes: u64,
-    max_binding_bytes: u64,
-) -> Result<wgpu::Buffer, NnError> {
-    let bytes = bytes.max(16).div_ceil(4) * 4;
-    if bytes > max_binding_bytes {
-        return Err(NnError::Gpu(format!(
-            "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
-        )));
-    }
-    let mut slot = slot
-        .lock()
-        .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
-    match &*slot {
-        Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
-        _ => {
-            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes.next_power_of_two().min(max_binding_bytes),
-                usage: wgpu::BufferUsages::STORAGE,
-                mapped_at_creation: false,
-            });
-            *slot = Some(buffer.clone());
-            Ok(buffer)
-        }
-    }
+    name: &'static str,
+    wgsl: &'static str,
+    entry: &'static str,
+    constants: &[(&str, f64)],
+) -> Result<Kernel, NnError> {
+    Kernel::compile_with_constants(device, name, wgsl, entry, constants)
+        .map_err(|error| NnError::Gpu(error.to_string()))
 }
 
 /// The dense-network kernels compiled for one device.
@@ -563,10 +550,7 @@ impl NnGpu {
     /// Compiles every kernel for `device`, with f32 matrix products (see
     /// [`NnGpu::for_context`] for the choice of tensor cores).
     pub fn new(device: &wgpu::Device) -> Result<Self, NnError> {
-        let compile = |name: &'static str, wgsl: &'static str, entry: &'static str| {
-            Kernel::compile(device, name, wgsl, entry)
-                .map_err(|error| NnError::Gpu(error.to_string()))
-        };
+        let compile = |name, wgsl, entry| compile(device, name, wgsl, entry, &[]);
         let limits = device.limits();
         Ok(NnGpu {
             device: device.clone(),
@@ -631,27 +615,30 @@ impl NnGpu {
         Ok(())
     }
 
-    /// A scratch buffer of at least `elements` f32 values.
-    fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
-        let bytes = (elements.max(4) * 4) as u64;
-        if bytes > self.max_binding_bytes {
+    /// A storage buffer of at least `bytes` from `slot`, replaced by a larger one when it is
+    /// too small (sizes rounded up to powers of two within the binding limit).
+    fn grown(
+        &self,
+        slot: &Mutex<Option<wgpu::Buffer>>,
+        label: &'static str,
+        bytes: usize,
+    ) -> Result<wgpu::Buffer, NnError> {
+        let max_binding_bytes = self.max_binding_bytes;
+        let bytes = (bytes as u64).max(16).div_ceil(4) * 4;
+        if bytes > max_binding_bytes {
             return Err(NnError::Gpu(format!(
-                "reduction scratch of {bytes} bytes exceeds the device's binding limit of {} bytes",
-                self.max_binding_bytes
+                "{label} of {bytes} bytes exceeds the device's binding limit of {max_binding_bytes} bytes"
             )));
         }
-        let mut slot = self
-            .scratch
+        let mut slot = slot
             .lock()
-            .map_err(|_| NnError::Gpu("scratch lock poisoned".into()))?;
+            .map_err(|_| NnError::Gpu(format!("{label} lock poisoned")))?;
         match &*slot {
             Some(buffer) if buffer.size() >= bytes => Ok(buffer.clone()),
             _ => {
                 let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("nn reduction scratch"),
-                    size: bytes
-                        .next_power_of_two()
-                        .min(self.max_binding_bytes.max(bytes)),
+                    label: Some(label),
+                    size: bytes.next_power_of_two().min(max_binding_bytes),
                     usage: wgpu::BufferUsages::STORAGE,
                     mapped_at_creation: false,
                 });
@@ -659,6 +646,11 @@ impl NnGpu {
                 Ok(buffer)
             }
         }
+    }
+
+    /// A scratch buffer of at least `elements` f32 values.
+    fn scratch(&self, elements: usize) -> Result<wgpu::Buffer, NnError> {
+        self.grown(&self.scratch, "reduction scratch", elements * 4)
     }
 
     /// A 1D launch of `workgroups` as a grid within the per-dimension limit: `(x, y)`.
@@ -696,29 +688,16 @@ impl NnGpu {
         let n_tiles = n.div_ceil(TILE);
         // Split along k when the output has few tiles and the reduction is long (the weight
         // gradient); partials go to scratch and are summed in order afterwards.
-        let tiles = m_tiles * n_tiles;
-        let epilogue = flags & (ADD_BIAS | RELU) != 0;
-        let mut splits = if epilogue {
+        let wanted = if flags & (ADD_BIAS | RELU) != 0 {
             1
         } else {
             TARGET_WORKGROUPS
-                .div_ceil(tiles)
+                .div_ceil(m_tiles * n_tiles)
                 .min(k.div_ceil(256))
-                .max(1)
         };
-        let max_scratch_splits = (self.max_binding_bytes as usize / 4) / (m * n).max(1);
-        splits = splits.min(max_scratch_splits.max(1));
-        let k_per_split = k.div_ceil(splits).div_ceil(TILE_K).max(1) * TILE_K;
-        let splits = k.div_ceil(k_per_split).max(1);
+        let (k_per_split, splits) =
+            self.split_reduction((m, n, k), (m_tiles, n_tiles), TILE_K, wanted, m * n)?;
         let groups_y = m_tiles * splits;
-        if groups_y > self.max_groups_per_dimension as usize
-            || n_tiles > self.max_groups_per_dimension as usize
-        {
-            return Err(NnError::Gpu(format!(
-                "a {m} x {n} product needs a {n_tiles} x {groups_y} grid, beyond the device limit {}",
-                self.max_groups_per_dimension
-            )));
-        }
         let scratch = if splits > 1 {
             Some(self.scratch(splits * m * n)?)
         } else {
@@ -771,6 +750,32 @@ impl NnGpu {
         Ok(())
     }
 
+    /// Splits the reduction of `k` of an `m x n` product of `blocks` output blocks into at
+    /// most `wanted` slices of a multiple of `tile_k`, no more than partials of
+    /// `partial_len` values fit a binding: `(k_per_split, splits)`, once the product's grid
+    /// (`n_blocks x m_blocks * splits` workgroups) is within the device limit.
+    fn split_reduction(
+        &self,
+        (m, n, k): (usize, usize, usize),
+        (m_blocks, n_blocks): (usize, usize),
+        tile_k: usize,
+        wanted: usize,
+        partial_len: usize,
+    ) -> Result<(usize, usize), NnError> {
+        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len.max(1);
+        let splits = wanted.min(max_splits).max(1);
+        let k_per_split = k.div_ceil(splits).div_ceil(tile_k).max(1) * tile_k;
+        let splits = k.div_ceil(k_per_split).max(1);
+        let groups_y = m_blocks * splits;
+        let max_groups = self.max_groups_per_dimension as usize;
+        if groups_y > max_groups || n_blocks > max_groups {
+            return Err(NnError::Gpu(format!(
+                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
+            )));
+        }
+        Ok((k_per_split, splits))
+    }
+
     /// [`NnGpu::matmul`] on the tensor cores: both operands' largest magnitudes, their
     /// scaled and padded f16 copies, the products split along k, and the epilogue.
     fn matmul_tensor_cores(
@@ -795,47 +800,23 @@ impl NnGpu {
         // Split along k when the output has few blocks and the reduction is long (the weight
         // gradient), within the scratch the device can bind.
         let partial_len = m_pad * n_pad;
-        let max_splits = (self.max_binding_bytes as usize / 4) / partial_len;
-        let splits = COOP_TARGET_WORKGROUPS
+        let wanted = COOP_TARGET_WORKGROUPS
             .div_ceil(m_blocks * n_blocks)
-            .min(k_pad.div_ceil(256))
-            .min(max_splits)
-            .max(1);
-        let k_per_split = k_pad.div_ceil(splits).div_ceil(COOP_TILE_K).max(1) * COOP_TILE_K;
-        let splits = k_pad.div_ceil(k_per_split).max(1);
+            .min(k_pad.div_ceil(256));
+        let dims = (m, n, k_pad);
+        let (k_per_split, splits) =
+            self.split_reduction(dims, (m_blocks, n_blocks), COOP_TILE_K, wanted, partial_len)?;
         let groups_y = m_blocks * splits;
-        let max_groups = self.max_groups_per_dimension as usize;
-        if groups_y > max_groups || n_blocks > max_groups {
-            return Err(NnError::Gpu(format!(
-                "a {m} x {n} product needs a {n_blocks} x {groups_y} grid, beyond the device limit {max_groups}"
-            )));
-        }
         // Every flat index of the kernels is a u32.
         to_u32("padded operand size", m_pad * k_pad)?;
         to_u32("padded operand size", k_pad * n_pad)?;
         to_u32("partial products", splits * partial_len)?;
-        let device = &self.device;
-        let limit = self.max_binding_bytes;
-        let packed_a = grown_buffer(
-            device,
-            &kernels.packed_a,
-            "nn tensor-core A",
-            (m_pad * k_pad * 2) as u64,
-            limit,
-        )?;
-        let packed_b = grown_buffer(
-            device,
-            &kernels.packed_b,
-            "nn tensor-core B",
-            (k_pad * n_pad * 2) as u64,
-            limit,
-        )?;
-        let partials = grown_buffer(
-            device,
+        let packed_a = self.grown(&kernels.packed_a, "nn tensor-core A", m_pad * k_pad * 2)?;
+        let packed_b = self.grown(&kernels.packed_b, "nn tensor-core B", k_pad * n_pad * 2)?;
+        let partials = self.grown(
             &kernels.partials,
             "nn tensor-core partial products",
-            (splits * partial_len * 4) as u64,
-            limit,
+            splits * partial_len * 4,
         )?;
         let mask_buffer = mask.unwrap_or(&self.placeholder);
         encoder.record_clear(&kernels.scales);
@@ -953,26 +934,8 @@ impl NnGpu {
         inputs: &[GpuInputPart<'_>],
         rows: usize,
     ) -> Result<(), NnError> {
-        if shape.in_features == 0 || shape.out_features == 0 {
-            return Err(NnError::Shape {
-                operand: "linear layer".into(),
-                message: format!(
-                    "in_features ({}) and out_features ({}) must be positive",
-                    shape.in_features, shape.out_features
-                ),
-            });
-        }
-        let total: usize = inputs.iter().map(|part| part.cols).sum();
-        if total != shape.in_features || inputs.iter().any(|part| part.cols == 0) {
-            return Err(NnError::Shape {
-                operand: "linear input".into(),
-                message: format!(
-                    "input part widths {:?} must be positive and sum to in_features = {}",
-                    inputs.iter().map(|part| part.cols).collect::<Vec<_>>(),
-                    shape.in_features
-                ),
-            });
-        }
+        check_features(shape)?;
+        check_widths(shape, inputs.iter().map(|part| part.cols))?;
         self.check_buffer("linear weight", weight, shape.weight_len())?;
         for (index, part) in inputs.iter().enumerate() {
             self.check_buffer(
@@ -1014,18 +977,8 @@ impl NnGpu {
                 encoder,
                 Product {
                     dims: (rows, out, part.cols),
-                    a: Operand {
-                        buffer: part.buffer,
-                        offset: 0,
-                        row_stride: part.cols,
-                        col_stride: 1,
-                    },
-                    b: Operand {
-                        buffer: weight,
-                        offset: weight_row * out,
-                        row_stride: out,
-                        col_stride: 1,
-                    },
+                    a: Operand::new(part.buffer, 0, part.cols, 1),
+                    b: Operand::new(weight, weight_row * out, out, 1),
                     mask: None,
                     bias: Some(bias),
                     c: output,
@@ -1060,16 +1013,7 @@ impl NnGpu {
         self.check_buffer("linear output gradient", d_output, rows * out)?;
         self.check_buffer("linear weight gradient", grads.weight, shape.weight_len())?;
         self.check_buffer("linear bias gradient", grads.bias, out)?;
-        if d_inputs.len() != inputs.len() {
-            return Err(NnError::Shape {
-                operand: "linear input gradients".into(),
-                message: format!(
-                    "{} entries for {} input parts",
-                    d_inputs.len(),
-                    inputs.len()
-                ),
-            });
-        }
+        check_grad_count(d_inputs.len(), inputs.len())?;
         for (index, (part, grad)) in inputs.iter().zip(d_inputs).enumerate() {
             if let GpuInputGrad::Write(buffer) | GpuInputGrad::Accumulate(buffer) = grad {
                 self.check_buffer(
@@ -1124,18 +1068,8 @@ impl NnGpu {
                 encoder,
                 Product {
                     dims: (cols, out, rows),
-                    a: Operand {
-                        buffer: part.buffer,
-                        offset: 0,
-                        row_stride: 1,
-                        col_stride: cols,
-                    },
-                    b: Operand {
-                        buffer: d_output,
-                        offset: 0,
-                        row_stride: out,
-                        col_stride: 1,
-                    },
+                    a: Operand::new(part.buffer, 0, 1, cols),
+                    b: Operand::new(d_output, 0, out, 1),
                     mask,
                     bias: None,
                     c: grads.weight,
@@ -1154,18 +1088,8 @@ impl NnGpu {
                     encoder,
                     Product {
                         dims: (rows, cols, out),
-                        a: Operand {
-                            buffer: d_output,
-                            offset: 0,
-                            row_stride: out,
-                            col_stride: 1,
-                        },
-                        b: Operand {
-                            buffer: weight,
-                            offset: weight_row * out,
-                            row_stride: 1,
-                            col_stride: out,
-                        },
+                        a: Operand::new(d_output, 0, out, 1),
+                        b: Operand::new(weight, weight_row * out, 1, out),
                         mask,
                         bias: None,
                         c: target,

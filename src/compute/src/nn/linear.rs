@@ -199,6 +199,15 @@ struct View<'a, T> {
 }
 
 impl<'a, T> View<'a, T> {
+    fn new(data: &'a [T], offset: usize, row_stride: usize, col_stride: usize) -> Self {
+        Self {
+            data,
+            offset,
+            row_stride,
+            col_stride,
+        }
+    }
+
     /// The `rows x cols` matrix this view starts.
     fn matrix(&self, rows: usize, cols: usize) -> Matrix<'a, T> {
         Matrix::new(
@@ -236,6 +245,21 @@ fn check_shape<T>(
     inputs: &[InputPart<'_, T>],
     rows: usize,
 ) -> Result<(), NnError> {
+    check_features(shape)?;
+    check_len("linear weight", shape.weight_len(), weight.len())?;
+    check_widths(shape, inputs.iter().map(|part| part.cols))?;
+    for (index, part) in inputs.iter().enumerate() {
+        check_len(
+            &format!("linear input part {index}"),
+            rows * part.cols,
+            part.data.len(),
+        )?;
+    }
+    Ok(())
+}
+
+/// Both feature counts of `shape` must be positive (both backends check this first).
+pub(super) fn check_features(shape: LinearShape) -> Result<(), NnError> {
     if shape.in_features == 0 || shape.out_features == 0 {
         return Err(NnError::Shape {
             operand: "linear layer".into(),
@@ -245,24 +269,34 @@ fn check_shape<T>(
             ),
         });
     }
-    check_len("linear weight", shape.weight_len(), weight.len())?;
-    let total_cols: usize = inputs.iter().map(|part| part.cols).sum();
-    if total_cols != shape.in_features || inputs.iter().any(|part| part.cols == 0) {
+    Ok(())
+}
+
+/// The input parts' widths must be positive and sum to `in_features`.
+pub(super) fn check_widths(
+    shape: LinearShape,
+    widths: impl Iterator<Item = usize> + Clone,
+) -> Result<(), NnError> {
+    if widths.clone().sum::<usize>() != shape.in_features || widths.clone().any(|w| w == 0) {
         return Err(NnError::Shape {
             operand: "linear input".into(),
             message: format!(
                 "input part widths {:?} must be positive and sum to in_features = {}",
-                inputs.iter().map(|part| part.cols).collect::<Vec<_>>(),
+                widths.collect::<Vec<_>>(),
                 shape.in_features
             ),
         });
     }
-    for (index, part) in inputs.iter().enumerate() {
-        check_len(
-            &format!("linear input part {index}"),
-            rows * part.cols,
-            part.data.len(),
-        )?;
+    Ok(())
+}
+
+/// One gradient entry per input part.
+pub(super) fn check_grad_count(grads: usize, parts: usize) -> Result<(), NnError> {
+    if grads != parts {
+        return Err(NnError::Shape {
+            operand: "linear input gradients".into(),
+            message: format!("{grads} entries for {parts} input parts"),
+        });
     }
     Ok(())
 }
@@ -296,18 +330,8 @@ pub fn linear_forward<T: NnScalar>(
                 block,
                 out,
                 part_index > 0,
-                View {
-                    data: part.data,
-                    offset: first_row * part.cols,
-                    row_stride: part.cols,
-                    col_stride: 1,
-                },
-                View {
-                    data: weight,
-                    offset: weight_row * out,
-                    row_stride: out,
-                    col_stride: 1,
-                },
+                View::new(part.data, first_row * part.cols, part.cols, 1),
+                View::new(weight, weight_row * out, out, 1),
                 plan.inside_gemm,
             );
             weight_row += part.cols;
@@ -398,16 +422,7 @@ pub fn linear_backward<T: NnScalar>(
     check_len("linear output gradient", rows * out, d_output.len())?;
     check_len("linear weight gradient", shape.weight_len(), d_weight.len())?;
     check_len("linear bias gradient", out, d_bias.len())?;
-    if d_inputs.len() != inputs.len() {
-        return Err(NnError::Shape {
-            operand: "linear input gradients".into(),
-            message: format!(
-                "{} entries for {} input parts",
-                d_inputs.len(),
-                inputs.len()
-            ),
-        });
-    }
+    check_grad_count(d_inputs.len(), inputs.len())?;
     for (index, (part, grad)) in inputs.iter().zip(d_inputs.iter()).enumerate() {
         if let InputGrad::Write(buffer) | InputGrad::Accumulate(buffer) = grad {
             check_len(
@@ -511,18 +526,13 @@ pub fn linear_backward<T: NnScalar>(
             task.dst,
             out,
             task.accumulate,
-            View {
-                data: part.data,
-                offset: task.first_row * part.cols + task.first_col,
-                row_stride: 1,
-                col_stride: part.cols,
-            },
-            View {
-                data: d_pre,
-                offset: task.first_row * out,
-                row_stride: out,
-                col_stride: 1,
-            },
+            View::new(
+                part.data,
+                task.first_row * part.cols + task.first_col,
+                1,
+                part.cols,
+            ),
+            View::new(d_pre, task.first_row * out, out, 1),
             plan.inside_gemm,
         );
     });
@@ -590,18 +600,8 @@ fn backward_block<T: NnScalar>(
                 buffer,
                 part.cols,
                 accumulate,
-                View {
-                    data: d_pre,
-                    offset: 0,
-                    row_stride: out,
-                    col_stride: 1,
-                },
-                View {
-                    data: weight,
-                    offset: weight_row * out,
-                    row_stride: 1,
-                    col_stride: out,
-                },
+                View::new(d_pre, 0, out, 1),
+                View::new(weight, weight_row * out, 1, out),
                 parallelism,
             );
         }

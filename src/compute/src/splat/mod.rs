@@ -9,13 +9,12 @@
 //! ```
 //!
 //! Gaussians come as flat row-major slices ([`GaussianSet`]); covariances are built by the
-//! [`covariance`] op from scales and rotations. [`render`] is the render-only entry point
-//! (RGB bytes, PNG), [`scene`] the seeded benchmark scene documented in `rasterizer.md`.
+//! [`covariance`] op from scales and rotations; [`scene`] is the seeded benchmark scene
+//! documented in `rasterizer.md`.
 
 pub mod covariance;
 pub mod cpu;
 pub mod gpu;
-pub mod render;
 pub mod scene;
 pub mod sh;
 
@@ -81,15 +80,8 @@ impl<S: Scalar> GaussianSet<'_, S> {
 
     /// Checks the degree and that every slice has the length `N` implies.
     pub fn validate(&self) -> Result<(), SplatError> {
-        if self.sh_degree > MAX_SH_DEGREE {
-            return Err(SplatError::ShDegree {
-                degree: self.sh_degree,
-            });
-        }
         let n = self.len();
-        if n > u32::MAX as usize / 2 {
-            return Err(SplatError::TooManyGaussians { count: n });
-        }
+        check_degree_and_count(self.sh_degree, n)?;
         check_len("means", self.means.len(), n * 3)?;
         check_len("covariances", self.covariances.len(), n * 6)?;
         check_len("sh", self.sh.len(), n * self.sh_coefficients() * 3)?;
@@ -130,6 +122,17 @@ impl<S: Scalar> GaussianBuffers<S> {
             sh_degree: self.sh_degree,
         }
     }
+}
+
+/// The SH degree is supported and the count fits the 32-bit indices (with room to spare).
+pub(crate) fn check_degree_and_count(sh_degree: u32, count: usize) -> Result<(), SplatError> {
+    if sh_degree > MAX_SH_DEGREE {
+        return Err(SplatError::ShDegree { degree: sh_degree });
+    }
+    if count > u32::MAX as usize / 2 {
+        return Err(SplatError::TooManyGaussians { count });
+    }
+    Ok(())
 }
 
 pub(crate) fn check_len(
@@ -319,11 +322,6 @@ pub enum SplatError {
         "the Gaussians passed to backward ({actual}) are not those of the forward pass ({expected})"
     )]
     GaussiansChanged { expected: usize, actual: usize },
-    #[error("writing {path}: {error}")]
-    Png {
-        path: std::path::PathBuf,
-        error: image::ImageError,
-    },
 }
 
 /// Checks cameras and options once, before any work.

@@ -360,6 +360,37 @@ pub(super) fn available_isas() -> Vec<Isa> {
         .collect()
 }
 
+/// Calls the lane loop `$tile.$method::<V, ..>(args)` with the lanes of `$isa`: on x86-64
+/// through a function compiled with that instruction set's features (the lane methods are
+/// all `#[inline(always)]`, so they inline into it), elsewhere with [`Portable`] lanes. The
+/// arguments are the caller's variables of those names.
+macro_rules! on_isa {
+    ($isa:expr, $tile:ident: $Tile:ty, $method:ident $(<$S:ident: $bound:path>)? (
+        $($arg:ident: $ty:ty),* $(,)?
+    )) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma,popcnt")]
+            fn avx2_lanes $(<$S: $bound>)? (tile: &mut $Tile, $($arg: $ty),*) {
+                tile.$method::<avx2::Avx2 $(, $S)?>($($arg),*);
+            }
+            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
+            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
+            fn avx512_lanes $(<$S: $bound>)? (tile: &mut $Tile, $($arg: $ty),*) {
+                tile.$method::<avx2::Avx2 $(, $S)?>($($arg),*);
+            }
+            match $isa {
+                // SAFETY: the CPU has the features (`isa` found them).
+                Isa::Avx512 => return unsafe { avx512_lanes($tile, $($arg),*) },
+                // SAFETY: as above.
+                Isa::Avx2 => return unsafe { avx2_lanes($tile, $($arg),*) },
+                Isa::Portable => {}
+            }
+        }
+        $tile.$method::<Portable $(, $S)?>($($arg),*);
+    }};
+}
+
 /// The splats in depth order as `f32` and the instruction set to composite them with.
 #[derive(Clone, Copy)]
 pub(super) struct LanePath<'a> {
@@ -592,40 +623,13 @@ impl ForwardTile {
     }
 
     fn run<const SMOOTH: bool>(&mut self, lanes: LanePath<'_>, list: &[u32], bounds: [u32; 4]) {
-        let splats = lanes.splats;
-        #[cfg(target_arch = "x86_64")]
-        {
-            /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma,popcnt")]
-            fn run_avx2(
-                tile: &mut ForwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                bounds: [u32; 4],
-                smooth: bool,
-            ) {
-                tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
-            }
-            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
-            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
-            fn run_avx512(
-                tile: &mut ForwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                bounds: [u32; 4],
-                smooth: bool,
-            ) {
-                tile.run_lanes::<avx2::Avx2>(splats, list, bounds, smooth);
-            }
-            match lanes.isa {
-                // SAFETY: the CPU has the features (`isa` found them).
-                Isa::Avx512 => return unsafe { run_avx512(self, splats, list, bounds, SMOOTH) },
-                // SAFETY: as above.
-                Isa::Avx2 => return unsafe { run_avx2(self, splats, list, bounds, SMOOTH) },
-                Isa::Portable => {}
-            }
-        }
-        self.run_lanes::<Portable>(splats, list, bounds, SMOOTH);
+        let (splats, smooth) = (lanes.splats, SMOOTH);
+        on_isa!(lanes.isa, self: ForwardTile, run_lanes(
+            splats: &[Splat2d<f32>],
+            list: &[u32],
+            bounds: [u32; 4],
+            smooth: bool,
+        ));
     }
 
     #[inline(always)]
@@ -847,64 +851,16 @@ impl BackwardTile {
             alpha: upstream.alpha.is_some(),
             depth: upstream.depth.is_some(),
         };
-        let splats = lanes.splats;
-        #[cfg(target_arch = "x86_64")]
-        {
-            /// The lane loop compiled for AVX2 (the methods it calls are all inlined).
-            #[target_feature(enable = "avx2,fma,popcnt")]
-            fn walk_avx2<S: Scalar>(
-                tile: &mut BackwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                count: u32,
-                slots: &mut TileSlots<'_, S>,
-                bounds: [u32; 4],
-                variant: Variant,
-            ) {
-                tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
-            }
-            /// The same loop with AVX-512VL's registers and masks (see [`Isa::Avx512`]).
-            #[target_feature(enable = "avx2,fma,popcnt,avx512f,avx512vl")]
-            fn walk_avx512<S: Scalar>(
-                tile: &mut BackwardTile,
-                splats: &[Splat2d<f32>],
-                list: &[u32],
-                count: u32,
-                slots: &mut TileSlots<'_, S>,
-                bounds: [u32; 4],
-                variant: Variant,
-            ) {
-                tile.walk_variant::<avx2::Avx2, S>(splats, list, count, slots, bounds, variant);
-            }
-            match lanes.isa {
-                Isa::Avx512 => {
-                    // SAFETY: the CPU has the features (`isa` found them).
-                    return unsafe {
-                        walk_avx512(self, splats, list, count, slots, bounds, variant)
-                    };
-                }
-                Isa::Avx2 => {
-                    // SAFETY: the CPU has the features (`isa` found them).
-                    return unsafe { walk_avx2(self, splats, list, count, slots, bounds, variant) };
-                }
-                Isa::Portable => {}
-            }
-        }
-        self.walk_variant::<Portable, S>(splats, list, count, slots, bounds, variant);
+        let args = (lanes.splats, list, count, slots, bounds);
+        on_isa!(lanes.isa, self: BackwardTile, walk_variant<S: Scalar>(
+            args: WalkArgs<'_, '_, S>,
+            variant: Variant,
+        ));
     }
 
     /// [`Self::walk_lanes`] compiled for the variant (each drops the work it does not need).
     #[inline(always)]
-    fn walk_variant<V: Lanes, S: Scalar>(
-        &mut self,
-        splats: &[Splat2d<f32>],
-        list: &[u32],
-        count: u32,
-        slots: &mut TileSlots<'_, S>,
-        bounds: [u32; 4],
-        variant: Variant,
-    ) {
-        let args = (splats, list, count, slots, bounds);
+    fn walk_variant<V: Lanes, S: Scalar>(&mut self, args: WalkArgs<'_, '_, S>, variant: Variant) {
         match (variant.smooth, variant.alpha, variant.depth) {
             (false, false, false) => self.walk_lanes::<V, S, false, false, false>(args),
             (false, true, false) => self.walk_lanes::<V, S, false, true, false>(args),
@@ -919,17 +875,10 @@ impl BackwardTile {
 
     /// The walk for the smooth cutoff (`SMOOTH`, tests only) and upstream alpha (`ALPHA`)
     /// and depth (`DEPTH`) gradients present or not.
-    #[allow(clippy::type_complexity)]
     #[inline(always)]
     fn walk_lanes<V: Lanes, S: Scalar, const SMOOTH: bool, const ALPHA: bool, const DEPTH: bool>(
         &mut self,
-        (splats, list, count, slots, bounds): (
-            &[Splat2d<f32>],
-            &[u32],
-            u32,
-            &mut TileSlots<'_, S>,
-            [u32; 4],
-        ),
+        (splats, list, count, slots, bounds): WalkArgs<'_, '_, S>,
     ) {
         let x_start = bounds[0];
         for j in (0..count as usize).rev() {
@@ -1070,6 +1019,15 @@ impl BackwardTile {
         acc[SUM_QYY] = acc[SUM_QYY].add(qy.mul(dyv));
     }
 }
+
+/// The backward walk's splats, tile list, entry count, gradient slots and tile bounds.
+type WalkArgs<'a, 'b, S> = (
+    &'a [Splat2d<f32>],
+    &'a [u32],
+    u32,
+    &'a mut TileSlots<'b, S>,
+    [u32; 4],
+);
 
 /// Which specialisation of the backward walk runs.
 #[derive(Clone, Copy)]

@@ -37,6 +37,20 @@ pub(super) struct Binning {
     pub intersection_positions: Vec<u32>,
 }
 
+impl Binning {
+    /// Tile `tile`'s entries of `tile_gaussians`.
+    fn tile_range(&self, tile: usize) -> std::ops::Range<usize> {
+        self.tile_offsets[tile] as usize..self.tile_offsets[tile + 1] as usize
+    }
+}
+
+/// The pixel bounds `[x_start, x_end, y_start, y_end]` of tile column `tx` in the tile row
+/// `rows` of a `width` wide image.
+fn tile_bounds(tx: u32, width: u32, (y_start, y_end): (u32, u32)) -> [u32; 4] {
+    let x_start = tx * TILE_SIZE;
+    [x_start, (x_start + TILE_SIZE).min(width), y_start, y_end]
+}
+
 /// Sorts the visible Gaussians' tile intersections.
 ///
 /// A global sort by `(f32 depth bits, index)` followed by a stable counting scatter into the
@@ -290,16 +304,12 @@ pub(super) fn forward<S: Scalar>(
                 if let Some(fast) = fast {
                     let mut tile = ForwardTile::new();
                     for tx in 0..tiles_x {
-                        let tile_index = (ty as u32 * tiles_x + tx) as usize;
-                        let list = &binning.tile_gaussians[binning.tile_offsets[tile_index] as usize
-                            ..binning.tile_offsets[tile_index + 1] as usize];
-                        let x_start = tx * TILE_SIZE;
-                        let x_end = (x_start + TILE_SIZE).min(width);
+                        let range = binning.tile_range(ty * tiles_x as usize + tx as usize);
                         tile.composite(
                             fast,
                             TileList {
-                                list,
-                                bounds: [x_start, x_end, y_start, y_end],
+                                list: &binning.tile_gaussians[range],
+                                bounds: tile_bounds(tx, width, (y_start, y_end)),
                             },
                             smooth,
                             background,
@@ -317,12 +327,10 @@ pub(super) fn forward<S: Scalar>(
                 }
                 let mut state = TileState::<S>::new();
                 for tx in 0..tiles_x {
-                    let tile = (ty as u32 * tiles_x + tx) as usize;
-                    let list = &binning.tile_gaussians[binning.tile_offsets[tile] as usize
-                        ..binning.tile_offsets[tile + 1] as usize];
-                    let x_start = tx * TILE_SIZE;
-                    let x_end = (x_start + TILE_SIZE).min(width);
-                    state.composite(splats, list, [x_start, x_end, y_start, y_end], smooth);
+                    let range = binning.tile_range(ty * tiles_x as usize + tx as usize);
+                    let bounds = tile_bounds(tx, width, (y_start, y_end));
+                    let [x_start, x_end, ..] = bounds;
+                    state.composite(splats, &binning.tile_gaussians[range], bounds, smooth);
                     for py in y_start..y_end {
                         for px in x_start..x_end {
                             let local = ((py - y_start) as usize) * TS + (px - x_start) as usize;
@@ -450,13 +458,9 @@ pub(super) fn backward<S: Scalar>(
         if let Some(fast) = fast {
             let mut tile = BackwardTile::new();
             for tx in 0..tiles_x {
-                let tile_index = ty * tiles_x as usize + tx as usize;
-                let (begin, end) = (
-                    binning.tile_offsets[tile_index] as usize,
-                    binning.tile_offsets[tile_index + 1] as usize,
-                );
-                let x_start = tx * TILE_SIZE;
-                let bounds = [x_start, (x_start + TILE_SIZE).min(width), y_start, y_end];
+                let range = binning.tile_range(ty * tiles_x as usize + tx as usize);
+                let (begin, end) = (range.start, range.end);
+                let bounds = tile_bounds(tx, width, (y_start, y_end));
                 let count = tile.load(buffers, upstream, bounds, w, background);
                 tile.walk(
                     fast,
@@ -476,27 +480,17 @@ pub(super) fn backward<S: Scalar>(
         }
         let mut state = BackwardState::<S>::new();
         for tx in 0..tiles_x {
-            let tile = ty * tiles_x as usize + tx as usize;
-            let (begin, end) = (
-                binning.tile_offsets[tile] as usize,
-                binning.tile_offsets[tile + 1] as usize,
-            );
-            let x_start = tx * TILE_SIZE;
-            let x_end = (x_start + TILE_SIZE).min(width);
-            state.load(
-                buffers,
-                upstream,
-                [x_start, x_end, y_start, y_end],
-                w,
-                background,
-            );
+            let range = binning.tile_range(ty * tiles_x as usize + tx as usize);
+            let (begin, end) = (range.start, range.end);
+            let bounds = tile_bounds(tx, width, (y_start, y_end));
+            state.load(buffers, upstream, bounds, w, background);
             state.walk(
                 splats,
-                &binning.tile_gaussians[begin..end],
+                &binning.tile_gaussians[range],
                 &mut TileSlots {
                     slots: &mut row_slots[begin - row_base..end - row_base],
                 },
-                [x_start, x_end, y_start, y_end],
+                bounds,
                 smooth,
             );
         }

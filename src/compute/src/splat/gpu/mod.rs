@@ -25,8 +25,8 @@ use seqavatar_core::camera::Camera;
 use bytemuck::Zeroable;
 
 use super::{
-    GaussianSet, ImageGradient, MAX_SH_DEGREE, RasterOptions, RenderedImage, SplatDiagnostics,
-    SplatError, SplatGradients, TILE_SIZE, sh_coefficient_count, validate_call,
+    GaussianSet, ImageGradient, RasterOptions, RenderedImage, SplatDiagnostics, SplatError,
+    SplatGradients, TILE_SIZE, check_degree_and_count, sh_coefficient_count, validate_call,
 };
 use crate::backend::primitives::{ScanWorkspace, SortWorkspace};
 use crate::backend::shaders::{AtomicAdd, with_atomic_add};
@@ -95,8 +95,8 @@ pub(crate) struct BinParams {
 
 /// This module's uniform structs for the layout test in `backend::shaders`.
 #[cfg(test)]
-pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::WgslTwin> {
-    use crate::backend::shaders::wgsl_twin;
+pub(crate) fn wgsl_twins() -> Vec<crate::backend::shaders::tests::WgslTwin> {
+    use crate::backend::shaders::tests::wgsl_twin;
     vec![
         wgsl_twin!(CameraUniform as "SplatCamera" in [
             "splat_project.wgsl",
@@ -164,18 +164,6 @@ fn camera_uniform(
             u32::from(has_depth_gradient),
             0,
         ],
-    }
-}
-
-fn kernel_source(
-    name: &'static str,
-    wgsl: &'static str,
-    entry_point: &'static str,
-) -> KernelSource {
-    KernelSource {
-        name,
-        wgsl: Cow::Borrowed(wgsl),
-        entry_point,
     }
 }
 
@@ -305,17 +293,8 @@ impl DeviceGaussians<'_> {
     }
 
     fn validate(&self) -> Result<(), SplatError> {
-        if self.sh_degree > MAX_SH_DEGREE {
-            return Err(SplatError::ShDegree {
-                degree: self.sh_degree,
-            });
-        }
-        if self.count > u32::MAX / 2 {
-            return Err(SplatError::TooManyGaussians {
-                count: self.count as usize,
-            });
-        }
         let n = self.count as usize;
+        check_degree_and_count(self.sh_degree, n)?;
         check_at_least("means", self.means, n * 3)?;
         check_at_least("covariances", self.covariances, n * 6)?;
         check_at_least("opacities", self.opacities, n)?;
@@ -683,23 +662,13 @@ impl SplatWorkspace {
         self.reserve(context, &gaussians, cameras)?;
         let n = gaussians.count;
         let k = gaussians.sh_coefficients();
-        let project = context.kernel(&kernel_source(
-            "project_forward",
-            PROJECT_WGSL,
-            "project_forward",
-        ))?;
-        let count_kernel =
-            context.kernel(&kernel_source("count_tiles", BIN_WGSL, "count_tiles"))?;
-        let emit_kernel = context.kernel(&kernel_source("emit_pairs", BIN_WGSL, "emit_pairs"))?;
-        let finish_kernel =
-            context.kernel(&kernel_source("finish_pairs", BIN_WGSL, "finish_pairs"))?;
-        let ranges_kernel =
-            context.kernel(&kernel_source("tile_ranges", BIN_WGSL, "tile_ranges"))?;
-        let rasterize = context.kernel(&kernel_source(
-            "rasterize_forward",
-            RASTERIZE_WGSL,
-            "rasterize_forward",
-        ))?;
+        let project = context.static_kernel("project_forward", PROJECT_WGSL, "project_forward")?;
+        let count_kernel = context.static_kernel("count_tiles", BIN_WGSL, "count_tiles")?;
+        let emit_kernel = context.static_kernel("emit_pairs", BIN_WGSL, "emit_pairs")?;
+        let finish_kernel = context.static_kernel("finish_pairs", BIN_WGSL, "finish_pairs")?;
+        let ranges_kernel = context.static_kernel("tile_ranges", BIN_WGSL, "tile_ranges")?;
+        let rasterize =
+            context.static_kernel("rasterize_forward", RASTERIZE_WGSL, "rasterize_forward")?;
         let pairs = self.pairs_per_band;
         let Some(parts) = self.gaussians.as_mut() else {
             unreachable!("reserve allocates the per-Gaussian buffers");
@@ -987,20 +956,10 @@ impl SplatWorkspace {
             }
         }
         let rasterize = rasterize_backward_kernel(context, self.gpu_options)?;
-        let project = context.kernel(&kernel_source(
-            "project_backward",
-            PROJECT_WGSL,
-            "project_backward",
-        ))?;
+        let project =
+            context.static_kernel("project_backward", PROJECT_WGSL, "project_backward")?;
         let out = &parts.gradients;
-        for buffer in [
-            &out.means,
-            &out.covariances,
-            &out.opacities,
-            &out.sh,
-            &out.mean_2d_norm,
-            &out.diagnostics,
-        ] {
+        for buffer in out.buffers() {
             encoder.clear_buffer(&buffer.buffer, 0, None);
         }
         for ((slot, gradient), (camera, rows)) in self
@@ -1092,16 +1051,18 @@ impl SplatWorkspace {
         let Some(parts) = self.gaussians.as_ref() else {
             unreachable!("a forward allocated the per-Gaussian buffers");
         };
-        let g = &parts.gradients;
         let n = call.gaussians as usize;
         let k = sh_coefficient_count(call.sh_degree);
+        let lens = [n * 3, n * 6, n, n * k * 3, n, DIAGNOSTICS];
+        let [means, covariances, opacities, sh, mean_2d_norm, diagnostics] =
+            std::array::from_fn(|i| share(parts.gradients.buffers()[i], lens[i]));
         Ok(ResidentGradients {
-            means: share(&g.means, n * 3),
-            covariances: share(&g.covariances, n * 6),
-            opacities: share(&g.opacities, n),
-            sh: share(&g.sh, n * k * 3),
-            mean_2d_norm: share(&g.mean_2d_norm, n),
-            diagnostics: share(&g.diagnostics, DIAGNOSTICS),
+            means,
+            covariances,
+            opacities,
+            sh,
+            mean_2d_norm,
+            diagnostics,
             count: call.gaussians,
             sh_coefficients: k as u32,
         })
@@ -1235,18 +1196,12 @@ fn rasterize_backward_kernel(
 }
 
 /// Result of [`forward`]: images and diagnostics per camera, and the GPU state [`backward`]
-/// needs (the Gaussians stay resident).
+/// needs (the uploaded Gaussians and the workspace holding the pass).
 pub struct GpuForward {
     /// One per camera, in the order given.
     pub images: Vec<RenderedImage<f32>>,
     /// One per camera.
     pub diagnostics: Vec<SplatDiagnostics>,
-    resident: ResidentForward,
-}
-
-/// A forward pass whose outputs are still on the GPU: the uploaded Gaussians and the
-/// workspace holding the pass.
-pub struct ResidentForward {
     gaussians: ResidentGaussians,
     workspace: SplatWorkspace,
 }
@@ -1261,7 +1216,8 @@ pub fn forward(
     forward_with(context, gaussians, cameras, options, GpuOptions::default())
 }
 
-/// [`forward`] with gpu-specific options.
+/// [`forward`] with gpu-specific options: the Gaussians uploaded, rendered in a fresh
+/// workspace ([`SplatWorkspace::forward_checked`]) and the images downloaded.
 pub fn forward_with(
     context: &GpuContext,
     gaussians: &GaussianSet<'_, f32>,
@@ -1270,56 +1226,28 @@ pub fn forward_with(
     gpu_options: GpuOptions,
 ) -> Result<GpuForward, GpuSplatError> {
     validate_call(cameras, options)?;
-    let buffers = ResidentGaussians::upload(context, gaussians)?;
-    let resident = forward_resident(context, buffers, cameras, options, gpu_options)?;
-    let (images, diagnostics) = resident.download(context)?;
+    let gaussians = ResidentGaussians::upload(context, gaussians)?;
+    let mut workspace = SplatWorkspace::new(context, gpu_options, None)?;
+    workspace.forward_checked(context, gaussians.view(), cameras, options)?;
+    let (images, diagnostics) = workspace.download_images(context)?;
     Ok(GpuForward {
         images,
         diagnostics,
-        resident,
-    })
-}
-
-/// Runs the forward kernels for every camera in a fresh workspace
-/// ([`SplatWorkspace::forward_checked`]), leaving the outputs on the GPU.
-pub fn forward_resident(
-    context: &GpuContext,
-    gaussians: ResidentGaussians,
-    cameras: &[Camera],
-    options: &RasterOptions,
-    gpu_options: GpuOptions,
-) -> Result<ResidentForward, GpuSplatError> {
-    validate_call(cameras, options)?;
-    let mut workspace = SplatWorkspace::new(context, gpu_options, None)?;
-    workspace.forward_checked(context, gaussians.view(), cameras, options)?;
-    Ok(ResidentForward {
         gaussians,
         workspace,
     })
 }
 
-impl ResidentForward {
+impl GpuForward {
     /// Per camera, the number of bands of tile rows its pairs were binned in.
     pub fn band_counts(&self) -> Vec<usize> {
         self.workspace.band_counts()
     }
-
-    /// The workspace holding the pass.
-    pub fn workspace(&self) -> &SplatWorkspace {
-        &self.workspace
-    }
-
-    /// Copies every camera's images and diagnostics to the host.
-    pub fn download(
-        &self,
-        context: &GpuContext,
-    ) -> Result<(Vec<RenderedImage<f32>>, Vec<SplatDiagnostics>), GpuSplatError> {
-        self.workspace.download_images(context)
-    }
 }
 
 /// Gradients of the loss with respect to the Gaussians, summed over the forward call's
-/// cameras. `gaussians` must be the set passed to [`forward`].
+/// cameras. `gaussians` must be the set passed to [`forward`]; the upstream gradients are
+/// checked (sizes and finiteness), uploaded, and the gradients downloaded.
 pub fn backward(
     context: &GpuContext,
     forward: &GpuForward,
@@ -1327,19 +1255,49 @@ pub fn backward(
     upstream: &[ImageGradient<'_, f32>],
 ) -> Result<SplatGradients<f32>, GpuSplatError> {
     gaussians.validate()?;
-    let resident = &forward.resident;
-    if gaussians.len() != resident.gaussians.len()
-        || gaussians.sh_degree != resident.gaussians.sh_degree
-    {
+    let resident = &forward.gaussians;
+    if gaussians.len() != resident.len() || gaussians.sh_degree != resident.sh_degree {
         return Err(SplatError::GaussiansChanged {
-            expected: resident.gaussians.len(),
+            expected: resident.len(),
             actual: gaussians.len(),
         }
         .into());
     }
-    let upstream = ResidentImageGradient::upload_all(context, resident, upstream)?;
-    let gradients = backward_resident(context, resident, &upstream)?;
-    gradients.download(context)
+    let cameras = &forward.workspace.call()?.cameras;
+    if upstream.len() != cameras.len() {
+        return Err(SplatError::GradientCount {
+            expected: cameras.len(),
+            actual: upstream.len(),
+        }
+        .into());
+    }
+    let upload = |what, values: Option<&[f32]>| values.map(|v| context.upload(what, v)).transpose();
+    let uploaded = upstream
+        .iter()
+        .zip(cameras)
+        .enumerate()
+        .map(|(index, (gradient, camera))| {
+            gradient.check(index, camera.width as usize * camera.height as usize)?;
+            Ok((
+                context.upload("d colour", gradient.colour)?,
+                upload("d alpha", gradient.alpha)?,
+                upload("d depth", gradient.depth)?,
+            ))
+        })
+        .collect::<Result<Vec<_>, GpuSplatError>>()?;
+    let views: Vec<DeviceImageGradient<'_>> = uploaded
+        .iter()
+        .map(|(colour, alpha, depth)| DeviceImageGradient {
+            colour,
+            alpha: alpha.as_ref(),
+            depth: depth.as_ref(),
+        })
+        .collect();
+    let mut encoder = context.encoder();
+    let workspace = &forward.workspace;
+    workspace.backward(context, &mut encoder, resident.view(), &views)?;
+    context.submit_and_wait(encoder)?;
+    workspace.gradients()?.download(context)
 }
 
 /// Input gradients on the GPU, summed over the cameras (f32, the layouts of the inputs):
@@ -1358,6 +1316,18 @@ pub struct ResidentGradients {
 }
 
 impl ResidentGradients {
+    /// Every buffer, in the order of the fields.
+    fn buffers(&self) -> [&GpuBuffer; 6] {
+        [
+            &self.means,
+            &self.covariances,
+            &self.opacities,
+            &self.sh,
+            &self.mean_2d_norm,
+            &self.diagnostics,
+        ]
+    }
+
     pub fn means(&self) -> &GpuBuffer {
         &self.means
     }
@@ -1385,17 +1355,8 @@ impl ResidentGradients {
             self.sh.len,
             (self.count * self.sh_coefficients) as usize * 3
         );
-        let mut words = context.download_all::<u32>(
-            context.encoder(),
-            &[
-                (&self.means.buffer, self.means.len),
-                (&self.covariances.buffer, self.covariances.len),
-                (&self.opacities.buffer, self.opacities.len),
-                (&self.sh.buffer, self.sh.len),
-                (&self.mean_2d_norm.buffer, self.mean_2d_norm.len),
-                (&self.diagnostics.buffer, DIAGNOSTICS),
-            ],
-        )?;
+        let sources = self.buffers().map(|buffer| (&buffer.buffer, buffer.len));
+        let mut words = context.download_all::<u32>(context.encoder(), &sources)?;
         let diagnostics = words.pop().unwrap_or_default();
         let [means, covariances, opacities, sh, mean_2d_norm] = [0, 1, 2, 3, 4].map(|i| {
             std::mem::take(&mut words[i])
@@ -1411,82 +1372,6 @@ impl ResidentGradients {
             mean_2d_norm,
             non_finite_gradients: diagnostics[7] as usize,
         })
-    }
-}
-
-/// One camera's upstream gradient, uploaded (checked first: sizes and finiteness).
-pub struct ResidentImageGradient {
-    colour: GpuBuffer,
-    alpha: Option<GpuBuffer>,
-    depth: Option<GpuBuffer>,
-}
-
-impl ResidentImageGradient {
-    /// Uploads the gradients of every camera of `forward`.
-    pub fn upload_all(
-        context: &GpuContext,
-        forward: &ResidentForward,
-        upstream: &[ImageGradient<'_, f32>],
-    ) -> Result<Vec<Self>, GpuSplatError> {
-        let cameras = &forward.workspace.call()?.cameras;
-        if upstream.len() != cameras.len() {
-            return Err(SplatError::GradientCount {
-                expected: cameras.len(),
-                actual: upstream.len(),
-            }
-            .into());
-        }
-        upstream
-            .iter()
-            .zip(cameras)
-            .enumerate()
-            .map(|(index, (gradient, camera))| {
-                gradient.check(index, camera.width as usize * camera.height as usize)?;
-                Ok(Self {
-                    colour: context.upload("d colour", gradient.colour)?,
-                    alpha: gradient
-                        .alpha
-                        .map(|alpha| context.upload("d alpha", alpha))
-                        .transpose()?,
-                    depth: gradient
-                        .depth
-                        .map(|depth| context.upload("d depth", depth))
-                        .transpose()?,
-                })
-            })
-            .collect()
-    }
-
-    /// The uploaded buffers as a borrowed [`DeviceImageGradient`].
-    pub fn view(&self) -> DeviceImageGradient<'_> {
-        DeviceImageGradient {
-            colour: &self.colour,
-            alpha: self.alpha.as_ref(),
-            depth: self.depth.as_ref(),
-        }
-    }
-}
-
-/// Runs the backward kernels for every camera of `forward` (submitted and waited for),
-/// leaving the gradients on the GPU in its workspace.
-pub fn backward_resident(
-    context: &GpuContext,
-    forward: &ResidentForward,
-    upstream: &[ResidentImageGradient],
-) -> Result<ResidentGradients, GpuSplatError> {
-    let views: Vec<DeviceImageGradient<'_>> = upstream.iter().map(|g| g.view()).collect();
-    let mut encoder = context.encoder();
-    forward
-        .workspace
-        .backward(context, &mut encoder, forward.gaussians.view(), &views)?;
-    context.submit_and_wait(encoder)?;
-    forward.workspace.gradients()
-}
-
-impl GpuForward {
-    /// The GPU-resident part, for callers that time kernels apart from transfers.
-    pub fn resident(&self) -> &ResidentForward {
-        &self.resident
     }
 }
 

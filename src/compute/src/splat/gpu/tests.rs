@@ -302,7 +302,7 @@ fn splitting_into_bands_of_tile_rows_changes_nothing() {
         gpu_options,
     )
     .unwrap();
-    let bands = result.resident().band_counts();
+    let bands = result.band_counts();
     assert!(
         bands[0] > 1,
         "bands {bands:?}, pairs {}",
