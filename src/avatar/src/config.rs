@@ -5,6 +5,8 @@
 //! neither depends on the trainer (learning rates, schedules and losses stay in `train`).
 
 use seqavatar_compute::nn::Precision;
+
+use crate::model::Widths;
 use seqavatar_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 
@@ -135,6 +137,11 @@ pub struct AvatarConfig {
     /// weights, and the key of configs without it is unchanged (serialised only where set).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub skinning_smoothing: Option<f64>,
+    /// The networks' block widths where they differ from the published code's
+    /// ([`Widths::PAPER`]; the fields not given keep it). Absent (every preset) is the paper's,
+    /// and the key of configs without it is unchanged (serialised only where set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub network_widths: Option<Widths>,
 }
 
 /// The largest [`AvatarConfig::skinning_smoothing`] (metres): half a body height already
@@ -190,6 +197,14 @@ impl AvatarConfig {
         {
             return bad("scale_min", "need 0 < scale_min < scale_max".into());
         }
+        if let Some(widths) = &self.network_widths {
+            widths
+                .validate()
+                .map_err(|(field, message)| AvatarConfigError {
+                    field: format!("network_widths.{field}"),
+                    message,
+                })?;
+        }
         if let Some(sigma) = self.skinning_smoothing
             && !(0.0..=MAX_SKINNING_SMOOTHING).contains(&sigma)
         {
@@ -244,6 +259,7 @@ impl AvatarConfig {
             // The gpu paths are compared with `cpu` at f32's tolerances.
             precision: Some(Precision::F32),
             skinning_smoothing: None,
+            network_widths: None,
         }
     }
 }
@@ -283,7 +299,7 @@ mod tests {
     fn validation_names_the_field() {
         config().validate().unwrap();
         type Change = fn(&mut AvatarConfig);
-        let cases: [(Change, &str); 8] = [
+        let cases: [(Change, &str); 10] = [
             (|c| c.trunk_depth = 0, "trunk_width"),
             (|c| c.tau = 0, "tau"),
             (
@@ -297,6 +313,24 @@ mod tests {
             (
                 |c| c.skinning_smoothing = Some(f64::NAN),
                 "skinning_smoothing",
+            ),
+            (
+                |c| {
+                    c.network_widths = Some(Widths {
+                        lbs_hidden: 0,
+                        ..Widths::PAPER
+                    })
+                },
+                "network_widths.lbs_hidden",
+            ),
+            (
+                |c| {
+                    c.network_widths = Some(Widths {
+                        seq_xyz_hidden: MAX_TRUNK_WIDTH + 1,
+                        ..Widths::PAPER
+                    })
+                },
+                "network_widths.seq_xyz_hidden",
             ),
         ];
         for (change, field) in cases {
@@ -317,6 +351,29 @@ mod tests {
         rigid.pose_refiner = false;
         rigid.lbs_offsets = false;
         assert!(!rigid.needs_networks());
+    }
+
+    /// `network_widths` is stored only where set; the fields it does not give keep the
+    /// paper's widths, and the networks are built with them.
+    #[test]
+    fn network_widths_default_to_the_papers_and_shape_the_networks() {
+        assert!(
+            serde_json::to_value(config())
+                .unwrap()
+                .get("network_widths")
+                .is_none()
+        );
+        let mut value = serde_json::to_value(config()).unwrap();
+        value["network_widths"] = serde_json::json!({"lbs_hidden": 32, "seq_xyz_hidden": 48});
+        let narrow: AvatarConfig = serde_json::from_value(value.clone()).unwrap();
+        let widths = narrow.network_widths.unwrap();
+        assert_eq!((widths.lbs_hidden, widths.seq_xyz_hidden), (32, 48));
+        assert_eq!(widths.seq_xyz_frame, Widths::PAPER.seq_xyz_frame);
+        let network = crate::model::NetworkConfig::from_avatar(&narrow, 24, 24, 2).unwrap();
+        assert_eq!(network.widths, widths);
+        value["network_widths"]["lbs_width"] = serde_json::json!(8);
+        let error = serde_json::from_value::<AvatarConfig>(value).unwrap_err();
+        assert!(error.to_string().contains("lbs_width"), "{error}");
     }
 
     #[test]

@@ -30,6 +30,7 @@ pub fn small_config(motion_context: MotionContext) -> AvatarConfig {
         // is tested against f32 in the compute crate).
         precision: Some(Precision::F32),
         skinning_smoothing: None,
+        network_widths: None,
     }
 }
 

@@ -18,6 +18,7 @@ pub use seqavatar_avatar::config::{
     AvatarConfig, Background, MAX_SEQUENCE_LENGTH, MAX_TAU, MAX_TRUNK_DEPTH, MAX_TRUNK_WIDTH,
     MotionContext,
 };
+use seqavatar_avatar::model::Widths;
 
 /// Named starting points trading speed for accuracy.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -212,6 +213,11 @@ pub struct TrainConfig {
     /// template alone, as the paper does. Serialised only where set.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hull_init: Option<crate::hull::HullInit>,
+    /// The networks' block widths where they differ from the published code's (any of
+    /// `AvatarConfig::network_widths`' fields; the rest keep the paper's); absent (every
+    /// preset) is the paper's. Serialised only where set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub network_widths: Option<Widths>,
 }
 
 /// A config error naming `field`.
@@ -292,6 +298,7 @@ impl TrainConfig {
             precision: None,
             skinning_smoothing: None,
             hull_init: None,
+            network_widths: None,
         };
         match preset {
             Preset::Balanced => base,
@@ -568,6 +575,7 @@ impl TrainConfig {
             background: self.background,
             precision: self.precision,
             skinning_smoothing: self.skinning_smoothing,
+            network_widths: self.network_widths,
         }
     }
 

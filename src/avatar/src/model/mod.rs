@@ -125,9 +125,10 @@ impl NetworkGroup {
     }
 }
 
-/// Hidden and output widths of the blocks; [`Widths::PAPER`] is the reference architecture,
-/// tests shrink them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Hidden and output widths of the blocks; [`Widths::PAPER`] is the reference architecture.
+/// A train config's `network_widths` replaces any of them ([`AvatarConfig::network_widths`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Widths {
     /// NeRF bands of the position encoding (63 values with 10).
     pub encoding_frequencies: usize,
@@ -168,6 +169,36 @@ impl Widths {
         pose_refiner_hidden: 128,
         lbs_hidden: 128,
     };
+
+    /// Each block width in `1..=MAX_TRUNK_WIDTH` and at most 30 encoding bands; the error
+    /// names the field.
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        if self.encoding_frequencies > 30 {
+            let bands = self.encoding_frequencies;
+            return Err((
+                "encoding_frequencies".into(),
+                format!("{bands} bands exceed 30"),
+            ));
+        }
+        let max = crate::config::MAX_TRUNK_WIDTH;
+        for (name, width) in [
+            ("pose_encoder", self.pose_encoder),
+            ("seq_pose_frame", self.seq_pose_frame),
+            ("seq_pose", self.seq_pose),
+            ("seq_xyz_velocity", self.seq_xyz_velocity),
+            ("seq_xyz_position", self.seq_xyz_position),
+            ("seq_xyz_frame", self.seq_xyz_frame),
+            ("seq_xyz_hidden", self.seq_xyz_hidden),
+            ("seq_xyz", self.seq_xyz),
+            ("pose_refiner_hidden", self.pose_refiner_hidden),
+            ("lbs_hidden", self.lbs_hidden),
+        ] {
+            if !(1..=max).contains(&width) {
+                return Err((name.into(), format!("must be in 1..={max}, got {width}")));
+            }
+        }
+        Ok(())
+    }
 
     /// The encoding of 3D positions with these widths.
     pub fn encoding(&self) -> PositionalEncoding {
@@ -243,7 +274,7 @@ impl NetworkConfig {
             n_scales,
             pose_refiner: config.pose_refiner,
             lbs_offsets: config.lbs_offsets,
-            widths: Widths::PAPER,
+            widths: config.network_widths.unwrap_or(Widths::PAPER),
         };
         network.validate()?;
         Ok(network)
