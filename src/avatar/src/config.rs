@@ -5,10 +5,10 @@
 //! neither depends on the trainer (learning rates, schedules and losses stay in `train`).
 
 use seqavatar_compute::nn::Precision;
-
-use crate::model::Widths;
 use seqavatar_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
+
+use crate::model::Widths;
 
 /// The paper's ablation rows (a) to (e): which motion conditions feed the non-rigid network.
 /// Each level includes the previous ones; a disabled condition's encoder is not built at all.

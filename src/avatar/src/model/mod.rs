@@ -308,12 +308,10 @@ impl NetworkConfig {
                 message,
             })
         };
-        let w = &self.widths;
-        if w.encoding_frequencies > 30 {
-            return bad(
-                "widths.encoding_frequencies",
-                format!("{} bands exceed 30", w.encoding_frequencies),
-            );
+        // Every width, enabled block or not: one place owns the bounds (the train config's
+        // `network_widths` is checked by the same function).
+        if let Err((field, message)) = self.widths.validate() {
+            return bad(&format!("widths.{field}"), message);
         }
         let needs_pose = self.motion_context.has_non_rigid() || self.pose_refiner;
         if needs_pose && self.skinning_joints < 2 {
@@ -328,49 +326,28 @@ impl NetworkConfig {
         if self.lbs_offsets && self.skinning_joints == 0 {
             return bad("skinning_joints", "the LBS offsets need J >= 1".into());
         }
-        if self.motion_context.has_non_rigid() {
-            if self.trunk_width == 0 || self.trunk_depth == 0 {
-                return bad(
-                    "trunk_width",
-                    format!(
-                        "the trunk needs width and depth >= 1, got {} and {}",
-                        self.trunk_width, self.trunk_depth
-                    ),
-                );
-            }
-            if w.pose_encoder == 0 {
-                return bad("widths.pose_encoder", "must be positive".into());
-            }
+        if self.motion_context.has_non_rigid() && (self.trunk_width == 0 || self.trunk_depth == 0) {
+            return bad(
+                "trunk_width",
+                format!(
+                    "the trunk needs width and depth >= 1, got {} and {}",
+                    self.trunk_width, self.trunk_depth
+                ),
+            );
         }
-        if self.motion_context.has_skeleton_motion() {
-            if self.sequence_length == 0 || self.n_scales == 0 || self.motion_joints == 0 {
-                return bad(
-                    "sequence_length",
-                    format!(
-                        "skeleton motion needs L, scales and motion joints >= 1, got {}, {}, {}",
-                        self.sequence_length, self.n_scales, self.motion_joints
-                    ),
-                );
-            }
-            if w.seq_pose_frame == 0 || w.seq_pose == 0 {
-                return bad("widths.seq_pose", "must be positive".into());
-            }
+        if self.motion_context.has_skeleton_motion()
+            && (self.sequence_length == 0 || self.n_scales == 0 || self.motion_joints == 0)
+        {
+            return bad(
+                "sequence_length",
+                format!(
+                    "skeleton motion needs L, scales and motion joints >= 1, got {}, {}, {}",
+                    self.sequence_length, self.n_scales, self.motion_joints
+                ),
+            );
         }
-        if self.motion_context.has_velocity() {
-            if self.tau == 0 {
-                return bad("tau", "velocity context needs tau >= 1".into());
-            }
-            if [
-                w.seq_xyz_velocity,
-                w.seq_xyz_position,
-                w.seq_xyz_frame,
-                w.seq_xyz_hidden,
-                w.seq_xyz,
-            ]
-            .contains(&0)
-            {
-                return bad("widths.seq_xyz", "must be positive".into());
-            }
+        if self.motion_context.has_velocity() && self.tau == 0 {
+            return bad("tau", "velocity context needs tau >= 1".into());
         }
         if self.motion_context.has_non_rigid()
             && !self.motion_context.is_multiscale()
@@ -383,12 +360,6 @@ impl NetworkConfig {
                     self.motion_context, self.n_scales
                 ),
             );
-        }
-        if self.pose_refiner && w.pose_refiner_hidden == 0 {
-            return bad("widths.pose_refiner_hidden", "must be positive".into());
-        }
-        if self.lbs_offsets && w.lbs_hidden == 0 {
-            return bad("widths.lbs_hidden", "must be positive".into());
         }
         Ok(())
     }
@@ -467,7 +438,8 @@ impl<S: NnScalar> Networks<S> {
         config.validate()?;
         let mut nets = [None, None, None];
         for (stream, spec) in config.specs() {
-            nets[stream as usize - 1] = Some(Network::new(spec, &mut block_rng(seed, stream))?);
+            let group = spec.group.index();
+            nets[group] = Some(Network::new(spec, &mut block_rng(seed, stream))?);
         }
         Ok(Networks {
             config: config.clone(),
@@ -482,17 +454,17 @@ impl<S: NnScalar> Networks<S> {
 
     /// Whether the non-rigid network exists (`motion_context` is not `none`).
     pub fn has_non_rigid(&self) -> bool {
-        self.nets[0].is_some()
+        self.nets[NetworkGroup::NonRigid.index()].is_some()
     }
 
     /// Whether the body-pose refiner exists.
     pub fn has_pose_refiner(&self) -> bool {
-        self.nets[1].is_some()
+        self.nets[NetworkGroup::PoseRefiner.index()].is_some()
     }
 
     /// Whether the LBS-offset network exists.
     pub fn has_lbs_offsets(&self) -> bool {
-        self.nets[2].is_some()
+        self.nets[NetworkGroup::LbsOffsets.index()].is_some()
     }
 
     /// The network of `group`, or that it is disabled.
