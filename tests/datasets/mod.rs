@@ -445,8 +445,8 @@ fn matrix_sweeps_keep_the_cache_keys_of_the_hand_written_runs() {
     let tradeoff_by_hand = stage_keys(&by_hand("tradeoff_synthetic"));
     assert_eq!(tradeoff.len(), 3 + 2 * 27);
     assert_eq!(keys_by_kind(&tradeoff), keys_by_kind(&tradeoff_by_hand));
-    // The shared entries are the ablation's.
-    for stage in ["ingest", "fit", "motion"] {
+    // The shared entries are the ablation's (its motion entry reaches further back).
+    for stage in ["ingest", "fit"] {
         assert_eq!(tradeoff[stage], ablation[stage], "{stage}");
     }
 }
