@@ -89,6 +89,33 @@ pub fn load_body_model_npz(
     })
 }
 
+/// The body model a file-based dataset's fits refer to: the ingest config's `body_model:`
+/// file, which must be an SMPL model, or SMPL-X for `kind` [`BodyModelKind::Smplx`].
+pub fn load_fits_model(
+    path: Option<&Path>,
+    dataset: &str,
+    kind: BodyModelKind,
+) -> anyhow::Result<(BodyModel, BodyModelKind)> {
+    let (name, joints) = match kind {
+        BodyModelKind::Smplx => ("SMPL-X", 55),
+        _ => ("SMPL", 24),
+    };
+    let path = path.with_context(|| {
+        format!(
+            "{dataset} needs the {name} model: set `body_model:` in the ingest config to a dense \
+             {name} .npz (v_template, f, kintree_table, weights, J_regressor, shapedirs, posedirs)"
+        )
+    })?;
+    let loaded = load_body_model_npz(path, ComponentLimits::default())?;
+    anyhow::ensure!(
+        loaded.kind == kind,
+        "{}: {dataset} fits are {name} ({joints} joints) but this model is {}",
+        path.display(),
+        loaded.kind.as_str()
+    );
+    Ok((loaded.model, loaded.kind))
+}
+
 /// The arrays of a body model `.npz`, with the file named in errors.
 struct NpzArrays<'a> {
     arrays: &'a [(String, Value)],

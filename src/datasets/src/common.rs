@@ -79,13 +79,7 @@ impl<'a> Field<'a> {
     /// A numeric array of exactly `len` finite values (any shape whose product is `len`,
     /// so `(1, 72)`, `(72,)` and `(24, 3)` all give 72 values).
     pub fn finite_f64s(&self, len: usize) -> anyhow::Result<Vec<f64>> {
-        let (shape, values) = self.value.to_f64_array().with_context(|| {
-            format!(
-                "{}: expected a numeric array, found {}",
-                self.describe(),
-                self.value
-            )
-        })?;
+        let (shape, values) = self.numeric_array()?;
         if values.len() != len {
             bail!(
                 "{}: expected {len} values, found shape {shape:?} ({} values)",
@@ -99,15 +93,20 @@ impl<'a> Field<'a> {
 
     /// A numeric array with its shape, all values finite.
     pub fn finite_array(&self) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
-        let (shape, values) = self.value.to_f64_array().with_context(|| {
+        let (shape, values) = self.numeric_array()?;
+        check_finite(&values, &self.describe())?;
+        Ok((shape, values))
+    }
+
+    /// A numeric array with its shape, not yet checked finite.
+    fn numeric_array(&self) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+        self.value.to_f64_array().with_context(|| {
             format!(
                 "{}: expected a numeric array, found {}",
                 self.describe(),
                 self.value
             )
-        })?;
-        check_finite(&values, &self.describe())?;
-        Ok((shape, values))
+        })
     }
 
     /// A 3 x 3 matrix (row-major).
@@ -165,6 +164,21 @@ pub fn decode_mask(
         .with_context(|| format!("{source}: cannot decode the mask"))
 }
 
+/// [`decode_rgb`] of the image file at `path`, named in errors.
+pub fn read_rgb(path: &Path, size: (u32, u32)) -> anyhow::Result<RgbImage> {
+    decode_rgb(&read_bytes(path)?, &path.display().to_string(), size)
+}
+
+/// [`decode_mask`] of the mask file at `path`, named in errors.
+pub fn read_mask(path: &Path, binary: bool, size: (u32, u32)) -> anyhow::Result<GrayImage> {
+    decode_mask(
+        &read_bytes(path)?,
+        &path.display().to_string(),
+        binary,
+        size,
+    )
+}
+
 /// Image width and height from the file's header (format sniffed from the content).
 pub fn image_size(path: &Path) -> anyhow::Result<(u32, u32)> {
     images::dimensions(&read_bytes(path)?)
@@ -195,14 +209,7 @@ pub fn join_relative(
 
 /// The trailing decimal number of a name (`Camera_B12` -> 12, `000123` -> 123).
 pub fn trailing_number(name: &str) -> Option<i64> {
-    let digits: String = name
-        .chars()
-        .rev()
-        .take_while(char::is_ascii_digit)
-        .collect::<Vec<_>>()
-        .into_iter()
-        .rev()
-        .collect();
+    let digits = &name[name.trim_end_matches(|c: char| c.is_ascii_digit()).len()..];
     if digits.is_empty() || digits.len() > 15 {
         return None;
     }

@@ -29,12 +29,10 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::{DMat3, DVec3};
 
-use crate::body_model::{ComponentLimits, load_body_model_npz};
+use crate::body_model::load_fits_model;
 use crate::common::{check_finite, decode_mask, decode_rgb, warn};
 use crate::smc::SmcFile;
-use crate::{
-    BodyModelKind, DatasetReader, FrameRange, Keypoints3d, SourceCamera, SourceImage, Split,
-};
+use crate::{BodyModelKind, DatasetReader, Keypoints3d, SourceCamera, SourceImage, Split};
 use seqavatar_formats::npz;
 
 /// The two camera groups of the main file.
@@ -42,8 +40,6 @@ const CAMERA_GROUPS: [&str; 2] = ["Camera_5mp", "Camera_12mp"];
 
 /// An opened DNA-Rendering take.
 pub struct DnaRendering {
-    main: PathBuf,
-    annotations: PathBuf,
     main_file: SmcFile,
     annot_file: SmcFile,
     cameras: Vec<SourceCamera>,
@@ -205,8 +201,6 @@ fn find_annotations(main: &Path) -> anyhow::Result<PathBuf> {
 
 /// The two files of a take, as the steps of [`DnaRendering::open`] read them.
 struct TakeFiles<'a> {
-    main: &'a Path,
-    annotations: &'a Path,
     main_file: &'a SmcFile,
     annot_file: &'a SmcFile,
 }
@@ -222,7 +216,7 @@ struct TakeCameras {
 impl TakeFiles<'_> {
     /// Cameras: every calibrated camera that has images in the main file.
     fn cameras(&self, warnings: &mut Vec<String>) -> anyhow::Result<TakeCameras> {
-        let (main, annotations) = (self.main, self.annotations);
+        let (main, annotations) = (self.main_file.path(), self.annot_file.path());
         let mut ids: Vec<(i64, String)> = self
             .annot_file
             .members("Camera_Parameter")?
@@ -281,7 +275,7 @@ impl TakeFiles<'_> {
 
     /// The image size (width, height) of a camera group's `resolution` attribute.
     fn resolution(&self, group_name: &str) -> anyhow::Result<(u32, u32)> {
-        let main = self.main;
+        let main = self.main_file.path();
         let resolution = self
             .main_file
             .f64s_attr(group_name, "resolution")?
@@ -312,7 +306,7 @@ impl TakeFiles<'_> {
 
     /// The camera of `Camera_Parameter/<key>` (`K`, `D`, camera-to-world `RT`).
     fn calibration(&self, key: &str, width: u32, height: u32) -> anyhow::Result<Camera> {
-        let annotations = self.annotations;
+        let annotations = self.annot_file.path();
         let prefix = format!("Camera_Parameter/{key}");
         let (_, k) = read_f64s(self.annot_file, &format!("{prefix}/K"))?;
         let (_, d) = read_f64s(self.annot_file, &format!("{prefix}/D"))?;
@@ -346,7 +340,7 @@ impl TakeFiles<'_> {
         num_frames: usize,
         warnings: &mut Vec<String>,
     ) -> anyhow::Result<Vec<BodyParams>> {
-        let (annotations, annot_file) = (self.annotations, self.annot_file);
+        let (annotations, annot_file) = (self.annot_file.path(), self.annot_file);
         if !annot_file.has_group("SMPLx")? {
             bail!(
                 "{}: missing group `SMPLx` (fits exist for parts 1 and 2 only)",
@@ -429,7 +423,7 @@ impl TakeFiles<'_> {
         let (shape, values) = self.annot_file.read_f64s("Keypoints_3D/keypoints3d")?;
         let what = format!(
             "{} dataset `Keypoints_3D/keypoints3d`",
-            self.annotations.display()
+            self.annot_file.path().display()
         );
         Ok(Some(parse_keypoints(&shape, &values, num_frames, &what)?))
     }
@@ -474,8 +468,6 @@ impl DnaRendering {
         let annot_file = SmcFile::open(&annotations)?;
         let gender = main_file.string_attr("", "gender")?;
         let take = TakeFiles {
-            main,
-            annotations: &annotations,
             main_file: &main_file,
             annot_file: &annot_file,
         };
@@ -491,8 +483,6 @@ impl DnaRendering {
             None => None,
         };
         Ok(Self {
-            main: main.to_owned(),
-            annotations,
             main_file,
             annot_file,
             cameras,
@@ -512,7 +502,7 @@ impl DatasetReader for DnaRendering {
     fn describe(&self) -> String {
         format!(
             "DNA-Rendering {} (gender {})",
-            self.main.display(),
+            self.main_file.path().display(),
             self.gender.as_deref().unwrap_or("unknown")
         )
     }
@@ -531,38 +521,20 @@ impl DatasetReader for DnaRendering {
                 .collect()
         };
         let train_end = 100.min(self.num_frames);
-        Split {
-            train_views: index_of(&mut (0..=46).step_by(2)),
-            test_views: index_of(&mut (48..=58).step_by(2)),
-            train_frames: FrameRange {
-                start: 0,
-                end: Some(train_end),
-                step: 1,
-            },
-            test_frames: FrameRange {
-                start: 0,
-                end: Some(train_end),
-                step: 5,
-            },
-            frame_interval: 1,
-            held_out_frames: None,
-        }
+        Split::first_frames(
+            index_of(&mut (0..=46).step_by(2)),
+            index_of(&mut (48..=58).step_by(2)),
+            Some(train_end),
+            5,
+        )
     }
 
     fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
-        let path = self.body_model_path.as_deref().with_context(|| {
-            "DNA-Rendering needs the SMPL-X model: set `body_model:` in the ingest config to a \
-             dense SMPL-X .npz"
-        })?;
-        let loaded = load_body_model_npz(path, ComponentLimits::default())?;
-        if loaded.kind != BodyModelKind::Smplx {
-            bail!(
-                "{}: DNA-Rendering fits are SMPL-X (55 joints) but this model is {}",
-                path.display(),
-                loaded.kind.as_str()
-            );
-        }
-        Ok((loaded.model, loaded.kind))
+        load_fits_model(
+            self.body_model_path.as_deref(),
+            "DNA-Rendering",
+            BodyModelKind::Smplx,
+        )
     }
 
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
@@ -587,12 +559,12 @@ impl DatasetReader for DnaRendering {
         let id = self.cameras[view].id;
         let image_path = format!("{}/{id}/color/{frame}", self.camera_groups[view]);
         let bytes = self.main_file.read_bytes(&image_path)?;
-        let source = format!("{} dataset `{image_path}`", self.main.display());
+        let source = format!("{} dataset `{image_path}`", self.main_file.path().display());
         let camera = &self.cameras[view].camera;
         let rgb = decode_rgb(&bytes, &source, (camera.width, camera.height))?;
         let mask_path = format!("Mask/{id}/mask/{frame}");
         let mask_bytes = self.annot_file.read_bytes(&mask_path)?;
-        let mask_source = format!("{} dataset `{mask_path}`", self.annotations.display());
+        let mask_source = format!("{} dataset `{mask_path}`", self.annot_file.path().display());
         let mask = decode_mask(&mask_bytes, &mask_source, false, rgb.dimensions())?;
         Ok(SourceImage { rgb, mask })
     }

@@ -25,8 +25,8 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::{DMat3, DVec3};
 
-use crate::body_model::{ComponentLimits, load_body_model_npz};
-use crate::common::{Field, decode_mask, decode_rgb, image_size, read_bytes, read_pickle, warn};
+use crate::body_model::load_fits_model;
+use crate::common::{Field, image_size, read_mask, read_pickle, read_rgb, warn};
 use crate::{BodyModelKind, DatasetReader, FrameRange, SourceCamera, SourceImage, Split};
 use seqavatar_formats::Value;
 
@@ -335,27 +335,21 @@ impl SequenceScan {
     }
 }
 
+/// Whether two cameras have the same intrinsic matrix and extrinsics, to a relative 1e-6.
 fn same_camera(a: &Camera, b: &Camera) -> bool {
     let close = |x: f64, y: f64| (x - y).abs() <= 1e-6 * (1.0 + x.abs().max(y.abs()));
-    a.k_matrix()
-        .iter()
-        .flatten()
-        .zip(b.k_matrix().iter().flatten())
-        .all(|(x, y)| close(*x, *y))
-        && a.rotation
-            .to_cols_array()
-            .iter()
-            .zip(b.rotation.to_cols_array())
-            .all(|(x, y)| close(*x, y))
-        && a.translation
-            .to_array()
-            .iter()
-            .zip(b.translation.to_array())
-            .all(|(x, y)| close(*x, y))
+    let entries = |c: &Camera| {
+        c.k_matrix()
+            .into_iter()
+            .flatten()
+            .chain(c.rotation.to_cols_array())
+            .chain(c.translation.to_array())
+    };
+    entries(a).zip(entries(b)).all(|(x, y)| close(x, y))
 }
 
 /// The smallest range (start, end, step) that covers `frames` if they are evenly spaced.
-fn frame_range(frames: &BTreeSet<usize>, fallback_step: usize) -> (FrameRange, usize) {
+fn frame_range(frames: &BTreeSet<usize>, fallback_step: usize) -> FrameRange {
     let list: Vec<usize> = frames.iter().copied().collect();
     let step = match list.as_slice() {
         [] | [_] => fallback_step.max(1),
@@ -368,12 +362,11 @@ fn frame_range(frames: &BTreeSet<usize>, fallback_step: usize) -> (FrameRange, u
             }
         }
     };
-    let range = FrameRange {
+    FrameRange {
         start: list.first().copied().unwrap_or(0),
         end: list.last().map(|l| l + 1),
         step,
-    };
-    (range, step)
+    }
 }
 
 impl DatasetReader for I3dHuman {
@@ -399,8 +392,8 @@ impl DatasetReader for I3dHuman {
         };
         let table = SPLITS.iter().find(|(name, ..)| *name == self.sequence);
         let interval = table.map_or(1, |t| t.3);
-        let (train_range, train_step) = frame_range(&self.train_frames, interval);
-        let (test_range, _) = frame_range(&self.test_frames, train_step);
+        let train_frames = frame_range(&self.train_frames, interval);
+        let test_frames = frame_range(&self.test_frames, train_frames.step);
         let (train_views, test_views) = match table {
             Some(&(_, train, test, _)) => (index_of(train), index_of(test)),
             None => {
@@ -427,27 +420,19 @@ impl DatasetReader for I3dHuman {
         Split {
             train_views,
             test_views,
-            train_frames: train_range,
-            test_frames: test_range,
-            frame_interval: train_step,
+            frame_interval: train_frames.step,
+            train_frames,
+            test_frames,
             held_out_frames: None,
         }
     }
 
     fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
-        let path = self.body_model_path.as_deref().with_context(|| {
-            "I3D-Human needs the SMPL model: set `body_model:` in the ingest config to a dense \
-             SMPL .npz"
-        })?;
-        let loaded = load_body_model_npz(path, ComponentLimits::default())?;
-        if loaded.kind != BodyModelKind::Smpl {
-            bail!(
-                "{}: I3D-Human fits are SMPL (24 joints) but this model is {}",
-                path.display(),
-                loaded.kind.as_str()
-            );
-        }
-        Ok((loaded.model, loaded.kind))
+        load_fits_model(
+            self.body_model_path.as_deref(),
+            "I3D-Human",
+            BodyModelKind::Smpl,
+        )
     }
 
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
@@ -468,28 +453,10 @@ impl DatasetReader for I3dHuman {
                 PARTS.map(|p| format!("{}-{p}", self.sequence)).join(", ")
             )
         })?;
-        let image_path = image
-            .folder
-            .join("images")
-            .join(format!("{}.png", image.name));
-        let source = image_path.display().to_string();
+        let file = |dir: &str| image.folder.join(dir).join(format!("{}.png", image.name));
         let camera = &self.cameras[view].camera;
-        let rgb = decode_rgb(
-            &read_bytes(&image_path)?,
-            &source,
-            (camera.width, camera.height),
-        )?;
-        let mask_path = image
-            .folder
-            .join("masks")
-            .join(format!("{}.png", image.name));
-        let mask_source = mask_path.display().to_string();
-        let mask = decode_mask(
-            &read_bytes(&mask_path)?,
-            &mask_source,
-            true,
-            rgb.dimensions(),
-        )?;
+        let rgb = read_rgb(&file("images"), (camera.width, camera.height))?;
+        let mask = read_mask(&file("masks"), true, rgb.dimensions())?;
         Ok(SourceImage { rgb, mask })
     }
 }
@@ -508,10 +475,8 @@ mod tests {
     #[test]
     fn evenly_spaced_frames_give_their_step() {
         let frames: BTreeSet<usize> = [3, 6, 9].into_iter().collect();
-        let (range, step) = frame_range(&frames, 1);
-        assert_eq!(step, 3);
         assert_eq!(
-            range,
+            frame_range(&frames, 1),
             FrameRange {
                 start: 3,
                 end: Some(10),
@@ -519,6 +484,6 @@ mod tests {
             }
         );
         let uneven: BTreeSet<usize> = [0, 1, 3].into_iter().collect();
-        assert_eq!(frame_range(&uneven, 1).1, 1);
+        assert_eq!(frame_range(&uneven, 1).step, 1);
     }
 }

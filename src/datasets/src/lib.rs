@@ -73,14 +73,6 @@ pub struct FrameRange {
 }
 
 impl FrameRange {
-    pub fn all() -> Self {
-        Self {
-            start: 0,
-            end: None,
-            step: 1,
-        }
-    }
-
     /// The selected indices among `num_frames` frames.
     pub fn indices(&self, num_frames: usize, field: &str) -> anyhow::Result<Vec<usize>> {
         if self.step == 0 {
@@ -119,6 +111,34 @@ pub struct Split {
     /// held-out cameras on training frames.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub held_out_frames: Option<FrameRange>,
+}
+
+impl Split {
+    /// The split of a capture sampled at every frame: training on every frame below `end`
+    /// (`None` = up to the last frame), testing on every `test_step`-th of them, no hold-out.
+    pub fn first_frames(
+        train_views: Vec<usize>,
+        test_views: Vec<usize>,
+        end: Option<usize>,
+        test_step: usize,
+    ) -> Self {
+        Self {
+            train_views,
+            test_views,
+            train_frames: FrameRange {
+                start: 0,
+                end,
+                step: 1,
+            },
+            test_frames: FrameRange {
+                start: 0,
+                end,
+                step: test_step,
+            },
+            frame_interval: 1,
+            held_out_frames: None,
+        }
+    }
 }
 
 /// ZJU-MoCap sequence (`CoreView_XXX/`).

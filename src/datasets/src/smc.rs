@@ -123,21 +123,22 @@ impl SmcFile {
         if !parent.is_empty() && !self.has_group(parent)? {
             return Ok(false);
         }
-        let (groups, datasets) = self
-            .group(parent)?
-            .member_names()
-            .with_context(|| self.context(&format!("cannot list group `{parent}`")))?;
+        let (groups, datasets) = self.member_names(parent)?;
         Ok(if group { groups } else { datasets }
             .iter()
             .any(|member| member == name))
     }
 
+    /// Names of the groups and of the datasets in the group `path`.
+    fn member_names(&self, path: &str) -> anyhow::Result<(Vec<String>, Vec<String>)> {
+        self.group(path)?
+            .member_names()
+            .with_context(|| self.context(&format!("cannot list group `{path}`")))
+    }
+
     /// Names of the members (groups and datasets) of the group `path`.
     pub fn members(&self, path: &str) -> anyhow::Result<Vec<String>> {
-        let (mut groups, datasets) = self
-            .group(path)?
-            .member_names()
-            .with_context(|| self.context(&format!("cannot list group `{path}`")))?;
+        let (mut groups, datasets) = self.member_names(path)?;
         groups.extend(datasets);
         Ok(groups)
     }
@@ -335,10 +336,7 @@ impl SmcFile {
                 )));
             }
             group(&path)?;
-            let (groups, datasets) = self
-                .group(&path)?
-                .member_names()
-                .with_context(|| self.context(&format!("cannot list group `{path}`")))?;
+            let (groups, datasets) = self.member_names(&path)?;
             for name in datasets {
                 visited += 1;
                 dataset(&join(&path, &name))?;
@@ -349,32 +347,6 @@ impl SmcFile {
         }
         Ok(visited)
     }
-
-    /// Shape and numpy-style type (`"<f8"`, `"|u1"`, ...) of the dataset `path`.
-    pub fn dataset_info(&self, path: &str) -> anyhow::Result<(Vec<u64>, String)> {
-        let dataset = self.dataset(path)?;
-        Ok((dataset.shape().to_vec(), numpy_descr(dataset.dtype())))
-    }
-}
-
-/// numpy's `dtype.str` of a numeric type (`"<f8"`, `">i4"`, `"|u1"`); other types are
-/// described in words.
-pub fn numpy_descr(dtype: &Datatype) -> String {
-    let (kind, size, order) = match dtype {
-        Datatype::FixedPoint {
-            size,
-            signed,
-            byte_order,
-        } => (if *signed { 'i' } else { 'u' }, *size, *byte_order),
-        Datatype::FloatingPoint { size, byte_order } => ('f', *size, *byte_order),
-        other => return describe(other),
-    };
-    let order = match (size, order) {
-        (1, _) => '|',
-        (_, ByteOrder::BigEndian) => '>',
-        _ => '<',
-    };
-    format!("{order}{kind}{size}")
 }
 
 /// Reads every group, dataset and attribute of an in-memory file (for the fuzz target and

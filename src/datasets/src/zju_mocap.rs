@@ -23,14 +23,11 @@ use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::Camera;
 use seqavatar_core::glam::{DMat3, DVec3};
 
-use crate::body_model::{ComponentLimits, load_body_model_npz};
+use crate::body_model::load_fits_model;
 use crate::common::{
-    Field, decode_mask, decode_rgb, image_size, join_relative, read_bytes, read_npy,
-    trailing_number,
+    Field, image_size, join_relative, read_mask, read_npy, read_rgb, trailing_number,
 };
-use crate::{
-    BodyModelKind, DatasetReader, FrameRange, GarmentRegion, SourceCamera, SourceImage, Split,
-};
+use crate::{BodyModelKind, DatasetReader, GarmentRegion, SourceCamera, SourceImage, Split};
 use seqavatar_formats::Value;
 
 /// Frames used by the 3DGS-Avatar split, per sequence number (docs/method.md).
@@ -106,26 +103,8 @@ impl ZjuMocap {
             .map(|c| cams.camera(root, &images, c))
             .collect::<anyhow::Result<Vec<_>>>()?;
 
-        let params_dir = ["new_params", "params"]
-            .iter()
-            .map(|d| root.join(d))
-            .find(|d| d.is_dir())
-            .with_context(|| {
-                format!(
-                    "{}: neither `new_params/` nor `params/` exists (SMPL fits)",
-                    root.display()
-                )
-            })?;
-        let mask_dir = ["mask_cihp", "mask"]
-            .iter()
-            .map(|d| root.join(d))
-            .find(|d| d.is_dir())
-            .with_context(|| {
-                format!(
-                    "{}: neither `mask_cihp/` nor `mask/` exists",
-                    root.display()
-                )
-            })?;
+        let params_dir = first_folder(root, ["new_params", "params"], " (SMPL fits)")?;
+        let mask_dir = first_folder(root, ["mask_cihp", "mask"], "")?;
         let sequence_number = root
             .file_name()
             .and_then(|n| n.to_str())
@@ -154,6 +133,21 @@ impl ZjuMocap {
         self.params_dir
             .join(format!("{}.npy", self.frame_ids[frame]))
     }
+}
+
+/// The first of the folders `names` under `root` that exists; `what` ends the error.
+fn first_folder(root: &Path, names: [&str; 2], what: &str) -> anyhow::Result<PathBuf> {
+    let [first, second] = names;
+    names
+        .iter()
+        .map(|d| root.join(d))
+        .find(|d| d.is_dir())
+        .with_context(|| {
+            format!(
+                "{}: neither `{first}/` nor `{second}/` exists{what}",
+                root.display()
+            )
+        })
 }
 
 /// The per-camera lists of `annots.npy` `cams` (`K`, `R`, `T`, optional `D`), of one length.
@@ -286,10 +280,7 @@ pub fn read_smpl_params(path: &Path) -> anyhow::Result<BodyParams> {
     let th = root.get("Th", "Th")?.finite_f64s(3)?;
     let shapes = root.get("shapes", "shapes")?.finite_array()?.1;
     Ok(BodyParams {
-        pose: poses
-            .chunks_exact(3)
-            .map(|c| DVec3::new(c[0], c[1], c[2]))
-            .collect(),
+        pose: poses.chunks_exact(3).map(DVec3::from_slice).collect(),
         betas: shapes,
         expression: Vec::new(),
         world_rotation: DVec3::new(rh[0], rh[1], rh[2]),
@@ -320,38 +311,20 @@ impl DatasetReader for ZjuMocap {
             .find(|(n, _)| Some(*n) == self.sequence_number)
             .map_or(self.num_frames(), |&(_, frames)| frames)
             .min(self.num_frames());
-        Split {
-            train_views: vec![0],
-            test_views: (1..self.cameras.len()).collect(),
-            train_frames: FrameRange {
-                start: 0,
-                end: Some(used),
-                step: 1,
-            },
-            test_frames: FrameRange {
-                start: 0,
-                end: Some(used),
-                step: TEST_FRAME_STEP,
-            },
-            frame_interval: 1,
-            held_out_frames: None,
-        }
+        Split::first_frames(
+            vec![0],
+            (1..self.cameras.len()).collect(),
+            Some(used),
+            TEST_FRAME_STEP,
+        )
     }
 
     fn body_model(&self) -> anyhow::Result<(BodyModel, BodyModelKind)> {
-        let path = self.body_model_path.as_deref().with_context(|| {
-            "ZJU-MoCap needs the SMPL model: set `body_model:` in the ingest config to a dense \
-             SMPL .npz (v_template, f, kintree_table, weights, J_regressor, shapedirs, posedirs)"
-        })?;
-        let loaded = load_body_model_npz(path, ComponentLimits::default())?;
-        if loaded.kind != BodyModelKind::Smpl {
-            bail!(
-                "{}: ZJU-MoCap fits are SMPL (24 joints) but this model is {}",
-                path.display(),
-                loaded.kind.as_str()
-            );
-        }
-        Ok((loaded.model, loaded.kind))
+        load_fits_model(
+            self.body_model_path.as_deref(),
+            "ZJU-MoCap",
+            BodyModelKind::Smpl,
+        )
     }
 
     fn body_params(&self, frame: usize) -> anyhow::Result<BodyParams> {
@@ -376,29 +349,24 @@ impl DatasetReader for ZjuMocap {
         let annots = self.root.join("annots.npy");
         let image_path = join_relative(&self.root, relative, &annots, "ims")?;
         let camera = &self.cameras[view].camera;
-        let rgb = decode_rgb(
-            &read_bytes(&image_path)?,
-            &image_path.display().to_string(),
-            (camera.width, camera.height),
-        )?;
+        let rgb = read_rgb(&image_path, (camera.width, camera.height))?;
         let mask_path =
             join_relative(&self.mask_dir, relative, &annots, "ims")?.with_extension("png");
-        let source = mask_path.display().to_string();
-        let bytes = read_bytes(&mask_path)?;
+        // `mask/` stores the 0/1 foreground mask, `mask_cihp/` part labels.
+        let labels = read_mask(&mask_path, !self.part_labels(), rgb.dimensions())?;
         if !self.part_labels() {
-            let mask = decode_mask(&bytes, &source, true, rgb.dimensions())?;
-            return Ok((SourceImage { rgb, mask }, None));
+            return Ok((SourceImage { rgb, mask: labels }, None));
         }
-        let labels = decode_mask(&bytes, &source, false, rgb.dimensions())?;
         // A file that is no label image (a 0/255 matte, a palette written as grey) still
         // loads: its non-zero pixels are the person, and its garment region is empty (eval
         // counts such images apart), said here with the file's name.
         let non_labels = labels.iter().filter(|l| **l > CIHP_MAX_LABEL).count();
         let garment = if non_labels > 0 {
             eprintln!(
-                "[ingest] warning: {source}: {non_labels} pixels hold values above \
+                "[ingest] warning: {}: {non_labels} pixels hold values above \
                  {CIHP_MAX_LABEL}, which are no CIHP part labels; the image's garment region \
-                 is left empty"
+                 is left empty",
+                mask_path.display()
             );
             image::GrayImage::new(labels.width(), labels.height())
         } else {

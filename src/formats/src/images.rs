@@ -114,23 +114,13 @@ pub fn decode_mask(
         ImageFormat::Jpeg => {
             // A grey JPEG decodes to three equal channels: their maximum is the grey value.
             let (width, height, pixels) = decode_jpeg_rgb(bytes, expected)?;
-            let grey = pixels
-                .chunks_exact(3)
-                .map(|p| p[0].max(p[1]).max(p[2]))
-                .collect();
-            GrayImage::from_raw(width, height, grey).expect("one grey byte per pixel")
+            max_over_channels(width, height, &pixels)
         }
         ImageFormat::Png => {
             let image = decode_png(bytes, expected)?;
             if image.color().has_color() {
                 let rgb = image.into_rgb8();
-                let (width, height) = rgb.dimensions();
-                let grey = rgb
-                    .as_raw()
-                    .chunks_exact(3)
-                    .map(|p| p[0].max(p[1]).max(p[2]))
-                    .collect();
-                GrayImage::from_raw(width, height, grey).expect("one grey byte per pixel")
+                max_over_channels(rgb.width(), rgb.height(), rgb.as_raw())
             } else {
                 image.into_luma8()
             }
@@ -144,6 +134,15 @@ pub fn decode_mask(
         }
     }
     Ok(mask)
+}
+
+/// The grey image of the largest channel of every RGB pixel.
+fn max_over_channels(width: u32, height: u32, rgb: &[u8]) -> GrayImage {
+    let grey = rgb
+        .chunks_exact(3)
+        .map(|p| p[0].max(p[1]).max(p[2]))
+        .collect();
+    GrayImage::from_raw(width, height, grey).expect("one grey byte per pixel")
 }
 
 /// JPEG sides are 16-bit: the header-only read admits every side, and the pixel count is

@@ -58,20 +58,17 @@ pub enum PickleError {
 pub const MAX_DEPTH: usize = 128;
 
 /// Decodes a complete pickle. Bytes after the `STOP` opcode are ignored, as Python does.
-pub fn load(bytes: &[u8]) -> Result<Value, PickleError> {
-    load_prefix(bytes).map(|(value, _)| value)
-}
-
-/// Decodes one pickle from the start of `bytes`; also returns how many bytes it used.
 /// Decoded values may take [`super::decode_budget`] of the input's size, within the
 /// per-file limit of [`super::Limits::from_env`].
-pub fn load_prefix(bytes: &[u8]) -> Result<(Value, usize), PickleError> {
+pub fn load(bytes: &[u8]) -> Result<Value, PickleError> {
     let limits = super::Limits::from_env()?;
-    load_prefix_within(bytes, &mut Budget::for_pickle(bytes.len(), &limits))
+    let (value, _) = load_prefix_within(bytes, &mut Budget::for_pickle(bytes.len(), &limits))?;
+    Ok(value)
 }
 
-/// [`load_prefix`] with the decoded values (the machine's arrays and the final tree) charged
-/// to `budget`, which an enclosing file (an `.npy` object array) shares.
+/// Decodes one pickle from the start of `bytes`, and how many bytes it used, with the
+/// decoded values (the machine's arrays and the final tree) charged to `budget`, which an
+/// enclosing file (an `.npy` object array) shares.
 pub fn load_prefix_within(
     bytes: &[u8],
     budget: &mut Budget,

@@ -96,20 +96,6 @@ impl ArrayData {
             ArrayData::Str(_) | ArrayData::Bytes(_) | ArrayData::Object(_) => return None,
         })
     }
-
-    /// Elements as `i64` when the kind is an integer or boolean.
-    pub fn to_i64(&self) -> Option<Vec<i64>> {
-        Some(match self {
-            ArrayData::Bool(v) => v.iter().map(|&b| i64::from(b)).collect(),
-            ArrayData::U8(v) => v.iter().map(|&x| i64::from(x)).collect(),
-            ArrayData::I64(v) => v.clone(),
-            ArrayData::U64(v) => v
-                .iter()
-                .map(|&x| i64::try_from(x).ok())
-                .collect::<Option<Vec<_>>>()?,
-            _ => return None,
-        })
-    }
 }
 
 impl NpArray {
@@ -267,11 +253,5 @@ mod tests {
         assert_eq!(d.get("R"), Some(&Value::Int(2)));
         assert_eq!(d.get("T"), None);
         assert_eq!(Value::Int(3).get("K"), None);
-    }
-
-    #[test]
-    fn u64_that_does_not_fit_is_not_an_i64() {
-        assert_eq!(ArrayData::U64(vec![1, u64::MAX]).to_i64(), None);
-        assert_eq!(ArrayData::U64(vec![1, 2]).to_i64(), Some(vec![1, 2]));
     }
 }

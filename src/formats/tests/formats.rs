@@ -102,7 +102,11 @@ fn check(actual: &Value, expected: &Json, at: &str) {
                     }
                 }
                 ArrayData::I64(_) | ArrayData::U8(_) => {
-                    let ints = array.data.to_i64().unwrap();
+                    let ints: Vec<i64> = match &array.data {
+                        ArrayData::U8(bytes) => bytes.iter().map(|&b| i64::from(b)).collect(),
+                        ArrayData::I64(ints) => ints.clone(),
+                        _ => unreachable!(),
+                    };
                     for (i, e) in ints.iter().zip(items) {
                         assert_eq!(Some(*i), e.as_i64(), "{at}");
                     }

@@ -127,9 +127,10 @@ impl BandedMatrix {
 }
 
 #[cfg(test)]
-// Dense reference linear algebra reads best with explicit indices.
-#[allow(clippy::needless_range_loop)]
 mod tests {
+    // Dense reference linear algebra reads best with explicit indices.
+    #![allow(clippy::needless_range_loop)]
+
     use super::*;
 
     /// Dense Gaussian elimination with partial pivoting, as an independent check.

@@ -239,31 +239,37 @@ impl SmoothingPlan {
     /// fixed or estimated ones; the translation fields repeat them and are not used.
     pub fn rotation_track_weights(&self, track: &[DMat3]) -> SmoothingWeights {
         let values: Vec<[f64; 9]> = track.iter().map(|&m| mat_entries(m)).collect();
-        let estimate = estimate_track(&values);
-        let (noise, acceleration) = resolve(
-            self.rotation_noise,
-            self.rotation_acceleration,
-            estimate,
-            SmoothingWeights::default().rotation_noise,
-        );
-        self.weights(noise, acceleration)
+        let fixed = (self.rotation_noise, self.rotation_acceleration);
+        self.track_weights(&values, fixed, SmoothingWeights::default().rotation_noise)
     }
 
     /// The weights of the translation track, likewise (the rotation fields repeat the
     /// translation ones and are not used).
     pub fn translation_track_weights(&self, track: &[DVec3]) -> SmoothingWeights {
         let values: Vec<[f64; 3]> = track.iter().map(|v| v.to_array()).collect();
-        let estimate = estimate_track(&values);
-        let (noise, acceleration) = resolve(
-            self.translation_noise,
-            self.translation_acceleration,
-            estimate,
+        let fixed = (self.translation_noise, self.translation_acceleration);
+        self.track_weights(
+            &values,
+            fixed,
             SmoothingWeights::default().translation_noise,
-        );
-        self.weights(noise, acceleration)
+        )
     }
 
-    fn weights(&self, noise: f64, acceleration: f64) -> SmoothingWeights {
+    /// The weights of a track of `values` with the `fixed` (noise, acceleration), where set.
+    /// Fixed values win; a track too short to estimate from (fewer than seven frames) is left
+    /// as it is: the smallest noise against the default noise as acceleration scale.
+    fn track_weights<const D: usize>(
+        &self,
+        values: &[[f64; D]],
+        (noise, acceleration): (Option<f64>, Option<f64>),
+        short_track_acceleration: f64,
+    ) -> SmoothingWeights {
+        let (estimated_noise, estimated_acceleration) =
+            estimate_track(values).unwrap_or((MIN_STANDARD_DEVIATION, short_track_acceleration));
+        let (noise, acceleration) = (
+            noise.unwrap_or(estimated_noise),
+            acceleration.unwrap_or(estimated_acceleration),
+        );
         SmoothingWeights {
             rotation_noise: noise,
             rotation_acceleration: acceleration,
@@ -273,22 +279,6 @@ impl SmoothingPlan {
             max_iterations: self.max_iterations,
         }
     }
-}
-
-/// Fixed values win; a track too short to estimate from (fewer than seven frames) is left
-/// as it is: the smallest noise against the default noise as acceleration scale.
-fn resolve(
-    noise: Option<f64>,
-    acceleration: Option<f64>,
-    estimate: Option<(f64, f64)>,
-    short_track_acceleration: f64,
-) -> (f64, f64) {
-    let (estimated_noise, estimated_acceleration) =
-        estimate.unwrap_or((MIN_STANDARD_DEVIATION, short_track_acceleration));
-    (
-        noise.unwrap_or(estimated_noise),
-        acceleration.unwrap_or(estimated_acceleration),
-    )
 }
 
 impl Default for SmoothingWeights {
@@ -458,15 +448,15 @@ pub(crate) fn rotation_residuals(
     }
 }
 
-fn rotation_normal_equations(
-    track: &[DMat3],
-    input: &[DMat3],
-    w: &SmoothingWeights,
+/// The normal equations of one track of `n` frames (three unknowns per frame) from the
+/// residual blocks `residuals` visits ([`rotation_residuals`], [`translation_residuals`]).
+fn normal_equations<const D: usize>(
+    n: usize,
+    residuals: impl FnOnce(&mut dyn FnMut(&[usize], &[[[f64; D]; 3]], &[f64; D], f64)),
 ) -> (BandedMatrix, Vec<f64>) {
-    let n = track.len();
     let mut h = BandedMatrix::zeros(3 * n, 8);
     let mut g = vec![0.0; 3 * n];
-    rotation_residuals(track, input, w, |frames, jac, residual, weight| {
+    residuals(&mut |frames, jac, residual, weight| {
         let bases: Vec<usize> = frames.iter().map(|t| 3 * t).collect();
         accumulate(&mut h, &mut g, &bases, jac, residual, weight);
     });
@@ -554,7 +544,7 @@ pub fn smooth_rotation_track(
         w.max_iterations,
         SMOOTH_TOLERANCE,
         |track| rotation_energy(track, input, w),
-        |track| rotation_normal_equations(track, input, w),
+        |track| normal_equations::<9>(track.len(), |v| rotation_residuals(track, input, w, v)),
         |track, step| {
             track
                 .iter()
@@ -604,21 +594,6 @@ pub(crate) fn translation_residuals(
     }
 }
 
-fn translation_normal_equations(
-    track: &[DVec3],
-    input: &[DVec3],
-    w: &SmoothingWeights,
-) -> (BandedMatrix, Vec<f64>) {
-    let n = track.len();
-    let mut h = BandedMatrix::zeros(3 * n, 8);
-    let mut g = vec![0.0; 3 * n];
-    translation_residuals(track, input, w, |frames, jac, residual, weight| {
-        let bases: Vec<usize> = frames.iter().map(|t| 3 * t).collect();
-        accumulate(&mut h, &mut g, &bases, jac, residual, weight);
-    });
-    (h, g)
-}
-
 /// Smooths the root translation track.
 pub fn smooth_translation_track(
     input: &[DVec3],
@@ -633,7 +608,7 @@ pub fn smooth_translation_track(
         w.max_iterations,
         SMOOTH_TOLERANCE,
         |track| translation_energy(track, input, w),
-        |track| translation_normal_equations(track, input, w),
+        |track| normal_equations::<3>(track.len(), |v| translation_residuals(track, input, w, v)),
         |track, step| {
             track
                 .iter()
@@ -717,7 +692,8 @@ mod tests {
                 ))
             })
             .collect();
-        let (_, g) = rotation_normal_equations(&track, &input, &w);
+        let (_, g) =
+            normal_equations::<9>(track.len(), |v| rotation_residuals(&track, &input, &w, v));
         let h = 1e-6;
         for t in 0..track.len() {
             for (i, e) in BASIS.iter().enumerate() {
@@ -743,7 +719,9 @@ mod tests {
             .iter()
             .map(|v| *v + DVec3::splat(0.01 * noise(&mut seed)))
             .collect();
-        let (_, g) = translation_normal_equations(&ttrack, &tin, &w);
+        let (_, g) = normal_equations::<3>(ttrack.len(), |v| {
+            translation_residuals(&ttrack, &tin, &w, v)
+        });
         for t in 0..6 {
             for c in 0..3 {
                 let energy_at = |sign: f64| {

@@ -296,8 +296,8 @@ impl StageKind for FitStage {
         let ingest = ctx.input("ingest")?.clone();
         let input = BodySequence::read(&ingest, "body")?;
         let model = read_body_model(&ingest)?;
-        let output = match config.mode {
-            FitMode::Off => input.clone(),
+        let (output, betas_averaged) = match config.mode {
+            FitMode::Off => (input.clone(), false),
             FitMode::Smooth => {
                 let started = std::time::Instant::now();
                 let (refined, summary) =
@@ -313,10 +313,7 @@ impl StageKind for FitStage {
                     summary.energy_after,
                     summary.max_iterations_used
                 ));
-                if summary.betas_averaged {
-                    ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
-                }
-                refined
+                (refined, summary.betas_averaged)
             }
             FitMode::Keypoints => {
                 let observations = keypoint_observations(
@@ -352,12 +349,14 @@ impl StageKind for FitStage {
                     summary.keypoint_distance_before * 1e3,
                     summary.keypoint_distance_after * 1e3,
                 ));
-                if summary.refine.betas_averaged {
-                    ctx.log("per-frame betas differed: replaced by their mean (shape is shared per subject)");
-                }
-                refined
+                (refined, summary.refine.betas_averaged)
             }
         };
+        if betas_averaged {
+            ctx.log(
+                "per-frame betas differed: replaced by their mean (shape is shared per subject)",
+            );
+        }
         let output = if config.mode == FitMode::Off {
             output
         } else {

@@ -44,14 +44,10 @@ impl IngestPlan {
         let frames: Vec<usize> = (start..=last).step_by(interval).collect();
         let position = |f: usize| (f - start) / interval;
         let mut frame_split = vec![0u8; frames.len()];
-        for &f in &train_frames {
-            frame_split[position(f)] |= 1;
-        }
-        for &f in &test_frames {
-            frame_split[position(f)] |= 2;
-        }
-        for &f in &held_out {
-            frame_split[position(f)] |= 2 | 4;
+        for (list, bits) in [(&train_frames, 1u8), (&test_frames, 2), (&held_out, 2 | 4)] {
+            for &f in list {
+                frame_split[position(f)] |= bits;
+            }
         }
         let mut views: Vec<usize> = split
             .train_views
@@ -63,19 +59,15 @@ impl IngestPlan {
         views.dedup();
         let view_position = |v: usize| views.binary_search(&v).expect("view comes from the split");
         let mut images = Vec::new();
-        for &v in &split.train_views {
-            for &f in &train_frames {
-                images.push((view_position(v), position(f), 0u8));
-            }
-        }
-        for &v in &split.test_views {
-            for &f in &test_frames {
-                images.push((view_position(v), position(f), 1u8));
-            }
-        }
-        for &v in &views {
-            for &f in &held_out {
-                images.push((view_position(v), position(f), 1u8));
+        for (view_list, frame_list, image_split) in [
+            (&split.train_views, &train_frames, 0u8),
+            (&split.test_views, &test_frames, 1),
+            (&views, &held_out, 1),
+        ] {
+            for &v in view_list {
+                for &f in frame_list {
+                    images.push((view_position(v), position(f), image_split));
+                }
             }
         }
         // The same (view, frame) in both splits is stored once, as training data.
@@ -222,6 +214,15 @@ mod tests {
     use super::*;
     use seqavatar_datasets::FrameRange;
 
+    /// Every frame.
+    fn all() -> FrameRange {
+        FrameRange {
+            start: 0,
+            end: None,
+            step: 1,
+        }
+    }
+
     fn split(
         train: &[usize],
         test: &[usize],
@@ -280,7 +281,7 @@ mod tests {
                 end: None,
                 step: 3,
             },
-            FrameRange::all(),
+            all(),
             3,
         );
         let plan = IngestPlan::new(&s, 1, 12, 1).unwrap();
@@ -293,12 +294,12 @@ mod tests {
                 end: None,
                 step: 2,
             },
-            FrameRange::all(),
+            all(),
             3,
         );
         let err = IngestPlan::new(&bad, 1, 12, 1).unwrap_err().to_string();
         assert!(err.contains("frame_interval"), "{err}");
-        let bad = split(&[5], &[], FrameRange::all(), FrameRange::all(), 1);
+        let bad = split(&[5], &[], all(), all(), 1);
         let err = IngestPlan::new(&bad, 2, 12, 0).unwrap_err().to_string();
         assert!(err.contains("split.train_views"), "{err}");
         let bad = split(
@@ -309,7 +310,7 @@ mod tests {
                 end: Some(40),
                 step: 1,
             },
-            FrameRange::all(),
+            all(),
             1,
         );
         let err = IngestPlan::new(&bad, 2, 12, 0).unwrap_err().to_string();
@@ -321,7 +322,7 @@ mod tests {
         let mut s = split(
             &[0, 2],
             &[1],
-            FrameRange::all(),
+            all(),
             FrameRange {
                 start: 0,
                 end: None,
@@ -354,7 +355,7 @@ mod tests {
         assert_eq!(plan.images.len(), 18 + 6 + 9);
         assert_eq!(plan.frame_split[2], 3);
         // Holding out every training frame is an error naming the field.
-        s.held_out_frames = Some(FrameRange::all());
+        s.held_out_frames = Some(all());
         let err = IngestPlan::new(&s, 3, 12, 0).unwrap_err().to_string();
         assert!(err.contains("split.held_out_frames"), "{err}");
     }
@@ -377,7 +378,7 @@ mod tests {
         let mut checked = 0;
         for (train, test) in views {
             for (train_frames, test_frames) in [
-                (FrameRange::all(), range(0, None, 2)),
+                (all(), range(0, None, 2)),
                 (range(2, Some(10), 2), range(0, None, 4)),
                 (range(0, Some(6), 1), range(4, Some(12), 1)),
             ] {
@@ -412,7 +413,7 @@ mod tests {
         let s = split(
             &(0..1024).filter(|v| v % 4 != 1).collect::<Vec<_>>(),
             &(1..1024).step_by(4).collect::<Vec<_>>(),
-            FrameRange::all(),
+            all(),
             range(0, None, 2),
             1,
         );

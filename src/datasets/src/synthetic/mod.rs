@@ -245,84 +245,73 @@ impl SyntheticConfig {
 
     /// Checks ranges; errors name the config field.
     fn validate_ranges(&self) -> anyhow::Result<()> {
-        let field = |name: &str| format!("dataset.{name}");
-        anyhow::ensure!(self.cameras >= 1, "{} must be at least 1", field("cameras"));
-        anyhow::ensure!(self.frames >= 1, "{} must be at least 1", field("frames"));
+        anyhow::ensure!(self.cameras >= 1, "dataset.cameras must be at least 1");
+        anyhow::ensure!(self.frames >= 1, "dataset.frames must be at least 1");
         anyhow::ensure!(
             self.fps.is_finite() && self.fps > 0.0,
-            "{} must be positive",
-            field("fps")
+            "dataset.fps must be positive"
         );
         anyhow::ensure!(
             (8..=8192).contains(&self.width) && (8..=8192).contains(&self.height),
-            "{} and {} must be within 8..8192 pixels",
-            field("width"),
-            field("height")
+            "dataset.width and dataset.height must be within 8..8192 pixels"
         );
         anyhow::ensure!(
             (1..=8).contains(&self.supersample),
-            "{} must be within 1..8",
-            field("supersample")
+            "dataset.supersample must be within 1..8"
         );
         anyhow::ensure!(
             !self.camera_distance.is_nan(),
-            "{} is not a number",
-            field("camera_distance")
+            "dataset.camera_distance is not a number"
         );
         anyhow::ensure!(
             self.camera_distance >= 2.0,
-            "{} = {} is too close to the subject: it must be at least 2 metres",
-            field("camera_distance"),
+            "dataset.camera_distance = {} is too close to the subject: it must be at least 2 \
+             metres",
             self.camera_distance
         );
         // Farther, the f32 camera coordinates the renderers use no longer resolve the
         // subject's depth (and by 1e155 the f64 projection overflows to infinity).
         anyhow::ensure!(
             self.camera_distance <= MAX_CAMERA_DISTANCE,
-            "{} = {} is too far from the subject: it must be at most {MAX_CAMERA_DISTANCE} \
-             metres, beyond which its projection loses precision and then is not finite",
-            field("camera_distance"),
+            "dataset.camera_distance = {} is too far from the subject: it must be at most \
+             {MAX_CAMERA_DISTANCE} metres, beyond which its projection loses precision and then \
+             is not finite",
             self.camera_distance
         );
         anyhow::ensure!(
             self.origin
                 .iter()
                 .all(|x| x.is_finite() && x.abs() <= MAX_ORIGIN),
-            "{} must be finite and within {MAX_ORIGIN} metres of zero on each axis",
-            field("origin")
+            "dataset.origin must be finite and within {MAX_ORIGIN} metres of zero on each axis"
         );
         anyhow::ensure!(
             self.betas.iter().all(|b| b.is_finite() && b.abs() <= 3.0),
-            "{} must be within -3..3",
-            field("betas")
+            "dataset.betas must be within -3..3"
         );
         anyhow::ensure!(
             (0.005..=0.05).contains(&self.body_grid_spacing),
-            "{} must be within 0.005..0.05 metres",
-            field("body_grid_spacing")
+            "dataset.body_grid_spacing must be within 0.005..0.05 metres"
         );
         anyhow::ensure!(
             (2..=96).contains(&self.skirt_stripes) && self.skirt_stripes.is_multiple_of(2),
-            "{} = {} must be even and within 2..96",
-            field("skirt_stripes"),
+            "dataset.skirt_stripes = {} must be even and within 2..96",
             self.skirt_stripes
         );
         anyhow::ensure!(
             self.garment_swing || self.scene == SceneKind::History,
-            "{} = false needs scene: history (the walk's skirt is a cloth simulation)",
-            field("garment_swing")
+            "dataset.garment_swing = false needs scene: history (the walk's skirt is a cloth \
+             simulation)"
         );
         if self.scene == SceneKind::History {
             anyhow::ensure!(
                 self.fps == history::FPS,
-                "{} must be {} for scene: history (its script is written in frames at that rate)",
-                field("fps"),
+                "dataset.fps must be {} for scene: history (its script is written in frames at \
+                 that rate)",
                 history::FPS
             );
             anyhow::ensure!(
                 self.frames <= history::LENGTH,
-                "{} must be at most {} for scene: history (the script's length)",
-                field("frames"),
+                "dataset.frames must be at most {} for scene: history (the script's length)",
                 history::LENGTH
             );
         }
@@ -336,8 +325,7 @@ impl SyntheticConfig {
             ]
             .iter()
             .all(|x| x.is_finite() && *x >= 0.0 && *x <= 1.0),
-            "{} values must be within 0..1",
-            field("jitter")
+            "dataset.jitter values must be within 0..1"
         );
         Ok(())
     }

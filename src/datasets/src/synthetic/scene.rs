@@ -17,7 +17,6 @@
 //! of each pixel either way, so a pixel is `m F + (1 - m) B` for foreground colour `F`,
 //! backdrop colour `B` and mask `m`.
 
-use rayon::prelude::*;
 use seqavatar_core::body::procedural::{self, procedural_body};
 use seqavatar_core::body::{BodyModel, BodyParams};
 use seqavatar_core::camera::{Camera, Intrinsics};
@@ -30,8 +29,8 @@ use super::raster::{EMPTY, rasterize};
 use super::rng::Rng;
 use super::{SceneKind, SyntheticBackground, SyntheticConfig};
 use crate::{
-    BodyModelKind, DatasetReader, FrameRange, GARMENT_STATE_COMPONENTS, GarmentHistory,
-    GarmentRegion, Keypoints3d, SourceCamera, SourceImage, Split,
+    BodyModelKind, DatasetReader, GARMENT_STATE_COMPONENTS, GarmentHistory, GarmentRegion,
+    Keypoints3d, SourceCamera, SourceImage, Split,
 };
 
 /// Garment simulation rate (substeps per second).
@@ -378,10 +377,6 @@ fn walk_sequence(
             "garment simulation recorded {} of {} frames",
             skirt_frames.len(),
             config.frames
-        );
-        anyhow::ensure!(
-            skirt_frames.iter().flatten().all(|p| p.is_finite()),
-            "garment simulation diverged"
         );
     }
     Ok(SceneSequence {
@@ -809,38 +804,15 @@ impl SyntheticScene {
         }
         Ok((SourceImage { rgb, mask }, garment))
     }
-
-    /// Renders every view of a frame in parallel (used by tests and previews).
-    pub fn render_frame(&self, frame: usize) -> anyhow::Result<Vec<SourceImage>> {
-        (0..self.cameras.len())
-            .into_par_iter()
-            .map(|v| self.render(v, frame))
-            .collect()
-    }
 }
 
 /// The synthetic scene's split for `n` cameras (what `default_split` gives; also resolved
 /// from the config alone when the pipeline loads): every fourth camera (1, 5, ...) is a test
 /// view, the others train; training uses every frame, testing every second frame.
 pub fn default_split(n: usize) -> Split {
-    let test_views: Vec<usize> = if n >= 2 {
-        (1..n).step_by(4).collect()
-    } else {
-        Vec::new()
-    };
+    let test_views: Vec<usize> = (1..n).step_by(4).collect();
     let train_views = (0..n).filter(|v| !test_views.contains(v)).collect();
-    Split {
-        train_views,
-        test_views,
-        train_frames: FrameRange::all(),
-        test_frames: FrameRange {
-            start: 0,
-            end: None,
-            step: 2,
-        },
-        frame_interval: 1,
-        held_out_frames: None,
-    }
+    Split::first_frames(train_views, test_views, None, 2)
 }
 
 impl DatasetReader for SyntheticScene {
@@ -859,8 +831,6 @@ impl DatasetReader for SyntheticScene {
         self.config.frames
     }
 
-    /// Every fourth camera (1, 5, ...) is a test view, the others train; training uses every
-    /// frame, testing every second frame.
     fn default_split(&self) -> Split {
         default_split(self.cameras.len())
     }
@@ -942,6 +912,15 @@ impl DatasetReader for SyntheticScene {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rayon::prelude::*;
+
+    /// Renders every view of a frame in parallel.
+    fn render_frame(scene: &SyntheticScene, frame: usize) -> anyhow::Result<Vec<SourceImage>> {
+        (0..scene.cameras.len())
+            .into_par_iter()
+            .map(|v| scene.render(v, frame))
+            .collect()
+    }
 
     #[test]
     fn static_drape_removes_the_swing_and_renders_in_place_of_the_skirt() {
@@ -1244,7 +1223,7 @@ mod tests {
         let scene = SyntheticScene::generate(&SyntheticConfig::default()).unwrap();
         let generated = started.elapsed();
         let started = std::time::Instant::now();
-        let images = scene.render_frame(24).unwrap();
+        let images = render_frame(&scene, 24).unwrap();
         let rendered = started.elapsed();
         println!(
             "default synthetic scene: generate {:.2} s, render {} views {:.3} s ({:.1} ms per image)",
