@@ -6,8 +6,8 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use seqavatar_compute::backend::{Backend, DeviceChoice};
+use seqavatar_engine::RunOptions;
 use seqavatar_engine::commands::{self, InspectOptions};
-use seqavatar_engine::{Registry, RunOptions};
 
 /// SeqAvatar: multi-view videos of a moving person to an animatable 3D Gaussian avatar.
 #[derive(Debug, Parser)]
@@ -183,12 +183,8 @@ enum Command {
     },
 }
 
-fn registry() -> Registry {
-    seqavatar_registry::registry()
-}
-
 fn execute(cli: Cli) -> anyhow::Result<()> {
-    let registry = registry();
+    let registry = seqavatar_registry::registry();
     let cache = cli
         .cache
         .or_else(|| std::env::var_os("SEQAVATAR_CACHE").map(PathBuf::from))
@@ -260,12 +256,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 options.out.display(),
                 summary.seconds
             );
-            if summary.skipped > 0 {
-                println!(
-                    "skipped frames 0..{}: their motion windows reach before the first frame of the pose entry",
-                    summary.skipped
-                );
-            }
+            print_skipped(summary.skipped);
             match (&summary.video, &summary.video_note) {
                 (Some(video), _) => println!("video: {}", video.display()),
                 (None, Some(note)) => println!("{note}"),
@@ -299,12 +290,7 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
                 options.out.display(),
                 summary.seconds
             );
-            if summary.skipped > 0 {
-                println!(
-                    "skipped frames 0..{}: their motion windows reach before the first frame of the pose entry",
-                    summary.skipped
-                );
-            }
+            print_skipped(summary.skipped);
         }
         Command::View {
             target,
@@ -379,6 +365,15 @@ fn execute(cli: Cli) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Says which leading frames `render` or `export` skipped (`skipped` of them), if any.
+fn print_skipped(skipped: usize) {
+    if skipped > 0 {
+        println!(
+            "skipped frames 0..{skipped}: their motion windows reach before the first frame of the pose entry"
+        );
+    }
 }
 
 /// An entry named on the command line (a cache entry folder, a key or a key prefix, or a

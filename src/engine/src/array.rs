@@ -105,22 +105,6 @@ impl<T> NdArray<T> {
     pub fn get(&self, index: &[usize]) -> Option<&T> {
         self.offset(index).map(|offset| &self.data[offset])
     }
-
-    /// The contiguous block of elements whose leading indices are `prefix`.
-    pub fn sub_slice(&self, prefix: &[usize]) -> Option<&[T]> {
-        if prefix.len() > self.shape.len() {
-            return None;
-        }
-        let inner: usize = self.shape[prefix.len()..].iter().product();
-        let mut offset = 0usize;
-        for (&position, &extent) in prefix.iter().zip(&self.shape) {
-            if position >= extent {
-                return None;
-            }
-            offset = offset * extent + position;
-        }
-        Some(&self.data[offset * inner..(offset + 1) * inner])
-    }
 }
 
 /// The product of `values`, or `None` on overflow.
@@ -141,7 +125,6 @@ mod tests {
         assert_eq!(array.get(&[1, 0, 2]), Some(&14));
         assert_eq!(array.get(&[2, 0, 0]), None);
         assert_eq!(array.get(&[0, 0]), None);
-        assert_eq!(array.sub_slice(&[1, 1]), Some(&[16, 17, 18, 19][..]));
     }
 
     #[test]

@@ -116,20 +116,13 @@ fn check_array_name(name: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-#[derive(Debug, Clone)]
-struct ArraySpec {
-    dtype: &'static str,
-    shape: Vec<u64>,
-    chunk_shape: Vec<u64>,
-    dimension_names: Vec<String>,
-}
-
 /// Writes the arrays and attributes of one entry into its staging group. `Sync`: arrays can be
 /// created and written from many threads (distinct chunks only).
 pub struct EntryWriter {
     root: PathBuf,
     store: Arc<FilesystemStore>,
-    arrays: Mutex<BTreeMap<String, ArraySpec>>,
+    /// The manifest records of the arrays created so far, digests filled in by `finish`.
+    arrays: Mutex<BTreeMap<String, ManifestArray>>,
     attributes: Mutex<serde_json::Map<String, serde_json::Value>>,
     array_metadata_lock: Mutex<()>,
 }
@@ -192,11 +185,13 @@ impl EntryWriter {
             );
             arrays.insert(
                 name.to_string(),
-                ArraySpec {
-                    dtype: T::DTYPE,
+                ManifestArray {
+                    dtype: T::DTYPE.to_string(),
                     shape: shape.to_vec(),
                     chunk_shape: chunk_shape.to_vec(),
                     dimension_names: dimension_names.iter().map(|d| d.to_string()).collect(),
+                    digest: String::new(),
+                    files: BTreeMap::new(),
                 },
             );
         }
@@ -302,22 +297,11 @@ impl EntryWriter {
     /// Digests every array and writes the group metadata with the stage attributes and the
     /// manifest (whose `arrays` field is filled in here).
     pub(crate) fn finish(&self, manifest: &mut Manifest) -> anyhow::Result<()> {
-        let specs = self.arrays.lock().expect("array table poisoned").clone();
+        let mut arrays = self.arrays.lock().expect("array table poisoned").clone();
         let storage: ReadableListableStorage = self.store.clone();
-        let mut arrays = BTreeMap::new();
-        for (name, spec) in specs {
-            let files = digest_array_files(&storage, &name)?;
-            arrays.insert(
-                name,
-                ManifestArray {
-                    dtype: spec.dtype.to_string(),
-                    shape: spec.shape,
-                    chunk_shape: spec.chunk_shape,
-                    dimension_names: spec.dimension_names,
-                    digest: combined_digest(&files),
-                    files,
-                },
-            );
+        for (name, record) in &mut arrays {
+            record.files = digest_array_files(&storage, name)?;
+            record.digest = crate::key::combined_digest(&record.files);
         }
         manifest.arrays = arrays;
         let mut attributes = self
@@ -377,17 +361,6 @@ fn digest_array_files(
 
 fn group_metadata_key() -> StoreKey {
     StoreKey::new(GROUP_METADATA_KEY).expect("zarr.json is a valid store key")
-}
-
-fn combined_digest(files: &BTreeMap<String, String>) -> String {
-    let mut hasher = blake3::Hasher::new();
-    for (key, digest) in files {
-        hasher.update(key.as_bytes());
-        hasher.update(&[0]);
-        hasher.update(digest.as_bytes());
-        hasher.update(&[0]);
-    }
-    hasher.finalize().to_hex().to_string()
 }
 
 /// Writes one array of an entry. `Sync`: distinct chunks may be written from many threads.
@@ -504,7 +477,7 @@ pub struct EntryReader {
     attributes: serde_json::Map<String, serde_json::Value>,
     /// The read lease `gc` respects, held while this reader or a clone of it lives (set by
     /// [`crate::open_leased_verified`]).
-    lease: Option<std::sync::Arc<std::sync::Mutex<Box<dyn ReadLease>>>>,
+    _lease: Option<std::sync::Arc<std::sync::Mutex<Box<dyn ReadLease>>>>,
 }
 
 impl std::fmt::Debug for EntryReader {
@@ -534,19 +507,14 @@ impl EntryReader {
             location: location.to_string(),
             manifest,
             attributes,
-            lease: None,
+            _lease: None,
         })
     }
 
     /// This reader, holding `lease` until it and all its clones are dropped.
     pub fn holding(mut self, lease: Box<dyn ReadLease>) -> Self {
-        self.lease = Some(std::sync::Arc::new(std::sync::Mutex::new(lease)));
+        self._lease = Some(std::sync::Arc::new(std::sync::Mutex::new(lease)));
         self
-    }
-
-    /// Whether this reader holds a read lease.
-    pub fn holds_lease(&self) -> bool {
-        self.lease.is_some()
     }
 
     /// Where the entry lives (a path or URL), for messages.
@@ -607,12 +575,15 @@ impl EntryReader {
 
     /// The data type name of array `name` (`float32`, ...).
     pub fn dtype(&self, name: &str) -> anyhow::Result<String> {
-        let record = self
-            .manifest
+        Ok(self.record(name)?.dtype.clone())
+    }
+
+    /// The manifest's record of array `name`.
+    fn record(&self, name: &str) -> anyhow::Result<&ManifestArray> {
+        self.manifest
             .arrays
             .get(name)
-            .ok_or_else(|| anyhow::anyhow!("entry {}: no array \"{name}\"", self.location))?;
-        Ok(record.dtype.clone())
+            .ok_or_else(|| anyhow::anyhow!("entry {}: no array \"{name}\"", self.location))
     }
 
     fn checked_array<T: Element>(
@@ -640,14 +611,7 @@ impl EntryReader {
     pub fn read<T: Element>(&self, name: &str) -> anyhow::Result<NdArray<T>> {
         let array = self.checked_array::<T>(name)?;
         let shape = array.shape().to_vec();
-        let subset = array.subset_all();
-        self.check_chunks(name, &array, &subset)?;
-        let data: Vec<T> = array
-            .retrieve_array_subset(&subset)
-            .with_context(|| format!("entry {}: cannot read array \"{name}\"", self.location))?;
-        // A chunk removed while it was read would have come back as the fill value.
-        self.check_chunks(name, &array, &subset)?;
-        NdArray::new(to_usize_shape(&shape)?, data)
+        self.read_subset(name, &array, &array.subset_all(), &shape, "")
     }
 
     /// Reads the region of `shape` starting at `start` of array `name`.
@@ -660,14 +624,28 @@ impl EntryReader {
         let array = self.checked_array::<T>(name)?;
         let ranges = region_ranges(name, array.shape(), start, shape)?;
         let subset = ArraySubset::new_with_ranges(&ranges);
-        self.check_chunks(name, &array, &subset)?;
-        let data: Vec<T> = array.retrieve_array_subset(&subset).with_context(|| {
+        self.read_subset(name, &array, &subset, shape, "a region of ")
+    }
+
+    /// Reads `subset` (of `shape`) of array `name`, its chunks checked against the manifest
+    /// before and after; `what` says in errors what was read (`a region of ` or nothing).
+    fn read_subset<T: Element>(
+        &self,
+        name: &str,
+        array: &Array<dyn zarrs::storage::ReadableListableStorageTraits>,
+        subset: &ArraySubset,
+        shape: &[u64],
+        what: &str,
+    ) -> anyhow::Result<NdArray<T>> {
+        self.check_chunks(name, array, subset)?;
+        let data: Vec<T> = array.retrieve_array_subset(subset).with_context(|| {
             format!(
-                "entry {}: cannot read a region of array \"{name}\"",
+                "entry {}: cannot read {what}array \"{name}\"",
                 self.location
             )
         })?;
-        self.check_chunks(name, &array, &subset)?;
+        // A chunk removed while it was read would have come back as the fill value.
+        self.check_chunks(name, array, subset)?;
         NdArray::new(to_usize_shape(shape)?, data)
     }
 
@@ -709,11 +687,7 @@ impl EntryReader {
         array: &Array<dyn zarrs::storage::ReadableListableStorageTraits>,
         subset: &ArraySubset,
     ) -> anyhow::Result<()> {
-        let record = self
-            .manifest
-            .arrays
-            .get(name)
-            .ok_or_else(|| anyhow::anyhow!("entry {}: no array \"{name}\"", self.location))?;
+        let record = self.record(name)?;
         let chunks = array
             .chunks_in_array_subset(subset)
             .ok()
@@ -738,20 +712,17 @@ impl EntryReader {
                     )
                 })?
                 .is_some();
-            if listed && !present {
+            if listed != present {
                 anyhow::bail!(
-                    "entry {} ({}): array \"{name}\": chunk file {} is listed in the manifest but missing from the store",
+                    "entry {} ({}): array \"{name}\": chunk file {} {}",
                     self.manifest.stage_name,
                     self.location,
-                    key.as_str()
-                );
-            }
-            if present && !listed {
-                anyhow::bail!(
-                    "entry {} ({}): array \"{name}\": chunk file {} is stored but not listed in the manifest",
-                    self.manifest.stage_name,
-                    self.location,
-                    key.as_str()
+                    key.as_str(),
+                    if listed {
+                        "is listed in the manifest but missing from the store"
+                    } else {
+                        "is stored but not listed in the manifest"
+                    }
                 );
             }
         }

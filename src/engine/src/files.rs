@@ -96,6 +96,26 @@ fn pseudo_file_error(path: &Path, name: &str) -> anyhow::Error {
     )
 }
 
+/// Refuses `path` when `statfs` (the call `stat`, filling the buffer it is given, returning
+/// 0 on success) says it lies on a kernel file system.
+#[cfg(target_os = "linux")]
+fn check_file_system(
+    path: &Path,
+    stat: impl FnOnce(*mut libc::statfs) -> libc::c_int,
+) -> anyhow::Result<()> {
+    let mut stats = std::mem::MaybeUninit::<libc::statfs>::uninit();
+    if stat(stats.as_mut_ptr()) != 0 {
+        return Err(std::io::Error::last_os_error())
+            .with_context(|| format!("cannot read the file system of {}", path.display()));
+    }
+    // SAFETY: the call returned 0, so it filled `stats`.
+    let stats = unsafe { stats.assume_init() };
+    match pseudo_file_system(&stats) {
+        Some(name) => Err(pseudo_file_error(path, name)),
+        None => Ok(()),
+    }
+}
+
 /// Refuses `path` when it lies on a kernel file system (by `statfs`; a no-op off Linux).
 fn check_file_system_of_path(path: &Path) -> anyhow::Result<()> {
     #[cfg(target_os = "linux")]
@@ -103,19 +123,11 @@ fn check_file_system_of_path(path: &Path) -> anyhow::Result<()> {
         use std::os::unix::ffi::OsStrExt as _;
         let c_path = std::ffi::CString::new(path.as_os_str().as_bytes())
             .with_context(|| format!("{} holds a NUL byte", path.display()))?;
-        let mut stats = std::mem::MaybeUninit::<libc::statfs>::uninit();
         // SAFETY: `c_path` is a NUL-terminated string that outlives the call, and `stats`
         // points to writable memory of the size of `struct statfs`.
-        let result = unsafe { libc::statfs(c_path.as_ptr(), stats.as_mut_ptr()) };
-        if result != 0 {
-            return Err(std::io::Error::last_os_error())
-                .with_context(|| format!("cannot read the file system of {}", path.display()));
-        }
-        // SAFETY: `statfs` returned 0, so it filled `stats`.
-        let stats = unsafe { stats.assume_init() };
-        if let Some(name) = pseudo_file_system(&stats) {
-            return Err(pseudo_file_error(path, name));
-        }
+        check_file_system(path, |stats| unsafe {
+            libc::statfs(c_path.as_ptr(), stats)
+        })?;
     }
     #[cfg(not(target_os = "linux"))]
     let _ = path;
@@ -127,19 +139,11 @@ fn check_file_system_of_handle(file: &fs::File, path: &Path) -> anyhow::Result<(
     #[cfg(target_os = "linux")]
     {
         use std::os::fd::AsRawFd as _;
-        let mut stats = std::mem::MaybeUninit::<libc::statfs>::uninit();
         // SAFETY: the descriptor belongs to `file`, open for the whole call, and `stats`
         // points to writable memory of the size of `struct statfs`.
-        let result = unsafe { libc::fstatfs(file.as_raw_fd(), stats.as_mut_ptr()) };
-        if result != 0 {
-            return Err(std::io::Error::last_os_error())
-                .with_context(|| format!("cannot read the file system of {}", path.display()));
-        }
-        // SAFETY: `fstatfs` returned 0, so it filled `stats`.
-        let stats = unsafe { stats.assume_init() };
-        if let Some(name) = pseudo_file_system(&stats) {
-            return Err(pseudo_file_error(path, name));
-        }
+        check_file_system(path, |stats| unsafe {
+            libc::fstatfs(file.as_raw_fd(), stats)
+        })?;
     }
     #[cfg(not(target_os = "linux"))]
     let _ = (file, path);

@@ -147,6 +147,7 @@ pub struct FileDigests {
     memo_path: PathBuf,
     memo: BTreeMap<String, MemoRecord>,
     changed: bool,
+    /// How many files were read and hashed (not answered from the memo) since loading.
     hashed: usize,
     /// Canonical folders left out of folder digests (the cache, when it lies inside a
     /// dataset folder: it changes on every run).
@@ -177,11 +178,6 @@ impl FileDigests {
         }
     }
 
-    /// How many files were read and hashed (not answered from the memo) since loading.
-    pub fn files_hashed(&self) -> usize {
-        self.hashed
-    }
-
     /// Digest of a regular file, or of a folder (every regular file under it, by relative
     /// path, walked by [`crate::files::walk_regular_files`]: links out of the folder,
     /// devices, FIFOs and sockets are errors; excluded folders are skipped).
@@ -189,16 +185,12 @@ impl FileDigests {
         let metadata = fs::metadata(path)
             .with_context(|| format!("external input {} cannot be read", path.display()))?;
         if metadata.is_dir() {
-            let files = crate::files::walk_regular_files(path, &self.excluded)?;
-            let mut hasher = blake3::Hasher::new();
-            for relative in files {
+            let mut digests = BTreeMap::new();
+            for relative in crate::files::walk_regular_files(path, &self.excluded)? {
                 let digest = self.digest(&path.join(&relative))?;
-                hasher.update(relative.as_bytes());
-                hasher.update(&[0]);
-                hasher.update(digest.as_bytes());
-                hasher.update(&[0]);
+                digests.insert(relative, digest);
             }
-            return Ok(format!("dir:{}", hasher.finalize().to_hex()));
+            return Ok(format!("dir:{}", combined_digest(&digests)));
         }
         let metadata = crate::files::regular_file_metadata(path)
             .with_context(|| format!("external input {}", path.display()))?;
@@ -247,6 +239,18 @@ impl FileDigests {
         self.changed = false;
         Ok(())
     }
+}
+
+/// blake3 over sorted (name, digest) pairs: of a folder's files, or of an array's stored files.
+pub(crate) fn combined_digest(files: &BTreeMap<String, String>) -> String {
+    let mut hasher = blake3::Hasher::new();
+    for (key, digest) in files {
+        hasher.update(key.as_bytes());
+        hasher.update(&[0]);
+        hasher.update(digest.as_bytes());
+        hasher.update(&[0]);
+    }
+    hasher.finalize().to_hex().to_string()
 }
 
 fn hash_file(path: &Path) -> anyhow::Result<String> {
@@ -322,7 +326,7 @@ mod tests {
             assert!(error.contains("kernel's proc file system"), "{error}");
             assert!(error.contains(name), "{error}");
         }
-        assert_eq!(digests.files_hashed(), 0);
+        assert_eq!(digests.hashed, 0);
     }
 
     fn key_of(config: serde_json::Value, inputs: &[&str], version: u32) -> String {
@@ -440,13 +444,13 @@ mod tests {
         let memo_path = dir.path().join("memo.json");
         let mut digests = FileDigests::load(&memo_path);
         let original = digests.digest(&folder).unwrap();
-        assert_eq!(digests.files_hashed(), 2);
+        assert_eq!(digests.hashed, 2);
         digests.save().unwrap();
 
         // Nothing changed: answered from the memo, no file read.
         let mut unchanged = FileDigests::load(&memo_path);
         assert_eq!(unchanged.digest(&folder).unwrap(), original);
-        assert_eq!(unchanged.files_hashed(), 0);
+        assert_eq!(unchanged.hashed, 0);
 
         // Same size, modification time set back: the change time still moves.
         let modified = fs::metadata(&image).unwrap().modified().unwrap();
@@ -465,6 +469,6 @@ mod tests {
             after_edit, original,
             "a same-size edit must change the digest"
         );
-        assert_eq!(edited.files_hashed(), 1, "only the edited file is read");
+        assert_eq!(edited.hashed, 1, "only the edited file is read");
     }
 }

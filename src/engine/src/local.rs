@@ -235,27 +235,18 @@ impl LocalStore {
         self.root.join(STAGING_DIR).join(&id.kind).join(&id.key)
     }
 
-    fn lock_path(&self, id: &EntryId) -> PathBuf {
+    /// The lock file `<key>.lock` of an entry, or with `extension` `read` its reader lock file.
+    fn lock_path(&self, id: &EntryId, extension: &str) -> PathBuf {
         self.root
             .join(LOCKS_DIR)
             .join(&id.kind)
-            .join(format!("{}.lock", id.key))
+            .join(format!("{}.{extension}", id.key))
     }
 
-    fn read_lock_path(&self, id: &EntryId) -> PathBuf {
-        self.root
-            .join(LOCKS_DIR)
-            .join(&id.kind)
-            .join(format!("{}.read", id.key))
-    }
-
-    fn open_lock_file(&self, id: &EntryId) -> anyhow::Result<File> {
-        self.open_lock_file_at(id, self.lock_path(id))
-    }
-
-    /// Opens (making it if needed) a lock file; a cache that cannot be written here is a
-    /// [`ReadOnlyCache`] error.
-    fn open_lock_file_at(&self, id: &EntryId, path: PathBuf) -> anyhow::Result<File> {
+    /// Opens (making it if needed) the lock file [`LocalStore::lock_path`] and returns it with
+    /// its path; a cache that cannot be written here is a [`ReadOnlyCache`] error.
+    fn open_lock_file(&self, id: &EntryId, extension: &str) -> anyhow::Result<(File, PathBuf)> {
+        let path = self.lock_path(id, extension);
         check_component("stage kind", &id.kind)?;
         check_component("key", &id.key)?;
         let read_only = |reason: std::io::Error| ReadOnlyCache {
@@ -268,15 +259,18 @@ impl LocalStore {
                 result => result.with_context(|| format!("cannot create {}", parent.display()))?,
             }
         }
-        match OpenOptions::new()
+        let file = match OpenOptions::new()
             .create(true)
             .truncate(false)
             .write(true)
             .open(&path)
         {
-            Err(error) if is_read_only(&error) => Err(read_only(error).into()),
-            result => result.with_context(|| format!("cannot open lock file {}", path.display())),
-        }
+            Err(error) if is_read_only(&error) => return Err(read_only(error).into()),
+            result => {
+                result.with_context(|| format!("cannot open lock file {}", path.display()))?
+            }
+        };
+        Ok((file, path))
     }
 
     fn trash_destination(&self, id: &EntryId) -> PathBuf {
@@ -289,6 +283,17 @@ impl LocalStore {
             id.key,
             std::process::id()
         ))
+    }
+
+    /// The `<kind>/<key>` folders under `dir`, as entry ids, sorted.
+    fn ids_under(dir: &Path) -> Vec<EntryId> {
+        let mut ids = Vec::new();
+        for kind in Self::plain_subdirs(dir) {
+            for key in Self::plain_subdirs(&dir.join(&kind)) {
+                ids.push(EntryId::new(&kind, &key));
+            }
+        }
+        ids
     }
 
     /// Sub-folders of `dir` that are plain names (kinds or keys), sorted.
@@ -337,9 +342,8 @@ impl Store for LocalStore {
     }
 
     fn read_lease(&self, id: &EntryId) -> anyhow::Result<Box<dyn ReadLease>> {
-        let path = self.read_lock_path(id);
-        let file = match self.open_lock_file_at(id, path.clone()) {
-            Ok(file) => file,
+        let (file, path) = match self.open_lock_file(id, "read") {
+            Ok(opened) => opened,
             Err(error) => match error.downcast::<ReadOnlyCache>() {
                 Ok(read_only) => {
                     note_unleased_reads(&read_only);
@@ -354,30 +358,17 @@ impl Store for LocalStore {
     }
 
     fn try_exclusive_read_lease(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn ReadLease>>> {
-        let path = self.read_lock_path(id);
-        let file = self.open_lock_file_at(id, path.clone())?;
-        match file.try_lock() {
-            Ok(()) => Ok(Some(Box::new(LocalReadLease { _file: file }))),
-            Err(fs::TryLockError::WouldBlock) => Ok(None),
-            Err(fs::TryLockError::Error(error)) => {
-                Err(error).with_context(|| format!("cannot lock {}", path.display()))
-            }
-        }
+        let (file, path) = self.open_lock_file(id, "read")?;
+        Ok(try_lock_file(&file, &path)?
+            .then(|| Box::new(LocalReadLease { _file: file }) as Box<dyn ReadLease>))
     }
 
     fn lock(&self, id: &EntryId, on_wait: &mut dyn FnMut()) -> anyhow::Result<Box<dyn KeyLock>> {
-        let file = self.open_lock_file(id)?;
-        match file.try_lock() {
-            Ok(()) => {}
-            Err(fs::TryLockError::WouldBlock) => {
-                on_wait();
-                file.lock()
-                    .with_context(|| format!("cannot lock {}", self.lock_path(id).display()))?;
-            }
-            Err(fs::TryLockError::Error(error)) => {
-                return Err(error)
-                    .with_context(|| format!("cannot lock {}", self.lock_path(id).display()));
-            }
+        let (file, path) = self.open_lock_file(id, "lock")?;
+        if !try_lock_file(&file, &path)? {
+            on_wait();
+            file.lock()
+                .with_context(|| format!("cannot lock {}", path.display()))?;
         }
         Ok(Box::new(LocalLock {
             id: id.clone(),
@@ -386,17 +377,13 @@ impl Store for LocalStore {
     }
 
     fn try_lock(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn KeyLock>>> {
-        let file = self.open_lock_file(id)?;
-        match file.try_lock() {
-            Ok(()) => Ok(Some(Box::new(LocalLock {
+        let (file, path) = self.open_lock_file(id, "lock")?;
+        Ok(try_lock_file(&file, &path)?.then(|| {
+            Box::new(LocalLock {
                 id: id.clone(),
                 _file: file,
-            }))),
-            Err(fs::TryLockError::WouldBlock) => Ok(None),
-            Err(fs::TryLockError::Error(error)) => {
-                Err(error).with_context(|| format!("cannot lock {}", self.lock_path(id).display()))
-            }
-        }
+            }) as Box<dyn KeyLock>
+        }))
     }
 
     fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging> {
@@ -419,14 +406,7 @@ impl Store for LocalStore {
     }
 
     fn staged(&self) -> anyhow::Result<Vec<EntryId>> {
-        let staging_root = self.root.join(STAGING_DIR);
-        let mut ids = Vec::new();
-        for kind in Self::plain_subdirs(&staging_root) {
-            for key in Self::plain_subdirs(&staging_root.join(&kind)) {
-                ids.push(EntryId::new(&kind, &key));
-            }
-        }
-        Ok(ids)
+        Ok(Self::ids_under(&self.root.join(STAGING_DIR)))
     }
 
     fn remove_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<u64> {
@@ -500,12 +480,9 @@ impl Store for LocalStore {
 
     fn list(&self) -> anyhow::Result<Vec<EntryId>> {
         let mut ids = Vec::new();
-        for kind in Self::plain_subdirs(&self.root) {
-            for key in Self::plain_subdirs(&self.root.join(&kind)) {
-                let id = EntryId::new(&kind, &key);
-                if self.entry_state(&id)? == EntryState::Complete {
-                    ids.push(id);
-                }
+        for id in Self::ids_under(&self.root) {
+            if self.entry_state(&id)? == EntryState::Complete {
+                ids.push(id);
             }
         }
         Ok(ids)
@@ -545,39 +522,44 @@ impl LocalStore {
     /// [`Store::clean_leftovers`], failing with [`ReadOnlyCache`] in a read-only cache.
     fn clean_leftovers_writable(&self) -> anyhow::Result<Vec<String>> {
         let mut removed = Vec::new();
-        let staging_root = self.root.join(STAGING_DIR);
-        for kind in Self::plain_subdirs(&staging_root) {
-            for key in Self::plain_subdirs(&staging_root.join(&kind)) {
-                let id = EntryId::new(&kind, &key);
-                let Some(lock) = self.try_lock(&id)? else {
-                    continue; // A live run owns it.
-                };
-                let staging_dir = self.staging_dir(&id);
-                if remove_dir_if_present(&staging_dir.join(STAGING_OUTPUT))? {
-                    removed.push(format!("partial output of {id} (killed run)"));
-                }
-                if !self.has_resumable_work(&id) {
-                    remove_dir_if_present(&staging_dir)?;
-                }
+        for id in Self::ids_under(&self.root.join(STAGING_DIR)) {
+            let Some(lock) = self.try_lock(&id)? else {
+                continue; // A live run owns it.
+            };
+            let staging_dir = self.staging_dir(&id);
+            if remove_dir_if_present(&staging_dir.join(STAGING_OUTPUT))? {
+                removed.push(format!("partial output of {id} (killed run)"));
+            }
+            if !self.has_resumable_work(&id) {
+                remove_dir_if_present(&staging_dir)?;
+            }
+            drop(lock);
+        }
+        for id in Self::ids_under(&self.root) {
+            if self.entry_state(&id)? != EntryState::Incomplete {
+                continue;
+            }
+            if let Some(lock) = self.try_lock(&id)?
+                && self.entry_state(&id)? == EntryState::Incomplete
+            {
+                remove_dir_if_present(&self.entry_dir(&id))?;
+                removed.push(format!("unpublished entry {id} (interrupted publish)"));
                 drop(lock);
             }
         }
-        for kind in Self::plain_subdirs(&self.root) {
-            for key in Self::plain_subdirs(&self.root.join(&kind)) {
-                let id = EntryId::new(&kind, &key);
-                if self.entry_state(&id)? != EntryState::Incomplete {
-                    continue;
-                }
-                if let Some(lock) = self.try_lock(&id)?
-                    && self.entry_state(&id)? == EntryState::Incomplete
-                {
-                    remove_dir_if_present(&self.entry_dir(&id))?;
-                    removed.push(format!("unpublished entry {id} (interrupted publish)"));
-                    drop(lock);
-                }
-            }
-        }
         Ok(removed)
+    }
+}
+
+/// Takes the exclusive `flock` of the lock file `file` (named `path` in errors) without
+/// waiting; `false` when another process holds it.
+fn try_lock_file(file: &File, path: &Path) -> anyhow::Result<bool> {
+    match file.try_lock() {
+        Ok(()) => Ok(true),
+        Err(fs::TryLockError::WouldBlock) => Ok(false),
+        Err(fs::TryLockError::Error(error)) => {
+            Err(error).with_context(|| format!("cannot lock {}", path.display()))
+        }
     }
 }
 

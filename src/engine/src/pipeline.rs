@@ -96,6 +96,16 @@ impl Loader<'_> {
             message,
         }
     }
+
+    /// The error at `path` for a value of the wrong type: `expected`, then what was found.
+    fn unexpected(
+        &self,
+        path: &[ConfigPathSegment],
+        expected: &str,
+        found: &serde_json::Value,
+    ) -> PipelineError {
+        self.at(path, format!("{expected}, found {}", type_name(found)))
+    }
 }
 
 impl Pipeline {
@@ -105,6 +115,10 @@ impl Pipeline {
         registry: &Registry,
         overrides: &[String],
     ) -> Result<Self, PipelineError> {
+        let general = |message| PipelineError::General {
+            file: file.display().to_string(),
+            message,
+        };
         // Through the checked open: a FIFO, a device or a `/proc` file as the pipeline is
         // refused at once, and a file over the size bound is never read.
         let bytes = crate::files::read_regular_file_at_most(
@@ -112,14 +126,9 @@ impl Pipeline {
             crate::yaml_lines::MAX_YAML_BYTES as u64,
             "a pipeline file",
         )
-        .map_err(|error| PipelineError::General {
-            file: file.display().to_string(),
-            message: format!("cannot read: {error:#}"),
-        })?;
-        let text = String::from_utf8(bytes).map_err(|error| PipelineError::General {
-            file: file.display().to_string(),
-            message: format!("not UTF-8 text: {error}"),
-        })?;
+        .map_err(|error| general(format!("cannot read: {error:#}")))?;
+        let text = String::from_utf8(bytes)
+            .map_err(|error| general(format!("not UTF-8 text: {error}")))?;
         Self::parse(&text, file, registry, overrides)
     }
 
@@ -265,12 +274,10 @@ impl Loader<'_> {
                     None | Some(serde_json::Value::Null) => None,
                     Some(serde_json::Value::String(text)) => Some(text.clone()),
                     Some(other) => {
-                        return Err(self.at(
+                        return Err(self.unexpected(
                             &[key("description")],
-                            format!(
-                                "key \"description\": expected a string, found {}",
-                                type_name(other)
-                            ),
+                            "key \"description\": expected a string",
+                            other,
                         ));
                     }
                 };
@@ -280,12 +287,10 @@ impl Loader<'_> {
                         stage_values: items.clone(),
                         stages_path: vec![key("stages")],
                     }),
-                    Some(other) => Err(self.at(
+                    Some(other) => Err(self.unexpected(
                         &[key("stages")],
-                        format!(
-                            "key \"stages\": expected a list of stages, found {}",
-                            type_name(other)
-                        ),
+                        "key \"stages\": expected a list of stages",
+                        other,
                     )),
                     None => {
                         Err(self.at(&[], "missing key \"stages\" (a list of stages)".to_string()))
@@ -297,13 +302,7 @@ impl Loader<'_> {
                 stage_values: items.clone(),
                 stages_path: vec![],
             }),
-            other => Err(self.at(
-                &[],
-                format!(
-                    "expected a mapping with a \"stages\" list, found {}",
-                    type_name(other)
-                ),
-            )),
+            other => Err(self.unexpected(&[], "expected a mapping with a \"stages\" list", other)),
         }
     }
 
@@ -495,13 +494,13 @@ impl Loader<'_> {
         path: &[ConfigPathSegment],
     ) -> Result<(StageSpec, serde_json::Value), PipelineError> {
         let serde_json::Value::Object(map) = value else {
-            return Err(self.at(
+            return Err(self.unexpected(
                 path,
-                format!(
-                    "a stage must be a mapping with keys {}, found {}",
-                    STAGE_KEYS.join(", "),
-                    type_name(value)
+                &format!(
+                    "a stage must be a mapping with keys {}",
+                    STAGE_KEYS.join(", ")
                 ),
+                value,
             ));
         };
         self.check_stage_keys(map, path)?;
@@ -560,13 +559,7 @@ impl Loader<'_> {
                 &at_name,
                 format!("stage name \"{name}\" must be non-empty and use only ASCII letters, digits, '_' and '-'"),
             )),
-            Some(other) => Err(self.at(
-                &at_name,
-                format!(
-                    "key \"name\": expected a string, found {}",
-                    type_name(other)
-                ),
-            )),
+            Some(other) => Err(self.unexpected(&at_name, "key \"name\": expected a string", other)),
             None => Err(self.at(path, "stage without a \"name\"".to_string())),
         }
     }
@@ -582,12 +575,10 @@ impl Loader<'_> {
         let kind = match map.get("kind") {
             Some(serde_json::Value::String(kind)) => kind.clone(),
             Some(other) => {
-                return Err(self.at(
+                return Err(self.unexpected(
                     &at_kind,
-                    format!(
-                        "stage \"{name}\": key \"kind\": expected a string, found {}",
-                        type_name(other)
-                    ),
+                    &format!("stage \"{name}\": key \"kind\": expected a string"),
+                    other,
                 ));
             }
             None => {
@@ -618,12 +609,10 @@ impl Loader<'_> {
             Some(serde_json::Value::String(single)) => return Ok(vec![single.clone()]),
             Some(serde_json::Value::Array(items)) => items,
             Some(other) => {
-                return Err(self.at(
+                return Err(self.unexpected(
                     &[path, &[key("inputs")]].concat(),
-                    format!(
-                        "stage \"{name}\": key \"inputs\": expected a list of stage names, found {}",
-                        type_name(other)
-                    ),
+                    &format!("stage \"{name}\": key \"inputs\": expected a list of stage names"),
+                    other,
                 ));
             }
         };
@@ -641,12 +630,10 @@ impl Loader<'_> {
                     inputs.push(input.clone())
                 }
                 other => {
-                    return Err(self.at(
+                    return Err(self.unexpected(
                         &at_item,
-                        format!(
-                            "stage \"{name}\": key \"inputs\": expected stage names, found {}",
-                            type_name(other)
-                        ),
+                        &format!("stage \"{name}\": key \"inputs\": expected stage names"),
+                        other,
                     ));
                 }
             }
@@ -666,12 +653,10 @@ impl Loader<'_> {
                 Ok(serde_json::Value::Object(serde_json::Map::new()))
             }
             Some(config @ serde_json::Value::Object(_)) => Ok(config.clone()),
-            Some(other) => Err(self.at(
+            Some(other) => Err(self.unexpected(
                 &[path, &[key("config")]].concat(),
-                format!(
-                    "stage \"{name}\": key \"config\": expected a mapping, found {}",
-                    type_name(other)
-                ),
+                &format!("stage \"{name}\": key \"config\": expected a mapping"),
+                other,
             )),
         }
     }

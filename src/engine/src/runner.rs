@@ -623,9 +623,7 @@ impl Run<'_> {
             stage_key,
             ..
         } = *job;
-        let resumed = std::fs::read_dir(&staging.work_dir)
-            .map(|mut read| read.next().is_some())
-            .unwrap_or(false);
+        let resumed = self.store.has_resumable_work(&job.id);
         let spinner = self.progress.spinner(format!(
             "{} ({}, {})",
             stage.name,

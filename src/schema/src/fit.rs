@@ -40,11 +40,9 @@ impl BodySequence {
     /// ingest or fit entry with the ingest stage's reader, and checks every value is finite.
     pub fn read(entry: &EntryReader, prefix: &str) -> anyhow::Result<Self> {
         let params = read_body_params(entry, prefix)?;
-        let sequence = Self::from_params(&params)
-            .map_err(|message| anyhow::anyhow!("entry {}: {message}", entry.location()))?;
-        sequence
-            .check_finite(prefix)
-            .map_err(|message| anyhow::anyhow!("entry {}: {message}", entry.location()))?;
+        let in_entry = |message: String| anyhow::anyhow!("entry {}: {message}", entry.location());
+        let sequence = Self::from_params(&params).map_err(in_entry)?;
+        sequence.check_finite(prefix).map_err(in_entry)?;
         Ok(sequence)
     }
 
@@ -54,12 +52,12 @@ impl BodySequence {
     }
 }
 
-/// Writes the 1-D f64 array `name` along `dimension`.
-fn write_vector(
+/// Writes the 1-D array `name` along `dimension`.
+fn write_vector<T: seqavatar_engine::Element>(
     out: &EntryWriter,
     name: &str,
     dimension: &str,
-    values: &[f64],
+    values: &[T],
 ) -> anyhow::Result<()> {
     let length = values.len() as u64;
     out.write_array(
@@ -164,15 +162,8 @@ pub struct TrackVerdicts(pub Vec<TrackVerdict>);
 
 impl TrackVerdicts {
     pub fn write(&self, out: &EntryWriter) -> anyhow::Result<()> {
-        let tracks = self.0.len() as u64;
         let kept: Vec<u8> = self.0.iter().map(|v| u8::from(v.kept_input)).collect();
-        out.write_array(
-            "track_kept_input",
-            &["track"],
-            &[tracks],
-            &[tracks.max(1)],
-            &kept,
-        )?;
+        write_vector(out, "track_kept_input", "track", &kept)?;
         let iou: Vec<f64> = self.0.iter().map(|v| v.iou_change).collect();
         write_vector(out, "track_iou_change", "track", &iou)?;
         let keypoint: Vec<f64> = self.0.iter().map(|v| v.keypoint_change).collect();

@@ -159,9 +159,7 @@ pub fn write_frame_interval(out: &EntryWriter, interval: usize) -> anyhow::Resul
 /// the entry.
 pub fn read_frame_interval(entry: &EntryReader) -> anyhow::Result<u32> {
     let location = entry.location();
-    let value = entry.attribute("frame_interval").ok_or_else(|| {
-        anyhow::anyhow!("entry {location}: attribute `frame_interval` is missing")
-    })?;
+    let value = crate::attribute(entry, "frame_interval")?;
     value
         .as_u64()
         .filter(|&v| v >= 1 && v <= u64::from(u32::MAX))
@@ -259,14 +257,13 @@ pub fn copy_cameras(
         let chunk: Vec<u64> = shape.iter().map(|&x| x.max(1)).collect();
         out.write_array(name, dims, &shape, &chunk, &a.data)
     }
-    let names = ingest.array_names();
     for (name, dims) in [
         ("camera_K", &["view", "row", "col"][..]),
         ("camera_R", &["view", "row", "col"][..]),
         ("camera_t", &["view", "xyz"][..]),
         ("camera_image_size", &["view", "hw"][..]),
     ] {
-        if only_present && !names.iter().any(|n| n == name) {
+        if only_present && !crate::has_array(ingest, name) {
             continue;
         }
         if name == "camera_image_size" {
@@ -577,8 +574,7 @@ pub fn write_keypoints_3d(
 /// Reads the arrays written by [`write_keypoints_3d`]; `None` when the entry has none.
 /// Errors name the entry and the array or attribute.
 pub fn read_keypoints_3d(entry: &EntryReader) -> anyhow::Result<Option<Keypoints3d>> {
-    let names = entry.array_names();
-    if !names.iter().any(|n| n == "keypoints_3d") {
+    if !crate::has_array(entry, "keypoints_3d") {
         return Ok(None);
     }
     let location = entry.location();
@@ -725,7 +721,7 @@ pub fn read_body_params(entry: &EntryReader, prefix: &str) -> anyhow::Result<Vec
     }
     let optional = |name: &str| -> anyhow::Result<(usize, Vec<f64>)> {
         let full = format!("{prefix}_{name}");
-        if !entry.array_names().contains(&full) {
+        if !crate::has_array(entry, &full) {
             return Ok((0, Vec::new()));
         }
         let array = entry.read::<f64>(&full)?;
@@ -819,8 +815,7 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
 
 /// Reads the body model written by [`write_body_model`] and validates it.
 pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
-    let names = entry.array_names();
-    let has = |name: &str| names.iter().any(|n| n == name);
+    let has = |name: &str| crate::has_array(entry, name);
     let template = entry.read::<f64>("body_model_template")?;
     anyhow::ensure!(
         template.shape.len() == 2 && template.shape[1] == 3,
@@ -893,9 +888,8 @@ pub const GARMENT_REGION_ATTRIBUTE: &str = "garment_region";
 /// shape other than that of `masks` is an error naming the entry.
 pub fn read_garment_region(entry: &EntryReader) -> anyhow::Result<Option<GarmentRegion>> {
     let location = entry.location();
-    let has_array = entry.array_names().iter().any(|n| n == GARMENT_MASKS);
     let attribute = entry.attribute(GARMENT_REGION_ATTRIBUTE);
-    let region = match (has_array, attribute) {
+    let region = match (crate::has_array(entry, GARMENT_MASKS), attribute) {
         (false, None) => return Ok(None),
         (true, Some(value)) => serde_json::from_value::<GarmentRegion>(value.clone()).map_err(|_| {
             anyhow::anyhow!(
@@ -989,8 +983,7 @@ pub fn write_garment_history(
 /// Reads the arrays of [`write_garment_history`]; `None` when the entry has none (only the
 /// synthetic history scene writes them). Errors name the entry and the array.
 pub fn read_garment_history(entry: &EntryReader) -> anyhow::Result<Option<GarmentHistoryArrays>> {
-    let names = entry.array_names();
-    if !names.iter().any(|n| n == "history_frame") {
+    if !crate::has_array(entry, "history_frame") {
         return Ok(None);
     }
     let location = entry.location();

@@ -18,8 +18,27 @@ pub mod ingest;
 pub mod motion;
 pub mod train;
 
-fn has_array(entry: &seqavatar_engine::EntryReader, name: &str) -> bool {
+use seqavatar_engine::EntryReader;
+
+fn has_array(entry: &EntryReader, name: &str) -> bool {
     entry.array_names().iter().any(|n| n == name)
+}
+
+/// The entry's attribute `key`; an error naming the entry and the attribute when it is missing.
+fn attribute(entry: &EntryReader, key: &str) -> anyhow::Result<serde_json::Value> {
+    entry
+        .attribute(key)
+        .ok_or_else(|| anyhow::anyhow!("entry {}: attribute `{key}` is missing", entry.location()))
+}
+
+/// The entry's attribute `key` as a count; errors name the entry and the attribute.
+fn count_attribute(entry: &EntryReader, key: &str) -> anyhow::Result<u64> {
+    attribute(entry, key)?.as_u64().ok_or_else(|| {
+        anyhow::anyhow!(
+            "entry {}: attribute `{key}` is not a count",
+            entry.location()
+        )
+    })
 }
 
 #[cfg(test)]

@@ -334,20 +334,7 @@ impl FrameAxis {
     /// The frame axis of an ingest entry (attributes `past_frames`, `frame_interval`,
     /// `first_frame_index`); errors name the entry and the attribute.
     pub fn of_ingest(ingest: &EntryReader) -> anyhow::Result<Self> {
-        let count = |key: &str| -> anyhow::Result<u64> {
-            ingest
-                .attribute(key)
-                .ok_or_else(|| {
-                    anyhow::anyhow!("entry {}: attribute `{key}` is missing", ingest.location())
-                })?
-                .as_u64()
-                .ok_or_else(|| {
-                    anyhow::anyhow!(
-                        "entry {}: attribute `{key}` is not a count",
-                        ingest.location()
-                    )
-                })
-        };
+        let count = |key: &str| crate::count_attribute(ingest, key);
         let interval = count("frame_interval")?;
         anyhow::ensure!(
             interval >= 1,
@@ -363,17 +350,12 @@ impl FrameAxis {
     /// The frame axis stored in a motion entry (attributes `past_frames`, `starts_recording`).
     pub fn of_motion(entry: &EntryReader) -> anyhow::Result<Self> {
         let location = entry.location();
-        let attribute = |key: &str| {
-            entry
-                .attribute(key)
-                .ok_or_else(|| anyhow::anyhow!("entry {location}: attribute `{key}` is missing"))
-        };
-        let past_frames = attribute("past_frames")?.as_u64().ok_or_else(|| {
-            anyhow::anyhow!("entry {location}: attribute `past_frames` is not a count")
-        })?;
-        let starts_recording = attribute("starts_recording")?.as_bool().ok_or_else(|| {
-            anyhow::anyhow!("entry {location}: attribute `starts_recording` is not a boolean")
-        })?;
+        let past_frames = crate::count_attribute(entry, "past_frames")?;
+        let starts_recording = crate::attribute(entry, "starts_recording")?
+            .as_bool()
+            .ok_or_else(|| {
+                anyhow::anyhow!("entry {location}: attribute `starts_recording` is not a boolean")
+            })?;
         Ok(Self {
             past_frames: usize::try_from(past_frames)?,
             starts_recording,
@@ -469,8 +451,7 @@ pub fn write_entry(
         &[v, k],
         &graph.distances,
     )?;
-    let names = ingest.array_names();
-    if names.iter().any(|n| n == "frame_source_id") {
+    if crate::has_array(ingest, "frame_source_id") {
         let ids = ingest.read::<i64>("frame_source_id")?;
         anyhow::ensure!(
             ids.len() as u64 == f,
@@ -517,9 +498,8 @@ pub fn read_input_scales(
     let velocity: VelocityNormalisation = serde_json::from_value(velocity)
         .with_context(|| format!("motion entry {location}: attribute `velocity`"))?;
     let n = entry.read::<u32>("scales")?.data.len();
-    let names = entry.array_names();
     let read = |name: &str| -> anyhow::Result<Vec<f64>> {
-        if !names.iter().any(|a| a == name) {
+        if !crate::has_array(entry, name) {
             return Ok(vec![1.0; n]);
         }
         let values = entry.read::<f64>(name)?.data;
@@ -550,7 +530,7 @@ fn unit_rms_factor(rms: f64) -> f64 {
 
 /// Whether the motion entry holds the garment oracle ([`write_garment_oracle`]).
 pub fn has_garment_oracle(entry: &EntryReader) -> bool {
-    entry.array_names().iter().any(|n| n == "garment_oracle")
+    crate::has_array(entry, "garment_oracle")
 }
 
 /// Writes the garment oracle: `garment_oracle` f32 `(frame, scale, row, xyz)`, the ingest

@@ -40,13 +40,25 @@ fn image_layout(shape: &[u64], color_channels: &[u64]) -> Option<ImageLayout> {
     None
 }
 
-/// Reads the picture number `index` (row-major over the leading dimensions) as `f64`.
+/// The layout, size and values (as `f64`) of the picture `--opt index` (row-major over the
+/// leading dimensions) of the image-like array `name`, whose last axis may hold
+/// `color_channels` channels.
 fn read_picture(
     entry: &EntryReader,
     name: &str,
-    layout: &ImageLayout,
-    index: u64,
-) -> anyhow::Result<Vec<f64>> {
+    options: &PictureOptions,
+    color_channels: &[u64],
+) -> anyhow::Result<(ImageLayout, (u32, u32), Vec<f64>)> {
+    let full_shape = entry.shape(name)?;
+    let layout = image_layout(&full_shape, color_channels).ok_or_else(|| {
+        let channels: Vec<String> = color_channels.iter().map(u64::to_string).collect();
+        anyhow::anyhow!(
+            "array \"{name}\" of shape {full_shape:?} is not image-like; expected (..., H, W) or (..., H, W, {})",
+            channels.join("|")
+        )
+    })?;
+    let size = checked_dimensions(name, &layout)?;
+    let index = options.get_u64("index", 0)?;
     let count: u64 = layout.leading.iter().product();
     anyhow::ensure!(
         index < count,
@@ -62,12 +74,12 @@ fn read_picture(
     let mut shape = vec![1u64; layout.leading.len()];
     start.extend([0, 0]);
     shape.extend([layout.height, layout.width]);
-    let full_shape = entry.shape(name)?;
     if full_shape.len() == shape.len() + 1 {
         start.push(0);
         shape.push(layout.channels);
     }
-    entry.read_region_f64(name, &start, &shape)
+    let values = entry.read_region_f64(name, &start, &shape)?;
+    Ok((layout, size, values))
 }
 
 fn checked_dimensions(name: &str, layout: &ImageLayout) -> anyhow::Result<(u32, u32)> {
@@ -94,14 +106,7 @@ pub(crate) fn array_png(
     name: &str,
     options: &PictureOptions,
 ) -> anyhow::Result<image::RgbImage> {
-    let shape = entry.shape(name)?;
-    let layout = image_layout(&shape, &[3]).ok_or_else(|| {
-        anyhow::anyhow!(
-            "array \"{name}\" of shape {shape:?} is not image-like; expected (..., H, W) or (..., H, W, 3)"
-        )
-    })?;
-    let (width, height) = checked_dimensions(name, &layout)?;
-    let values = read_picture(entry, name, &layout, options.get_u64("index", 0)?)?;
+    let (layout, (width, height), values) = read_picture(entry, name, options, &[3])?;
     let is_bytes = entry.dtype(name)? == "uint8";
     let finite = values.iter().copied().filter(|value| value.is_finite());
     let data_min = finite.clone().fold(f64::INFINITY, f64::min);
@@ -149,14 +154,7 @@ pub(crate) fn array_exr(
     out: &Path,
 ) -> anyhow::Result<(u32, u32, u64)> {
     use exr::prelude::*;
-    let shape = entry.shape(name)?;
-    let layout = image_layout(&shape, &[1, 3, 4]).ok_or_else(|| {
-        anyhow::anyhow!(
-            "array \"{name}\" of shape {shape:?} is not image-like; expected (..., H, W) or (..., H, W, 1|3|4)"
-        )
-    })?;
-    let (width, height) = checked_dimensions(name, &layout)?;
-    let values = read_picture(entry, name, &layout, options.get_u64("index", 0)?)?;
+    let (layout, (width, height), values) = read_picture(entry, name, options, &[1, 3, 4])?;
     let channel_names: &[&str] = match layout.channels {
         1 => &["Y"],
         3 => &["R", "G", "B"],

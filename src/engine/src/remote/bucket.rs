@@ -323,23 +323,32 @@ impl Bucket {
         let objects = self.list_tree(relative)?;
         let bytes = objects.iter().map(|object| object.size).sum();
         let relative = relative.trim_matches('/');
-        self.runtime.block_on(async {
-            futures_util::stream::iter(objects.iter().map(|object| {
-                let name = format!("{relative}/{}", object.name);
-                let path = self.path(&name);
-                async move {
-                    match self.store.delete(&path).await {
-                        Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
-                        Err(error) => Err(anyhow::Error::new(error)
-                            .context(format!("cannot delete {}", self.describe(&name)))),
-                    }
+        self.concurrently(objects.iter().map(|object| {
+            let name = format!("{relative}/{}", object.name);
+            let path = self.path(&name);
+            async move {
+                match self.store.delete(&path).await {
+                    Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(0),
+                    Err(error) => Err(anyhow::Error::new(error)
+                        .context(format!("cannot delete {}", self.describe(&name)))),
                 }
-            }))
-            .buffer_unordered(TRANSFER_CONCURRENCY)
-            .try_collect::<Vec<()>>()
-            .await
-        })?;
+            }
+        }))?;
         Ok(bytes)
+    }
+
+    /// Runs `transfers` ([`TRANSFER_CONCURRENCY`] at a time) until one fails; returns the sum
+    /// of the byte counts they return.
+    fn concurrently(
+        &self,
+        transfers: impl Iterator<Item = impl Future<Output = anyhow::Result<u64>>>,
+    ) -> anyhow::Result<u64> {
+        let sizes = self.runtime.block_on(
+            futures_util::stream::iter(transfers)
+                .buffer_unordered(TRANSFER_CONCURRENCY)
+                .try_collect::<Vec<u64>>(),
+        )?;
+        Ok(sizes.iter().sum())
     }
 
     /// Uploads the files `names` (relative paths with `/`) of the local folder `source` to
@@ -351,26 +360,20 @@ impl Bucket {
         relative: &str,
     ) -> anyhow::Result<u64> {
         let relative = relative.trim_matches('/');
-        let sizes = self.runtime.block_on(async {
-            futures_util::stream::iter(names.iter().map(|name| {
-                let file = source.join(name);
-                let target = format!("{relative}/{name}");
-                async move {
-                    let bytes = crate::files::read_regular_file(&file)?;
-                    let size = bytes.len() as u64;
-                    let path = self.path(&target);
-                    self.store
-                        .put(&path, PutPayload::from(bytes))
-                        .await
-                        .with_context(|| format!("cannot upload {}", self.describe(&target)))?;
-                    Ok::<u64, anyhow::Error>(size)
-                }
-            }))
-            .buffer_unordered(TRANSFER_CONCURRENCY)
-            .try_collect::<Vec<u64>>()
-            .await
-        })?;
-        Ok(sizes.iter().sum())
+        self.concurrently(names.iter().map(|name| {
+            let file = source.join(name);
+            let target = format!("{relative}/{name}");
+            async move {
+                let bytes = crate::files::read_regular_file(&file)?;
+                let size = bytes.len() as u64;
+                let path = self.path(&target);
+                self.store
+                    .put(&path, PutPayload::from(bytes))
+                    .await
+                    .with_context(|| format!("cannot upload {}", self.describe(&target)))?;
+                Ok::<u64, anyhow::Error>(size)
+            }
+        }))
     }
 
     /// Downloads the objects `names` of folder `relative` into the local folder `target`
@@ -382,29 +385,23 @@ impl Bucket {
         target: &Path,
     ) -> anyhow::Result<u64> {
         let relative = relative.trim_matches('/');
-        let sizes = self.runtime.block_on(async {
-            futures_util::stream::iter(names.iter().map(|name| {
-                let file = target.join(name);
-                let source = format!("{relative}/{name}");
-                async move {
-                    let path = self.path(&source);
-                    let bytes = async { self.store.get(&path).await?.bytes().await }
-                        .await
-                        .with_context(|| format!("cannot download {}", self.describe(&source)))?;
-                    if let Some(parent) = file.parent() {
-                        std::fs::create_dir_all(parent)
-                            .with_context(|| format!("cannot create {}", parent.display()))?;
-                    }
-                    std::fs::write(&file, &bytes)
-                        .with_context(|| format!("cannot write {}", file.display()))?;
-                    Ok::<u64, anyhow::Error>(bytes.len() as u64)
+        self.concurrently(names.iter().map(|name| {
+            let file = target.join(name);
+            let source = format!("{relative}/{name}");
+            async move {
+                let path = self.path(&source);
+                let bytes = async { self.store.get(&path).await?.bytes().await }
+                    .await
+                    .with_context(|| format!("cannot download {}", self.describe(&source)))?;
+                if let Some(parent) = file.parent() {
+                    std::fs::create_dir_all(parent)
+                        .with_context(|| format!("cannot create {}", parent.display()))?;
                 }
-            }))
-            .buffer_unordered(TRANSFER_CONCURRENCY)
-            .try_collect::<Vec<u64>>()
-            .await
-        })?;
-        Ok(sizes.iter().sum())
+                std::fs::write(&file, &bytes)
+                    .with_context(|| format!("cannot write {}", file.display()))?;
+                Ok::<u64, anyhow::Error>(bytes.len() as u64)
+            }
+        }))
     }
 }
 

@@ -391,17 +391,42 @@ impl RemoteStore {
         Ok(lines)
     }
 
-    /// Every entry with a remote completion marker.
-    fn remote_entries(&self) -> anyhow::Result<Vec<EntryId>> {
+    /// The lock of `id` made of its remote `lease` and `local` lock, recorded as held here.
+    fn held_lock(&self, id: &EntryId, lease: Lease, local: Box<dyn KeyLock>) -> Box<dyn KeyLock> {
+        self.held
+            .lock()
+            .expect("held set poisoned")
+            .insert(id.clone());
+        Box::new(RemoteLock {
+            id: id.clone(),
+            lease,
+            _local: local,
+            held: self.held.clone(),
+        })
+    }
+
+    /// Every `<kind>/<key>` folder of the bucket with valid names, published or not.
+    fn remote_folders(&self) -> anyhow::Result<Vec<EntryId>> {
         let mut ids = Vec::new();
         let (kinds, _) = self.bucket.list_folder("")?;
         for kind in kinds.into_iter().filter(|kind| !kind.starts_with('.')) {
             let (keys, _) = self.bucket.list_folder(&kind)?;
             for key in keys {
                 let id = EntryId::new(&kind, &key);
-                if Self::check_id(&id).is_ok() && self.bucket.head(&marker_object(&id))?.is_some() {
+                if Self::check_id(&id).is_ok() {
                     ids.push(id);
                 }
+            }
+        }
+        Ok(ids)
+    }
+
+    /// Every entry with a remote completion marker.
+    fn remote_entries(&self) -> anyhow::Result<Vec<EntryId>> {
+        let mut ids = Vec::new();
+        for id in self.remote_folders()? {
+            if self.bucket.head(&marker_object(&id))?.is_some() {
+                ids.push(id);
             }
         }
         Ok(ids)
@@ -412,31 +437,23 @@ impl RemoteStore {
     /// returns the bytes freed (or that would be, when `dry_run`).
     fn remove_remote_orphans(&self, dry_run: bool) -> anyhow::Result<u64> {
         let mut freed = 0;
-        let (kinds, _) = self.bucket.list_folder("")?;
-        for kind in kinds.into_iter().filter(|kind| !kind.starts_with('.')) {
-            let (keys, _) = self.bucket.list_folder(&kind)?;
-            for key in keys {
-                let id = EntryId::new(&kind, &key);
-                if Self::check_id(&id).is_err() {
-                    continue;
+        for id in self.remote_folders()? {
+            let kept = self.remote_marker(&id)?.map(|(marker, _)| marker.upload);
+            let mut orphans = BTreeSet::new();
+            for object in self.bucket.list_tree(&entry_folder(&id))? {
+                let upload = object.name.split('/').next().unwrap_or_default();
+                if object.name != COMPLETION_MARKER
+                    && Some(upload) != kept.as_deref()
+                    && upload_is_stale(upload)
+                {
+                    freed += object.size;
+                    orphans.insert(upload.to_string());
                 }
-                let kept = self.remote_marker(&id)?.map(|(marker, _)| marker.upload);
-                let mut orphans = BTreeSet::new();
-                for object in self.bucket.list_tree(&entry_folder(&id))? {
-                    let upload = object.name.split('/').next().unwrap_or_default();
-                    if object.name != COMPLETION_MARKER
-                        && Some(upload) != kept.as_deref()
-                        && upload_is_stale(upload)
-                    {
-                        freed += object.size;
-                        orphans.insert(upload.to_string());
-                    }
-                }
-                if !dry_run {
-                    for upload in orphans {
-                        self.bucket
-                            .delete_tree(&format!("{}/{upload}", entry_folder(&id)))?;
-                    }
+            }
+            if !dry_run {
+                for upload in orphans {
+                    self.bucket
+                        .delete_tree(&format!("{}/{upload}", entry_folder(&id)))?;
                 }
             }
         }
@@ -526,16 +543,7 @@ impl Store for RemoteStore {
                 self.settings.timeout.as_secs_f64()
             );
         }
-        self.held
-            .lock()
-            .expect("held set poisoned")
-            .insert(id.clone());
-        Ok(Box::new(RemoteLock {
-            id: id.clone(),
-            lease,
-            _local: local,
-            held: self.held.clone(),
-        }))
+        Ok(self.held_lock(id, lease, local))
     }
 
     fn try_lock(&self, id: &EntryId) -> anyhow::Result<Option<Box<dyn KeyLock>>> {
@@ -553,16 +561,7 @@ impl Store for RemoteStore {
         else {
             return Ok(None);
         };
-        self.held
-            .lock()
-            .expect("held set poisoned")
-            .insert(id.clone());
-        Ok(Some(Box::new(RemoteLock {
-            id: id.clone(),
-            lease,
-            _local: local,
-            held: self.held.clone(),
-        })))
+        Ok(Some(self.held_lock(id, lease, local)))
     }
 
     fn begin_staging(&self, lock: &dyn KeyLock) -> anyhow::Result<Staging> {
