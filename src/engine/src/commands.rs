@@ -245,7 +245,7 @@ pub fn inspect(
     let array = options.array.clone().or(target_array);
     if let Some(name) = &array {
         anyhow::ensure!(
-            entry.array_names().contains(name),
+            entry.has_array(name),
             "{}: no array \"{name}\" (arrays: {})",
             entry.location(),
             entry.array_names().join(", ")

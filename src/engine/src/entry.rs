@@ -553,6 +553,11 @@ impl EntryReader {
         self.manifest.arrays.keys().cloned().collect()
     }
 
+    /// Whether the entry holds the array `name`.
+    pub fn has_array(&self, name: &str) -> bool {
+        self.manifest.arrays.contains_key(name)
+    }
+
     fn open_array(
         &self,
         name: &str,

@@ -42,8 +42,6 @@ use std::path::Path;
 use anyhow::Context as _;
 use seqavatar_engine::{Element, EntryReader, EntryWriter};
 
-use crate::has_array;
-
 /// The kind name in pipeline files.
 pub const EVAL_KIND: &str = "eval";
 /// Entry attribute holding the sequence name, the means and the LPIPS availability.
@@ -119,7 +117,7 @@ impl ScoreColumns {
 
     fn read(entry: &EntryReader, names: [&str; 4], n: usize) -> anyhow::Result<Self> {
         let [psnr, ssim, vgg, alex] = names;
-        let optional = |name| match has_array(entry, name) {
+        let optional = |name| match entry.has_array(name) {
             true => read_column(entry, name, n).map(Some),
             false => Ok(None),
         };
@@ -161,7 +159,7 @@ impl PerImageScores {
 
     pub fn read(entry: &EntryReader) -> anyhow::Result<Self> {
         let n = entry.shape("image_index")?.iter().product::<u64>() as usize;
-        let garment = match has_array(entry, "garment_pixels") {
+        let garment = match entry.has_array("garment_pixels") {
             true => Some((
                 read_column(entry, "garment_pixels", n)?,
                 ScoreColumns::read(entry, GARMENT, n)?,

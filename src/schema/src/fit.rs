@@ -30,7 +30,6 @@
 //! metres per frame).
 
 use crate::body::BodySequence;
-use crate::has_array;
 use crate::ingest::{read_body_params, write_body_params};
 use seqavatar_core::body::BodyModel;
 use seqavatar_engine::{EntryReader, EntryWriter};
@@ -135,7 +134,7 @@ impl SilhouetteIou {
 
     /// `None` when the entry has no silhouette arrays (mode `off`, or no images).
     pub fn read(entry: &EntryReader) -> anyhow::Result<Option<Self>> {
-        if !has_array(entry, "silhouette_iou_before") {
+        if !entry.has_array("silhouette_iou_before") {
             return Ok(None);
         }
         let (before, after) = read_before_after(entry, "silhouette_iou")?;
@@ -172,7 +171,7 @@ impl TrackVerdicts {
 
     /// `None` when the entry has no verdicts (mode `off`).
     pub fn read(entry: &EntryReader) -> anyhow::Result<Option<Self>> {
-        if !has_array(entry, "track_kept_input") {
+        if !entry.has_array("track_kept_input") {
             return Ok(None);
         }
         let kept = read_vector::<u8>(entry, "track_kept_input")?;

@@ -263,7 +263,7 @@ pub fn copy_cameras(
         ("camera_t", &["view", "xyz"][..]),
         ("camera_image_size", &["view", "hw"][..]),
     ] {
-        if only_present && !crate::has_array(ingest, name) {
+        if only_present && !ingest.has_array(name) {
             continue;
         }
         if name == "camera_image_size" {
@@ -574,7 +574,7 @@ pub fn write_keypoints_3d(
 /// Reads the arrays written by [`write_keypoints_3d`]; `None` when the entry has none.
 /// Errors name the entry and the array or attribute.
 pub fn read_keypoints_3d(entry: &EntryReader) -> anyhow::Result<Option<Keypoints3d>> {
-    if !crate::has_array(entry, "keypoints_3d") {
+    if !entry.has_array("keypoints_3d") {
         return Ok(None);
     }
     let location = entry.location();
@@ -721,7 +721,7 @@ pub fn read_body_params(entry: &EntryReader, prefix: &str) -> anyhow::Result<Vec
     }
     let optional = |name: &str| -> anyhow::Result<(usize, Vec<f64>)> {
         let full = format!("{prefix}_{name}");
-        if !crate::has_array(entry, &full) {
+        if !entry.has_array(&full) {
             return Ok((0, Vec::new()));
         }
         let array = entry.read::<f64>(&full)?;
@@ -815,7 +815,7 @@ pub fn write_body_model(out: &EntryWriter, model: &BodyModel) -> anyhow::Result<
 
 /// Reads the body model written by [`write_body_model`] and validates it.
 pub fn read_body_model(entry: &EntryReader) -> anyhow::Result<BodyModel> {
-    let has = |name: &str| crate::has_array(entry, name);
+    let has = |name: &str| entry.has_array(name);
     let template = entry.read::<f64>("body_model_template")?;
     anyhow::ensure!(
         template.shape.len() == 2 && template.shape[1] == 3,
@@ -889,7 +889,7 @@ pub const GARMENT_REGION_ATTRIBUTE: &str = "garment_region";
 pub fn read_garment_region(entry: &EntryReader) -> anyhow::Result<Option<GarmentRegion>> {
     let location = entry.location();
     let attribute = entry.attribute(GARMENT_REGION_ATTRIBUTE);
-    let region = match (crate::has_array(entry, GARMENT_MASKS), attribute) {
+    let region = match (entry.has_array(GARMENT_MASKS), attribute) {
         (false, None) => return Ok(None),
         (true, Some(value)) => serde_json::from_value::<GarmentRegion>(value.clone()).map_err(|_| {
             anyhow::anyhow!(
@@ -983,7 +983,7 @@ pub fn write_garment_history(
 /// Reads the arrays of [`write_garment_history`]; `None` when the entry has none (only the
 /// synthetic history scene writes them). Errors name the entry and the array.
 pub fn read_garment_history(entry: &EntryReader) -> anyhow::Result<Option<GarmentHistoryArrays>> {
-    if !crate::has_array(entry, "history_frame") {
+    if !entry.has_array("history_frame") {
         return Ok(None);
     }
     let location = entry.location();

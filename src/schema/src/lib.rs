@@ -20,10 +20,6 @@ pub mod train;
 
 use seqavatar_engine::EntryReader;
 
-fn has_array(entry: &EntryReader, name: &str) -> bool {
-    entry.array_names().iter().any(|n| n == name)
-}
-
 /// The entry's attribute `key`; an error naming the entry and the attribute when it is missing.
 fn attribute(entry: &EntryReader, key: &str) -> anyhow::Result<serde_json::Value> {
     entry

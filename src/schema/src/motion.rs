@@ -451,7 +451,7 @@ pub fn write_entry(
         &[v, k],
         &graph.distances,
     )?;
-    if crate::has_array(ingest, "frame_source_id") {
+    if ingest.has_array("frame_source_id") {
         let ids = ingest.read::<i64>("frame_source_id")?;
         anyhow::ensure!(
             ids.len() as u64 == f,
@@ -499,7 +499,7 @@ pub fn read_input_scales(
         .with_context(|| format!("motion entry {location}: attribute `velocity`"))?;
     let n = entry.read::<u32>("scales")?.data.len();
     let read = |name: &str| -> anyhow::Result<Vec<f64>> {
-        if !crate::has_array(entry, name) {
+        if !entry.has_array(name) {
             return Ok(vec![1.0; n]);
         }
         let values = entry.read::<f64>(name)?.data;
@@ -530,7 +530,7 @@ fn unit_rms_factor(rms: f64) -> f64 {
 
 /// Whether the motion entry holds the garment oracle ([`write_garment_oracle`]).
 pub fn has_garment_oracle(entry: &EntryReader) -> bool {
-    crate::has_array(entry, "garment_oracle")
+    entry.has_array("garment_oracle")
 }
 
 /// Writes the garment oracle: `garment_oracle` f32 `(frame, scale, row, xyz)`, the ingest

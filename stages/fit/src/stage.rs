@@ -386,7 +386,7 @@ impl StageKind for FitStage {
         out.set_attribute("mean_jitter_after", ma.into())?;
         ctx.log(&format!("mean joint jitter {mb:.3e} -> {ma:.3e} m/frame^2"));
 
-        if ingest.array_names().iter().any(|n| n == "gt_body_pose") {
+        if ingest.has_array("gt_body_pose") {
             let truth = BodySequence::read(&ingest, "gt_body")?;
             anyhow::ensure!(
                 truth.num_frames == f && truth.num_joints == j,
